@@ -1,0 +1,44 @@
+"""Data-quality bit flags, one uint32 plane per frame (JWST-style).
+
+Flag, never delete: a flagged pixel keeps a finite value and gains a bit here.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import numpy as np
+
+DQ_DTYPE = np.uint32
+
+
+class DQ(enum.IntFlag):
+    """Named data-quality bits."""
+
+    GOOD = 0
+    DO_NOT_USE = 1 << 0
+    SATURATED = 1 << 1  # at full scale (ADC clip) or full well
+    LEAKAGE = 1 << 2  # leakage percentage alpha over threshold
+    DEAD = 1 << 3
+    HOT = 1 << 4
+    NO_FLAT = 1 << 5
+    NONFINITE = 1 << 6  # input was NaN or inf
+    BELOW_DARK = 1 << 7  # response below what zero light can give
+    UNREACHABLE = 1 << 8  # no light rate explains the response
+    NOT_CONVERGED = 1 << 9
+
+
+def empty_dq(shape) -> np.ndarray:
+    """A DQ plane of the given shape with every pixel GOOD."""
+    return np.zeros(shape, dtype=DQ_DTYPE)
+
+
+def describe(value: int) -> list[str]:
+    """Names of the bits set in ``value``.
+
+    Examples
+    --------
+    >>> describe(DQ.SATURATED | DQ.LEAKAGE)
+    ['SATURATED', 'LEAKAGE']
+    """
+    return [f.name for f in DQ if f and (int(value) & int(f)) == int(f)]

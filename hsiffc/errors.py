@@ -1,0 +1,29 @@
+"""Exceptions and warnings raised by hsiffc.
+
+Every error names the file or argument at fault, what was expected, what was found and what to do.
+"""
+
+from __future__ import annotations
+
+
+class HsiffcError(Exception):
+    """Base class of every error hsiffc raises on purpose."""
+
+
+class DataFormatError(HsiffcError, ValueError):
+    """A file or array does not have the layout or metadata hsiffc needs.
+
+    The message names the file (when there is one) and the problem.
+    """
+
+    def __init__(self, message: str, *, path: object | None = None):
+        self.path = None if path is None else str(path)
+        super().__init__(f"{self.path}: {message}" if self.path else message)
+
+
+class CalibrationMismatchError(HsiffcError, ValueError):
+    """A calibration product does not fit the data it is applied to."""
+
+
+class HsiffcWarning(UserWarning):
+    """Base class of hsiffc warnings (a library never prints; it warns)."""

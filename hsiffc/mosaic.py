@@ -1,0 +1,101 @@
+"""Snapshot-mosaic layouts: which band each pixel of the raw frame sees."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Mosaic:
+    """A repeating filter pattern of ``pattern.shape`` pixels.
+
+    Parameters
+    ----------
+    pattern : (ph, pw) int array
+        Band index (0-based) seen by each position of the repeating tile.
+    wavelengths_nm : sequence of float, optional
+        Centre wavelength of each band, in band-index order.
+    offset : (row, col)
+        Position of the tile origin on the sensor (IMEC filter areas start at an offset).
+
+    Examples
+    --------
+    >>> m = Mosaic.square(4)
+    >>> m.n_bands, m.tile_shape
+    (16, (4, 4))
+    >>> m.band_map((4, 8))[1, 5]
+    5
+    """
+
+    pattern: np.ndarray
+    wavelengths_nm: tuple[float, ...] | None = None
+    offset: tuple[int, int] = (0, 0)
+    name: str = field(default="", compare=False)
+
+    def __post_init__(self):
+        p = np.asarray(self.pattern)
+        if p.ndim != 2 or p.size == 0 or not np.issubdtype(p.dtype, np.integer):
+            raise ValueError(
+                f"pattern must be a non-empty 2-D integer array of band indices, got {p!r}")
+        bands = np.unique(p)
+        if bands.min() < 0 or not np.array_equal(bands, np.arange(bands.max() + 1)):
+            raise ValueError(
+                f"pattern must use every band index 0..n_bands-1 at least once, got {sorted(bands)}")
+        object.__setattr__(self, "pattern", p.astype(np.int64))
+        if self.wavelengths_nm is not None:
+            wl = tuple(float(w) for w in self.wavelengths_nm)
+            if len(wl) != self.n_bands:
+                raise ValueError(
+                    f"wavelengths_nm has {len(wl)} entries but the pattern has {self.n_bands} bands")
+            object.__setattr__(self, "wavelengths_nm", wl)
+        object.__setattr__(self, "offset", (int(self.offset[0]), int(self.offset[1])))
+
+    # -- constructors --------------------------------------------------------------------------
+    @classmethod
+    def square(cls, n: int, wavelengths_nm=None, name: str = "") -> "Mosaic":
+        """An n x n tile with bands 0..n*n-1 in row-major order (IMEC 4x4, 5x5 sensors)."""
+        if int(n) < 1:
+            raise ValueError(f"n must be >= 1, got {n}")
+        n = int(n)
+        return cls(np.arange(n * n).reshape(n, n), wavelengths_nm, name=name or f"{n}x{n}")
+
+    @classmethod
+    def rectangular(cls, rows: int, cols: int, wavelengths_nm=None, name: str = "") -> "Mosaic":
+        """A rows x cols tile with one band per position, row-major."""
+        return cls(np.arange(rows * cols).reshape(rows, cols), wavelengths_nm,
+                   name=name or f"{rows}x{cols}")
+
+    # -- properties ----------------------------------------------------------------------------
+    @property
+    def n_bands(self) -> int:
+        return int(self.pattern.max()) + 1
+
+    @property
+    def tile_shape(self) -> tuple[int, int]:
+        return tuple(int(s) for s in self.pattern.shape)
+
+    def band_map(self, shape) -> np.ndarray:
+        """Band index of every pixel of a frame of ``shape`` (H, W)."""
+        h, w = int(shape[0]), int(shape[1])
+        ph, pw = self.tile_shape
+        rows = (np.arange(h) - self.offset[0]) % ph
+        cols = (np.arange(w) - self.offset[1]) % pw
+        return self.pattern[rows[:, None], cols[None, :]]
+
+    def to_dict(self) -> dict:
+        return {
+            "pattern": self.pattern.tolist(),
+            "wavelengths_nm": None if self.wavelengths_nm is None else list(self.wavelengths_nm),
+            "offset": list(self.offset),
+            "name": self.name,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Mosaic":
+        try:
+            return cls(np.asarray(d["pattern"], dtype=np.int64), d.get("wavelengths_nm"),
+                       tuple(d.get("offset", (0, 0))), name=d.get("name", ""))
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"mosaic description {d!r} is missing 'pattern': {exc}") from exc
