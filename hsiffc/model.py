@@ -1,0 +1,382 @@
+"""The leakage model of a low-light CMOS pixel (Liu et al., section III), vectorised.
+
+A pixel's raw response Y (DN) grows with the light rate k (DN/ms) and loses charge through the
+transfer transistor's sub-threshold leakage, which grows exponentially with the collected signal::
+
+    dY/dt = k - a * exp(b * Y)                                   (paper eq. 2)
+
+Units used throughout: exposure ``t_ms`` in milliseconds, ``k`` and ``a`` in DN/ms, ``b`` in 1/DN,
+responses and dark levels in raw DN. Every function broadcasts over arrays of any shape.
+
+Numerically stable closed form
+------------------------------
+With ``z = exp(-b Y)`` the ODE is linear, ``dz/dt = a b - b k z``, so from the level ``Y0`` at
+``t = 0`` (the dark level)::
+
+    exp(-b Y(t)) = exp(-b Y0 - x) + a b t * phi(x),   x = b k t,   phi(x) = (1 - exp(-x)) / x
+
+Both terms are positive for every k >= 0, so the log is taken with ``logaddexp`` and nothing
+overflows: the form stays finite for b k t up to 1e4 and beyond, for a/k from 0 to 1e3 and more,
+for k = 0 (pure leakage) and for starting levels above the dynamic saturation level. The paper's
+eq. (3) with its integration constant c is the same curve: ``c_from_dark`` / ``dark_from_c``
+convert between the two.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .dq import DQ, DQ_DTYPE
+
+_U32 = DQ_DTYPE
+
+__all__ = [
+    "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
+    "dynamic_saturation_level", "leakage_rate", "leakage_percentage",
+    "leakage_percentage_paper", "exposure_at_leakage_percentage", "invert_response",
+    "Inversion", "solve_ode",
+]
+
+
+def _f64(*arrays):
+    return [np.asarray(a, dtype=np.float64) for a in arrays]
+
+
+def _log(x):
+    """log that maps 0 to -inf without a warning."""
+    with np.errstate(divide="ignore"):
+        return np.log(x)
+
+
+def _log1mexp(x):
+    """log(1 - exp(-x)) for x >= 0, accurate everywhere (Maechler 2012)."""
+    x = np.asarray(x, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        small = x < np.log(2.0)
+        return np.where(small, np.log(-np.expm1(-np.where(small, x, 1.0))),
+                        np.log1p(-np.exp(-np.where(small, 1.0, x))))
+
+
+def _log_phi(x):
+    """log((1 - exp(-x)) / x) for x >= 0, with the limit 0 at x = 0."""
+    x = np.asarray(x, dtype=np.float64)
+    tiny = x < 1e-8
+    safe = np.where(tiny, 1.0, x)
+    with np.errstate(divide="ignore"):
+        return np.where(tiny, -0.5 * x, _log1mexp(safe) - np.log(safe))
+
+
+def _check_positive_b(b):
+    if np.any(np.asarray(b) <= 0):
+        raise ValueError("b (1/DN) must be > 0: the leakage grows with the collected signal")
+
+
+def _neg_b_y(t_ms, k, a, b, dark):
+    """-b*Y(t) of the model, computed in the log domain."""
+    x = b * k * t_ms
+    with np.errstate(divide="ignore", invalid="ignore"):
+        leak = _log(a) + np.log(b) + _log(t_ms) + _log_phi(x)
+    return np.logaddexp(-b * dark - x, leak)
+
+
+def _response(t_ms, k, a, b, dark):
+    """Model response without argument checks (internal, float64 inputs)."""
+    return -_neg_b_y(t_ms, k, a, b, dark) / b
+
+
+def response(t_ms, k, a, b, dark):
+    """Response of the leakage model after ``t_ms`` from the level ``dark`` at t = 0.
+
+    Parameters
+    ----------
+    t_ms : array_like, ms
+        Exposure time (>= 0).
+    k : array_like, DN/ms
+        Light rate (>= 0).
+    a : array_like, DN/ms
+        Leakage amplitude (>= 0; 0 gives the linear response of eq. 1).
+    b : array_like, 1/DN
+        Leakage exponent (> 0).
+    dark : array_like, DN
+        Response at t = 0 (the dark level).
+
+    Returns
+    -------
+    ndarray of float64, DN
+
+    Examples
+    --------
+    >>> round(float(response(10.0, 2.0, 0.0, 0.01, 50.0)), 6)   # a = 0: linear
+    70.0
+    >>> y = response(1e4, 2.0, 2 * np.exp(-8.0), 0.01, 50.0)      # long exposure: saturated
+    >>> round(float(y), 3), round(float(dynamic_saturation_level(2.0, 2 * np.exp(-8.0), 0.01)), 3)
+    (800.0, 800.0)
+    """
+    t_ms, k, a, b, dark = _f64(t_ms, k, a, b, dark)
+    _check_positive_b(b)
+    if np.any(t_ms < 0) or np.any(k < 0) or np.any(a < 0):
+        raise ValueError("t_ms, k and a must be >= 0")
+    return -_neg_b_y(t_ms, k, a, b, dark) / b
+
+
+def response_from_c(t_ms, k, a, b, c):
+    """The paper's eq. (3): ``Y = ln(k e^{bk(t+c)} / (1 + a e^{bk(t+c)})) / b``, stable form.
+
+    Computed as ``(ln k - logaddexp(ln a, -b k (t + c))) / b``, which never overflows.
+    ``c`` (ms) is the integration constant; see :func:`c_from_dark`. Needs k > 0.
+    """
+    t_ms, k, a, b, c = _f64(t_ms, k, a, b, c)
+    _check_positive_b(b)
+    if np.any(k <= 0):
+        raise ValueError("k must be > 0 in the paper's form (use response() for k = 0)")
+    return (np.log(k) - np.logaddexp(_log(a), -b * k * (t_ms + c))) / b
+
+
+def linear_response(t_ms, k, dark):
+    """The linear model of eq. (1): ``Y = k t + d`` (DN)."""
+    t_ms, k, dark = _f64(t_ms, k, dark)
+    return k * t_ms + dark
+
+
+def c_from_dark(k, a, b, dark):
+    """Integration constant c (ms) of eq. (3) that makes Y(0) equal ``dark``.
+
+    ``c = -ln(k e^{-b d} - a) / (b k)``. It exists only while the dark level is below the dynamic
+    saturation level (k e^{-bd} > a); elsewhere the result is NaN and the starting-level form
+    :func:`response` must be used.
+    """
+    k, a, b, dark = _f64(k, a, b, dark)
+    _check_positive_b(b)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # ln(k e^{-bd} - a) = ln k - b d + log(1 - (a/k) e^{bd})
+        log_ratio = _log(a) - np.log(k) + b * dark
+        inner = np.log(k) - b * dark + _log1mexp(-log_ratio)
+        c = -inner / (b * k)
+    return np.where((log_ratio < 0) & (k > 0), c, np.nan)
+
+
+def dark_from_c(k, a, b, c):
+    """Level at t = 0 (DN) of eq. (3) with constant ``c`` (ms)."""
+    return response_from_c(0.0, k, a, b, c)
+
+
+def dynamic_saturation_level(k, a, b):
+    """Level ``ln(k/a)/b`` (DN) where leakage balances the light: the dynamic saturation."""
+    k, a, b = _f64(k, a, b)
+    _check_positive_b(b)
+    with np.errstate(divide="ignore"):
+        return (_log(k) - _log(a)) / b
+
+
+def leakage_rate(y, a, b):
+    """Leakage ``a e^{bY}`` (DN/ms) at response ``y`` (DN)."""
+    y, a, b = _f64(y, a, b)
+    with np.errstate(over="ignore"):
+        return np.exp(_log(a) + b * y)
+
+
+def leakage_percentage(y, k, a, b):
+    """Leakage percentage alpha of eq. (4) with k from the model: ``100 a e^{bY} / k`` (percent).
+
+    Along a response that starts below saturation alpha stays below 100 %: it reaches 100 % only
+    at the dynamic saturation level.
+    """
+    y, k, a, b = _f64(y, k, a, b)
+    with np.errstate(over="ignore", divide="ignore"):
+        return 100.0 * np.exp(_log(a) + b * y - _log(k))
+
+
+def leakage_percentage_paper(y, t_ms, a, b, dark=0.0):
+    """Alpha as the paper computes it, with k approximated by the signal over the exposure.
+
+    ``alpha = 100 a e^{bY} / ((Y - dark) / t)`` in percent. The paper divides the raw response
+    by the exposure (``dark=0``, the default, reproduces that); passing the dark level gives the
+    signal rate. Because Y/t underestimates k once leakage bends the curve, this alpha exceeds
+    100 % deep in saturation (the paper's 173.5 % example). Where the signal is not positive the
+    result is ``inf`` (no light rate can be estimated: treat as invalid).
+    """
+    y, t_ms, a, b, dark = _f64(y, t_ms, a, b, dark)
+    signal = y - dark
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        k_est = signal / t_ms
+        alpha = 100.0 * np.exp(_log(a) + b * y - _log(k_est))
+    return np.where((signal > 0) & (t_ms > 0), alpha, np.inf)
+
+
+def exposure_at_leakage_percentage(alpha_percent, k, a, b, dark):
+    """Exposure (ms) at which the model response reaches a leakage percentage.
+
+    With ``alpha0`` the model alpha at the dark level, ``t = (logit(alpha) - logit(alpha0)) / (b k)``.
+    Returns 0 where the response starts at or above that alpha and ``inf`` where it is never
+    reached (alpha >= 100 %, or k = 0).
+    """
+    alpha, k, a, b, dark = _f64(alpha_percent, k, a, b, dark)
+    _check_positive_b(b)
+    p = alpha / 100.0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        log_p0 = _log(a) + b * dark - _log(k)  # log of alpha0 as a fraction
+        logit_p = np.log(p) - _log1mexp(-np.log(p))
+        logit_p0 = log_p0 - _log1mexp(-log_p0)
+        t = (logit_p - logit_p0) / (b * k)
+    t = np.where(p >= 1.0, np.inf, t)
+    t = np.where((p < 1.0) & (log_p0 >= np.log(np.minimum(p, 1.0))), 0.0, t)
+    return np.where(k > 0, np.maximum(t, 0.0), np.inf)
+
+
+@dataclass(frozen=True)
+class Inversion:
+    """Result of :func:`invert_response`.
+
+    Attributes
+    ----------
+    k : ndarray, DN/ms
+        Light rate explaining each response. Where ``flags`` is not GOOD it holds the nearest
+        admissible value (0 below the zero-light level, the rate reaching full scale for a clipped
+        response, ``k_max`` beyond it) and must be read together with the flag.
+    flags : ndarray of uint32
+        :class:`hsiffc.dq.DQ` bits: BELOW_DARK, SATURATED, UNREACHABLE, NONFINITE, NOT_CONVERGED.
+    iterations : int
+    """
+
+    k: np.ndarray
+    flags: np.ndarray
+    iterations: int
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.flags == 0
+
+
+def _dy_dlogk(t_ms, k, a, b, dark, y_model):
+    """dY/d(ln k) of the model, in a form that cannot overflow for physical responses."""
+    x = b * k * t_ms
+    with np.errstate(divide="ignore", over="ignore", under="ignore", invalid="ignore"):
+        term1 = x * np.exp(b * (y_model - dark) - x)
+        # (a/k)(1 - (1 + x) e^{-x}) e^{bY}; 1 - (1+x)e^{-x} computed without cancellation
+        g = np.where(x < 1e-3, x * x / 2 - x ** 3 / 3, -np.expm1(-x) - x * np.exp(-x))
+        term2 = np.exp(_log(a) - _log(k) + b * y_model) * g
+    return np.nan_to_num((term1 + term2) / b, nan=0.0, posinf=np.finfo(float).max)
+
+
+def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=1e-9,
+                    max_iter=60) -> Inversion:
+    """Light rate k that explains response ``y`` at exposure ``t_ms``, for whole frames at once.
+
+    The model response increases monotonically with k, from the zero-light level (pure leakage
+    from ``dark``) towards infinity, so a unique k exists for every response above the zero-light
+    level. It is found by a safeguarded Newton iteration in ln k (bisection whenever a Newton step
+    leaves the bracket), vectorised over all pixels.
+
+    Parameters
+    ----------
+    y : array_like, DN
+    t_ms : array_like, ms (> 0)
+    a, b, dark : array_like
+        Leakage parameters and level at t = 0, as in :func:`response`.
+    full_scale : float, optional, DN
+        Responses at or above it are clipped: flagged SATURATED, and k is the rate that just
+        reaches full scale (a lower bound).
+    k_max : float, optional, DN/ms
+        Responses that need more light than this are flagged UNREACHABLE (k set to k_max).
+    tol_dn : float
+        Convergence tolerance on the response, in DN.
+
+    Returns
+    -------
+    Inversion
+
+    Examples
+    --------
+    >>> a, b, d = 2 * np.exp(-8.0), 0.01, 50.0
+    >>> y = response([10.0, 400.0], 2.0, a, b, d)
+    >>> inv = invert_response(y, [10.0, 400.0], a, b, d)
+    >>> np.round(inv.k, 9).tolist(), inv.flags.tolist()
+    ([2.0, 2.0], [0, 0])
+    """
+    y, t_ms, a, b, dark = np.broadcast_arrays(*_f64(y, t_ms, a, b, dark))
+    _check_positive_b(b)
+    if np.any(t_ms <= 0):
+        raise ValueError("t_ms must be > 0 to invert a response (at t = 0 no light is measured)")
+    shape = y.shape
+    y, t_ms, a, b, dark = (v.ravel() for v in (y, t_ms, a, b, dark))
+    flags = np.zeros(y.shape, dtype=DQ_DTYPE)
+    k = np.zeros(y.shape)
+
+    finite = np.isfinite(y) & np.isfinite(a) & np.isfinite(b) & np.isfinite(dark)
+    flags[~finite] |= _U32(DQ.NONFINITE)
+    target = y.copy()
+    if full_scale is not None:
+        clipped = finite & (y >= full_scale)
+        flags[clipped] |= _U32(DQ.SATURATED)
+        target[clipped] = full_scale
+    y_zero = _response(t_ms, 0.0, a, b, dark)
+    below = finite & (target <= y_zero)
+    flags[below & (target < y_zero)] |= _U32(DQ.BELOW_DARK)
+    work = np.flatnonzero(finite & ~below)
+
+    iterations = 0
+    if work.size:
+        yt, tt, aa, bb, dd = (v[work] for v in (target, t_ms, a, b, dark))
+        # Bracket in u = ln k: leakage only lowers the response, so k >= (Y - d)/t and
+        # Y <= ln(k/a)/b gives k >= a e^{bY}.
+        with np.errstate(divide="ignore", over="ignore"):
+            k_lin = np.maximum(yt - dd, 0.0) / tt
+            k_sat = np.exp(_log(aa) + bb * yt)
+        lo = np.log(np.maximum(np.maximum(k_lin, k_sat), 1e-300))
+        lo = np.where(_response(tt, np.exp(lo), aa, bb, dd) > yt, lo - 50.0, lo)
+        hi = lo + 1.0
+        for _ in range(200):
+            short = _response(tt, np.exp(hi), aa, bb, dd) < yt
+            if not short.any():
+                break
+            hi = np.where(short, hi + 2.0, hi)
+            lo = np.where(short, hi - 2.0, lo)
+        u = lo.copy()
+        done = np.zeros(work.size, dtype=bool)
+        for iterations in range(1, max_iter + 1):
+            kk = np.exp(u)
+            ym = _response(tt, kk, aa, bb, dd)
+            err = ym - yt
+            done = np.abs(err) <= tol_dn + 8 * np.finfo(float).eps * np.abs(yt)
+            if done.all():
+                break
+            lo = np.where(err < 0, u, lo)
+            hi = np.where(err > 0, u, hi)
+            slope = _dy_dlogk(tt, kk, aa, bb, dd, ym)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = u - err / slope
+            inside = np.isfinite(step) & (step > lo) & (step < hi)
+            u = np.where(done, u, np.where(inside, step, 0.5 * (lo + hi)))
+        k[work] = np.exp(u)
+        flags[work[~done]] |= _U32(DQ.NOT_CONVERGED)
+    if k_max is not None:
+        over = k > k_max
+        flags[over] |= _U32(DQ.UNREACHABLE)
+        k[over] = k_max
+    return Inversion(k.reshape(shape), flags.reshape(shape), iterations)
+
+
+def solve_ode(t_ms, k, a, b, dark, *, rtol=1e-10, atol=1e-10):
+    """Reference solution of eq. (2) for one pixel with :func:`scipy.integrate.solve_ivp`.
+
+    Slow (one ODE solve per pixel); used by the tests and the benchmark as ground truth.
+    ``t_ms`` is a sorted 1-D array of exposures; returns Y at those exposures (DN).
+    """
+    from scipy.integrate import solve_ivp
+
+    t_ms = np.asarray(t_ms, dtype=np.float64)
+    k, a, b, dark = (float(v) for v in (k, a, b, dark))
+
+    def rhs(_t, yv):
+        return [k - a * np.exp(min(b * yv[0], 700.0))]
+
+    def jac(_t, yv):
+        return [[-a * b * np.exp(min(b * yv[0], 700.0))]]
+
+    sol = solve_ivp(rhs, (0.0, float(t_ms.max())), [dark], method="LSODA", t_eval=t_ms,
+                    rtol=rtol, atol=atol, jac=jac)
+    if not sol.success:
+        raise RuntimeError(f"solve_ivp failed: {sol.message}")
+    return sol.y[0]
