@@ -17,7 +17,7 @@ leakage of 2 DN/ms at 800 DN, and under the training lamp A an alpha that grows 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -67,9 +67,11 @@ class SensorParams:
 
 
 #: Irradiances (W/m^2 over 400-1000 nm) that reproduce the paper's light levels on the default
-#: 8-band sensor: lamp A (2900 K) as the training light of Table I, lamp B (2200 K) at the Fig. 5
-#: level (k near 2 DN/ms) and the test image of Table II.
-PAPER_LIGHT_W_M2 = {"training": 0.0, "fig5": 0.0}  # filled in below, after the band set exists
+#: 8-band sensor: ``training`` (lamp A, 2900 K, band 1 median k 30 DN/ms: alpha near 37 % at
+#: 32.25 ms as in Table I), ``fig5`` (lamp B, 2200 K, band 1 k 2 DN/ms as in Fig. 5) and ``test``
+#: (lamp B, band 1 k 20 DN/ms: about 350 DN at the 16.125 ms test exposure of Table II; the paper
+#: does not give its test level).
+PAPER_LIGHT_W_M2: dict[str, float] = {}  # filled in at the end of this module
 
 
 @dataclass(frozen=True, eq=False)
@@ -310,17 +312,18 @@ def _default_mosaic(bands: BandSet) -> Mosaic:
 def _calibrate_paper_light() -> dict:
     """Irradiances of the paper's light levels on the default sensor (see PAPER_LIGHT_W_M2).
 
-    The Fig. 5 level gives a median k of 2 DN/ms in band 1 under lamp B; the training level gives
-    band 1 a median k of 30 DN/ms under lamp A (alpha about 37 % at 32.25 ms as in Table I).
+    Band 1 light rates (DN/ms) before PRNU: fig5 2 (lamp B), training 30 (lamp A), test 20
+    (lamp B).
     """
     p = SensorParams()
     bands = paper_8band()
     per_w = {}
-    for key, name in (("fig5", "lamp B"), ("training", "lamp A")):
+    for key, name in (("lamp B", "lamp B"), ("lamp A", "lamp A")):
         illum = lamp(name, 1.0, wavelengths_nm=bands.wavelengths_nm)
         rate = np.asarray(electron_rate(illum, bands, pixel_pitch_um=p.pixel_pitch_um))
         per_w[key] = float(rate[0] * p.conversion_gain_dn_per_e)  # DN/ms per W/m^2, band 1
-    return {"fig5": 2.0 / per_w["fig5"], "training": 30.0 / per_w["training"]}
+    return {"fig5": 2.0 / per_w["lamp B"], "training": 30.0 / per_w["lamp A"],
+            "test": 20.0 / per_w["lamp B"]}
 
 
 PAPER_LIGHT_W_M2.update(_calibrate_paper_light())

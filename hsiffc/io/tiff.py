@@ -47,12 +47,13 @@ import json
 import logging
 import math
 import os
-import uuid
+import struct
 from pathlib import Path
 
 import numpy as np
 import tifffile
 
+from ..atomic import atomic_path
 from ..errors import DataFormatError
 from ..mosaic import Mosaic
 from ..sweep import FRAME_KINDS, Sweep
@@ -174,28 +175,10 @@ def write_sweep(path, sweep: Sweep, *, overwrite: bool = False, compression=None
             f"{sweep.full_scale_dn} DN (2**{sweep.bit_depth}-1); fix bit_depth", path=path)
     description = json.dumps(_document(sweep), allow_nan=False)
 
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        with open(tmp, "wb") as fh:
             tifffile.imwrite(fh, data, photometric="minisblack", description=description,
                              metadata=None, compression=compression)
-            fh.flush()
-            os.fsync(fh.fileno())
-        if path.exists() and not overwrite:  # appeared while we were writing
-            raise FileExistsError(f"{path} already exists; pass overwrite=True to replace it")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    try:  # make the rename itself durable (POSIX); harmless where unsupported
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-    except OSError:
-        pass
     return path
 
 
@@ -212,6 +195,22 @@ class _CollectLog(logging.Filter):
         return False
 
 
+def _ifd_end(tf, page) -> int:
+    """End (byte offset) of a page's IFD and of its tag values, as the file declares them."""
+    fmt = tf.tiff
+    fh = tf.filehandle
+    fh.seek(page.offset)
+    raw = fh.read(fmt.tagnosize)
+    if len(raw) < fmt.tagnosize:
+        return page.offset + fmt.tagnosize
+    ntags = struct.unpack(fmt.tagnoformat, raw)[0]
+    end = page.offset + fmt.tagnosize + ntags * fmt.tagsize + fmt.offsetsize
+    for tag in page.tags.values():
+        if tag.valuebytecount > fmt.tagoffsetthreshold:
+            end = max(end, tag.valueoffset + tag.valuebytecount)
+    return end
+
+
 def _read_pages(path: Path):
     """(description of page 0, list of page arrays) or DataFormatError."""
     log = logging.getLogger("tifffile")
@@ -219,6 +218,9 @@ def _read_pages(path: Path):
     log.addFilter(collect)
     try:
         size = path.stat().st_size
+        if size == 0:
+            raise DataFormatError("file is empty (0 bytes), probably truncated while copying or "
+                                  "writing; copy or write it again", path=path)
         with tifffile.TiffFile(path) as tf:
             pages = list(tf.pages)
             if not pages:
@@ -226,8 +228,9 @@ def _read_pages(path: Path):
             description = pages[0].description or ""
             arrays = []
             for k, page in enumerate(pages):
-                end = max((int(o) + int(c) for o, c in zip(page.dataoffsets, page.databytecounts)),
-                          default=0)
+                end = max(_ifd_end(tf, page), max(
+                    (int(o) + int(c) for o, c in zip(page.dataoffsets, page.databytecounts)),
+                    default=0))
                 if end > size:
                     raise DataFormatError(
                         f"file is truncated: page {k} needs bytes up to {end} but the file has "
@@ -301,8 +304,8 @@ def _parse_document(description: str, path: Path) -> dict:
         raise DataFormatError(f"the ImageDescription is not valid JSON ({exc}); {hint}",
                               path=path) from exc
     if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
-        raise DataFormatError(f'the ImageDescription JSON lacks "format": "hsiffc"; {hint}',
-                              path=path)
+        raise DataFormatError('plain TIFF without hsiffc metadata (its ImageDescription JSON '
+                              f'lacks "format": "hsiffc"); {hint}', path=path)
     version = doc.get("format_version", FORMAT_VERSION)
     if not isinstance(version, int) or version < 1 or version > FORMAT_VERSION:
         raise DataFormatError(

@@ -1,0 +1,34 @@
+"""Timing helpers for the benchmarks: medians over repeats, peak memory of a call."""
+
+from __future__ import annotations
+
+import statistics
+import time
+import tracemalloc
+
+
+def median_time(fn, *, repeat: int = 5, warmup: int = 1) -> float:
+    """Median wall time of ``fn()`` in seconds over ``repeat`` runs after ``warmup`` runs."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def peak_memory_mb(fn) -> float:
+    """Peak Python-heap allocation (numpy arrays included) during ``fn()``, in MiB."""
+    tracemalloc.start()
+    try:
+        fn()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return peak / 2 ** 20
+
+
+def row(name: str, value: float, unit: str, note: str = "") -> str:
+    return f"  {name:<52} {value:>12.4g} {unit:<8} {note}"
