@@ -54,7 +54,7 @@ def _add_simulate(sub):
     p.add_argument("--mosaic", default="paper8", help="paper8, 4x4 or 5x5")
     p.add_argument("--vignetting", type=float, default=0.0)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.set_defaults(func=_cmd_simulate)
 
 

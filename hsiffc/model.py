@@ -324,33 +324,39 @@ def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=
         with np.errstate(divide="ignore", over="ignore"):
             k_lin = np.maximum(yt - dd, 0.0) / tt
             k_sat = np.exp(_log(aa) + bb * yt)
-        lo = np.log(np.maximum(np.maximum(k_lin, k_sat), 1e-300))
-        lo = np.where(_response(tt, np.exp(lo), aa, bb, dd) > yt, lo - 50.0, lo)
-        hi = lo + 1.0
-        for _ in range(200):
-            short = _response(tt, np.exp(hi), aa, bb, dd) < yt
-            if not short.any():
-                break
-            hi = np.where(short, hi + 2.0, hi)
-            lo = np.where(short, hi - 2.0, lo)
+        # Above the dark level both bounds hold (the curve started below saturation). At or
+        # below it the curve may start above saturation, where a e^{bY} bounds k from above.
+        above = yt > dd
+        lo = np.log(np.maximum(np.where(above, np.maximum(k_lin, k_sat), k_sat), 1e-300))
+        hi = np.where(above, np.inf, lo + 1e-9)  # +inf: found by the iteration
+        lo = np.where(above, lo, lo - 50.0)
         u = lo.copy()
-        done = np.zeros(work.size, dtype=bool)
+        active = np.arange(work.size)  # pixels still iterating (compacted every iteration)
         for iterations in range(1, max_iter + 1):
-            kk = np.exp(u)
-            ym = _response(tt, kk, aa, bb, dd)
-            err = ym - yt
-            done = np.abs(err) <= tol_dn + 8 * np.finfo(float).eps * np.abs(yt)
-            if done.all():
+            ua, la, ha = u[active], lo[active], hi[active]
+            ta, aa_, ba, da, ya = tt[active], aa[active], bb[active], dd[active], yt[active]
+            kk = np.exp(ua)
+            ym = _response(ta, kk, aa_, ba, da)
+            err = ym - ya
+            done = np.abs(err) <= tol_dn + 8 * np.finfo(float).eps * np.abs(ya)
+            keep = ~done
+            if not keep.any():
+                active = active[:0]
                 break
-            lo = np.where(err < 0, u, lo)
-            hi = np.where(err > 0, u, hi)
-            slope = _dy_dlogk(tt, kk, aa, bb, dd, ym)
+            la = np.where(err < 0, ua, la)
+            ha = np.where(err > 0, ua, ha)
+            slope = _dy_dlogk(ta, kk, aa_, ba, da, ym)
             with np.errstate(divide="ignore", invalid="ignore"):
-                step = u - err / slope
-            inside = np.isfinite(step) & (step > lo) & (step < hi)
-            u = np.where(done, u, np.where(inside, step, 0.5 * (lo + hi)))
+                step = ua - err / slope
+            # with no upper bound yet, never step more than 5 e-folds up
+            step = np.where(np.isfinite(ha), step, np.minimum(step, ua + 5.0))
+            inside = np.isfinite(step) & (step > la) & (step < ha)
+            new_u = np.where(inside, step, 0.5 * (la + ha))
+            sel = active[keep]
+            u[sel], lo[sel], hi[sel] = new_u[keep], la[keep], ha[keep]
+            active = sel
         k[work] = np.exp(u)
-        flags[work[~done]] |= _U32(DQ.NOT_CONVERGED)
+        flags[work[active]] |= _U32(DQ.NOT_CONVERGED)
     if k_max is not None:
         over = k > k_max
         flags[over] |= _U32(DQ.UNREACHABLE)

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Mosaic:
     """A repeating filter pattern of ``pattern.shape`` pixels.
 
@@ -51,6 +51,15 @@ class Mosaic:
                     f"wavelengths_nm has {len(wl)} entries but the pattern has {self.n_bands} bands")
             object.__setattr__(self, "wavelengths_nm", wl)
         object.__setattr__(self, "offset", (int(self.offset[0]), int(self.offset[1])))
+
+    def __eq__(self, other):
+        if not isinstance(other, Mosaic):
+            return NotImplemented
+        return (np.array_equal(self.pattern, other.pattern)
+                and self.wavelengths_nm == other.wavelengths_nm and self.offset == other.offset)
+
+    def __hash__(self):
+        return hash((self.pattern.tobytes(), self.pattern.shape, self.wavelengths_nm, self.offset))
 
     # -- constructors --------------------------------------------------------------------------
     @classmethod

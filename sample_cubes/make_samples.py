@@ -6,8 +6,10 @@ Writes hsiffc TIFF sweeps (see the README, "Data format") and MANIFEST.sha256
 (check with ``sha256sum -c MANIFEST.sha256`` in the folder):
 
 - ``darks.tif``          dark frames, 4 per exposure, at the candidate and test exposures;
-- ``sweep_2900K.tif``    lamp A (2900 K) at the paper's training level, 20 exposures from 1 to
-                         110 ms into dynamic saturation, 2 light + 2 dark frames each;
+- ``sweep_2900K.tif``    lamp A (2900 K) at a quarter of the paper's training level (k near
+                         7.5 DN/ms), 20 exposures from 2 to 400 ms into dynamic saturation
+                         (near 900 DN, below the 1023 DN full scale), 2 light + 2 dark frames
+                         each;
 - ``training_2900K.tif`` lamp A, 10 frames at each of the paper's candidate training exposures
                          6.45, 12.9, 19.35, 25.8 and 32.25 ms (Table I);
 - ``test_2200K.tif``     lamp B (2200 K) at the test level, 4 frames at 16.125 ms (Table II) and
@@ -33,7 +35,8 @@ SHAPE = (96, 128)
 SEED = 2026
 CANDIDATES_MS = [6.45, 12.9, 19.35, 25.8, 32.25]
 TEST_MS = 16.125
-SWEEP_MS = np.round(np.geomspace(1.0, 110.0, 20), 3)
+SWEEP_MS = np.round(np.geomspace(2.0, 400.0, 20), 3)
+SWEEP_LEVEL = 0.25  # of the training irradiance
 
 
 def _clean(sweep: Sweep, **meta) -> Sweep:
@@ -58,8 +61,9 @@ def make(outdir: Path) -> list[Path]:
     darks = sensor.sweep(sorted(set(CANDIDATES_MS + [TEST_MS, 64.5])), None, n_frames=4,
                          darks=False, seed=1)
     save("darks.tif", darks)
-    sweep = sensor.sweep(SWEEP_MS, "lamp A", irradiance_w_m2=train, n_frames=2, seed=2)
-    save("sweep_2900K.tif", sweep, irradiance_w_m2=train)
+    sweep = sensor.sweep(SWEEP_MS, "lamp A", irradiance_w_m2=train * SWEEP_LEVEL, n_frames=2,
+                         seed=2)
+    save("sweep_2900K.tif", sweep, irradiance_w_m2=train * SWEEP_LEVEL)
     training = sensor.sweep(CANDIDATES_MS, "lamp A", irradiance_w_m2=train, n_frames=10,
                             darks=False, seed=3)
     save("training_2900K.tif", training, irradiance_w_m2=train)

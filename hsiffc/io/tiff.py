@@ -162,7 +162,7 @@ def write_sweep(path, sweep: Sweep, *, overwrite: bool = False, compression=None
     if path.is_dir():
         raise IsADirectoryError(f"{path} is a folder; give a file name ending in .tif")
     if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} already exists; pass overwrite=True to replace it "
+        raise FileExistsError(f"{path} already exists; pass overwrite=True (CLI: --overwrite) to replace it "
                               "(the existing file was left unchanged)")
     data = np.ascontiguousarray(sweep.data)
     if data.dtype.type not in _WRITABLE_DTYPES:

@@ -1,0 +1,60 @@
+"""The command line: demo on the sample cubes, simulate, info, and clear errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from hsiffc.cli import main
+from hsiffc.io import read_sweep
+
+
+def test_demo_on_sample_cubes_shows_dynamic_saturation(sample_cubes, tmp_path, capsys):
+    assert main(["demo", str(sample_cubes), "-o", str(tmp_path / "demo")]) == 0
+    out = capsys.readouterr().out
+    assert "level off below full scale" in out
+    summary = json.loads((tmp_path / "demo" / "demo_summary.json").read_text())
+    assert (tmp_path / "demo" / "dynamic_saturation.png").stat().st_size > 10_000
+    fs = summary["full_scale_dn"]
+    for band in summary["bands"]:
+        assert band["plateau_dn"] < fs - 50  # levels off below full scale ...
+        assert abs(band["saturation_dn"] - band["plateau_dn"]) < 5  # ... where the model says
+        assert band["rms_dn"] < 2.0 < band["rms_linear_dn"]
+    alpha = np.array(summary["alpha_percent"], dtype=float)
+    assert np.all(np.diff(alpha, axis=0) >= -1e-9)  # alpha grows with exposure in every band
+
+
+def test_demo_without_samples_says_how_to_fix(tmp_path, capsys):
+    assert main(["demo", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "sweep_2900K.tif" in err and "make_samples.py" in err
+
+
+def test_simulate_then_info(tmp_path, capsys):
+    out = tmp_path / "sim.tif"
+    assert main(["simulate", str(out), "--exposures-ms", "5", "10", "--shape", "16", "24",
+                 "--frames", "2", "--lamp", "2200K", "--seed", "3"]) == 0
+    sw = read_sweep(out)
+    assert sw.data.shape == (8, 16, 24) and sw.bit_depth == 10
+    assert sw.exposure_ms.tolist() == [5.0] * 4 + [10.0] * 4
+    assert main(["simulate", str(out), "--exposures-ms", "5"]) == 2  # no silent overwrite
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["info", str(out), "--json", str(tmp_path / "info.json")]) == 0
+    info = json.loads((tmp_path / "info.json").read_text())
+    assert info["n_frames"] == 8 and len(info["steps"]) == 4
+
+
+def test_info_on_a_bad_file_names_it(tmp_path, capsys):
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(b"not a tiff")
+    assert main(["info", str(bad)]) == 2
+    assert "bad.tif" in capsys.readouterr().err
+
+
+def test_console_entry_point_runs():
+    res = subprocess.run([sys.executable, "-m", "hsiffc", "--version"], capture_output=True,
+                         text=True, check=True)
+    assert res.stdout.startswith("hsiffc ")
