@@ -26,6 +26,8 @@ class DQ(enum.IntFlag):
     BELOW_DARK = 1 << 7  # response below what zero light can give
     UNREACHABLE = 1 << 8  # no light rate explains the response
     NOT_CONVERGED = 1 << 9
+    LEAK_UNCONSTRAINED = 1 << 10  # calibration: the data do not pin the leakage a, b
+    OUT_OF_DOMAIN = 1 << 11  # outside the calibration's validity domain
 
 
 def empty_dq(shape) -> np.ndarray:

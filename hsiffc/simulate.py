@@ -244,11 +244,12 @@ class MosaicSensor:
     # -- capture -------------------------------------------------------------------------------
     def capture(self, exposure_ms: float, illumination=None, *, irradiance_w_m2: float | None = None,
                 n_frames: int = 1, reflectance=None, vignetting: float = 0.0,
-                seed: int | None = None) -> Capture:
+                seed: int | None = None, label: str | None = None) -> Capture:
         """Raw integer frames at one exposure.
 
         ``illumination`` None (or irradiance 0) captures dark frames. Returns a :class:`Capture`
-        with ``frames`` (n_frames, H, W) uint16 and the per-pixel ground truth.
+        with ``frames`` (n_frames, H, W) uint16 and the per-pixel ground truth. ``label``
+        replaces the illumination's label (e.g. to tell light levels of one lamp apart).
         """
         exposure_ms = float(exposure_ms)
         if not np.isfinite(exposure_ms) or exposure_ms < 0:
@@ -261,7 +262,7 @@ class MosaicSensor:
         else:
             illum = self._illum(illumination, irradiance_w_m2, vignetting)
             k = self.light_rate(illum, reflectance=reflectance)
-            label = illum.label
+            label = label or illum.label
         truth = self.truth(k)
         rng = self._noise_rng if seed is None else np.random.default_rng(seed)
         frames, expected = self._expose(truth, exposure_ms, int(n_frames), rng)
@@ -288,7 +289,7 @@ class MosaicSensor:
 
     def sweep(self, exposures_ms, illumination=None, *, irradiance_w_m2: float | None = None,
               n_frames: int = 2, darks: bool = True, reflectance=None, vignetting: float = 0.0,
-              seed: int | None = None) -> Sweep:
+              seed: int | None = None, label: str | None = None) -> Sweep:
         """An exposure sweep: for every exposure, ``n_frames`` light frames then (with ``darks``)
         ``n_frames`` dark frames, in that acquisition order. With ``illumination=None`` every
         frame is a dark frame. The ground truth is in
@@ -299,7 +300,7 @@ class MosaicSensor:
         for t in np.atleast_1d(np.asarray(exposures_ms, dtype=np.float64)):
             cap = self.capture(t, illumination, irradiance_w_m2=irradiance_w_m2, n_frames=n_frames,
                                reflectance=reflectance, vignetting=vignetting,
-                               seed=int(rng.integers(2 ** 63)))
+                               seed=int(rng.integers(2 ** 63)), label=label)
             truth = cap.truth
             frames.append(cap.frames)
             exposure += [t] * n_frames

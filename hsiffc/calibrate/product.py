@@ -1,0 +1,239 @@
+"""The calibration product: per-pixel leakage-model parameters in one versioned file.
+
+The file is an ``.npz`` holding the per-pixel arrays and a JSON manifest (``manifest.json``
+stored as a uint8 array): format name and version, hsiffc version, method, the validity domain
+(exposure range, light-rate range and unit, bit depth, sensor size, mosaic) and what it was
+fitted on. It loads with ``allow_pickle=False``: no code is ever executed from a calibration file.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import io
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..atomic import atomic_path
+from ..errors import CalibrationMismatchError, DataFormatError
+from ..mosaic import Mosaic
+
+FORMAT = "hsiffc-calibration"
+FORMAT_VERSION = 1
+REQUIRED = ("a_dn_per_ms", "b_per_dn", "dark_dn")
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Per-pixel leakage-model calibration of one sensor.
+
+    Attributes
+    ----------
+    arrays : dict of (H, W) arrays
+        Always ``a_dn_per_ms``, ``b_per_dn``, ``dark_dn``; usually also ``responsivity``
+        (DN/ms per unit of relative light rate: k = responsivity * rate), ``k_ref_dn_per_ms``
+        (k under the calibration light), ``dark_current_dn_per_ms``, ``saturation_ref_dn``,
+        ``sigma_ln_g``, ``sigma_ln_a``, ``sigma_ln_b``, ``sigma_dark_dn``, ``rms_dn``,
+        ``n_valid``, ``n_clipped``, ``n_full_well`` and ``flags`` (uint32 DQ bits).
+    domain : dict
+        Validity domain: ``exposure_ms`` [min, max], ``light_rate`` [min, max] and
+        ``light_rate_unit``, ``bit_depth``, ``frame_shape`` [H, W], ``mosaic`` (dict or None),
+        ``full_scale_dn``.
+    method : str
+        ``"joint"`` or ``"paper"``.
+    fitted_on : dict
+        Source, frame and step counts, illuminations, noise model.
+    """
+
+    arrays: dict
+    domain: dict
+    method: str
+    fitted_on: dict = field(default_factory=dict)
+    created: str = ""
+    hsiffc_version: str = __version__
+
+    def __post_init__(self):
+        missing = [k for k in REQUIRED if k not in self.arrays]
+        if missing:
+            raise ValueError(f"a calibration needs the arrays {REQUIRED}; missing {missing}")
+        shape = tuple(self.domain.get("frame_shape", ()))
+        for name, arr in self.arrays.items():
+            if np.shape(arr) != shape:
+                raise ValueError(f"array {name!r} has shape {np.shape(arr)}, the domain says "
+                                 f"frame_shape {shape}")
+        if not self.created:
+            object.__setattr__(self, "created",
+                               _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+
+    # -- convenient views ----------------------------------------------------------------------
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.arrays[name]
+
+    @property
+    def a(self) -> np.ndarray:
+        return self.arrays["a_dn_per_ms"]
+
+    @property
+    def b(self) -> np.ndarray:
+        return self.arrays["b_per_dn"]
+
+    @property
+    def dark(self) -> np.ndarray:
+        return self.arrays["dark_dn"]
+
+    @property
+    def dark_current(self) -> np.ndarray:
+        return self.arrays.get("dark_current_dn_per_ms", np.zeros(self.frame_shape))
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        return tuple(int(s) for s in self.domain["frame_shape"])
+
+    @property
+    def bit_depth(self) -> int:
+        return int(self.domain["bit_depth"])
+
+    @property
+    def mosaic(self) -> Mosaic | None:
+        m = self.domain.get("mosaic")
+        return Mosaic.from_dict(m) if m else None
+
+    @property
+    def identity(self) -> str:
+        """Short content hash: which calibration produced a result (for provenance)."""
+        import hashlib
+
+        h = hashlib.sha256()
+        for name in sorted(self.arrays):
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(self.arrays[name]).tobytes())
+        return h.hexdigest()[:16]
+
+    def manifest(self) -> dict:
+        return {"format": FORMAT, "format_version": FORMAT_VERSION,
+                "hsiffc_version": self.hsiffc_version, "created": self.created,
+                "method": self.method, "domain": self.domain, "fitted_on": self.fitted_on,
+                "arrays": {k: {"dtype": str(v.dtype), "shape": list(v.shape)}
+                           for k, v in self.arrays.items()},
+                "identity": self.identity}
+
+    def summary(self) -> str:
+        d = self.domain
+        h, w = self.frame_shape
+        lines = [f"hsiffc calibration ({self.method}) of a {w} x {h} px, {d['bit_depth']}-bit "
+                 f"sensor, fitted on {self.fitted_on.get('source', '?')}",
+                 f"  exposure {d['exposure_ms'][0]:.4g}-{d['exposure_ms'][1]:.4g} ms, light rate "
+                 f"{d['light_rate'][0]:.4g}-{d['light_rate'][1]:.4g} {d['light_rate_unit']}"]
+        for name, unit in (("dark_dn", "DN"), ("b_per_dn", "1/DN"), ("a_dn_per_ms", "DN/ms"),
+                           ("k_ref_dn_per_ms", "DN/ms"), ("saturation_ref_dn", "DN"),
+                           ("rms_dn", "DN")):
+            if name in self.arrays:
+                v = np.asarray(self.arrays[name], float)
+                v = v[np.isfinite(v)]
+                if v.size:
+                    q = np.percentile(v, [5, 50, 95])
+                    lines.append(f"  {name:<20} median {q[1]:.4g} {unit} (5-95 %: {q[0]:.4g} to "
+                                 f"{q[2]:.4g})")
+        if "flags" in self.arrays:
+            from ..dq import DQ
+
+            f = self.arrays["flags"]
+            for bit in (DQ.NOT_CONVERGED, DQ.LEAK_UNCONSTRAINED, DQ.DO_NOT_USE):
+                n = int(((f & int(bit)) != 0).sum())
+                lines.append(f"  pixels flagged {bit.name:<19} {n} ({100 * n / f.size:.2f} %)")
+        return "\n".join(lines)
+
+    # -- validation ----------------------------------------------------------------------------
+    def check_compatible(self, data=None, *, frame_shape=None, bit_depth=None, mosaic=None,
+                         what: str = "the data") -> None:
+        """Raise :class:`CalibrationMismatchError` if ``data`` (a Sweep, or the keyword facts)
+        does not fit this calibration: other frame shape, bit depth or mosaic."""
+        if data is not None:
+            frame_shape = getattr(data, "frame_shape", frame_shape)
+            bit_depth = getattr(data, "bit_depth", bit_depth)
+            mosaic = getattr(data, "mosaic", mosaic)
+            what = getattr(data, "source", "") or what
+        problems = []
+        if frame_shape is not None and tuple(frame_shape) != self.frame_shape:
+            problems.append(f"frame shape {tuple(frame_shape)} but the calibration is for "
+                            f"{self.frame_shape}")
+        if bit_depth is not None and int(bit_depth) != self.bit_depth:
+            problems.append(f"bit depth {bit_depth} but the calibration is for {self.bit_depth}")
+        mine = self.mosaic
+        if mosaic is not None and mine is not None and mosaic != mine:
+            problems.append(f"mosaic {mosaic.tile_shape} {mosaic.name!r} differs from the "
+                            f"calibration's {mine.tile_shape} {mine.name!r}")
+        if problems:
+            raise CalibrationMismatchError(
+                f"{what} does not fit calibration {self.identity} "
+                f"(fitted on {self.fitted_on.get('source', '?')}): " + "; ".join(problems)
+                + ". Calibrate this sensor configuration (hsiffc calibrate) or use its calibration.")
+
+    def in_domain(self, exposure_ms) -> np.ndarray:
+        """True where an exposure lies inside the calibrated exposure range."""
+        lo, hi = self.domain["exposure_ms"]
+        e = np.asarray(exposure_ms, float)
+        return (e >= lo) & (e <= hi)
+
+    # -- file I/O ------------------------------------------------------------------------------
+    def save(self, path, *, overwrite: bool = False) -> Path:
+        """Write the calibration to ``path`` (.npz) atomically."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise ValueError(f"calibration files end in .npz, got {path.name!r}")
+        manifest = json.dumps(self.manifest(), indent=1, default=_json_default).encode()
+        payload = {k: np.ascontiguousarray(v) for k, v in self.arrays.items()}
+        payload["manifest.json"] = np.frombuffer(manifest, dtype=np.uint8)
+        with atomic_path(path, overwrite=overwrite) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **payload)
+        return path
+
+    @classmethod
+    def load(cls, path) -> "Calibration":
+        """Read a calibration file (never unpickles anything)."""
+        path = Path(path)
+        if not path.exists():
+            raise DataFormatError("calibration file not found; create one with "
+                                  "'hsiffc calibrate SWEEP -o CALIB.npz'", path=path)
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                contents = {k: npz[k] for k in npz.files}
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+            raise DataFormatError(f"not a readable calibration file ({exc}); it may be "
+                                  "truncated: recreate it with 'hsiffc calibrate'", path=path) from exc
+        if "manifest.json" not in contents:
+            raise DataFormatError("no manifest.json inside: not an hsiffc calibration", path=path)
+        try:
+            man = json.loads(contents.pop("manifest.json").tobytes().decode())
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise DataFormatError(f"calibration manifest is not valid JSON: {exc}",
+                                  path=path) from exc
+        if man.get("format") != FORMAT:
+            raise DataFormatError(f"format is {man.get('format')!r}, expected {FORMAT!r}", path=path)
+        if int(man.get("format_version", 0)) > FORMAT_VERSION:
+            raise DataFormatError(
+                f"calibration format version {man.get('format_version')} is newer than this "
+                f"hsiffc ({__version__}) reads ({FORMAT_VERSION}); upgrade hsiffc", path=path)
+        try:
+            cal = cls(arrays=contents, domain=man["domain"], method=man["method"],
+                      fitted_on=man.get("fitted_on", {}), created=man.get("created", ""),
+                      hsiffc_version=man.get("hsiffc_version", "?"))
+        except (KeyError, ValueError) as exc:
+            raise DataFormatError(f"calibration is incomplete or inconsistent: {exc}",
+                                  path=path) from exc
+        return cal
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (Path, io.IOBase)):
+        return str(obj)
+    raise TypeError(f"not JSON-serialisable: {type(obj).__name__}")
