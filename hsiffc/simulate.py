@@ -71,8 +71,8 @@ class SensorParams:
 #: Irradiances (W/m^2 over 400-1000 nm) that reproduce the paper's light levels on the default
 #: 8-band sensor: ``training`` (lamp A, 2900 K, band 1 median k 30 DN/ms: alpha near 37 % at
 #: 32.25 ms as in Table I), ``fig5`` (lamp B, 2200 K, band 1 k 2 DN/ms as in Fig. 5) and ``test``
-#: (lamp B, band 1 k 20 DN/ms: about 350 DN at the 16.125 ms test exposure of Table II; the paper
-#: does not give its test level).
+#: (lamp B, k 25 DN/ms in the brightest band: about 400 DN at the 16.125 ms test exposure of
+#: Table II with every band unsaturated; the paper does not give its test level).
 class _LazyLevels(Mapping):
     """Read-only mapping computed on first use (keeps ``import hsiffc.simulate`` fast)."""
 
@@ -359,8 +359,8 @@ def _default_mosaic(bands: BandSet) -> Mosaic:
 def _calibrate_paper_light() -> dict:
     """Irradiances of the paper's light levels on the default sensor (see PAPER_LIGHT_W_M2).
 
-    Band 1 light rates (DN/ms) before PRNU: fig5 2 (lamp B), training 30 (lamp A), test 20
-    (lamp B).
+    Light rates (DN/ms) before PRNU: fig5 2 in band 1 (lamp B), training 30 in band 1
+    (lamp A), test 25 in the brightest band (lamp B; about 400 DN at 16.125 ms).
     """
     p = SensorParams()
     bands = default_bands()
@@ -369,8 +369,9 @@ def _calibrate_paper_light() -> dict:
         illum = lamp(name, 1.0, wavelengths_nm=bands.wavelengths_nm)
         rate = np.asarray(electron_rate(illum, bands, pixel_pitch_um=p.pixel_pitch_um))
         per_w[key] = float(rate[0] * p.conversion_gain_dn_per_e)  # DN/ms per W/m^2, band 1
+        per_w[key + " max"] = float(rate.max() * p.conversion_gain_dn_per_e)
     return {"fig5": 2.0 / per_w["lamp B"], "training": 30.0 / per_w["lamp A"],
-            "test": 20.0 / per_w["lamp B"]}
+            "test": 25.0 / per_w["lamp B max"]}
 
 
 PAPER_LIGHT_W_M2 = _LazyLevels(_calibrate_paper_light)
