@@ -25,7 +25,8 @@ from .. import model
 from ..dq import DQ
 from ..errors import DataFormatError
 from ..sweep import Sweep
-from .joint import dark_current_from_darks, fit_joint, initial_guess
+from .joint import (B_GRID, dark_current_from_darks, fit_joint, initial_guess,
+                    merge_dark_samples, residuals)
 from .product import Calibration
 from .samples import PhotonTransfer, Samples, collect_samples, photon_transfer
 
@@ -80,7 +81,8 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         raise DataFormatError("the sweep has no light frames to calibrate from",
                               path=sweep.source or None)
     ptc = photon_transfer(sweep)
-    rows_per_chunk = rows_per_chunk or max(1, 32768 // w)
+    n_steps = len(sweep.steps())
+    rows_per_chunk = rows_per_chunk or max(1, 262144 // (w * n_steps))
     out = {name: np.zeros((h, w)) for name in (
         "responsivity", "a_dn_per_ms", "b_per_dn", "dark_dn", "dark_current_dn_per_ms",
         "sigma_ln_g", "sigma_ln_a", "sigma_ln_b", "sigma_dark_dn", "rms_dn", "chi2_red",
@@ -88,6 +90,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     counts = {name: np.zeros((h, w), np.int32) for name in ("n_valid", "n_clipped", "n_full_well")}
     flags = np.zeros((h, w), np.uint32)
     info = None
+    b_grid = None  # set by a pilot fit on the first chunk
     for r0 in range(0, h, rows_per_chunk):
         rows = slice(r0, min(h, r0 + rows_per_chunk))
         smp = collect_samples(sweep, full_well_dn=full_well_dn, light_rate=light_rate, rows=rows)
@@ -100,9 +103,22 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         wgt = _sample_weights(smp, ptc, dark0).T
         use_dc = dark_current is True or (
             dark_current == "auto" and len(np.unique(smp.exposure_ms[dark_steps & smp.usable_step])) >= 2)
-        dc = dark_current_from_darks(y, smp.exposure_ms, smp.rate, valid, wgt) if use_dc else None
-        theta0 = initial_guess(y, smp.exposure_ms, smp.rate, valid, wgt, dc)
-        fit = fit_joint(y, smp.exposure_ms, smp.rate, valid, wgt, theta0, dark_current=dc)
+        dc = None
+        if use_dc:
+            dc = dark_current_from_darks(y, smp.exposure_ms, smp.rate, valid, wgt)
+            # keep it only when the sensor as a whole shows a dark current above the noise
+            # (a negative dark current is not physical: clip at zero)
+            med = np.median(dc)
+            se = 1.4826 * np.median(np.abs(dc - med)) / np.sqrt(dc.size)
+            dc = np.clip(dc, 0.0, None) if (dark_current is True or med > 3 * se) else None
+        t_s, r_s = smp.exposure_ms, smp.rate
+        y_all, valid_all = y, valid
+        if dc is None:
+            y, t_s, r_s, valid, wgt = merge_dark_samples(y, t_s, r_s, valid, wgt)
+        if b_grid is None:
+            b_grid = _pilot_b_grid(y, t_s, r_s, valid, wgt, dc)
+        theta0 = initial_guess(y, t_s, r_s, valid, wgt, dc, b_grid=b_grid)
+        fit = fit_joint(y, t_s, r_s, valid, wgt, theta0, dark_current=dc)
         rr = slice(rows.start, rows.stop)
         nr = rows.stop - rows.start
         shape = (nr, w)
@@ -113,12 +129,14 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         out["dark_current_dn_per_ms"][rr] = (0 if dc is None else dc.reshape(shape))
         for i, name in enumerate(("sigma_ln_g", "sigma_ln_a", "sigma_ln_b", "sigma_dark_dn")):
             out[name][rr] = fit.sigma[:, i].reshape(shape)
-        out["rms_dn"][rr] = fit.rms_dn.reshape(shape)
+        res = residuals(fit, y_all, smp.exposure_ms, smp.rate, valid_all, dc)
+        n_all = valid_all.sum(axis=1)
+        out["rms_dn"][rr] = np.sqrt((res ** 2).sum(axis=1) / np.maximum(n_all, 1)).reshape(shape)
         out["chi2_red"][rr] = fit.chi2_red.reshape(shape)
-        rmax = np.where(valid, smp.rate[None, :], 0).max(axis=1)
+        rmax = np.where(valid, r_s[None, :], 0).max(axis=1)
         out["saturation_ref_dn"][rr] = model.dynamic_saturation_level(
             np.maximum(fit.g * rmax, 1e-300), fit.a, fit.b).reshape(shape)
-        counts["n_valid"][rr] = fit.n_valid.reshape(shape)
+        counts["n_valid"][rr] = n_all.reshape(shape)
         usable = smp.usable_step[:, None]
         counts["n_clipped"][rr] = (smp.clipped & usable).sum(axis=0).reshape(shape)
         counts["n_full_well"][rr] = (smp.full_well & ~smp.clipped & usable).sum(axis=0).reshape(shape)
@@ -138,6 +156,23 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     arrays = {k: (v.astype(np.float32) if v.dtype == np.float64 else v) for k, v in arrays.items()}
     return Calibration(arrays=arrays, domain=_domain(sweep, info, rates), method="joint",
                        fitted_on=_fitted_on(sweep, info, ptc, full_well_dn))
+
+
+def _pilot_b_grid(y, t, r, valid, wgt, dc, n_pilot: int = 512):
+    """Start values of b for a whole sensor: fit up to ``n_pilot`` pixels from the full grid of
+    start values and keep the median fitted b (pixels of one sensor share their leakage
+    physics), with a factor-2 bracket around it. Falls back to the full grid."""
+    p = y.shape[0]
+    rng = np.random.default_rng(0)
+    idx = np.sort(rng.choice(p, size=min(p, n_pilot), replace=False))
+    sub = (y[idx], t, r, valid[idx], wgt[idx])
+    dcs = None if dc is None else dc[idx]
+    fit = fit_joint(*sub, initial_guess(*sub, dcs), dark_current=dcs)
+    good = fit.leak_constrained & fit.converged
+    if good.sum() < 10:
+        return B_GRID
+    b0 = float(np.median(fit.b[good]))
+    return (b0 / 2, b0, b0 * 2)
 
 
 def _domain(sweep: Sweep, info: Samples, rates) -> dict:

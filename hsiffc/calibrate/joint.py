@@ -27,6 +27,7 @@ import numpy as np
 
 from .. import model
 
+_TRACE = None  # debugging aid: set to a list to record the active-pixel count
 PRIOR_SIGMA = 3.0  # e-folds, on ln a and ln b
 PARAMS = ("ln_g", "ln_a", "ln_b", "dark")
 
@@ -59,28 +60,29 @@ def _model_and_jacobian(theta, t, r, dc=0.0):
         kg = np.exp(ln_g) * r
         k = kg + dc
         x = b * k * t
-        log_t = np.log(t)
-        lp = model._log_phi(x)
+        em = -np.expm1(-x)  # 1 - e^{-x}
+        lp = np.log(em / x)  # ln phi(x)
+        tiny = x < 1e-6
+        lp[tiny] = (-0.5 * x)[tiny]
         a1 = -b * d - x
-        lterm = ln_a + ln_b + log_t + lp
+        lterm = ln_a + ln_b + np.log(t) + lp
         n = np.logaddexp(a1, lterm)
         y = -n / b
-        w1 = np.exp(a1 - n)
-        w2 = np.exp(lterm - n)
-        w1 = np.where(np.isfinite(w1), w1, 1.0)
-        w2 = np.where(np.isfinite(w2), w2, 0.0)
-        small = x < 1e-6
-        xs = np.where(small, 1.0, x)
-        dlp = np.where(small, -0.5 + x / 12.0, 1.0 / np.expm1(xs) - 1.0 / xs)  # d lnphi / dx
-        dn_dlnk = -w1 * x + w2 * x * dlp
+        w2 = np.exp(lterm - n)  # share of the leakage term; w1 = 1 - w2
+        w1 = 1.0 - w2
+        # d lnphi / dx = e^{-x} / (1 - e^{-x}) - 1/x, with its series near 0
+        dlp = (1.0 - em) / em - 1.0 / x
+        dlp[tiny] = (-0.5 + x / 12.0)[tiny]
+        xdlp = x * dlp
+        jac = np.empty(y.shape + (4,))
         # d/d ln g acts on the light part of k only
-        j_lng = np.where(k > 0, -dn_dlnk / b * (kg / np.where(k > 0, k, 1.0)), 0.0)
-        j_lna = -w2 / b
-        dn_dlnb = w1 * a1 + w2 * (1.0 + x * dlp)
-        j_lnb = (n - dn_dlnb) / b
-        j_d = w1
-    jac = np.stack(np.broadcast_arrays(j_lng, j_lna, j_lnb, j_d), axis=-1)
-    jac = np.where(np.isfinite(jac), jac, 0.0)
+        jac[..., 0] = (w1 * x - w2 * xdlp) / b
+        if np.any(dc):
+            jac[..., 0] *= np.where(k > 0, kg / np.where(k > 0, k, 1.0), 0.0)
+        jac[..., 1] = -w2 / b
+        jac[..., 2] = (n - w1 * a1 - w2 * (1.0 + xdlp)) / b
+        jac[..., 3] = w1
+    np.nan_to_num(jac, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     return y, jac
 
 
@@ -88,6 +90,27 @@ def _model(theta, t, r, dc=0.0):
     ln_g, ln_a, ln_b, d = (theta[:, i:i + 1] for i in range(4))
     with np.errstate(divide="ignore", over="ignore", under="ignore", invalid="ignore"):
         return model._response(t, np.exp(ln_g) * r + dc, np.exp(ln_a), np.exp(ln_b), d)
+
+
+def _sanitised(y, t_ms, r, valid, weight):
+    """Neutralise invalid samples (NaN rates, zero exposures), which carry zero weight but must
+    not turn sums into NaN. ``t`` and ``r`` stay 1-D (S,) when given per step, which keeps
+    their logs and products cheap."""
+    y = np.asarray(y, np.float64)
+    valid = np.asarray(valid, bool)
+    t = np.asarray(t_ms, np.float64)
+    r = np.asarray(r, np.float64)
+    step_ok = np.isfinite(t) & (t > 0) & np.isfinite(r)
+    t = np.where(step_ok, t, 1.0)
+    r = np.where(step_ok, r, 0.0)
+    ok = valid & np.isfinite(y) & step_ok
+    w = np.where(ok, np.broadcast_to(np.asarray(weight, np.float64), y.shape), 0.0)
+    return np.where(ok, y, 0.0), t, r, w
+
+
+def _rows(a, idx):
+    """Rows ``idx`` of a per-pixel (P, S) array; per-step (S,) arrays are shared."""
+    return a if a.ndim == 1 else a[idx]
 
 
 def _to_internal(theta, ln_rref):
@@ -104,12 +127,14 @@ def _to_external(phi, ln_rref):
 
 
 def _internal_jacobian(jac, phi):
-    """Chain rule from d/d(ln g, ln a, ln b, d) to d/d(ln g, s, ln b, d)."""
+    """Chain rule from d/d(ln g, ln a, ln b, d) to d/d(ln g, s, ln b, d), in place."""
     b = np.exp(phi[:, 2])[:, None]
     s = phi[:, 1][:, None]
-    j_lna = jac[..., 1]
-    return np.stack([jac[..., 0] + j_lna, -b * j_lna, jac[..., 2] - b * s * j_lna, jac[..., 3]],
-                    axis=-1)
+    j_lna = jac[..., 1].copy()
+    jac[..., 0] += j_lna
+    jac[..., 1] = -b * j_lna
+    jac[..., 2] -= b * s * j_lna
+    return jac
 
 
 def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter: int = 80,
@@ -143,15 +168,12 @@ def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter:
     -------
     JointFit
     """
-    y = np.asarray(y, np.float64)
+    y, t, r, w = _sanitised(y, t_ms, r, valid, weight)
+    valid = w > 0
     p_count, s_count = y.shape
-    t = np.broadcast_to(np.asarray(t_ms, np.float64), y.shape)
-    r = np.broadcast_to(np.asarray(r, np.float64), y.shape)
-    w = np.where(valid, np.asarray(weight, np.float64), 0.0)
-    y = np.where(valid, y, 0.0)
     dc = np.zeros((p_count, 1)) if dark_current is None else np.asarray(
         dark_current, np.float64).reshape(p_count, 1)
-    rref = np.where(valid, r, 0).max(axis=1)
+    rref = np.where(valid, r, 0.0).max(axis=1)
     ln_rref = np.log(np.where(rref > 0, rref, 1.0))
     phi = _to_internal(np.asarray(theta0, np.float64), ln_rref)
     # weak priors: ln b within PRIOR_SIGMA e-folds, s within PRIOR_SIGMA / b0 DN of the start
@@ -159,15 +181,20 @@ def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter:
     prior_w = np.column_stack([(np.exp(phi[:, 2]) / prior_sigma) ** 2,
                                np.full(p_count, 1.0 / prior_sigma ** 2)])
 
-    def cost(ph, idx):
-        th = _to_external(ph, ln_rref[idx])
-        res = _model(th, t[idx], r[idx], dc[idx]) - y[idx]
+    def evaluate(ph, idx):
+        """Residuals, internal Jacobian and cost of the pixels ``idx`` at ``ph``."""
+        ym, jac = _model_and_jacobian(_to_external(ph, ln_rref[idx]), _rows(t, idx),
+                                      _rows(r, idx), dc[idx])
+        res = ym - y[idx]
         c = np.einsum("ps,ps->p", w[idx] * res, res)
-        return c + (prior_w[idx] * (ph[:, 1:3] - prior_mean[idx]) ** 2).sum(axis=1)
+        c += (prior_w[idx] * (ph[:, 1:3] - prior_mean[idx]) ** 2).sum(axis=1)
+        return res, _internal_jacobian(jac, ph), c
 
-    lam = np.full(p_count, 1e-3)
+    # state of the active pixels, compacted as pixels converge: the model and Jacobian at an
+    # accepted trial point are reused for the next step, so each iteration costs one evaluation
     active = np.arange(p_count)
-    current = cost(phi, active)
+    res_a, jac_a, cost_a = evaluate(phi, active)
+    lam_a = np.full(p_count, 1e-3)
     converged = np.zeros(p_count, bool)
     it = 0
     eye = np.eye(4)
@@ -175,19 +202,16 @@ def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter:
         if active.size == 0:
             break
         ph = phi[active]
-        ym, jac = _model_and_jacobian(_to_external(ph, ln_rref[active]), t[active], r[active],
-                                      dc[active])
-        jac = _internal_jacobian(jac, ph)
-        res = ym - y[active]
-        jw = jac * w[active][..., None]
-        jtj = np.einsum("psi,psj->pij", jw, jac)
-        grad = np.einsum("psi,ps->pi", jw, res)
+        w_a = w[active]
+        jw = jac_a * w_a[..., None]
+        jtj = np.matmul(jw.transpose(0, 2, 1), jac_a)
+        grad = np.einsum("psi,ps->pi", jw, res_a)
         pw = prior_w[active]
         jtj[:, 1, 1] += pw[:, 0]
         jtj[:, 2, 2] += pw[:, 1]
         grad[:, 1:3] += pw * (ph[:, 1:3] - prior_mean[active])
         diag = np.einsum("pii->pi", jtj)
-        lhs = jtj + lam[active, None, None] * (diag[:, :, None] * eye) + 1e-12 * eye
+        lhs = jtj + lam_a[:, None, None] * (diag[:, :, None] * eye) + 1e-12 * eye
         step = -np.linalg.solve(lhs, grad[..., None])[..., 0]
         step = np.where(np.isfinite(step), step, 0.0)
         b_now = np.exp(ph[:, 2])
@@ -195,18 +219,26 @@ def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter:
         step[:, 2] = np.clip(step[:, 2], -1.0, 1.0)
         step[:, 1] = np.clip(step[:, 1], -3.0 / b_now, 3.0 / b_now)
         trial = ph + step
-        new = cost(trial, active)
-        better = new < current[active]
+        res_t, jac_t, cost_t = evaluate(trial, active)
+        better = cost_t < cost_a
+        gain = cost_a - cost_t
+        rel = gain / np.maximum(cost_a, 1e-300)
         phi[active[better]] = trial[better]
-        rel = (current[active] - new) / np.maximum(current[active], 1e-300)
-        current[active[better]] = new[better]
-        lam[active] = np.where(better, np.maximum(lam[active] / 5.0, 1e-9),
-                               np.minimum(lam[active] * 8.0, 1e9))
-        scale = np.array([1.0, 0.0, 1.0, 1.0])[None, :] * np.abs(step)
-        scale[:, 1] = np.abs(step[:, 1]) * b_now
-        done = (better & (rel < tol)) | (scale.max(axis=1) < 1e-8) | (lam[active] >= 1e9)
+        res_a = np.where(better[:, None], res_t, res_a)
+        jac_a = np.where(better[:, None, None], jac_t, jac_a)
+        cost_a = np.where(better, cost_t, cost_a)
+        lam_a = np.where(better, np.maximum(lam_a / 5.0, 1e-9), np.minimum(lam_a * 8.0, 1e9))
+        size = np.abs(step)
+        size[:, 1] *= b_now
+        # converged: the cost (a chi-square) no longer moves by a meaningful amount
+        done = ((better & ((rel < tol) | (gain < 1e-4))) | (size.max(axis=1) < 1e-8)
+                | (lam_a >= 1e9))
         converged[active[done]] = True
-        active = active[~done]
+        keep = ~done
+        active, res_a, jac_a = active[keep], res_a[keep], jac_a[keep]
+        cost_a, lam_a = cost_a[keep], lam_a[keep]
+        if _TRACE is not None:
+            _TRACE.append(active.size)
 
     theta = _to_external(phi, ln_rref)
     # uncertainties of (ln g, ln a, ln b, d) from the weighted normal matrix at the solution
@@ -215,11 +247,9 @@ def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter:
     n_valid = valid.sum(axis=1)
     dof = np.maximum(n_valid - 4, 1)
     chi2 = np.einsum("ps,ps->p", w * res, res) / dof
-    jw = jac * w[..., None]
-    jtj = np.einsum("psi,psj->pij", jw, jac)
     # the same weak priors, expressed on (ln a, ln b), keep the matrix invertible
     jint = _internal_jacobian(jac, phi)
-    jtj_int = np.einsum("psi,psj->pij", jint * w[..., None], jint)
+    jtj_int = np.matmul((jint * w[..., None]).transpose(0, 2, 1), jint)
     jtj_int[:, 1, 1] += prior_w[:, 0]
     jtj_int[:, 2, 2] += prior_w[:, 1]
     cov_int = np.linalg.pinv(jtj_int)
@@ -244,6 +274,14 @@ def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter:
                     converged=converged, leak_constrained=leak_constrained, iterations=it)
 
 
+def residuals(fit: JointFit, y, t_ms, r, valid, dark_current=None) -> np.ndarray:
+    """Residuals model - data (P, S) of a fit on any set of samples (invalid ones are 0)."""
+    y, t, r, w = _sanitised(y, t_ms, r, valid, np.ones(np.shape(y)))
+    theta = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark])
+    dc = 0.0 if dark_current is None else np.asarray(dark_current, np.float64)[:, None]
+    return np.where(w > 0, _model(theta, t, r, dc) - y, 0.0)
+
+
 B_GRID = (0.002, 0.005, 0.01, 0.02, 0.05)  # 1/DN, start values tried for b
 MARGIN_GRID = (0.5, 3.0)  # saturation placed this many 1/b above the highest valid sample
 
@@ -253,10 +291,8 @@ def dark_current_from_darks(y, t_ms, r, valid, weight) -> np.ndarray:
 
     Zero where the dark samples do not span two exposures.
     """
-    y = np.asarray(y, np.float64)
-    t = np.broadcast_to(np.asarray(t_ms, np.float64), y.shape)
-    r = np.broadcast_to(np.asarray(r, np.float64), y.shape)
-    w = np.where(valid & (r == 0), weight, 0.0)
+    y, t, r, w = _sanitised(y, t_ms, r, valid, weight)
+    w = np.where(r == 0, w, 0.0)
     sw, st, sy = w.sum(1), (w * t).sum(1), (w * y).sum(1)
     stt, sty = (w * t * t).sum(1), (w * t * y).sum(1)
     den = sw * stt - st ** 2
@@ -266,7 +302,36 @@ def dark_current_from_darks(y, t_ms, r, valid, weight) -> np.ndarray:
     return np.where(ok, slope, 0.0)
 
 
-def initial_guess(y, t_ms, r, valid, weight, dark_current=None) -> np.ndarray:
+def merge_dark_samples(y, t_ms, r, valid, weight):
+    """Replace all dark samples (r = 0) of each pixel by their weighted mean.
+
+    Without dark current the dark samples only pin the dark level (their leakage term is
+    negligible), so one sample with the summed weight carries the same information and the fit
+    has fewer samples to evaluate. ``t_ms`` and ``r`` must be per step (1-D).
+
+    Returns y, t, r, valid, weight with the dark columns merged into the last column.
+    """
+    t = np.asarray(t_ms, np.float64)
+    r = np.asarray(r, np.float64)
+    dark = r == 0
+    if dark.sum() < 2:
+        return y, t, r, valid, weight
+    w = np.where(valid, weight, 0.0)
+    wd = w[:, dark]
+    sw = wd.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        yd = np.where(sw > 0, (wd * np.where(valid[:, dark], y[:, dark], 0)).sum(axis=1) / sw, 0)
+    keep = ~dark
+    y2 = np.column_stack([y[:, keep], yd])
+    w2 = np.column_stack([w[:, keep], sw])
+    v2 = np.column_stack([valid[:, keep], sw > 0])
+    t2 = np.append(t[keep], t[dark].mean())
+    r2 = np.append(r[keep], 0.0)
+    return y2, t2, r2, v2, w2
+
+
+def initial_guess(y, t_ms, r, valid, weight, dark_current=None, *, b_grid=B_GRID,
+                  margin_grid=MARGIN_GRID) -> np.ndarray:
     """Start values (ln g, ln a, ln b, d) per pixel, vectorised.
 
     The dark level is the mean of valid dark samples (r = 0) or, without darks, the intercept of
@@ -275,9 +340,8 @@ def initial_guess(y, t_ms, r, valid, weight, dark_current=None) -> np.ndarray:
     residual cost, with a set so the dynamic saturation at the pixel's highest light rate lies just
     above its highest valid sample.
     """
-    y = np.asarray(y, np.float64)
-    t = np.broadcast_to(np.asarray(t_ms, np.float64), y.shape)
-    r = np.broadcast_to(np.asarray(r, np.float64), y.shape)
+    y, t, r, weight = _sanitised(y, t_ms, r, valid, weight)
+    valid = weight > 0
     dark_s = valid & (r == 0)
     light_s = valid & (r > 0)
     n_dark = dark_s.sum(axis=1)
@@ -310,8 +374,8 @@ def initial_guess(y, t_ms, r, valid, weight, dark_current=None) -> np.ndarray:
     ymax = np.where(np.isfinite(ymax), ymax, d0 + 1.0)
     best_cost = np.full(y.shape[0], np.inf)
     best = np.zeros((y.shape[0], 4))
-    for b in B_GRID:
-        for m in MARGIN_GRID:
+    for b in b_grid:
+        for m in margin_grid:
             ln_a = np.log(kmax) - b * (ymax + m / b)
             th = np.column_stack([np.log(g0), ln_a, np.full_like(g0, np.log(b)), d0])
             res = _model(th, t, r, dc[:, None]) - y
