@@ -65,6 +65,43 @@ def _add_info(sub):
     p.set_defaults(func=_cmd_info)
 
 
+def _add_calibrate(sub):
+    p = sub.add_parser(
+        "calibrate", help="calibrate the leakage model of every pixel from a sweep",
+        description="Fit k (responsivity), a, b and the dark level of every pixel from an "
+                    "exposure sweep (hsiffc TIFF or EMVA 1288) and write a calibration file (.npz).")
+    p.add_argument("sweep", type=Path, help="sweep: hsiffc TIFF, EMVA 1288 descriptor or folder")
+    p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.npz)")
+    p.add_argument("--method", choices=("joint", "paper"), default="joint",
+                   help="joint per-pixel fit (default) or the paper's procedure (several "
+                        "illuminations)")
+    p.add_argument("--full-well-dn", type=float, default=None,
+                   help="leave out samples at or above this level (full-well saturation)")
+    p.add_argument("--steps", choices=("all", "sweep"), default="sweep",
+                   help="EMVA 1288: use only the sweep steps (default) or also the spatial set")
+    p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.set_defaults(func=_cmd_calibrate)
+
+
+def _add_select(sub):
+    p = sub.add_parser(
+        "select", help="select the training exposure per band by the leakage percentage",
+        description="For each band, the longest candidate exposure whose leakage percentage "
+                    "alpha stays under the threshold (the paper's section IV.2), with a table of "
+                    "alpha per band and exposure like the paper's Table I.")
+    p.add_argument("sweep", type=Path, help="candidate training frames (one step per exposure)")
+    p.add_argument("--calibration", type=Path, required=True, help="calibration file (.npz)")
+    p.add_argument("--threshold", type=float, required=True, help="alpha threshold in percent")
+    p.add_argument("--alpha", choices=("paper", "model"), default="paper",
+                   help="alpha as the paper computes it (k ~ signal/exposure) or with k from the "
+                        "model (default: paper)")
+    p.add_argument("--statistic", choices=("median", "mean", "p95"), default="median",
+                   help="how a band's pixels are summarised (default: median)")
+    p.add_argument("--json", type=Path, default=None, help="also write the table as JSON")
+    p.set_defaults(func=_cmd_select)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hsiffc",
@@ -73,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"hsiffc {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_demo, _add_simulate, _add_info):
+    for add in (_add_demo, _add_simulate, _add_info, _add_calibrate, _add_select):
         add(sub)
     return parser
 
@@ -145,6 +182,61 @@ def _cmd_simulate(args) -> int:
     from dataclasses import replace
     write_sweep(args.output, replace(sweep, meta=meta), overwrite=args.overwrite)
     print(f"wrote {args.output}: {sweep.summary()}")
+    return 0
+
+
+def _cmd_calibrate(args) -> int:
+    from .calibrate import calibrate
+    from .io import read_sweep
+
+    sweep = read_sweep(args.sweep)
+    if args.steps == "sweep" and "sweep_steps" in sweep.meta:
+        sweep = sweep.select(np.isin(sweep.step, sweep.meta["sweep_steps"]))
+    print(sweep.summary())
+    if args.output.suffix != ".npz":
+        raise HsiffcError(f"the calibration file must end in .npz, got {args.output.name!r}")
+    cal = calibrate(sweep, method=args.method, full_well_dn=args.full_well_dn)
+    cal.save(args.output, overwrite=args.overwrite)
+    print(cal.summary())
+    counts = {k: int(cal[k].sum()) for k in ("n_valid", "n_clipped", "n_full_well")
+              if k in cal.arrays}
+    if counts:
+        print("  samples: " + ", ".join(f"{v} {k[2:].replace('_', ' ')}" for k, v in counts.items()))
+    print(f"wrote {args.output} (calibration {cal.identity})")
+    if args.json:
+        doc = {"calibration": str(args.output), "identity": cal.identity,
+               "manifest": cal.manifest(), "sample_counts": counts,
+               "parameters": {name: _percentiles(cal[name]) for name in cal.arrays
+                              if name not in ("flags",) and cal[name].dtype.kind == "f"}}
+        _write_json(args.json, doc)
+    return 0
+
+
+def _percentiles(arr) -> dict:
+    v = np.asarray(arr, float)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return {}
+    q = np.percentile(v, [5, 50, 95])
+    return {"p5": float(q[0]), "median": float(q[1]), "p95": float(q[2])}
+
+
+def _cmd_select(args) -> int:
+    from .calibrate import Calibration
+    from .io import read_sweep
+    from .validity import alpha_table
+
+    sweep = read_sweep(args.sweep)
+    cal = Calibration.load(args.calibration)
+    table = alpha_table(sweep, cal, method=args.alpha, statistic=args.statistic)
+    table = table.select(args.threshold)
+    print(table.to_text())
+    for i, e in enumerate(table.selected_ms):
+        label = "none" if np.isnan(e) else f"{e:g} ms"
+        print(f"band {i + 1}: train at {label}")
+    if args.json:
+        _write_json(args.json, {"sweep": str(args.sweep), "calibration": str(args.calibration),
+                                "calibration_identity": cal.identity, **table.to_dict()})
     return 0
 
 

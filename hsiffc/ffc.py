@@ -44,9 +44,10 @@ def two_point_correct(test, dark, flat, *, normalisation: str = "paper", band_ma
     test, dark, flat : (H, W) arrays, DN
         R(L3), R(L1) and R(L2) of eq. (5) (dark and flat usually averages of several frames).
     normalisation : "paper" or "mean_gain"
-        ``"paper"``: eq. (5), ``Avg(L3) (R3 - R1) / (R2 - R1)`` (the result has the test image's
-        mean level); ``"mean_gain"``: ``(R3 - R1) mean(R2 - R1) / (R2 - R1)`` (dark-subtracted
-        DN at the flat's gain).
+        ``"paper"``: eq. (5) exactly, ``Avg(L3) (R3 - R1) / (R2 - R1)`` (a relative image scaled
+        by the test image's mean raw level); ``"mean_gain"``: ``(R3 - R1) mean(R2 - R1) /
+        (R2 - R1)`` (dark-subtracted DN at the flat's mean gain: the common normalisation that
+        keeps the signal in DN).
     band_map : (H, W) int, optional
         Averages are taken per band (a mosaic's bands see different light).
 

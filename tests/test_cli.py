@@ -58,3 +58,32 @@ def test_console_entry_point_runs():
     res = subprocess.run([sys.executable, "-m", "hsiffc", "--version"], capture_output=True,
                          text=True, check=True)
     assert res.stdout.startswith("hsiffc ")
+
+
+def test_calibrate_then_select(sample_cubes, tmp_path, capsys):
+    cal = tmp_path / "cal.npz"
+    assert main(["calibrate", str(sample_cubes / "sweep_2900K.tif"), "-o", str(cal),
+                 "--json", str(tmp_path / "cal.json")]) == 0
+    out = capsys.readouterr().out
+    assert "hsiffc calibration (joint)" in out and "wrote" in out
+    doc = json.loads((tmp_path / "cal.json").read_text())
+    assert doc["sample_counts"]["n_valid"] > 0
+    assert 0.005 < doc["parameters"]["b_per_dn"]["median"] < 0.03
+    assert main(["select", str(sample_cubes / "training_2900K.tif"), "--calibration", str(cal),
+                 "--threshold", "12", "--json", str(tmp_path / "sel.json")]) == 0
+    out = capsys.readouterr().out
+    assert "band 1: train at" in out and "[" in out
+    sel = json.loads((tmp_path / "sel.json").read_text())
+    assert len(sel["selected_ms"]) == 8
+    assert all(s in (19.35, 25.8) for s in sel["selected_ms"])
+    # a calibration for other data is refused with the reason
+    other = tmp_path / "other.tif"
+    assert main(["simulate", str(other), "--exposures-ms", "5", "--shape", "8", "8"]) == 0
+    assert main(["select", str(other), "--calibration", str(cal), "--threshold", "12"]) == 2
+    assert "does not fit calibration" in capsys.readouterr().err
+
+
+def test_calibrate_rejects_a_wrong_suffix(sample_cubes, tmp_path, capsys):
+    assert main(["calibrate", str(sample_cubes / "sweep_2900K.tif"), "-o",
+                 str(tmp_path / "cal.txt")]) == 2
+    assert ".npz" in capsys.readouterr().err

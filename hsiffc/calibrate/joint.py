@@ -266,9 +266,8 @@ def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter:
     over = np.maximum(chi2, 1.0)  # inflate where the model is over-dispersed (real data)
     sigma = np.sqrt(np.clip(np.einsum("pii->pi", cov), 0, None) * over[:, None])
     rms = np.sqrt((res ** 2).sum(axis=1) / np.maximum(n_valid, 1))
-    # leakage is constrained when the data, not the priors, pin s and ln b
-    data_info = np.einsum("pii->pi", jtj_int)[:, 1:3] - prior_w
-    leak_constrained = np.all(data_info > 25.0 * prior_w, axis=1)
+    # leakage is constrained when the data pin b to better than a factor 1.65 (1 sigma)
+    leak_constrained = sigma[:, 2] < 0.5
     return JointFit(g=np.exp(theta[:, 0]), a=np.exp(theta[:, 1]), b=np.exp(theta[:, 2]),
                     dark=theta[:, 3], sigma=sigma, rms_dn=rms, chi2_red=chi2, n_valid=n_valid,
                     converged=converged, leak_constrained=leak_constrained, iterations=it)
