@@ -1,0 +1,600 @@
+"""Linear model against leakage model on a real EMVA 1288 exposure sweep.
+
+The linear model is the paper's eq. (1), ``Y = d + g * photons`` per pixel (``k t`` with
+``k = g * photons / t``). The leakage model is the joint per-pixel calibration of
+:mod:`hsiffc.calibrate`, ``Y = response(t, responsivity * rate + dark_current, a, b, dark)``.
+Both are compared on exactly the same samples: the step means the leakage fit used (no frame of
+the step at full scale, exposure > 0, a known light rate), light and dark steps alike. The
+linear fit uses the same weights as the leakage fit (frames per step over the photon-transfer
+variance of the step mean). Residuals are model minus data, in DN.
+
+A pixel *levels off below full scale* when all three hold:
+
+1. no frame of any usable step reaches full scale (it is never clipped);
+2. its highest step mean stays below full scale minus ``FULL_SCALE_MARGIN_DN``;
+3. over the ``N_TOP_STEPS`` light steps with the most photons, its rise (least-squares slope of
+   the step means against photons times the photon span of those steps) is less than
+   ``ROLL_OFF_RATIO`` of the rise its own linear fit predicts.
+
+Condition 3 separates a roll-off from a pixel that is merely too insensitive to reach 255.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__, model
+from ..atomic import atomic_path, atomic_write_text
+from ..calibrate import Calibration, calibrate, collect_samples, photon_transfer
+from ..errors import CalibrationMismatchError, DataFormatError
+
+__all__ = ["analyse_emva_leakage", "fit_linear", "sweep_steps_only", "write_emva_leakage_report"]
+
+N_TOP_STEPS = 10  # brightest light steps of the roll-off test
+# observed / linear rise over those steps below this: levels off. A linear pixel has a ratio of
+# 1 with a noise of about 0.07 on this sweep, so 0.75 is more than 3 sigma away from it
+ROLL_OFF_RATIO = 0.75
+FULL_SCALE_MARGIN_DN = 1.0
+PLATEAU_STEPS = 5  # brightest light steps averaged into the plateau
+SIGNAL_EDGES_DN = (20.0, 100.0, 200.0)  # light samples split by signal above dark
+BIN_WIDTH_DN = 5.0  # residual-against-signal curves
+PCTS = (5, 25, 50, 75, 95)
+ROLES = ("levels off (low plateau)", "levels off (median plateau)", "typical, clips at 255",
+         "median pixel")
+
+
+def sweep_steps_only(sweep):
+    """The sweep steps of an EMVA 1288 sweep (its spatial flat/dark stacks left out).
+
+    Sweeps without ``meta["sweep_steps"]`` are returned unchanged.
+    """
+    steps = sweep.meta.get("sweep_steps")
+    return sweep if steps is None else sweep.select(np.isin(sweep.step, steps))
+
+
+def fit_linear(photons, y, weight):
+    """Weighted least-squares line ``y = d + g * photons`` for every pixel at once.
+
+    Closed-form normal equations on centred photon counts; no loop over pixels.
+
+    Parameters
+    ----------
+    photons : (S,) or (S, P) array
+        Photons per pixel of each sample (0 for dark samples).
+    y : (S, P) array
+        Responses (DN).
+    weight : (S, P) array
+        Weight of each sample; 0 leaves it out.
+
+    Returns
+    -------
+    d, g : (P,) arrays
+        Offset (DN) and gain (DN per photon); NaN where the weighted samples span fewer than two
+        photon values.
+
+    Examples
+    --------
+    >>> x = np.array([0.0, 10.0, 20.0, 30.0])
+    >>> d, g = fit_linear(x, np.column_stack([2 + 0.5 * x, 1 - x]), np.ones((4, 2)))
+    >>> np.round(d, 6).tolist(), np.round(g, 6).tolist()
+    ([2.0, 1.0], [0.5, -1.0])
+    """
+    y = np.asarray(y, np.float64)
+    x = np.broadcast_to(np.asarray(photons, np.float64).reshape(len(y), -1), y.shape)
+    ok = np.isfinite(x) & np.isfinite(y)
+    w = np.where(ok, np.asarray(weight, np.float64), 0.0)
+    x, y = np.where(ok, x, 0.0), np.where(ok, y, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sw = w.sum(axis=0)
+        xm = (w * x).sum(axis=0) / sw
+        ym = (w * y).sum(axis=0) / sw
+        xc = x - xm
+        sxx = (w * xc * xc).sum(axis=0)
+        g = (w * xc * (y - ym)).sum(axis=0) / sxx
+        g = np.where(sxx > 1e-12 * np.maximum(sw * xm * xm, 1e-300), g, np.nan)
+    return ym - g * xm, g
+
+
+def _stats(v) -> dict:
+    v = np.asarray(v, np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return {"n": 0}
+    p = np.percentile(v, PCTS)
+    return {"n": int(v.size), "mean": float(v.mean()), "median_abs": float(np.median(np.abs(v))),
+            "min": float(v.min()), "max": float(v.max()),
+            **{f"p{q}": float(x) for q, x in zip(PCTS, p)}}
+
+
+def _rms(res, mask) -> float | None:
+    r = res[mask]
+    r = r[np.isfinite(r)]
+    return float(np.sqrt(np.mean(r * r))) if r.size else None
+
+
+def _binned(x, v, edges, min_count=50) -> dict:
+    """Median and quartiles of ``v`` in bins of ``x`` (one radix sort by bin, no sample loop)."""
+    b = np.digitize(x, edges) - 1
+    keep = (b >= 0) & (b < len(edges) - 1) & np.isfinite(v)
+    b, v = b[keep].astype(np.int16), v[keep]
+    v = v[np.argsort(b, kind="stable")]
+    counts = np.bincount(b, minlength=len(edges) - 1)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    out = {"center": [], "median": [], "q25": [], "q75": [], "n": []}
+    for i, (s, n) in enumerate(zip(starts, counts)):
+        if n < min_count:
+            continue
+        q25, q50, q75 = np.percentile(v[s:s + n], [25, 50, 75])
+        out["center"].append(float(0.5 * (edges[i] + edges[i + 1])))
+        out["q25"].append(float(q25))
+        out["median"].append(float(q50))
+        out["q75"].append(float(q75))
+        out["n"].append(int(n))
+    return out
+
+
+def _step_median(v, valid):
+    """Median over pixels of each step's valid samples, (S, 1); NaN for steps without any."""
+    out = np.full((len(v), 1), np.nan)
+    rows = valid.any(axis=1)
+    out[rows, 0] = np.nanmedian(np.where(valid[rows], v[rows], np.nan), axis=1)
+    return out
+
+
+def _most_typical(mask, *features) -> int:
+    """Index of the pixel in ``mask`` closest to the medians of ``features`` (robust z)."""
+    idx = np.flatnonzero(mask)
+    score = np.zeros(idx.size)
+    for f in features:
+        f = np.asarray(f, np.float64)[idx]
+        med = np.nanmedian(f)
+        mad = 1.4826 * np.nanmedian(np.abs(f - med)) or 1.0
+        score += np.nan_to_num((f - med) / mad, nan=1e9) ** 2
+    return int(idx[np.argmin(score)])
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.integer, np.bool_)):
+        return obj.item()
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+def analyse_emva_leakage(sweep, calibration: Calibration | None = None, *,
+                         n_example_pixels: int = 4) -> dict:
+    """Compare the linear model (eq. 1) with the leakage model on an EMVA 1288 sweep.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        An EMVA 1288 sweep with photon counts; only its sweep steps are used.
+    calibration : Calibration, optional
+        Leakage-model calibration of the same sensor region; default: ``calibrate(sweep,
+        method="joint")`` on the sweep steps.
+    n_example_pixels : int
+        Example pixels to keep (1 to 4, in the order of ``ROLES``).
+
+    Returns
+    -------
+    dict
+        JSON-safe figures: sample and pixel counts, RMS errors (pooled over samples and median
+        of per-pixel values) overall, for the pixels that level off below full scale, and by
+        signal range; fitted saturation levels against plateaus; binned residuals against
+        signal; the example pixels' data and model curves.
+
+    Raises
+    ------
+    DataFormatError
+        The sweep has no photon counts for its light steps.
+    CalibrationMismatchError
+        The calibration is for another frame size.
+    """
+    if not 1 <= n_example_pixels <= len(ROLES):
+        raise ValueError(f"n_example_pixels must be 1 to {len(ROLES)}, got {n_example_pixels}")
+    sweep = sweep_steps_only(sweep)
+    if calibration is None:
+        calibration = calibrate(sweep, method="joint")
+    if tuple(calibration.domain.get("frame_shape", ())) != tuple(sweep.frame_shape):
+        raise CalibrationMismatchError(
+            f"the calibration is for frames {calibration.domain.get('frame_shape')}, the sweep "
+            f"has {list(sweep.frame_shape)}")
+    smp = collect_samples(sweep, full_well_dn=calibration.fitted_on.get("full_well_dn"))
+    usable, light = smp.usable_step, smp.kind == "light"
+    if smp.rate_unit != "photons/ms":
+        raise DataFormatError("the linear model of photons needs photon counts per light step "
+                              "(an EMVA 1288 sweep)", path=sweep.source or None)
+    t = np.where(usable, smp.exposure_ms, 1.0)
+    rate = np.where(usable, smp.rate, 0.0)
+    photons = rate * t
+    fs = smp.full_scale_dn
+    y = smp.y.astype(np.float64)
+    valid = smp.valid
+    h, w = smp.frame_shape
+
+    # weights of the leakage fit: frames per step / photon-transfer variance of the step mean
+    ptc = calibration.fitted_on.get("photon_transfer")
+    if ptc is None:
+        p = photon_transfer(sweep)
+        ptc = None if p is None else {"gain_dn_per_e": p.gain_dn_per_e,
+                                      "read_var_dn2": p.read_var_dn2}
+    dark_steps = (smp.kind == "dark") & usable
+    dark0 = np.median(y[dark_steps], axis=0) if dark_steps.any() else y.min(axis=0)
+    var = (ptc["gain_dn_per_e"] * np.maximum(y - dark0, 0.0) + ptc["read_var_dn2"]
+           if ptc else np.ones_like(y))
+    weight = np.where(valid, smp.n_frames[:, None] / var, 0.0)
+    d_lin, g_lin = fit_linear(photons, y, weight)
+    y_lin = d_lin + g_lin * photons[:, None]
+
+    arr = {k: np.asarray(calibration.arrays[k], np.float64).ravel()
+           for k in ("responsivity", "a_dn_per_ms", "b_per_dn", "dark_dn", "saturation_ref_dn")}
+    dc = np.asarray(calibration.arrays.get("dark_current_dn_per_ms", np.zeros((h, w))),
+                    np.float64).ravel()
+    k = arr["responsivity"] * rate[:, None] + dc
+    y_leak = model.response(t[:, None], k, arr["a_dn_per_ms"], arr["b_per_dn"], arr["dark_dn"])
+    res_lin = np.where(valid, y_lin - y, np.nan)
+    res_leak = np.where(valid, y_leak - y, np.nan)
+
+    # pixels that level off below full scale
+    never_clipped = ~(smp.clipped & usable[:, None]).any(axis=0)
+    y_max = np.where(valid, y, -np.inf).max(axis=0)
+    below = y_max < fs - FULL_SCALE_MARGIN_DN
+    by_photons = np.flatnonzero(light & usable)[np.argsort(photons[light & usable])]
+    top = by_photons[-N_TOP_STEPS:]
+    span = photons[top].max() - photons[top].min()
+    _, slope_top = fit_linear(photons[top], y[top], valid[top])
+    rise_ratio = slope_top / g_lin
+    xt = photons[top] - photons[top].mean()
+    noise_var = var / smp.n_frames[:, None]  # expected temporal variance of a step mean
+    rise_ratio_sigma = np.sqrt(noise_var[top].mean(axis=0) / (xt * xt).sum()) / g_lin
+    levels_off = never_clipped & below & (rise_ratio < ROLL_OFF_RATIO)
+    clips = ~never_clipped
+
+    # saturation levels against plateaus
+    plat = by_photons[-PLATEAU_STEPS:]
+    plateau = np.where(valid[plat].all(axis=0), y[plat].mean(axis=0), np.nan)
+    k_plat = arr["responsivity"] * rate[plat].mean() + dc
+    sat_plat = model.dynamic_saturation_level(np.maximum(k_plat, 1e-300), arr["a_dn_per_ms"],
+                                              arr["b_per_dn"])
+    lo = levels_off
+    saturation = {
+        "plateau_steps": [int(s) for s in smp.step[plat]],
+        "plateau_dn": _stats(plateau[lo]), "max_step_mean_dn": _stats(y_max[lo]),
+        "ref_minus_plateau_dn": _stats(arr["saturation_ref_dn"][lo] - plateau[lo]),
+        "ref_minus_max_step_mean_dn": _stats(arr["saturation_ref_dn"][lo] - y_max[lo]),
+        "at_plateau_rate_minus_plateau_dn": _stats(sat_plat[lo] - plateau[lo]),
+        "model_minus_plateau_dn": _stats(y_leak[plat][:, lo].mean(axis=0) - plateau[lo]),
+        "linear_minus_plateau_dn": _stats(y_lin[plat][:, lo].mean(axis=0) - plateau[lo]),
+        # near saturation dY/dt = k (1 - exp(-b (Ys - Y))): a pixel still rising at a fraction f
+        # of its linear slope lies -ln(1 - f) / b below saturation (model-light cross-check)
+        "gap_from_remaining_slope_dn": _stats(
+            -np.log1p(-np.clip(rise_ratio[lo], 0.0, 0.999)) / arr["b_per_dn"][lo]),
+        "clipping_pixels_saturation_ref_dn": _stats(arr["saturation_ref_dn"][clips]),
+        "brightest_rate_photons_per_ms": float(rate[usable].max()),
+        "plateau_rate_photons_per_ms": float(rate[plat].mean()),
+    }
+
+    # RMS: pooled over samples and median of per-pixel values
+    pix = {"all": np.ones(h * w, bool), "levels_off": lo, "not_levels_off": ~lo,
+           "clipping": clips}
+    rms = {}
+    for name, pm in pix.items():
+        m = valid & pm[None, :]
+        per_lin = np.sqrt(np.nanmean(res_lin[:, pm] ** 2, axis=0))
+        per_leak = np.sqrt(np.nanmean(res_leak[:, pm] ** 2, axis=0))
+        rms[name] = {"n_pixels": int(pm.sum()), "n_samples": int(m.sum()),
+                     "linear_dn": _rms(res_lin, m), "leakage_dn": _rms(res_leak, m),
+                     "linear_median_pixel_dn": float(np.median(per_lin)) if pm.any() else None,
+                     "leakage_median_pixel_dn": float(np.median(per_leak)) if pm.any() else None}
+    signal = y - arr["dark_dn"]
+    edges = (-np.inf, *SIGNAL_EDGES_DN, np.inf)
+    ranges = [("dark steps", dark_steps[:, None] & valid)]
+    for lo_e, hi_e in zip(edges[:-1], edges[1:]):
+        lab = (f"light, < {hi_e:g} DN" if lo_e == -np.inf else
+               f"light, >= {lo_e:g} DN" if hi_e == np.inf else f"light, {lo_e:g}-{hi_e:g} DN")
+        ranges.append((lab, valid & (light & usable)[:, None] & (signal >= lo_e) & (signal < hi_e)))
+    # residual common to all pixels in a step (median over pixels): illumination / photon-count
+    # errors or a sensor-wide non-linearity, as opposed to pixel-to-pixel differences
+    cm_lin, cm_leak = _step_median(res_lin, valid), _step_median(res_leak, valid)
+    by_range = []
+    for lab, m in ranges:
+        for pname, pm in (("all", pix["all"]), ("levels_off", lo)):
+            mm = m & pm[None, :]
+            by_range.append({
+                "range": lab, "pixels": pname, "n_samples": int(mm.sum()),
+                "linear_rms_dn": _rms(res_lin, mm), "leakage_rms_dn": _rms(res_leak, mm),
+                "noise_rms_dn": float(np.sqrt(np.mean(noise_var[mm]))) if mm.any() else None,
+                "linear_bias_dn": float(np.nanmean(res_lin[mm])) if mm.any() else None,
+                "leakage_bias_dn": float(np.nanmean(res_leak[mm])) if mm.any() else None,
+                "linear_rms_without_step_common_dn": _rms(res_lin - cm_lin, mm),
+                "leakage_rms_without_step_common_dn": _rms(res_leak - cm_leak, mm)})
+
+    bins = np.arange(-BIN_WIDTH_DN, fs + BIN_WIDTH_DN, BIN_WIDTH_DN)
+    binned = {}
+    for pname, pm in (("all", pix["all"]), ("levels_off", lo)):
+        m = valid & pm[None, :]
+        binned[pname] = {"linear": _binned(signal[m], res_lin[m], bins),
+                         "leakage": _binned(signal[m], res_leak[m], bins)}
+    step_common = {"photons": photons[usable], "kind": smp.kind[usable].tolist(),
+                   "signal_dn": _step_median(signal, valid)[usable, 0],
+                   "linear_dn": cm_lin[usable, 0], "leakage_dn": cm_leak[usable, 0]}
+
+    # example pixels
+    plateau_lo = np.where(lo, plateau, np.nan)
+    picks = []
+    if lo.any():
+        q10 = np.nanpercentile(plateau_lo, 10)
+        picks.append(int(np.nanargmin(np.abs(plateau_lo - q10))))
+        picks.append(_most_typical(lo, plateau, rise_ratio))
+    else:
+        picks += [None, None]
+    picks.append(_most_typical(clips, g_lin, (smp.clipped & usable[:, None]).sum(axis=0))
+                 if clips.any() else None)
+    rms_lin_px = np.sqrt(np.nanmean(res_lin ** 2, axis=0))
+    rms_leak_px = np.sqrt(np.nanmean(res_leak ** 2, axis=0))
+    picks.append(_most_typical(np.ones(h * w, bool), g_lin, rms_lin_px, rms_leak_px))
+    curve = light & usable
+    order = np.flatnonzero(curve)[np.argsort(photons[curve])]
+    examples = []
+    for role, p in list(zip(ROLES, picks))[:n_example_pixels]:
+        if p is None:
+            continue
+        v = valid[order, p]
+        examples.append({
+            "role": role, "row": p // w, "col": p % w, "photons": photons[order].round(2),
+            "y_dn": np.where(v, y[order, p], np.nan).round(3),
+            "clipped": smp.clipped[order, p], "linear_dn": y_lin[order, p].round(3),
+            "leakage_dn": y_leak[order, p].round(3), "dark_dn": arr["dark_dn"][p],
+            "linear_rms_dn": rms_lin_px[p], "leakage_rms_dn": rms_leak_px[p],
+            "saturation_ref_dn": arr["saturation_ref_dn"][p], "plateau_dn": plateau[p],
+            "levels_off": bool(lo[p]), "rise_ratio": rise_ratio[p]})
+
+    criterion = {
+        "text": (f"never clipped in any usable step, highest step mean < "
+                 f"{fs - FULL_SCALE_MARGIN_DN:g} DN, and over the {N_TOP_STEPS} brightest light "
+                 f"steps a rise (LS slope x photon span) < {ROLL_OFF_RATIO:g} x the pixel's own "
+                 "linear-fit rise"),
+        "n_top_steps": N_TOP_STEPS, "photon_span_top_steps": float(span),
+        "roll_off_ratio": ROLL_OFF_RATIO, "full_scale_margin_dn": FULL_SCALE_MARGIN_DN,
+        "n_never_clipped": int(never_clipped.sum()),
+        "n_never_clipped_below_margin": int((never_clipped & below).sum()),
+        "n_levels_off": int(lo.sum()),
+        "n_never_clipped_below_margin_but_linear": int((never_clipped & below & ~lo).sum()),
+        "rise_ratio_levels_off": _stats(rise_ratio[lo]),
+        "rise_ratio_noise_sigma": _stats(rise_ratio_sigma[never_clipped & below]),
+        "rise_ratio_never_clipped_below_margin": _stats(rise_ratio[never_clipped & below]),
+    }
+    return _jsonable({
+        "source": sweep.source, "hsiffc_version": __version__,
+        "frame_shape": [h, w], "n_pixels": h * w, "full_scale_dn": fs,
+        "n_steps": int(usable.sum()), "n_light_steps": int((light & usable).sum()),
+        "n_dark_steps": int(dark_steps.sum()), "n_valid_samples": int(valid.sum()),
+        "calibration_method": calibration.method,
+        "residual": "model - data (DN), on step means",
+        "linear_model": "Y = d + g * photons (paper eq. 1), weighted LS per pixel, closed form",
+        "weights": ("same as the leakage fit: frames per step / (K * max(Y - dark, 0) + read "
+                    "variance), K and read variance from the photon transfer curve"),
+        "photon_transfer": ptc,
+        "linear_gain_dn_per_photon": _stats(g_lin), "linear_offset_dn": _stats(d_lin),
+        "leakage_b_per_dn": _stats(arr["b_per_dn"]), "leakage_dark_dn": _stats(arr["dark_dn"]),
+        "criterion": criterion, "rms": rms, "rms_by_signal": by_range,
+        "saturation": saturation, "binned_residual": binned, "step_common_residual": step_common,
+        "examples": examples,
+    })
+
+
+def _markdown(res: dict) -> str:
+    c, s = res["criterion"], res["saturation"]
+
+    def f(v, nd=2):
+        return "n/a" if v is None else f"{v:.{nd}f}"
+
+    lines = [
+        "# Linear model against leakage model: real EMVA 1288 sweep", "",
+        f"Source: `{res['source']}`; {res['frame_shape'][0]} x {res['frame_shape'][1]} pixels, "
+        f"{res['n_light_steps']} light + {res['n_dark_steps']} dark usable steps, "
+        f"{res['n_valid_samples']} valid samples (step means). hsiffc {res['hsiffc_version']}.", "",
+        f"Linear model: {res['linear_model']}. Weights: {res['weights']}. Residual = "
+        f"{res['residual']}.", "",
+        "## Pixels that level off below full scale", "",
+        f"Criterion: {c['text']}.", "",
+        "| count | pixels |", "|---|---:|",
+        f"| never clipped | {c['n_never_clipped']} |",
+        f"| ... and highest step mean < full scale - {c['full_scale_margin_dn']:g} DN | "
+        f"{c['n_never_clipped_below_margin']} |",
+        f"| ... and rise < {c['roll_off_ratio']:g} x linear (**levels off**) | "
+        f"**{c['n_levels_off']}** |",
+        "", f"Rise ratio of the levelling-off pixels: median "
+        f"{f(c['rise_ratio_levels_off'].get('p50'))}, p5-p95 "
+        f"{f(c['rise_ratio_levels_off'].get('p5'))}-{f(c['rise_ratio_levels_off'].get('p95'))}, "
+        f"max {f(c['rise_ratio_levels_off'].get('max'))}; its noise (1 sigma, from the photon "
+        f"transfer curve) {f(c['rise_ratio_noise_sigma'].get('p50'))}. A linear pixel has 1.", "",
+        "## RMS error (DN) over valid samples", "",
+        "| pixels | pixels (n) | samples | linear | leakage | linear, median pixel | "
+        "leakage, median pixel |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, r in res["rms"].items():
+        lines.append(f"| {name} | {r['n_pixels']} | {r['n_samples']} | {f(r['linear_dn'], 3)} | "
+                     f"{f(r['leakage_dn'], 3)} | {f(r['linear_median_pixel_dn'], 3)} | "
+                     f"{f(r['leakage_median_pixel_dn'], 3)} |")
+    lines += ["", "## By signal range (step mean above the fitted dark level)", "",
+              "| range | pixels | samples | linear RMS | leakage RMS | linear bias | leakage bias "
+              "| linear RMS w/o step-common | leakage RMS w/o step-common | temporal noise |",
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in res["rms_by_signal"]:
+        lines.append(
+            f"| {r['range']} | {r['pixels']} | {r['n_samples']} | {f(r['linear_rms_dn'], 3)} | "
+            f"{f(r['leakage_rms_dn'], 3)} | {f(r['linear_bias_dn'], 3)} | "
+            f"{f(r['leakage_bias_dn'], 3)} | {f(r['linear_rms_without_step_common_dn'], 3)} | "
+            f"{f(r['leakage_rms_without_step_common_dn'], 3)} | {f(r['noise_rms_dn'], 3)} |")
+    lines += ["", "Bias: mean residual. Step-common: the median residual over all pixels of each "
+              "step, removed. Temporal noise: RMS expected from the photon transfer curve for a "
+              "step mean (the floor no model can beat).", "",
+              "## Fitted dynamic saturation level against plateau (levelling-off pixels, DN)", "",
+              f"Plateau: mean of the step means of the {len(s['plateau_steps'])} brightest light "
+              f"steps (steps {s['plateau_steps']}).", "",
+              "| quantity | median | p5 | p25 | p75 | p95 | median abs |",
+              "|---|---:|---:|---:|---:|---:|---:|"]
+    for key, lab in (("plateau_dn", "plateau"), ("max_step_mean_dn", "highest step mean"),
+                     ("ref_minus_plateau_dn", "saturation_ref (brightest rate) - plateau"),
+                     ("ref_minus_max_step_mean_dn", "saturation_ref - highest step mean"),
+                     ("at_plateau_rate_minus_plateau_dn",
+                      "saturation at the plateau steps' rate - plateau"),
+                     ("model_minus_plateau_dn", "leakage model at plateau steps - plateau"),
+                     ("linear_minus_plateau_dn", "linear model at plateau steps - plateau"),
+                     ("gap_from_remaining_slope_dn",
+                      "-ln(1 - rise ratio) / b (gap implied by the remaining slope)")):
+        st = s[key]
+        lines.append(f"| {lab} | {f(st.get('p50'))} | {f(st.get('p5'))} | {f(st.get('p25'))} | "
+                     f"{f(st.get('p75'))} | {f(st.get('p95'))} | {f(st.get('median_abs'))} |")
+    cs = s["clipping_pixels_saturation_ref_dn"]
+    lines += ["", f"Brightest light rate {s['brightest_rate_photons_per_ms']:.4g} photons/ms; "
+              f"plateau steps {s['plateau_rate_photons_per_ms']:.4g} photons/ms. Pixels that clip "
+              f"({cs['n']}): fitted saturation_ref median {f(cs.get('p50'))} DN (p5-p95 "
+              f"{f(cs.get('p5'))}-{f(cs.get('p95'))}), i.e. above full scale.", "",
+              "## Example pixels", "", "| role | row | col | linear RMS | leakage RMS | "
+              "saturation_ref | plateau |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for e in res["examples"]:
+        lines.append(f"| {e['role']} | {e['row']} | {e['col']} | {f(e['linear_rms_dn'], 3)} | "
+                     f"{f(e['leakage_rms_dn'], 3)} | {f(e['saturation_ref_dn'])} | "
+                     f"{f(e['plateau_dn'])} |")
+    lines += ["", "![example pixels](emva_leakage_pixels.png)", ""]
+    return "\n".join(lines)
+
+
+def _figure(res: dict, path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ex = res["examples"]
+    nrow = max(2, math.ceil(len(ex) / 2))
+    fig = plt.figure(figsize=(18, 5.6 * nrow))
+    outer = fig.add_gridspec(nrow, 3, hspace=0.28, wspace=0.27)
+    col_lin, col_leak, fs = "tab:orange", "tab:blue", res["full_scale_dn"]
+    for i, e in enumerate(ex):
+        inner = outer[i // 2, i % 2].subgridspec(2, 1, height_ratios=[3, 1.1], hspace=0.06)
+        ax, axr = fig.add_subplot(inner[0]), fig.add_subplot(inner[1])
+        x = np.asarray(e["photons"], float)
+        yv = np.asarray([np.nan if v is None else v for v in e["y_dn"]], float)
+        clip = np.asarray(e["clipped"], bool)
+        ax.plot(x[~clip], yv[~clip], "o", ms=3.5, mfc="none", mew=0.7, color="k",
+                label="step means (valid samples)")
+        if clip.any():
+            ax.plot(x[clip], np.full(clip.sum(), fs), "x", ms=4, color="tab:red",
+                    label="clipped steps (left out)")
+        lin, leak = np.asarray(e["linear_dn"], float), np.asarray(e["leakage_dn"], float)
+        ax.plot(x, lin, "-", color=col_lin, lw=1.6, zorder=3,
+                label=f"linear, eq. (1): RMS {e['linear_rms_dn']:.2f} DN")
+        ax.plot(x, leak, "-", color=col_leak, lw=1.6, zorder=3,
+                label=f"leakage model: RMS {e['leakage_rms_dn']:.2f} DN")
+        ax.axhline(fs, color="0.6", ls=":", lw=1)
+        sat = e["saturation_ref_dn"]
+        if sat is not None and sat < fs + 40:
+            ax.axhline(sat, color=col_leak, ls="--", lw=0.8,
+                       label=f"fitted saturation at brightest rate: {sat:.1f} DN")
+        ax.set_ylim(-5, fs + 20)
+        ax.set_title(f"{e['role']}: row {e['row']}, col {e['col']}", fontsize=10)
+        ax.set_ylabel("step mean (DN)")
+        ax.legend(fontsize=7.5, loc="upper left")
+        ax.tick_params(labelbottom=False)
+        # inset: the top of the range, where the models differ
+        ins = ax.inset_axes([0.58, 0.08, 0.39, 0.42])
+        top = x > 0.75 * x.max()
+        ins.plot(x[top & ~clip], yv[top & ~clip], "o", ms=3, mfc="none", mew=0.7, color="k")
+        ins.plot(x[top], lin[top], "-", color=col_lin, lw=1.4, zorder=3)
+        ins.plot(x[top], leak[top], "-", color=col_leak, lw=1.4, zorder=3)
+        ins.axhline(fs, color="0.6", ls=":", lw=1)
+        ins.set_ylim(np.nanmin(yv[top]) - 5, fs + 8)
+        ins.tick_params(labelsize=7)
+        ins.set_title("brightest quarter", fontsize=7)
+        axr.axhline(0, color="0.5", lw=0.8)
+        axr.plot(x[~clip], (lin - yv)[~clip], ".-", ms=2, lw=0.6, color=col_lin)
+        axr.plot(x[~clip], (leak - yv)[~clip], ".-", ms=2, lw=0.6, color=col_leak)
+        axr.set_ylabel("model - data (DN)", fontsize=8)
+        axr.set_xlabel("photons per pixel")
+        lim = max(3.0, 1.5 * float(np.nanmax(np.abs((leak - yv)[~clip]))))
+        axr.set_ylim(-lim, lim)
+    right = outer[:, 2].subgridspec(3, 1, hspace=0.5)
+    for j, (pname, title) in enumerate((("all", "all pixels"),
+                                        ("levels_off", "pixels that level off below 255"))):
+        ax = fig.add_subplot(right[j])
+        for mname, col, lab in (("linear", col_lin, "linear, eq. (1)"),
+                                ("leakage", col_leak, "leakage model")):
+            b = res["binned_residual"][pname][mname]
+            ax.fill_between(b["center"], b["q25"], b["q75"], color=col, alpha=0.2, lw=0)
+            ax.plot(b["center"], b["median"], "-o", ms=2.5, color=col,
+                    label=f"{lab}: median (band: quartiles)")
+        ax.axhline(0, color="0.5", lw=0.8)
+        n = res["criterion"]["n_levels_off"] if pname == "levels_off" else res["n_pixels"]
+        ax.set_title(f"Residual against signal, {title} ({n})", fontsize=10)
+        ax.set_xlabel(f"step mean above dark (DN), {BIN_WIDTH_DN:g}-DN bins")
+        ax.set_ylabel("model - data (DN)")
+        ax.legend(fontsize=8, loc="upper left")
+        ax.grid(alpha=0.3)
+    ax = fig.add_subplot(right[2])
+    sc = res["step_common_residual"]
+    light = np.asarray(sc["kind"]) == "light"
+    sig = np.asarray(sc["signal_dn"], float)[light]
+    o = np.argsort(sig)
+    low = sig[o] <= 120
+    span = 0.5
+    for key, col, lab in (("linear_dn", col_lin, "linear, eq. (1)"),
+                          ("leakage_dn", col_leak, "leakage model")):
+        v = np.asarray(sc[key], float)[light][o]
+        ax.plot(sig[o][low], v[low], "-o", ms=2.5, color=col, label=lab)
+        span = max(span, float(np.nanmax(np.abs(v[low]))))
+    ax.axhline(0, color="0.5", lw=0.8)
+    ax.set_xlim(0, 120)
+    ax.set_ylim(-1.15 * span, 1.15 * span)
+    ax.set_title("Low signal: residual common to all pixels\n(median over pixels, per light step)",
+                 fontsize=10)
+    ax.set_xlabel("median step mean above dark (DN)")
+    ax.set_ylabel("model - data (DN)")
+    ax.legend(fontsize=8, loc="lower left")
+    ax.grid(alpha=0.3)
+    fig.suptitle("Linear model (eq. 1) vs leakage model on the real EMVA 1288 sweep "
+                 f"({res['frame_shape'][0]} x {res['frame_shape'][1]} region; "
+                 f"{res['criterion']['n_levels_off']} pixels level off below 255)",
+                 fontsize=13, y=0.93)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+
+
+def write_emva_leakage_report(sweep, outdir, calibration: Calibration | None = None) -> dict:
+    """Run :func:`analyse_emva_leakage` and write its JSON, Markdown and figure atomically.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        EMVA 1288 sweep (see :func:`analyse_emva_leakage`).
+    outdir : path-like
+        Folder for ``emva_leakage.json``, ``emva_leakage.md`` and ``emva_leakage_pixels.png``
+        (created if missing; existing files are replaced).
+    calibration : Calibration, optional
+        Default: a joint calibration of the sweep steps.
+
+    Returns
+    -------
+    dict
+        The analysis, with ``"files"`` naming the written files.
+    """
+    outdir = Path(outdir)
+    res = analyse_emva_leakage(sweep, calibration)
+    files = {"json": outdir / "emva_leakage.json", "markdown": outdir / "emva_leakage.md",
+             "figure": outdir / "emva_leakage_pixels.png"}
+    _figure(res, files["figure"])
+    atomic_write_text(files["markdown"], _markdown(res))
+    res["files"] = {k: str(v) for k, v in files.items()}
+    atomic_write_text(files["json"], json.dumps(res, indent=1, allow_nan=False) + "\n")
+    return res
