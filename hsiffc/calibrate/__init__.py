@@ -54,6 +54,33 @@ def _sample_weights(samples: Samples, ptc: PhotonTransfer | None, dark0: np.ndar
     return n / ptc.variance(samples.y.astype(np.float64) - dark0[None, :])
 
 
+def fit_inputs(smp: Samples, ptc: PhotonTransfer | None, dark_current: bool | str = "auto"):
+    """The joint fit's inputs for a set of samples, exactly as :func:`calibrate_joint` builds them.
+
+    Returns a dict: ``y, t, r, valid, wgt`` (pixels x samples, dark samples merged), ``dc``
+    (fixed per-pixel dark current or None) and the unmerged ``y_all, valid_all`` (residual RMS
+    and sample counts are taken over these).
+    """
+    valid = smp.valid.T
+    y = smp.y.T.astype(np.float64)
+    dark_steps = smp.kind == "dark"
+    dark0 = (np.median(smp.y[dark_steps], axis=0) if dark_steps.any()
+             else np.min(smp.y, axis=0)).astype(np.float64)
+    wgt = _sample_weights(smp, ptc, dark0).T
+    n_dark_exposures = len(np.unique(smp.exposure_ms[dark_steps & smp.usable_step]))
+    dc = None
+    if dark_current is True or (dark_current == "auto" and n_dark_exposures >= 2):
+        dc = dark_current_from_darks(y, smp.exposure_ms, smp.rate, valid, wgt)
+        # keep it only when the pixels as a whole show a dark current above the noise
+        # (a negative dark current is not physical: clip at zero)
+        med = np.median(dc)
+        se = 1.4826 * np.median(np.abs(dc - med)) / np.sqrt(dc.size)
+        dc = np.clip(dc, 0.0, None) if (dark_current is True or med > 3 * se) else None
+    y_m, t_m, r_m, v_m, w_m = merge_dark_samples(y, smp.exposure_ms, smp.rate, valid, wgt, dc)
+    return {"y": y_m, "t": np.asarray(t_m, np.float64), "r": np.asarray(r_m, np.float64),
+            "valid": v_m, "wgt": w_m, "dc": dc, "y_all": y, "valid_all": valid}
+
+
 def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_rate=None,
                     dark_current: bool | str = "auto", rows_per_chunk: int | None = None,
                     progress=None) -> Calibration:
@@ -83,7 +110,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     ptc = photon_transfer(sweep)
     n_steps = len(sweep.steps())
     rows_per_chunk = rows_per_chunk or max(1, 262144 // (w * n_steps))
-    out = {name: np.zeros((h, w)) for name in (
+    out = {name: np.zeros((h, w), np.float32) for name in (
         "responsivity", "a_dn_per_ms", "b_per_dn", "dark_dn", "dark_current_dn_per_ms",
         "sigma_ln_g", "sigma_ln_a", "sigma_ln_b", "sigma_dark_dn", "rms_dn", "chi2_red",
         "saturation_ref_dn")}
@@ -95,26 +122,9 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         rows = slice(r0, min(h, r0 + rows_per_chunk))
         smp = collect_samples(sweep, full_well_dn=full_well_dn, light_rate=light_rate, rows=rows)
         info = info or smp
-        valid = smp.valid.T
-        y = smp.y.T.astype(np.float64)
-        dark_steps = smp.kind == "dark"
-        dark0 = (np.median(smp.y[dark_steps], axis=0) if dark_steps.any()
-                 else np.min(smp.y, axis=0)).astype(np.float64)
-        wgt = _sample_weights(smp, ptc, dark0).T
-        use_dc = dark_current is True or (
-            dark_current == "auto" and len(np.unique(smp.exposure_ms[dark_steps & smp.usable_step])) >= 2)
-        dc = None
-        if use_dc:
-            dc = dark_current_from_darks(y, smp.exposure_ms, smp.rate, valid, wgt)
-            # keep it only when the sensor as a whole shows a dark current above the noise
-            # (a negative dark current is not physical: clip at zero)
-            med = np.median(dc)
-            se = 1.4826 * np.median(np.abs(dc - med)) / np.sqrt(dc.size)
-            dc = np.clip(dc, 0.0, None) if (dark_current is True or med > 3 * se) else None
-        t_s, r_s = smp.exposure_ms, smp.rate
-        y_all, valid_all = y, valid
-        if dc is None:
-            y, t_s, r_s, valid, wgt = merge_dark_samples(y, t_s, r_s, valid, wgt)
+        fi = fit_inputs(smp, ptc, dark_current)
+        y, t_s, r_s, valid, wgt, dc = (fi[k] for k in ("y", "t", "r", "valid", "wgt", "dc"))
+        y_all, valid_all = fi["y_all"], fi["valid_all"]
         if b_grid is None:
             b_grid = _pilot_b_grid(y, t_s, r_s, valid, wgt, dc)
         theta0 = initial_guess(y, t_s, r_s, valid, wgt, dc, b_grid=b_grid)
@@ -152,16 +162,15 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     arrays = {**out, **counts, "flags": flags}
     single = info.rate_unit.startswith("1 =")
     if single:
-        arrays["k_ref_dn_per_ms"] = out["responsivity"].copy()
-    arrays = {k: (v.astype(np.float32) if v.dtype == np.float64 else v) for k, v in arrays.items()}
+        arrays["k_ref_dn_per_ms"] = out["responsivity"]
     return Calibration(arrays=arrays, domain=_domain(sweep, info, rates), method="joint",
                        fitted_on=_fitted_on(sweep, info, ptc, full_well_dn))
 
 
 def _pilot_b_grid(y, t, r, valid, wgt, dc, n_pilot: int = 512):
-    """Start values of b for a whole sensor: fit up to ``n_pilot`` pixels from the full grid of
+    """Start value of b for a whole sensor: fit up to ``n_pilot`` pixels from the full grid of
     start values and keep the median fitted b (pixels of one sensor share their leakage
-    physics), with a factor-2 bracket around it. Falls back to the full grid."""
+    physics; the fit then moves each pixel from there). Falls back to the full grid."""
     p = y.shape[0]
     rng = np.random.default_rng(0)
     idx = np.sort(rng.choice(p, size=min(p, n_pilot), replace=False))
@@ -171,8 +180,7 @@ def _pilot_b_grid(y, t, r, valid, wgt, dc, n_pilot: int = 512):
     good = fit.leak_constrained & fit.converged
     if good.sum() < 10:
         return B_GRID
-    b0 = float(np.median(fit.b[good]))
-    return (b0 / 2, b0, b0 * 2)
+    return (float(np.median(fit.b[good])),)
 
 
 def _domain(sweep: Sweep, info: Samples, rates) -> dict:

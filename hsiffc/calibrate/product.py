@@ -148,6 +148,14 @@ class Calibration:
         return "\n".join(lines)
 
     # -- validation ----------------------------------------------------------------------------
+    def to_reference(self) -> str:
+        """The file this calibration was loaded from or saved to (how pipelines refer to it)."""
+        path = getattr(self, "_path", None)
+        if path is None:
+            raise TypeError("this calibration exists only in memory; save it first "
+                            "(cal.save('cal.npz')) and pass the path to the stage")
+        return path
+
     def check_compatible(self, data=None, *, frame_shape=None, bit_depth=None, mosaic=None,
                          what: str = "the data") -> None:
         """Raise :class:`CalibrationMismatchError` if ``data`` (a Sweep, or the keyword facts)
@@ -191,6 +199,7 @@ class Calibration:
         with atomic_path(path, overwrite=overwrite) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **payload)
+        object.__setattr__(self, "_path", str(path.resolve()))
         return path
 
     @classmethod
@@ -226,6 +235,7 @@ class Calibration:
         except (KeyError, ValueError) as exc:
             raise DataFormatError(f"calibration is incomplete or inconsistent: {exc}",
                                   path=path) from exc
+        object.__setattr__(cal, "_path", str(path.resolve()))
         return cal
 
 
