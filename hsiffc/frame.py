@@ -1,0 +1,132 @@
+"""The data that flows through a pipeline: a frame with its data-quality plane and metadata."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+
+import numpy as np
+
+from .dq import DQ, DQ_DTYPE
+from .mosaic import Mosaic
+from .sweep import Sweep
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One raw mosaic frame ``(H, W)`` or reconstructed cube ``(H', W', bands)``.
+
+    Attributes
+    ----------
+    data : ndarray, float32
+        DN (raw or corrected; never silently rescaled).
+    dq : ndarray, uint32
+        :class:`hsiffc.dq.DQ` bits, same shape as ``data``.
+    meta : mapping
+        ``exposure_ms``, ``bit_depth``, ``mosaic`` (Mosaic or None), ``kind`` ("light"/"dark"),
+        ``illumination``, ``wavelengths_nm`` (cubes), ``history`` (tuple of dicts, one per stage
+        the frame passed), and anything else a stage records (e.g. ``dark_subtracted``).
+    alpha : ndarray or None
+        Leakage percentage per pixel once an alpha stage has run.
+    """
+
+    data: np.ndarray
+    dq: np.ndarray
+    meta: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    alpha: np.ndarray | None = None
+
+    def __post_init__(self):
+        data = np.asarray(self.data)
+        if data.dtype != np.float32:
+            data = data.astype(np.float32)
+        dq = np.asarray(self.dq, dtype=DQ_DTYPE)
+        if dq.shape != data.shape:
+            raise ValueError(f"dq has shape {dq.shape} but data has {data.shape}; they must match")
+        if data.ndim not in (2, 3):
+            raise ValueError(f"a frame is (H, W) or a cube (H, W, bands); got shape {data.shape}")
+        meta = dict(self.meta)
+        meta.setdefault("history", ())
+        meta["history"] = tuple(meta["history"])
+        object.__setattr__(self, "data", data)
+        object.__setattr__(self, "dq", dq)
+        object.__setattr__(self, "meta", MappingProxyType(meta))
+
+    # -- construction --------------------------------------------------------------------------
+    @classmethod
+    def from_raw(cls, raw, *, exposure_ms: float, bit_depth: int, mosaic: Mosaic | None = None,
+                 kind: str = "light", **meta) -> "Frame":
+        """Wrap raw counts: float32 data, SATURATED where at full scale, NONFINITE where NaN/inf
+        (those pixels are set to 0 DN and flagged, so nothing downstream turns into NaN)."""
+        raw = np.asarray(raw)
+        data = raw.astype(np.float32)
+        dq = np.zeros(raw.shape, DQ_DTYPE)
+        finite = np.isfinite(data)
+        if not finite.all():
+            dq[~finite] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
+            data = np.where(finite, data, 0.0).astype(np.float32)
+        dq[data >= 2 ** int(bit_depth) - 1] |= DQ_DTYPE(DQ.SATURATED)
+        return cls(data, dq, {"exposure_ms": float(exposure_ms), "bit_depth": int(bit_depth),
+                              "mosaic": mosaic, "kind": kind, **meta})
+
+    @classmethod
+    def list_from_sweep(cls, sweep: Sweep) -> list["Frame"]:
+        """Every frame of a sweep as a Frame (acquisition order kept)."""
+        return [cls.from_raw(sweep.data[i], exposure_ms=float(sweep.exposure_ms[i]),
+                             bit_depth=sweep.bit_depth, mosaic=sweep.mosaic,
+                             kind=str(sweep.kind[i]), illumination=str(sweep.illumination[i]),
+                             step=int(sweep.step[i]), source=sweep.source)
+                for i in range(sweep.n_frames)]
+
+    # -- views ---------------------------------------------------------------------------------
+    def replace(self, **changes) -> "Frame":
+        """A new frame with some fields replaced; ``meta`` entries given as ``meta={...}`` are
+        merged into the existing metadata."""
+        if "meta" in changes:
+            merged = dict(self.meta)
+            merged.update(changes["meta"])
+            changes["meta"] = merged
+        return replace(self, **changes)
+
+    @property
+    def exposure_ms(self) -> float:
+        return float(self.meta["exposure_ms"])
+
+    @property
+    def bit_depth(self) -> int:
+        return int(self.meta["bit_depth"])
+
+    @property
+    def mosaic(self) -> Mosaic | None:
+        return self.meta.get("mosaic")
+
+    @property
+    def kind(self) -> str:
+        return str(self.meta.get("kind", "light"))
+
+    @property
+    def history(self) -> tuple:
+        return self.meta["history"]
+
+    @property
+    def is_cube(self) -> bool:
+        return self.data.ndim == 3
+
+    def band_map(self) -> np.ndarray:
+        """Band index per pixel of a mosaic frame (all zeros without a mosaic)."""
+        if self.mosaic is None:
+            return np.zeros(self.data.shape[:2], np.int64)
+        return self.mosaic.band_map(self.data.shape[:2])
+
+    @property
+    def good(self) -> np.ndarray:
+        """True where no DQ bit is set."""
+        return self.dq == 0
+
+
+def stack_mean(frames, *, robust: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Average of a stack of frames: the median when ``robust`` (outliers such as cosmic rays or
+    a glitched frame do not move it), else the mean. Returns (data, dq-OR of the stack)."""
+    data = np.stack([f.data for f in frames])
+    dq = np.bitwise_or.reduce(np.stack([f.dq for f in frames]), axis=0)
+    avg = np.median(data, axis=0) if (robust and len(frames) >= 3) else data.mean(axis=0)
+    return avg.astype(np.float32), dq

@@ -1,0 +1,100 @@
+"""One registry for built-in and third-party stages.
+
+Built-ins are listed here; third parties declare entry points in the group ``hsiffc.stages``
+of their own ``pyproject.toml``::
+
+    [project.entry-points."hsiffc.stages"]
+    hot_pixel_repair = "hsiffc_hotpixel:HotPixelRepair"
+
+Entries are ``"module:Class"`` strings, imported only when a stage is used. A plugin that fails
+to import gives a warning naming its package, not a crash. Pipelines loaded from files resolve
+stages by these registered names only, never by an import path read from the file.
+"""
+
+from __future__ import annotations
+
+import importlib
+import warnings
+from dataclasses import dataclass
+from importlib.metadata import entry_points
+
+from ..errors import HsiffcWarning
+
+GROUP = "hsiffc.stages"
+
+BUILTIN = {
+    "dark": "hsiffc.stages.dark:DarkSubtract",
+    "alpha_mask": "hsiffc.stages.alpha:AlphaMask",
+    "two_point_ffc": "hsiffc.stages.ffc:TwoPointFFC",
+    "polynomial_ffc": "hsiffc.stages.ffc:PolynomialFFC",
+    "linearise": "hsiffc.stages.linearise:LeakageLinearise",
+    "reconstruct": "hsiffc.stages.reconstruct:Reconstruct",
+}
+
+
+class PluginWarning(HsiffcWarning):
+    """A third-party stage could not be loaded."""
+
+
+@dataclass(frozen=True)
+class StageEntry:
+    name: str
+    target: str  # "module:Class"
+    source: str  # "hsiffc (built-in)" or "<distribution> <version>"
+
+
+def entries() -> dict[str, StageEntry]:
+    """Every registered stage, built-ins first; a plugin cannot shadow a built-in name."""
+    out = {n: StageEntry(n, t, "hsiffc (built-in)") for n, t in BUILTIN.items()}
+    for ep in entry_points(group=GROUP):
+        dist = getattr(ep, "dist", None)
+        source = f"{dist.name} {dist.version}" if dist is not None else "unknown package"
+        if ep.name in out:
+            warnings.warn(f"stage {ep.name!r} from {source} ignored: the name is taken by "
+                          f"{out[ep.name].source}", PluginWarning, stacklevel=2)
+            continue
+        out[ep.name] = StageEntry(ep.name, ep.value, source)
+    return out
+
+
+def get(name: str):
+    """The stage class registered as ``name``."""
+    table = entries()
+    if name not in table:
+        raise KeyError(f"no stage named {name!r}; installed stages: {sorted(table)} "
+                       "(third-party stages register under the entry-point group "
+                       f"{GROUP!r})")
+    entry = table[name]
+    module, _, attr = entry.target.partition(":")
+    try:
+        cls = getattr(importlib.import_module(module), attr)
+    except Exception as exc:  # a broken plugin must not take hsiffc down
+        warnings.warn(f"stage {name!r} from {entry.source} could not be loaded "
+                      f"({type(exc).__name__}: {exc})", PluginWarning, stacklevel=2)
+        raise KeyError(f"stage {name!r} is installed ({entry.source}) but failed to load: "
+                       f"{exc}") from exc
+    if not getattr(cls, "name", ""):
+        cls.name = name
+    return cls
+
+
+def create(name: str, **params):
+    """An instance of the stage registered as ``name``."""
+    return get(name)(**params)
+
+
+def describe() -> list[dict]:
+    """Name, class, source and load status of every registered stage (for ``hsiffc stages``)."""
+    rows = []
+    for entry in entries().values():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", PluginWarning)
+                cls = get(entry.name)
+            status = "ok"
+            doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+        except KeyError as exc:
+            status, doc = f"broken: {exc.__cause__}", ""
+        rows.append({"name": entry.name, "target": entry.target, "source": entry.source,
+                     "status": status, "summary": doc})
+    return rows
