@@ -102,6 +102,25 @@ def _add_select(sub):
     p.set_defaults(func=_cmd_select)
 
 
+def _add_stages(sub):
+    p = sub.add_parser("stages", help="list the installed pipeline stages and where they come from")
+    p.add_argument("--json", type=Path, default=None, help="also write the list as JSON")
+    p.set_defaults(func=_cmd_stages)
+
+
+def _add_fit(sub):
+    p = sub.add_parser(
+        "fit", help="fit a pipeline described in TOML on training frames and save it",
+        description="Build the pipeline described by a TOML file ([[step]] tables with name, "
+                    "stage and parameters), fit it on training frames (darks and flats, hsiffc "
+                    "TIFF or EMVA 1288) and save the fitted pipeline (.npz, no pickle).")
+    p.add_argument("description", type=Path, help="pipeline TOML file")
+    p.add_argument("training", type=Path, nargs="+", help="training sweeps (darks, flats)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="fitted pipeline (.npz)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.set_defaults(func=_cmd_fit)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hsiffc",
@@ -110,7 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"hsiffc {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_demo, _add_simulate, _add_info, _add_calibrate, _add_select):
+    for add in (_add_demo, _add_simulate, _add_info, _add_calibrate, _add_select, _add_stages,
+                _add_fit):
         add(sub)
     return parser
 
@@ -237,6 +257,43 @@ def _cmd_select(args) -> int:
     if args.json:
         _write_json(args.json, {"sweep": str(args.sweep), "calibration": str(args.calibration),
                                 "calibration_identity": cal.identity, **table.to_dict()})
+    return 0
+
+
+def _cmd_stages(args) -> int:
+    from .stages import describe
+
+    rows = describe()
+    width = max(len(r["name"]) for r in rows)
+    for r in rows:
+        status = "" if r["status"] == "ok" else f"  [{r['status']}]"
+        print(f"{r['name']:<{width}}  {r['source']:<24} {r['target']}{status}")
+        if r["summary"]:
+            print(f"{'':<{width}}  {r['summary']}")
+    if args.json:
+        _write_json(args.json, rows)
+    return 0
+
+
+def _cmd_fit(args) -> int:
+    from .frame import Frame
+    from .io import read_sweep
+    from .stages import Pipeline
+
+    pipe = Pipeline.from_toml(args.description)
+    frames = []
+    for path in args.training:
+        sweep = read_sweep(path)
+        print(sweep.summary())
+        frames += Frame.list_from_sweep(sweep)
+    pipe.fit(frames)
+    pipe.save(args.output, overwrite=args.overwrite)
+    for name, stage in pipe.steps:
+        extra = ""
+        if hasattr(stage, "selected_ms_"):
+            extra = f"  training exposure per band (ms): {stage.selected_ms_}"
+        print(f"  fitted {name} ({stage.name}){extra}")
+    print(f"wrote {args.output}")
     return 0
 
 

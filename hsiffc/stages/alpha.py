@@ -25,6 +25,8 @@ class AlphaMask(Stage):
     method : "paper" (k ~ signal / exposure) or "model" (k by inverting the model)
     """
 
+    name = "alpha_mask"
+
     stateless = True
 
     def __init__(self, *, calibration=None, threshold_percent: float = 12.0,

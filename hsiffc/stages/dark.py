@@ -26,6 +26,8 @@ class DarkSubtract(Stage):
         Supplies the dark level at t = 0 and the dark current where no master matches.
     """
 
+    name = "dark"
+
     def __init__(self, *, average: str = "median", match: str = "exposure", calibration=None):
         self.average = average
         self.match = match

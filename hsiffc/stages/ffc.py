@@ -47,6 +47,8 @@ class TwoPointFFC(Stage):
     average : "median" or "mean" (for the flat and dark stacks)
     """
 
+    name = "two_point_ffc"
+
     def __init__(self, *, exposure_ms: float | None = None, calibration=None,
                  threshold_percent: float = 12.0, normalisation: str = "paper",
                  average: str = "median"):
@@ -162,6 +164,8 @@ class PolynomialFFC(Stage):
     margin : float
     average : "median" or "mean"
     """
+
+    name = "polynomial_ffc"
 
     def __init__(self, *, order: int = 2, margin: float = 0.05, average: str = "median"):
         self.order = order

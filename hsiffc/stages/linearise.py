@@ -11,8 +11,10 @@ from .base import Stage
 
 
 class LeakageLinearise(Stage):
-    """Invert the calibrated leakage model per pixel and replace each response by the one the
-    pixel would give without leakage, ``k t`` above its dark level (DN).
+    """Invert the leakage model per pixel: each response becomes the one without leakage.
+
+    The new response is ``k t`` above the pixel's dark level (DN), with k the light rate that
+    explains the measured response under the calibrated model.
 
     A leaking response still determines k (the saturation level moves by 1/b DN per e-fold of
     k), but the closer to dynamic saturation, the more the noise is amplified: the error of k
@@ -29,6 +31,8 @@ class LeakageLinearise(Stage):
     calibration : path or Calibration
     alpha_limit_percent : float
     """
+
+    name = "linearise"
 
     stateless = True
 

@@ -212,7 +212,7 @@ class Pipeline:
                 stage_name = spec.pop("stage")
             except KeyError:
                 raise DataFormatError(f"step {i + 1} has no stage = \"...\"", path=path) from None
-            for key in ("calibration",):
+            for key in ("calibration", "imec_xml"):
                 if isinstance(spec.get(key), str) and not Path(spec[key]).is_absolute():
                     spec[key] = str((path.parent / spec[key]).resolve())
             try:

@@ -1,0 +1,77 @@
+"""Pipeline benchmark: dark, alpha mask, two-point FFC and reconstruction on 2048 x 1088 frames,
+against a plain numpy two-point correction ``(raw - dark) * gain`` of the same frames."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from _util import median_time, row
+from hsiffc.calibrate import calibrate
+from hsiffc.frame import Frame
+from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
+from hsiffc.stages import Pipeline, create
+
+SHAPE = (1088, 2048)
+TRAIN = PAPER_LIGHT_W_M2["training"]
+
+
+def main(quick: bool = False) -> dict:
+    shape = (272, 512) if quick else SHAPE
+    npx = shape[0] * shape[1]
+    repeat = 3 if quick else 5
+    print(f"Pipeline benchmark on {shape[1]} x {shape[0]} frames ({npx / 1e6:.2f} Mpx), median "
+          f"of {repeat} runs" + (" -- QUICK MODE" if quick else ""))
+    sensor = MosaicSensor(shape, seed=0)
+    # a calibration from a small sweep of the same sensor (its time is not part of this figure)
+    sweep = sensor.sweep(np.round(np.geomspace(2, 400, 12), 3), "lamp A",
+                         irradiance_w_m2=0.25 * TRAIN, n_frames=1, seed=1)
+    cal = calibrate(sweep)
+    del sweep
+    tmp = Path(tempfile.mkdtemp())
+    cal_path = cal.save(tmp / "cal.npz")
+    train = Frame.list_from_sweep(sensor.sweep([19.35, 25.8], "lamp A", irradiance_w_m2=TRAIN,
+                                               n_frames=4, seed=2))
+    test_raw = sensor.capture(16.125, "lamp B", irradiance_w_m2=PAPER_LIGHT_W_M2["test"],
+                              seed=3).frames[0]
+    test = Frame.from_raw(test_raw, exposure_ms=16.125, bit_depth=10, mosaic=sensor.mosaic)
+    results = {}
+    for method in ("bilinear", "ppid"):
+        pipe = Pipeline([("dark", create("dark", match="scale")),
+                         ("mask", create("alpha_mask", calibration=str(cal_path))),
+                         ("ffc", create("two_point_ffc", calibration=str(cal_path))),
+                         ("cube", create("reconstruct", method=method))]).fit(train)
+        t = median_time(lambda: pipe.transform(test), repeat=repeat)
+        results[f"pipeline_{method}_mpx_s"] = npx / t / 1e6
+        results[f"pipeline_{method}_s"] = t
+    front = Pipeline(pipe.steps[:3])
+    t_front = median_time(lambda: front.transform(test), repeat=repeat)
+    # the plain numpy baseline: the same dark and gain, no flags, no alpha, no cube
+    ffc = pipe.named_steps["ffc"]
+    dark = pipe.named_steps["dark"].dark_for(16.125, shape)[0]
+    gain = ffc.gain_
+    raw32 = test_raw.astype(np.float32)
+    t_plain = median_time(lambda: (raw32 - dark) * gain, repeat=repeat)
+    results["dark_mask_ffc_mpx_s"] = npx / t_front / 1e6
+    results["plain_numpy_two_point_mpx_s"] = npx / t_plain / 1e6
+    for method in ("bilinear", "ppid"):
+        results[f"ratio_plain_over_pipeline_{method}"] = results[f"pipeline_{method}_s"] / t_plain
+    results["ratio_plain_over_dark_mask_ffc"] = t_front / t_plain
+    print(row("full pipeline, PPID reconstruction", results["pipeline_ppid_mpx_s"], "Mpx/s",
+              f"{results['pipeline_ppid_s'] * 1e3:.0f} ms/frame, "
+              f"{results['ratio_plain_over_pipeline_ppid']:.0f} x the plain numpy time"))
+    print(row("full pipeline, bilinear reconstruction", results["pipeline_bilinear_mpx_s"],
+              "Mpx/s", f"{results['pipeline_bilinear_s'] * 1e3:.0f} ms/frame, "
+              f"{results['ratio_plain_over_pipeline_bilinear']:.0f} x the plain numpy time"))
+    print(row("dark + alpha mask + two-point FFC (no cube)", results["dark_mask_ffc_mpx_s"],
+              "Mpx/s", f"{t_front * 1e3:.0f} ms/frame, "
+              f"{results['ratio_plain_over_dark_mask_ffc']:.0f} x the plain numpy time"))
+    print(row("plain numpy (raw - dark) * gain", results["plain_numpy_two_point_mpx_s"], "Mpx/s",
+              f"{t_plain * 1e3:.1f} ms/frame (baseline)"))
+    return results
+
+
+if __name__ == "__main__":
+    main()
