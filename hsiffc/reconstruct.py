@@ -571,6 +571,21 @@ def correction_support(matrix) -> np.ndarray:
     return np.asarray(matrix) != 0
 
 
+def reduce_over_support(values, support, ufunc, dtype) -> np.ndarray:
+    """(..., V): ``ufunc.reduce`` of ``values`` (..., B) over the bands each virtual band
+    depends on (``support`` (V, B) bool); virtual bands with the same support share one
+    reduction (the dense IMEC matrix: a single one)."""
+    values = np.asarray(values)
+    out = np.zeros(values.shape[:-1] + (support.shape[0],), dtype)
+    rows, inverse = np.unique(support, axis=0, return_inverse=True)
+    inverse = np.asarray(inverse).reshape(-1)
+    for k, row in enumerate(rows):
+        idx = np.nonzero(row)[0]
+        if idx.size:
+            out[..., inverse == k] = ufunc.reduce(values[..., idx], axis=-1)[..., None]
+    return out
+
+
 def apply_correction(cube, matrix, *, dq=None):
     """Apply a spectral correction matrix per pixel: ``virtual = matrix @ b``.
 
@@ -609,23 +624,7 @@ def apply_correction(cube, matrix, *, dq=None):
         d = d.astype(DQ_DTYPE, copy=False)
         if not d.any():
             return out, out_dq
-        support = correction_support(m)
-        # virtual bands with the same support share one OR (the dense IMEC matrix: one group)
-        rows, inverse = np.unique(support, axis=0, return_inverse=True)
-        inverse = np.asarray(inverse).reshape(-1)
-        for k, row in enumerate(rows):
-            idx = np.nonzero(row)[0]
-            if idx.size == 0:
-                continue
-            if idx.size == d.shape[-1]:
-                combined = np.bitwise_or.reduce(d, axis=-1)
-            else:
-                combined = np.bitwise_or.reduce(d[..., idx], axis=-1)
-            targets = np.nonzero(inverse == k)[0]
-            if targets.size == out.shape[-1]:
-                np.copyto(out_dq, combined[..., None])
-            else:
-                out_dq[..., targets] = combined[..., None]
+        out_dq = reduce_over_support(d, correction_support(m), np.bitwise_or, DQ_DTYPE)
     return out, out_dq
 
 

@@ -134,6 +134,18 @@ class Capture:
     illumination: str
     truth: Truth
     expected_dn: np.ndarray  # (H, W) noise-free mean response, after full-well clipping
+    mosaic: Mosaic | None = None
+    bit_depth: int = 10
+
+    def to_frames(self, kind: str | None = None) -> list:
+        """The frames as :class:`hsiffc.frame.Frame` objects (kind "light" or "dark": by
+        default "dark" when there was no light)."""
+        from .frame import Frame
+
+        kind = kind or ("light" if self.illumination else "dark")
+        return [Frame.from_raw(f, exposure_ms=self.exposure_ms, bit_depth=self.bit_depth,
+                               mosaic=self.mosaic, kind=kind, illumination=self.illumination)
+                for f in self.frames]
 
 
 class MosaicSensor:
@@ -267,7 +279,7 @@ class MosaicSensor:
         rng = self._noise_rng if seed is None else np.random.default_rng(seed)
         frames, expected = self._expose(truth, exposure_ms, int(n_frames), rng)
         return Capture(frames=frames, exposure_ms=exposure_ms, illumination=label, truth=truth,
-                       expected_dn=expected)
+                       expected_dn=expected, mosaic=self.mosaic, bit_depth=self.params.bit_depth)
 
     def _expose(self, truth: Truth, exposure_ms: float, n: int, rng):
         p = self.params

@@ -87,3 +87,27 @@ def test_calibrate_rejects_a_wrong_suffix(sample_cubes, tmp_path, capsys):
     assert main(["calibrate", str(sample_cubes / "sweep_2900K.tif"), "-o",
                  str(tmp_path / "cal.txt")]) == 2
     assert ".npz" in capsys.readouterr().err
+
+
+def test_stages_lists_builtins_and_the_plugin(tmp_path, capsys):
+    assert main(["stages", "--json", str(tmp_path / "stages.json")]) == 0
+    out = capsys.readouterr().out
+    assert "two_point_ffc" in out and "hsiffc (built-in)" in out
+    rows = json.loads((tmp_path / "stages.json").read_text())
+    plugin = [r for r in rows if r["name"] == "hot_pixel_repair"]
+    assert plugin and plugin[0]["source"].startswith("hsiffc-hotpixel") and plugin[0]["status"] == "ok"
+
+
+def test_fit_a_pipeline_from_toml(sample_cubes, tmp_path, capsys):
+    cal = tmp_path / "cal.npz"
+    assert main(["calibrate", str(sample_cubes / "sweep_2900K.tif"), "-o", str(cal)]) == 0
+    toml = tmp_path / "p.toml"
+    toml.write_text('[[step]]\nstage = "dark"\n\n[[step]]\nname = "ffc"\n'
+                    'stage = "two_point_ffc"\ncalibration = "cal.npz"\n')
+    out = tmp_path / "p.npz"
+    assert main(["fit", str(toml), str(sample_cubes / "training_2900K.tif"),
+                 str(sample_cubes / "darks.tif"), "-o", str(out)]) == 0
+    assert "training exposure per band" in capsys.readouterr().out
+    from hsiffc.stages import Pipeline
+
+    assert [n for n, _ in Pipeline.load(out).steps] == ["dark", "ffc"]

@@ -41,8 +41,7 @@ def plugin_cls():
 
 
 def _frames(sensor, cap, kind):
-    return [Frame.from_raw(x, exposure_ms=cap.exposure_ms, bit_depth=10, mosaic=sensor.mosaic,
-                           kind=kind) for x in cap.frames]
+    return cap.to_frames(kind)
 
 
 @pytest.fixture(scope="module")

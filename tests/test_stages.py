@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hsiffc import model
 from hsiffc.calibrate import calibrate
 from hsiffc.dq import DQ
 from hsiffc.errors import DataFormatError

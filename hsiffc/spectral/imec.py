@@ -262,7 +262,6 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
         rd.fail(f"<{w_ci}/nr_measurements> is {declared} but {start:g}-{end:g} nm at "
                 f"{step:g} nm has {n_samples} samples")
     wl = start + step * np.arange(n_samples)
-    grid_desc = f"{n_samples} ({start:g}-{end:g} nm at {step:g} nm)"
 
     # rejection (band-pass) filter
     rf = fi.find("rejection_filter")

@@ -144,7 +144,8 @@ class Reconstruct(Stage):
                                  f"the frame's mosaic has {mosaic.n_bands} bands")
             cube, cube_dq = rc.apply_correction(cube, matrix, dq=cube_dq)
             if alpha is not None:
-                alpha = _max_over_support(alpha, rc.correction_support(matrix))
+                alpha = rc.reduce_over_support(alpha, rc.correction_support(matrix), np.maximum,
+                                                np.float32)
             wavelengths = [float(v) for v in self.virtual_wavelengths_nm_]
         meta = {"wavelengths_nm": wavelengths,
                 "reconstruction": {"method": self.method if self.resolution == "full" else None,
@@ -154,18 +155,3 @@ class Reconstruct(Stage):
             meta["tile_origin"] = list(rc.tile_origin(frame.data.shape, mosaic))
         return frame.replace(data=cube, dq=cube_dq.astype(DQ_DTYPE, copy=False), alpha=alpha,
                              meta=meta)
-
-
-def _max_over_support(alpha: np.ndarray, support: np.ndarray) -> np.ndarray:
-    """(..., V) max of ``alpha`` (..., B) over the bands each virtual band depends on."""
-    out = np.zeros(alpha.shape[:-1] + (support.shape[0],), np.float32)
-    rows, inverse = np.unique(support, axis=0, return_inverse=True)
-    inverse = np.asarray(inverse).reshape(-1)
-    for k, row in enumerate(rows):
-        idx = np.nonzero(row)[0]
-        if idx.size == 0:
-            continue
-        m = alpha.max(axis=-1) if idx.size == alpha.shape[-1] else alpha[..., idx].max(axis=-1)
-        for v in np.nonzero(inverse == k)[0]:
-            out[..., v] = m
-    return out
