@@ -329,6 +329,45 @@ class MosaicSensor:
                      illumination=labels, mosaic=self.mosaic, source="simulated",
                      meta={"simulator": self.describe(), "truth": truth})
 
+    def sweep_varying_light(self, exposures_ms, levels, illumination, *,
+                            irradiance_w_m2: float, n_frames: int = 2, darks: bool = True,
+                            seed: int | None = None) -> Sweep:
+        """An EMVA 1288-style sweep whose light changes from step to step.
+
+        Step i has exposure ``exposures_ms[i]`` and irradiance ``levels[i] * irradiance_w_m2``;
+        its ``photons`` field is ``levels[i] * exposure`` (a relative photon count, so that
+        photons / exposure is proportional to the light rate, as in EMVA 1288 data). With
+        ``darks`` a dark step follows every light step. ``meta["truth"]`` holds the truth at
+        level 1 and ``meta["levels"]`` the level of every step (0 for darks).
+        """
+        rng = self._noise_rng if seed is None else np.random.default_rng(seed)
+        exposures = np.asarray(exposures_ms, float)
+        levels = np.broadcast_to(np.asarray(levels, float), exposures.shape)
+        illum = self._illum(illumination, irradiance_w_m2, 0.0)
+        k1 = self.light_rate(illum)
+        truth = self.truth(k1)
+        frames, exp, kind, photons, step_levels = [], [], [], [], []
+        for t, lev in zip(exposures, levels):
+            cap_truth = self.truth(k1 * lev)
+            f, _ = self._expose(cap_truth, float(t), n_frames, rng)
+            frames.append(f)
+            exp += [t] * n_frames
+            kind += ["light"] * n_frames
+            photons += [lev * t] * n_frames
+            step_levels.append(lev)
+            if darks:
+                f, _ = self._expose(self.truth(np.zeros(self.shape)), float(t), n_frames, rng)
+                frames.append(f)
+                exp += [t] * n_frames
+                kind += ["dark"] * n_frames
+                photons += [np.nan] * n_frames
+                step_levels.append(0.0)
+        return Sweep(np.concatenate(frames), exp, kind, self.params.bit_depth, photons=photons,
+                     illumination=[illum.label if k == "light" else "" for k in kind],
+                     mosaic=self.mosaic, source="simulated",
+                     meta={"simulator": self.describe(), "truth": truth,
+                           "levels": step_levels})
+
     def describe(self) -> dict:
         """JSON-safe description of the simulated sensor (for metadata and reports)."""
         return {"shape": list(self.shape), "seed": self.seed, "params": asdict(self.params),

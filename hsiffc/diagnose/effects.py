@@ -1,0 +1,215 @@
+"""The library of candidate effects the base leakage model lacks.
+
+Each effect is a physically motivated, small additive term ``Y += X @ theta`` on top of the
+base model (the paper's leakage model with a constant dark level), with its own parameters,
+linear in them so that it can be fitted to the base model's residual for all pixels at once.
+The design columns ``X`` are built from the base model's prediction (signal above dark, light
+rate), the exposure and the acquisition order. Each effect can also be *injected* into
+simulated frames, so that diagnosis can be tested on data with an undeclared effect.
+
+Scopes: ``global`` (a few parameters shared by the sensor), ``pixel`` (parameters per pixel),
+``step`` (one parameter per light step, shared by the pixels).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Context:
+    """What effect columns are built from; arrays (P, S) unless stated."""
+
+    t: np.ndarray  # exposure, ms
+    k: np.ndarray  # base-model light rate, DN/ms (0 for darks)
+    signal: np.ndarray  # base-model response above the dark level, DN
+    order: np.ndarray  # (S,) acquisition order scaled to [-1, 1]
+    prev_signal: np.ndarray  # base-model signal of the previous step in acquisition order
+    light: np.ndarray  # (S,) bool
+    full_scale: float
+    dydt: np.ndarray  # base-model dY/dt = k - a e^{bY}, DN/ms
+    dydlnk: np.ndarray  # base-model dY / d ln k, DN
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One candidate effect (see the module docstring)."""
+
+    name: str
+    summary: str  # one line for the README and --list-effects
+    scope: str  # "global", "pixel" or "step"
+    param_names: tuple
+    columns: Callable  # Context -> (P, S, m)
+    interpret: Callable  # params dict -> one sentence
+
+    def n_params(self, n_pixels: int, n_light_steps: int) -> int:
+        m = len(self.param_names)
+        return {"global": m, "pixel": m * n_pixels, "step": n_light_steps}[self.scope]
+
+
+def _legendre(x, n):
+    cols = [x, 1.5 * x ** 2 - 0.5, 2.5 * x ** 3 - 1.5 * x]
+    return cols[:n]
+
+
+def _stack(*cols):
+    return np.stack(np.broadcast_arrays(*cols), axis=-1)
+
+
+EFFECTS: dict[str, Effect] = {}
+
+
+def _register(effect: Effect) -> Effect:
+    EFFECTS[effect.name] = effect
+    return effect
+
+
+_register(Effect(
+    "dark_current",
+    "dark signal growing with exposure, per pixel (thermal generation; EMVA 1288 dark current)",
+    "pixel", ("dark_current_dn_per_ms",),
+    lambda c: _stack(c.t),
+    lambda p: (f"the dark level rises by {p['median_dark_current_dn_per_ms']:.3g} DN/ms "
+               "(median pixel): thermally generated charge, which grows with exposure and "
+               "temperature"),
+))
+_register(Effect(
+    "exposure_offset",
+    "effective exposure differs from the nominal one by a constant t0 (shutter/trigger delay)",
+    "global", ("t0_ms",),
+    lambda c: _stack(c.dydt),
+    lambda p: (f"the light dose behaves as if every exposure were {p['t0_ms']:.4g} ms longer: "
+               "an exposure-timing offset (trigger or shutter delay), which matters most at "
+               "short exposures and low signal"),
+))
+_register(Effect(
+    "gain_nonlinearity",
+    "sensor-wide quadratic and cubic response nonlinearity (EMVA 1288 linearity error)",
+    "global", ("c2", "c3"),
+    lambda c: _stack((c.signal / c.full_scale) ** 2, (c.signal / c.full_scale) ** 3),
+    lambda p: (f"the response bends with signal (quadratic {p['c2']:.3g}, cubic {p['c3']:.3g} "
+               "DN per full scale): a conversion-gain or source-follower nonlinearity shared by "
+               "the sensor"),
+))
+_register(Effect(
+    "pixel_nonlinearity",
+    "per-pixel quadratic response nonlinearity (pixel-to-pixel differences in linearity)",
+    "pixel", ("c2",),
+    lambda c: _stack((c.signal / c.full_scale) ** 2),
+    lambda p: (f"pixels bend differently with signal (spread of the quadratic term "
+               f"{p['spread_c2']:.3g} DN per full scale): per-pixel linearity differences"),
+))
+_register(Effect(
+    "offset_drift",
+    "black level drifting with acquisition order (temperature or supply drift during the sweep)",
+    "global", ("p1", "p2", "p3"),
+    lambda c: _stack(*[np.broadcast_to(v, c.t.shape) for v in _legendre(c.order, 3)]),
+    lambda p: (f"the offset drifts over the acquisition by up to {p['peak_dn']:.3g} DN: a "
+               "temperature or supply drift during the sweep"),
+))
+_register(Effect(
+    "illumination_error",
+    "per-step error of the light level common to all pixels (lamp instability, photon count)",
+    "step", ("gain_error",),
+    lambda c: _stack(c.dydlnk),
+    lambda p: (f"single steps received a light level off by up to {100 * p['max_abs']:.3g} % "
+               f"(RMS {100 * p['rms']:.3g} %) from the stated one, equally in every pixel: "
+               "light-source instability or an error of the step's photon count"),
+))
+_register(Effect(
+    "image_lag",
+    "a fraction of the previous frame's signal carried into the next (lag, persistence)",
+    "global", ("lag",),
+    lambda c: _stack(c.prev_signal),
+    lambda p: (f"{100 * p['lag']:.3g} % of the previous step's signal reappears: image lag "
+               "(incomplete charge transfer or persistence)"),
+))
+
+# an effect outside the library, for testing that structure nobody declared is reported
+OUTSIDE = {
+    "adc_ripple": "periodic ADC differential nonlinearity: + A sin(2 pi Y / 37 DN)",
+}
+
+
+def inject(name: str, size: float, *, t, k, signal, order, prev_signal, light, full_scale,
+           rng, dydt=None, dydlnk=None) -> np.ndarray:
+    """Additive DN of effect ``name`` of a given ``size`` for frames of a simulated sweep.
+
+    Arguments are (P, S) arrays of the true exposure, light rate and signal (S steps, P pixels).
+    ``size`` is in each effect's natural unit: DN/ms (dark_current, median of a log-normal
+    per-pixel spread), ms (exposure_offset), DN at full scale (gain_nonlinearity: the quadratic
+    term; pixel_nonlinearity: the per-pixel spread), DN (offset_drift: linear peak;
+    adc_ripple: amplitude), relative (illumination_error: RMS; image_lag: fraction).
+    """
+    fs = full_scale
+    if name == "dark_current":
+        dc = size * rng.lognormal(0.0, 0.3, size=(t.shape[0], 1))
+        return dc * t
+    if name == "exposure_offset":  # Y(t + t0) - Y(t), to first order
+        return size * dydt
+    if name == "gain_nonlinearity":
+        return size * (signal / fs) ** 2
+    if name == "pixel_nonlinearity":
+        c = size * rng.standard_normal((t.shape[0], 1))
+        return c * (signal / fs) ** 2
+    if name == "offset_drift":
+        return np.broadcast_to(size * order, t.shape).copy()
+    if name == "illumination_error":
+        eps = size * rng.standard_normal(t.shape[1])
+        return np.where(light, eps, 0.0) * dydlnk  # Y(k (1 + eps)) - Y(k), to first order
+    if name == "image_lag":
+        return size * prev_signal
+    if name == "adc_ripple":
+        return size * np.sin(2 * np.pi * (signal + 32.0) / 37.0) * (signal > 0)
+    raise KeyError(f"unknown effect {name!r}; known: {sorted(EFFECTS) + sorted(OUTSIDE)}")
+
+
+def add_effect(sweep, name: str, size: float, *, seed: int = 0):
+    """A copy of a simulated sweep (with ``meta["truth"]``) with effect ``name`` added to its
+    raw frames (then rounded and clipped to the ADC range as the sensor would).
+
+    The effect acts on the true signal of each step: light steps use the truth's light rate,
+    dark steps none; acquisition order is the frame order.
+    """
+    from dataclasses import replace as _replace
+
+    from .. import model as _model_mod
+
+    truth = sweep.meta.get("truth")
+    if truth is None:
+        raise ValueError("add_effect needs a simulated sweep with meta['truth'] "
+                         "(MosaicSensor.sweep)")
+    rng = np.random.default_rng(seed)
+    steps = sweep.steps()
+    h, w = sweep.frame_shape
+    light = np.array([sweep.kind[sweep.step == s][0] == "light" for s in steps])
+    t = np.array([sweep.exposure_ms[sweep.step == s][0] for s in steps])
+    levels = np.asarray(sweep.meta.get("levels", np.where(light, 1.0, 0.0)), float)
+    k_light = truth.k_dn_per_ms.reshape(-1, 1) * levels[None, :]
+    k = np.where(light[None, :], k_light, 0.0) + truth.dark_current_dn_per_ms.reshape(-1, 1)
+    a = truth.a_dn_per_ms.reshape(-1, 1)
+    b = truth.b_per_dn.reshape(-1, 1)
+    d = truth.dark_dn.reshape(-1, 1)
+    expected = _model_mod.response(t[None, :], k, a, b, d)
+    dydt = k - _model_mod.leakage_rate(expected, a, b)
+    eps = 1e-4
+    dydlnk = (_model_mod.response(t[None, :], k * (1 + eps), a, b, d)
+              - _model_mod.response(t[None, :], k * (1 - eps), a, b, d)) / (2 * eps)
+    signal = expected - truth.dark_dn.reshape(-1, 1)
+    order = (np.arange(len(steps)) / max(len(steps) - 1, 1)) * 2 - 1
+    prev = np.zeros_like(signal)
+    prev[:, 1:] = signal[:, :-1]
+    extra = inject(name, size, t=np.broadcast_to(t, signal.shape), k=k_light * light[None, :],
+                   signal=signal, order=order, prev_signal=prev, light=light,
+                   full_scale=float(sweep.full_scale_dn), rng=rng, dydt=dydt, dydlnk=dydlnk)
+    data = sweep.data.astype(np.float64)
+    for i, s in enumerate(steps):
+        sel = sweep.step == s
+        data[sel] += extra[:, i].reshape(h, w)
+    data = np.clip(np.rint(data), 0, sweep.full_scale_dn).astype(sweep.data.dtype)
+    meta = dict(sweep.meta)
+    meta["injected_effect"] = {"name": name, "size": size, "seed": seed}
+    return _replace(sweep, data=data, meta=meta)
