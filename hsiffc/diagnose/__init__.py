@@ -28,7 +28,7 @@ __all__ = ["diagnose", "EFFECTS", "OUTSIDE", "inject", "list_effects"]
 
 BASE_MODEL = "leakage model dY/dt = k - a exp(bY), constant dark level, per pixel (k, a, b, d)"
 SELECT_SIGMAS = 5.0  # held-out improvement needed, in standard errors of the paired difference
-MIN_GAIN_OF_NOISE = 0.1  # ... and at least this fraction of the noise floor, as an RMS
+MIN_GAIN_OF_NOISE = 0.08  # ... and at least this fraction of the noise floor, as an RMS
 MIN_EXPLAINED = 0.5  # ... and at least this fraction of the current systematic error
 UNEXPLAINED_P = 1e-6
 UNEXPLAINED_OF_NOISE = 0.2  # structure counts when its RMS exceeds this fraction of the noise
@@ -182,7 +182,8 @@ def _describe_params(name, theta):
 def _refit_base(y, data, state0):
     _, t, r, valid, w, *_ = data
     fit = fit_joint(y, t, r, valid, w, state0.theta, max_iter=15)
-    theta = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark])
     st = _State(np.where(np.isfinite(theta), theta, state0.theta))
     st.prediction = _model(st.theta, t, r)
     return st
@@ -265,7 +266,10 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 4096, seed: int = 0, effects=Non
     valid = (sf.valid & sh.valid).T
     y = sf.y.T.astype(np.float64)
     y_ho = sh.y.T.astype(np.float64)
-    t, r = sf.exposure_ms, sf.rate
+    usable = sf.usable_step  # zero exposure or unknown light rate: left out
+    t = np.where(usable, sf.exposure_ms, 1.0)
+    r = np.where(usable, np.nan_to_num(sf.rate), 0.0)
+    valid &= usable[None, :]
     dark0 = np.median(y[:, sf.kind == "dark"], axis=1) if (sf.kind == "dark").any() else y.min(1)
     var_frame = (ptc.variance(y - dark0[:, None]) if ptc is not None
                  else np.ones_like(y))
@@ -287,12 +291,26 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 4096, seed: int = 0, effects=Non
     by_order = np.argsort(sf.step)
     prev_index = np.full(len(order), -1)
     prev_index[by_order[1:]] = by_order[:-1]
-    data = (y, t, r, valid, w, order, prev_index, light, fs)
 
     theta0 = initial_guess(y, t, r, valid, w)
     base_fit = fit_joint(y, t, r, valid, w, theta0)
-    base = _State(np.column_stack([np.log(base_fit.g), np.log(base_fit.a), np.log(base_fit.b),
-                                   base_fit.dark]))
+    # Selecting samples by their observed value near full scale keeps those with low noise
+    # and biases them; select instead by the model's prediction (independent of the held-out
+    # noise), leaving out everything the model puts within 5 sigma of full scale, and refit.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta_b = np.column_stack([np.log(base_fit.g), np.log(base_fit.a), np.log(base_fit.b),
+                                   base_fit.dark])
+    theta_b = np.where(np.isfinite(theta_b), theta_b, theta0)
+    pred = _model(theta_b, t, r)
+    sd_pred = np.sqrt(ptc.variance(pred - dark0[:, None])) if ptc is not None else 1.0
+    valid = (sf.valid & sh.valid).T & usable[None, :] & (pred < fs - 5.0 * sd_pred)
+    w = np.where(valid, sf.n_frames[None, :] / var_frame, 0.0)
+    base_fit = fit_joint(y, t, r, valid, w, theta_b)
+    data = (y, t, r, valid, w, order, prev_index, light, fs)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta_b = np.column_stack([np.log(base_fit.g), np.log(base_fit.a), np.log(base_fit.b),
+                                   base_fit.dark])
+    base = _State(np.where(np.isfinite(theta_b), theta_b, theta0))
     base.prediction = _model(base.theta, t, r)
     # variance the base fit's own noise adds to each prediction (linearised: j C j^T)
     _, jac = _model_and_jacobian(base.theta, t, r)
@@ -339,6 +357,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 4096, seed: int = 0, effects=Non
                             and gain > (MIN_GAIN_OF_NOISE * noise_floor) ** 2
                             and gain > MIN_EXPLAINED * systematic2)
             entry["selected_in_round"] = False
+            entry["explained_fraction_of_systematic"] = float(gain / systematic2)
             # among the effects that pass, the most parsimonious (lowest BIC)
             if beats and (best is None or bic < best[3]):
                 best = (name, state, mse, bic, res, k, entry)

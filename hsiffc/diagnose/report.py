@@ -1,0 +1,123 @@
+"""The diagnosis report: Markdown with residual plots before and after, and the JSON."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path, atomic_write_text
+from .effects import EFFECTS
+
+
+def public(result: dict) -> dict:
+    """The JSON-safe part of a :func:`hsiffc.diagnose.diagnose` result."""
+    return {k: v for k, v in result.items() if not k.startswith("_")}
+
+
+def write_json(result: dict, path) -> None:
+    atomic_write_text(Path(path), json.dumps(public(result), indent=2, default=float) + "\n")
+
+
+def _binned(x, res, mask, bins):
+    xv, rv = x[mask], res[mask]
+    if xv.size == 0:
+        return np.array([]), np.array([]), np.array([])
+    edges = np.unique(np.percentile(xv, np.linspace(0, 100, bins + 1)))
+    idx = np.clip(np.searchsorted(edges[1:-1], xv), 0, len(edges) - 2)
+    n = np.bincount(idx, minlength=len(edges) - 1)
+    keep = n > 0
+    mean = np.bincount(idx, weights=rv, minlength=len(edges) - 1)[keep] / n[keep]
+    centre = np.bincount(idx, weights=xv, minlength=len(edges) - 1)[keep] / n[keep]
+    var = np.bincount(idx, weights=rv * rv, minlength=len(edges) - 1)[keep] / n[keep] - mean ** 2
+    return centre, mean, np.sqrt(np.maximum(var, 0) / n[keep])
+
+
+def _plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    a = result["_arrays"]
+    valid, light = a["valid"], a["light"]
+    lmask = valid & light[None, :]
+    dmask = valid & ~light[None, :]
+    shape = valid.shape
+    panels = [
+        ("signal above dark (DN)", a["signal"], lmask, 30),
+        ("exposure (ms), light steps", np.broadcast_to(a["t"], shape), lmask, 20),
+        ("acquisition order (-1 .. 1)", np.broadcast_to(a["order"], shape), valid, 20),
+        ("exposure (ms), dark steps", np.broadcast_to(a["t"], shape), dmask, 15),
+        ("row", np.broadcast_to(a["rows"][:, None], shape), valid, 16),
+        ("column", np.broadcast_to(a["cols"][:, None], shape), valid, 16),
+    ]
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5), dpi=90)
+    for ax, (label, x, mask, bins) in zip(axes.ravel(), panels):
+        for key, colour, name in (("res_before", "tab:orange", "base model"),
+                                  ("res_after", "tab:blue", "with selected effects")):
+            c, m, se = _binned(x, a[key], mask, bins)
+            ax.errorbar(c, m, yerr=se, fmt="o-", ms=3, lw=1, color=colour, label=name)
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_xlabel(label)
+        ax.set_ylabel("held-out data - model (DN)")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"Held-out residual, binned (mean +- standard error); noise floor "
+                 f"{result['noise_floor_dn']:.3g} DN", fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def write_report(result: dict, outdir) -> Path:
+    """Write ``report.md``, ``residuals.png`` and ``diagnosis.json`` into ``outdir``."""
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    _plot(result, outdir / "residuals.png")
+    write_json(result, outdir / "diagnosis.json")
+    b, af = result["before"], result["after"]
+    lines = [f"# hsiffc diagnosis of {result['dataset']}", "",
+             f"Base model: {result['base_model']}.", "",
+             f"{result['n_pixels']} pixels analysed (of {result['n_pixels_sensor']}), "
+             f"{result['n_samples']} valid held-out samples, {result['n_invalid_samples']} "
+             f"left out (clipped, near full scale or unusable). Held out: {result['held_out']}.",
+             "", "| | RMS (DN) | systematic RMS (DN) |", "|---|---|---|",
+             f"| temporal noise floor | {result['noise_floor_dn']:.4g} | |",
+             f"| base model | {b['rms_dn']:.4g} | {b['systematic_rms_dn']:.4g} |",
+             f"| with the selected effects | {af['rms_dn']:.4g} | {af['systematic_rms_dn']:.4g} |",
+             "", f"Selection rule: {result['selection_rule']}.", ""]
+    if result["effects"]:
+        lines += ["## Selected effects", ""]
+        for e in result["effects"]:
+            params = ", ".join(f"{k} = {v:.4g}" if isinstance(v, float) else f"{k} = {v}"
+                               for k, v in e["params"].items())
+            lines += [f"- **{e['name']}** ({params}): {e['interpretation']}."]
+    else:
+        lines += ["No candidate effect beats the base model by more than the noise allows.", ""]
+    lines += ["", "## Candidates", "",
+              "| round | effect | held-out RMS (DN) | gain in MSE (DN^2) | standard error | BIC | "
+              "selected |", "|---|---|---|---|---|---|---|"]
+    for c in result["candidates"]:
+        lines.append(f"| {c['round']} | {c['name']} | {c['heldout_rms_dn']:.4g} | "
+                     f"{c['heldout_mse_gain_dn2']:.3g} | {c['gain_standard_error_dn2']:.2g} | "
+                     f"{c['criterion']:.6g} | {'yes' if c.get('selected_in_round') else ''} |")
+    lines += ["", "## Structure left in the held-out residual", "",
+              "| grouping | bins | chi2 | p | structured RMS (DN) | expected from noise (DN) | "
+              "significant |", "|---|---|---|---|---|---|---|"]
+    for f in result["residual_structure_after"]:
+        null = f.get("null_structured_rms_dn")
+        lines.append(f"| {f['grouping']} | {f['bins']} | {f['chi2']:.1f} | {f['p_value']:.2g} | "
+                     f"{f['structured_rms_dn']:.3g} | {'' if null is None else f'{null:.3g}'} | "
+                     f"{'yes' if f['significant'] else ''} |")
+    verdict = ("Structured residual remains that no candidate explains (see the table and the "
+               "figure): it is reported, not forced onto the nearest candidate."
+               if result["unexplained"] else
+               "No structure beyond the noise remains in the held-out residual.")
+    lines += ["", verdict, "", "![residuals](residuals.png)", "",
+              "## The effect library", ""]
+    lines += [f"- `{e.name}` ({e.scope}): {e.summary}" for e in EFFECTS.values()]
+    path = outdir / "report.md"
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return path
