@@ -196,8 +196,8 @@ def _add_diagnose(sub):
     p.add_argument("--json", type=Path, default=None, help="write the result as JSON")
     p.add_argument("--report", type=Path, default=None,
                    help="folder for report.md, residuals.png and diagnosis.json")
-    p.add_argument("--pixels", type=int, default=4096,
-                   help="pixels analysed (random subset; default 4096)")
+    p.add_argument("--pixels", type=int, default=2048,
+                   help="pixels analysed (random subset; default 2048)")
     p.add_argument("--seed", type=int, default=0, help="seed of the pixel subset")
     p.add_argument("--effects", default=None,
                    help="comma-separated candidate effects (default: the whole library)")

@@ -176,6 +176,7 @@ def _describe_params(name, theta):
                 "n_pixels": int(v.size)}
     v = theta[theta != 0]
     return {"n_steps": int(v.size), "rms": float(np.sqrt(np.mean(v ** 2))) if v.size else 0.0,
+            "median_abs": float(np.median(np.abs(v))) if v.size else 0.0,
             "max_abs": float(np.abs(v).max()) if v.size else 0.0}
 
 
@@ -231,7 +232,7 @@ def _structure(res, valid, t, signal, light, noise, rows, cols, band, null=None)
     return findings, flag
 
 
-def diagnose(sweep: Sweep, *, max_pixels: int = 4096, seed: int = 0, effects=None,
+def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=None,
              full_well_dn: float | None = None) -> dict:
     """Diagnose where the base model misses a sweep; see the module docstring.
 
@@ -353,7 +354,9 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 4096, seed: int = 0, effects=Non
             candidates.append(entry)
             systematic2 = max(cur_mse - noise_floor ** 2, 1e-12)
             ok = np.isfinite(mse) and np.isfinite(bic)
-            beats = ok and (gain > SELECT_SIGMAS * se
+            # nothing to explain when the current model is already at the noise floor
+            beats = ok and cur_mse - noise_floor ** 2 > (MIN_GAIN_OF_NOISE * noise_floor) ** 2 \
+                and (gain > SELECT_SIGMAS * se
                             and gain > (MIN_GAIN_OF_NOISE * noise_floor) ** 2
                             and gain > MIN_EXPLAINED * systematic2)
             entry["selected_in_round"] = False
@@ -412,9 +415,11 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 4096, seed: int = 0, effects=Non
         "residual_structure_after": findings, "residual_structure_before": findings_before,
         "held_out": "second frame of every step (the first fits the model)",
         "selection_rule": (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} "
-                           "standard errors of the paired difference and by more than "
-                           f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2, and lower BIC; among those "
-                           "the lowest BIC"),
+                           "standard errors of the paired difference, by more than "
+                           f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2 and by more than "
+                           f"{MIN_EXPLAINED:g} of the current systematic error (which must itself "
+                           f"exceed ({MIN_GAIN_OF_NOISE:g} x noise floor)^2); among those the "
+                           "lowest BIC"),
         "runtime_s": time.perf_counter() - t0,
         "_arrays": {"res_before": res_base, "res_after": cur_res, "valid": valid, "t": t,
                     "signal": ctx.signal, "light": light, "order": order, "rows": rows,

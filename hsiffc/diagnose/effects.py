@@ -115,9 +115,10 @@ _register(Effect(
     "per-step error of the light level common to all pixels (lamp instability, photon count)",
     "step", ("gain_error",),
     lambda c: _stack(c.dydlnk),
-    lambda p: (f"single steps received a light level off by up to {100 * p['max_abs']:.3g} % "
-               f"(RMS {100 * p['rms']:.3g} %) from the stated one, equally in every pixel: "
-               "light-source instability or an error of the step's photon count"),
+    lambda p: (f"the light level of single steps differs from the stated one by "
+               f"{100 * p['median_abs']:.3g} % (median over steps; RMS {100 * p['rms']:.3g} %, "
+               "largest at the weakest steps, where it is least determined), equally in every "
+               "pixel: light-source instability or an error of the step's photon count"),
 ))
 _register(Effect(
     "image_lag",
