@@ -71,3 +71,16 @@ def test_shape_and_option_errors():
         two_point_correct(np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 2)))
     with pytest.raises(ValueError, match="normalisation"):
         two_point_correct(np.ones((2, 2)), np.zeros((2, 2)), np.ones((2, 2)), normalisation="x")
+
+
+def test_uniformity_improvement_between_two_stages():
+    from hsiffc.ffc import uniformity_improvement
+
+    rng = np.random.default_rng(1)
+    band_map = np.indices((16, 16)).sum(axis=0) % 2
+    gain = rng.uniform(0.9, 1.1, (16, 16))
+    before = 100 * gain
+    after, _ = two_point_correct(before, np.zeros((16, 16)), 500 * gain, band_map=band_map)
+    r = uniformity_improvement(before, after, band_map)
+    assert len(r["improvement"]) == 2
+    assert all(i > 4 for i in r["improvement"]) and all(a < 1e-4 for a in r["after"])
