@@ -1,0 +1,352 @@
+"""The corrected-cube layout written by ``hsiffc correct``: one TIFF per input, three pages per frame.
+
+File layout
+-----------
+* Pages come in groups of three, one group per input frame, in the input's order::
+
+      page 3k + 0   data   float32 (H, W)   corrected frame k (DN)
+      page 3k + 1   dq     uint32  (H, W)   hsiffc.dq.DQ bits of frame k
+      page 3k + 2   alpha  float32 (H, W)   leakage percentage alpha of frame k (NaN when the
+                                            pipeline computes no alpha: "alpha_computed": false)
+
+  The three planes differ in a property tifffile groups pages by (dtype, or strip layout for
+  alpha), so ``tifffile`` sees three series: ``series=0`` data, ``1`` dq, ``2`` alpha, each
+  ``(N, H, W)``. Slicing pages (``key=slice(j, None, 3)``) works with any TIFF reader.
+* The ImageDescription of the first page holds the provenance as one JSON object (ASCII):
+  ``"format": "hsiffc-corrected"``, ``"format_version"``, ``"status": "complete"``, ``"planes"``,
+  ``"n_frames"``, ``"frame_shape"``, the input (path, size, mtime_ns, sha256), the calibration
+  (identity, path), the pipeline (steps with parameters, fingerprint), ``"hsiffc_version"``,
+  per-frame ``"exposure"`` (ms), ``"kind"``, ``"illumination"``, per-frame statistics and
+  timing. It is written as a padded placeholder with ``"status": "incomplete"`` before the
+  frames and overwritten once the last frame is written (the completion marker).
+
+Reading::
+
+    import tifffile
+    data = tifffile.imread("cube.corrected.tif", series=0)     # (N, H, W) float32
+    dq = tifffile.imread("cube.corrected.tif", series=1)       # (N, H, W) uint32
+    alpha = tifffile.imread("cube.corrected.tif", series=2)    # (N, H, W) float32
+
+    from hsiffc.io.corrected import read_corrected
+    cube = read_corrected("cube.corrected.tif")                # .data .dq .alpha .provenance
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import queue
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tifffile
+
+from ..errors import DataFormatError
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "PLANES", "SUFFIX", "BackgroundWriter", "Corrected",
+           "CorrectedWriter", "iter_corrected", "read_corrected", "read_provenance"]
+
+FORMAT = "hsiffc-corrected"
+FORMAT_VERSION = 1
+PLANES = ("data", "dq", "alpha")
+PLANE_DTYPES = {"data": np.float32, "dq": np.uint32, "alpha": np.float32}
+#: name of an output: ``<input stem>.corrected.tif``
+SUFFIX = ".corrected.tif"
+_PAD_PER_FRAME = 256  # bytes reserved in the placeholder for each frame's statistics
+_PAD_FIXED = 4096
+_BIGTIFF_ABOVE = 2 ** 32 - 2 ** 26  # classic TIFF offsets are 32-bit
+_SYNC_BYTES = 1 << 25  # BackgroundWriter starts the disk's write-back every 32 MiB
+
+
+def json_safe(value):
+    """Numpy values -> Python, non-finite floats -> None, tuples -> lists (recursively)."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    return value
+
+
+def _dumps(doc: dict) -> str:
+    return json.dumps(json_safe(doc), allow_nan=False, ensure_ascii=True, sort_keys=False)
+
+
+class CorrectedWriter:
+    """Write a corrected cube page by page (three pages per frame) to ``path``.
+
+    ``path`` is normally the temporary file of :func:`hsiffc.atomic.atomic_path`; this class
+    does not rename anything. Call :meth:`write` once per frame, then :meth:`finish` with the
+    final provenance (it replaces the placeholder description and sets ``"status":
+    "complete"``). Memory: one frame at a time (plus one NaN plane when alpha is missing).
+    """
+
+    def __init__(self, path, document: dict, *, n_frames: int, frame_shape,
+                 reserve_per_frame: int = _PAD_PER_FRAME):
+        self.path = Path(path)
+        self.n_frames = int(n_frames)
+        self.frame_shape = tuple(int(s) for s in frame_shape)
+        if len(self.frame_shape) != 2 or min(self.frame_shape) < 1:
+            raise ValueError(f"frames must be (H, W), got {self.frame_shape}")
+        if self.n_frames < 1:
+            raise ValueError("a corrected file holds at least one frame")
+        h, w = self.frame_shape
+        self._doc = self._base(document)
+        placeholder = _dumps({**self._doc, "status": "incomplete"})
+        self._description = placeholder + " " * (_PAD_FIXED + int(reserve_per_frame) * self.n_frames)
+        volume = self.n_frames * h * w * 12 + len(self._description)
+        self._tw = tifffile.TiffWriter(self.path, bigtiff=volume > _BIGTIFF_ABOVE)
+        self._alpha_rows = max(1, (h + 1) // 2) if h > 1 else 1  # tells alpha from data pages
+        self._nan = None
+        self._mark = self._last = 0  # byte ranges handed to the disk by sync()
+        self.written = 0
+        self._closed = False
+
+    def _base(self, document: dict) -> dict:
+        return {"format": FORMAT, "format_version": FORMAT_VERSION, "status": "incomplete",
+                "planes": list(PLANES),
+                "plane_dtypes": [np.dtype(PLANE_DTYPES[p]).name for p in PLANES],
+                "n_frames": self.n_frames, "frame_shape": list(self.frame_shape),
+                "pages_per_frame": len(PLANES), **document}
+
+    def write(self, data, dq, alpha=None) -> None:
+        """Append frame ``written``: its corrected data, DQ plane and alpha (or None)."""
+        if self._closed:
+            raise ValueError("the writer is finished")
+        if self.written >= self.n_frames:
+            raise ValueError(f"all {self.n_frames} frames are already written")
+        planes = []
+        for name, arr in (("data", data), ("dq", dq), ("alpha", alpha)):
+            if arr is None:
+                if self._nan is None:
+                    self._nan = np.full(self.frame_shape, np.nan, np.float32)
+                arr = self._nan
+            arr = np.ascontiguousarray(arr, dtype=PLANE_DTYPES[name])
+            if arr.shape != self.frame_shape:
+                raise ValueError(f"{name} of frame {self.written} has shape {arr.shape}; this file "
+                                 f"holds frames of shape {self.frame_shape} (H, W)")
+            planes.append(arr)
+        h = self.frame_shape[0]
+        first = self.written == 0
+        self._tw.write(planes[0], photometric="minisblack", metadata=None, rowsperstrip=h,
+                       description=self._description if first else None)
+        self._tw.write(planes[1], photometric="minisblack", metadata=None, rowsperstrip=h)
+        self._tw.write(planes[2], photometric="minisblack", metadata=None,
+                       rowsperstrip=self._alpha_rows)
+        self.written += 1
+
+    def sync(self) -> None:
+        """Start writing what is written so far to the disk, without waiting for it.
+
+        On Linux, ``posix_fadvise(DONTNEED)`` starts the write-back of the new part and drops
+        the part written back before it from the page cache: the disk works while the next
+        frames are corrected, the final ``fsync`` has little left to do, and a large batch
+        does not fill the page cache with its outputs. Elsewhere it does nothing.
+        """
+        if not hasattr(os, "posix_fadvise"):
+            return
+        fh = self._tw.filehandle
+        fh.flush()
+        end = fh.tell()
+        if end > self._mark:
+            os.posix_fadvise(fh.fileno(), self._mark, end - self._mark, os.POSIX_FADV_DONTNEED)
+        self._mark, self._last = self._last, end
+
+    def finish(self, document: dict | None = None) -> dict:
+        """Close the file and write the final provenance with ``"status": "complete"``."""
+        if self.written != self.n_frames:
+            raise ValueError(f"only {self.written} of {self.n_frames} frames were written")
+        self.close()
+        final = {**self._doc, **(document or {}), "status": "complete"}
+        text = _dumps(final)
+        with tifffile.TiffFile(self.path, mode="r+b") as tf:
+            tf.pages[0].tags["ImageDescription"].overwrite(text)
+        return final
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._tw.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+class BackgroundWriter:
+    """Runs :meth:`CorrectedWriter.write` on one thread while the caller corrects the next frame.
+
+    At most ``depth`` frames wait in the queue (memory stays at a few frames); every
+    ``sync_bytes`` written it calls :meth:`CorrectedWriter.sync`. An error in the thread is
+    raised in the caller at the next :meth:`write` or at :meth:`close`.
+    """
+
+    def __init__(self, writer: CorrectedWriter, depth: int = 1, sync_bytes: int = _SYNC_BYTES):
+        self._writer = writer
+        self._sync_bytes = sync_bytes
+        self._pending = 0
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._cancelled = False
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while (item := self._queue.get()) is not None:
+            if self._error is None and not self._cancelled:
+                try:
+                    self._writer.write(*item)
+                    self._pending += sum(a.nbytes for a in item if a is not None)
+                    if self._sync_bytes and self._pending >= self._sync_bytes:
+                        self._writer.sync()
+                        self._pending = 0
+                except BaseException as exc:  # raised again in the caller's thread
+                    self._error = exc
+
+    def write(self, data, dq, alpha=None) -> None:
+        if self._error is not None:
+            raise self._error
+        self._queue.put((data, dq, alpha))
+
+    def close(self, *, cancel: bool = False) -> None:
+        """Wait until every queued frame is written (``cancel``: drop them)."""
+        self._cancelled = self._cancelled or cancel
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
+        if self._error is not None and not cancel:
+            raise self._error
+
+
+# -- reading ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Corrected:
+    """A corrected cube read back: ``data`` (N, H, W) float32, ``dq`` (N, H, W) uint32,
+    ``alpha`` (N, H, W) float32 and the ``provenance`` JSON (a dict)."""
+
+    data: np.ndarray
+    dq: np.ndarray
+    alpha: np.ndarray
+    provenance: dict
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def exposure_ms(self) -> np.ndarray:
+        return np.asarray(self.provenance.get("exposure", []), np.float64)
+
+
+def _open_checked(tf, path: Path) -> dict:
+    """The provenance of an open corrected file, after checking it is complete."""
+    pages = tf.pages
+    if len(pages) == 0:
+        raise DataFormatError("the TIFF holds no page; not an hsiffc corrected file", path=path)
+    text = (pages[0].description or "").strip()
+    try:
+        doc = json.loads(text) if text.startswith("{") else None
+    except ValueError:
+        doc = None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise DataFormatError(f'not an hsiffc corrected file (no "format": "{FORMAT}" in the '
+                              "first page's description); it was not written by hsiffc correct",
+                              path=path)
+    version = doc.get("format_version")
+    if not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+        raise DataFormatError(f"corrected-file format_version {version!r} is not supported (this "
+                              f"hsiffc reads up to {FORMAT_VERSION}); upgrade hsiffc", path=path)
+    if doc.get("status") != "complete":
+        raise DataFormatError("the file is marked incomplete (it was not finished); run "
+                              "hsiffc correct again to redo it", path=path)
+    n = doc.get("n_frames")
+    per = doc.get("pages_per_frame", len(PLANES))
+    if not isinstance(n, int) or len(pages) != n * per:
+        raise DataFormatError(f"the file has {len(pages)} pages but its provenance declares "
+                              f"{n} frames x {per} planes; it is truncated or damaged: redo it "
+                              "(hsiffc correct --overwrite)", path=path)
+    last = pages[len(pages) - 1]
+    size = os.path.getsize(path)
+    end = max((int(o) + int(c) for o, c in zip(last.dataoffsets, last.databytecounts)),
+              default=0)
+    if end > size:
+        raise DataFormatError(f"the file is truncated (its last page needs {end} bytes, the file "
+                              f"has {size}); redo it (hsiffc correct --overwrite)", path=path)
+    return doc
+
+
+def _open(path) -> tifffile.TiffFile:
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError("corrected file not found", path=path)
+    try:
+        return tifffile.TiffFile(path)
+    except Exception as exc:  # tifffile raises many types on broken files
+        raise DataFormatError(f"not a readable TIFF ({type(exc).__name__}: {exc})",
+                              path=path) from exc
+
+
+def read_provenance(path) -> dict:
+    """The provenance JSON of a corrected file, after checking that it is complete.
+
+    Raises
+    ------
+    DataFormatError
+        Not a corrected file, unsupported version, marked incomplete, or fewer pages or bytes
+        than the provenance declares.
+    """
+    with _open(path) as tf:
+        return _open_checked(tf, Path(path))
+
+
+def iter_corrected(path):
+    """Yield ``(k, data, dq, alpha)`` for every frame, one frame in memory at a time."""
+    path = Path(path)
+    with _open(path) as tf:
+        doc = _open_checked(tf, path)
+        per = doc.get("pages_per_frame", len(PLANES))
+        for k in range(doc["n_frames"]):
+            data, dq, alpha = (tf.pages[per * k + j].asarray() for j in range(3))
+            yield k, data, dq, alpha
+
+
+def read_corrected(path, frames=None) -> Corrected:
+    """Read a corrected file written by ``hsiffc correct``.
+
+    Parameters
+    ----------
+    path : str or Path
+    frames : int, slice or sequence of int, optional
+        Which frames to read (default: all).
+
+    Returns
+    -------
+    Corrected
+        ``data``, ``dq``, ``alpha`` as (N, H, W) arrays and ``provenance`` (dict).
+    """
+    path = Path(path)
+    with _open(path) as tf:
+        doc = _open_checked(tf, path)
+        per = doc.get("pages_per_frame", len(PLANES))
+        index = np.arange(doc["n_frames"])
+        if frames is not None:
+            index = np.atleast_1d(index[frames])
+        h, w = doc["frame_shape"]
+        out = [np.empty((len(index), h, w), PLANE_DTYPES[p]) for p in PLANES]
+        for i, k in enumerate(index):
+            for j in range(3):
+                out[j][i] = tf.pages[per * int(k) + j].asarray()
+    return Corrected(out[0], out[1], out[2], doc)

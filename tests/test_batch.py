@@ -1,0 +1,469 @@
+"""``hsiffc correct``: batch correction that streams, resumes, never touches its inputs and
+reports every bad input with its reason while the rest of the batch carries on."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from hsiffc import batch
+from hsiffc.calibrate import calibrate
+from hsiffc.cli import main
+from hsiffc.dq import DQ
+from hsiffc.errors import DataFormatError
+from hsiffc.frame import Frame
+from hsiffc.io import read_sweep, write_sweep
+from hsiffc.io.corrected import CorrectedWriter, read_corrected, read_provenance
+from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
+from hsiffc.stages import Pipeline, create
+
+SHAPE = (32, 48)
+LIGHT = PAPER_LIGHT_W_M2["training"]
+VOLATILE = ("seconds", "created")
+
+
+def _clean(sweep):
+    return replace(sweep, meta={})
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """A calibration of a simulated 32 x 48 sensor and five good 4-frame cubes."""
+    root = tmp_path_factory.mktemp("batch")
+    sensor = MosaicSensor(SHAPE, seed=3)
+    sweep = sensor.sweep(np.linspace(2, 40, 12), "lamp A", irradiance_w_m2=PAPER_LIGHT_W_M2[
+        "training"], n_frames=2, seed=1)
+    cal_path = root / "cal.npz"
+    calibrate(sweep).save(cal_path)
+    raw = root / "raw"
+    (raw / "day2").mkdir(parents=True)
+    good = []
+    for i in range(5):
+        cube = sensor.sweep([10.0, 30.0], "lamp A", irradiance_w_m2=LIGHT, n_frames=2,
+                            darks=False, seed=10 + i)
+        path = raw / ("day2" if i >= 3 else "") / f"cube_{i}.tif"
+        write_sweep(path, _clean(cube))
+        good.append(path)
+    return {"root": root, "sensor": sensor, "cal": cal_path, "raw": raw, "good": good}
+
+
+def _run(*args) -> int:
+    return main(["correct", *map(str, args)])
+
+
+def _digest(paths) -> dict:
+    return {str(p): hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in paths}
+
+
+def _outputs(outdir: Path) -> dict:
+    """Arrays and provenance (without timing) of every output below ``outdir``."""
+    out = {}
+    for p in sorted(outdir.rglob("*.corrected.tif")):
+        c = read_corrected(p)
+        prov = {k: v for k, v in c.provenance.items() if k not in VOLATILE}
+        out[p.relative_to(outdir).as_posix()] = (c.data, c.dq, c.alpha, prov)
+    return out
+
+
+def _assert_same(a: dict, b: dict):
+    assert a.keys() == b.keys()
+    for key in a:
+        for x, y in zip(a[key][:3], b[key][:3]):
+            np.testing.assert_array_equal(x, y, err_msg=key)
+        assert a[key][3] == b[key][3], key
+
+
+def _no_leftovers(outdir: Path):
+    assert not [p for p in outdir.rglob("*") if p.name.endswith(".part")]
+
+
+@pytest.fixture(scope="module")
+def clean_run(world):
+    out = world["root"] / "clean"
+    assert _run(world["raw"], "--calibration", world["cal"], "-o", out) == 0
+    return out, _outputs(out)
+
+
+# -- correctness -------------------------------------------------------------------------------
+
+def test_output_equals_the_in_python_pipeline_and_reads_with_tifffile(world, clean_run):
+    out, outputs = clean_run
+    assert sorted(outputs) == ["cube_0.corrected.tif", "cube_1.corrected.tif",
+                               "cube_2.corrected.tif", "day2/cube_3.corrected.tif",
+                               "day2/cube_4.corrected.tif"]
+    pipe = batch.default_pipeline(world["cal"], threshold_percent=12.0)
+    for src in world["good"]:
+        rel = src.relative_to(world["raw"])
+        path = out / batch.output_name(rel)
+        data, dq, alpha, prov = outputs[batch.output_name(rel)]
+        frames = Frame.list_from_sweep(read_sweep(src))
+        assert data.shape == (len(frames),) + SHAPE
+        for k, frame in enumerate(frames):
+            expect = pipe.transform(frame)
+            np.testing.assert_array_equal(data[k], expect.data)
+            np.testing.assert_array_equal(dq[k], expect.dq)
+            np.testing.assert_array_equal(alpha[k], expect.alpha)
+        # the documented tifffile reading: three series, or every third page
+        np.testing.assert_array_equal(tifffile.imread(path), data)
+        np.testing.assert_array_equal(tifffile.imread(path, series=1), dq)
+        np.testing.assert_array_equal(tifffile.imread(path, series=2), alpha)
+        np.testing.assert_array_equal(tifffile.imread(path, key=slice(2, None, 3)), alpha)
+        cal_id = batch.Calibration.load(world["cal"]).identity
+        assert prov["status"] == "complete" and prov["format"] == "hsiffc-corrected"
+        assert prov["calibration"]["identity"] == cal_id
+        assert [s["stage"] for s in prov["pipeline"]["steps"]] == ["dark", "alpha_mask"]
+        assert prov["pipeline"]["steps"][1]["params"]["threshold_percent"] == 12.0
+        assert prov["input"]["sha256"] == hashlib.sha256(src.read_bytes()).hexdigest()
+        assert prov["exposure"] == [10.0, 10.0, 30.0, 30.0]
+        assert prov["hsiffc_version"]
+        assert len(prov["frames"]["uniformity_after"][0]) == 8
+    assert (dq & DQ.LEAKAGE).any()  # the 30 ms frames leak in some pixels
+
+
+def test_fitted_pipeline_file_is_applied_as_in_python(world, tmp_path):
+    s = world["sensor"]
+    train = (Frame.list_from_sweep(s.sweep([10.0, 25.0], None, n_frames=3, seed=2))
+             + Frame.list_from_sweep(s.sweep([10.0], "lamp A", irradiance_w_m2=LIGHT,
+                                             n_frames=3, darks=False, seed=3)))
+    pipe = Pipeline([("dark", create("dark")),
+                     ("mask", create("alpha_mask", calibration=str(world["cal"]))),
+                     ("ffc", create("two_point_ffc", exposure_ms=10.0,
+                                    normalisation="mean_gain"))]).fit(train)
+    pipe.save(tmp_path / "pipe.npz")
+    out = tmp_path / "out"
+    assert _run(world["good"][0], "--calibration", world["cal"], "--pipeline",
+                tmp_path / "pipe.npz", "-o", out) == 0
+    c = read_corrected(out / "cube_0.corrected.tif")
+    loaded = Pipeline.load(tmp_path / "pipe.npz")
+    for k, frame in enumerate(Frame.list_from_sweep(read_sweep(world["good"][0]))):
+        expect = loaded.transform(frame)
+        np.testing.assert_array_equal(c.data[k], expect.data)
+        np.testing.assert_array_equal(c.dq[k], expect.dq)
+    assert c.provenance["pipeline"]["kind"] == "file"
+    assert [s["name"] for s in c.provenance["pipeline"]["steps"]] == ["dark", "mask", "ffc"]
+
+
+def test_pipeline_fitted_with_another_calibration_is_refused(world, tmp_path, capsys):
+    other = tmp_path / "other.npz"
+    s2 = MosaicSensor(SHAPE, seed=99)
+    calibrate(s2.sweep(np.linspace(2, 40, 8), "lamp A", irradiance_w_m2=LIGHT * 2,
+                       n_frames=2, seed=1)).save(other)
+    pipe = Pipeline([("mask", create("alpha_mask", calibration=str(other)))])
+    pipe.steps[0][1].fit([])
+    pipe.save(tmp_path / "pipe.npz")
+    assert _run(world["good"][0], "--calibration", world["cal"], "--pipeline",
+                tmp_path / "pipe.npz", "-o", tmp_path / "out") == 2
+    assert "uses calibration" in capsys.readouterr().err
+
+
+# -- bad inputs --------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def bad_folder(world):
+    """Good cubes plus one of each bad input."""
+    d = world["root"] / "mixed"
+    d.mkdir()
+    s = world["sensor"]
+    write_sweep(d / "good_a.tif", _clean(s.sweep([10.0], "lamp A", irradiance_w_m2=LIGHT,
+                                                 n_frames=3, darks=False, seed=5)))
+    write_sweep(d / "good_b.tif", _clean(s.sweep([12.0], "lamp A", irradiance_w_m2=LIGHT,
+                                                 n_frames=2, darks=False, seed=6)))
+    (d / "unreadable.tif").write_bytes(b"this is not a TIFF file at all" * 10)
+    whole = (d / "good_a.tif").read_bytes()
+    (d / "truncated.tif").write_bytes(whole[: len(whole) * 2 // 3])
+    small = MosaicSensor((16, 48), seed=3)
+    write_sweep(d / "wrong_shape.tif", _clean(small.sweep([10.0], "lamp A",
+                                                          irradiance_w_m2=LIGHT, n_frames=2,
+                                                          darks=False)))
+    cube = _clean(s.sweep([10.0], "lamp A", irradiance_w_m2=LIGHT, n_frames=2, darks=False))
+    write_sweep(d / "wrong_bits.tif", replace(cube, bit_depth=12))
+    tifffile.imwrite(d / "plain_no_metadata.tif", cube.data, photometric="minisblack",
+                     metadata=None)
+    doc = {"format": "hsiffc", "exposure_unit": "ms", "bit_depth": 10, "kind": "light"}
+    tifffile.imwrite(d / "no_exposure.tif", cube.data, photometric="minisblack",
+                     metadata=None, description=json.dumps(doc))
+    nan = cube.data.astype(np.float32)
+    nan[1, 3:5, 7] = np.nan
+    nan[0, 0, 0] = np.inf
+    write_sweep(d / "with_nan.tif", replace(cube, data=nan))
+    return d
+
+
+def test_each_bad_input_is_reported_with_its_reason_and_the_rest_carries_on(world, bad_folder,
+                                                                          tmp_path, capsys):
+    before = _digest(bad_folder.iterdir())
+    out = tmp_path / "out"
+    code = _run(bad_folder, "--calibration", world["cal"], "-o", out, "--json",
+                tmp_path / "summary.json")
+    text = capsys.readouterr().out
+    assert code == 1  # something failed
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    status = {Path(r["input"]).name: r for r in summary["results"]}
+    expected_failures = {
+        "unreadable.tif": "not a readable TIFF",
+        "truncated.tif": "truncated",
+        "wrong_shape.tif": "frame shape (16, 48)",
+        "wrong_bits.tif": "bit depth 12",
+        "plain_no_metadata.tif": "without hsiffc metadata",
+        "no_exposure.tif": "no 'exposure'",
+    }
+    for name, reason in expected_failures.items():
+        assert status[name]["status"] == "failed", name
+        assert reason in status[name]["reason"], (name, status[name]["reason"])
+        assert f"{name}: " in text and reason in text
+        assert not (out / batch.output_name(name)).exists()
+    for name in ("good_a.tif", "good_b.tif", "with_nan.tif"):
+        assert status[name]["status"] == "done", status[name]
+        assert (out / batch.output_name(name)).exists()
+    assert summary["counts"] == {"done": 3, "skipped": 0, "failed": 6}
+    assert "3 done, 0 skipped, 6 failed" in text
+    # NaN: done, pixels flagged NONFINITE (set to 0 DN), counted in a warning and the provenance
+    assert "3 NaN/inf pixels in 2 frames flagged NONFINITE" in text
+    c = read_corrected(out / "with_nan.corrected.tif")
+    assert c.dq[1, 3, 7] & DQ.NONFINITE and c.dq[0, 0, 0] & DQ.NONFINITE
+    assert np.isfinite(c.data).all()
+    assert c.provenance["frames"]["nonfinite_pixels"] == [1, 2]
+    _no_leftovers(out)
+    assert _digest(bad_folder.iterdir()) == before  # inputs byte-identical, even the bad ones
+
+
+def test_nan_fail_policy_fails_the_file(world, bad_folder, tmp_path, capsys):
+    code = _run(bad_folder / "with_nan.tif", bad_folder / "good_b.tif", "--calibration",
+                world["cal"], "-o", tmp_path, "--nan", "fail")
+    assert code == 1
+    assert "NaN/inf pixels (--nan fail)" in capsys.readouterr().out
+    assert not (tmp_path / "with_nan.corrected.tif").exists()
+    assert (tmp_path / "good_b.corrected.tif").exists()
+
+
+def test_data_above_the_bit_depth_fail_the_file(world, tmp_path):
+    cube = _clean(world["sensor"].sweep([10.0], "lamp A", irradiance_w_m2=LIGHT, n_frames=2,
+                                        darks=False))
+    data = cube.data.copy()
+    data[1, 0, 0] = 4000
+    doc = {"format": "hsiffc", "exposure": 10.0, "exposure_unit": "ms", "bit_depth": 10,
+           "mosaic": cube.mosaic.to_dict()}
+    tifffile.imwrite(tmp_path / "over.tif", data, photometric="minisblack", metadata=None,
+                     description=json.dumps(doc))
+    summary = batch.correct_batch([tmp_path / "over.tif"], tmp_path / "out", world["cal"])
+    (res,) = summary.results
+    assert res["status"] == "failed" and "exceed the stated bit depth" in res["reason"]
+    assert summary.exit_status == 1
+    _no_leftovers(tmp_path / "out")
+
+
+# -- resume, overwrite, never touching inputs --------------------------------------------------
+
+def test_inputs_stay_byte_identical(world, tmp_path):
+    before = _digest(world["good"])
+    stat = {p: os.stat(p).st_mtime_ns for p in world["good"]}
+    assert _run(world["raw"], "--calibration", world["cal"], "-o", tmp_path) == 0
+    assert _run(world["raw"], "--calibration", world["cal"], "-o", tmp_path, "--overwrite") == 0
+    assert _digest(world["good"]) == before
+    assert {p: os.stat(p).st_mtime_ns for p in world["good"]} == stat
+
+
+def test_rerun_skips_complete_outputs_and_overwrite_redoes_them(world, tmp_path, clean_run):
+    out = tmp_path / "out"
+    first = batch.correct_batch([world["raw"]], out, world["cal"])
+    assert len(first.done) == 5
+    inodes = {p: os.stat(p).st_ino for p in out.rglob("*.corrected.tif")}
+    again = batch.correct_batch([world["raw"]], out, world["cal"])
+    assert len(again.skipped) == 5 and not again.done and again.exit_status == 0
+    assert {p: os.stat(p).st_ino for p in out.rglob("*.corrected.tif")} == inodes
+    redo = batch.correct_batch([world["raw"]], out, world["cal"], overwrite=True)
+    assert len(redo.done) == 5
+    assert all(os.stat(p).st_ino != ino for p, ino in inodes.items())  # replaced by rename
+    _assert_same(_outputs(out), clean_run[1])
+
+
+def test_stale_or_damaged_outputs_are_redone(world, tmp_path):
+    out = tmp_path / "out"
+    src = tmp_path / "cube_0.tif"  # a copy: its modification time changes below
+    src.write_bytes(world["good"][0].read_bytes())
+    batch.correct_batch([src], out, world["cal"])
+    target = out / "cube_0.corrected.tif"
+    # other parameters: redone
+    res = batch.correct_batch([src], out, world["cal"], threshold_percent=5.0).results[0]
+    assert res["status"] == "done" and "other parameters" in res["warnings"][0]
+    assert read_provenance(target)["pipeline"]["steps"][1]["params"]["threshold_percent"] == 5.0
+    # a damaged output under the final name (e.g. cut by a copy tool): redone
+    whole = target.read_bytes()
+    target.write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(DataFormatError):
+        read_provenance(target)
+    res = batch.correct_batch([src], out, world["cal"], threshold_percent=5.0).results[0]
+    assert res["status"] == "done" and "not a complete corrected file" in res["warnings"][0]
+    # a newer input (modification time): redone; otherwise skipped
+    assert batch.correct_batch([src], out, world["cal"],
+                               threshold_percent=5.0).results[0]["status"] == "skipped"
+    st = os.stat(src)
+    os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    res = batch.correct_batch([src], out, world["cal"], threshold_percent=5.0).results[0]
+    assert res["status"] == "done" and "another version of the input" in res["warnings"][0]
+
+
+def test_interrupted_run_resumes_to_the_clean_result(world, tmp_path, clean_run, monkeypatch):
+    """Ctrl-C (KeyboardInterrupt) in the middle of the third file, then a rerun."""
+    out = tmp_path / "out"
+    calls = {"n": 0}
+    original = batch.Frame.from_raw
+
+    def interrupting(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2 * 4 + 3:  # third frame of the third file
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(batch.Frame, "from_raw", staticmethod(interrupting))
+    with pytest.raises(KeyboardInterrupt):
+        batch.correct_batch([world["raw"]], out, world["cal"])
+    monkeypatch.undo()
+    assert sorted(p.name for p in out.rglob("*.corrected.tif")) == ["cube_0.corrected.tif",
+                                                                   "cube_1.corrected.tif"]
+    _no_leftovers(out)
+    resumed = batch.correct_batch([world["raw"]], out, world["cal"])
+    assert [r["status"] for r in resumed.results] == ["skipped"] * 2 + ["done"] * 3
+    _assert_same(_outputs(out), clean_run[1])
+
+
+def test_killed_process_leaves_no_partial_output_and_resumes(world, tmp_path, clean_run):
+    """SIGKILL a slowed-down run mid-batch; the rerun removes its temporary file and finishes."""
+    out = tmp_path / "out"
+    slow = (
+        "import sys, time\n"
+        "import hsiffc.batch as b\n"
+        "orig = b.Frame.from_raw\n"
+        "def slow(*a, **k):\n"
+        "    time.sleep(0.15)\n"
+        "    return orig(*a, **k)\n"
+        "b.Frame.from_raw = staticmethod(slow)\n"
+        "from hsiffc.cli import main\n"
+        "sys.exit(main(sys.argv[1:]))\n")
+    cmd = [sys.executable, "-c", slow, "correct", str(world["raw"]), "--calibration",
+           str(world["cal"]), "-o", str(out), "-q"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            if len(list(out.rglob("*.corrected.tif"))) >= 2:
+                break
+            time.sleep(0.02)
+        time.sleep(0.2)  # inside the next file
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    finished = list(out.rglob("*.corrected.tif"))
+    assert 2 <= len(finished) < 5
+    assert [p for p in out.rglob("*") if p.name.endswith(".part")]  # killed inside a file
+    for p in finished:  # whatever is under a final name is complete
+        read_provenance(p)
+    assert _run(world["raw"], "--calibration", world["cal"], "-o", out) == 0
+    _no_leftovers(out)
+    _assert_same(_outputs(out), clean_run[1])
+
+
+# -- layout and usage --------------------------------------------------------------------------
+
+def test_refuses_to_write_over_an_input(world, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    victim = out / "cube_0.corrected.tif"
+    victim.write_bytes(world["good"][0].read_bytes())  # an input that has an output's name
+    before = _digest([victim])
+    assert _run(world["good"][0], victim, "--calibration", world["cal"], "-o", out) == 2
+    assert "never writes over an input" in capsys.readouterr().err
+    assert _digest([victim]) == before
+
+
+def test_inputs_from_files_folders_and_globs(world, tmp_path, capsys):
+    raw = world["raw"]
+    jobs, ignored = batch.plan_jobs([raw / "cube_0.tif", str(raw / "**" / "cube_[34].tif"),
+                                     raw], tmp_path)
+    assert [j.rel for j in jobs] == ["cube_0.tif", "day2/cube_3.tif", "day2/cube_4.tif",
+                                     "cube_1.tif", "cube_2.tif"]
+    assert jobs[1].output == str((tmp_path / "day2" / "cube_3.corrected.tif").resolve())
+    # outputs found by a folder scan are not inputs
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    (mixed / "a.tif").write_bytes(world["good"][0].read_bytes())
+    (mixed / "a.corrected.tif").write_bytes(b"x")
+    jobs, ignored = batch.plan_jobs([mixed], mixed)
+    assert [j.rel for j in jobs] == ["a.tif"] and [p.name for p in ignored] == ["a.corrected.tif"]
+    # usage errors: exit status 2 with a message naming the argument
+    for args, message in (([tmp_path / "missing.tif"], "no such file or folder"),
+                          ([str(tmp_path / "*.tiff")], "matches no TIFF"),
+                          ([world["cal"]], "not a TIFF file name")):
+        assert _run(*args, "--calibration", world["cal"], "-o", tmp_path / "o") == 2
+        assert message in capsys.readouterr().err
+    assert _run(raw, "--calibration", tmp_path / "nope.npz", "-o", tmp_path / "o") == 2
+    assert "calibration file not found" in capsys.readouterr().err
+    jobs, _ = batch.plan_jobs([world["good"][0], world["good"][0].parent / "cube_0.tif"],
+                              tmp_path)
+    assert len(jobs) == 1  # the same file twice is one job
+    (tmp_path / "dup").mkdir()
+    (tmp_path / "dup" / "cube_0.tif").write_bytes(world["good"][0].read_bytes())
+    with pytest.raises(batch.BatchError, match="both be written"):
+        batch.plan_jobs([world["good"][0], tmp_path / "dup" / "cube_0.tif"], tmp_path)
+
+
+def test_an_unfinished_corrected_file_is_not_valid(tmp_path):
+    path = tmp_path / "x.corrected.tif"
+    w = CorrectedWriter(path, {}, n_frames=2, frame_shape=(4, 6))
+    w.write(np.zeros((4, 6)), np.zeros((4, 6), np.uint32), None)
+    w.close()
+    with pytest.raises(DataFormatError, match="incomplete"):
+        read_provenance(path)
+    w = CorrectedWriter(path, {"note": "ok"}, n_frames=1, frame_shape=(4, 6))
+    w.write(np.ones((4, 6)), np.zeros((4, 6), np.uint32), None)
+    prov = w.finish({"extra": 1})
+    c = read_corrected(path)
+    assert prov["status"] == "complete" and c.provenance["extra"] == 1
+    assert np.isnan(c.alpha).all() and (c.data == 1).all()
+
+
+# -- parallel and distributed ------------------------------------------------------------------
+
+def test_local_workers_give_identical_outputs(world, tmp_path, clean_run):
+    summary = batch.correct_batch([world["raw"]], tmp_path, world["cal"], workers=2,
+                                  progress=True)
+    assert len(summary.done) == 5 and summary.exit_status == 0
+    _assert_same(_outputs(tmp_path), clean_run[1])
+
+
+def test_dask_scheduler_runs_the_same_batch(world, bad_folder, tmp_path, clean_run):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        summary = batch.correct_batch([world["raw"]], tmp_path / "a", world["cal"],
+                                      scheduler=cluster.scheduler_address)
+        assert len(summary.done) == 5
+        bad = batch.correct_batch([bad_folder / "truncated.tif", bad_folder / "good_b.tif"],
+                                  tmp_path / "b", world["cal"],
+                                  scheduler=cluster.scheduler_address)
+    _assert_same(_outputs(tmp_path / "a"), clean_run[1])
+    assert [r["status"] for r in bad.results] == ["failed", "done"]
+    assert "truncated" in bad.results[0]["reason"] and bad.exit_status == 1
+
+
+def test_summary_uniformity_is_eq6_per_band():
+    from hsiffc.ffc import uniformity_per_band
+
+    rng = np.random.default_rng(0)
+    values = rng.normal(500, 20, (40, 48)).astype(np.float32)
+    band = MosaicSensor((40, 48)).band_map
+    good = rng.random((40, 48)) > 0.1
+    ours = batch._band_uniformity(values, band, good, 8)
+    ref = uniformity_per_band(values, band, dq=(~good).astype(np.uint32))
+    np.testing.assert_allclose(ours, ref, rtol=1e-3)
