@@ -278,6 +278,7 @@ class Settings:
 @dataclass
 class _Context:
     calibration: Calibration
+    identity: str  # the calibration's (a content hash: computed once)
     pipeline: Pipeline
     info: dict
 
@@ -293,7 +294,7 @@ def _context(settings: Settings, calibration: Calibration | None = None) -> _Con
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         cal = calibration if calibration is not None else Calibration.load(settings.calibration)
-        if cal.identity != settings.calibration_identity:
+        if calibration is None and cal.identity != settings.calibration_identity:
             raise BatchError(f"{settings.calibration}: the calibration changed since the batch "
                              f"started (identity {cal.identity}, expected "
                              f"{settings.calibration_identity})")
@@ -308,13 +309,14 @@ def _context(settings: Settings, calibration: Calibration | None = None) -> _Con
             info = {"kind": "default", "path": None, "sha256": None, "notes": []}
         steps = [{"name": s["name"], "stage": s["stage"], "params": s["params"]}
                  for s in pipe.manifest()["steps"]]
-        norm = [{**s, "params": {k: (f"identity:{cal.identity}" if k == "calibration" and v
+        identity = settings.calibration_identity
+        norm = [{**s, "params": {k: (f"identity:{identity}" if k == "calibration" and v
                                      else v) for k, v in s["params"].items()}} for s in steps]
         info["steps"] = steps
         info["fingerprint"] = hashlib.sha256(json.dumps(
             {"steps": norm, "file": info["sha256"]}, sort_keys=True).encode()).hexdigest()[:16]
         info["alpha_computed"] = any(s["stage"] == "alpha_mask" for s in steps)
-        ctx = _Context(cal, pipe, info)
+        ctx = _Context(cal, identity, pipe, info)
         if len(_CONTEXTS) > 4:
             _CONTEXTS.clear()
         _CONTEXTS[key] = ctx
@@ -431,7 +433,7 @@ def _stale_reason(out: Path, job: Job, ctx: _Context, nan: str = "flag") -> str 
     src = prov.get("input") or {}
     if src.get("size") != st.st_size or src.get("mtime_ns") != st.st_mtime_ns:
         return "was made from another version of the input (size or modification time differ)"
-    if (prov.get("calibration") or {}).get("identity") != ctx.calibration.identity:
+    if (prov.get("calibration") or {}).get("identity") != ctx.identity:
         return "was made with another calibration"
     if (prov.get("pipeline") or {}).get("fingerprint") != ctx.info["fingerprint"]:
         return "was made with another pipeline or other parameters"
@@ -551,7 +553,7 @@ def _provenance(job, settings, ctx, head, st) -> dict:
     cal, mosaic = ctx.calibration, head["mosaic"]
     return {"input": {"path": job.input, "relative": job.rel, "size": st.st_size,
                       "mtime_ns": st.st_mtime_ns, "sha256": None},
-            "calibration": {"identity": cal.identity, "path": settings.calibration,
+            "calibration": {"identity": ctx.identity, "path": settings.calibration,
                             "method": cal.method, "fitted_on": cal.fitted_on.get("source")},
             "pipeline": ctx.info, "alpha_computed": ctx.info["alpha_computed"],
             "hsiffc_version": __version__, "exposure_unit": "ms",
@@ -837,7 +839,7 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
     finally:
         if bar:
             bar.close()
-    cal_info = {"path": str(cal_path), "identity": ctx.calibration.identity}
+    cal_info = {"path": str(cal_path), "identity": ctx.identity}
     return BatchSummary([results[i] for i in sorted(results)], time.perf_counter() - t0,
                         str(Path(outdir).resolve()), cal_info,
                         {k: v for k, v in ctx.info.items() if k != "steps"} | {
