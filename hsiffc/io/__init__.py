@@ -13,8 +13,9 @@ from pathlib import Path
 from ..errors import DataFormatError
 from .emva import read_emva1288
 from .tiff import TIFF_SUFFIXES, read_sweep_tiff, write_sweep
+from .corrected import read_corrected  # noqa: E402  (outputs of hsiffc correct)
 
-__all__ = ["read_sweep", "read_sweep_tiff", "read_emva1288", "write_sweep"]
+__all__ = ["read_sweep", "read_sweep_tiff", "read_emva1288", "write_sweep", "read_corrected"]
 
 _ACCEPTED = ("an hsiffc TIFF (.tif/.tiff), an EMVA 1288 descriptor (.txt) or a folder holding "
              "one EMVA 1288 descriptor")
