@@ -332,8 +332,8 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
 
     n_light_steps = int(light.sum())
     base_params = 4 * n_pix
-    res_base, mse_base, bic_base = metrics(base, base_params)
-    current, cur_res, cur_mse, cur_bic, cur_params = base, res_base, mse_base, bic_base, base_params
+    res_base, mse_base, _ = metrics(base, base_params)
+    current, cur_res, cur_mse, cur_params = base, res_base, mse_base, base_params
     selected: list[str] = []
     candidates = []
     for round_ in range(len(names)):
@@ -369,7 +369,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         name, state, mse, bic, res, k, entry = best
         entry["selected_in_round"] = True
         selected.append(name)
-        current, cur_mse, cur_bic, cur_res, cur_params = state, mse, bic, res, k
+        current, cur_mse, cur_res, cur_params = state, mse, res, k
 
     m_final, ctx = _context(current.theta, t, r, order, prev_index, light, fs)
     # what a correct model leaves: simulate the final model with the measured noise, refit the

@@ -34,7 +34,6 @@ Reading::
 from __future__ import annotations
 
 import json
-import math
 import os
 import queue
 import threading
@@ -44,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
+from .._json import json_safe
 from ..errors import DataFormatError
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "PLANES", "SUFFIX", "BackgroundWriter", "Corrected",
@@ -59,23 +59,6 @@ _PAD_PER_FRAME = 256  # bytes reserved in the placeholder for each frame's stati
 _PAD_FIXED = 4096
 _BIGTIFF_ABOVE = 2 ** 32 - 2 ** 26  # classic TIFF offsets are 32-bit
 _SYNC_BYTES = 1 << 25  # BackgroundWriter starts the disk's write-back every 32 MiB
-
-
-def json_safe(value):
-    """Numpy values -> Python, non-finite floats -> None, tuples -> lists (recursively)."""
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return json_safe(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, os.PathLike):
-        return os.fspath(value)
-    return value
 
 
 def _dumps(doc: dict) -> str:

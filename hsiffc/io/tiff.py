@@ -45,14 +45,13 @@ from __future__ import annotations
 
 import json
 import logging
-import math
-import os
 import struct
 from pathlib import Path
 
 import numpy as np
 import tifffile
 
+from .._json import json_safe
 from ..atomic import atomic_path
 from ..errors import DataFormatError
 from ..mosaic import Mosaic
@@ -80,26 +79,6 @@ def exposure_to_ms(values, unit: str, *, path=None, what: str = "exposure_unit")
 
 
 # -- writing --------------------------------------------------------------------------------------
-def _json_safe(value):
-    """Numpy scalars/arrays -> Python, non-finite floats -> None, tuples -> lists (recursively)."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _json_safe(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if value is None or isinstance(value, (str, bool, int, float)):
-        return value
-    if isinstance(value, os.PathLike):
-        return os.fspath(value)
-    raise TypeError(f"sweep.meta holds a {type(value).__name__} ({value!r}), which JSON cannot "
-                    "store; keep meta to str, numbers, lists and dicts")
-
-
 def _document(sweep: Sweep) -> dict:
     photons = sweep.photons
     mosaic = sweep.mosaic
@@ -112,14 +91,14 @@ def _document(sweep: Sweep) -> dict:
         "exposure": sweep.exposure_ms.tolist(),
         "kind": sweep.kind.tolist(),
         "illumination": sweep.illumination.tolist(),
-        "photons": None if np.all(np.isnan(photons)) else _json_safe(photons),
+        "photons": None if np.all(np.isnan(photons)) else json_safe(photons),
         "step": sweep.step.tolist(),
         "bit_depth": sweep.bit_depth,
-        "mosaic": None if mosaic is None else _json_safe(mosaic.to_dict()),
+        "mosaic": None if mosaic is None else json_safe(mosaic.to_dict()),
         "wavelengths_nm": None if mosaic is None or mosaic.wavelengths_nm is None
         else list(mosaic.wavelengths_nm),
         "source": sweep.source,
-        "meta": _json_safe(sweep.meta),
+        "meta": json_safe(sweep.meta, strict=True, what="sweep.meta"),
     }
 
 

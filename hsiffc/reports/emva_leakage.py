@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._json import json_safe
 from .. import __version__, model
 from ..atomic import atomic_path, atomic_write_text
 from ..calibrate import Calibration, calibrate, collect_samples, photon_transfer
@@ -155,20 +156,6 @@ def _most_typical(mask, *features) -> int:
         mad = 1.4826 * np.nanmedian(np.abs(f - med)) or 1.0
         score += np.nan_to_num((f - med) / mad, nan=1e9) ** 2
     return int(idx[np.argmin(score)])
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.integer, np.bool_)):
-        return obj.item()
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    return obj
 
 
 def analyse_emva_leakage(sweep, calibration: Calibration | None = None, *,
@@ -374,7 +361,7 @@ def analyse_emva_leakage(sweep, calibration: Calibration | None = None, *,
         "rise_ratio_noise_sigma": _stats(rise_ratio_sigma[never_clipped & below]),
         "rise_ratio_never_clipped_below_margin": _stats(rise_ratio[never_clipped & below]),
     }
-    return _jsonable({
+    return json_safe({
         "source": sweep.source, "hsiffc_version": __version__,
         "frame_shape": [h, w], "n_pixels": h * w, "full_scale_dn": fs,
         "n_steps": int(usable.sum()), "n_light_steps": int((light & usable).sum()),

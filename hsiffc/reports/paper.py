@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._json import json_safe
 from .. import __version__, model
 from ..atomic import atomic_path, atomic_write_text
 
@@ -191,24 +192,6 @@ def _csv_cell(v):
     if isinstance(v, np.integer):
         return int(v)
     return v
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.bool_, bool)):
-        return bool(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if np.isfinite(obj) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
 
 
 def _savefig(fig, path, dpi=90):
@@ -1307,7 +1290,7 @@ def run_paper_report(outdir, *, seed: int = 0, shape=(128, 128), emva_dir=None, 
     result = {"simulated": sim, "emva": em, "emva_note": note, "timing": timing,
               "files": {k: str(v) for k, v in files.items()}}
     summary = _summary(result)
-    atomic_write_text(outdir / "summary.json", json.dumps(_jsonable(summary), indent=1) + "\n")
+    atomic_write_text(outdir / "summary.json", json.dumps(json_safe(summary), indent=1) + "\n")
     result["files"]["summary.json"] = str(outdir / "summary.json")
     return result
 
