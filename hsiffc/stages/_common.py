@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -11,10 +12,24 @@ from ..frame import Frame
 
 
 def load_calibration(value) -> Calibration | None:
-    """A Calibration from a path or an object (None stays None)."""
+    """A Calibration from a path or an object (None stays None).
+
+    Files are read once per process and version: stages that hold a path call this for every
+    frame, so the loaded calibration is cached by resolved path, size and modification time (a
+    rewritten file is read again)."""
     if value is None or isinstance(value, Calibration):
         return value
-    return Calibration.load(Path(value))
+    path = Path(value).resolve()
+    try:
+        st = path.stat()
+    except OSError:
+        return Calibration.load(path)  # raises the clear "not found" error
+    return _load_cached(str(path), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=8)
+def _load_cached(path: str, size: int, mtime_ns: int) -> Calibration:
+    return Calibration.load(Path(path))
 
 
 def group_by_exposure(frames, kind: str) -> dict[float, list[Frame]]:

@@ -39,11 +39,7 @@ class AlphaMask(Stage):
         if self.calibration is None:
             raise ValueError("AlphaMask needs calibration= (a calibration file from "
                              "'hsiffc calibrate')")
-        cal = getattr(self, "_loaded", None)
-        if cal is None or cal[0] is not self.calibration:
-            cal = (self.calibration, load_calibration(self.calibration))
-            self._loaded = cal
-        return cal[1]
+        return load_calibration(self.calibration)
 
     def _alpha_paper(self, frame, cal, t):
         """alpha = 100 a e^{bY} / ((Y - d) / t) in single precision, few passes (the hot path of
