@@ -1,0 +1,116 @@
+"""The ``hsiffc`` command line.
+
+Sub-commands live in one module per group (:mod:`.data`, :mod:`.pipeline`, :mod:`.reports`), each
+with a ``register(sub)`` function. Every expected error (input, output, parameter, environment)
+ends here, in one place: one line on stderr naming the file or parameter, the problem and the fix,
+exit status 2 (``--debug`` shows the traceback instead). Commands that process a batch return 1
+when some files failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import logging
+import sys
+
+from .. import __version__
+from ..errors import HsiffcError
+from . import data, pipeline, reports
+
+log = logging.getLogger("hsiffc")
+
+#: modules whose ``register(sub)`` adds sub-commands, in the order ``--help`` lists them
+COMMAND_MODULES = [reports, data, pipeline]
+
+EXIT_USAGE = 2
+EXIT_INTERNAL = 3
+EXIT_INTERRUPTED = 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with every sub-command registered."""
+    parser = argparse.ArgumentParser(
+        prog="hsiffc",
+        description="Leakage-aware calibration and flat-field correction for low-light CMOS "
+                    "hyperspectral snapshot-mosaic sensors.")
+    parser.add_argument("--version", action="version", version=f"hsiffc {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log progress (-v: info, -vv: debug)")
+    parser.add_argument("--debug", action="store_true",
+                        help="on an error, show the Python traceback instead of one line")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for module in COMMAND_MODULES:
+        module.register(sub)
+    return parser
+
+
+_OS_FIXES = {
+    errno.EACCES: "check the permissions or choose another path",
+    errno.EPERM: "check the permissions or choose another path",
+    errno.EISDIR: "give a file name, not a folder",
+    errno.ENOTDIR: "a part of the path is a file, not a folder; check the path",
+    errno.ENOENT: "check the path",
+    errno.EEXIST: "choose another name or pass --overwrite where the command offers it",
+    errno.ENOSPC: "free some disk space or write to another disk",
+    errno.EROFS: "the file system is read-only; write somewhere else",
+    errno.ENAMETOOLONG: "use a shorter path",
+}
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line for an operating-system error: the file, the problem and what to do."""
+    where = exc.filename if exc.filename is not None else "a file"
+    what = exc.strerror or str(exc)
+    fix = _OS_FIXES.get(exc.errno, "check the path and try again")
+    return f"{where}: {what}; {fix}"
+
+
+def main(argv=None) -> int:
+    """Run the command line; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return EXIT_USAGE
+    prefix = f"hsiffc {args.command}: error:"
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print(f"hsiffc {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except HsiffcError as exc:
+        if args.debug:
+            raise
+        print(f"{prefix} {_one_line(str(exc))}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as exc:
+        if args.debug:
+            raise
+        print(f"{prefix} {_one_line(describe_os_error(exc))}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError:
+        if args.debug:
+            raise
+        print(f"{prefix} out of memory; process smaller inputs or fewer frames at a time",
+              file=sys.stderr)
+        return EXIT_USAGE
+    except Exception as exc:  # an unexpected error: still one line, the traceback on request
+        if args.debug:
+            raise
+        print(f"hsiffc {args.command}: internal error: {type(exc).__name__}: "
+              f"{_one_line(str(exc))} (run again with --debug for the traceback and please "
+              "report it)", file=sys.stderr)
+        return EXIT_INTERNAL
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,193 @@
+"""Commands on sweeps and calibrations: ``info``, ``simulate``, ``calibrate``, ``select``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import HsiffcError
+from .common import write_json
+
+
+def register(sub) -> None:
+    """Add this module's sub-commands to the parser's sub-parsers."""
+    _add_info(sub)
+    _add_simulate(sub)
+    _add_calibrate(sub)
+    _add_select(sub)
+
+
+def _add_info(sub):
+    p = sub.add_parser("info", help="describe a sweep (hsiffc TIFF or EMVA 1288)")
+    p.add_argument("sweep", type=Path)
+    p.add_argument("--json", type=Path, default=None, help="also write the description as JSON")
+    p.set_defaults(func=_cmd_info)
+
+
+def _cmd_info(args) -> int:
+    from ..io import read_sweep
+
+    sweep = read_sweep(args.sweep)
+    print(sweep.summary())
+    steps = sweep.step_means()
+    print(f"{'step':>5} {'kind':>5} {'exposure_ms':>12} {'photons':>10} {'frames':>6} "
+          f"{'mean_dn':>9} {'max_dn':>7}")
+    for i in range(len(steps["step"])):
+        print(f"{steps['step'][i]:>5} {steps['kind'][i]:>5} {steps['exposure_ms'][i]:>12.6g} "
+              f"{steps['photons'][i]:>10.4g} {steps['n_frames'][i]:>6} "
+              f"{steps['data'][i].mean():>9.2f} {steps['data'][i].max():>7.0f}")
+    if args.json:
+        doc = {"source": str(args.sweep), "summary": sweep.summary(),
+               "n_frames": sweep.n_frames, "frame_shape": list(sweep.frame_shape),
+               "bit_depth": sweep.bit_depth,
+               "steps": [{"step": int(steps["step"][i]), "kind": str(steps["kind"][i]),
+                          "exposure_ms": float(steps["exposure_ms"][i]),
+                          "photons": None if np.isnan(steps["photons"][i])
+                          else float(steps["photons"][i]),
+                          "n_frames": int(steps["n_frames"][i]),
+                          "mean_dn": float(steps["data"][i].mean())}
+                         for i in range(len(steps["step"]))]}
+        write_json(args.json, doc)
+    return 0
+
+
+def _add_simulate(sub):
+    p = sub.add_parser(
+        "simulate", help="simulate an exposure sweep of a mosaic sensor and write it as TIFF",
+        description="Simulate raw frames of the default (paper) sensor or a square IMEC-like "
+                    "mosaic under a named lamp and write an hsiffc TIFF sweep.")
+    p.add_argument("output", type=Path, help="TIFF file to write (not overwritten without --overwrite)")
+    p.add_argument("--exposures-ms", type=float, nargs="+", required=True,
+                   help="exposure times in ms")
+    p.add_argument("--lamp", default="lamp A",
+                   help="'lamp A' (2900 K), 'lamp B' (2200 K), '<T>K', or a CIE illuminant name")
+    p.add_argument("--irradiance-w-m2", type=float, default=None,
+                   help="irradiance over 400-1000 nm in W/m^2 (default: the paper's training level)")
+    p.add_argument("--frames", type=int, default=2, help="frames per exposure (default 2)")
+    p.add_argument("--no-darks", action="store_true", help="do not add dark frames")
+    p.add_argument("--shape", type=int, nargs=2, default=(64, 64), metavar=("H", "W"))
+    p.add_argument("--mosaic", default="paper8", help="paper8, 4x4 or 5x5")
+    p.add_argument("--vignetting", type=float, default=0.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_simulate(args) -> int:
+    from ..io import write_sweep
+    from ..mosaic import Mosaic
+    from ..simulate import PAPER_LIGHT_W_M2, MosaicSensor
+    from ..spectral import imec_4x4_visible, imec_5x5_nir
+
+    irr = args.irradiance_w_m2 if args.irradiance_w_m2 is not None else PAPER_LIGHT_W_M2["training"]
+    if args.mosaic == "paper8":
+        sensor = MosaicSensor(tuple(args.shape), seed=args.seed)
+    elif args.mosaic in ("4x4", "5x5"):
+        bands = imec_4x4_visible() if args.mosaic == "4x4" else imec_5x5_nir()
+        n = 4 if args.mosaic == "4x4" else 5
+        sensor = MosaicSensor(tuple(args.shape), seed=args.seed, bands=bands,
+                              mosaic=Mosaic.square(n, wavelengths_nm=bands.centres_nm))
+    else:
+        raise HsiffcError(f"--mosaic must be paper8, 4x4 or 5x5, got {args.mosaic!r}")
+    sweep = sensor.sweep(args.exposures_ms, args.lamp, irradiance_w_m2=irr, n_frames=args.frames,
+                         darks=not args.no_darks, vignetting=args.vignetting)
+    meta = {k: v for k, v in sweep.meta.items() if k != "truth"}
+    meta["irradiance_w_m2"] = irr
+    from dataclasses import replace
+    write_sweep(args.output, replace(sweep, meta=meta), overwrite=args.overwrite)
+    print(f"wrote {args.output}: {sweep.summary()}")
+    return 0
+
+
+def _add_calibrate(sub):
+    p = sub.add_parser(
+        "calibrate", help="calibrate the leakage model of every pixel from a sweep",
+        description="Fit k (responsivity), a, b and the dark level of every pixel from an "
+                    "exposure sweep (hsiffc TIFF or EMVA 1288) and write a calibration file (.npz).")
+    p.add_argument("sweep", type=Path, help="sweep: hsiffc TIFF, EMVA 1288 descriptor or folder")
+    p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.npz)")
+    p.add_argument("--method", choices=("joint", "paper"), default="joint",
+                   help="joint per-pixel fit (default) or the paper's procedure (several "
+                        "illuminations)")
+    p.add_argument("--full-well-dn", type=float, default=None,
+                   help="leave out samples at or above this level (full-well saturation)")
+    p.add_argument("--steps", choices=("all", "sweep"), default="sweep",
+                   help="EMVA 1288: use only the sweep steps (default) or also the spatial set")
+    p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.set_defaults(func=_cmd_calibrate)
+
+
+def _cmd_calibrate(args) -> int:
+    from ..calibrate import calibrate
+    from ..io import read_sweep
+
+    sweep = read_sweep(args.sweep)
+    if args.steps == "sweep" and "sweep_steps" in sweep.meta:
+        sweep = sweep.select(np.isin(sweep.step, sweep.meta["sweep_steps"]))
+    print(sweep.summary())
+    if args.output.suffix != ".npz":
+        raise HsiffcError(f"the calibration file must end in .npz, got {args.output.name!r}")
+    cal = calibrate(sweep, method=args.method, full_well_dn=args.full_well_dn)
+    cal.save(args.output, overwrite=args.overwrite)
+    print(cal.summary())
+    counts = {k: int(cal[k].sum()) for k in ("n_valid", "n_clipped", "n_full_well")
+              if k in cal.arrays}
+    if counts:
+        print("  samples: " + ", ".join(f"{v} {k[2:].replace('_', ' ')}" for k, v in counts.items()))
+    print(f"wrote {args.output} (calibration {cal.identity})")
+    if args.json:
+        doc = {"calibration": str(args.output), "identity": cal.identity,
+               "manifest": cal.manifest(), "sample_counts": counts,
+               "parameters": {name: _percentiles(cal[name]) for name in cal.arrays
+                              if name not in ("flags",) and cal[name].dtype.kind == "f"}}
+        write_json(args.json, doc)
+    return 0
+
+
+def _percentiles(arr) -> dict:
+    v = np.asarray(arr, float)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return {}
+    q = np.percentile(v, [5, 50, 95])
+    return {"p5": float(q[0]), "median": float(q[1]), "p95": float(q[2])}
+
+
+def _add_select(sub):
+    p = sub.add_parser(
+        "select", help="select the training exposure per band by the leakage percentage",
+        description="For each band, the longest candidate exposure whose leakage percentage "
+                    "alpha stays under the threshold (the paper's section IV.2), with a table of "
+                    "alpha per band and exposure like the paper's Table I.")
+    p.add_argument("sweep", type=Path, help="candidate training frames (one step per exposure)")
+    p.add_argument("--calibration", type=Path, required=True, help="calibration file (.npz)")
+    p.add_argument("--threshold", type=float, required=True, help="alpha threshold in percent")
+    p.add_argument("--alpha", choices=("paper", "model"), default="paper",
+                   help="alpha as the paper computes it (k ~ signal/exposure) or with k from the "
+                        "model (default: paper)")
+    p.add_argument("--statistic", choices=("median", "mean", "p95"), default="median",
+                   help="how a band's pixels are summarised (default: median)")
+    p.add_argument("--json", type=Path, default=None, help="also write the table as JSON")
+    p.set_defaults(func=_cmd_select)
+
+
+def _cmd_select(args) -> int:
+    from ..calibrate import Calibration
+    from ..io import read_sweep
+    from ..validity import alpha_table
+
+    sweep = read_sweep(args.sweep)
+    cal = Calibration.load(args.calibration)
+    table = alpha_table(sweep, cal, method=args.alpha, statistic=args.statistic)
+    table = table.select(args.threshold)
+    print(table.to_text())
+    for i, e in enumerate(table.selected_ms):
+        label = "none" if np.isnan(e) else f"{e:g} ms"
+        print(f"band {i + 1}: train at {label}")
+    if args.json:
+        write_json(args.json, {"sweep": str(args.sweep), "calibration": str(args.calibration),
+                                "calibration_identity": cal.identity, **table.to_dict()})
+    return 0
+

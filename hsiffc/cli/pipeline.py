@@ -1,0 +1,130 @@
+"""Commands on pipelines: ``stages``, ``fit``, ``correct``."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+
+from .common import write_json
+
+
+def register(sub) -> None:
+    """Add this module's sub-commands to the parser's sub-parsers."""
+    _add_stages(sub)
+    _add_fit(sub)
+    _add_correct(sub)
+
+
+def _add_stages(sub):
+    p = sub.add_parser("stages", help="list the installed pipeline stages and where they come from")
+    p.add_argument("--json", type=Path, default=None, help="also write the list as JSON")
+    p.set_defaults(func=_cmd_stages)
+
+
+def _cmd_stages(args) -> int:
+    from ..stages import describe
+
+    rows = describe()
+    width = max(len(r["name"]) for r in rows)
+    for r in rows:
+        status = "" if r["status"] == "ok" else f"  [{r['status']}]"
+        print(f"{r['name']:<{width}}  {r['source']:<24} {r['target']}{status}")
+        if r["summary"]:
+            print(f"{'':<{width}}  {r['summary']}")
+    if args.json:
+        write_json(args.json, rows)
+    return 0
+
+
+def _add_fit(sub):
+    p = sub.add_parser(
+        "fit", help="fit a pipeline described in TOML on training frames and save it",
+        description="Build the pipeline described by a TOML file ([[step]] tables with name, "
+                    "stage and parameters), fit it on training frames (darks and flats, hsiffc "
+                    "TIFF or EMVA 1288) and save the fitted pipeline (.npz, no pickle).")
+    p.add_argument("description", type=Path, help="pipeline TOML file")
+    p.add_argument("training", type=Path, nargs="+", help="training sweeps (darks, flats)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="fitted pipeline (.npz)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.set_defaults(func=_cmd_fit)
+
+
+def _cmd_fit(args) -> int:
+    from ..frame import Frame
+    from ..io import read_sweep
+    from ..stages import Pipeline
+
+    pipe = Pipeline.from_toml(args.description)
+    frames = []
+    for path in args.training:
+        sweep = read_sweep(path)
+        print(sweep.summary())
+        frames += Frame.list_from_sweep(sweep)
+    pipe.fit(frames)
+    pipe.save(args.output, overwrite=args.overwrite)
+    for name, stage in pipe.steps:
+        extra = ""
+        if hasattr(stage, "selected_ms_"):
+            extra = f"  training exposure per band (ms): {stage.selected_ms_}"
+        print(f"  fitted {name} ({stage.name}){extra}")
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _add_correct(sub):
+    p = sub.add_parser(
+        "correct", help="correct a batch of TIFF frames or cubes with a calibration",
+        description="Correct every input (hsiffc TIFF files, folders searched recursively, or "
+                    "globs) frame by frame and write one <name>.corrected.tif per input under "
+                    "OUTDIR (pages per frame: data float32, dq uint32, alpha float32; "
+                    "provenance JSON). Outputs appear atomically; a rerun skips the outputs that "
+                    "are complete and up to date. Exit status 0: every file done or skipped; "
+                    "1: some file failed (listed with its reason); 2: usage error.")
+    p.add_argument("inputs", nargs="+", help="TIFF files, folders or globs (quote globs)")
+    p.add_argument("--calibration", type=Path, required=True, help="calibration file (.npz)")
+    p.add_argument("-o", "--outdir", type=Path, required=True, help="output folder")
+    p.add_argument("--pipeline", type=Path, default=None,
+                   help="fitted pipeline (.npz from 'hsiffc fit'); default: dark from the "
+                        "calibration + alpha mask (+ --linearise)")
+    p.add_argument("--threshold", type=float, default=12.0,
+                   help="alpha threshold in percent for the default pipeline (default 12)")
+    p.add_argument("--linearise", action="store_true",
+                   help="add leakage linearisation to the default pipeline")
+    p.add_argument("--workers", type=int, default=1,
+                   help="parallel worker processes on this machine (Dask local cluster; "
+                        "default 1: in this process)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run on a Dask distributed cluster (e.g. tcp://host:8786); its workers "
+                        "must see the inputs, calibration and OUTDIR at the same paths")
+    p.add_argument("--overwrite", action="store_true",
+                   help="redo outputs that are already complete and up to date")
+    p.add_argument("--nan", choices=("flag", "fail"), default="flag",
+                   help="NaN/inf pixels in float inputs: flag them NONFINITE and warn "
+                        "(default) or fail the file")
+    p.add_argument("--no-hash", action="store_true",
+                   help="do not record the inputs' sha256 in the provenance (saves one read)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
+    p.set_defaults(func=_cmd_correct)
+
+
+def _cmd_correct(args) -> int:
+    from ..batch import correct_batch
+
+    try:
+        summary = correct_batch(args.inputs, args.outdir, args.calibration,
+                                pipeline=args.pipeline, threshold_percent=args.threshold,
+                                linearise=args.linearise, workers=args.workers,
+                                scheduler=args.scheduler, overwrite=args.overwrite, nan=args.nan,
+                                hash_inputs=not args.no_hash,
+                                progress=not args.quiet and sys.stderr.isatty())
+    except KeyboardInterrupt:
+        print("hsiffc correct: interrupted; finished outputs are kept (no partial file is left "
+              "under a final name): run the same command again to resume", file=sys.stderr)
+        return 130
+    print(summary.to_text())
+    if args.json:
+        write_json(args.json, summary.to_dict())
+    return summary.exit_status
+
