@@ -27,7 +27,7 @@ from scipy.optimize import OptimizeWarning, curve_fit
 from _util import median_time, row
 from hsiffc import model
 from hsiffc.calibrate import _pilot_b_grid, calibrate, fit_inputs
-from hsiffc.calibrate.joint import (fit_joint, initial_guess)
+from hsiffc.calibrate.joint import (fit_pixels, initial_guess)
 from hsiffc.calibrate.samples import collect_samples, photon_transfer
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 
@@ -69,7 +69,7 @@ def _rms(ps, theta):
 
 
 # -- the baseline -----------------------------------------------------------------------------
-def _tr_model(x, ln_k, ln_a, ln_b, d):
+def _trpredict(x, ln_k, ln_a, ln_b, d):
     """The leakage model for curve_fit: x = (t_ms, relative rate, fixed dark current)."""
     t, r, dc = x
     return model.response(t, np.exp(ln_k) * r + dc, np.exp(ln_a), np.exp(ln_b), d)
@@ -178,7 +178,7 @@ def main(quick: bool = False) -> dict:
     def vec_fit():
         th0 = initial_guess(ps["y"], ps["t"], ps["r"], ps["valid"], ps["wgt"], ps["dc"],
                             b_grid=b_grid)
-        return th0, fit_joint(ps["y"], ps["t"], ps["r"], ps["valid"], ps["wgt"], th0,
+        return th0, fit_pixels(ps["y"], ps["t"], ps["r"], ps["valid"], ps["wgt"], th0,
                               dark_current=ps["dc"])
 
     theta0, fit = vec_fit()

@@ -36,7 +36,7 @@ __all__ = [
     "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
     "dynamic_saturation_level", "leakage_rate", "leakage_percentage",
     "leakage_percentage_paper", "exposure_at_leakage_percentage", "invert_response",
-    "Inversion", "solve_ode",
+    "Inversion", "solve_ode", "response_and_gradient", "response_gradient_kernel",
 ]
 
 
@@ -393,3 +393,104 @@ def solve_ode(t_ms, k, a, b, dark, *, rtol=1e-10, atol=1e-10):
     if not sol.success:
         raise RuntimeError(f"solve_ivp failed: {sol.message}")
     return sol.y[0]
+
+
+# -- response and its gradient, one scalar kernel (used by the calibration's per-pixel fit) ------
+# Kept as a separate section so the fit and the vectorised array function share one
+# implementation of the closed form's derivatives.
+from numba import njit as _njit, prange as _prange  # noqa: E402
+
+
+@_njit(cache=True, inline="always")
+def response_gradient_kernel(t_ms, log_t_ms, k, ln_a, ln_b, b, dark):
+    """Scalar numba kernel: response (DN) and its derivatives at one sample.
+
+    Same closed form as :func:`response` (``exp(-bY) = exp(-b d - x) + a b t phi(x)`` taken in
+    the log domain, so nothing overflows), with the derivatives of Y with respect to ``ln k``,
+    ``ln a``, ``ln b`` and ``dark``. Callable from other numba kernels; from Python use
+    :func:`response_and_gradient`.
+
+    Parameters
+    ----------
+    t_ms, log_t_ms : float
+        Exposure (ms, >= 0) and its natural log (``-inf`` at t = 0).
+    k : float
+        Light rate (DN/ms, >= 0).
+    ln_a, ln_b, b : float
+        ``ln a`` (a in DN/ms; ``-inf`` for a = 0), ``ln b`` and ``b = exp(ln_b)`` (1/DN).
+    dark : float
+        Level at t = 0 (DN).
+
+    Returns
+    -------
+    tuple of 5 floats
+        Y (DN), dY/d ln k, dY/d ln a, dY/d ln b (DN), dY/d dark (1).
+    """
+    x = b * k * t_ms
+    if x < 1e-4:  # series of ln phi(x) and x d ln phi / dx near 0
+        lp = x * (-0.5 + x / 24.0)
+        xdlp = x * (-0.5 + x / 12.0)
+    else:
+        ex = np.exp(-x)
+        em = 1.0 - ex
+        lp = np.log(em / x)
+        xdlp = x * ex / em - 1.0
+    a1 = -b * dark - x
+    lt = ln_a + ln_b + log_t_ms + lp
+    # n = logaddexp(a1, lt); w2 = exp(lt - n) is the leakage term's share
+    if a1 >= lt:
+        e = np.exp(lt - a1)
+        n = a1 + np.log(1.0 + e)
+        w2 = e / (1.0 + e)
+    else:
+        e = np.exp(a1 - lt)
+        n = lt + np.log(1.0 + e)
+        w2 = 1.0 / (1.0 + e)
+    w1 = 1.0 - w2
+    inv_b = 1.0 / b
+    return (-n * inv_b, (w1 * x - w2 * xdlp) * inv_b, -w2 * inv_b,
+            (n - w1 * a1 - w2 * (1.0 + xdlp)) * inv_b, w1)
+
+
+@_njit(parallel=True, cache=True)
+def _gradient_flat(t, k, a, b, d, out):
+    for i in _prange(t.size):
+        ti = t[i]
+        lt = np.log(ti) if ti > 0 else -np.inf
+        la = np.log(a[i]) if a[i] > 0 else -np.inf
+        y, g0, g1, g2, g3 = response_gradient_kernel(ti, lt, k[i], la, np.log(b[i]), b[i], d[i])
+        out[0, i] = y
+        out[1, i] = g0
+        out[2, i] = g1
+        out[3, i] = g2
+        out[4, i] = g3
+
+
+def response_and_gradient(t_ms, k, a, b, dark):
+    """Response of the leakage model and its derivatives, for whole arrays (numba, parallel).
+
+    Parameters
+    ----------
+    t_ms, k, a, b, dark : array_like
+        As in :func:`response` (broadcast together).
+
+    Returns
+    -------
+    y, dy_dlnk, dy_dlna, dy_dlnb, dy_ddark : ndarrays of float64, broadcast shape
+        The response (DN) and its derivatives with respect to ``ln k``, ``ln a``, ``ln b`` (DN)
+        and the dark level (dimensionless).
+
+    Examples
+    --------
+    >>> y, *_ = response_and_gradient(10.0, 2.0, 0.0, 0.01, 50.0)
+    >>> round(float(y), 6)
+    70.0
+    """
+    t_ms, k, a, b, dark = np.broadcast_arrays(*_f64(t_ms, k, a, b, dark))
+    _check_positive_b(b)
+    if np.any(t_ms < 0) or np.any(k < 0) or np.any(a < 0):
+        raise ValueError("t_ms, k and a must be >= 0")
+    shape = t_ms.shape
+    out = np.empty((5, t_ms.size))
+    _gradient_flat(*(np.ascontiguousarray(v).ravel() for v in (t_ms, k, a, b, dark)), out)
+    return tuple(o.reshape(shape) for o in out)

@@ -25,13 +25,14 @@ from .. import model
 from ..dq import DQ
 from ..errors import DataFormatError
 from ..sweep import Sweep
-from .joint import (B_GRID, dark_current_from_darks, fit_joint, initial_guess,
-                    merge_dark_samples, residuals)
+from .joint import (B_GRID, JointFit, dark_current_from_darks, fit_pixels, initial_guess,
+                    merge_dark_samples, model_and_jacobian, predict, residuals)
 from .product import Calibration
 from .samples import PhotonTransfer, Samples, collect_samples, photon_transfer
 
 __all__ = ["calibrate", "calibrate_joint", "calibrate_paper", "Calibration", "photon_transfer",
-           "PhotonTransfer", "collect_samples", "Samples"]
+           "PhotonTransfer", "collect_samples", "Samples", "fit_pixels", "initial_guess",
+           "model_and_jacobian", "predict", "residuals", "JointFit"]
 
 log = logging.getLogger(__name__)
 METHODS = ("joint", "paper")
@@ -128,7 +129,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         if b_grid is None:
             b_grid = _pilot_b_grid(y, t_s, r_s, valid, wgt, dc)
         theta0 = initial_guess(y, t_s, r_s, valid, wgt, dc, b_grid=b_grid)
-        fit = fit_joint(y, t_s, r_s, valid, wgt, theta0, dark_current=dc)
+        fit = fit_pixels(y, t_s, r_s, valid, wgt, theta0, dark_current=dc)
         rr = slice(rows.start, rows.stop)
         nr = rows.stop - rows.start
         shape = (nr, w)
@@ -176,7 +177,7 @@ def _pilot_b_grid(y, t, r, valid, wgt, dc, n_pilot: int = 512):
     idx = np.sort(rng.choice(p, size=min(p, n_pilot), replace=False))
     sub = (y[idx], t, r, valid[idx], wgt[idx])
     dcs = None if dc is None else dc[idx]
-    fit = fit_joint(*sub, initial_guess(*sub, dcs), dark_current=dcs)
+    fit = fit_pixels(*sub, initial_guess(*sub, dcs), dark_current=dcs)
     good = fit.leak_constrained & fit.converged
     if good.sum() < 10:
         return B_GRID

@@ -34,7 +34,7 @@ PARAMS = ("ln_g", "ln_a", "ln_b", "dark")
 
 @dataclass(frozen=True, eq=False)
 class JointFit:
-    """Per-pixel result of :func:`fit_joint` (arrays of shape (P,))."""
+    """Per-pixel result of :func:`fit_pixels` (arrays of shape (P,))."""
 
     g: np.ndarray  # DN per unit relative light rate
     a: np.ndarray  # DN/ms
@@ -49,47 +49,45 @@ class JointFit:
     iterations: int
 
 
-def _model_and_jacobian(theta, t, r, dc=0.0):
-    """Model (P, S) and Jacobian (P, S, 4) with respect to (ln g, ln a, ln b, d).
+def model_and_jacobian(theta, t_ms, r, dark_current=0.0):
+    """Model response (P, S) and its Jacobian (P, S, 4) with respect to (ln g, ln a, ln b, d).
 
-    ``dc`` (P, 1) is a fixed dark current (DN/ms) added to the light rate.
+    Parameters
+    ----------
+    theta : (P, 4) float
+        Per-pixel (ln g, ln a, ln b, dark) with g in DN/ms per unit of relative light rate,
+        a in DN/ms, b in 1/DN, dark in DN.
+    t_ms : (S,) or (P, S) float
+        Exposure of each sample (ms, >= 0).
+    r : (S,) or (P, S) float
+        Relative light rate of each sample (0 for darks).
+    dark_current : float or (P, 1) float
+        Fixed dark current (DN/ms) added to the light rate, k = g r + dark_current.
+
+    Returns
+    -------
+    y : (P, S) float64, DN
+    jac : (P, S, 4) float64
+        The derivative with respect to ln g acts on the light part of k only.
     """
+    theta = np.asarray(theta, np.float64)
     ln_g, ln_a, ln_b, d = (theta[:, i:i + 1] for i in range(4))
-    b = np.exp(ln_b)
-    with np.errstate(divide="ignore", over="ignore", under="ignore", invalid="ignore"):
-        kg = np.exp(ln_g) * r
-        k = kg + dc
-        x = b * k * t
-        em = -np.expm1(-x)  # 1 - e^{-x}
-        lp = np.log(em / x)  # ln phi(x)
-        tiny = x < 1e-6
-        lp[tiny] = (-0.5 * x)[tiny].astype(lp.dtype)
-        a1 = -b * d - x
-        lterm = ln_a + ln_b + np.log(t) + lp
-        n = np.logaddexp(a1, lterm)
-        y = -n / b
-        w2 = np.exp(lterm - n)  # share of the leakage term; w1 = 1 - w2
-        w1 = 1.0 - w2
-        # d lnphi / dx = e^{-x} / (1 - e^{-x}) - 1/x, with its series near 0
-        dlp = (1.0 - em) / em - 1.0 / x
-        dlp[tiny] = (-0.5 + x / 12.0)[tiny]
-        xdlp = x * dlp
-        jac = np.empty(y.shape + (4,), dtype=y.dtype)
-        # d/d ln g acts on the light part of k only
-        jac[..., 0] = (w1 * x - w2 * xdlp) / b
-        if np.any(dc):
-            jac[..., 0] *= np.where(k > 0, kg / np.where(k > 0, k, 1.0), 0.0)
-        jac[..., 1] = -w2 / b
-        jac[..., 2] = (n - w1 * a1 - w2 * (1.0 + xdlp)) / b
-        jac[..., 3] = w1
-    np.nan_to_num(jac, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    return y, jac
+    kg = np.exp(ln_g) * r
+    k = kg + dark_current
+    y, dlnk, dlna, dlnb, dd = model.response_and_gradient(t_ms, k, np.exp(ln_a), np.exp(ln_b), d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(k > 0, kg / np.where(k > 0, k, 1.0), 0.0)
+    return y, np.stack([dlnk * share, dlna, dlnb, dd], axis=-1)
 
 
-def _model(theta, t, r, dc=0.0):
+def predict(theta, t_ms, r, dark_current=0.0):
+    """Model response (P, S) in DN of per-pixel parameters ``theta`` (see
+    :func:`model_and_jacobian`)."""
+    theta = np.asarray(theta, np.float64)
     ln_g, ln_a, ln_b, d = (theta[:, i:i + 1] for i in range(4))
-    with np.errstate(divide="ignore", over="ignore", under="ignore", invalid="ignore"):
-        return model._response(t, np.exp(ln_g) * r + dc, np.exp(ln_a), np.exp(ln_b), d)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return model.response(t_ms, np.exp(ln_g) * r + dark_current, np.exp(ln_a), np.exp(ln_b),
+                              d)
 
 
 def _sanitised(y, t_ms, r, valid, weight):
@@ -137,7 +135,7 @@ def _internal_jacobian(jac, phi):
     return jac
 
 
-def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter: int = 80,
+def fit_pixels(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter: int = 80,
               tol: float = 1e-9, prior_sigma: float = PRIOR_SIGMA) -> JointFit:
     """Weighted Levenberg-Marquardt fit of every pixel at once.
 
@@ -189,7 +187,7 @@ def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter:
 
     def evaluate(ph, idx):
         """Residuals, internal Jacobian and cost of the pixels ``idx`` at ``ph``."""
-        ym, jac = _model_and_jacobian(_to_external(ph, ln_rref[idx]).astype(f32),
+        ym, jac = model_and_jacobian(_to_external(ph, ln_rref[idx]).astype(f32),
                                       _rows(t32, idx), _rows(r32, idx), dc32[idx])
         res = ym - y32[idx]
         c = np.einsum("ps,ps->p", w32[idx] * res, res, dtype=np.float64)
@@ -250,7 +248,7 @@ def fit_joint(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter:
 
     theta = _to_external(phi, ln_rref)
     # uncertainties of (ln g, ln a, ln b, d) from the weighted normal matrix at the solution
-    ym, jac = _model_and_jacobian(theta, t, r, dc)
+    ym, jac = model_and_jacobian(theta, t, r, dc)
     res = np.where(valid, ym - y, 0.0)
     n_valid = valid.sum(axis=1)
     dof = np.maximum(n_valid - 4, 1)
@@ -289,7 +287,7 @@ def residuals(fit: JointFit, y, t_ms, r, valid, dark_current=None) -> np.ndarray
     y, t, r, w = _sanitised(y, t_ms, r, valid, np.ones(np.shape(y)))
     theta = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark])
     dc = 0.0 if dark_current is None else np.asarray(dark_current, np.float64)[:, None]
-    return np.where(w > 0, _model(theta, t, r, dc) - y, 0.0)
+    return np.where(w > 0, predict(theta, t, r, dc) - y, 0.0)
 
 
 B_GRID = (0.002, 0.005, 0.01, 0.02, 0.05)  # 1/DN, start values tried for b
@@ -394,7 +392,7 @@ def initial_guess(y, t_ms, r, valid, weight, dark_current=None, *, b_grid=B_GRID
         for m in margin_grid:
             ln_a = np.log(kmax) - b * (ymax + m / b)
             th = np.column_stack([np.log(g0), ln_a, np.full_like(g0, np.log(b)), d0])
-            res = _model(th, t, r, dc[:, None]) - y
+            res = predict(th, t, r, dc[:, None]) - y
             cost = np.where(valid, weight * res * res, 0).sum(axis=1)
             better = cost < best_cost
             best[better] = th[better]

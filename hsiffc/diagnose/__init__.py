@@ -18,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import stats
 
-from ..calibrate.joint import _model, _model_and_jacobian, fit_joint, initial_guess
+from ..calibrate import fit_pixels, initial_guess, model_and_jacobian, predict
 from ..calibrate.samples import collect_samples, photon_transfer
 from ..errors import DataFormatError
 from ..sweep import Sweep
@@ -76,7 +76,7 @@ class _State:
 
 
 def _context(theta, t, r, order, prev_index, light, fs):
-    m, jac = _model_and_jacobian(theta, t, r)
+    m, jac = model_and_jacobian(theta, t, r)
     signal = m - theta[:, 3:4]
     k = np.broadcast_to(np.exp(theta[:, 0:1]) * r, m.shape)
     dydt = k - np.exp(theta[:, 1:2] + np.exp(theta[:, 2:3]) * m)
@@ -131,13 +131,13 @@ def _fit_effect(effect, ctx, res, w, project=None):
     return theta, x * theta[None, :]
 
 
-def _fit_model(names, data, state0, rounds=2, base_iter=15):
+def _fitpredict(names, data, state0, rounds=2, base_iter=15):
     """Fit base + the named effects, alternating effect fits and base refits."""
     y, t, r, valid, w, order, prev_index, light, fs = data
     state = _State(state0.theta.copy())
     for _ in range(rounds):
         m, ctx = _context(state.theta, t, r, order, prev_index, light, fs)
-        _, jac = _model_and_jacobian(state.theta, t, r)
+        _, jac = model_and_jacobian(state.theta, t, r)
         project = _projector(jac, w)
         for name in names:
             others = sum((p for n, (_, p) in state.effects.items() if n != name),
@@ -145,7 +145,7 @@ def _fit_model(names, data, state0, rounds=2, base_iter=15):
             res = np.where(valid, y - m - others, 0.0)
             state.effects[name] = _fit_effect(EFFECTS[name], ctx, res, w, project)
         total = sum((p for _, p in state.effects.values()), np.zeros_like(m))
-        fit = fit_joint(y - total, t, r, valid, w, state.theta, max_iter=base_iter)
+        fit = fit_pixels(y - total, t, r, valid, w, state.theta, max_iter=base_iter)
         with np.errstate(divide="ignore", invalid="ignore"):
             new = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark])
         good = np.all(np.isfinite(new), axis=1)
@@ -182,11 +182,11 @@ def _describe_params(name, theta):
 
 def _refit_base(y, data, state0):
     _, t, r, valid, w, *_ = data
-    fit = fit_joint(y, t, r, valid, w, state0.theta, max_iter=15)
+    fit = fit_pixels(y, t, r, valid, w, state0.theta, max_iter=15)
     with np.errstate(divide="ignore", invalid="ignore"):
         theta = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark])
     st = _State(np.where(np.isfinite(theta), theta, state0.theta))
-    st.prediction = _model(st.theta, t, r)
+    st.prediction = predict(st.theta, t, r)
     return st
 
 
@@ -294,7 +294,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     prev_index[by_order[1:]] = by_order[:-1]
 
     theta0 = initial_guess(y, t, r, valid, w)
-    base_fit = fit_joint(y, t, r, valid, w, theta0)
+    base_fit = fit_pixels(y, t, r, valid, w, theta0)
     # Selecting samples by their observed value near full scale keeps those with low noise
     # and biases them; select instead by the model's prediction (independent of the held-out
     # noise), leaving out everything the model puts within 5 sigma of full scale, and refit.
@@ -302,19 +302,19 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         theta_b = np.column_stack([np.log(base_fit.g), np.log(base_fit.a), np.log(base_fit.b),
                                    base_fit.dark])
     theta_b = np.where(np.isfinite(theta_b), theta_b, theta0)
-    pred = _model(theta_b, t, r)
+    pred = predict(theta_b, t, r)
     sd_pred = np.sqrt(ptc.variance(pred - dark0[:, None])) if ptc is not None else 1.0
     valid = (sf.valid & sh.valid).T & usable[None, :] & (pred < fs - 5.0 * sd_pred)
     w = np.where(valid, sf.n_frames[None, :] / var_frame, 0.0)
-    base_fit = fit_joint(y, t, r, valid, w, theta_b)
+    base_fit = fit_pixels(y, t, r, valid, w, theta_b)
     data = (y, t, r, valid, w, order, prev_index, light, fs)
     with np.errstate(divide="ignore", invalid="ignore"):
         theta_b = np.column_stack([np.log(base_fit.g), np.log(base_fit.a), np.log(base_fit.b),
                                    base_fit.dark])
     base = _State(np.where(np.isfinite(theta_b), theta_b, theta0))
-    base.prediction = _model(base.theta, t, r)
+    base.prediction = predict(base.theta, t, r)
     # variance the base fit's own noise adds to each prediction (linearised: j C j^T)
-    _, jac = _model_and_jacobian(base.theta, t, r)
+    _, jac = model_and_jacobian(base.theta, t, r)
     normal = np.einsum("psi,ps,psj->pij", jac, w, jac)
     normal += 1e-9 * np.einsum("pii->p", normal)[:, None, None] * np.eye(4)
     pred_var = np.einsum("psi,pij,psj->ps", jac, np.linalg.pinv(normal), jac)
@@ -341,7 +341,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         for name in names:
             if name in selected:
                 continue
-            state = _fit_model(selected + [name], data, current)
+            state = _fitpredict(selected + [name], data, current)
             k = cur_params + EFFECTS[name].n_params(n_pix, n_light_steps)
             res, mse, bic = metrics(state, k)
             d = cur_res[valid] ** 2 - res[valid] ** 2
@@ -381,7 +381,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         sd_ho = np.sqrt(var_step[None, :] / sh.n_frames[None, :])
         y_sim = current.prediction + sd_fit * rng.standard_normal(y.shape)
         y_sim_ho = current.prediction + sd_ho * rng.standard_normal(y.shape)
-        sim_state = _fit_model(selected, (y_sim,) + data[1:], current, rounds=1) if selected \
+        sim_state = _fitpredict(selected, (y_sim,) + data[1:], current, rounds=1) if selected \
             else _refit_base(y_sim, data, current)
         sim_res = np.where(valid, y_sim_ho - sim_state.prediction, 0.0)
         for f in _structure(sim_res, valid, t, ctx.signal, light, noise_floor, rows, cols, band,
