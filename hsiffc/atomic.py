@@ -1,67 +1,403 @@
-"""Atomic file output: a file appears under its final name complete, or not at all."""
+"""The one writer: every file hsiffc writes goes through :func:`atomic_path`.
+
+Rules, the same for outputs, JSON summaries, reports, figures, calibrations and pipelines:
+
+* **No silent replacement.** An existing file is replaced only when asked (``overwrite=True``,
+  on the command line ``--overwrite``). A file this process wrote itself may be written again
+  (a summary updated at the end of a run).
+* **Never an input.** A path that is an input of the running command (same name, same resolved
+  path or same inode, hard links included) is refused even with ``overwrite``.
+* **Never through a symbolic link.** A link at the output name is refused; with ``overwrite`` the
+  link itself is replaced by the new file and its target is left untouched.
+* **Atomic.** The data go to a hidden temporary file in the same folder, are flushed to disk
+  (``fsync``) and renamed onto the final name; readers never see a partial file, and a failure
+  (disk full, Ctrl-C) leaves the old file, or none, and no temporary file.
+
+The command line sets the policy once per command with :func:`write_policy` (``--overwrite``
+and the command's inputs); library code passes ``overwrite=`` explicitly or inherits that policy.
+:func:`folder_lock` keeps two batch runs out of one output folder.
+
+>>> import tempfile, pathlib
+>>> with tempfile.TemporaryDirectory() as d:
+...     p = pathlib.Path(d, "a.txt")
+...     atomic_write_text(p, "one")
+...     try:
+...         atomic_write_text(p, "two", overwrite=False)
+...     except FileExistsError as exc:
+...         print("refused")
+...     atomic_write_text(p, "three", overwrite=True)
+...     print(p.read_text())
+refused
+three
+"""
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import errno
+import json
 import os
+import socket
+import time
 import uuid
+from dataclasses import dataclass, field
 from pathlib import Path
+
+from .errors import HsiffcError
+
+__all__ = ["FolderLockedError", "OutputError", "OutputExistsError", "WritePolicy",
+           "atomic_path", "atomic_write_bytes", "atomic_write_text", "check_output",
+           "check_output_folder", "current_policy", "folder_lock", "protect_inputs", "write_policy"]
+
+PART_SUFFIX = ".part"
+LOCK_NAME = ".hsiffc.lock"
+
+
+class OutputError(HsiffcError, OSError):
+    """An output file cannot or must not be written (the message says why and what to do)."""
+
+
+class OutputExistsError(OutputError, FileExistsError):
+    """The output exists and replacing it was not asked for."""
+
+
+class FolderLockedError(OutputError):
+    """Another run holds the lock of an output folder."""
+
+
+# -- the policy -------------------------------------------------------------------------------
+def _keys(path) -> set:
+    """Identities of a path: its absolute name, its resolved name and its (device, inode)."""
+    p = Path(path)
+    keys = {("name", os.path.abspath(p))}
+    with contextlib.suppress(OSError, RuntimeError):
+        keys.add(("name", str(p.resolve())))
+    with contextlib.suppress(OSError):
+        st = os.stat(p)
+        keys.add(("inode", st.st_dev, st.st_ino))
+    return keys
+
+
+@dataclass
+class WritePolicy:
+    """What the writer may do in the running command.
+
+    Attributes
+    ----------
+    overwrite : bool
+        Replace existing files (``--overwrite``).
+    inputs : set
+        Identities (names, resolved names, inodes) of the command's inputs: never written.
+    written : set
+        Absolute names this policy's writes produced (they may be written again).
+    """
+
+    overwrite: bool = False
+    inputs: set = field(default_factory=set)
+    written: set = field(default_factory=set)
+
+    def protect(self, paths) -> None:
+        """Add ``paths`` (path-likes; None entries ignored) to the inputs."""
+        for p in paths:
+            if p is not None:
+                self.inputs |= _keys(p)
+
+
+_DEFAULT = WritePolicy()
+_POLICY: contextvars.ContextVar[WritePolicy | None] = contextvars.ContextVar(
+    "hsiffc_write_policy", default=None)
+
+
+def current_policy() -> WritePolicy:
+    """The policy in force (the process default when no :func:`write_policy` is active)."""
+    return _POLICY.get() or _DEFAULT
 
 
 @contextlib.contextmanager
-def atomic_path(path, *, overwrite: bool = True):
+def write_policy(*, overwrite: bool = False, inputs=()):
+    """Run a block under one write policy (the CLI wraps each command in one).
+
+    Parameters
+    ----------
+    overwrite : bool
+        Writes that do not say ``overwrite=`` themselves replace existing files.
+    inputs : iterable of path-like
+        The command's inputs: no write inside the block may replace them.
+    """
+    policy = WritePolicy(overwrite=bool(overwrite))
+    policy.protect(inputs)
+    token = _POLICY.set(policy)
+    try:
+        yield policy
+    finally:
+        _POLICY.reset(token)
+
+
+def protect_inputs(paths) -> None:
+    """Add ``paths`` to the inputs of the policy in force (e.g. files a batch discovered)."""
+    current_policy().protect(paths)
+
+
+# -- checks -----------------------------------------------------------------------------------
+def _allowed(path: Path, overwrite: bool | None, policy: WritePolicy) -> bool:
+    """May an existing ``path`` be replaced? An explicit ``overwrite`` decides; otherwise the
+    policy's, or whether this policy wrote ``path`` itself."""
+    if overwrite is not None:
+        return bool(overwrite)
+    return policy.overwrite or os.path.abspath(path) in policy.written
+
+
+def check_output(path, *, overwrite: bool | None = None, inputs=()) -> Path:
+    """Check that ``path`` may be written, without writing anything; returns it as a Path.
+
+    Parameters
+    ----------
+    path : path-like
+        The final file name.
+    overwrite : bool or None
+        Replace an existing file (None: as the policy in force says).
+    inputs : iterable of path-like
+        Inputs besides the policy's that must not be written.
+
+    Raises
+    ------
+    OutputError
+        ``path`` is an input, a folder, or a symbolic link (without ``overwrite``).
+    OutputExistsError
+        ``path`` exists and ``overwrite`` is false.
+    """
+    path = Path(path)
+    policy = current_policy()
+    allowed = _allowed(path, overwrite, policy)
+    protected = set(policy.inputs)
+    for p in inputs:
+        protected |= _keys(p)
+    if _keys(path) & protected:
+        raise OutputError(f"{path}: is an input of this command; hsiffc never writes over an "
+                          "input (not even with --overwrite): choose another output name")
+    if os.path.islink(path):
+        if not allowed:
+            raise OutputError(f"{path}: is a symbolic link (to {os.readlink(path)}); hsiffc "
+                              "never writes through a link: choose another name, or pass "
+                              "--overwrite to replace the link itself (its target is kept)")
+        return path
+    if path.is_dir():
+        raise OutputError(f"{path}: is a folder; give a file name (the folder was left as it "
+                          "was)")
+    if os.path.lexists(path) and not allowed:
+        raise OutputExistsError(f"{path}: already exists; pass --overwrite (in Python: "
+                                "overwrite=True) to replace it, or choose another name (the "
+                                "existing file was left unchanged)")
+    return path
+
+
+def _named(exc: OSError, path: Path, tmp: Path) -> OSError:
+    """``exc`` naming the final file (never the hidden temporary one, never no file)."""
+    if exc.filename is not None and os.fspath(exc.filename) != os.fspath(tmp):
+        return exc
+    if isinstance(exc, HsiffcError) or exc.errno is None:
+        return exc
+    new = type(exc)(exc.errno, exc.strerror or os.strerror(exc.errno), str(path))
+    return new
+
+
+# -- writing ----------------------------------------------------------------------------------
+@contextlib.contextmanager
+def atomic_path(path, *, overwrite: bool | None = None, inputs=()):
     """Yield a hidden temporary path beside ``path``; on success move it onto ``path``.
 
-    The temporary file is created empty with exclusive-create (permissions follow the umask);
-    the caller writes it (by name or by reopening it). Afterwards it is fsynced and renamed with
-    :func:`os.replace`, and the folder is fsynced so the rename is durable. Readers never see a
-    partial file under the final name. On any exception the temporary file is removed and
-    ``path`` is left as it was.
+    The caller writes the temporary file (by name or by reopening it). Afterwards it is
+    fsynced and renamed onto ``path``, and the folder is fsynced so the rename is durable.
+    On any exception the temporary file is removed and ``path`` is left as it was. The checks
+    of :func:`check_output` run before anything is written and again at the rename.
 
     Parameters
     ----------
     path : path-like
         Final file name. Its folder is created if missing.
-    overwrite : bool
-        If False and ``path`` exists, raise :class:`FileExistsError` before writing anything
-        (and again if it appeared while writing).
+    overwrite : bool or None
+        Replace an existing file (or a symbolic link itself, never its target). None: as the
+        policy in force says (:func:`write_policy`; by default no).
+    inputs : iterable of path-like
+        Files that must not be written besides the policy's inputs.
+
+    Raises
+    ------
+    OutputError, OutputExistsError
+        See :func:`check_output`.
+    OSError
+        Writing failed (permission, disk full, ...); it names ``path``.
     """
     path = Path(path)
-    if path.is_dir():
-        raise IsADirectoryError(f"{path} is a folder; give a file name")
-    if not overwrite and path.exists():
-        raise FileExistsError(f"{path} already exists; pass overwrite=True (CLI: --overwrite) "
-                              "to replace it (the existing file was left unchanged)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.part")
+    inputs = list(inputs)
+    check_output(path, overwrite=overwrite, inputs=inputs)
+    policy = current_policy()
+    allowed = _allowed(path, overwrite, policy)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}{PART_SUFFIX}")
     try:
-        with open(tmp, "xb"):
-            pass
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
+                     0o666)
+        os.close(fd)
         yield tmp
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
-        if not overwrite and path.exists():
-            raise FileExistsError(f"{path} appeared while writing; pass overwrite=True to "
-                                  "replace it")
-        os.replace(tmp, path)
+        check_output(path, overwrite=overwrite, inputs=inputs)  # again: it may have changed
+        if allowed:
+            os.replace(tmp, path)  # replaces a link itself, never its target
+        else:
+            _rename_no_replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        named = _named(exc, path, tmp)
+        if named is exc:
+            raise
+        raise named from exc
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    policy.written.add(os.path.abspath(path))
+    _fsync_folder(path.parent)
+
+
+def _rename_no_replace(tmp: Path, path: Path) -> None:
+    """Rename ``tmp`` onto ``path`` only if ``path`` does not exist (atomically where the file
+    system has hard links; elsewhere check, then rename)."""
+    try:
+        os.link(tmp, path, follow_symlinks=False)
+    except FileExistsError:
+        raise OutputExistsError(f"{path}: appeared while it was being written; pass --overwrite "
+                                "to replace it (the file that appeared was left unchanged)"
+                                ) from None
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV,
+                             errno.EMLINK, errno.ENOSYS):
+            raise
+        if os.path.lexists(path):
+            raise OutputExistsError(f"{path}: appeared while it was being written; pass "
+                                    "--overwrite to replace it") from None
+        os.replace(tmp, path)
+        return
+    tmp.unlink()
+
+
+def _fsync_folder(folder: Path) -> None:
     with contextlib.suppress(OSError):  # make the rename durable (POSIX)
-        dir_fd = os.open(path.parent, os.O_RDONLY)
+        dir_fd = os.open(folder, os.O_RDONLY)
         try:
             os.fsync(dir_fd)
         finally:
             os.close(dir_fd)
 
 
-def atomic_write_text(path, text: str, *, overwrite: bool = True) -> None:
-    """Write ``text`` to ``path`` atomically (UTF-8)."""
-    with atomic_path(path, overwrite=overwrite) as tmp:
+def atomic_write_text(path, text: str, *, overwrite: bool | None = None, inputs=()) -> None:
+    """Write ``text`` to ``path`` atomically (UTF-8); rules of :func:`atomic_path`."""
+    with atomic_path(path, overwrite=overwrite, inputs=inputs) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
 
 
-def atomic_write_bytes(path, data: bytes, *, overwrite: bool = True) -> None:
-    """Write ``data`` to ``path`` atomically."""
-    with atomic_path(path, overwrite=overwrite) as tmp:
+def atomic_write_bytes(path, data: bytes, *, overwrite: bool | None = None, inputs=()) -> None:
+    """Write ``data`` to ``path`` atomically; rules of :func:`atomic_path`."""
+    with atomic_path(path, overwrite=overwrite, inputs=inputs) as tmp:
         Path(tmp).write_bytes(data)
+
+
+def check_output_folder(folder, *, overwrite: bool | None = None, inputs=()) -> Path:
+    """Check that a report may be written into ``folder`` (created later if missing).
+
+    A folder that already holds visible files is refused without ``overwrite``, before any
+    work is done, so a report is never half replaced.
+
+    Raises
+    ------
+    OutputError
+        ``folder`` is a file, a symbolic link (without ``overwrite``) or an input.
+    OutputExistsError
+        ``folder`` holds files and ``overwrite`` is false.
+    """
+    folder = Path(folder)
+    policy = current_policy()
+    allowed = policy.overwrite if overwrite is None else bool(overwrite)
+    protected = set(policy.inputs)
+    for p in inputs:
+        protected |= _keys(p)
+    if _keys(folder) & protected:
+        raise OutputError(f"{folder}: is an input of this command; choose another output folder")
+    if os.path.islink(folder) and not allowed:
+        raise OutputError(f"{folder}: is a symbolic link; give the real folder, or pass "
+                          "--overwrite to write into the folder it points to")
+    if os.path.lexists(folder) and not folder.is_dir():
+        raise OutputError(f"{folder}: is a file, not a folder; give a folder name")
+    if folder.is_dir() and not allowed:
+        held = sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
+        if held:
+            shown = ", ".join(held[:3]) + (", ..." if len(held) > 3 else "")
+            raise OutputExistsError(f"{folder}: already holds files ({shown}); pass --overwrite "
+                                    "to replace them, or choose an empty or new folder")
+    return folder
+
+
+# -- the batch folder lock --------------------------------------------------------------------
+@contextlib.contextmanager
+def folder_lock(folder, *, wait_s: float = 0.0, what: str = "hsiffc"):
+    """Hold an exclusive lock on an output folder while a batch writes into it.
+
+    The lock is ``folder/.hsiffc.lock``, locked with ``fcntl.flock`` (released by the kernel
+    if the process dies) and holding who took it (pid, host, start time, command).
+
+    Parameters
+    ----------
+    folder : path-like
+        Created if missing.
+    wait_s : float
+        Seconds to wait for another run to finish before giving up (0: give up at once).
+
+    Raises
+    ------
+    FolderLockedError
+        Another run holds the lock; the message names its pid, host and start time.
+    """
+    import fcntl
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / LOCK_NAME
+    if os.path.islink(lock):
+        raise OutputError(f"{lock}: is a symbolic link; remove it (hsiffc never writes through "
+                          "a link)")
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+    try:
+        deadline = time.monotonic() + max(0.0, float(wait_s))
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise FolderLockedError(
+                        f"{folder}: another {what} run is writing into this folder "
+                        f"({_holder(fd)}); wait for it to finish, or choose another output "
+                        "folder") from None
+                time.sleep(0.2)
+        me = {"pid": os.getpid(), "host": socket.gethostname(),
+              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "command": what}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (json.dumps(me) + "\n").encode(), 0)
+        try:
+            yield me
+        finally:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)
+    finally:
+        os.close(fd)  # releases the flock
+
+
+def _holder(fd: int) -> str:
+    try:
+        doc = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+    except (OSError, ValueError):
+        doc = {}
+    if not doc:
+        return "a run that is just starting"
+    return (f"pid {doc.get('pid')} on host {doc.get('host')}, started {doc.get('started')}")

@@ -29,15 +29,30 @@ import numpy as np
 import tifffile
 
 from . import __version__
-from .atomic import atomic_path
+from .atomic import atomic_path, folder_lock, protect_inputs
 from .calibrate.product import Calibration
 from .dq import DQ
 from .errors import DataFormatError, HsiffcError
 from .frame import Frame
 from .io.corrected import FORMAT as CORRECTED_FORMAT
-from .io.corrected import SUFFIX, BackgroundWriter, CorrectedWriter, json_safe, read_provenance
-from .io.tiff import (TIFF_SUFFIXES, _CollectLog, _floats, _ifd_end, _parse_document, _per_frame,
-                      _strings, exposure_to_ms)
+from .io.corrected import (
+    SUFFIX,
+    BackgroundWriter,
+    CorrectedWriter,
+    is_corrected_file,
+    json_safe,
+    read_provenance,
+)
+from .io.tiff import (
+    TIFF_SUFFIXES,
+    _CollectLog,
+    _floats,
+    _ifd_end,
+    _parse_document,
+    _per_frame,
+    _strings,
+    exposure_to_ms,
+)
 from .mosaic import Mosaic
 from .stages import Pipeline, create
 from .sweep import FRAME_KINDS
@@ -171,14 +186,15 @@ def plan_jobs(inputs, outdir) -> tuple[list[Job], list[Path]]:
     jobs, seen = [], {}
     inputs_resolved = {p.resolve() for p, _ in pairs}
     inodes = {_inode(p) for p, _ in pairs} - {None}
+    root = outdir.resolve()
     for path, rel in pairs:
-        out = (outdir / output_name(rel)).resolve()
+        out = root / output_name(rel)  # not resolved: a link at the name is never followed
         if out in seen:
             raise BatchError(f"{path} and {seen[out]} would both be written to {out}; give them "
                              "from their folder (their relative paths keep them apart) or "
                              "correct them in separate runs")
         seen[out] = path
-        if out in inputs_resolved or (out.exists() and _inode(out) in inodes):
+        if out.resolve() in inputs_resolved or (out.exists() and _inode(out) in inodes):
             raise BatchError(f"the output for {path} would overwrite the input {out}; hsiffc "
                              "correct never writes over an input: choose another output folder "
                              "(-o) or move that input")
@@ -467,6 +483,13 @@ def correct_file(job: Job, settings: Settings, on_frame=None) -> dict:
         res["bytes"] = os.stat(job.input).st_size
         ctx = _context(settings)
         out = Path(job.output)
+        if out.is_symlink() and not settings.overwrite:
+            raise BatchError(f"the output {out} is a symbolic link; hsiffc never writes through "
+                             "a link: remove it, or pass --overwrite to replace the link itself "
+                             "(its target is kept)")
+        if out.exists() and not settings.overwrite and not is_corrected_file(out):
+            raise BatchError(f"the output {out} exists and is not an output of hsiffc correct; "
+                             "move it, or pass --overwrite to replace it")
         if out.exists() and not settings.overwrite:
             why = _stale_reason(out, job, ctx, settings.nan)
             if why is None:
@@ -776,7 +799,7 @@ class _Progress:
 def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_percent: float = 12.0,
                   linearise: bool = False, workers: int = 1, scheduler: str | None = None,
                   overwrite: bool = False, nan: str = "flag", hash_inputs: bool = True,
-                  progress: bool = False) -> BatchSummary:
+                  progress: bool = False, wait_s: float = 0.0) -> BatchSummary:
     """Correct every input (files, folders, globs) into ``outdir``; see ``hsiffc correct``.
 
     Parameters
@@ -798,12 +821,16 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
         the file.
     hash_inputs : bool
         Record each input's sha256 in the provenance (one extra read of the input).
+    wait_s : float
+        Seconds to wait when another run holds OUTDIR's lock (default: refuse at once).
 
     Raises
     ------
     BatchError, DataFormatError
         Before any file is processed: bad options, missing inputs, unreadable calibration or
         pipeline, or an output that would overwrite an input.
+    hsiffc.atomic.FolderLockedError
+        Another run is writing into ``outdir`` (the message names its pid, host and start).
     """
     t0 = time.perf_counter()
     if nan not in NAN_POLICIES:
@@ -825,7 +852,18 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
     ctx = _context(settings, cal)  # validates the pipeline here, before any file is touched
     del cal
     jobs, ignored = plan_jobs(inputs, outdir)
-    Path(outdir).mkdir(parents=True, exist_ok=True)
+    protect_inputs([j.input for j in jobs] + [cal_path, settings.pipeline])
+    with folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
+        results = _run(jobs, settings, progress, workers, scheduler)
+    cal_info = {"path": str(cal_path), "identity": ctx.identity}
+    return BatchSummary([results[i] for i in sorted(results)], time.perf_counter() - t0,
+                        str(Path(outdir).resolve()), cal_info,
+                        {k: v for k, v in ctx.info.items() if k != "steps"} | {
+                            "steps": [s["name"] for s in ctx.info["steps"]]},
+                        ignored)
+
+
+def _run(jobs, settings, progress, workers, scheduler) -> dict:
     bar = _Progress(len(jobs)) if progress else None
     results: dict[int, dict] = {}
     try:
@@ -839,12 +877,7 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
     finally:
         if bar:
             bar.close()
-    cal_info = {"path": str(cal_path), "identity": ctx.identity}
-    return BatchSummary([results[i] for i in sorted(results)], time.perf_counter() - t0,
-                        str(Path(outdir).resolve()), cal_info,
-                        {k: v for k, v in ctx.info.items() if k != "steps"} | {
-                            "steps": [s["name"] for s in ctx.info["steps"]]},
-                        ignored)
+    return results
 
 
 def _local_cluster(workers: int):

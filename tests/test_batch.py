@@ -18,6 +18,7 @@ import pytest
 import tifffile
 
 from hsiffc import batch
+from hsiffc.atomic import FolderLockedError, folder_lock
 from hsiffc.calibrate import calibrate
 from hsiffc.cli import main
 from hsiffc.dq import DQ
@@ -372,6 +373,80 @@ def test_killed_process_leaves_no_partial_output_and_resumes(world, tmp_path, cl
     assert _run(world["raw"], "--calibration", world["cal"], "-o", out) == 0
     _no_leftovers(out)
     _assert_same(_outputs(out), clean_run[1])
+
+
+_SLOW = (
+    "import sys, time\n"
+    "import hsiffc.batch as b\n"
+    "orig = b.Frame.from_raw\n"
+    "def slow(*a, **k):\n"
+    "    time.sleep(0.4)\n"
+    "    return orig(*a, **k)\n"
+    "b.Frame.from_raw = staticmethod(slow)\n"
+    "from hsiffc.cli import main\n"
+    "sys.exit(main(sys.argv[1:]))\n")
+
+
+def test_second_run_on_one_folder_refuses_and_keeps_the_first_runs_files(world, tmp_path,
+                                                                          clean_run):
+    """Two ``hsiffc correct`` processes on one output folder: the second names the first (pid,
+    host, start time) and exits 2 without touching its temporary files; the first finishes."""
+    out = tmp_path / "out"
+    args = ["correct", str(world["raw"]), "--calibration", str(world["cal"]), "-o", str(out),
+            "-q"]
+    first = subprocess.Popen([sys.executable, "-c", _SLOW, *args], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not list(out.rglob("*.part")):
+            time.sleep(0.02)
+        parts = list(out.rglob("*.part"))
+        assert parts, "the first run never started a file"
+        second = subprocess.run([sys.executable, "-m", "hsiffc", *args], capture_output=True,
+                                text=True, timeout=120, check=False)
+        assert second.returncode == 2
+        err = second.stderr.strip()
+        assert len(err.splitlines()) == 1 and "Traceback" not in err
+        assert f"pid {first.pid}" in err and "started" in err and str(out) in err
+        assert first.poll() is None  # still running: it held the lock all along
+    finally:
+        assert first.wait(timeout=120) == 0, first.stderr.read()
+    _no_leftovers(out)
+    _assert_same(_outputs(out), clean_run[1])
+
+
+def test_second_run_can_wait_for_the_first(world, tmp_path):
+    out = tmp_path / "out"
+    with folder_lock(out), pytest.raises(FolderLockedError, match=f"pid {os.getpid()}"):
+        batch.correct_batch([world["good"][0]], out, world["cal"], wait_s=0.3)
+    assert batch.correct_batch([world["good"][0]], out, world["cal"],
+                               wait_s=5).done  # free again
+
+
+def test_symlink_at_an_output_name_is_never_written_through(world, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    victim = tmp_path / "victim.tif"
+    victim.write_bytes(b"precious")
+    link = out / "cube_0.corrected.tif"
+    link.symlink_to(victim)
+    res = batch.correct_batch([world["good"][0]], out, world["cal"]).results[0]
+    assert res["status"] == "failed" and "symbolic link" in res["reason"]
+    assert victim.read_bytes() == b"precious" and link.is_symlink()
+    res = batch.correct_batch([world["good"][0]], out, world["cal"], overwrite=True).results[0]
+    assert res["status"] == "done" and not link.is_symlink()
+    assert victim.read_bytes() == b"precious"
+    read_provenance(link)
+
+
+def test_a_foreign_file_at_an_output_name_is_kept_without_overwrite(world, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    foreign = out / "cube_0.corrected.tif"
+    foreign.write_bytes(b"someone else's file")
+    res = batch.correct_batch([world["good"][0]], out, world["cal"]).results[0]
+    assert res["status"] == "failed" and "not an output of hsiffc correct" in res["reason"]
+    assert foreign.read_bytes() == b"someone else's file"
 
 
 # -- layout and usage --------------------------------------------------------------------------

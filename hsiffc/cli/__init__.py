@@ -1,8 +1,10 @@
 """The ``hsiffc`` command line.
 
 Sub-commands live in one module per group (:mod:`.data`, :mod:`.pipeline`, :mod:`.reports`), each
-with a ``register(sub)`` function. Every expected error (input, output, parameter, environment)
-ends here, in one place: one line on stderr naming the file or parameter, the problem and the fix,
+with a ``register(sub)`` function. Each command runs under one write policy
+(:func:`hsiffc.atomic.write_policy`: ``--overwrite`` and the command's inputs, declared by the
+parser as ``input_args``; its outputs, ``output_args`` and ``output_dirs``, are checked before any
+work). Every expected error (input, output, parameter, environment) ends here, in one place: one line on stderr naming the file or parameter, the problem and the fix,
 exit status 2 (``--debug`` shows the traceback instead). Commands that process a batch return 1
 when some files failed.
 """
@@ -15,8 +17,10 @@ import logging
 import sys
 
 from .. import __version__
+from ..atomic import write_policy
 from ..errors import HsiffcError
 from . import data, pipeline, reports
+from .common import check_declared_outputs, declared
 
 log = logging.getLogger("hsiffc")
 
@@ -77,7 +81,10 @@ def main(argv=None) -> int:
         return EXIT_USAGE
     prefix = f"hsiffc {args.command}: error:"
     try:
-        return int(args.func(args) or 0)
+        with write_policy(overwrite=bool(getattr(args, "overwrite", False)),
+                          inputs=declared(args, "input_args")):
+            check_declared_outputs(args)
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         if args.debug:
             raise

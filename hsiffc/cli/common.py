@@ -3,11 +3,48 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 
+from ..errors import HsiffcError
+
 DEFAULT_SAMPLES = Path("sample_cubes")
+
+
+def declared(args, kind: str) -> list:
+    """The values of the arguments a sub-parser declared as ``kind`` (``input_args``,
+    ``output_args`` or ``output_dirs`` in its defaults), lists flattened, None dropped."""
+    out = []
+    for name in getattr(args, kind, ()):
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        out += list(value) if isinstance(value, (list, tuple)) else [value]
+    return out
+
+
+def check_declared_outputs(args) -> None:
+    """Refuse, before any work, outputs that exist (without ``--overwrite``), are inputs, are
+    symbolic links or folders, or name one file twice; and report folders that hold files."""
+    from ..atomic import check_output, check_output_folder
+
+    seen = {}
+    for path in declared(args, "output_args"):
+        key = os.path.abspath(path)
+        if key in seen:
+            raise HsiffcError(f"{path}: given for two outputs ({seen[key]} and this one); give "
+                              "each output its own file name")
+        seen[key] = path
+        check_output(path)
+    for folder in declared(args, "output_dirs"):
+        check_output_folder(folder)
+
+
+def add_overwrite(parser, help: str = "replace an existing output file") -> None:
+    """The ``--overwrite`` option every writing command has (it sets the write policy)."""
+    parser.add_argument("--overwrite", action="store_true", help=help)
 
 
 def write_json(path: Path, doc) -> None:

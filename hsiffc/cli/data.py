@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import HsiffcError
-from .common import write_json
+from .common import add_overwrite, write_json
 
 
 def register(sub) -> None:
@@ -22,7 +22,8 @@ def _add_info(sub):
     p = sub.add_parser("info", help="describe a sweep (hsiffc TIFF or EMVA 1288)")
     p.add_argument("sweep", type=Path)
     p.add_argument("--json", type=Path, default=None, help="also write the description as JSON")
-    p.set_defaults(func=_cmd_info)
+    add_overwrite(p)
+    p.set_defaults(func=_cmd_info, input_args=("sweep",), output_args=("json",))
 
 
 def _cmd_info(args) -> int:
@@ -70,8 +71,8 @@ def _add_simulate(sub):
     p.add_argument("--mosaic", default="paper8", help="paper8, 4x4 or 5x5")
     p.add_argument("--vignetting", type=float, default=0.0)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    p.set_defaults(func=_cmd_simulate)
+    add_overwrite(p)
+    p.set_defaults(func=_cmd_simulate, output_args=("output",))
 
 
 def _cmd_simulate(args) -> int:
@@ -115,8 +116,8 @@ def _add_calibrate(sub):
     p.add_argument("--steps", choices=("all", "sweep"), default="sweep",
                    help="EMVA 1288: use only the sweep steps (default) or also the spatial set")
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    p.set_defaults(func=_cmd_calibrate)
+    add_overwrite(p)
+    p.set_defaults(func=_cmd_calibrate, input_args=("sweep",), output_args=("output", "json"))
 
 
 def _cmd_calibrate(args) -> int:
@@ -170,7 +171,8 @@ def _add_select(sub):
     p.add_argument("--statistic", choices=("median", "mean", "p95"), default="median",
                    help="how a band's pixels are summarised (default: median)")
     p.add_argument("--json", type=Path, default=None, help="also write the table as JSON")
-    p.set_defaults(func=_cmd_select)
+    add_overwrite(p)
+    p.set_defaults(func=_cmd_select, input_args=("sweep", "calibration"), output_args=("json",))
 
 
 def _cmd_select(args) -> int:

@@ -5,8 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-
-from .common import write_json
+from .common import add_overwrite, write_json
 
 
 def register(sub) -> None:
@@ -19,7 +18,8 @@ def register(sub) -> None:
 def _add_stages(sub):
     p = sub.add_parser("stages", help="list the installed pipeline stages and where they come from")
     p.add_argument("--json", type=Path, default=None, help="also write the list as JSON")
-    p.set_defaults(func=_cmd_stages)
+    add_overwrite(p)
+    p.set_defaults(func=_cmd_stages, output_args=("json",))
 
 
 def _cmd_stages(args) -> int:
@@ -46,8 +46,8 @@ def _add_fit(sub):
     p.add_argument("description", type=Path, help="pipeline TOML file")
     p.add_argument("training", type=Path, nargs="+", help="training sweeps (darks, flats)")
     p.add_argument("-o", "--output", type=Path, required=True, help="fitted pipeline (.npz)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    p.set_defaults(func=_cmd_fit)
+    add_overwrite(p)
+    p.set_defaults(func=_cmd_fit, input_args=("description", "training"), output_args=("output",))
 
 
 def _cmd_fit(args) -> int:
@@ -98,15 +98,20 @@ def _add_correct(sub):
                    help="run on a Dask distributed cluster (e.g. tcp://host:8786); its workers "
                         "must see the inputs, calibration and OUTDIR at the same paths")
     p.add_argument("--overwrite", action="store_true",
-                   help="redo outputs that are already complete and up to date")
+                   help="redo outputs that are already complete and up to date, and replace an "
+                        "existing --json file")
     p.add_argument("--nan", choices=("flag", "fail"), default="flag",
                    help="NaN/inf pixels in float inputs: flag them NONFINITE and warn "
                         "(default) or fail the file")
     p.add_argument("--no-hash", action="store_true",
                    help="do not record the inputs' sha256 in the provenance (saves one read)")
+    p.add_argument("--wait", type=float, default=0.0, metavar="SECONDS",
+                   help="when another run is writing into OUTDIR, wait up to SECONDS for it to "
+                        "finish (default: refuse at once, naming that run)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
-    p.set_defaults(func=_cmd_correct)
+    p.set_defaults(func=_cmd_correct, input_args=("inputs", "calibration", "pipeline"),
+                   output_args=("json",))
 
 
 def _cmd_correct(args) -> int:
@@ -117,7 +122,7 @@ def _cmd_correct(args) -> int:
                                 pipeline=args.pipeline, threshold_percent=args.threshold,
                                 linearise=args.linearise, workers=args.workers,
                                 scheduler=args.scheduler, overwrite=args.overwrite, nan=args.nan,
-                                hash_inputs=not args.no_hash,
+                                hash_inputs=not args.no_hash, wait_s=args.wait,
                                 progress=not args.quiet and sys.stderr.isatty())
     except KeyboardInterrupt:
         print("hsiffc correct: interrupted; finished outputs are kept (no partial file is left "

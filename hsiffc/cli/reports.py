@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-
 from ..errors import HsiffcError
-from .common import DEFAULT_SAMPLES
+from .common import DEFAULT_SAMPLES, add_overwrite
 
 
 def register(sub) -> None:
@@ -27,7 +26,8 @@ def _add_demo(sub):
                    help="folder with the sample cubes (default: ./sample_cubes)")
     p.add_argument("-o", "--outdir", type=Path, default=Path("hsiffc-demo"),
                    help="where to write the plot and the JSON summary (default: ./hsiffc-demo)")
-    p.set_defaults(func=_cmd_demo)
+    add_overwrite(p, "replace the files of an earlier demo in OUTDIR")
+    p.set_defaults(func=_cmd_demo, input_args=("samples",), output_dirs=("outdir",))
 
 
 def _cmd_demo(args) -> int:
@@ -59,7 +59,8 @@ def _add_paper(sub):
                    help="alpha threshold in percent for Tables I/II and Fig. 6 (default 12)")
     p.add_argument("--shape", type=int, nargs=2, default=(128, 128), metavar=("H", "W"),
                    help="simulated sensor size (multiple of the 2 x 4 tile; default 128 128)")
-    p.set_defaults(func=_cmd_paper)
+    add_overwrite(p, "replace the files of an earlier report in OUTDIR")
+    p.set_defaults(func=_cmd_paper, input_args=("emva",), output_dirs=("outdir",))
 
 
 def _cmd_paper(args) -> int:
@@ -139,7 +140,9 @@ def _add_diagnose(sub):
     p.add_argument("--effects", default=None,
                    help="comma-separated candidate effects (default: the whole library)")
     p.add_argument("--list-effects", action="store_true", help="list the effect library and exit")
-    p.set_defaults(func=_cmd_diagnose)
+    add_overwrite(p, "replace an existing --json file or the files of an earlier --report")
+    p.set_defaults(func=_cmd_diagnose, input_args=("sweep",), output_args=("json",),
+                   output_dirs=("report",))
 
 
 def _cmd_diagnose(args) -> int:

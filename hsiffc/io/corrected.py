@@ -47,7 +47,8 @@ from .._json import json_safe
 from ..errors import DataFormatError
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "PLANES", "SUFFIX", "BackgroundWriter", "Corrected",
-           "CorrectedWriter", "iter_corrected", "read_corrected", "read_provenance"]
+           "CorrectedWriter", "is_corrected_file", "iter_corrected", "read_corrected",
+           "read_provenance"]
 
 FORMAT = "hsiffc-corrected"
 FORMAT_VERSION = 1
@@ -280,6 +281,17 @@ def _open(path) -> tifffile.TiffFile:
     except Exception as exc:  # tifffile raises many types on broken files
         raise DataFormatError(f"not a readable TIFF ({type(exc).__name__}: {exc})",
                               path=path) from exc
+
+
+def is_corrected_file(path) -> bool:
+    """Whether ``path`` is a TIFF written by ``hsiffc correct`` (complete or not): its first
+    page's description declares ``"format": "hsiffc-corrected"``. Reads the header only."""
+    try:
+        with tifffile.TiffFile(path) as tf:
+            text = (tf.pages[0].description or "") if len(tf.pages) else ""
+    except Exception:  # not a TIFF at all, or unreadable
+        return False
+    return f'"format": "{FORMAT}"' in text[:200]
 
 
 def read_provenance(path) -> dict:
