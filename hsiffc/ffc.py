@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from .dq import DQ, DQ_DTYPE
+from .uniformity import (FixedPattern, fixed_pattern_nonuniformity,  # noqa: F401 (re-export)
+                         fixed_pattern_variance, uniformity_before_after)
 
 NORMALISATIONS = ("paper", "mean_gain")
 
