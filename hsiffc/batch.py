@@ -241,7 +241,7 @@ def load_pipeline(path, calibration: Calibration, notes: list | None = None) -> 
     if path.suffix != ".npz":
         raise BatchError(f"{path}: --pipeline takes a fitted pipeline (.npz from 'hsiffc fit'); "
                          "fit a TOML description first")
-    pipe = Pipeline.load(path)
+    pipe = Pipeline.load(path, calibration=calibration)  # same identity: no file read
     for name, stage in pipe.steps:
         if stage.name == "reconstruct":
             raise BatchError(f"{path}: step {name!r} reconstructs cubes; hsiffc correct writes "

@@ -21,6 +21,13 @@ class DataFormatError(HsiffcError, ValueError):
         super().__init__(f"{self.path}: {message}" if self.path else message)
 
 
+class ParameterError(HsiffcError, ValueError):
+    """A parameter (of a stage, a function or a command) has a wrong type, range or name.
+
+    The message is one line naming the parameter, the value given and what is valid.
+    """
+
+
 class CalibrationMismatchError(HsiffcError, ValueError):
     """A calibration product does not fit the data it is applied to."""
 

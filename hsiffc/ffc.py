@@ -1,44 +1,141 @@
 """Flat-field correction and the uniformity metric (array functions).
 
 Two-point FFC is the paper's eq. (5): with R(L1) the dark, R(L2) the flat (training light) and
-R(L3) the test image, ``R_new = Avg(L3) * (R(L3) - R(L1)) / (R(L2) - R(L1))``.
+R(L3) the test image, ``R_new = Avg(L3) * (R(L3) - R(L1)) / (R(L2) - R(L1))``. It is split in
+two so that a stage can learn once and apply to many frames: :func:`two_point_fit` learns the
+per-pixel gain from a dark-subtracted flat, :func:`two_point_apply` applies it (element-wise);
+:func:`two_point_correct` is both in one call, and the ``two_point_ffc`` stage runs the same two.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from .bandstats import band_reduce
+from .dark import subtract_dark
 from .dq import DQ, DQ_DTYPE
+from .params import validate_method
 from .uniformity import (FixedPattern, fixed_pattern_nonuniformity,  # noqa: F401 (re-export)
                          fixed_pattern_variance, uniformity_before_after)
 
 NORMALISATIONS = ("paper", "mean_gain")
+#: flat-frame DQ bits that make a flat pixel unusable (it gets gain 1.0 and NO_FLAT)
+UNUSABLE_FLAT = DQ.SATURATED | DQ.DEAD | DQ.HOT | DQ.DO_NOT_USE | DQ.NONFINITE
+
+
+@dataclass(frozen=True)
+class FlatField:
+    """What :func:`two_point_fit` learns from a flat.
+
+    Attributes
+    ----------
+    gain : (H, W) float32
+        ``flat_mean[band] / flat signal``: 1.0 where the flat is unusable.
+    flat_mean : (n_bands,) float64, DN
+        Mean flat signal per band over the usable pixels (NaN for a band without one).
+    dq : (H, W) uint32
+        NO_FLAT where the flat is unusable, plus the flat's own unusable bits.
+    """
+
+    gain: np.ndarray
+    flat_mean: np.ndarray
+    dq: np.ndarray
+
+
+def two_point_fit(flat_signal, *, band_map=None, flat_dq=None) -> FlatField:
+    """Per-pixel two-point gain from a dark-subtracted flat.
+
+    Parameters
+    ----------
+    flat_signal : (H, W) array_like, DN
+        R(L2) - R(L1): the flat less its dark (usually averages of several frames).
+    band_map : (H, W) int array, optional
+        Means are taken per band (each band of a mosaic sees a different light).
+    flat_dq : (H, W) uint32 array, optional
+        DQ of the flat; pixels with a bit of :data:`UNUSABLE_FLAT` are not used.
+
+    Returns
+    -------
+    FlatField
+        Pixels whose flat signal is not positive, not finite or flagged get gain 1.0 and
+        NO_FLAT (flag, never delete).
+    """
+    signal = np.asarray(flat_signal, np.float64)
+    bad = ~np.isfinite(signal) | ~(signal > 0)
+    dq = np.zeros(signal.shape, DQ_DTYPE)
+    if flat_dq is not None:
+        carried = np.asarray(flat_dq, DQ_DTYPE) & DQ_DTYPE(UNUSABLE_FLAT)
+        bad |= carried != 0
+        dq |= carried
+    dq[bad] |= DQ_DTYPE(DQ.NO_FLAT)
+    flat_mean = band_reduce(signal, band_map, ~bad)
+    per_pixel = flat_mean[np.zeros(signal.shape, np.intp) if band_map is None else band_map]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain = np.where(bad, 1.0, per_pixel / signal)
+    gain = np.where(np.isfinite(gain), gain, 1.0)
+    return FlatField(gain.astype(np.float32), flat_mean, dq)
+
+
+def paper_scale(raw, flat_mean, *, band_map=None, good=None) -> np.ndarray:
+    """The factor ``Avg(L3) / mean(R(L2) - R(L1))`` of eq. (5) per pixel.
+
+    Parameters
+    ----------
+    raw : (H, W) array_like, DN
+        The raw test image R(L3); Avg(L3) is its mean per band over ``good`` pixels.
+    flat_mean : (n_bands,) array_like, DN
+        :attr:`FlatField.flat_mean`.
+    band_map : (H, W) int array, optional
+    good : (H, W) bool array, optional
+
+    Returns
+    -------
+    (H, W) float32
+        1.0 (neutral) in a band where either mean is undefined.
+    """
+    avg = band_reduce(raw, band_map, good, n_bands=len(flat_mean))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = avg / np.asarray(flat_mean, np.float64)
+    ratio = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0).astype(np.float32)
+    bm = np.zeros(np.shape(raw), np.intp) if band_map is None else band_map
+    return ratio[bm]
+
+
+def two_point_apply(signal, gain, scale=1.0) -> np.ndarray:
+    """Apply a two-point gain: ``signal * gain * scale`` element-wise (float32 DN).
+
+    Parameters
+    ----------
+    signal : (H, W) array_like, DN
+        The test image less its dark, R(L3) - R(L1).
+    gain : (H, W) array_like
+        :attr:`FlatField.gain`.
+    scale : float or (H, W) array_like
+        1.0 for the ``"mean_gain"`` normalisation (DN at the flat's mean gain), or
+        :func:`paper_scale` for eq. (5) exactly.
+    """
+    out = np.multiply(signal, gain, dtype=np.float32)
+    out *= np.asarray(scale, np.float32)
+    return out
 
 
 def two_point_gain(dark, flat, *, band_map=None):
-    """Per-pixel gain ``mean(flat - dark) / (flat - dark)`` and DQ flags.
-
-    The mean is taken per band when ``band_map`` is given (each band of a mosaic sees a
-    different light). Pixels whose flat signal is not positive or not finite get gain 1.0 and
-    the NO_FLAT flag (flag, never delete).
+    """Per-pixel gain ``mean(flat - dark) / (flat - dark)`` and DQ flags (see
+    :func:`two_point_fit`).
 
     Returns
     -------
     gain : (H, W) float32
     dq : (H, W) uint32
     """
-    signal = np.asarray(flat, np.float64) - np.asarray(dark, np.float64)
-    bad = ~np.isfinite(signal) | (signal <= 0)
-    dq = np.zeros(signal.shape, DQ_DTYPE)
-    dq[bad] |= DQ_DTYPE(DQ.NO_FLAT)
-    ref = _band_mean(np.where(bad, np.nan, signal), band_map)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gain = np.where(bad, 1.0, ref / signal)
-    gain = np.where(np.isfinite(gain), gain, 1.0)
-    return gain.astype(np.float32), dq
+    ff = two_point_fit(subtract_dark(flat, dark), band_map=band_map)
+    return ff.gain, ff.dq
 
 
-def two_point_correct(test, dark, flat, *, normalisation: str = "paper", band_map=None):
+def two_point_correct(test, dark, flat, *, normalisation: str = "paper", band_map=None,
+                      dq=None, flat_dq=None):
     """Two-point flat-field correction of ``test``.
 
     Parameters
@@ -52,44 +149,28 @@ def two_point_correct(test, dark, flat, *, normalisation: str = "paper", band_ma
         keeps the signal in DN).
     band_map : (H, W) int, optional
         Averages are taken per band (a mosaic's bands see different light).
+    dq : (H, W) uint32, optional
+        DQ of the test image: flagged pixels are left out of Avg(L3).
+    flat_dq : (H, W) uint32, optional
+        DQ of the flat (see :func:`two_point_fit`).
 
     Returns
     -------
     corrected : (H, W) float32
-    dq : (H, W) uint32 (NO_FLAT where the flat cannot be used; those pixels keep the
-         uncorrected dark-subtracted value times the scale)
+    dq : (H, W) uint32 (the test's DQ, plus NO_FLAT where the flat cannot be used; those
+         pixels keep the uncorrected dark-subtracted value times the scale)
     """
-    if normalisation not in NORMALISATIONS:
-        raise ValueError(f"normalisation must be one of {NORMALISATIONS}, got {normalisation!r}")
-    test = np.asarray(test, np.float64)
-    dark = np.asarray(dark, np.float64)
-    flat = np.asarray(flat, np.float64)
+    validate_method(normalisation, NORMALISATIONS, "two-point normalisation")
+    test, dark, flat = (np.asarray(v) for v in (test, dark, flat))
     if not (test.shape == dark.shape == flat.shape):
         raise ValueError(f"test {test.shape}, dark {dark.shape} and flat {flat.shape} must have "
                          "the same shape; use dark and flat frames of the same sensor region")
-    gain, dq = two_point_gain(dark, flat, band_map=band_map)
-    signal = test - dark
-    if normalisation == "mean_gain":
-        return (signal * gain).astype(np.float32), dq
-    # eq. (5): Avg(L3) * (R3 - R1) / (R2 - R1) = Avg(L3) * gain (R3 - R1) / mean(R2 - R1)
-    flat_mean = _band_mean(np.where(dq == 0, flat - dark, np.nan), band_map)
-    scale = _band_mean(test, band_map) / flat_mean
-    return (signal * gain * scale).astype(np.float32), dq
-
-
-def _band_mean(values, band_map):
-    """Mean of ``values`` (NaN ignored) over the frame or per band, broadcast back per pixel."""
-    values = np.asarray(values, np.float64)
-    if band_map is None:
-        return np.full(values.shape, np.nanmean(values))
-    bm = np.asarray(band_map)
-    ok = np.isfinite(values)
-    n = int(bm.max()) + 1
-    sums = np.bincount(bm[ok], weights=values[ok], minlength=n)
-    cnts = np.bincount(bm[ok], minlength=n)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        means = sums / cnts
-    return means[bm]
+    ff = two_point_fit(subtract_dark(flat, dark), band_map=band_map, flat_dq=flat_dq)
+    out_dq = ff.dq if dq is None else ff.dq | np.asarray(dq, DQ_DTYPE)
+    scale = 1.0
+    if normalisation == "paper":
+        scale = paper_scale(test, ff.flat_mean, band_map=band_map, good=out_dq == 0)
+    return two_point_apply(subtract_dark(test, dark), ff.gain, scale), out_dq
 
 
 def uniformity(image, mask=None) -> float:

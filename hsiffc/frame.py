@@ -12,6 +12,15 @@ from .mosaic import Mosaic
 from .sweep import Sweep
 
 
+#: The states a stage can require, produce or remove (``Stage.requires`` / ``produces`` /
+#: ``removes``): "mosaic" (a 2-D mosaic frame), "cube" (reconstructed), "raw" (no dark removed),
+#: "dark_subtracted" (a dark removed), "response" (the data, plus the dark removed, are still the
+#: sensor's response: no flat-field or linearisation yet), "alpha" (an alpha plane).
+STATES = ("mosaic", "cube", "raw", "dark_subtracted", "response", "alpha")
+#: What a frame read from a file offers.
+INPUT_STATE = frozenset({"mosaic", "raw", "response"})
+
+
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One raw mosaic frame ``(H, W)`` or reconstructed cube ``(H', W', bands)``.
@@ -25,15 +34,28 @@ class Frame:
     meta : mapping
         ``exposure_ms``, ``bit_depth``, ``mosaic`` (Mosaic or None), ``kind`` ("light"/"dark"),
         ``illumination``, ``wavelengths_nm`` (cubes), ``history`` (tuple of dicts, one per stage
-        the frame passed), and anything else a stage records (e.g. ``dark_subtracted``).
+        the frame passed), and anything else a stage records for information.
     alpha : ndarray or None
-        Leakage percentage per pixel once an alpha stage has run.
+        Leakage percentage per pixel (percent) once an alpha stage has run; ``inf`` where no
+        light rate can be estimated (always with the LEAKAGE bit).
+    dark_removed : (H, W) ndarray, float32, or None
+        The dark (DN) a stage subtracted from ``data`` (None: no dark removed yet). Kept by
+        reference (no copy), so :attr:`raw` adds back exactly what was removed.
+    corrected_by : str or None
+        The stage that made ``data`` something other than the sensor's response less
+        ``dark_removed`` (a flat-field or a linearisation); None while the data still are the
+        response. The raw response is then no longer available.
+
+    The state a stage needs (see :meth:`state`) is read from these typed fields, never from
+    ``meta`` strings.
     """
 
     data: np.ndarray
     dq: np.ndarray
     meta: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     alpha: np.ndarray | None = None
+    dark_removed: np.ndarray | None = None
+    corrected_by: str | None = None
 
     def __post_init__(self):
         data = np.asarray(self.data)
@@ -44,6 +66,12 @@ class Frame:
             raise ValueError(f"dq has shape {dq.shape} but data has {data.shape}; they must match")
         if data.ndim not in (2, 3):
             raise ValueError(f"a frame is (H, W) or a cube (H, W, bands); got shape {data.shape}")
+        if self.dark_removed is not None and data.ndim == 2:
+            dark = np.asarray(self.dark_removed, np.float32)
+            if dark.shape != data.shape:
+                raise ValueError(f"dark_removed has shape {dark.shape} but data has "
+                                 f"{data.shape}; they must match")
+            object.__setattr__(self, "dark_removed", dark)
         meta = dict(self.meta)
         meta.setdefault("history", ())
         meta["history"] = tuple(meta["history"])
@@ -121,6 +149,43 @@ class Frame:
     def good(self) -> np.ndarray:
         """True where no DQ bit is set."""
         return self.dq == 0
+
+    # -- what has been done to the data --------------------------------------------------------
+    @property
+    def signal(self) -> np.ndarray:
+        """DN above the dark: ``data`` once a dark has been removed (float32, (H, W)).
+
+        Raises ValueError when no dark has been removed (put a dark stage first)."""
+        if self.dark_removed is None:
+            raise ValueError("no dark has been removed from this frame: its data are the raw "
+                             "response; put a dark stage first")
+        return self.data
+
+    @property
+    def raw(self) -> np.ndarray:
+        """The sensor's raw response (DN, float32): ``data`` plus the dark that was actually
+        removed. Raises ValueError for a cube or once a stage changed the data otherwise
+        (``corrected_by``)."""
+        if self.corrected_by is not None:
+            raise ValueError(f"the data were changed by {self.corrected_by!r}: the raw response "
+                             "is no longer available; run stages that need it before it")
+        if self.is_cube:
+            raise ValueError("a cube has no raw mosaic response; run this stage before "
+                             "reconstruction")
+        if self.dark_removed is None:
+            return self.data
+        return self.data + self.dark_removed
+
+    def state(self) -> frozenset[str]:
+        """What this frame offers the next stage, in the words stages declare (see
+        :data:`STATES`)."""
+        out = {"cube" if self.is_cube else "mosaic",
+               "raw" if self.dark_removed is None else "dark_subtracted"}
+        if self.corrected_by is None:
+            out.add("response")
+        if self.alpha is not None:
+            out.add("alpha")
+        return frozenset(out)
 
 
 def stack_mean(frames, *, robust: bool = True) -> tuple[np.ndarray, np.ndarray]:

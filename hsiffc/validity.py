@@ -11,72 +11,151 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import model
+from .bandstats import STATISTICS as BAND_STATISTICS
+from .bandstats import band_reduce
+from .dark import subtract_dark as subtract_dark_
 from .dq import DQ, DQ_DTYPE
+from .params import validate_method
 from .sweep import Sweep
 
 ALPHA_METHODS = ("paper", "model")
-STATISTICS = ("median", "mean", "p95")
+STATISTICS = BAND_STATISTICS
+
+#: "No alpha" (no light rate can be estimated: the signal is not positive) is ``+inf``
+#: everywhere, always with the LEAKAGE bit. inf compares greater than every threshold and
+#: survives the max-reductions of cube reconstruction, so such a pixel can never pass as valid;
+#: NaN would fail every comparison (``NaN > threshold`` is False: it would pass as valid) and a
+#: large finite stand-in is a magic number.
+NO_ALPHA = np.inf
+
+
+def alpha_paper(response, signal, exposure_ms: float, a, b) -> np.ndarray:
+    """Leakage percentage of eq. (4) with k estimated as ``signal / exposure`` (the paper's way).
+
+    ``alpha = 100 a e^{bY} / (S / t)`` in percent, Y the raw response and S the signal above
+    the dark, evaluated element-wise in single precision (within 2e-6 relative of
+    :func:`hsiffc.model.leakage_percentage_paper` in double precision).
+
+    Parameters
+    ----------
+    response : (H, W) array_like, DN
+        Raw response Y (the leakage acts on it).
+    signal : (H, W) array_like, DN
+        Y less the dark (pass ``response`` itself for the paper's literal ``Y / t``).
+    exposure_ms : float, ms
+    a : (H, W) array_like, DN/ms
+    b : (H, W) array_like, 1/DN
+
+    Returns
+    -------
+    (H, W) float32, percent; :data:`NO_ALPHA` where the signal is not positive.
+
+    Examples
+    --------
+    >>> alpha_paper(np.array([110.0, 5.0]), np.array([100.0, -1.0]), 10.0, 0.1, 0.0).tolist()
+    [1.0, inf]
+    """
+    f32 = np.float32
+    y = np.asarray(response, f32)
+    s = np.array(signal, f32, copy=True)
+    positive = s > 0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        np.log(s, out=s, where=positive)
+        expo = np.log(np.asarray(a, f32)) + np.asarray(b, f32) * y
+        expo -= s
+        expo += f32(np.log(100.0 * exposure_ms))
+        alpha = np.exp(expo, out=expo)
+    alpha[~positive] = NO_ALPHA
+    return alpha
+
+
+def alpha_model(response, exposure_ms: float, a, b, dark_dn, *, full_scale_dn=None,
+                inversion=None) -> np.ndarray:
+    """Leakage percentage of eq. (4) with k from inverting the calibrated model.
+
+    Parameters
+    ----------
+    response : (H, W) array_like, DN
+    exposure_ms : float, ms
+    a, b, dark_dn : (H, W) array_like
+        Leakage amplitude (DN/ms), exponent (1/DN) and dark level at zero exposure (DN).
+    full_scale_dn : float, optional
+    inversion : :class:`hsiffc.model.Inversion`, optional
+        The result of :func:`hsiffc.model.invert_response` on these arguments, if already made.
+
+    Returns
+    -------
+    (H, W) float32, percent; :data:`NO_ALPHA` where the response is below what zero light gives.
+    """
+    if inversion is None:
+        inversion = model.invert_response(response, exposure_ms, np.asarray(a, np.float64),
+                                          np.asarray(b, np.float64),
+                                          np.asarray(dark_dn, np.float64),
+                                          full_scale=full_scale_dn)
+    alpha = model.leakage_percentage(response, np.maximum(inversion.k, 1e-300), a, b)
+    return np.where(inversion.flags & int(DQ.BELOW_DARK), NO_ALPHA, alpha).astype(np.float32)
+
+
+def leakage_dq(alpha, response, *, threshold_percent: float, full_scale_dn: float,
+               in_domain: bool = True, pixel_flags=None) -> np.ndarray:
+    """DQ bits of one frame from its alpha map (element-wise).
+
+    LEAKAGE where alpha is over ``threshold_percent`` or :data:`NO_ALPHA`; SATURATED where the
+    response is at ``full_scale_dn``; OUT_OF_DOMAIN everywhere when not ``in_domain``; and the
+    calibration's own ``pixel_flags``.
+
+    Returns
+    -------
+    (H, W) uint32
+    """
+    alpha = np.asarray(alpha)
+    dq = np.zeros(alpha.shape, DQ_DTYPE)
+    dq[~(alpha <= threshold_percent)] |= DQ_DTYPE(DQ.LEAKAGE)
+    dq[np.asarray(response) >= full_scale_dn] |= DQ_DTYPE(DQ.SATURATED)
+    if not in_domain:
+        dq |= DQ_DTYPE(DQ.OUT_OF_DOMAIN)
+    if pixel_flags is not None:
+        dq |= np.asarray(pixel_flags, DQ_DTYPE)
+    return dq
 
 
 def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
-              subtract_dark: bool = True):
-    """Per-pixel leakage percentage alpha (percent) of one frame (DN).
+              subtract_dark: bool = True, signal=None) -> np.ndarray:
+    """Per-pixel leakage percentage alpha (percent, float32) of one raw frame (DN).
 
-    ``method="paper"``: eq. (4) with k ~ signal / exposure, the signal being the response less
-    the calibrated dark level and dark current (``subtract_dark=False`` divides the raw
-    response, literally as the paper writes it). ``method="model"``: k from inverting the
-    calibrated model at this exposure. Non-finite where no light rate can be estimated (signal
-    not positive); :func:`validity_flags` turns those into flags.
+    ``method="paper"``: :func:`alpha_paper`, the signal being ``signal`` when given (e.g. the
+    frame less the master dark a stage removed), else the response less the calibrated dark
+    level and dark current (``subtract_dark=False`` divides the raw response, literally as the
+    paper writes it). ``method="model"``: :func:`alpha_model`. :data:`NO_ALPHA` where no light
+    rate can be estimated.
     """
-    if method not in ALPHA_METHODS:
-        raise ValueError(f"method must be one of {ALPHA_METHODS}, got {method!r}")
-    y = np.asarray(frame, np.float64)
+    validate_method(method, ALPHA_METHODS, "alpha method")
     cal = calibration
+    y = np.asarray(frame, np.float32)
     cal.check_compatible(frame_shape=y.shape, what="the frame")
-    a, b = cal.a.astype(np.float64), cal.b.astype(np.float64)
-    if method == "paper":
-        dark = cal.dark + cal.dark_current * exposure_ms if subtract_dark else 0.0
-        return model.leakage_percentage_paper(y, exposure_ms, a, b, dark)
-    inv = model.invert_response(y, exposure_ms, a, b, cal.dark.astype(np.float64),
-                                full_scale=cal.domain.get("full_scale_dn"))
-    k_light = inv.k
-    alpha = model.leakage_percentage(y, np.maximum(k_light, 1e-300), a, b)
-    return np.where(inv.flags & int(DQ.BELOW_DARK), np.inf, alpha)
+    if method == "model":
+        return alpha_model(y, exposure_ms, cal.a, cal.b, cal.dark,
+                           full_scale_dn=cal.domain.get("full_scale_dn"))
+    if signal is None:
+        signal = subtract_dark_(y, cal.dark_at(exposure_ms)) if subtract_dark else y
+    return alpha_paper(y, signal, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"))
 
 
 def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent: float,
-                   method: str = "paper"):
-    """alpha map and DQ flags of one frame.
+                   method: str = "paper", signal=None):
+    """alpha map (:func:`alpha_map`) and DQ flags (:func:`leakage_dq`) of one raw frame.
 
-    Flags: LEAKAGE where alpha exceeds ``threshold_percent`` (or cannot be computed because the
-    signal is not positive), SATURATED where the frame is at full scale, OUT_OF_DOMAIN when the
-    exposure lies outside the calibrated range, and the calibration's own per-pixel flags.
+    Returns
+    -------
+    alpha : (H, W) float32, percent (:data:`NO_ALPHA` where not computable)
+    dq : (H, W) uint32
     """
-    y = np.asarray(frame)
-    alpha = alpha_map(y, exposure_ms, calibration, method=method)
-    dq = np.zeros(y.shape, DQ_DTYPE)
-    signal_ok = np.isfinite(alpha)
-    dq[~signal_ok | (alpha > threshold_percent)] |= DQ_DTYPE(DQ.LEAKAGE)
-    dq[y >= calibration.domain["full_scale_dn"]] |= DQ_DTYPE(DQ.SATURATED)
-    if not calibration.in_domain(exposure_ms):
-        dq |= DQ_DTYPE(DQ.OUT_OF_DOMAIN)
-    if "flags" in calibration.arrays:
-        dq |= calibration["flags"].astype(DQ_DTYPE)
-    alpha = np.where(np.isfinite(alpha), alpha, np.inf).astype(np.float32)
+    alpha = alpha_map(frame, exposure_ms, calibration, method=method, signal=signal)
+    dq = leakage_dq(alpha, frame, threshold_percent=threshold_percent,
+                    full_scale_dn=calibration.domain["full_scale_dn"],
+                    in_domain=bool(calibration.in_domain(exposure_ms)),
+                    pixel_flags=calibration.arrays.get("flags"))
     return alpha, dq
-
-
-def _stat(values, statistic):
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return np.inf
-    if statistic == "median":
-        return float(np.median(v))
-    if statistic == "mean":
-        return float(np.mean(v))
-    if statistic == "p95":
-        return float(np.percentile(v, 95))
-    raise ValueError(f"statistic must be one of {STATISTICS}, got {statistic!r}")
 
 
 @dataclass(frozen=True)
@@ -128,6 +207,17 @@ class AlphaTable:
                          "record shorter exposures or raise the threshold")
         return "\n".join(lines)
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "AlphaTable":
+        """The table of :meth:`to_dict` (missing alphas become :data:`NO_ALPHA`)."""
+        sel = d.get("selected_ms")
+        return cls(np.asarray(d["exposures_ms"], float),
+                   np.array([[NO_ALPHA if v is None else v for v in row]
+                             for row in d["alpha_percent"]], float),
+                   tuple(d["wavelengths_nm"]) if d.get("wavelengths_nm") else None,
+                   d["statistic"], d["method"], d.get("threshold_percent"),
+                   None if sel is None else np.array([np.nan if v is None else v for v in sel]))
+
     def to_dict(self) -> dict:
         return {"exposures_ms": self.exposures_ms.tolist(),
                 "alpha_percent": [[v if np.isfinite(v) else None for v in row]
@@ -137,6 +227,40 @@ class AlphaTable:
                 "threshold_percent": self.threshold_percent,
                 "selected_ms": None if self.selected_ms is None else
                 [None if np.isnan(v) else float(v) for v in self.selected_ms]}
+
+
+def alpha_table_of(responses, exposures_ms, calibration, *, signals=None, band_map=None,
+                   method: str = "paper", statistic: str = "median",
+                   wavelengths_nm=None) -> AlphaTable:
+    """alpha per band of one averaged raw frame per exposure.
+
+    Parameters
+    ----------
+    responses : (E, H, W) array_like, DN
+        Raw response at each exposure (e.g. the mean of its frames).
+    exposures_ms : (E,) array_like, ms
+    calibration : Calibration
+    signals : (E, H, W) array_like, DN, optional
+        Signal above the dark removed (default: response less the calibrated dark).
+    band_map : (H, W) int array, optional
+    method, statistic : see :func:`alpha_map` and :func:`hsiffc.bandstats.band_reduce`
+    wavelengths_nm : sequence of float, optional
+
+    Returns
+    -------
+    AlphaTable
+        ``alpha`` (n_bands, E); a band without a finite alpha gets :data:`NO_ALPHA`.
+    """
+    validate_method(statistic, STATISTICS, "alpha statistic")
+    exposures = np.asarray(exposures_ms, np.float64)
+    columns = []
+    for j, e in enumerate(exposures):
+        alpha = alpha_map(responses[j], float(e), calibration, method=method,
+                          signal=None if signals is None else signals[j])
+        columns.append(band_reduce(alpha, band_map, statistic=statistic))
+    table = np.stack(columns, axis=1)
+    return AlphaTable(exposures, np.where(np.isnan(table), NO_ALPHA, table),
+                      tuple(wavelengths_nm) if wavelengths_nm else None, statistic, method)
 
 
 def alpha_table(sweep: Sweep, calibration, *, method: str = "paper",
@@ -149,16 +273,10 @@ def alpha_table(sweep: Sweep, calibration, *, method: str = "paper",
     if not light.any():
         raise ValueError("the sweep has no light frames: nothing to select from")
     mosaic = sweep.mosaic or calibration.mosaic
-    band_map = (mosaic.band_map(sweep.frame_shape) if mosaic is not None
-                else np.zeros(sweep.frame_shape, int))
-    n_bands = int(band_map.max()) + 1
+    band_map = mosaic.band_map(sweep.frame_shape) if mosaic is not None else None
     exposures = np.unique(means["exposure_ms"][light])
-    table = np.empty((n_bands, exposures.size))
-    for j, e in enumerate(exposures):
-        sel = light & (means["exposure_ms"] == e)
-        frame = means["data"][sel].mean(axis=0)
-        alpha = alpha_map(frame, e, calibration, method=method)
-        for band in range(n_bands):
-            table[band, j] = _stat(alpha[band_map == band], statistic)
-    return AlphaTable(exposures, table, mosaic.wavelengths_nm if mosaic else None,
-                      statistic, method)
+    frames = np.stack([means["data"][light & (means["exposure_ms"] == e)].mean(axis=0)
+                       for e in exposures])
+    return alpha_table_of(frames, exposures, calibration, band_map=band_map, method=method,
+                          statistic=statistic,
+                          wavelengths_nm=mosaic.wavelengths_nm if mosaic else None)

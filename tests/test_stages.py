@@ -217,11 +217,3 @@ def test_saved_pipeline_with_unknown_stage_name_is_refused(sample_frames, tmp_pa
     np.savez(tmp_path / "evil.npz", **contents)
     with pytest.raises(DataFormatError, match="no stage named 'os:system'"):
         Pipeline.load(tmp_path / "evil.npz")
-
-
-def test_in_memory_calibration_must_be_saved_before_the_pipeline(sample_frames, sample_cubes,
-                                                                 tmp_path):
-    cal = calibrate(read_sweep(sample_cubes / "sweep_2900K.tif"))
-    p = Pipeline([("mask", create("alpha_mask", calibration=cal))]).fit(sample_frames[0])
-    with pytest.raises(TypeError, match="save it first"):
-        p.save(tmp_path / "p.npz")

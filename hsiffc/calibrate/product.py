@@ -9,18 +9,18 @@ fitted on. It loads with ``allow_pickle=False``: no code is ever executed from a
 from __future__ import annotations
 
 import datetime as _dt
-import io
-import json
-import zipfile
+import functools
+import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
-from ..atomic import atomic_path
-from ..errors import CalibrationMismatchError, DataFormatError
+from ..dark import dark_at
+from ..errors import CalibrationMismatchError, DataFormatError, ParameterError
 from ..mosaic import Mosaic
+from ..products import read_product, write_product
 
 FORMAT = "hsiffc-calibration"
 FORMAT_VERSION = 1
@@ -89,6 +89,20 @@ class Calibration:
     def dark_current(self) -> np.ndarray:
         return self.arrays.get("dark_current_dn_per_ms", np.zeros(self.frame_shape))
 
+    def f32(self, name: str) -> np.ndarray:
+        """A float32 copy of one array, made once and kept (the hot path of correction works
+        in single precision). ``"dark_current_dn_per_ms"`` is zeros when absent."""
+        cache = self.__dict__.setdefault("_f32", {})
+        if name not in cache:
+            src = self.dark_current if name == "dark_current_dn_per_ms" else self.arrays[name]
+            cache[name] = np.asarray(src, np.float32)
+        return cache[name]
+
+    def dark_at(self, exposure_ms: float) -> np.ndarray:
+        """The calibrated dark (DN, float32, (H, W)) at one exposure: dark level plus dark
+        current times the exposure (ms)."""
+        return dark_at(exposure_ms, self.f32("dark_dn"), self.f32("dark_current_dn_per_ms"))
+
     @property
     def frame_shape(self) -> tuple[int, int]:
         return tuple(int(s) for s in self.domain["frame_shape"])
@@ -102,16 +116,40 @@ class Calibration:
         m = self.domain.get("mosaic")
         return Mosaic.from_dict(m) if m else None
 
-    @property
+    @functools.cached_property
     def identity(self) -> str:
-        """Short content hash: which calibration produced a result (for provenance)."""
-        import hashlib
+        """Short content hash: which calibration produced a result (for provenance).
 
+        Computed once, on first use, and kept (a calibration's arrays are not changed after it
+        is made)."""
         h = hashlib.sha256()
         for name in sorted(self.arrays):
             h.update(name.encode())
             h.update(np.ascontiguousarray(self.arrays[name]).tobytes())
         return h.hexdigest()[:16]
+
+    @property
+    def path(self) -> str | None:
+        """The file this calibration was loaded from or saved to (None: only in memory)."""
+        return self.__dict__.get("_path")
+
+    def reference(self) -> dict:
+        """How pipelines and histories name this calibration: ``{"identity", "path"}`` (the
+        path is None for a calibration that exists only in memory)."""
+        return {"identity": self.identity, "path": self.path}
+
+    def __deepcopy__(self, memo):
+        return self  # an immutable product: copies (e.g. Stage.clone) share it
+
+    @classmethod
+    def resolve(cls, value) -> "Calibration | None":
+        """A Calibration from an object, a path (read now) or None."""
+        if value is None or isinstance(value, cls):
+            return value
+        if not isinstance(value, (str, Path)):
+            raise ParameterError(f"calibration={value!r} is not valid; expected a Calibration "
+                                 "or the path of a calibration file (.npz)")
+        return cls.load(value)
 
     def manifest(self) -> dict:
         return {"format": FORMAT, "format_version": FORMAT_VERSION,
@@ -148,14 +186,6 @@ class Calibration:
         return "\n".join(lines)
 
     # -- validation ----------------------------------------------------------------------------
-    def to_reference(self) -> str:
-        """The file this calibration was loaded from or saved to (how pipelines refer to it)."""
-        path = getattr(self, "_path", None)
-        if path is None:
-            raise TypeError("this calibration exists only in memory; save it first "
-                            "(cal.save('cal.npz')) and pass the path to the stage")
-        return path
-
     def check_compatible(self, data=None, *, frame_shape=None, bit_depth=None, mosaic=None,
                          what: str = "the data") -> None:
         """Raise :class:`CalibrationMismatchError` if ``data`` (a Sweep, or the keyword facts)
@@ -189,61 +219,25 @@ class Calibration:
 
     # -- file I/O ------------------------------------------------------------------------------
     def save(self, path, *, overwrite: bool = False) -> Path:
-        """Write the calibration to ``path`` (.npz) atomically."""
-        path = Path(path)
-        if path.suffix != ".npz":
-            raise ValueError(f"calibration files end in .npz, got {path.name!r}")
-        manifest = json.dumps(self.manifest(), indent=1, default=_json_default).encode()
-        payload = {k: np.ascontiguousarray(v) for k, v in self.arrays.items()}
-        payload["manifest.json"] = np.frombuffer(manifest, dtype=np.uint8)
-        with atomic_path(path, overwrite=overwrite) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **payload)
-        object.__setattr__(self, "_path", str(path.resolve()))
+        """Write the calibration to ``path`` (.npz) atomically (:mod:`hsiffc.products`)."""
+        man = {k: v for k, v in self.manifest().items()
+               if k not in ("format", "format_version")}
+        path = write_product(path, format=FORMAT, format_version=FORMAT_VERSION, manifest=man,
+                             arrays=self.arrays, overwrite=overwrite)
+        object.__setattr__(self, "_path", str(Path(path).resolve()))
         return path
 
     @classmethod
     def load(cls, path) -> "Calibration":
         """Read a calibration file (never unpickles anything)."""
-        path = Path(path)
-        if not path.exists():
-            raise DataFormatError("calibration file not found; create one with "
-                                  "'hsiffc calibrate SWEEP -o CALIB.npz'", path=path)
+        man, arrays = read_product(path, format=FORMAT, format_version=FORMAT_VERSION,
+                                   remedy="create one with 'hsiffc calibrate SWEEP -o CALIB.npz'")
         try:
-            with np.load(path, allow_pickle=False) as npz:
-                contents = {k: npz[k] for k in npz.files}
-        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
-            raise DataFormatError(f"not a readable calibration file ({exc}); it may be "
-                                  "truncated: recreate it with 'hsiffc calibrate'", path=path) from exc
-        if "manifest.json" not in contents:
-            raise DataFormatError("no manifest.json inside: not an hsiffc calibration", path=path)
-        try:
-            man = json.loads(contents.pop("manifest.json").tobytes().decode())
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise DataFormatError(f"calibration manifest is not valid JSON: {exc}",
-                                  path=path) from exc
-        if man.get("format") != FORMAT:
-            raise DataFormatError(f"format is {man.get('format')!r}, expected {FORMAT!r}", path=path)
-        if int(man.get("format_version", 0)) > FORMAT_VERSION:
-            raise DataFormatError(
-                f"calibration format version {man.get('format_version')} is newer than this "
-                f"hsiffc ({__version__}) reads ({FORMAT_VERSION}); upgrade hsiffc", path=path)
-        try:
-            cal = cls(arrays=contents, domain=man["domain"], method=man["method"],
+            cal = cls(arrays=arrays, domain=man["domain"], method=man["method"],
                       fitted_on=man.get("fitted_on", {}), created=man.get("created", ""),
                       hsiffc_version=man.get("hsiffc_version", "?"))
-        except (KeyError, ValueError) as exc:
+        except (KeyError, ValueError, TypeError) as exc:
             raise DataFormatError(f"calibration is incomplete or inconsistent: {exc}",
                                   path=path) from exc
-        object.__setattr__(cal, "_path", str(path.resolve()))
+        object.__setattr__(cal, "_path", str(Path(path).resolve()))
         return cal
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (Path, io.IOBase)):
-        return str(obj)
-    raise TypeError(f"not JSON-serialisable: {type(obj).__name__}")

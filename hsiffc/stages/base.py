@@ -16,6 +16,7 @@ import json
 import numpy as np
 
 from ..errors import HsiffcError
+from ..params import check_params
 
 
 class NotFittedError(HsiffcError, RuntimeError):
@@ -29,6 +30,14 @@ class Stage:
     name: str = ""
     #: True for filters with nothing to learn
     stateless: bool = False
+    #: frame states (:data:`hsiffc.frame.STATES`) the stage needs, adds and takes away; a
+    #: :class:`~hsiffc.stages.Pipeline` whose order breaks them fails when it is built
+    requires: frozenset = frozenset()
+    produces: frozenset = frozenset()
+    removes: frozenset = frozenset()
+    #: declared parameters (name -> :class:`hsiffc.params.Param`), checked by
+    #: :meth:`validate_params` at fit and when a pipeline is built or loaded
+    param_spec: dict = {}
 
     # -- parameters ----------------------------------------------------------------------------
     @classmethod
@@ -53,10 +62,39 @@ class Stage:
         args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
         return f"{type(self).__name__}({args})"
 
+    def validate_params(self) -> None:
+        """Raise :class:`hsiffc.errors.ParameterError` (one line: parameter, value, what is
+        valid) when a parameter breaks its declaration in :attr:`param_spec`."""
+        check_params(self.name or type(self).__name__, self.param_spec, self.get_params())
+
+    def calibration_product(self):
+        """The :class:`~hsiffc.calibrate.Calibration` of the ``calibration`` parameter (None if
+        unset): a path is read once and kept until the parameter changes (no file access per
+        frame)."""
+        from ..calibrate.product import Calibration
+
+        value = getattr(self, "calibration", None)
+        cached = self.__dict__.get("_calibration_cache")
+        if cached is None or cached[0] is not value:
+            cached = (value, Calibration.resolve(value))
+            self.__dict__["_calibration_cache"] = cached
+        return cached[1]
+
+    def require_calibration(self):
+        """:meth:`calibration_product`, or a ParameterError saying the stage needs one."""
+        cal = self.calibration_product()
+        if cal is None:
+            from ..errors import ParameterError
+
+            raise ParameterError(f"{self.name or type(self).__name__} needs calibration= (a "
+                                 "Calibration or a file from 'hsiffc calibrate')")
+        return cal
+
     # -- fitting -------------------------------------------------------------------------------
     def fit(self, frames) -> "Stage":
         """Learn from training frames (a list of :class:`hsiffc.frame.Frame`). Stateless stages
-        only mark themselves fitted."""
+        only check their parameters and mark themselves fitted."""
+        self.validate_params()
         self.fitted_ = True
         return self
 
@@ -103,13 +141,25 @@ def check_stage(stage: Stage, train_frames, test_frame) -> None:
     Checks: parameters round-trip through get_params/clone; transform before fit raises
     NotFittedError (unless stateless); fit returns self; transform returns a new Frame and does
     not mutate its input; no NaN or inf appears in the output data; the DQ plane is kept or
-    extended (no bit of the input is cleared); the fitted state survives a JSON + npz round
+    extended (no bit of the input is cleared); the output has the states the stage declares it
+    produces and none it declares it removes; the fitted state survives a JSON + npz round
     trip and gives the same output.
+
+    Frames are given raw (as read from files); when the stage ``requires`` dark-subtracted
+    frames, a default dark stage fitted on ``train_frames`` is run on them first.
     """
     import io
 
     from ..frame import Frame
 
+    if "dark_subtracted" in stage.requires and "dark_subtracted" not in test_frame.state():
+        from .dark import DarkSubtract
+
+        dark = DarkSubtract().fit(train_frames)
+        train_frames = [dark.transform(f) for f in train_frames]
+        test_frame = dark.transform(test_frame)
+    missing = stage.requires - test_frame.state()
+    assert not missing, f"check_stage cannot give {type(stage).__name__} frames with {missing}"
     params = stage.get_params()
     fresh = stage.clone()
     assert fresh.get_params().keys() == params.keys(), "clone() changed the parameter names"
@@ -130,6 +180,9 @@ def check_stage(stage: Stage, train_frames, test_frame) -> None:
     assert np.array_equal(test_frame.data, before_data), "transform() mutated its input data"
     assert np.array_equal(test_frame.dq, before_dq), "transform() mutated its input dq"
     assert np.all(np.isfinite(out.data)), "transform() produced NaN or inf"
+    state = out.state()
+    assert stage.produces <= state, f"output lacks the declared {set(stage.produces - state)}"
+    assert not stage.removes & state, f"output still has the removed {set(stage.removes & state)}"
     if out.dq.shape == test_frame.dq.shape:
         lost = test_frame.dq & ~out.dq
         assert not lost.any(), "transform() cleared DQ bits of its input"

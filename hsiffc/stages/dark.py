@@ -1,11 +1,14 @@
-"""Dark subtraction with master darks matched to the exposure."""
+"""Dark subtraction with master darks matched to the exposure (wraps :mod:`hsiffc.dark`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..dark import dark_at, fit_dark_line, subtract_dark
+from ..errors import ParameterError
 from ..frame import stack_mean
-from ._common import find_exposure, group_by_exposure, load_calibration
+from ..params import Param
+from ._common import AVERAGE, CALIBRATION, find_exposure, group_by_exposure
 from .base import Stage
 
 MATCHES = ("exposure", "scale")
@@ -13,6 +16,8 @@ MATCHES = ("exposure", "scale")
 
 class DarkSubtract(Stage):
     """Subtract a master dark (robust average of a dark stack) matched to the frame's exposure.
+
+    The frame keeps the dark it lost in ``dark_removed`` (so ``frame.raw`` is exact).
 
     Parameters
     ----------
@@ -27,6 +32,11 @@ class DarkSubtract(Stage):
     """
 
     name = "dark"
+    requires = frozenset({"mosaic", "raw"})
+    produces = frozenset({"dark_subtracted"})
+    removes = frozenset({"raw"})
+    param_spec = {"average": AVERAGE, "match": Param("choice", choices=MATCHES),
+                  "calibration": CALIBRATION}
 
     def __init__(self, *, average: str = "median", match: str = "exposure", calibration=None):
         self.average = average
@@ -34,59 +44,44 @@ class DarkSubtract(Stage):
         self.calibration = calibration
 
     def fit(self, frames):
-        if self.average not in ("median", "mean"):
-            raise ValueError(f"average must be 'median' or 'mean', got {self.average!r}")
-        if self.match not in MATCHES:
-            raise ValueError(f"match must be one of {MATCHES}, got {self.match!r}")
+        self.validate_params()
         groups = group_by_exposure(frames, "dark")
         if not groups and self.calibration is None:
-            raise ValueError("no dark frames among the training frames; add dark frames (kind "
-                             "'dark') or give calibration= to use its dark level")
-        masters, dqs = [], []
-        for stack in groups.values():
-            m, dq = stack_mean(stack, robust=self.average == "median")
-            masters.append(m)
-            dqs.append(dq)
+            raise ParameterError("dark: no dark frames among the training frames; add dark "
+                                 "frames (kind 'dark') or give calibration= to use its dark level")
+        self.calibration_product()  # read the file now, not at the first frame
         self.exposures_ms_ = [float(e) for e in groups]
-        if masters:
-            self.masters_ = np.stack(masters)
-            self.master_dq_ = np.stack(dqs)
-        if len(masters) >= 2:  # per-pixel line through the masters for unmatched exposures
-            t = np.asarray(self.exposures_ms_)
-            tm = t.mean()
-            y = self.masters_.astype(np.float64)
-            slope = np.tensordot(t - tm, y - y.mean(axis=0), axes=(0, 0)) / ((t - tm) ** 2).sum()
-            self.dark0_ = (y.mean(axis=0) - slope * tm).astype(np.float32)
-            self.dark_slope_ = slope.astype(np.float32)
+        if groups:
+            stacks = [stack_mean(s, robust=self.average == "median") for s in groups.values()]
+            self.masters_ = np.stack([m for m, _ in stacks])
+            self.master_dq_ = np.stack([dq for _, dq in stacks])
+        if len(groups) >= 2:  # per-pixel line through the masters for unmatched exposures
+            self.dark0_, self.dark_slope_ = fit_dark_line(self.exposures_ms_, self.masters_)
         self.fitted_ = True
         return self
 
     def dark_for(self, exposure_ms: float, shape) -> tuple[np.ndarray, str]:
-        """The dark (DN) subtracted at this exposure and how it was obtained."""
+        """The dark (DN, float32) subtracted at this exposure and how it was obtained."""
         self.check_is_fitted()
         e = find_exposure(self.exposures_ms_, exposure_ms) if self.match == "exposure" else None
         if e is not None:
             return self.masters_[self.exposures_ms_.index(e)], f"master at {e:g} ms"
         if hasattr(self, "dark0_"):
-            return self.dark0_ + self.dark_slope_ * np.float32(exposure_ms), "scaled (d0 + slope t)"
-        cal = load_calibration(self.calibration)
+            return dark_at(exposure_ms, self.dark0_, self.dark_slope_), "scaled (d0 + slope t)"
+        cal = self.calibration_product()
         if cal is not None:
             cal.check_compatible(frame_shape=shape, what="the frame")
-            return (cal.dark + cal.dark_current * exposure_ms).astype(np.float32), "calibration"
-        if len(self.exposures_ms_) == 1:
-            raise ValueError(f"no master dark at {exposure_ms:g} ms (only at "
-                             f"{self.exposures_ms_[0]:g} ms) and nothing to scale with: record "
-                             "darks at this exposure or at two exposures, or give calibration=")
-        raise ValueError(f"no master dark at {exposure_ms:g} ms")
+            return cal.dark_at(exposure_ms), "calibration"
+        only = f" (only at {self.exposures_ms_[0]:g} ms)" if self.exposures_ms_ else ""
+        raise ValueError(f"no master dark at {exposure_ms:g} ms{only} and nothing to scale "
+                         "with: record darks at this exposure or at two exposures, or give "
+                         "calibration=")
 
     def transform(self, frame):
         self.check_is_fitted()
-        if frame.meta.get("dark_subtracted"):
+        if frame.dark_removed is not None:
             raise ValueError("this frame is already dark-subtracted; a pipeline should have one "
                              "dark stage")
         dark, how = self.dark_for(frame.exposure_ms, frame.data.shape)
-        if dark.shape != frame.data.shape:
-            raise ValueError(f"master dark has shape {dark.shape} but the frame has "
-                             f"{frame.data.shape}; use darks of the same sensor region")
-        return frame.replace(data=frame.data - dark,
-                             meta={"dark_subtracted": True, "dark_source": how})
+        return frame.replace(data=subtract_dark(frame.data, dark), dark_removed=dark,
+                             meta={"dark_source": how})

@@ -3,47 +3,62 @@
 ``Pipeline.fit(frames)`` trains each stage on the training frames passed through the stages
 already fitted before it; ``transform(frame)`` runs them in order and records one history entry
 per stage in ``frame.meta["history"]`` (stage, parameters, status) - in this one place, not in
-every stage. A fitted pipeline saves to one versioned ``.npz`` (arrays plus a JSON manifest,
-no pickle) and loads by registered stage names; a small TOML file describes one for the CLI.
+every stage. Building a pipeline checks every stage's parameters, the order of the stages
+(what each needs against what the ones before it give) and reads each calibration file once.
+A fitted pipeline saves to one versioned product file (:mod:`hsiffc.products`: arrays plus a
+JSON manifest, no pickle) and loads by registered stage names; a small TOML file describes one
+for the CLI. Calibrations are recorded by identity (and path, or embedded when they exist only
+in memory), so a pipeline built in a notebook saves and loads without saving anything first.
 """
 
 from __future__ import annotations
 
-import json
 import tomllib
 from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
-from ..atomic import atomic_path
-from ..errors import DataFormatError
+from ..calibrate.product import Calibration
+from ..errors import DataFormatError, HsiffcError, ParameterError
 from ..frame import Frame
+from ..products import read_product, write_product
 from . import registry
 from .base import Stage
+from .order import check_order
 
 FORMAT = "hsiffc-pipeline"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: calibrations as {"identity", "path"[, "embedded"]}; 1 (paths) still read
+REMEDY = "fit one with 'hsiffc fit DESCRIPTION.toml TRAINING... -o PIPELINE.npz'"
 
 
-def _json_params(params: dict) -> dict:
-    """Parameters as JSON: paths become strings; objects with a ``to_reference()`` (e.g. a
-    calibration loaded from a file) become that reference."""
+def json_params(stage: Stage) -> dict:
+    """A stage's parameters as JSON: paths become strings, a calibration its
+    :meth:`~hsiffc.calibrate.Calibration.reference` (identity and path)."""
     out = {}
-    for k, v in params.items():
-        if isinstance(v, Path):
-            v = str(v)
-        elif hasattr(v, "to_reference"):
-            v = v.to_reference()
-        elif isinstance(v, np.generic):
-            v = v.item()
-        try:
-            json.dumps(v)
-        except TypeError as exc:
-            raise TypeError(f"parameter {k}={v!r} cannot be saved; give a path or a plain "
-                            "value") from exc
-        out[k] = v
+    for key, value in stage.get_params().items():
+        if key == "calibration" and value is not None:
+            value = stage.calibration_product()  # read once; a path is recorded with identity
+        if isinstance(value, Calibration):
+            value = value.reference()
+        elif isinstance(value, Path):
+            value = str(value)
+        elif isinstance(value, np.generic):
+            value = value.item()
+        elif not isinstance(value, (str, int, float, bool, type(None), list, dict)):
+            raise ParameterError(f"{stage.name}: parameter {key}={value!r} cannot be saved; "
+                                 "give a path or a plain value")
+        out[key] = value
     return out
+
+
+def _is_calibration(stage_cls, key: str) -> bool:
+    spec = getattr(stage_cls, "param_spec", {}).get(key)
+    return key == "calibration" or (spec is not None and spec.kind == "calibration")
+
+
+def _is_file(stage_cls, key: str) -> bool:
+    spec = getattr(stage_cls, "param_spec", {}).get(key)
+    return _is_calibration(stage_cls, key) or (spec is not None and spec.kind == "path")
 
 
 class Pipeline:
@@ -53,24 +68,40 @@ class Pipeline:
     ----------
     steps : list of (name, Stage)
 
+    Raises
+    ------
+    ParameterError
+        A stage parameter breaks its declaration, or the order makes no sense (the message
+        names both steps).
+
     Examples
     --------
     >>> from hsiffc.stages import Pipeline, create
     >>> p = Pipeline([("dark", create("dark")), ("ffc", create("two_point_ffc"))])
     >>> p.set_params(ffc__normalisation="mean_gain").named_steps["ffc"].normalisation
     'mean_gain'
+    >>> Pipeline([("ffc", create("two_point_ffc")), ("dark", create("dark"))])
+    Traceback (most recent call last):
+    ...
+    hsiffc.errors.ParameterError: step 'ffc' (two_point_ffc) needs dark-subtracted frames, which step 'dark' only gives after it: put 'dark' before 'ffc'
     """
 
     def __init__(self, steps):
         steps = list(steps)
         names = [n for n, _ in steps]
         if len(set(names)) != len(names):
-            raise ValueError(f"step names must be unique, got {names}")
+            raise ParameterError(f"step names must be unique, got {names}")
         for name, stage in steps:
             if not isinstance(stage, Stage):
-                raise TypeError(f"step {name!r} is {type(stage).__name__}, not a hsiffc Stage")
-            if "__" in name:
-                raise ValueError(f"step name {name!r} must not contain '__'")
+                raise ParameterError(f"step {name!r} is {type(stage).__name__}, not a hsiffc "
+                                     "Stage")
+            if not isinstance(name, str) or not name or "__" in name:
+                raise ParameterError(f"step name {name!r} must be a non-empty string without "
+                                     "'__'")
+            stage.validate_params()
+        check_order(steps)
+        for _, stage in steps:  # calibration files are read once, here
+            stage.calibration_product()
         self.steps = steps
 
     @property
@@ -85,13 +116,15 @@ class Pipeline:
         return {f"{n}__{k}": v for n, s in self.steps for k, v in s.get_params().items()}
 
     def set_params(self, **params) -> "Pipeline":
-        """Set stage parameters as ``step__param=value``."""
+        """Set stage parameters as ``step__param=value`` (checked as at build time)."""
         steps = self.named_steps
         for key, value in params.items():
             name, sep, param = key.partition("__")
             if not sep or name not in steps:
                 raise ValueError(f"{key!r}: use step__param with a step of {list(steps)}")
             steps[name].set_params(**{param: value})
+            steps[name].validate_params()
+        check_order(self.steps)
         return self
 
     # -- fit / transform -----------------------------------------------------------------------
@@ -115,7 +148,7 @@ class Pipeline:
             stage.check_is_fitted()
             frame = stage.transform(frame)
             entry = {"step": name, "stage": stage.name or type(stage).__name__,
-                     "params": _json_params(stage.get_params()), "status": "ok"}
+                     "params": json_params(stage), "status": "ok"}
             frame = frame.replace(meta={"history": frame.history + (entry,)})
         return frame
 
@@ -124,60 +157,61 @@ class Pipeline:
 
     # -- persistence ---------------------------------------------------------------------------
     def manifest(self) -> dict:
-        return {"format": FORMAT, "format_version": FORMAT_VERSION, "hsiffc_version": __version__,
-                "steps": [{"name": n, "stage": s.name or type(s).__name__,
-                           "params": _json_params(s.get_params()),
+        return {"steps": [{"name": n, "stage": s.name or type(s).__name__,
+                           "params": json_params(s),
                            "state": s.get_state()[0] if s.is_fitted() else None}
                           for n, s in self.steps]}
 
     def save(self, path, *, overwrite: bool = False) -> Path:
-        """Write the (fitted) pipeline to one ``.npz`` atomically."""
-        path = Path(path)
-        if path.suffix != ".npz":
-            raise ValueError(f"pipeline files end in .npz, got {path.name!r}")
-        payload = {}
-        for name, stage in self.steps:
+        """Write the (fitted) pipeline to one ``.npz`` atomically. A calibration that exists
+        only in memory is stored inside the file."""
+        man = self.manifest()
+        arrays = {}
+        for (name, stage), spec in zip(self.steps, man["steps"]):
             if stage.is_fitted():
                 for key, arr in stage.get_state()[1].items():
-                    payload[f"{name}/{key}"] = np.ascontiguousarray(arr)
-        payload["manifest.json"] = np.frombuffer(json.dumps(self.manifest()).encode(), np.uint8)
-        with atomic_path(path, overwrite=overwrite) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **payload)
-        return path
+                    arrays[f"{name}/{key}"] = arr
+            for key, value in stage.get_params().items():
+                if isinstance(value, Calibration) and value.path is None:
+                    spec["params"][key]["embedded"] = value.manifest()
+                    for k, arr in value.arrays.items():
+                        arrays[f"{name}/{key}/{k}"] = arr
+        return write_product(path, format=FORMAT, format_version=FORMAT_VERSION, manifest=man,
+                             arrays=arrays, overwrite=overwrite)
 
     @classmethod
-    def load(cls, path) -> "Pipeline":
-        """Read a pipeline file; stages are resolved by their registered names only."""
-        path = Path(path)
+    def load(cls, path, *, calibration: Calibration | None = None) -> "Pipeline":
+        """Read a pipeline file; stages are resolved by their registered names only.
+
+        Parameters
+        ----------
+        path : path-like
+        calibration : Calibration, optional
+            Used for every step whose recorded calibration has the same identity (no file is
+            read), and for a version-1 file whose calibration path is not found.
+
+        Raises
+        ------
+        DataFormatError
+            Unreadable or malformed file, unknown stage, calibration not found or changed.
+        ParameterError
+            A stored parameter breaks the stage's declaration.
+        """
+        man, arrays = read_product(path, format=FORMAT, format_version=FORMAT_VERSION,
+                                   remedy=REMEDY)
         try:
-            with np.load(path, allow_pickle=False) as npz:
-                contents = {k: npz[k] for k in npz.files}
-        except FileNotFoundError:
-            raise DataFormatError("pipeline file not found", path=path) from None
-        except (ValueError, OSError, EOFError) as exc:
-            raise DataFormatError(f"not a readable pipeline file ({exc})", path=path) from exc
-        if "manifest.json" not in contents:
-            raise DataFormatError("no manifest.json inside: not an hsiffc pipeline", path=path)
-        man = json.loads(contents.pop("manifest.json").tobytes().decode())
-        if man.get("format") != FORMAT:
-            raise DataFormatError(f"format is {man.get('format')!r}, expected {FORMAT!r}",
-                                  path=path)
-        if int(man.get("format_version", 0)) > FORMAT_VERSION:
-            raise DataFormatError("pipeline format is newer than this hsiffc reads; upgrade "
-                                  "hsiffc", path=path)
-        steps = []
-        for spec in man["steps"]:
-            try:
-                stage = registry.create(spec["stage"], **spec["params"])
-            except KeyError as exc:
-                raise DataFormatError(f"step {spec['name']!r}: {exc.args[0]}", path=path) from exc
-            if spec.get("state") is not None:
-                prefix = f"{spec['name']}/"
-                arrays = {k[len(prefix):]: v for k, v in contents.items() if k.startswith(prefix)}
-                stage.set_state(spec["state"], arrays)
-            steps.append((spec["name"], stage))
-        return cls(steps)
+            specs = man["steps"]
+            if not isinstance(specs, list) or not specs:
+                raise TypeError("'steps' must be a non-empty list")
+            steps = [_load_step(spec, arrays, Path(path), calibration) for spec in specs]
+            return cls(steps)
+        except ParameterError as exc:
+            raise ParameterError(f"{path}: {exc}") from exc
+        except HsiffcError:
+            raise
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+            raise DataFormatError(f"malformed pipeline manifest ({type(exc).__name__}: {exc}); "
+                                  f"{REMEDY}", path=path) from exc
 
     @classmethod
     def from_toml(cls, path) -> "Pipeline":
@@ -198,27 +232,82 @@ class Pipeline:
             doc = tomllib.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise DataFormatError("pipeline description not found", path=path) from None
-        except tomllib.TOMLDecodeError as exc:
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise DataFormatError(f"not valid TOML: {exc}", path=path) from exc
         specs = doc.get("step")
-        if not specs:
+        if not specs or not isinstance(specs, list):
             raise DataFormatError("no [[step]] tables: describe each stage as [[step]] with "
                                   "name = ... and stage = ...", path=path)
         steps = []
         for i, spec in enumerate(specs):
             spec = dict(spec)
+            stage_name = spec.pop("stage", None)
+            if not isinstance(stage_name, str):
+                raise DataFormatError(f"step {i + 1} has no stage = \"...\"", path=path)
+            name = spec.pop("name", None) or stage_name
             try:
-                name = spec.pop("name", None) or spec["stage"]
-                stage_name = spec.pop("stage")
-            except KeyError:
-                raise DataFormatError(f"step {i + 1} has no stage = \"...\"", path=path) from None
-            for key in ("calibration", "imec_xml"):
-                if isinstance(spec.get(key), str) and not Path(spec[key]).is_absolute():
-                    spec[key] = str((path.parent / spec[key]).resolve())
-            try:
-                steps.append((name, registry.create(stage_name, **spec)))
+                stage_cls = registry.get(stage_name)
+                for key, value in spec.items():  # relative file names: beside the TOML
+                    if _is_file(stage_cls, key) and isinstance(value, str):
+                        spec[key] = str((path.parent / value).resolve())
+                steps.append((name, stage_cls(**spec)))
             except KeyError as exc:
                 raise DataFormatError(f"step {name!r}: {exc.args[0]}", path=path) from exc
             except TypeError as exc:
                 raise DataFormatError(f"step {name!r}: {exc}", path=path) from exc
-        return cls(steps)
+        try:
+            return cls(steps)
+        except ParameterError as exc:
+            raise ParameterError(f"{path}: {exc}") from exc
+
+
+def _load_step(spec: dict, arrays: dict, path: Path, given: Calibration | None):
+    name, stage_name = spec["name"], spec["stage"]
+    params = dict(spec["params"])
+    try:
+        stage_cls = registry.get(stage_name)
+    except KeyError as exc:
+        raise DataFormatError(f"step {name!r}: {exc.args[0]}", path=path) from exc
+    for key, value in params.items():
+        if _is_calibration(stage_cls, key) and value is not None:
+            params[key] = _resolve_calibration(value, f"{name}/{key}/", arrays, path, given)
+    stage = stage_cls(**params)
+    if spec.get("state") is not None:
+        prefix = f"{name}/"
+        state = {k[len(prefix):]: v for k, v in arrays.items()
+                 if k.startswith(prefix) and "/" not in k[len(prefix):]}
+        stage.set_state(dict(spec["state"]), state)
+    return name, stage
+
+
+def _resolve_calibration(ref, prefix: str, arrays: dict, path: Path,
+                         given: Calibration | None) -> Calibration:
+    """The Calibration a manifest names: ``given`` if it has the recorded identity, the
+    embedded copy, or the file (found as recorded or beside the pipeline file)."""
+    if isinstance(ref, str):  # format version 1: a path only
+        ref = {"identity": None, "path": ref}
+    identity, where = ref.get("identity"), ref.get("path")
+    if given is not None and identity == given.identity:
+        return given
+    if ref.get("embedded") is not None:
+        emb = ref["embedded"]
+        cal = Calibration(arrays={k[len(prefix):]: v for k, v in arrays.items()
+                                  if k.startswith(prefix)},
+                          domain=emb["domain"], method=emb["method"],
+                          fitted_on=emb.get("fitted_on", {}), created=emb.get("created", ""),
+                          hsiffc_version=emb.get("hsiffc_version", "?"))
+    else:
+        found = [c for c in (Path(where), path.parent / where, path.parent / Path(where).name)
+                 if c.is_file()] if where else []
+        if not found:
+            if given is not None and identity is None:
+                return given
+            raise DataFormatError(f"its calibration {where} (identity {identity}) is not found; "
+                                  "put it back or pass the calibration it was fitted with",
+                                  path=path)
+        cal = Calibration.load(found[0])
+    if identity is not None and cal.identity != identity:
+        raise DataFormatError(f"calibration {cal.path or 'embedded'} has identity "
+                              f"{cal.identity}, but the pipeline was fitted with {identity}; "
+                              "fit the pipeline again or use its calibration", path=path)
+    return cal

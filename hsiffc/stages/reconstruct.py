@@ -6,6 +6,8 @@ import numpy as np
 
 from .. import reconstruct as rc
 from ..dq import DQ_DTYPE
+from ..errors import ParameterError
+from ..params import Param
 from .base import Stage
 
 RESOLUTIONS = ("full", "tile")
@@ -53,6 +55,14 @@ class Reconstruct(Stage):
     #: the registered name, also when the class is instantiated directly (pipeline files
     #: resolve stages by this name)
     name = "reconstruct"
+    requires = frozenset({"mosaic"})
+    produces = frozenset({"cube"})
+    removes = frozenset({"mosaic"})
+    param_spec = {"method": Param("choice", choices=tuple(sorted(rc.DEMOSAIC_METHODS))),
+                  "resolution": Param("choice", choices=RESOLUTIONS),
+                  "correction": Param("choice", choices=CORRECTIONS),
+                  "imec_xml": Param("path", optional=True),
+                  "virtual_fwhm_nm": Param("number", low=0, low_open=True, unit="nm")}
 
     def __init__(self, *, method: str = "ppid", resolution: str = "full", correction=None,
                  imec_xml=None, virtual_fwhm_nm: float = 15.0):
@@ -69,22 +79,10 @@ class Reconstruct(Stage):
 
     # -- validation ----------------------------------------------------------------------------
     def _validate(self) -> None:
-        if self.resolution not in RESOLUTIONS:
-            raise ValueError(f"resolution must be one of {list(RESOLUTIONS)}, "
-                             f"got {self.resolution!r}")
-        if self.resolution == "full":
-            rc._method(self.method)  # ValueError listing the valid names
-        if self.correction not in CORRECTIONS:
-            raise ValueError(f"correction must be one of {list(CORRECTIONS)}, "
-                             f"got {self.correction!r}")
+        self.validate_params()
         if self.correction is not None and self.imec_xml is None:
-            raise ValueError(f"correction={self.correction!r} needs imec_xml= (the IMEC sensor "
-                             "calibration XML giving the matrix or the band responses)")
-        if self.correction == "derived":
-            f = float(self.virtual_fwhm_nm)
-            if not np.isfinite(f) or f <= 0:
-                raise ValueError(f"virtual_fwhm_nm must be a positive number, "
-                                 f"got {self.virtual_fwhm_nm!r}")
+            raise ParameterError(f"correction={self.correction!r} needs imec_xml= (the IMEC "
+                                 "sensor calibration XML giving the matrix or the band responses)")
 
     # -- fit / transform -----------------------------------------------------------------------
     def fit(self, frames) -> Reconstruct:

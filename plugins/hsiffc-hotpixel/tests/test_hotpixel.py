@@ -117,7 +117,7 @@ def test_contract_and_errors(sim):
         with pytest.raises(ValueError):
             HotPixelRepair(**bad).fit(train)
     with pytest.raises(ValueError, match="before the dark stage"):
-        HotPixelRepair().fit([f.replace(meta={"dark_subtracted": True}) for f in train])
+        HotPixelRepair().fit([f.replace(dark_removed=np.zeros_like(f.data)) for f in train])
     stage = HotPixelRepair().fit(train)
     small = Frame.from_raw(np.zeros((8, 8)), exposure_ms=1.0, bit_depth=10,
                            mosaic=sensor.mosaic)

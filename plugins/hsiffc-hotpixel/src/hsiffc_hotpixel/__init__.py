@@ -12,6 +12,7 @@ import warnings
 import numpy as np
 
 from hsiffc.dq import DQ, DQ_DTYPE
+from hsiffc.params import Param
 from hsiffc.stages import Stage
 
 __all__ = ["HotPixelRepair", "same_band_offsets", "same_band_median"]
@@ -111,28 +112,26 @@ class HotPixelRepair(Stage):
     """
 
     name = "hot_pixel_repair"
+    #: it needs raw mosaic frames (the darks it learns from keep their dark level)
+    requires = frozenset({"mosaic", "raw"})
+    param_spec = {"hot_sigma": Param("number", low=0, low_open=True),
+                  "dead_fraction": Param("number", low=0, high=1, low_open=True,
+                                         high_open=True),
+                  "radius": Param("integer", low=1)}
 
     def __init__(self, *, hot_sigma: float = 6.0, dead_fraction: float = 0.5, radius: int = 1):
         self.hot_sigma = hot_sigma
         self.dead_fraction = dead_fraction
         self.radius = radius
 
-    def _check_params(self) -> None:
-        if not float(self.hot_sigma) > 0:
-            raise ValueError(f"hot_sigma must be > 0, got {self.hot_sigma!r}")
-        if not 0 < float(self.dead_fraction) < 1:
-            raise ValueError(f"dead_fraction must be in (0, 1), got {self.dead_fraction!r}")
-        if int(self.radius) != self.radius or int(self.radius) < 1:
-            raise ValueError(f"radius must be an integer >= 1, got {self.radius!r}")
-
     def fit(self, frames) -> "HotPixelRepair":
         """Find hot pixels in the training darks and dead pixels in the training flats."""
-        self._check_params()
+        self.validate_params()
         frames = [f for f in frames if not f.is_cube]
         if not frames:
             raise ValueError("hot_pixel_repair needs raw training frames: darks (for hot "
                              "pixels) and/or flats (for dead pixels)")
-        if any(f.meta.get("dark_subtracted") for f in frames):
+        if any(f.dark_removed is not None for f in frames):
             raise ValueError("training frames are already dark-subtracted; place "
                              "hot_pixel_repair before the dark stage (it needs raw darks)")
         shape, mosaic = frames[0].data.shape, frames[0].mosaic

@@ -1,0 +1,68 @@
+"""Statistics of a mosaic frame per band: one function, :func:`band_reduce`, for every caller.
+
+Every band of a snapshot mosaic sees its own light, so flat-field normalisation, alpha tables
+and uniformity figures are taken per band. An empty band (no usable pixel) gives NaN, meaning
+"no statistic": each caller turns it into its own neutral value (a flat-field factor of 1 with
+the NO_FLAT flag; ``inf``, "no alpha", in alpha tables), so NaN never reaches an output.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .params import validate_method
+
+STATISTICS = ("mean", "median", "p95")
+
+
+def band_reduce(values, band_map=None, good=None, *, statistic: str = "mean",
+                n_bands: int | None = None) -> np.ndarray:
+    """One statistic of ``values`` per band, over the good, finite pixels.
+
+    Parameters
+    ----------
+    values : (H, W) array_like
+        Per-pixel values (any unit; the result has the same unit).
+    band_map : (H, W) int array, optional
+        Band index per pixel (None: the whole frame is band 0).
+    good : (H, W) bool array, optional
+        Pixels to use (None: all). Non-finite values are never used.
+    statistic : "mean", "median" or "p95"
+    n_bands : int, optional
+        Length of the result (default ``band_map.max() + 1``).
+
+    Returns
+    -------
+    (n_bands,) float64
+        The statistic per band; NaN for a band without a usable pixel. Index with
+        ``result[band_map]`` to broadcast it back per pixel.
+
+    Examples
+    --------
+    >>> band_reduce(np.array([[1., 3.], [5., np.nan]]), np.array([[0, 0], [1, 1]])).tolist()
+    [2.0, 5.0]
+    >>> band_reduce(np.ones((2, 2)), np.zeros((2, 2), int), np.zeros((2, 2), bool)).tolist()
+    [nan]
+    """
+    validate_method(statistic, STATISTICS, "band statistic")
+    v = np.asarray(values, np.float64)
+    bm = np.zeros(v.shape, np.intp) if band_map is None else np.asarray(band_map)
+    if bm.shape != v.shape:
+        raise ValueError(f"band_map has shape {bm.shape} but values have {v.shape}; give the "
+                         "band map of the same frame")
+    use = np.isfinite(v)
+    if good is not None:
+        use &= np.asarray(good, bool)
+    n = int(bm.max()) + 1 if n_bands is None else int(n_bands)
+    if statistic == "mean":
+        sums = np.bincount(bm[use], weights=v[use], minlength=n)[:n]
+        counts = np.bincount(bm[use], minlength=n)[:n]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+    out = np.full(n, np.nan)
+    q = 50.0 if statistic == "median" else 95.0
+    for band in range(n):
+        sel = v[use & (bm == band)]
+        if sel.size:
+            out[band] = np.percentile(sel, q)
+    return out

@@ -1,0 +1,151 @@
+"""Parameter validation in one place: declared types and ranges, and method names.
+
+A stage declares its parameters once, as a mapping from name to :class:`Param`; the pipeline
+checks them when it is built, fitted or loaded (:func:`check_params`), so a wrong value fails
+at once with one line naming the parameter, the value and what is valid - not later, in every
+file of a batch. Functions that pick an algorithm by name use :func:`validate_method`.
+
+Examples
+--------
+>>> check_params("alpha_mask", {"threshold_percent": Param("number", low=0, low_open=True)},
+...              {"threshold_percent": "twelve"})
+Traceback (most recent call last):
+...
+hsiffc.errors.ParameterError: alpha_mask: threshold_percent='twelve' is not valid; expected a number > 0
+>>> validate_method("ppid", {"nearest": 1, "ppid": 2}, "demosaicking method")
+2
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import ParameterError
+
+KINDS = ("number", "integer", "choice", "bool", "string", "path", "calibration")
+
+
+@dataclass(frozen=True)
+class Param:
+    """What one parameter accepts.
+
+    Parameters
+    ----------
+    kind : str
+        ``"number"`` (finite int or float, not bool), ``"integer"``, ``"choice"`` (one of
+        ``choices``), ``"bool"``, ``"string"``, ``"path"`` (str or path-like) or
+        ``"calibration"`` (a :class:`hsiffc.calibrate.Calibration` or the path of one).
+    low, high : float, optional
+        Range of a number or integer (inclusive unless ``low_open`` / ``high_open``).
+    choices : tuple
+        Valid values of a ``"choice"`` parameter.
+    optional : bool
+        None is accepted.
+    unit : str
+        Appended to the description (e.g. ``"ms"``, ``"percent"``).
+    """
+
+    kind: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    choices: tuple = ()
+    optional: bool = False
+    unit: str = ""
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"Param kind must be one of {KINDS}, got {self.kind!r}")
+
+    def describe(self) -> str:
+        """What is valid, in words (used in the error message)."""
+        if self.kind == "choice":
+            text = "one of " + ", ".join(repr(c) for c in self.choices)
+        elif self.kind == "calibration":
+            text = "a Calibration or the path of a calibration file (.npz)"
+        else:
+            text = {"number": "a number", "integer": "an integer", "bool": "true or false",
+                    "string": "a string", "path": "a file path"}[self.kind]
+            bounds = []
+            if self.low is not None:
+                bounds.append(f"{'>' if self.low_open else '>='} {self.low:g}")
+            if self.high is not None:
+                bounds.append(f"{'<' if self.high_open else '<='} {self.high:g}")
+            if bounds:
+                text += " " + " and ".join(bounds)
+        if self.unit:
+            text += f" ({self.unit})"
+        return text + (" or None" if self.optional else "")
+
+    def accepts(self, value) -> bool:
+        """True when ``value`` is valid for this parameter."""
+        if value is None:
+            return self.optional or (self.kind == "choice" and None in self.choices)
+        if self.kind == "choice":
+            return any(value == c and type(value) is type(c) for c in self.choices)
+        if self.kind == "bool":
+            return isinstance(value, bool)
+        if self.kind == "string":
+            return isinstance(value, str)
+        if self.kind == "path":
+            return isinstance(value, (str, Path))
+        if self.kind == "calibration":
+            from .calibrate.product import Calibration
+
+            return isinstance(value, (str, Path, Calibration))
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            return False
+        if self.kind == "integer" and not float(value).is_integer():
+            return False
+        v = float(value)
+        if not math.isfinite(v):
+            return False
+        if self.low is not None and (v <= self.low if self.low_open else v < self.low):
+            return False
+        return not (self.high is not None and (v >= self.high if self.high_open else v > self.high))
+
+
+def check_params(owner: str, spec: Mapping[str, Param], values: Mapping) -> None:
+    """Raise :class:`ParameterError` for the first value in ``values`` that ``spec`` refuses.
+
+    Parameters
+    ----------
+    owner : str
+        Who the parameters belong to (a stage name), for the message.
+    spec : mapping of str to Param
+        Declared parameters; names not in ``spec`` are not checked.
+    values : mapping of str to object
+        Current parameter values.
+    """
+    for name, param in spec.items():
+        if name in values and not param.accepts(values[name]):
+            raise ParameterError(f"{owner}: {name}={values[name]!r} is not valid; expected "
+                                 f"{param.describe()}")
+
+
+def validate_method(name, registry, what: str):
+    """Look up ``name`` in a method registry; an unknown name lists the valid ones.
+
+    Parameters
+    ----------
+    name : str
+        The method asked for.
+    registry : mapping or sequence of str
+        Valid names (a mapping from name to implementation, or a sequence of names).
+    what : str
+        What the name selects, for the message (e.g. ``"demosaicking method"``).
+
+    Returns
+    -------
+    object
+        ``registry[name]`` for a mapping, else ``name``.
+    """
+    names = list(registry)
+    if not isinstance(name, str) or name not in names:
+        raise ParameterError(f"unknown {what} {name!r}; valid: {', '.join(map(str, names))}")
+    return registry[name] if isinstance(registry, Mapping) else name
