@@ -25,8 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_path
+from .stages.base import check_stage  # noqa: F401 (the stage contract tests, for plugin authors)
 
-__all__ = ["assert_golden", "golden_path", "REGEN_HINT"]
+__all__ = ["assert_golden", "check_stage", "golden_path", "REGEN_HINT"]
 
 #: How to regenerate golden files on purpose (appended to every failure message).
 REGEN_HINT = ("If the change is intended, regenerate on purpose with `pytest --regen-golden` "

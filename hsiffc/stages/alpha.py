@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..params import Param
 from ..validity import ALPHA_METHODS, validity_flags
-from ._common import CALIBRATION, THRESHOLD
+from .common import CALIBRATION, THRESHOLD
 from .base import Stage
 
 

@@ -8,7 +8,7 @@ from ..dark import dark_at, fit_dark_line, subtract_dark
 from ..errors import ParameterError
 from ..frame import stack_mean
 from ..params import Param
-from ._common import AVERAGE, CALIBRATION, find_exposure, group_by_exposure
+from .common import AVERAGE, CALIBRATION, find_exposure, group_by_exposure
 from .base import Stage
 
 MATCHES = ("exposure", "scale")

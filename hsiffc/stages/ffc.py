@@ -18,7 +18,7 @@ from ..frame import stack_mean
 from ..params import Param
 from ..polyffc import PolynomialFlat, polynomial_apply, polynomial_fit
 from ..validity import alpha_table_of
-from ._common import AVERAGE, CALIBRATION, THRESHOLD, find_exposure, group_by_exposure
+from .common import AVERAGE, CALIBRATION, THRESHOLD, find_exposure, group_by_exposure
 from .base import Stage
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..linearise import linearise
-from ._common import CALIBRATION, THRESHOLD
+from .common import CALIBRATION, THRESHOLD
 from .base import Stage
 
 
