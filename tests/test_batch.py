@@ -19,8 +19,9 @@ import tifffile
 
 from hsiffc import batch
 from hsiffc.atomic import FolderLockedError, folder_lock
-from hsiffc.calibrate import calibrate
+from hsiffc.calibrate import Calibration, calibrate
 from hsiffc.cli import main
+from hsiffc.cli.pipeline import Progress
 from hsiffc.dq import DQ
 from hsiffc.errors import DataFormatError
 from hsiffc.frame import Frame
@@ -120,7 +121,7 @@ def test_output_equals_the_in_python_pipeline_and_reads_with_tifffile(world, cle
         np.testing.assert_array_equal(tifffile.imread(path, series=1), dq)
         np.testing.assert_array_equal(tifffile.imread(path, series=2), alpha)
         np.testing.assert_array_equal(tifffile.imread(path, key=slice(2, None, 3)), alpha)
-        cal_id = batch.Calibration.load(world["cal"]).identity
+        cal_id = Calibration.load(world["cal"]).identity
         assert prov["status"] == "complete" and prov["format"] == "hsiffc-corrected"
         assert prov["calibration"]["identity"] == cal_id
         assert [s["stage"] for s in prov["pipeline"]["steps"]] == ["dark", "alpha_mask"]
@@ -319,7 +320,7 @@ def test_interrupted_run_resumes_to_the_clean_result(world, tmp_path, clean_run,
     """Ctrl-C (KeyboardInterrupt) in the middle of the third file, then a rerun."""
     out = tmp_path / "out"
     calls = {"n": 0}
-    original = batch.Frame.from_raw
+    original = Frame.from_raw
 
     def interrupting(*args, **kwargs):
         calls["n"] += 1
@@ -327,7 +328,7 @@ def test_interrupted_run_resumes_to_the_clean_result(world, tmp_path, clean_run,
             raise KeyboardInterrupt
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(batch.Frame, "from_raw", staticmethod(interrupting))
+    monkeypatch.setattr(Frame, "from_raw", staticmethod(interrupting))
     with pytest.raises(KeyboardInterrupt):
         batch.correct_batch([world["raw"]], out, world["cal"])
     monkeypatch.undo()
@@ -344,12 +345,12 @@ def test_killed_process_leaves_no_partial_output_and_resumes(world, tmp_path, cl
     out = tmp_path / "out"
     slow = (
         "import sys, time\n"
-        "import hsiffc.batch as b\n"
-        "orig = b.Frame.from_raw\n"
+        "from hsiffc.frame import Frame\n"
+        "orig = Frame.from_raw\n"
         "def slow(*a, **k):\n"
         "    time.sleep(0.15)\n"
         "    return orig(*a, **k)\n"
-        "b.Frame.from_raw = staticmethod(slow)\n"
+        "Frame.from_raw = staticmethod(slow)\n"
         "from hsiffc.cli import main\n"
         "sys.exit(main(sys.argv[1:]))\n")
     cmd = [sys.executable, "-c", slow, "correct", str(world["raw"]), "--calibration",
@@ -377,12 +378,12 @@ def test_killed_process_leaves_no_partial_output_and_resumes(world, tmp_path, cl
 
 _SLOW = (
     "import sys, time\n"
-    "import hsiffc.batch as b\n"
-    "orig = b.Frame.from_raw\n"
+    "from hsiffc.frame import Frame\n"
+    "orig = Frame.from_raw\n"
     "def slow(*a, **k):\n"
     "    time.sleep(0.4)\n"
     "    return orig(*a, **k)\n"
-    "b.Frame.from_raw = staticmethod(slow)\n"
+    "Frame.from_raw = staticmethod(slow)\n"
     "from hsiffc.cli import main\n"
     "sys.exit(main(sys.argv[1:]))\n")
 
@@ -511,9 +512,11 @@ def test_an_unfinished_corrected_file_is_not_valid(tmp_path):
 # -- parallel and distributed ------------------------------------------------------------------
 
 def test_local_workers_give_identical_outputs(world, tmp_path, clean_run):
+    bar = Progress()
     summary = batch.correct_batch([world["raw"]], tmp_path, world["cal"], workers=2,
-                                  progress=True)
+                                  observer=bar)
     assert len(summary.done) == 5 and summary.exit_status == 0
+    assert bar._frames == 20 and bar._failed == 0  # the CLI's bar saw every file
     _assert_same(_outputs(tmp_path), clean_run[1])
 
 
@@ -532,13 +535,13 @@ def test_dask_scheduler_runs_the_same_batch(world, bad_folder, tmp_path, clean_r
     assert "truncated" in bad.results[0]["reason"] and bad.exit_status == 1
 
 
-def test_summary_uniformity_is_eq6_per_band():
+def test_recorded_uniformity_is_eq6_per_band_of_the_input(world, clean_run):
     from hsiffc.ffc import uniformity_per_band
 
-    rng = np.random.default_rng(0)
-    values = rng.normal(500, 20, (40, 48)).astype(np.float32)
-    band = MosaicSensor((40, 48)).band_map
-    good = rng.random((40, 48)) > 0.1
-    ours = batch._band_uniformity(values, band, good, 8)
-    ref = uniformity_per_band(values, band, dq=(~good).astype(np.uint32))
-    np.testing.assert_allclose(ours, ref, rtol=1e-3)
+    out, _ = clean_run
+    prov = read_provenance(out / "cube_0.corrected.tif")
+    frames = Frame.list_from_sweep(read_sweep(world["good"][0]))
+    band = world["sensor"].band_map
+    for k, frame in enumerate(frames):
+        ref = uniformity_per_band(frame.data, band, dq=frame.dq)
+        np.testing.assert_allclose(prov["frames"]["uniformity_before"][k], ref, rtol=1e-3)

@@ -4,8 +4,8 @@ Sub-commands live in one module per group (:mod:`.data`, :mod:`.pipeline`, :mod:
 with a ``register(sub)`` function. Each command runs under one write policy
 (:func:`hsiffc.atomic.write_policy`: ``--overwrite`` and the command's inputs, declared by the
 parser as ``input_args``; its outputs, ``output_args`` and ``output_dirs``, are checked before any
-work). Every expected error (input, output, parameter, environment) ends here, in one place: one line on stderr naming the file or parameter, the problem and the fix,
-exit status 2 (``--debug`` shows the traceback instead). Commands that process a batch return 1
+work). Every expected error (input, output, parameter, environment) ends here, in one place:
+one line on stderr naming the file or parameter, the problem and the fix, exit status 2 (``--debug`` shows the traceback instead). Commands that process a batch return 1
 when some files failed.
 """
 
@@ -20,6 +20,7 @@ from .. import __version__
 from ..atomic import write_policy
 from ..errors import HsiffcError
 from . import data, pipeline, reports
+from .args import OneLineParser
 from .common import check_declared_outputs, declared
 
 log = logging.getLogger("hsiffc")
@@ -34,7 +35,7 @@ EXIT_INTERRUPTED = 130
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every sub-command registered."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="hsiffc",
         description="Leakage-aware calibration and flat-field correction for low-light CMOS "
                     "hyperspectral snapshot-mosaic sensors.")
@@ -73,7 +74,10 @@ def describe_os_error(exc: OSError) -> str:
 def main(argv=None) -> int:
     """Run the command line; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a usage error (already on stderr)
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):

@@ -42,6 +42,26 @@ def check_declared_outputs(args) -> None:
         check_output_folder(folder)
 
 
+def nonfinite_samples(sweep, path, *, what: str) -> int:
+    """How many samples of ``sweep`` are NaN/inf; raises HsiffcError when no light frame holds a
+    finite sample (there is nothing to ``what``)."""
+    data = np.asarray(sweep.data)
+    if data.dtype.kind != "f":
+        return 0
+    finite = np.isfinite(data)
+    light = np.asarray(sweep.kind) == "light"
+    if not finite[light].any():
+        raise HsiffcError(f"{path}: no finite pixel value in its {int(light.sum())} light frames "
+                          f"(all NaN/inf); nothing to {what}: check how the file was written")
+    return int(finite.size - np.count_nonzero(finite))
+
+
+def first_nonfinite(sweep) -> str:
+    """Where the first NaN/inf sample of a float sweep is, as text."""
+    k, r, c = (int(i) for i in np.argwhere(~np.isfinite(sweep.data))[0])
+    return f"frame {k}, pixel ({r}, {c})"
+
+
 def add_overwrite(parser, help: str = "replace an existing output file") -> None:
     """The ``--overwrite`` option every writing command has (it sets the write policy)."""
     parser.add_argument("--overwrite", action="store_true", help=help)

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import HsiffcError
-from .common import add_overwrite, write_json
+from .args import count, exposure_ms, percent, positive, real
+from .common import add_overwrite, first_nonfinite, nonfinite_samples, write_json
 
 
 def register(sub) -> None:
@@ -59,17 +60,17 @@ def _add_simulate(sub):
         description="Simulate raw frames of the default (paper) sensor or a square IMEC-like "
                     "mosaic under a named lamp and write an hsiffc TIFF sweep.")
     p.add_argument("output", type=Path, help="TIFF file to write (not overwritten without --overwrite)")
-    p.add_argument("--exposures-ms", type=float, nargs="+", required=True,
+    p.add_argument("--exposures-ms", type=exposure_ms, nargs="+", required=True,
                    help="exposure times in ms")
     p.add_argument("--lamp", default="lamp A",
                    help="'lamp A' (2900 K), 'lamp B' (2200 K), '<T>K', or a CIE illuminant name")
-    p.add_argument("--irradiance-w-m2", type=float, default=None,
+    p.add_argument("--irradiance-w-m2", type=positive, default=None,
                    help="irradiance over 400-1000 nm in W/m^2 (default: the paper's training level)")
-    p.add_argument("--frames", type=int, default=2, help="frames per exposure (default 2)")
+    p.add_argument("--frames", type=count, default=2, help="frames per exposure (default 2)")
     p.add_argument("--no-darks", action="store_true", help="do not add dark frames")
-    p.add_argument("--shape", type=int, nargs=2, default=(64, 64), metavar=("H", "W"))
+    p.add_argument("--shape", type=count, nargs=2, default=(64, 64), metavar=("H", "W"))
     p.add_argument("--mosaic", default="paper8", help="paper8, 4x4 or 5x5")
-    p.add_argument("--vignetting", type=float, default=0.0)
+    p.add_argument("--vignetting", type=real, default=0.0)
     p.add_argument("--seed", type=int, default=0)
     add_overwrite(p)
     p.set_defaults(func=_cmd_simulate, output_args=("output",))
@@ -111,7 +112,7 @@ def _add_calibrate(sub):
     p.add_argument("--method", choices=("joint", "paper"), default="joint",
                    help="joint per-pixel fit (default) or the paper's procedure (several "
                         "illuminations)")
-    p.add_argument("--full-well-dn", type=float, default=None,
+    p.add_argument("--full-well-dn", type=positive, default=None,
                    help="leave out samples at or above this level (full-well saturation)")
     p.add_argument("--steps", choices=("all", "sweep"), default="sweep",
                    help="EMVA 1288: use only the sweep steps (default) or also the spatial set")
@@ -129,7 +130,10 @@ def _cmd_calibrate(args) -> int:
         sweep = sweep.select(np.isin(sweep.step, sweep.meta["sweep_steps"]))
     print(sweep.summary())
     if args.output.suffix != ".npz":
-        raise HsiffcError(f"the calibration file must end in .npz, got {args.output.name!r}")
+        raise HsiffcError(f"{args.output}: the calibration file must end in .npz; rename it")
+    bad = nonfinite_samples(sweep, args.sweep, what="calibrate")
+    if bad:
+        print(f"  note: {bad} NaN/inf samples (first at {first_nonfinite(sweep)}) are left out")
     cal = calibrate(sweep, method=args.method, full_well_dn=args.full_well_dn)
     cal.save(args.output, overwrite=args.overwrite)
     print(cal.summary())
@@ -164,7 +168,7 @@ def _add_select(sub):
                     "alpha per band and exposure like the paper's Table I.")
     p.add_argument("sweep", type=Path, help="candidate training frames (one step per exposure)")
     p.add_argument("--calibration", type=Path, required=True, help="calibration file (.npz)")
-    p.add_argument("--threshold", type=float, required=True, help="alpha threshold in percent")
+    p.add_argument("--threshold", type=percent, required=True, help="alpha threshold in percent")
     p.add_argument("--alpha", choices=("paper", "model"), default="paper",
                    help="alpha as the paper computes it (k ~ signal/exposure) or with k from the "
                         "model (default: paper)")

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
+from ..errors import HsiffcError
+from .args import count, percent, real
 from .common import add_overwrite, write_json
 
 
@@ -56,10 +59,17 @@ def _cmd_fit(args) -> int:
     from ..stages import Pipeline
 
     pipe = Pipeline.from_toml(args.description)
-    frames = []
+    frames, first = [], None
     for path in args.training:
         sweep = read_sweep(path)
         print(sweep.summary())
+        shape = tuple(sweep.frame_shape)
+        if first is None:
+            first = (path, shape)
+        elif shape != first[1]:
+            raise HsiffcError(f"{path}: frames of {shape[0]} x {shape[1]} px, but {first[0]} has "
+                              f"{first[1][0]} x {first[1][1]} px; train a pipeline on frames of "
+                              "one sensor size (fit each size separately)")
         frames += Frame.list_from_sweep(sweep)
     pipe.fit(frames)
     pipe.save(args.output, overwrite=args.overwrite)
@@ -87,11 +97,11 @@ def _add_correct(sub):
     p.add_argument("--pipeline", type=Path, default=None,
                    help="fitted pipeline (.npz from 'hsiffc fit'); default: dark from the "
                         "calibration + alpha mask (+ --linearise)")
-    p.add_argument("--threshold", type=float, default=12.0,
+    p.add_argument("--threshold", type=percent, default=12.0,
                    help="alpha threshold in percent for the default pipeline (default 12)")
     p.add_argument("--linearise", action="store_true",
                    help="add leakage linearisation to the default pipeline")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=count, default=1,
                    help="parallel worker processes on this machine (Dask local cluster; "
                         "default 1: in this process)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -105,7 +115,7 @@ def _add_correct(sub):
                         "(default) or fail the file")
     p.add_argument("--no-hash", action="store_true",
                    help="do not record the inputs' sha256 in the provenance (saves one read)")
-    p.add_argument("--wait", type=float, default=0.0, metavar="SECONDS",
+    p.add_argument("--wait", type=real, default=0.0, metavar="SECONDS",
                    help="when another run is writing into OUTDIR, wait up to SECONDS for it to "
                         "finish (default: refuse at once, naming that run)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -114,16 +124,61 @@ def _add_correct(sub):
                    output_args=("json",))
 
 
+class Progress:
+    """A rich progress bar on stderr for ``hsiffc correct``: files, frames, input throughput
+    (an observer of :func:`hsiffc.batch.correct_batch`)."""
+
+    def start(self, n_files: int) -> None:
+        from rich.console import Console
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+        from rich.progress import Progress as Bar
+
+        self._p = Bar(TextColumn("correct"), BarColumn(), MofNCompleteColumn(),
+                      TextColumn("files  {task.fields[frames]} frames  "
+                                 "{task.fields[rate]:.1f} MB/s  {task.fields[failed]} failed"),
+                      TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True))
+        self._t0 = time.perf_counter()
+        self._frames, self._bytes, self._failed = 0, 0.0, 0
+        self._task = self._p.add_task("correct", total=n_files, frames=0, rate=0.0, failed=0)
+        self._p.start()
+
+    def _update(self, **kw):
+        rate = self._bytes / max(time.perf_counter() - self._t0, 1e-9) / 1e6
+        self._p.update(self._task, frames=self._frames, rate=rate, failed=self._failed, **kw)
+
+    def frame(self, nbytes: float) -> None:
+        self._frames += 1
+        self._bytes += nbytes
+        self._update()
+
+    def file(self, res: dict, counted_frames: bool) -> None:
+        if not counted_frames and res["status"] == "done":
+            self._frames += res["frames"]
+            self._bytes += res["bytes"]
+        self._failed += res["status"] == "failed"
+        self._update(advance=1)
+
+    def close(self) -> None:
+        self._p.stop()
+
+
 def _cmd_correct(args) -> int:
     from ..batch import correct_batch
 
+    show = not args.quiet and sys.stderr.isatty()
     try:
         summary = correct_batch(args.inputs, args.outdir, args.calibration,
                                 pipeline=args.pipeline, threshold_percent=args.threshold,
                                 linearise=args.linearise, workers=args.workers,
                                 scheduler=args.scheduler, overwrite=args.overwrite, nan=args.nan,
                                 hash_inputs=not args.no_hash, wait_s=args.wait,
-                                progress=not args.quiet and sys.stderr.isatty())
+                                observer=Progress() if show else None)
     except KeyboardInterrupt:
         print("hsiffc correct: interrupted; finished outputs are kept (no partial file is left "
               "under a final name): run the same command again to resume", file=sys.stderr)

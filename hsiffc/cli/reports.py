@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import HsiffcError
-from .common import DEFAULT_SAMPLES, add_overwrite
+from .args import count, percent
+from .common import DEFAULT_SAMPLES, add_overwrite, first_nonfinite, nonfinite_samples
 
 
 def register(sub) -> None:
@@ -55,9 +56,9 @@ def _add_paper(sub):
                    help="EMVA 1288 sweep folder (default: ../shared/data/emva1288-cmos8-roi "
                         "if found, else that part is skipped with a note)")
     p.add_argument("--no-emva", action="store_true", help="skip the real-data part")
-    p.add_argument("--threshold", type=float, default=12.0,
+    p.add_argument("--threshold", type=percent, default=12.0,
                    help="alpha threshold in percent for Tables I/II and Fig. 6 (default 12)")
-    p.add_argument("--shape", type=int, nargs=2, default=(128, 128), metavar=("H", "W"),
+    p.add_argument("--shape", type=count, nargs=2, default=(128, 128), metavar=("H", "W"),
                    help="simulated sensor size (multiple of the 2 x 4 tile; default 128 128)")
     add_overwrite(p, "replace the files of an earlier report in OUTDIR")
     p.set_defaults(func=_cmd_paper, input_args=("emva",), output_dirs=("outdir",))
@@ -134,7 +135,7 @@ def _add_diagnose(sub):
     p.add_argument("--json", type=Path, default=None, help="write the result as JSON")
     p.add_argument("--report", type=Path, default=None,
                    help="folder for report.md, residuals.png and diagnosis.json")
-    p.add_argument("--pixels", type=int, default=2048,
+    p.add_argument("--pixels", type=count, default=2048,
                    help="pixels analysed (random subset; default 2048)")
     p.add_argument("--seed", type=int, default=0, help="seed of the pixel subset")
     p.add_argument("--effects", default=None,
@@ -158,6 +159,11 @@ def _cmd_diagnose(args) -> int:
         raise HsiffcError("give a SWEEP to diagnose (or --list-effects)")
     sweep = read_sweep(args.sweep)
     print(sweep.summary())
+    bad = nonfinite_samples(sweep, args.sweep, what="diagnose")
+    if bad:
+        raise HsiffcError(f"{args.sweep}: {bad} samples are NaN/inf (the first at "
+                          f"{first_nonfinite(sweep)}); diagnose needs finite samples: fix or "
+                          "drop those frames")
     effects = args.effects.split(",") if args.effects else None
     try:
         result = diagnose(sweep, max_pixels=args.pixels, seed=args.seed, effects=effects)

@@ -1,0 +1,148 @@
+"""Batch correction of TIFF cubes (``hsiffc correct``): streaming, resumable, parallel.
+
+One task per input file (:mod:`.task`): it reads the input one frame at a time, runs the
+pipeline on the frame and appends data, DQ and alpha to the output (:mod:`hsiffc.io.corrected`),
+written to a temporary file renamed into place only when complete. Memory is a few frames per
+worker whatever the batch size. :mod:`.plan` turns inputs into jobs, :mod:`.context` holds the
+calibration and pipeline, :mod:`.executors` runs the tasks in this process (one worker), on a
+local Dask cluster (``workers > 1``) or on any Dask distributed scheduler (``scheduler=``).
+Each task returns a small result dict, so a bad input is reported with its reason and the rest
+carries on. The output folder is locked while a batch writes into it
+(:func:`hsiffc.atomic.folder_lock`).
+
+>>> from hsiffc.batch import output_name
+>>> output_name("day1/cube_07.tif")
+'day1/cube_07.corrected.tif'
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from ..atomic import folder_lock, protect_inputs
+from ..calibrate.product import Calibration
+from .context import (
+    NAN_POLICIES,
+    Settings,
+    context_for,
+    default_pipeline,
+    load_pipeline,
+)
+from .executors import check_scheduler, run_jobs
+from .plan import BatchError, Job, discover_inputs, output_name, plan_jobs
+from .summary import BatchSummary
+from .task import correct_file
+
+__all__ = ["BatchError", "BatchSummary", "Job", "Settings", "check_scheduler", "correct_batch",
+           "correct_file", "default_pipeline", "discover_inputs", "load_pipeline", "output_name",
+           "plan_jobs"]
+
+
+def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_percent: float = 12.0,
+                  linearise: bool = False, workers: int = 1, scheduler: str | None = None,
+                  overwrite: bool = False, nan: str = "flag", hash_inputs: bool = True,
+                  observer=None, wait_s: float = 0.0) -> BatchSummary:
+    """Correct every input (files, folders, globs) into ``outdir``; see ``hsiffc correct``.
+
+    Parameters
+    ----------
+    inputs : sequence of path or str
+        TIFF files, folders (searched recursively) and globs.
+    outdir : path
+        Output folder (created if missing; locked while the batch runs).
+    calibration : path
+        Calibration file (.npz); required (the default pipeline is built from it; with
+        ``pipeline`` it must be the calibration the pipeline was fitted with).
+    pipeline : path, optional
+        Fitted pipeline (.npz from ``hsiffc fit``); default: :func:`default_pipeline`.
+    threshold_percent : float
+        Alpha threshold (%) of the default pipeline.
+    linearise : bool
+        Add leakage linearisation to the default pipeline.
+    workers : int
+        1: in this process. More: a local Dask cluster of that many single-threaded processes.
+    scheduler : str, optional
+        Address of a Dask distributed scheduler (``tcp://host:8786``); the workers must see the
+        inputs, the calibration and OUTDIR at the same absolute paths. Checked for a connection
+        (a few seconds) before anything else.
+    overwrite : bool
+        Redo outputs that are complete and up to date (otherwise skipped), and replace files at
+        output names that are not outputs of ``hsiffc correct`` or are symbolic links (the link
+        itself is replaced, never its target).
+    nan : "flag" or "fail"
+        NaN/inf pixels in float inputs: flag them NONFINITE (set to 0 DN) and warn, or fail
+        the file.
+    hash_inputs : bool
+        Record each input's sha256 in the provenance (one extra read of the input).
+    observer : object, optional
+        Told of progress: ``start(n_files)``, ``frame(nbytes)`` (in-process runs only),
+        ``file(result, counted_frames)`` and ``close()`` (the CLI's progress bar).
+    wait_s : float
+        Seconds to wait when another run holds OUTDIR's lock (default: refuse at once).
+
+    Returns
+    -------
+    BatchSummary
+
+    Raises
+    ------
+    BatchError, DataFormatError
+        Before any file is processed: bad options, missing inputs, unreadable calibration or
+        pipeline, an unreachable scheduler, or an output that would overwrite an input.
+    hsiffc.atomic.FolderLockedError
+        Another run is writing into ``outdir`` (the message names its pid, host and start).
+    """
+    t0 = time.perf_counter()
+    workers = _check_options(nan, workers, scheduler, threshold_percent)
+    cal_path = Path(calibration).resolve()
+    cal = Calibration.load(cal_path)
+    settings = Settings(calibration=str(cal_path), calibration_identity=cal.identity,
+                        pipeline=None if pipeline is None else str(Path(pipeline).resolve()),
+                        threshold_percent=float(threshold_percent), linearise=bool(linearise),
+                        overwrite=bool(overwrite), nan=nan, hash_inputs=bool(hash_inputs))
+    if settings.pipeline and not Path(settings.pipeline).is_file():
+        raise BatchError(f"{pipeline}: pipeline file not found")
+    ctx = context_for(settings, cal)  # validates the pipeline here, before any file is touched
+    del cal
+    jobs, ignored = plan_jobs(inputs, outdir)
+    protect_inputs([j.input for j in jobs] + [cal_path, settings.pipeline])
+    with folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
+        if observer is not None:
+            observer.start(len(jobs))
+        try:
+            results = run_jobs(jobs, settings, workers=workers, scheduler=scheduler,
+                               observer=observer)
+        finally:
+            if observer is not None:
+                observer.close()
+    steps = [s["name"] for s in ctx.info["steps"]]
+    return BatchSummary([results[i] for i in sorted(results)], time.perf_counter() - t0,
+                        str(Path(outdir).resolve()),
+                        {"path": str(cal_path), "identity": ctx.identity},
+                        {k: v for k, v in ctx.info.items() if k != "steps"} | {"steps": steps},
+                        ignored)
+
+
+def _check_options(nan, workers, scheduler, threshold_percent) -> int:
+    """The options a batch checks before reading anything; returns ``workers`` as an int."""
+    if nan not in NAN_POLICIES:
+        raise BatchError(f"nan must be one of {NAN_POLICIES}, got {nan!r}")
+    try:
+        workers = int(workers)
+    except (TypeError, ValueError):
+        raise BatchError(f"--workers must be a whole number, got {workers!r}") from None
+    if workers < 1:
+        raise BatchError(f"--workers must be at least 1, got {workers}")
+    if scheduler and workers > 1:
+        raise BatchError("give either --workers (a local cluster) or --scheduler, not both")
+    try:
+        threshold = float(threshold_percent)
+    except (TypeError, ValueError):
+        threshold = float("nan")
+    if not 0 < threshold < float("inf"):
+        raise BatchError(f"--threshold must be a positive, finite percentage, got "
+                         f"{threshold_percent!r}")
+    if scheduler:
+        check_scheduler(scheduler)
+    return workers

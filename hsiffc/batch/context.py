@@ -1,0 +1,163 @@
+"""What every task of a batch shares: its settings, the calibration and the pipeline.
+
+:class:`Settings` are plain values sent to the workers; :func:`context_for` turns them into the
+loaded calibration and pipeline once per process (a worker handles many files).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..calibrate.product import Calibration
+from ..errors import DataFormatError
+from ..stages import Pipeline, create
+from .plan import BatchError
+
+__all__ = ["Context", "Settings", "context_for", "default_pipeline", "load_pipeline",
+           "sha256_file"]
+
+NAN_POLICIES = ("flag", "fail")
+
+
+def default_pipeline(calibration, *, threshold_percent: float = 12.0,
+                     linearise: bool = False) -> Pipeline:
+    """The pipeline ``hsiffc correct`` applies without ``--pipeline``: it needs no training frames.
+
+    ``dark`` (the calibration's dark level plus dark current times the exposure), ``mask``
+    (``alpha_mask``: alpha per pixel, LEAKAGE above ``threshold_percent``, OUT_OF_DOMAIN and the
+    calibration's pixel flags) and, with ``linearise``, ``linearise`` (leakage inversion).
+    ``calibration`` is a saved Calibration (or its path).
+    """
+    cal = calibration if isinstance(calibration, Calibration) else Calibration.load(calibration)
+    steps = [("dark", create("dark", calibration=cal).fit([])),
+             ("mask", create("alpha_mask", calibration=cal,
+                             threshold_percent=float(threshold_percent)).fit([]))]
+    if linearise:
+        steps.append(("linearise", create("linearise", calibration=cal).fit([])))
+    return Pipeline(steps)
+
+
+def load_pipeline(path, calibration: Calibration, notes: list | None = None) -> Pipeline:
+    """A fitted pipeline file whose stages use ``calibration``.
+
+    A stage's own calibration must have the same identity (else BatchError); when the file it
+    names cannot be found (as given, or beside the pipeline file) ``calibration`` is used and a
+    note is appended to ``notes``.
+    """
+    path = Path(path)
+    notes = [] if notes is None else notes
+    if path.suffix != ".npz":
+        raise BatchError(f"{path}: --pipeline takes a fitted pipeline (.npz from 'hsiffc fit'); "
+                         "fit a TOML description first")
+    pipe = Pipeline.load(path, calibration=calibration)  # same identity: no file read
+    for name, stage in pipe.steps:
+        if stage.name == "reconstruct":
+            raise BatchError(f"{path}: step {name!r} reconstructs cubes; hsiffc correct writes "
+                             "corrected mosaic frames (H, W): fit a pipeline without it")
+        if not stage.is_fitted():
+            raise BatchError(f"{path}: step {name!r} is not fitted; fit it with 'hsiffc fit'")
+        ref = stage.get_params().get("calibration")
+        if ref is None:
+            continue
+        other = ref if isinstance(ref, Calibration) else _find_cal(ref, path)
+        if other is None:
+            # the file the pipeline names is not here (moved, or a path relative to where it
+            # was fitted): the stage gets --calibration, which the provenance records
+            notes.append(f"step {name!r}: its calibration {ref} is not found; "
+                         f"--calibration {calibration.identity} is used")
+        elif other.identity != calibration.identity:
+            raise BatchError(f"{path}: step {name!r} uses calibration {other.identity} ({ref}) "
+                             f"but --calibration is {calibration.identity}: pass the calibration "
+                             "the pipeline was fitted with, or fit the pipeline again")
+        stage.set_params(calibration=calibration)  # loaded once, not per frame
+    return pipe
+
+
+def _find_cal(ref, pipeline_path: Path) -> Calibration | None:
+    ref = Path(ref)
+    for cand in (ref, pipeline_path.parent / ref, pipeline_path.parent / ref.name):
+        if cand.is_file():
+            try:
+                return Calibration.load(cand)
+            except DataFormatError as exc:
+                raise BatchError(f"{pipeline_path}: the calibration {cand} it names cannot be "
+                                 f"read: {exc}") from exc
+    return None
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Everything a task needs besides its Job (plain values, sent to the workers)."""
+
+    calibration: str
+    calibration_identity: str
+    pipeline: str | None = None
+    threshold_percent: float = 12.0
+    linearise: bool = False
+    overwrite: bool = False
+    nan: str = "flag"
+    hash_inputs: bool = True
+
+
+@dataclass
+class Context:
+    """A batch's loaded calibration and pipeline, and what the provenance says of them."""
+
+    calibration: Calibration
+    identity: str  # the calibration's (a content hash: computed once)
+    pipeline: Pipeline
+    info: dict
+
+
+_CONTEXTS: dict = {}  # per process: a worker builds its context once
+
+
+def context_for(settings: Settings, calibration: Calibration | None = None) -> Context:
+    """The calibration and pipeline of these settings, built once per process (from
+    ``calibration`` when it is already loaded)."""
+    key = (settings.calibration, settings.calibration_identity, settings.pipeline,
+           settings.threshold_percent, settings.linearise)
+    ctx = _CONTEXTS.get(key)
+    if ctx is None:
+        cal = calibration if calibration is not None else Calibration.load(settings.calibration)
+        if calibration is None and cal.identity != settings.calibration_identity:
+            raise BatchError(f"{settings.calibration}: the calibration changed since the batch "
+                             f"started (identity {cal.identity}, expected "
+                             f"{settings.calibration_identity})")
+        if settings.pipeline:
+            notes: list = []
+            pipe = load_pipeline(settings.pipeline, cal, notes)
+            info = {"kind": "file", "path": settings.pipeline,
+                    "sha256": sha256_file(settings.pipeline), "notes": notes}
+        else:
+            pipe = default_pipeline(cal, threshold_percent=settings.threshold_percent,
+                                    linearise=settings.linearise)
+            info = {"kind": "default", "path": None, "sha256": None, "notes": []}
+        steps = [{"name": s["name"], "stage": s["stage"], "params": s["params"]}
+                 for s in pipe.manifest()["steps"]]
+        identity = settings.calibration_identity
+        norm = [{**s, "params": {k: (f"identity:{identity}" if k == "calibration" and v
+                                     else v) for k, v in s["params"].items()}} for s in steps]
+        info["steps"] = steps
+        info["fingerprint"] = hashlib.sha256(json.dumps(
+            {"steps": norm, "file": info["sha256"]}, sort_keys=True).encode()).hexdigest()[:16]
+        info["alpha_computed"] = any(s["stage"] == "alpha_mask" for s in steps)
+        ctx = Context(cal, identity, pipe, info)
+        if len(_CONTEXTS) > 4:
+            _CONTEXTS.clear()
+        _CONTEXTS[key] = ctx
+    return ctx
+
+
+def sha256_file(path, chunk: int = 1 << 22) -> str:
+    """Hex sha256 of a file, read in chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+

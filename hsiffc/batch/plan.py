@@ -1,0 +1,167 @@
+"""Planning a batch: inputs (files, folders, globs) to jobs, one output name per input.
+
+>>> output_name("day1/cube_07.tif")
+'day1/cube_07.corrected.tif'
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path, PurePath
+
+from ..errors import HsiffcError
+from ..io.corrected import SUFFIX
+from ..io.tiff import TIFF_SUFFIXES
+
+__all__ = ["BatchError", "Job", "discover_inputs", "output_name", "plan_jobs"]
+
+_MAGIC = re.compile(r"[*?[]")
+
+
+class BatchError(HsiffcError):
+    """The batch cannot start (bad arguments, inputs or options): a usage error."""
+
+
+
+def _is_tiff(path) -> bool:
+    return PurePath(path).suffix.lower() in TIFF_SUFFIXES
+
+
+def _is_output(path) -> bool:
+    name = PurePath(path).name.lower()
+    return name.endswith(SUFFIX) or name.endswith(SUFFIX + "f")
+
+
+def _hidden(rel: PurePath) -> bool:
+    return any(part.startswith(".") for part in rel.parts)
+
+
+def discover_inputs(args) -> tuple[list[tuple[Path, PurePath]], list[Path]]:
+    """Expand files, folders and globs into ``(path, relative name)`` pairs.
+
+    Folders are searched recursively for ``*.tif``/``*.tiff`` (hidden entries skipped) and
+    globs (``*``, ``?``, ``[...]``, ``**``) are expanded; their relative name is the path below
+    the folder or below the glob's fixed leading part. A file named directly keeps its name.
+    Files named ``*.corrected.tif`` found by a folder or a glob are outputs of this command
+    and are ignored (returned as the second list). Duplicates are dropped.
+
+    Raises
+    ------
+    BatchError
+        An argument that does not exist, a glob or folder without TIFF files, or a file that
+        is not a ``.tif``/``.tiff``.
+    """
+    found: dict[Path, tuple[Path, PurePath]] = {}
+    ignored: list[Path] = []
+
+    def add(path: Path, rel: PurePath):
+        key = path.resolve()
+        if key not in found:
+            found[key] = (path, rel)
+
+    for arg in args:
+        text = os.fspath(arg)
+        if _MAGIC.search(text) and not Path(text).exists():
+            root = _glob_root(text)
+            files = [Path(m) for m in sorted(glob.glob(text, recursive=True))
+                     if Path(m).is_file() and _is_tiff(m)]
+            if not files:
+                raise BatchError(f"{text}: the pattern matches no TIFF file (.tif/.tiff)")
+            for f in files:
+                rel = PurePath(os.path.relpath(f, root)) if root else PurePath(f)
+                if rel.parts and rel.parts[0] == "..":
+                    rel = PurePath(f.name)
+                if _is_output(f):
+                    ignored.append(f)
+                else:
+                    add(f, rel)
+            continue
+        path = Path(text)
+        if path.is_dir():
+            files = sorted(q for q in path.rglob("*")
+                           if q.is_file() and _is_tiff(q) and not _hidden(q.relative_to(path)))
+            if not files:
+                raise BatchError(f"{path}: the folder holds no TIFF file (.tif/.tiff)")
+            for f in files:
+                if _is_output(f):
+                    ignored.append(f)
+                else:
+                    add(f, f.relative_to(path))
+        elif path.is_file():
+            if not _is_tiff(path):
+                raise BatchError(f"{path}: not a TIFF file name (.tif/.tiff); hsiffc correct "
+                                 "reads hsiffc TIFF frames or cubes")
+            add(path, PurePath(path.name))
+        elif path.exists():
+            raise BatchError(f"{path}: neither a regular file nor a folder")
+        else:
+            raise BatchError(f"{path}: no such file or folder")
+    return list(found.values()), ignored
+
+
+def _glob_root(pattern: str) -> str:
+    parts = PurePath(pattern).parts
+    fixed = []
+    for part in parts[:-1]:
+        if _MAGIC.search(part):
+            break
+        fixed.append(part)
+    return str(PurePath(*fixed)) if fixed else ""
+
+
+def output_name(rel) -> str:
+    """The output's name below OUTDIR for an input's relative name (POSIX separators)."""
+    rel = PurePath(rel)
+    return rel.with_name(rel.stem + SUFFIX).as_posix()
+
+
+@dataclass(frozen=True)
+class Job:
+    """One input file and where its output goes (absolute paths)."""
+
+    input: str
+    rel: str
+    output: str
+
+
+def plan_jobs(inputs, outdir) -> tuple[list[Job], list[Path]]:
+    """Jobs for ``inputs`` (files, folders, globs) writing below ``outdir``.
+
+    Raises BatchError if two inputs map to one output or an output would overwrite an input.
+    """
+    outdir = Path(outdir)
+    if outdir.exists() and not outdir.is_dir():
+        raise BatchError(f"{outdir}: the output folder is a file; give a folder (-o OUTDIR)")
+    pairs, ignored = discover_inputs(inputs)
+    if not pairs:
+        raise BatchError("no input files; give TIFF files, folders or globs")
+    jobs, seen = [], {}
+    inputs_resolved = {p.resolve() for p, _ in pairs}
+    inodes = {_inode(p) for p, _ in pairs} - {None}
+    root = outdir.resolve()
+    for path, rel in pairs:
+        out = root / output_name(rel)  # not resolved: a link at the name is never followed
+        if out in seen:
+            raise BatchError(f"{path} and {seen[out]} would both be written to {out}; give them "
+                             "from their folder (their relative paths keep them apart) or "
+                             "correct them in separate runs")
+        seen[out] = path
+        if out.resolve() in inputs_resolved or (out.exists() and _inode(out) in inodes):
+            raise BatchError(f"the output for {path} would overwrite the input {out}; hsiffc "
+                             "correct never writes over an input: choose another output folder "
+                             "(-o) or move that input")
+        jobs.append(Job(str(path.resolve()), PurePath(rel).as_posix(), str(out)))
+    return jobs, ignored
+
+
+def _inode(path: Path):
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino)
+
+

@@ -1,0 +1,87 @@
+"""Per-frame statistics a batch records: eq. (6) non-uniformity per band before and after.
+
+On large frames the statistic is taken on whole tile rows, evenly spaced, totalling about
+``STATS_PIXELS`` pixels, so it costs little next to the correction itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..ffc import uniformity_per_band
+
+__all__ = ["STATS_PIXELS", "FrameStats", "band_uniformity", "mean_bands", "stats_rows"]
+
+STATS_PIXELS = 1 << 16
+
+
+def stats_rows(shape, mosaic) -> np.ndarray:
+    """Rows (whole tile rows, evenly spaced) on which uniformity is estimated."""
+    h, w = shape
+    th = mosaic.tile_shape[0] if mosaic is not None else 1
+    blocks = h // th
+    if blocks == 0 or h * w <= STATS_PIXELS:
+        return np.arange(h)
+    step = max(1, blocks // max(1, STATS_PIXELS // (w * th)))
+    return (np.arange(0, blocks, step)[:, None] * th + np.arange(th)[None, :]).ravel()
+
+
+def band_uniformity(values, band, dq) -> list:
+    """Eq. (6) per band over the pixels without DQ bits (:func:`hsiffc.ffc.uniformity_per_band`),
+    rounded to 4 significant digits; None where a band has no value."""
+    u = uniformity_per_band(values, band, dq=dq)
+    return [float(f"{x:.4g}") if np.isfinite(x) else None for x in u]
+
+
+def mean_bands(rows) -> list:
+    """Per band mean over frames (None entries are bands without a value)."""
+    v = np.array([[np.nan if x is None else x for x in r] for r in rows], float)
+    ok = np.isfinite(v)
+    mean = np.where(ok, v, 0.0).sum(0) / np.maximum(ok.sum(0), 1)
+    return [float(m) if c else None for m, c in zip(mean, ok.any(0))]
+
+
+class FrameStats:
+    """Statistics of one file's frames, collected frame by frame (a few numbers per frame).
+
+    Parameters
+    ----------
+    shape : (int, int)
+        Frame shape (H, W).
+    mosaic : Mosaic or None
+        Band layout; without one the whole frame is one band.
+    """
+
+    def __init__(self, shape, mosaic):
+        self.rows = stats_rows(shape, mosaic)
+        full = mosaic.band_map(shape) if mosaic is not None else np.zeros(shape, np.int64)
+        self.band = full[self.rows]
+        self.n_bands = int(self.band.max()) + 1
+        self.all_rows = len(self.rows) == shape[0]
+        self.nonfinite, self.flagged, self.before, self.after = [], [], [], []
+
+    def add(self, frame, result, nonfinite: int) -> None:
+        """Record input ``frame`` and its corrected ``result`` (Frames) with its count of
+        NaN/inf pixels."""
+        r = self.rows
+        self.nonfinite.append(int(nonfinite))
+        self.flagged.append(round(np.count_nonzero(result.dq) / result.dq.size, 6))
+        light = frame.kind == "light"
+        self.before.append(band_uniformity(frame.data[r], self.band, frame.dq[r])
+                           if light else None)
+        self.after.append(band_uniformity(result.data[r], self.band, result.dq[r])
+                          if light else None)
+
+    def to_dict(self) -> dict:
+        """The per-frame lists, as the provenance records them."""
+        return {"nonfinite_pixels": self.nonfinite, "flagged_fraction": self.flagged,
+                "uniformity_before": self.before, "uniformity_after": self.after,
+                "uniformity_rows": "all" if self.all_rows else len(self.rows)}
+
+    def file_result(self) -> dict:
+        """``light_frames`` and the per band means over the light frames (None when none)."""
+        light = [b for b in self.before if b is not None]
+        if not light:
+            return {}
+        return {"light_frames": len(light), "uniformity_before": mean_bands(light),
+                "uniformity_after": mean_bands([a for a in self.after if a is not None])}

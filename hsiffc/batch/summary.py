@@ -1,0 +1,97 @@
+"""What a batch did: :class:`BatchSummary` (one result dict per input), as text or JSON."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._json import json_safe
+from ..io.corrected import SUFFIX
+
+__all__ = ["BatchSummary"]
+
+
+@dataclass
+class BatchSummary:
+    """What a batch did: one result dict per input (see :func:`correct_file`)."""
+
+    results: list
+    seconds: float
+    outdir: str
+    calibration: dict
+    pipeline: dict
+    ignored: list = field(default_factory=list)
+
+    def _with(self, status):
+        return [r for r in self.results if r["status"] == status]
+
+    @property
+    def done(self):
+        return self._with("done")
+
+    @property
+    def skipped(self):
+        return self._with("skipped")
+
+    @property
+    def failed(self):
+        return self._with("failed")
+
+    @property
+    def exit_status(self) -> int:
+        """0 when every file is done or skipped, 1 when any failed."""
+        return 1 if self.failed else 0
+
+    def uniformity(self):
+        """Per band (before, after) non-uniformity, mean over the light frames of done files."""
+        rows = [r for r in self.done if r["uniformity_before"] is not None
+                and r["uniformity_after"] is not None]
+        if not rows:
+            return None
+        w = np.array([r["light_frames"] for r in rows], float)[:, None]
+        out = []
+        for key in ("uniformity_before", "uniformity_after"):
+            v = np.array([[np.nan if x is None else x for x in r[key]] for r in rows], float)
+            ok = np.isfinite(v)
+            total = (np.where(ok, v, 0.0) * w).sum(0)
+            weight = (ok * w).sum(0)
+            out.append(np.where(weight > 0, total / np.maximum(weight, 1e-300), np.nan))
+        return out[0], out[1]
+
+    def to_dict(self) -> dict:
+        u = self.uniformity()
+        return json_safe({"outdir": self.outdir, "seconds": self.seconds,
+                          "counts": {s: len(self._with(s)) for s in ("done", "skipped", "failed")},
+                          "exit_status": self.exit_status, "calibration": self.calibration,
+                          "pipeline": self.pipeline, "ignored": [str(p) for p in self.ignored],
+                          "uniformity_before": None if u is None else u[0],
+                          "uniformity_after": None if u is None else u[1],
+                          "results": self.results})
+
+    def to_text(self) -> str:
+        done = self.done
+        frames = sum(r["frames"] for r in done)
+        mb = sum(r["bytes"] for r in done) / 1e6
+        t = max(self.seconds, 1e-9)
+        lines = [f"{len(self.results)} files: {len(done)} done, {len(self.skipped)} skipped, "
+                 f"{len(self.failed)} failed; {frames} frames corrected in {self.seconds:.1f} s "
+                 f"({frames / t:.2f} frames/s, {mb / t:.1f} MB/s of input)"]
+        lines += [f"note: {n}" for n in self.pipeline.get("notes", [])]
+        if self.ignored:
+            lines.append(f"ignored {len(self.ignored)} files named *{SUFFIX} (outputs of "
+                         "hsiffc correct)")
+        u = self.uniformity()
+        if u is not None:
+            lines.append("non-uniformity per band (eq. 6, %, good pixels, mean over light "
+                         "frames): before -> after")
+            lines += [f"  band {i + 1}: {b:7.3f} -> {a:7.3f}" for i, (b, a) in enumerate(zip(*u))]
+        warned = [r for r in self.results if r["warnings"]]
+        if warned:
+            lines.append("warnings:")
+            lines += [f"  {r['rel']}: {w}" for r in warned for w in r["warnings"]]
+        if self.failed:
+            lines.append("failed:")
+            lines += [f"  {r['rel']}: {r['reason']}" for r in self.failed]
+        lines.append(f"outputs in {self.outdir}")
+        return "\n".join(lines)

@@ -1,0 +1,248 @@
+"""The per-file task of a batch: decode -> correct -> encode, one frame at a time.
+
+:func:`correct_file` never raises for a bad input: its result dict says what happened. The
+frame loop in :func:`stream_file` is the whole data path (read a frame, run the pipeline, hand
+the planes to the writer); everything around it is checks, provenance and statistics.
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..atomic import PART_SUFFIX, atomic_path
+from ..dq import DQ
+from ..errors import DataFormatError, HsiffcError
+from ..frame import Frame
+from ..io.corrected import (
+    BackgroundWriter,
+    CorrectedWriter,
+    is_corrected_file,
+    read_provenance,
+)
+from .context import Context, Settings, context_for, sha256_file
+from .plan import BatchError, Job
+from .source import open_input
+from .stats import FrameStats
+
+__all__ = ["correct_file", "empty_result", "stale_reason", "stream_file"]
+
+log = logging.getLogger(__name__)
+
+
+def empty_result(job: Job, **fields) -> dict:
+    """The result dict of a task that has not done anything yet (status "failed")."""
+    return {"input": job.input, "rel": job.rel, "output": job.output, "status": "failed",
+            "reason": "", "warnings": [], "frames": 0, "bytes": 0, "seconds": 0.0,
+            "uniformity_before": None, "uniformity_after": None, "light_frames": 0, **fields}
+
+
+def correct_file(job: Job, settings: Settings, on_frame=None) -> dict:
+    """Correct one input file; never raises for a bad input (the result says why it failed).
+
+    Parameters
+    ----------
+    job : Job
+    settings : Settings
+    on_frame : callable, optional
+        ``on_frame(nbytes)`` after each frame (``nbytes``: the input bytes per frame).
+
+    Returns
+    -------
+    dict
+        ``input``, ``rel``, ``output``, ``status`` ("done", "skipped" or "failed"),
+        ``reason``, ``warnings``, ``frames``, ``bytes`` (input size), ``seconds`` and per band
+        ``uniformity_before``/``uniformity_after`` (mean over the light frames, %) with
+        ``light_frames``.
+    """
+    t0 = time.perf_counter()
+    res = empty_result(job)
+    try:
+        res["bytes"] = os.stat(job.input).st_size
+        ctx = context_for(settings)
+        why = _existing_output(Path(job.output), job, settings, ctx)
+        if why == "":
+            res.update(status="skipped", reason="output complete and up to date")
+            return res
+        if why is not None:
+            res["warnings"].append(f"existing output redone: it {why}")
+        _correct(job, settings, ctx, res, on_frame)
+        res["status"] = "done"
+    except Exception as exc:  # one bad input must not stop the batch
+        res.update(status="failed", reason=_reason(exc, job.input), frames=0)
+    finally:
+        res["seconds"] = time.perf_counter() - t0
+    return res
+
+
+def _existing_output(out: Path, job: Job, settings: Settings, ctx: Context) -> str | None:
+    """None: no output yet (or --overwrite); "": complete and up to date (skip); else why the
+    existing output of this command is redone. Raises BatchError for a symbolic link or a
+    file that is not an output of ``hsiffc correct`` (kept unless --overwrite)."""
+    if settings.overwrite or not os.path.lexists(out):
+        return None
+    if out.is_symlink():
+        raise BatchError(f"the output {out} is a symbolic link; hsiffc never writes through a "
+                         "link: remove it, or pass --overwrite to replace the link itself (its "
+                         "target is kept)")
+    if not is_corrected_file(out):
+        raise BatchError(f"the output {out} exists and is not an output of hsiffc correct; move "
+                         "it, or pass --overwrite to replace it")
+    return stale_reason(out, job, ctx, settings.nan) or ""
+
+
+def stale_reason(out: Path, job: Job, ctx: Context, nan: str = "flag") -> str | None:
+    """None when ``out`` is complete and was made from this input, calibration and pipeline;
+    otherwise why it must be redone."""
+    try:
+        prov = read_provenance(out)
+    except DataFormatError as exc:
+        return f"is not a complete corrected file ({exc})"
+    st = os.stat(job.input)
+    src = prov.get("input") or {}
+    if src.get("size") != st.st_size or src.get("mtime_ns") != st.st_mtime_ns:
+        return "was made from another version of the input (size or modification time differ)"
+    if (prov.get("calibration") or {}).get("identity") != ctx.identity:
+        return "was made with another calibration"
+    if (prov.get("pipeline") or {}).get("fingerprint") != ctx.info["fingerprint"]:
+        return "was made with another pipeline or other parameters"
+    if nan == "fail" and any((prov.get("frames") or {}).get("nonfinite_pixels") or ()):
+        return "holds NaN/inf pixels flagged under --nan flag"
+    return None
+
+
+def _reason(exc: BaseException, path: str) -> str:
+    text = str(exc)
+    if text.startswith(path + ": "):
+        text = text[len(path) + 2:]
+    if isinstance(exc, HsiffcError):
+        return text
+    return f"{type(exc).__name__}: {text}"
+
+
+def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame) -> None:
+    path = Path(job.input)
+    st = os.stat(path)
+    hasher = Background(sha256_file, path) if settings.hash_inputs else None
+    try:
+        with open_input(path) as src:
+            ctx.calibration.check_compatible(frame_shape=src.frame_shape,
+                                             bit_depth=src.bit_depth, mosaic=src.mosaic,
+                                             what=path.name)
+            stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st, hasher=hasher)
+    finally:
+        if hasher is not None:
+            hasher.wait(raise_error=False)
+
+
+def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, on_frame=None,
+                st=None, hasher=None) -> None:
+    """Correct every frame of the open input ``src`` into ``job.output`` (atomically).
+
+    The loop is decode (``src`` yields raw frames), correct (``ctx.pipeline.transform``),
+    encode (a :class:`~hsiffc.io.corrected.BackgroundWriter` writes the planes on its own
+    thread while the next frame is corrected). Memory: a few frames.
+    """
+    out = Path(job.output)
+    st = st if st is not None else os.stat(job.input)
+    shape = tuple(src.frame_shape)
+    stats = FrameStats(shape, src.mosaic)
+    prov = _provenance(job, settings, ctx, src, st)
+    t0 = time.perf_counter()
+    _remove_leftovers(out)  # of an interrupted earlier run (the folder lock is held)
+    with atomic_path(out, overwrite=True) as tmp, \
+            CorrectedWriter(tmp, prov, n_frames=src.n_frames, frame_shape=shape,
+                            reserve_per_frame=96 + 20 * stats.n_bands) as writer:
+        sink = BackgroundWriter(writer)
+        try:
+            for raw, meta in src:
+                frame, bad = _to_frame(raw, meta, src, settings)
+                result = ctx.pipeline.transform(frame)
+                if result.data.shape != shape:
+                    raise ValueError(f"the pipeline turned a {shape} frame into "
+                                     f"{result.data.shape}; hsiffc correct writes (H, W) frames")
+                sink.write(result.data, result.dq, result.alpha)
+                stats.add(frame, result, bad)
+                del frame, result
+                res["frames"] = meta.index + 1
+                if on_frame is not None:
+                    on_frame(res["bytes"] / src.n_frames)
+        except BaseException:
+            sink.close(cancel=True)
+            raise
+        sink.close()
+        if res["frames"] != src.n_frames:
+            raise DataFormatError(f"only {res['frames']} of {src.n_frames} frames could be read",
+                                  path=job.input)
+        res.update(stats.file_result())
+        sha = hasher.wait() if hasher is not None else None
+        writer.finish({"input": {**prov["input"], "sha256": sha}, "frames": stats.to_dict(),
+                       "seconds": round(time.perf_counter() - t0, 3),
+                       "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+    bad = [b for b in stats.nonfinite if b]
+    if bad:
+        res["warnings"].append(f"{sum(bad)} NaN/inf pixels in {len(bad)} frames flagged "
+                               "NONFINITE (set to 0 DN)")
+
+
+def _to_frame(raw, meta, src, settings: Settings) -> tuple[Frame, int]:
+    """A raw frame as a Frame (as Frame.list_from_sweep makes it) and its count of NaN/inf."""
+    frame = Frame.from_raw(raw, exposure_ms=meta.exposure_ms, bit_depth=src.bit_depth,
+                           mosaic=src.mosaic, kind=meta.kind, illumination=meta.illumination,
+                           source=meta.path)
+    bad = 0
+    if raw.dtype.kind == "f":
+        bad = int(np.count_nonzero(frame.dq & np.uint32(DQ.NONFINITE)))
+        if bad and settings.nan == "fail":
+            raise DataFormatError(f"frame {meta.index} holds {bad} NaN/inf pixels (--nan fail); "
+                                  "fix the input or use --nan flag", path=meta.path)
+    return frame, bad
+
+
+def _remove_leftovers(out: Path) -> None:
+    """Temporary files of an earlier, interrupted attempt at this output."""
+    for stale in out.parent.glob(f".{glob.escape(out.name)}.*{PART_SUFFIX}"):
+        stale.unlink(missing_ok=True)
+
+
+def _provenance(job: Job, settings: Settings, ctx: Context, src, st) -> dict:
+    cal, mosaic = ctx.calibration, src.mosaic
+    return {"input": {"path": job.input, "relative": job.rel, "size": st.st_size,
+                      "mtime_ns": st.st_mtime_ns, "sha256": None},
+            "calibration": {"identity": ctx.identity, "path": settings.calibration,
+                            "method": cal.method, "fitted_on": cal.fitted_on.get("source")},
+            "pipeline": ctx.info, "alpha_computed": ctx.info["alpha_computed"],
+            "hsiffc_version": __version__, "exposure_unit": "ms",
+            "exposure": [float(e) for e in src.exposure_ms], "kind": [str(k) for k in src.kind],
+            "illumination": [str(i) for i in src.illumination], "bit_depth": src.bit_depth,
+            "mosaic": None if mosaic is None else mosaic.to_dict(),
+            "input_dtype": np.dtype(src.dtype).name, "nan_policy": settings.nan}
+
+
+class Background:
+    """``fn(*args)`` on a thread (hashing releases the GIL: it overlaps the correction)."""
+
+    def __init__(self, fn, *args):
+        self.value, self.error = None, None
+        self._thread = threading.Thread(target=self._run, args=(fn, args), daemon=True)
+        self._thread.start()
+
+    def _run(self, fn, args):
+        try:
+            self.value = fn(*args)
+        except BaseException as exc:  # handed to the caller in wait()
+            self.error = exc
+
+    def wait(self, raise_error: bool = True):
+        """The result (after the thread ends); re-raises its error unless told not to."""
+        self._thread.join()
+        if self.error is not None and raise_error:
+            raise self.error
+        return self.value

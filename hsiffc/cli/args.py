@@ -1,0 +1,59 @@
+"""Argument checking for every command: typed options and one-line usage errors.
+
+An option's value is checked when it is parsed (``type=``), so a bad value is reported before
+any file is read: one line naming the option, what came, what is expected, and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+__all__ = ["OneLineParser", "count", "exposure_ms", "percent", "positive", "real"]
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line (and exit status 2), like every other
+    expected error of the command line."""
+
+    def error(self, message):
+        text = " ".join(message.split())
+        self.exit(2, f"{self.prog}: error: {text} (see {self.prog} --help)\n")
+
+    def exit(self, status=0, message=None):
+        if message:
+            sys.stderr.write(message)
+        sys.exit(status)
+
+
+def _number(text, kind, what):
+    try:
+        value = kind(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if kind is float and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r} (not a finite number)")
+    return value
+
+
+def _checked(kind, what: str, low=None, *, strict: bool = False, doc: str = ""):
+    """An argparse ``type=`` for numbers of ``kind`` at least (``strict``: above) ``low``."""
+
+    def parse(text: str):
+        value = _number(text, kind, what)
+        if low is not None and (value < low or (strict and value == low)):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return value
+
+    parse.__doc__ = doc
+    return parse
+
+
+real = _checked(float, "a finite number", doc="Any finite number.")
+positive = _checked(float, "a finite number > 0", 0.0, strict=True, doc="A finite number > 0.")
+exposure_ms = _checked(float, "an exposure time in ms (a finite number >= 0)", 0.0,
+                       doc="An exposure time in milliseconds: finite and >= 0.")
+percent = _checked(float, "a percentage (a finite number > 0)", 0.0, strict=True,
+                   doc="A threshold in percent: finite and > 0.")
+count = _checked(int, "a whole number >= 1", 1, doc="A whole number >= 1.")
