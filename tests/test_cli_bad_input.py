@@ -106,6 +106,50 @@ def test_fit_with_frames_of_another_shape_than_the_calibration(data, tmp_path, c
     _error(capsys, "(16, 16)", "(8, 8)")
 
 
+# -- fit --------------------------------------------------------------------------------------
+def test_fit_without_darks(data, tmp_path, capsys):
+    toml = _toml(tmp_path, "p.toml", DARK_FFC)
+    assert main(["fit", str(toml), str(data / "nodark.tif"), "-o", str(tmp_path / "p.npz")]) == 2
+    _error(capsys, "dark")
+    assert not (tmp_path / "p.npz").exists()
+
+
+
+def test_fit_with_duplicate_step_names(data, tmp_path, capsys):
+    toml = _toml(tmp_path, "p.toml", '[[step]]\nname = "dark"\nstage = "dark"\n' * 2)
+    assert main(["fit", str(toml), str(data / "s.tif"), "-o", str(tmp_path / "p.npz")]) == 2
+    _error(capsys, "p.toml", "unique")
+
+
+
+def test_fit_with_a_calibration_that_is_not_a_path(data, tmp_path, capsys):
+    toml = _toml(tmp_path, "p.toml", '[[step]]\nname = "mask"\nstage = "alpha_mask"\n'
+                 'calibration = 5\n')
+    assert main(["fit", str(toml), str(data / "s.tif"), "-o", str(tmp_path / "p.npz")]) == 2
+    _error(capsys, "calibration")
+
+
+
+@pytest.mark.parametrize("content", [b"garbage", b"PK\x03\x04 not a zip"])
+def test_malformed_pipeline_file(data, tmp_path, capsys, content):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(content)
+    assert main(["correct", str(data / "s.tif"), "--calibration", str(data / "cal.npz"),
+                 "--pipeline", str(bad), "-o", str(tmp_path / "o")]) == 2
+    _error(capsys, "bad.npz")
+
+
+
+def test_pipeline_load_on_a_malformed_manifest(tmp_path):
+    from hsiffc.errors import HsiffcError
+    from hsiffc.stages import Pipeline
+
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **{"manifest.json": np.frombuffer(b"{not json", np.uint8)})
+    with pytest.raises(HsiffcError, match="bad.npz"):
+        Pipeline.load(bad)
+
+
 # -- degenerate data --------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["zero.tif", "ninf.tif"])
 def test_calibrate_with_a_zero_exposure_or_an_inf_pixel(data, tmp_path, capsys, name):
