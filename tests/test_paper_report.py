@@ -41,7 +41,7 @@ def _rows(path):
 # -- the simulated experiment ---------------------------------------------------------------
 
 def test_alpha_grows_with_exposure_in_every_band(paper):
-    sim = paper[0]["simulated"]
+    sim = paper[0].simulated
     t1 = sim["table1"]
     assert t1.alpha.shape == (8, len(CANDIDATES_MS))
     assert np.all(np.diff(t1.alpha, axis=1) > 0)
@@ -56,7 +56,7 @@ def test_selected_exposure_is_the_best_column_of_table_ii(paper):
     """Per band, the alpha-selected training set improves uniformity as much as the best
     candidate, within the measurement noise (two standard errors of the difference over the
     independent test frames)."""
-    t2 = paper[0]["simulated"]["table2"]
+    t2 = paper[0].simulated["table2"]
     imp, se = t2["improvement_pp"], t2["se_pp"]
     assert t2["n_test_frames"] >= 6
     for band in range(imp.shape[0]):
@@ -69,7 +69,7 @@ def test_selected_exposure_is_the_best_column_of_table_ii(paper):
 
 
 def test_longest_exposure_makes_uniformity_worse(paper):
-    t2 = paper[0]["simulated"]["table2"]
+    t2 = paper[0].simulated["table2"]
     imp = t2["improvement_pp"]
     for band in range(imp.shape[0]):
         j = list(CANDIDATES_MS).index(t2["selected_ms"][band])
@@ -79,7 +79,7 @@ def test_longest_exposure_makes_uniformity_worse(paper):
 
 
 def test_valid_spectra_agree_with_each_other_better_than_invalid_ones(paper):
-    sp = paper[0]["simulated"]["fig6"]
+    sp = paper[0].simulated["fig6"]
     valid = sp["valid"]
     assert len(valid) == 11 and 2 <= valid.sum() < 11
     # invalidity comes with exposure: once a spectrum is invalid, longer ones are too
@@ -96,7 +96,7 @@ def test_valid_spectra_agree_with_each_other_better_than_invalid_ones(paper):
 
 
 def test_leakage_model_describes_lamp_b_and_linear_model_does_not(paper):
-    sim = paper[0]["simulated"]
+    sim = paper[0].simulated
     f5, f2, f4 = sim["fig5"], sim["fig2"], sim["fig4"]
     assert f5["k_dn_per_ms"] == pytest.approx(PAPER_VALUES["fig5"]["k_dn_per_ms"], rel=0.1)
     assert f5["dynamic_saturation_dn"] == pytest.approx(800, rel=0.05)
@@ -114,7 +114,7 @@ def test_leakage_model_describes_lamp_b_and_linear_model_does_not(paper):
 
 
 def test_tradeoff_choice_follows_the_weights(paper):
-    tr = paper[0]["simulated"]["tradeoff"]
+    tr = paper[0].simulated["tradeoff"]
     rows = tr["rows"]
     assert [r["threshold_percent"] for r in rows] == list(THRESHOLDS)
     snr = np.array([r["snr_db"] for r in rows])
@@ -139,7 +139,7 @@ def test_files_exist_and_csvs_parse(paper):
     res, out = paper
     for name in FIGURES + CSVS + ("report.md", "summary.json"):
         assert (out / name).is_file(), name
-        assert name in res["files"]
+        assert name in res.files
     for name in FIGURES:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for name in CSVS:
@@ -170,7 +170,7 @@ def test_cli_paper_prints_the_tables_and_the_choice(tmp_path, capsys):
 # -- the real EMVA 1288 sweep ---------------------------------------------------------------
 
 def test_emva_flat_level_chosen_by_alpha_is_as_good_as_the_best(paper, emva_dir):
-    em = paper[0]["emva"]
+    em = paper[0].emva
     assert em is not None
     rows = em["candidates"]
     assert len(rows) >= 8
@@ -193,7 +193,36 @@ def test_emva_outputs(paper, emva_dir):
     assert (out / "emva_ffc_levels.png").read_bytes()[:4] == b"\x89PNG"
     levels = _rows(out / "emva_ffc_levels.csv")
     matrix = _rows(out / "emva_ffc_matrix.csv")
-    assert len(levels) == len(res["emva"]["candidates"])
-    assert len(matrix) == len(res["emva"]["test_steps"])
+    assert len(levels) == len(res.emva["candidates"])
+    assert len(matrix) == len(res.emva["test_steps"])
     assert sum(r["selected_by_alpha"] == "1" for r in levels) == 1
     assert "real EMVA 1288 sweep" in (out / "report.md").read_text()
+
+
+def test_report_leaves_matplotlib_and_stdout_alone(tmp_path, capsys):
+    """The library neither prints nor switches the user's backend nor leaves pyplot figures."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    from hsiffc.reports.paper import compute_paper_report, paper_figures, render_markdown
+
+    backend = matplotlib.get_backend()
+    n_open = len(plt.get_fignums())
+    res = compute_paper_report(shape=(32, 32), emva_dir=False, n_test_frames=3)
+    figs = paper_figures(res.simulated)
+    text = render_markdown(res)
+    assert matplotlib.get_backend() == backend
+    assert len(plt.get_fignums()) == n_open
+    assert capsys.readouterr().out == ""
+    assert set(figs) == set(FIGURES) and "Table II" in text
+
+
+def test_table_ii_runs_the_shipped_pipeline():
+    """Table II's correction is the registered stages users run, in a Pipeline."""
+    from hsiffc.reports.paper.flatfield import flatfield_pipeline
+    from hsiffc.stages import get
+
+    pipe = flatfield_pipeline(12.9)
+    stages = [type(s) for _, s in pipe.steps]
+    assert stages == [get("dark"), get("two_point_ffc")]
+    assert pipe.named_steps["ffc"].exposure_ms == 12.9

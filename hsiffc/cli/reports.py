@@ -79,7 +79,7 @@ def _cmd_paper(args) -> int:
     res = run_paper_report(args.outdir, seed=args.seed, shape=tuple(args.shape),
                            emva_dir=False if args.no_emva else args.emva, weights=weights,
                            threshold=args.threshold)
-    sim = res["simulated"]
+    sim = res.simulated
     print(f"simulated 8-band sensor {sim['shape'][0]} x {sim['shape'][1]} px, seed {sim['seed']}")
     print("\nTable I. " + sim["table1"].to_text())
     t2 = sim["table2"]
@@ -105,9 +105,9 @@ def _cmd_paper(args) -> int:
     print(f"trade-off: weights snr={w['snr']:g}, sc={w['sc']:g}, ru={w['ru']:g} choose an alpha "
           f"threshold of {tr['chosen_threshold_percent']:g} % (training ms per band: "
           f"{', '.join(f'{v:g}' for v in tr['chosen']['selected_ms'])})")
-    em = res["emva"]
+    em = res.emva
     if em is None:
-        print(f"real data: {res['emva_note']}")
+        print(f"real data: {res.emva_note}")
     else:
         best = em["candidates"][em["best_index"]]
         line = (f"real EMVA 1288 sweep: best flat step {best['step']} ({best['signal_dn']:.0f} DN, "
@@ -117,8 +117,8 @@ def _cmd_paper(args) -> int:
             line += (f"; alpha selects step {sel['step']} ({sel['signal_dn']:.0f} DN, "
                      f"{sel['mean_nonuniformity_percent']:.3f} %)")
         print(line)
-    print(f"\nwrote {len(res['files'])} files to {args.outdir} in {res['timing']['total_s']:.1f} s:")
-    for name in sorted(res["files"]):
+    print(f"\nwrote {len(res.files)} files to {args.outdir} in {res.timing['total_s']:.1f} s:")
+    for name in sorted(res.files):
         print(f"  {name}")
     return 0
 
