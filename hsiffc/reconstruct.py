@@ -601,7 +601,12 @@ def apply_correction(cube, matrix, *, dq=None):
         DQ of the band values. The DQ of a virtual band is the OR of the DQ of every band with a
         non-zero coefficient in its row (with the dense IMEC matrix: the OR of all bands).
 
-    Returns (virtual cube (..., V) float32, virtual dq (..., V) uint32).
+    Returns
+    -------
+    virtual : (..., V) float32
+        The virtual-band cube.
+    virtual_dq : (..., V) uint32
+        Its DQ.
     """
     c = np.asarray(cube)
     m = np.asarray(matrix, dtype=np.float64)

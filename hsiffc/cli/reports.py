@@ -32,9 +32,14 @@ def _add_demo(sub):
 
 
 def _cmd_demo(args) -> int:
-    from ..demo import run_demo
+    from ..reports.demo import run_demo, render_text
 
-    return run_demo(args.samples, args.outdir)
+    res = run_demo(args.samples, args.outdir)
+    print(res.sweep.summary())
+    print()
+    print(render_text(res))
+    print("\nwrote " + ", ".join(res.correction["files"].values()))
+    return 0
 
 
 def _add_paper(sub):

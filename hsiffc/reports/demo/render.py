@@ -1,0 +1,80 @@
+"""The demo's result as text (what ``hsiffc demo`` prints) and as a figure."""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib import colormaps
+
+from ... import model
+from ..figures import new_figure
+
+__all__ = ["demo_figure", "render_text"]
+
+
+def _alpha_str(a) -> str:
+    if not np.isfinite(a):
+        return "  -"
+    return f"{a:6.2f}" if a < 1000 else " >1000"
+
+
+def render_text(res) -> str:
+    """The demo's tables as plain text: band means with alpha, the fitted dynamic saturation
+    per band, and the correction pipeline on the test frames."""
+    t, y, alpha, fits = res.exposure_ms, res.band_mean_dn, res.alpha_percent, res.fits
+    n_bands, fs, wl = y.shape[1], res.full_scale_dn, res.wavelengths_nm
+    L = [f"Mean response per band (DN; full scale {fs} DN) and leakage percentage alpha (%)",
+         "exposure_ms " + " ".join(f"{'b' + str(i + 1):>14}" for i in range(n_bands))]
+    for j in range(len(t)):
+        cells = " ".join(f"{y[j, i]:7.1f}{_alpha_str(alpha[j, i]):>7}" for i in range(n_bands))
+        L.append(f"{t[j]:11.3f} {cells}")
+    L += ["", "Dynamic saturation per band (leakage model fitted to the band mean)",
+          f"{'band':>4} {'nm':>6} {'k DN/ms':>8} {'plateau':>8} {'model sat':>9} "
+          f"{'below FS':>8} {'rms leak':>8} {'rms lin':>8}"]
+    for i, f in enumerate(fits):
+        L.append(f"{i + 1:>4} {wl[i]:>6.0f} {f['k']:>8.2f} {y[:, i].max():>8.1f} "
+                 f"{f['saturation_dn']:>9.1f} {fs - y[:, i].max():>8.1f} {f['rms_dn']:>8.2f} "
+                 f"{f['rms_linear_dn']:>8.2f}")
+    below = res.bands_below_full_scale
+    L += ["", f"{len(below)} of {n_bands} bands level off below full scale ({fs} DN): the "
+          "light-dependent dynamic saturation that the leakage model predicts. A fixed full-scale "
+          "test would call all of their samples valid; alpha flags the leaking ones."]
+    c = res.correction
+    if c:
+        L += ["", "== Correction pipeline: calibrate, select by alpha, dark + mask + two-point "
+              "FFC + reconstruction ==",
+              "training exposure per band (longest with median alpha under 12 %): "
+              + ", ".join(f"{v:g} ms" for v in c["training_ms"]),
+              f"test frame {c['test_exposure_ms']:g} ms under {c['test_illumination']}: "
+              "non-uniformity (eq. 6, %) per band",
+              f"{'band':>6} {'raw':>8} {'corrected':>10}"]
+        for i, (u0, u1) in enumerate(zip(c["uniformity_raw"], c["uniformity_corrected"])):
+            L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f}")
+        L.append(f"cube {tuple(c['cube_shape'])} (H, W, bands) with wavelengths "
+                 f"{[round(w) for w in c['cube_wavelengths_nm']]} nm; "
+                 f"{100 * c['flagged_fraction']:.2f} % of pixels flagged (kept, not deleted)")
+    return "\n".join(L)
+
+
+def demo_figure(res):
+    """Band means against exposure with the fitted leakage model (solid) and the linear model
+    (dotted): every band levels off below full scale. Returns a new Figure."""
+    t, y, fits, fs, wl = (res.exposure_ms, res.band_mean_dn, res.fits, res.full_scale_dn,
+                          res.wavelengths_nm)
+    fig, ax = new_figure((8, 5), dpi=110)
+    tt = np.linspace(0, t.max() * 1.05, 300)
+    colours = colormaps["viridis"](np.linspace(0, 0.95, y.shape[1]))
+    for i, f in enumerate(fits):
+        ax.plot(t, y[:, i], "o", ms=3.5, color=colours[i], label=f"band {i + 1} ({wl[i]:.0f} nm)")
+        ax.plot(tt, model.response(tt, f["k"], f["a"], f["b"], f["dark"]), "-", lw=1,
+                color=colours[i])
+        ax.plot(tt, f["dark"] + f["k"] * tt, ":", lw=0.8, color=colours[i])
+    ax.axhline(fs, color="k", lw=0.8, ls="--")
+    ax.text(tt[2], fs + 8, f"full scale {fs} DN", fontsize=8)
+    ax.set_ylim(0, fs * 1.12)
+    ax.set_xlabel("exposure (ms)")
+    ax.set_ylabel("mean raw response (DN)")
+    ax.set_title("Dynamic saturation below full scale (points: data, solid: leakage model, "
+                 "dotted: linear)", fontsize=9)
+    ax.legend(fontsize=7, ncol=2, loc="lower right")
+    fig.tight_layout()
+    return fig

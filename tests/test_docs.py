@@ -1,0 +1,77 @@
+"""The documentation: the site builds in strict mode (a broken reference, a missing page or a
+docstring mkdocstrings cannot parse fails), the README's links resolve, and the results pages
+are the output of the commands that measure them."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_site_builds_in_strict_mode(tmp_path):
+    pytest.importorskip("mkdocs", reason="mkdocs is not installed: pip install -e '.[docs]'")
+    pytest.importorskip("mkdocstrings", reason="mkdocstrings is not installed: "
+                                               "pip install -e '.[docs]'")
+    site = tmp_path / "site"
+    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-q",
+                           "-f", str(ROOT / "mkdocs.yml"), "-d", str(site)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300,
+                          env={**__import__("os").environ, "NO_MKDOCS_2_WARNING": "1"})
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    for page in ("index.html", "getting-started/index.html", "api/stages/index.html",
+                 "reference/cli/index.html", "results/paper/index.html"):
+        assert (site / page).is_file(), page
+    # the API pages are generated from the docstrings, the CLI page from the parser
+    api = (site / "api" / "stages" / "index.html").read_text(encoding="utf-8")
+    assert "Pipeline" in api and "fit" in api
+    cli = (site / "reference" / "cli" / "index.html").read_text(encoding="utf-8")
+    assert "hsiffc correct" in cli and "--overwrite" in cli
+
+
+def test_readme_links_resolve():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    links = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)
+    local = [link for link in links if not re.match(r"[a-z]+://", link)]
+    assert local, "the README links into the docs"
+    missing = [link for link in local if not (ROOT / link).exists()]
+    assert not missing, f"README links to missing files: {missing}"
+
+
+def test_readme_is_short_and_opens_with_the_two_commands():
+    lines = (ROOT / "README.md").read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= 220
+    blocks = re.findall(r"```bash\n(.*?)\n```", "\n".join(lines[:12]), re.S)
+    assert len(blocks) == 2, "the README opens with two set-up commands"
+    ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8")
+    assert blocks[1].strip() in ci, "the README's test command is what .ci/run runs"
+
+
+def _results_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("docs_results", ROOT / "docs" / "gen" /
+                                                  "results.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_results_pages_are_what_their_commands_produced():
+    """Each results page is rendered from the stored outputs of its command; a page edited by
+    hand (or outputs changed without re-rendering) fails here."""
+    gen = _results_module()
+    for name in gen.PAGES:
+        page = ROOT / "docs" / "results" / f"{name}.md"
+        assert page.is_file(), f"missing {page}: run python3 docs/gen/results.py {name}"
+        assert page.read_text(encoding="utf-8") == gen.render(name), \
+            f"{page} differs from its command's outputs: rerun python3 docs/gen/results.py {name}"
+        run = __import__("json").loads((ROOT / "docs" / "results" / name / "run.json")
+                                       .read_text(encoding="utf-8"))
+        assert run["command"] and run["git_commit"]
