@@ -50,18 +50,22 @@ def new_figure(figsize=(6.4, 4.2), *, dpi: float = 100, nrows: int = 1, ncols: i
     return fig, axes
 
 
-def save_figure(fig, path, *, dpi: float = 90, tight: bool = True) -> Path:
+def save_figure(fig, path, *, dpi: float = 90, tight: bool = True,
+                overwrite: bool | None = None) -> Path:
     """Write ``fig`` as a PNG atomically (a partly written file never appears at ``path``).
 
     Parameters
     ----------
     fig : matplotlib.figure.Figure
     path : path-like
-        Output ``.png``; an existing file of that name is replaced.
+        Output ``.png``.
     dpi : float
         Resolution of the PNG.
     tight : bool
         Crop to the drawn content (``bbox_inches="tight"``).
+    overwrite : bool, optional
+        Replace an existing file (None: as the write policy in force says, see
+        :func:`hsiffc.atomic.write_policy`).
 
     Returns
     -------
@@ -69,6 +73,6 @@ def save_figure(fig, path, *, dpi: float = 90, tight: bool = True) -> Path:
         ``path``.
     """
     path = Path(path)
-    with atomic_path(path) as tmp:
+    with atomic_path(path, overwrite=overwrite) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
     return path

@@ -25,7 +25,7 @@ __all__ = ["SWEEP_NAME", "DemoResult", "compute_demo", "demo_figure", "demo_pipe
            "fit_curve", "render_text", "run_demo"]
 
 
-def run_demo(samples, outdir) -> DemoResult:
+def run_demo(samples, outdir, *, overwrite: bool | None = None) -> DemoResult:
     """Run the demo and write its files into ``outdir``.
 
     Parameters
@@ -34,7 +34,9 @@ def run_demo(samples, outdir) -> DemoResult:
         The sample folder (see :func:`compute_demo`).
     outdir : path-like
         Receives ``dynamic_saturation.png``, ``demo_summary.json``, ``calibration.npz`` and
-        ``pipeline.npz`` (created if missing; files of those names are replaced).
+        ``pipeline.npz`` (created if missing).
+    overwrite : bool, optional
+        Replace the files of an earlier demo (None: as the write policy in force says).
 
     Returns
     -------
@@ -45,10 +47,11 @@ def run_demo(samples, outdir) -> DemoResult:
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     files = {"figure": save_figure(demo_figure(res), outdir / "dynamic_saturation.png", dpi=110,
-                                   tight=False),
-             "calibration": res.calibration.save(outdir / "calibration.npz", overwrite=True),
-             "pipeline": res.pipeline.save(outdir / "pipeline.npz", overwrite=True),
+                                   tight=False, overwrite=overwrite),
+             "calibration": res.calibration.save(outdir / "calibration.npz", overwrite=overwrite),
+             "pipeline": res.pipeline.save(outdir / "pipeline.npz", overwrite=overwrite),
              "summary": outdir / "demo_summary.json"}
     res.correction["files"] = {k: str(v) for k, v in files.items()}
-    atomic_write_text(files["summary"], json.dumps(res.summary(), indent=2) + "\n")
+    atomic_write_text(files["summary"], json.dumps(res.summary(), indent=2) + "\n",
+                      overwrite=overwrite)
     return res

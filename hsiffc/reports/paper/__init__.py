@@ -136,14 +136,16 @@ def compute_paper_report(*, seed: int = 0, shape=(128, 128), emva_dir=None, weig
     return PaperResult(sim, em, note, timing)
 
 
-def write_paper_report(result: PaperResult, outdir) -> dict:
+def write_paper_report(result: PaperResult, outdir, *, overwrite: bool | None = None) -> dict:
     """Write ``report.md``, the figures, the CSV files and ``summary.json`` into ``outdir``.
 
     Parameters
     ----------
     result : PaperResult
     outdir : path-like
-        Created if missing; existing files of the same names are replaced atomically.
+        Created if missing. Every file is written atomically.
+    overwrite : bool, optional
+        Replace files of an earlier report (None: as the write policy in force says).
 
     Returns
     -------
@@ -155,26 +157,27 @@ def write_paper_report(result: PaperResult, outdir) -> dict:
     t0 = time.perf_counter()
     files = {}
     for name, fig in paper_figures(result.simulated, result.emva).items():
-        files[name] = str(save_figure(fig, outdir / name))
+        files[name] = str(save_figure(fig, outdir / name, overwrite=overwrite))
     for name, text in report_csvs(result.simulated, result.emva).items():
-        atomic_write_text(outdir / name, text)
+        atomic_write_text(outdir / name, text, overwrite=overwrite)
         files[name] = str(outdir / name)
     result.timing["figures_s"] = time.perf_counter() - t0
     result.timing["total_s"] = result.timing["compute_total_s"] + result.timing["figures_s"]
-    atomic_write_text(outdir / "report.md", render_markdown(result))
+    atomic_write_text(outdir / "report.md", render_markdown(result), overwrite=overwrite)
     files["report.md"] = str(outdir / "report.md")
     result.files = files
     files["summary.json"] = str(outdir / "summary.json")
     atomic_write_text(outdir / "summary.json",
-                      json.dumps(json_safe(summary_dict(result)), indent=1) + "\n")
+                      json.dumps(json_safe(summary_dict(result)), indent=1) + "\n",
+                      overwrite=overwrite)
     return files
 
 
-def run_paper_report(outdir, **options) -> PaperResult:
+def run_paper_report(outdir, *, overwrite: bool | None = None, **options) -> PaperResult:
     """:func:`compute_paper_report` with ``options``, then :func:`write_paper_report` into
     ``outdir``; returns the result with ``files`` filled in."""
     result = compute_paper_report(**options)
-    write_paper_report(result, outdir)
+    write_paper_report(result, outdir, overwrite=overwrite)
     return result
 
 
