@@ -49,6 +49,16 @@ def render_text(res) -> str:
               f"{'band':>6} {'raw':>8} {'corrected':>10}"]
         for i, (u0, u1) in enumerate(zip(c["uniformity_raw"], c["uniformity_corrected"])):
             L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f}")
+        for s in c.get("fixed_pattern", ()):
+            b, a = s["before"], s["after"]
+            L += ["", f"fixed-pattern non-uniformity (EMVA 1288, temporal noise taken out; %) of "
+                  f"the {s['n_frames']} test frames at {s['exposure_ms']:g} ms, per band",
+                  f"{'band':>6} {'raw':>8} {'corrected':>10} {'signal DN':>10}"]
+            for i, (u0, u1) in enumerate(zip(b["fpn_percent"], a["fpn_percent"])):
+                L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f} {b['mean_dn'][i]:>10.1f}")
+            L.append(f"{'all':>6} {b['pooled_fpn_percent']:>8.3f} {a['pooled_fpn_percent']:>10.3f}"
+                     f"   (RMS over bands; eq. 6 on single frames: "
+                     f"{b['pooled_eq6_percent']:.3f} -> {a['pooled_eq6_percent']:.3f})")
         L.append(f"cube {tuple(c['cube_shape'])} (H, W, bands) with wavelengths "
                  f"{[round(w) for w in c['cube_wavelengths_nm']]} nm; "
                  f"{100 * c['flagged_fraction']:.2f} % of pixels flagged (kept, not deleted)")
