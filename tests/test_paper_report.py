@@ -226,3 +226,14 @@ def test_table_ii_runs_the_shipped_pipeline():
     stages = [type(s) for _, s in pipe.steps]
     assert stages == [get("dark"), get("two_point_ffc")]
     assert pipe.named_steps["ffc"].exposure_ms == 12.9
+
+
+def test_fixed_pattern_shows_what_the_selected_flat_removes(paper):
+    """With temporal noise taken out (EMVA 1288), the flat alpha selects removes most of the
+    fixed pattern in every band, and the flat near saturation removes less."""
+    t2 = paper[0].simulated["table2"]
+    raw, fpn = np.asarray(t2["fpn_raw_percent"]), np.asarray(t2["fpn_percent"])
+    for band in range(fpn.shape[0]):
+        j = list(CANDIDATES_MS).index(t2["selected_ms"][band])
+        assert fpn[band, j] < 0.7 * raw[band], (band, raw[band], fpn[band])
+        assert fpn[band, -1] > fpn[band, j]

@@ -33,13 +33,15 @@ def report_csvs(sim, em) -> dict:
                          t2["best_ms"][band] == e, t2["improvement_dark_subtracted_pp"][band, j],
                          t2["se_dark_subtracted_pp"][band, j], t2["raw_uniformity_percent"][band],
                          t2["raw_uniformity_dark_subtracted_percent"][band],
-                         t2["test_mean_dn"][band]])
+                         t2["test_mean_dn"][band], t2["fpn_raw_percent"][band],
+                         t2["fpn_percent"][band, j]])
     out["table2_uniformity.csv"] = csv_text(
         ["band", "training_exposure_ms", "improvement_pp", "standard_error_pp",
          "paper_improvement_pp", "selected_by_alpha", "best",
          "improvement_vs_dark_subtracted_test_pp", "standard_error_dark_subtracted_pp",
          "test_uniformity_raw_percent", "test_uniformity_dark_subtracted_percent",
-         "test_mean_raw_dn"], rows)
+         "test_mean_raw_dn", "test_fixed_pattern_raw_percent",
+         "test_fixed_pattern_corrected_percent"], rows)
     g = sim["grid"]
     rows = [[band + 1, e, g["alpha_percent"][band, j], g["signal_dn"][band, j], g["snr"][band, j],
              g["improvement_pp"][band, j], g["se_pp"][band, j]]

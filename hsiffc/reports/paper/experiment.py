@@ -98,6 +98,8 @@ def simulate_paper_experiment(*, seed=0, shape=(128, 128), threshold=THRESHOLD_P
               "raw_uniformity_percent": ffc["raw_uniformity"],
               "raw_uniformity_dark_subtracted_percent": ffc["raw_uniformity_dark_subtracted"],
               "test_mean_dn": test_mean, "test_signal_dn": test_signal,
+              "fpn_raw_percent": ffc["fpn_raw_percent"],
+              "fpn_percent": ffc["fpn_percent"][:, cols],
               "n_test_frames": int(n_test_frames)}
     within = []
     for band in range(nb):

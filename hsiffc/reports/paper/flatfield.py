@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...ffc import uniformity_per_band
+from ...uniformity import fixed_pattern_nonuniformity
 from ...validity import alpha_table
 from ...stages import Pipeline, create
 from .config import GRID_MS, SPECTRA_MS, THRESHOLDS, select_longest, spectral_angle_deg
@@ -70,7 +71,9 @@ def ffc_improvement(training, tests, band_map, test_ms):
         Exposure of the test frames (ms): its master dark is subtracted from them.
 
     Also the same with the raw test's non-uniformity taken after subtracting the dark at the test
-    exposure, which removes the dark offset from eq. (6)'s denominator.
+    exposure, which removes the dark offset from eq. (6)'s denominator; and the fixed-pattern
+    non-uniformity (EMVA 1288, :func:`hsiffc.uniformity.fixed_pattern_nonuniformity`) of the
+    test frames, raw (dark-subtracted) and corrected, which temporal noise does not blur.
     """
     darks_at_test = [f for f in training if f.kind == "dark" and np.isclose(f.exposure_ms, test_ms)]
     test_dark = np.mean([f.data for f in darks_at_test], axis=0)
@@ -80,22 +83,32 @@ def ffc_improvement(training, tests, band_map, test_ms):
     imp_ds = np.empty((n_t, n_bands, n_j))
     raw = np.stack([uniformity_per_band(t.data, band_map) for t in tests])  # (n_t, bands)
     raw_ds = np.stack([uniformity_per_band(t.data - test_dark, band_map) for t in tests])
+    raw_stack = np.stack([t.data for t in tests])
+    good_raw = np.all([t.dq == 0 for t in tests], axis=0)
+    fpn_raw = fixed_pattern_nonuniformity(raw_stack, band_map, dark=test_dark, mask=good_raw)
+    fpn = np.empty((n_bands, n_j))
     for j, e in enumerate(GRID_MS):
         train = [f for f in training if np.isclose(f.exposure_ms, e)]
         if not np.isclose(e, test_ms):
             train += darks_at_test
         pipe = flatfield_pipeline(e).fit(train)
+        outs = []
         for n, test in enumerate(tests):
             out = pipe.transform(test)
+            outs.append(out)
             u = uniformity_per_band(out.data, band_map, dq=out.dq)
             imp[n, :, j] = raw[n] - u
             imp_ds[n, :, j] = raw_ds[n] - u
+        good = good_raw & np.all([o.dq == 0 for o in outs], axis=0)
+        fpn[:, j] = fixed_pattern_nonuniformity(np.stack([o.data for o in outs]), band_map,
+                                                mask=good).fpn_percent
     sqn = np.sqrt(n_t)
     return {"mean": imp.mean(axis=0), "se": imp.std(axis=0, ddof=1) / sqn,
             "mean_dark_subtracted": imp_ds.mean(axis=0),
             "se_dark_subtracted": imp_ds.std(axis=0, ddof=1) / sqn,
             "raw_uniformity": raw.mean(axis=0),
             "raw_uniformity_dark_subtracted": raw_ds.mean(axis=0),
+            "fpn_raw_percent": fpn_raw.fpn_percent, "fpn_percent": fpn,
             "test_dark": test_dark}
 
 

@@ -109,6 +109,16 @@ def render_markdown(result) -> str:
         L.append(f"| {band + 1} | {t2['test_signal_dn'][band]:.0f} | "
                  + " | ".join(f"{v:+.3f}" for v in t2["improvement_dark_subtracted_pp"][band])
                  + " |")
+    L += ["", "Eq. (6) on a single frame counts the test frame's temporal noise as non-uniformity. "
+              "The fixed-pattern non-uniformity (EMVA 1288: spatial variance of the mean of the "
+              f"{t2['n_test_frames']} test frames less their temporal variance / "
+              f"{t2['n_test_frames']}, in % of the signal above dark) shows what the correction "
+              "removes:", "",
+          "| band | raw | " + " | ".join(f"{e:g} ms" for e in t2["exposures_ms"]) + " |",
+          "|---" * (len(t2["exposures_ms"]) + 2) + "|"]
+    for band in range(t2["fpn_percent"].shape[0]):
+        L.append(f"| {band + 1} | {t2['fpn_raw_percent'][band]:.3f} | "
+                 + " | ".join(f"{v:.3f}" for v in t2["fpn_percent"][band]) + " |")
     L += ["", f"alpha selects the best column in {sel_best} of {len(t2['best_ms'])} bands and a "
               f"column within two standard errors of it in "
               f"{int(np.sum(t2['selected_within_2se_of_best']))}; the longest exposure is worse "
