@@ -106,7 +106,25 @@ def find_emva_dir(start=None) -> Path | None:
 
 
 def spectral_angle_deg(x, y) -> np.ndarray:
-    """Angle (degrees) between spectra along the last axis (0 = same shape, any scale)."""
+    """Spectral angle between spectra along the last axis: 0 for the same shape at any scale.
+
+    Parameters
+    ----------
+    x, y : (..., bands) array_like
+        Spectra (any unit; broadcast against each other).
+
+    Returns
+    -------
+    ndarray, float64, degrees
+        Shape of the broadcast leading axes; NaN where a spectrum is all zeros.
+
+    Examples
+    --------
+    >>> float(spectral_angle_deg([1, 2, 3], [2, 4, 6]))
+    0.0
+    >>> round(float(spectral_angle_deg([1, 0], [0, 1])), 6)
+    90.0
+    """
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
     num = (x * y).sum(axis=-1)
@@ -117,7 +135,19 @@ def spectral_angle_deg(x, y) -> np.ndarray:
 
 
 def index_of(values, target) -> int:
-    """Index of ``target`` in ``values`` (within 1e-6); ValueError if it is not there."""
+    """Index of ``target`` in ``values`` (within 1e-6); ValueError if it is not there.
+
+    Parameters
+    ----------
+    values : (n,) array_like
+        E.g. exposures in ms.
+    target : float
+
+    Examples
+    --------
+    >>> index_of([6.45, 12.9, 19.35], 12.9)
+    1
+    """
     values = np.asarray(values, np.float64)
     j = int(np.argmin(np.abs(values - target)))
     if not np.isclose(values[j], target, rtol=0, atol=1e-6):
@@ -126,7 +156,21 @@ def index_of(values, target) -> int:
 
 
 def select_longest(alpha_row, exposures, threshold):
-    """Index of the longest exposure with alpha under the threshold (None if none)."""
+    """Index of the longest exposure with alpha under the threshold (None if none): the
+    paper's training selection rule.
+
+    Parameters
+    ----------
+    alpha_row : (n,) array_like, percent
+        alpha of one band at each exposure.
+    exposures : (n,) array_like, ms
+    threshold : float, percent
+
+    Examples
+    --------
+    >>> select_longest([0.1, 5.0, 40.0], [6.45, 12.9, 19.35], 12.0)
+    1
+    """
     ok = np.flatnonzero(np.asarray(alpha_row) < threshold)
     if not ok.size:
         return None

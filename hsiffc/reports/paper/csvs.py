@@ -11,6 +11,8 @@ __all__ = ["report_csvs"]
 
 
 def report_csvs(sim, em) -> dict:
+    """``{file name: CSV text}`` for every table and figure of the simulated experiment
+    ``sim`` and, when ``em`` is not None, the real EMVA 1288 part."""
     out = {}
     t1 = sim["table1"]
     t2 = sim["table2"]

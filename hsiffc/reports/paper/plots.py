@@ -31,6 +31,9 @@ def paper_figures(sim: dict, emva: dict | None = None) -> dict:
 
 
 def plot_fig4(f4):
+    """Fig. 4: one pixel's (saturated level, light rate) pairs and the fitted ``k = a e^{bY}``.
+
+    Returns a new :class:`matplotlib.figure.Figure` (nothing is drawn on pyplot's state)."""
     fig, ax = new_figure((6.4, 4.2))
     y = np.array([p["saturated_dn"] for p in f4["pairs"]])
     k = np.array([p["k_dn_per_ms"] for p in f4["pairs"]])
@@ -53,6 +56,9 @@ def plot_fig4(f4):
 
 
 def plot_fig5(f5):
+    """Fig. 5: one pixel under lamp B, measured against the leakage and the linear model.
+
+    Returns a new :class:`matplotlib.figure.Figure` (nothing is drawn on pyplot's state)."""
     fig, ax = new_figure((6.4, 4.2))
     ax.errorbar(f5["exposure_ms"], f5["measured_dn"], yerr=f5["measured_se_dn"], fmt="o", ms=3,
                 color="k", mfc="none", lw=0.8, label="'measured' (simulated, 10-frame mean)")
@@ -77,6 +83,9 @@ def plot_fig5(f5):
 
 
 def plot_fig2(f2):
+    """Fig. 2: the Fig. 5 pixel's responses tagged by alpha (pentagram, circle, triangle).
+
+    Returns a new :class:`matplotlib.figure.Figure` (nothing is drawn on pyplot's state)."""
     fig, ax = new_figure((6.4, 4.2))
     ax.plot(f2["exposure_ms"], f2["measured_dn"], "-", color="0.6", lw=1, label="response")
     marks = {"pentagram": ("*", 14, "tab:green"), "circle": ("o", 9, "tab:orange"),
@@ -102,6 +111,9 @@ def plot_fig2(f2):
 
 
 def plot_fig6(sp):
+    """Fig. 6: lamp B spectra at 11 exposures, invalid ones (alpha over threshold) dotted.
+
+    Returns a new :class:`matplotlib.figure.Figure` (nothing is drawn on pyplot's state)."""
     fig, ax = new_figure((6.4, 4.2))
     wl = sp["wavelengths_nm"] or list(range(1, sp["normalised"].shape[1] + 1))
     cmap = colormaps["viridis"]
@@ -125,6 +137,10 @@ def plot_fig6(sp):
 
 
 def plot_tradeoff(tr):
+    """SNR, uniformity improvement and spectral angle against the alpha threshold, and the
+    weighted score that chooses the threshold.
+
+    Returns a new :class:`matplotlib.figure.Figure` (nothing is drawn on pyplot's state)."""
     rows = tr["rows"]
     thr = np.array([r["threshold_percent"] for r in rows])
     fig, axes = new_figure((9.0, 6.0), nrows=2, ncols=2, sharex=True)
@@ -162,6 +178,10 @@ def plot_tradeoff(tr):
 
 
 def plot_emva(em):
+    """The real EMVA 1288 sweep: residual non-uniformity against test level for flats at
+    several levels, and the mean over test levels against the flat level with its alpha.
+
+    Returns a new :class:`matplotlib.figure.Figure` (nothing is drawn on pyplot's state)."""
     fig, axes = new_figure((10.5, 4.2), ncols=2, gridspec_kw={"width_ratios": [1.5, 1]})
     ax = axes[0]
     x = em["test_signal_dn"]
