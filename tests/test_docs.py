@@ -75,3 +75,12 @@ def test_results_pages_are_what_their_commands_produced():
         run = __import__("json").loads((ROOT / "docs" / "results" / name / "run.json")
                                        .read_text(encoding="utf-8"))
         assert run["command"] and run["git_commit"]
+
+
+def test_readme_results_table_is_generated():
+    """The README's headline table is rendered from the results pages' stored outputs."""
+    gen = _results_module()
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    i, j = text.index(gen.BEGIN), text.index(gen.END) + len(gen.END)
+    assert text[i:j] == gen.readme_block(), \
+        "README results table is stale or edited: run python3 docs/gen/results.py --render-only all"
