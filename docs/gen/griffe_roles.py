@@ -1,0 +1,27 @@
+"""A griffe extension for the API pages: Sphinx roles in docstrings become inline code.
+
+The docstrings are numpydoc and sometimes name other objects with Sphinx roles
+(``:func:`hsiffc.model.response```); mkdocstrings renders Markdown, so without this the roles
+would show literally. ``:role:`~a.b.c``` becomes `` `c` `` and ``:role:`a.b.c``` `` `a.b.c` ``.
+"""
+
+from __future__ import annotations
+
+import re
+
+from griffe import Extension
+
+ROLE = re.compile(r":(?:py:)?(?:func|class|meth|mod|attr|data|exc|obj|const):`(~?)([^`]+)`")
+
+
+def _code(match: re.Match) -> str:
+    tilde, target = match.groups()
+    return f"`{target.rsplit('.', 1)[-1] if tilde else target}`"
+
+
+class SphinxRolesToCode(Extension):
+    """Rewrite Sphinx roles in every docstring griffe loads."""
+
+    def on_object(self, *, obj, **kwargs) -> None:  # noqa: ARG002 (griffe hook signature)
+        if obj.docstring is not None and ":" in obj.docstring.value:
+            obj.docstring.value = ROLE.sub(_code, obj.docstring.value)
