@@ -41,7 +41,7 @@ def test_clean_data_select_nothing(sweeps, seed):
     assert out["before"]["systematic_rms_dn"] < 0.1 * out["noise_floor_dn"]
 
 
-# sizes about twice the detection limit found by scanning seeds 1 and 2 (see the README)
+# sizes about twice the detection limit found by scanning seeds 1 and 2 (docs/guide/diagnose.md)
 CASES = [("dark_current", 0.04), ("exposure_offset", 0.1), ("gain_nonlinearity", 40.0),
          ("pixel_nonlinearity", 80.0), ("offset_drift", 2.0), ("illumination_error", 0.008),
          ("image_lag", 0.004)]
@@ -116,7 +116,7 @@ def test_real_emva_sweep(emva_dir):
 
     out = diagnose(read_sweep(emva_dir), max_pixels=2048)
     # the base model is close to the noise floor, yet structured residual remains at low
-    # signal that no candidate explains by more than half (see the README)
+    # signal that no candidate explains by more than half (docs/guide/diagnose.md)
     assert out["before"]["systematic_rms_dn"] < 0.3 * out["noise_floor_dn"]
     assert out["unexplained"]
     best = max(out["candidates"], key=lambda c: c["heldout_mse_gain_dn2"])

@@ -77,7 +77,7 @@ def report(sweep, tmp_path_factory):
 
 @pytest.mark.realdata
 def test_levelling_off_pixels_number_in_the_thousands(report):
-    # measured 11126 of 32768 (the README: "several thousand"); every never-clipped pixel below
+    # measured 11126 of 32768 (the data's description: "several thousand"); every never-clipped pixel below
     # 254 DN passes the roll-off test, so the count equals the never-clipped-below-254 count
     c = report["criterion"]
     assert 3000 <= c["n_levels_off"] <= 20000
@@ -121,7 +121,7 @@ def test_fitted_saturation_against_plateau(report):
     assert abs(model_at["p50"]) < 0.5 and model_at["median_abs"] < 1.0
     # the linear model overshoots the plateau by far (measured 16.3 DN)
     assert s["linear_minus_plateau_dn"]["p50"] > 10.0
-    # levels between the README's "about 233 and 254 DN": highest step means measured 233.0 to
+    # levels between about 233 and 254 DN (the data's description): highest step means measured 233.0 to
     # 253.5 DN, plateaus p5 242.4, median 248.8 DN
     assert s["max_step_mean_dn"]["min"] > 225.0
     assert 240.0 < s["plateau_dn"]["p50"] < 254.0 and s["plateau_dn"]["p5"] > 230.0
