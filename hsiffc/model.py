@@ -15,8 +15,9 @@ With ``z = exp(-b Y)`` the ODE is linear, ``dz/dt = a b - b k z``, so from the l
 
     exp(-b Y(t)) = exp(-b Y0 - x) + a b t * phi(x),   x = b k t,   phi(x) = (1 - exp(-x)) / x
 
-Both terms are positive for every k >= 0, so the log is taken with ``logaddexp`` and nothing
-overflows: the form stays finite for b k t up to 1e4 and beyond, for a/k from 0 to 1e3 and more,
+Both terms are positive for every k >= 0. The compiled kernels
+(:mod:`hsiffc.kernels.leakage`) sum them directly and fall back to ``logaddexp`` of their logs
+where the sum would under- or overflow, so nothing overflows: the form stays finite for b k t up to 1e4 and beyond, for a/k from 0 to 1e3 and more,
 for k = 0 (pure leakage) and for starting levels above the dynamic saturation level. The paper's
 eq. (3) with its integration constant c is the same curve: ``c_from_dark`` / ``dark_from_c``
 convert between the two.
@@ -28,9 +29,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dq import DQ, DQ_DTYPE
-
-_U32 = DQ_DTYPE
+from .dq import DQ_DTYPE
+from .kernels import leakage
+from .kernels.operands import flat_operands
 
 __all__ = [
     "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
@@ -59,38 +60,17 @@ def _log1mexp(x):
                         np.log1p(-np.exp(-np.where(small, 1.0, x))))
 
 
-def _log_phi(x):
-    """log((1 - exp(-x)) / x) for x >= 0, with the limit 0 at x = 0.
-
-    ``-expm1(-x)`` is accurate for every x > 0, so one log suffices; below 1e-8 the series
-    ``-x/2`` avoids 0/0. The absolute error is at the level of double rounding everywhere, which
-    is what the response (a sum of logs) needs.
-    """
-    x = np.asarray(x, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = np.log(-np.expm1(-x) / x)
-    tiny = x < 1e-8
-    if np.any(tiny):
-        out = np.where(tiny, -0.5 * x, out)
-    return out
-
-
 def _check_positive_b(b):
     if np.any(np.asarray(b) <= 0):
         raise ValueError("b (1/DN) must be > 0: the leakage grows with the collected signal")
 
 
-def _neg_b_y(t_ms, k, a, b, dark):
-    """-b*Y(t) of the model, computed in the log domain."""
-    x = b * k * t_ms
-    with np.errstate(divide="ignore", invalid="ignore"):
-        leak = _log(a) + np.log(b) + _log(t_ms) + _log_phi(x)
-    return np.logaddexp(-b * dark - x, leak)
-
-
 def _response(t_ms, k, a, b, dark):
-    """Model response without argument checks (internal, float64 inputs)."""
-    return -_neg_b_y(t_ms, k, a, b, dark) / b
+    """Model response without argument checks (float64 out, shape of the broadcast)."""
+    shape, ops = flat_operands(t_ms, k, a, b, dark)
+    out = np.empty(int(np.prod(shape, dtype=np.int64)))
+    leakage.response_kernel(*ops, out)
+    return out.reshape(shape)
 
 
 def response(t_ms, k, a, b, dark):
@@ -121,11 +101,10 @@ def response(t_ms, k, a, b, dark):
     >>> round(float(y), 3), round(float(dynamic_saturation_level(2.0, 2 * np.exp(-8.0), 0.01)), 3)
     (800.0, 800.0)
     """
-    t_ms, k, a, b, dark = _f64(t_ms, k, a, b, dark)
     _check_positive_b(b)
-    if np.any(t_ms < 0) or np.any(k < 0) or np.any(a < 0):
+    if np.any(np.asarray(t_ms) < 0) or np.any(np.asarray(k) < 0) or np.any(np.asarray(a) < 0):
         raise ValueError("t_ms, k and a must be >= 0")
-    return -_neg_b_y(t_ms, k, a, b, dark) / b
+    return _response(t_ms, k, a, b, dark)
 
 
 def response_from_c(t_ms, k, a, b, c):
@@ -190,9 +169,10 @@ def leakage_percentage(y, k, a, b):
     Along a response that starts below saturation alpha stays below 100 %: it reaches 100 % only
     at the dynamic saturation level.
     """
-    y, k, a, b = _f64(y, k, a, b)
-    with np.errstate(over="ignore", divide="ignore"):
-        return 100.0 * np.exp(_log(a) + b * y - _log(k))
+    shape, ops = flat_operands(y, k, a, b)
+    out = np.empty(int(np.prod(shape, dtype=np.int64)))
+    leakage.alpha_model_kernel(*ops, out)
+    return out.reshape(shape)
 
 
 def leakage_percentage_paper(y, t_ms, a, b, dark=0.0):
@@ -204,12 +184,21 @@ def leakage_percentage_paper(y, t_ms, a, b, dark=0.0):
     100 % deep in saturation (the paper's 173.5 % example). Where the signal is not positive the
     result is ``inf`` (no light rate can be estimated: treat as invalid).
     """
-    y, t_ms, a, b, dark = _f64(y, t_ms, a, b, dark)
-    signal = y - dark
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        k_est = signal / t_ms
-        alpha = 100.0 * np.exp(_log(a) + b * y - _log(k_est))
-    return np.where((signal > 0) & (t_ms > 0), alpha, np.inf)
+    return leakage_percentage_paper_into(None, y, t_ms, a, b, dark)
+
+
+def leakage_percentage_paper_into(out, y, t_ms, a, b, dark=0.0):
+    """:func:`leakage_percentage_paper` written into ``out`` (float32 or float64, the shape of
+    the broadcast; None allocates float64). float32 is enough for a validity mask: alpha is
+    computed in float64 and rounded once (1e-7 relative)."""
+    shape, ops = flat_operands(y, t_ms, a, b, dark)
+    if out is None:
+        out = np.empty(shape)
+    if out.shape != tuple(shape) or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous array of shape {tuple(shape)}, got "
+                         f"{out.shape}")
+    leakage.alpha_paper_kernel(*ops, out.reshape(-1))
+    return out
 
 
 def exposure_at_leakage_percentage(alpha_percent, k, a, b, dark):
@@ -256,25 +245,17 @@ class Inversion:
         return self.flags == 0
 
 
-def _dy_dlogk(t_ms, k, a, b, dark, y_model):
-    """dY/d(ln k) of the model, in a form that cannot overflow for physical responses."""
-    x = b * k * t_ms
-    with np.errstate(divide="ignore", over="ignore", under="ignore", invalid="ignore"):
-        term1 = x * np.exp(b * (y_model - dark) - x)
-        # (a/k)(1 - (1 + x) e^{-x}) e^{bY}; 1 - (1+x)e^{-x} computed without cancellation
-        g = np.where(x < 1e-3, x * x / 2 - x ** 3 / 3, -np.expm1(-x) - x * np.exp(-x))
-        term2 = np.exp(_log(a) - _log(k) + b * y_model) * g
-    return np.nan_to_num((term1 + term2) / b, nan=0.0, posinf=np.finfo(float).max)
-
-
 def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=1e-9,
                     max_iter=60) -> Inversion:
     """Light rate k that explains response ``y`` at exposure ``t_ms``, for whole frames at once.
 
     The model response increases monotonically with k, from the zero-light level (pure leakage
     from ``dark``) towards infinity, so a unique k exists for every response above the zero-light
-    level. It is found by a safeguarded Newton iteration in ln k (bisection whenever a Newton step
-    leaves the bracket), vectorised over all pixels.
+    level. It is found per pixel by a compiled kernel
+    (:func:`hsiffc.kernels.leakage.invert_point`): with ``x = b k t`` the model scaled by
+    ``e^{bY}`` is convex and decreasing in x, so Halley's iteration from the lower bounds
+    ``x >= b (Y - d)`` and ``x >= a b t e^{bY}`` converges fast (three vectorised steps, then
+    bracketed steps until the response matches within ``tol_dn + 8 eps |y|``).
 
     Parameters
     ----------
@@ -289,6 +270,8 @@ def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=
         Responses that need more light than this are flagged UNREACHABLE (k set to k_max).
     tol_dn : float
         Convergence tolerance on the response, in DN.
+    max_iter : int
+        Iterations per pixel before it is flagged NOT_CONVERGED.
 
     Returns
     -------
@@ -302,73 +285,18 @@ def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=
     >>> np.round(inv.k, 9).tolist(), inv.flags.tolist()
     ([2.0, 2.0], [0, 0])
     """
-    y, t_ms, a, b, dark = np.broadcast_arrays(*_f64(y, t_ms, a, b, dark))
     _check_positive_b(b)
-    if np.any(t_ms <= 0):
+    if np.any(np.asarray(t_ms) <= 0):
         raise ValueError("t_ms must be > 0 to invert a response (at t = 0 no light is measured)")
-    shape = y.shape
-    y, t_ms, a, b, dark = (v.ravel() for v in (y, t_ms, a, b, dark))
-    flags = np.zeros(y.shape, dtype=DQ_DTYPE)
-    k = np.zeros(y.shape)
-
-    finite = np.isfinite(y) & np.isfinite(a) & np.isfinite(b) & np.isfinite(dark)
-    flags[~finite] |= _U32(DQ.NONFINITE)
-    target = y.copy()
-    if full_scale is not None:
-        clipped = finite & (y >= full_scale)
-        flags[clipped] |= _U32(DQ.SATURATED)
-        target[clipped] = full_scale
-    y_zero = _response(t_ms, 0.0, a, b, dark)
-    below = finite & (target <= y_zero)
-    flags[below & (target < y_zero)] |= _U32(DQ.BELOW_DARK)
-    work = np.flatnonzero(finite & ~below)
-
-    iterations = 0
-    if work.size:
-        yt, tt, aa, bb, dd = (v[work] for v in (target, t_ms, a, b, dark))
-        # Bracket in u = ln k: leakage only lowers the response, so k >= (Y - d)/t and
-        # Y <= ln(k/a)/b gives k >= a e^{bY}.
-        with np.errstate(divide="ignore", over="ignore"):
-            k_lin = np.maximum(yt - dd, 0.0) / tt
-            k_sat = np.exp(_log(aa) + bb * yt)
-        # Above the dark level both bounds hold (the curve started below saturation). At or
-        # below it the curve may start above saturation, where a e^{bY} bounds k from above.
-        above = yt > dd
-        lo = np.log(np.maximum(np.where(above, np.maximum(k_lin, k_sat), k_sat), 1e-300))
-        hi = np.where(above, np.inf, lo + 1e-9)  # +inf: found by the iteration
-        lo = np.where(above, lo, lo - 50.0)
-        u = lo.copy()
-        active = np.arange(work.size)  # pixels still iterating (compacted every iteration)
-        for iterations in range(1, max_iter + 1):
-            ua, la, ha = u[active], lo[active], hi[active]
-            ta, aa_, ba, da, ya = tt[active], aa[active], bb[active], dd[active], yt[active]
-            kk = np.exp(ua)
-            ym = _response(ta, kk, aa_, ba, da)
-            err = ym - ya
-            done = np.abs(err) <= tol_dn + 8 * np.finfo(float).eps * np.abs(ya)
-            keep = ~done
-            if not keep.any():
-                active = active[:0]
-                break
-            la = np.where(err < 0, ua, la)
-            ha = np.where(err > 0, ua, ha)
-            slope = _dy_dlogk(ta, kk, aa_, ba, da, ym)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                step = ua - err / slope
-            # with no upper bound yet, never step more than 5 e-folds up
-            step = np.where(np.isfinite(ha), step, np.minimum(step, ua + 5.0))
-            inside = np.isfinite(step) & (step > la) & (step < ha)
-            new_u = np.where(inside, step, 0.5 * (la + ha))
-            sel = active[keep]
-            u[sel], lo[sel], hi[sel] = new_u[keep], la[keep], ha[keep]
-            active = sel
-        k[work] = np.exp(u)
-        flags[work[active]] |= _U32(DQ.NOT_CONVERGED)
-    if k_max is not None:
-        over = k > k_max
-        flags[over] |= _U32(DQ.UNREACHABLE)
-        k[over] = k_max
-    return Inversion(k.reshape(shape), flags.reshape(shape), iterations)
+    shape, ops = flat_operands(y, t_ms, a, b, dark)
+    n = int(np.prod(shape, dtype=np.int64))
+    k = np.empty(n)
+    flags = np.empty(n, DQ_DTYPE)
+    iterations = np.zeros(max(1, -(-n // leakage.BLOCK)), np.int64)
+    leakage.invert_kernel(*ops, np.inf if full_scale is None else float(full_scale),
+                          np.inf if k_max is None else float(k_max), float(tol_dn),
+                          int(max_iter), k, flags, iterations)
+    return Inversion(k.reshape(shape), flags.reshape(shape), int(iterations.max()))
 
 
 def solve_ode(t_ms, k, a, b, dark, *, rtol=1e-10, atol=1e-10):

@@ -1,0 +1,72 @@
+"""One kernel source, two compilations: parallel for frames, serial for small inputs.
+
+A parallel launch costs tens of microseconds (more on a loaded machine), far more than a
+kernel spends on a few pixels, and tests and scalar calls are mostly tiny. :class:`Kernel`
+compiles the same loop twice (``prange`` runs as ``range`` in the serial build) and picks by
+size. The serial build gets its own name so that numba's disk cache keeps the two apart.
+
+Cache freshness: numba invalidates a cached kernel when *its own* source file changes, not
+when a function it inlined from another file does. Both builds are therefore named with a
+digest of every source they can inline (this package and :mod:`hsiffc.dq`), so editing any of
+them compiles afresh instead of loading stale machine code.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import types
+from pathlib import Path
+
+from numba import njit
+
+__all__ = ["JIT_OPTIONS", "Kernel", "PARALLEL_MIN", "SOURCE_DIGEST"]
+
+#: Below this many elements a kernel runs serially on the calling thread.
+PARALLEL_MIN = 65536
+#: Options of every cached kernel: IEEE arithmetic (no fastmath), numpy's error model (0/0 is
+#: NaN, not an exception: that lets LLVM vectorise the loops), machine code cached on disk.
+JIT_OPTIONS = {"cache": True, "fastmath": False, "error_model": "numpy"}
+
+
+def _source_digest() -> str:
+    here = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for path in sorted(here.glob("*.py")) + [here.parent / "dq.py"]:
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:12]
+
+
+SOURCE_DIGEST = _source_digest()
+
+
+def _renamed(fn, suffix):
+    clone = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + suffix,
+                               fn.__defaults__, fn.__closure__)
+    clone.__qualname__ = fn.__qualname__ + suffix
+    clone.__module__ = fn.__module__
+    clone.__doc__ = fn.__doc__
+    return clone
+
+
+class Kernel:
+    """A loop compiled parallel and serial; calling it runs the build that suits the size.
+
+    Parameters
+    ----------
+    fn : function
+        The loop (``prange`` over blocks or elements).
+    size_arg : int
+        Index of the argument whose ``.size`` decides (usually the output array).
+    """
+
+    def __init__(self, fn, size_arg: int):
+        self.parallel = njit(parallel=True, **JIT_OPTIONS)(_renamed(fn, "_" + SOURCE_DIGEST))
+        self.serial = njit(**JIT_OPTIONS)(_renamed(fn, "_serial_" + SOURCE_DIGEST))
+        self.size_arg = size_arg
+        self.__doc__ = fn.__doc__
+        self.__name__ = fn.__name__
+
+    def __call__(self, *args):
+        big = args[self.size_arg].size >= PARALLEL_MIN
+        return (self.parallel if big else self.serial)(*args)

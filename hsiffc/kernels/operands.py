@@ -1,0 +1,53 @@
+"""Broadcasting for the numba kernels: whole-frame operands become flat arrays, size-1 operands
+become scalars, so a kernel specialises on "scalar or array" per argument and its loop
+vectorises (no stride-0 gathers)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import types
+from numba.extending import overload
+
+__all__ = ["at", "flat_operands", "float_array"]
+
+
+def float_array(x) -> np.ndarray:
+    """``x`` as a float32 array if it already is one, else as float64 (no copy when possible)."""
+    a = np.asarray(x)
+    if a.dtype == np.float32 or a.dtype == np.float64:
+        return a
+    return a.astype(np.float64)
+
+
+def flat_operands(*values):
+    """Broadcast ``values`` and return ``(shape, operands)``.
+
+    Each operand is a Python float (the value had one element) or a C-contiguous 1-D float32 /
+    float64 array of ``prod(shape)`` elements: a view when the value already has the full
+    size, else a broadcast copy. Kernels index operands with :func:`at`.
+    """
+    arrays = [float_array(v) for v in values]
+    shape = np.broadcast_shapes(*(a.shape for a in arrays))
+    size = int(np.prod(shape, dtype=np.int64))
+    ops = []
+    for a in arrays:
+        if a.size == 1 and size != 0:
+            ops.append(float(a.reshape(-1)[0]))
+        elif a.size == size:
+            ops.append(np.ascontiguousarray(a).reshape(-1))
+        else:
+            ops.append(np.ascontiguousarray(np.broadcast_to(a, shape)).reshape(-1))
+    return shape, ops
+
+
+def at(x, i):
+    """Element ``i`` of a flat operand (``x`` itself for a scalar) as a float64, so that the
+    arithmetic is double precision whatever the storage. Compiled away in kernels."""
+    return np.float64(x if np.ndim(x) == 0 else x[i])
+
+
+@overload(at, inline="always")
+def _at_overload(x, i):
+    if isinstance(x, types.Array):
+        return lambda x, i: np.float64(x[i])
+    return lambda x, i: np.float64(x)

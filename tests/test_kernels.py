@@ -1,0 +1,230 @@
+"""The compiled kernels behind hsiffc.model: elementary functions, and the model functions
+against the previous numpy formulas (re-derived here), solve_ivp and hypothesis properties."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numba import njit
+
+from hsiffc import model
+from hsiffc.dq import DQ
+from hsiffc.kernels import launch, leakage, vmath
+
+
+# -- the previous numpy implementation (reference values; not used by the package) ------------
+
+def numpy_response(t, k, a, b, d):
+    """The numpy closed form hsiffc used before the kernels: logaddexp of the two log terms."""
+    t, k, a, b, d = np.broadcast_arrays(*(np.asarray(v, np.float64) for v in (t, k, a, b, d)))
+    x = b * k * t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lphi = np.where(x < 1e-8, -0.5 * x, np.log(-np.expm1(-x) / x))
+        leak = np.log(a) + np.log(b) + np.log(t) + lphi
+    return -np.logaddexp(-b * d - x, leak) / b
+
+
+def numpy_alpha_paper(y, t, a, b, d):
+    y, t, a, b, d = (np.asarray(v, np.float64) for v in (y, t, a, b, d))
+    s = y - d
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        alpha = 100.0 * np.exp(np.log(a) + b * y - np.log(s / t))
+    return np.where((s > 0) & (t > 0), alpha, np.inf)
+
+
+def bisect_k(y, t, a, b, d, iters=200):
+    """k by bisection in ln k on the numpy response (slow, independent of the kernel)."""
+    lo = np.full(np.shape(y), -40.0)
+    hi = np.full(np.shape(y), 40.0)
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        above = numpy_response(t, np.exp(mid), a, b, d) > y
+        hi = np.where(above, mid, hi)
+        lo = np.where(above, lo, mid)
+    return np.exp(0.5 * (lo + hi))
+
+
+# -- elementary functions ---------------------------------------------------------------------
+
+def _vectorised(fn):
+    @njit(error_model="numpy")
+    def run(x, out):
+        for i in range(x.shape[0]):
+            out[i] = fn(x[i])
+    return run
+
+
+@pytest.mark.parametrize("name,ref,lo,hi,log_scale,max_ulp", [
+    ("exp", np.exp, -746.0, 710.0, False, 1),
+    ("expm1", np.expm1, -40.0, 40.0, False, 2),
+    ("expm1", np.expm1, -300.0, -0.01, True, 2),
+    ("log", np.log, -310.0, 308.0, True, 1),
+    ("log1p", np.log1p, -300.0, 300.0, True, 1),
+])
+def test_elementary_functions_within_their_ulp_bound(name, ref, lo, hi, log_scale, max_ulp):
+    rng = np.random.default_rng(0)
+    x = rng.uniform(lo, hi, 200_000)
+    if log_scale:
+        x = 10.0 ** x
+    if name == "expm1":
+        x = np.concatenate([x, -x, rng.uniform(-0.4, 0.4, 10_000)])
+    if name == "log1p":
+        x = np.concatenate([x, -rng.uniform(0, 1, 10_000), rng.uniform(-1e-3, 1e-3, 10_000)])
+    out = np.empty_like(x)
+    _vectorised(getattr(vmath, name))(x, out)
+    with np.errstate(over="ignore"):
+        expect = ref(x)
+    fin = np.isfinite(expect) & (expect != 0)
+    ulps = np.abs(out[fin] - expect[fin]) / np.spacing(np.abs(expect[fin]))
+    assert ulps.max() <= max_ulp
+    assert np.array_equal(out[~fin], expect[~fin])
+
+
+def test_elementary_functions_special_values():
+    x = np.array([0.0, np.inf, -np.inf, np.nan, -1.0, 5e-324, -800.0, 710.0])
+    for name in ("exp", "expm1", "log", "log1p"):
+        out = np.empty_like(x)
+        _vectorised(getattr(vmath, name))(x, out)
+        with np.errstate(all="ignore"):
+            expect = getattr(np, name)(x)
+        assert np.array_equal(out, expect, equal_nan=True), name
+
+
+# -- response ---------------------------------------------------------------------------------
+
+def _frame(n=300_000, seed=1):
+    rng = np.random.default_rng(seed)
+    k = rng.uniform(0.0, 40.0, n)
+    a = 2.0 * np.exp(-8.0) * rng.lognormal(0, 1.0, n)
+    b = rng.uniform(0.005, 0.03, n)
+    d = rng.uniform(0.0, 100.0, n)
+    return k, a, b, d
+
+
+def test_response_equals_previous_numpy_form_on_a_frame():
+    k, a, b, d = _frame()
+    for t in (0.0, 0.5, 25.0, 400.0, 1e5):
+        y = model.response(t, k, a, b, d)
+        ref = numpy_response(t, k, a, b, d)
+        assert np.allclose(y, ref, rtol=2e-14, atol=1e-11)
+
+
+def test_response_parallel_and_serial_builds_agree_exactly():
+    k, a, b, d = _frame(n=launch.PARALLEL_MIN + 777)
+    out_p, out_s = np.empty(k.size), np.empty(k.size)
+    leakage.response_kernel.parallel(25.0, k, a, b, d, out_p)
+    leakage.response_kernel.serial(25.0, k, a, b, d, out_s)
+    assert np.array_equal(out_p, out_s)
+
+
+@pytest.mark.parametrize("case,repaired", [
+    (dict(t=1e4, k=0.0, a=1e-300, b=0.5, d=1.5e3), True),  # both terms below 1e-290
+    (dict(t=1e6, k=1e3, a=0.0, b=0.05, d=10.0), True),  # a = 0 with b k t far beyond 745
+    (dict(t=10.0, k=2.0, a=1e-3, b=1.0, d=-800.0), True),  # e^{-b d} overflows
+    (dict(t=2000.0, k=50.0, a=1e-12, b=0.05, d=5e3), False),  # far above saturation
+])
+def test_response_extreme_parameters(case, repaired):
+    y = model.response(**{("t_ms" if k == "t" else "dark" if k == "d" else k): v
+                          for k, v in case.items()})
+    ref = numpy_response(case["t"], case["k"], case["a"], case["b"], case["d"])
+    assert np.isfinite(y)
+    assert y == pytest.approx(float(ref), rel=1e-12, abs=1e-9)
+    fast_ok = leakage.response_fast(float(case["t"]), float(case["k"]), float(case["a"]),
+                                    float(case["b"]), float(case["d"]))[1]
+    assert fast_ok != repaired  # the first three really exercise the repair pass
+
+
+def test_float32_inputs_are_read_without_loss():
+    k, a, b, d = (v.astype(np.float32) for v in _frame(n=5000))
+    y32 = model.response(25.0, k, a, b, d)
+    y64 = model.response(25.0, *(v.astype(np.float64) for v in (k, a, b, d)))
+    assert y32.dtype == np.float64 and np.array_equal(y32, y64)
+
+
+def test_broadcasting_matches_numpy_rules():
+    t = np.array([1.0, 10.0, 100.0])[:, None, None]
+    k = np.linspace(0.1, 5, 12).reshape(3, 4)
+    y = model.response(t, k, 1e-3, 0.01, np.arange(4.0))
+    assert y.shape == (3, 3, 4)
+    assert np.allclose(y, numpy_response(t, k, 1e-3, 0.01, np.arange(4.0)), rtol=1e-14)
+
+
+@settings(max_examples=60, deadline=None)
+@given(t=st.floats(0.0, 1e4), k=st.floats(0.0, 100.0), log_a=st.floats(-60, 5),
+       b=st.floats(1e-4, 0.1), d=st.floats(-50, 500))
+def test_response_matches_numpy_form_everywhere(t, k, log_a, b, d):
+    y = model.response(t, k, np.exp(log_a), b, d)
+    ref = numpy_response(t, k, np.exp(log_a), b, d)
+    assert np.isfinite(y)
+    assert y == pytest.approx(float(ref), rel=1e-12, abs=1e-9)
+
+
+# -- inversion --------------------------------------------------------------------------------
+
+def test_inversion_equals_bisection_of_the_numpy_form():
+    k, a, b, d = _frame(n=3000, seed=4)
+    k = np.maximum(k, 0.05)
+    for t in (2.0, 25.0, 400.0):
+        y = numpy_response(t, k, a, b, d)
+        inv = model.invert_response(y, t, a, b, d)
+        assert np.all(inv.flags == 0)
+        assert np.allclose(inv.k, bisect_k(y, t, a, b, d), rtol=1e-10)
+        assert np.allclose(inv.k, k, rtol=1e-9)
+
+
+def test_inversion_parallel_and_serial_builds_agree_and_flag_alike():
+    k, a, b, d = _frame(n=launch.PARALLEL_MIN + 123, seed=5)
+    y = model.response(25.0, k, a, b, d)
+    y[997::997] = d[997::997] - 3.0  # below dark
+    y[1009::1009] = np.nan
+    y[1013::1013] = 5000.0  # clipped at full scale
+    outs = []
+    for build in (leakage.invert_kernel.parallel, leakage.invert_kernel.serial):
+        kk, fl = np.empty(k.size), np.empty(k.size, np.uint32)
+        it = np.zeros(-(-k.size // leakage.BLOCK), np.int64)
+        build(y, 25.0, a, b, d, 4000.0, np.inf, 1e-9, 60, kk, fl, it)
+        outs.append((kk, fl))
+    assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])
+    fl = outs[0][1]
+    assert np.all(fl[997::997] & DQ.BELOW_DARK) and np.all(outs[0][0][997::997] == 0)
+    assert np.all(fl[1009::1009] & DQ.NONFINITE)
+    assert np.all(fl[1013::1013] & DQ.SATURATED)
+    rest = np.ones(k.size, bool)
+    rest[997::997] = rest[1009::1009] = rest[1013::1013] = False
+    assert np.all(fl[rest] == 0)
+
+
+def test_inversion_with_fewer_iterations_than_the_vector_pass():
+    y = model.response(25.0, 2.0, 2 * np.exp(-8.0), 0.01, 30.0)
+    inv = model.invert_response(np.full(10, y), 25.0, 2 * np.exp(-8.0), 0.01, 30.0, max_iter=1)
+    assert inv.iterations <= 1
+    assert np.all((inv.flags == 0) | (inv.flags == DQ.NOT_CONVERGED))
+    assert np.all(inv.flags[inv.flags == 0] == 0)
+    full = model.invert_response(np.full(10, y), 25.0, 2 * np.exp(-8.0), 0.01, 30.0)
+    assert np.allclose(full.k, 2.0, rtol=1e-12)
+
+
+# -- alpha ------------------------------------------------------------------------------------
+
+def test_alpha_forms_equal_the_previous_numpy_forms():
+    k, a, b, d = _frame(n=20000, seed=6)
+    y = model.response(25.0, k, a, b, d)
+    y[:50] = d[:50] - 1.0  # no positive signal: inf
+    with np.errstate(divide="ignore", over="ignore"):
+        ref_model = 100.0 * np.exp(np.log(a) + b * y - np.log(k))
+    assert np.allclose(model.leakage_percentage(y, k, a, b), ref_model, rtol=1e-13,
+                       equal_nan=True)
+    paper = model.leakage_percentage_paper(y, 25.0, a, b, d)
+    assert np.allclose(paper, numpy_alpha_paper(y, 25.0, a, b, d), rtol=1e-13)
+    assert np.all(np.isinf(paper[:50]))
+    out32 = np.empty(y.shape, np.float32)
+    model.leakage_percentage_paper_into(out32, y.astype(np.float32), 25.0, a.astype(np.float32),
+                                        b.astype(np.float32), d.astype(np.float32))
+    fin = np.isfinite(paper)
+    ref32 = numpy_alpha_paper(y.astype(np.float32), 25.0, a.astype(np.float32),
+                              b.astype(np.float32), d.astype(np.float32))
+    assert np.allclose(out32[fin], ref32[fin], rtol=2e-7)
+    with pytest.raises(ValueError, match="out must be"):
+        model.leakage_percentage_paper_into(np.empty(3), y, 25.0, a, b, d)
