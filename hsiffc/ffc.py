@@ -125,10 +125,25 @@ def two_point_gain(dark, flat, *, band_map=None):
     """Per-pixel gain ``mean(flat - dark) / (flat - dark)`` and DQ flags (see
     :func:`two_point_fit`).
 
+    Parameters
+    ----------
+    dark, flat : (H, W) array_like, DN
+        R(L1) and R(L2) of eq. (5), usually averages of several frames.
+    band_map : (H, W) int array, optional
+        The mean is taken per band.
+
     Returns
     -------
     gain : (H, W) float32
+        1.0 where the flat is unusable.
     dq : (H, W) uint32
+        NO_FLAT where the flat signal is not positive or not finite.
+
+    Examples
+    --------
+    >>> gain, dq = two_point_gain(np.zeros((1, 3)), np.array([[90., 100, 110]]))
+    >>> [round(float(g), 4) for g in gain[0]], dq.tolist()
+    ([1.1111, 1.0, 0.9091], [[0, 0, 0]])
     """
     ff = two_point_fit(subtract_dark(flat, dark), band_map=band_map)
     return ff.gain, ff.dq
@@ -174,7 +189,26 @@ def two_point_correct(test, dark, flat, *, normalisation: str = "paper", band_ma
 
 
 def uniformity(image, mask=None) -> float:
-    """Non-uniformity of eq. (6): ``100 * std / mean`` in percent over the (masked) pixels."""
+    """Non-uniformity of eq. (6): ``100 * std / mean`` in percent over the (masked) pixels.
+
+    Parameters
+    ----------
+    image : array_like, DN
+        Any shape; non-finite values are left out.
+    mask : bool array of the same shape, optional
+        Pixels to use.
+
+    Returns
+    -------
+    float, percent
+        NaN with fewer than 2 usable pixels. On a single frame this includes temporal noise;
+        :func:`fixed_pattern_nonuniformity` takes it out.
+
+    Examples
+    --------
+    >>> uniformity(np.array([9.0, 11.0]))
+    10.0
+    """
     v = np.asarray(image, np.float64)
     if mask is not None:
         v = v[np.asarray(mask, bool)]
@@ -185,7 +219,24 @@ def uniformity(image, mask=None) -> float:
 
 
 def uniformity_per_band(image, band_map, *, dq=None) -> np.ndarray:
-    """Eq. (6) per band of a mosaic frame (pixels with any DQ bit set are left out)."""
+    """Eq. (6) per band of a mosaic frame (pixels with any DQ bit set are left out).
+
+    Parameters
+    ----------
+    image : (H, W) array_like, DN
+    band_map : (H, W) int array
+        Band index of every pixel (``Mosaic.band_map``).
+    dq : (H, W) uint32 array, optional
+
+    Returns
+    -------
+    (n_bands,) float64 ndarray, percent
+
+    Examples
+    --------
+    >>> uniformity_per_band(np.array([[9., 20], [11, 20]]), np.array([[0, 1], [0, 1]])).tolist()
+    [10.0, 0.0]
+    """
     bm = np.asarray(band_map)
     good = np.ones(bm.shape, bool) if dq is None else (np.asarray(dq) == 0)
     return np.array([uniformity(image, (bm == b) & good) for b in range(int(bm.max()) + 1)])

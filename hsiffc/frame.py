@@ -84,7 +84,33 @@ class Frame:
     def from_raw(cls, raw, *, exposure_ms: float, bit_depth: int, mosaic: Mosaic | None = None,
                  kind: str = "light", **meta) -> "Frame":
         """Wrap raw counts: float32 data, SATURATED where at full scale, NONFINITE where NaN/inf
-        (those pixels are set to 0 DN and flagged, so nothing downstream turns into NaN)."""
+        (those pixels are set to 0 DN and flagged, so nothing downstream turns into NaN).
+
+        Parameters
+        ----------
+        raw : (H, W) array_like, DN
+            Raw counts as read (integers or floats; never rescaled).
+        exposure_ms : float
+            Exposure time in milliseconds.
+        bit_depth : int
+            ADC bit depth; full scale is ``2**bit_depth - 1`` DN.
+        mosaic : Mosaic, optional
+            Band layout (needed by per-band stages and reconstruction).
+        kind : "light" or "dark"
+        **meta
+            Anything else to keep in ``meta`` (illumination, step, source, ...).
+
+        Returns
+        -------
+        Frame
+
+        Examples
+        --------
+        >>> f = Frame.from_raw(np.array([[10, 1023], [0, 512]], np.uint16), exposure_ms=16.125,
+        ...                    bit_depth=10)
+        >>> f.data.dtype.name, f.exposure_ms, bool(f.dq[0, 1] & DQ.SATURATED)
+        ('float32', 16.125, True)
+        """
         raw = np.asarray(raw)
         data = raw.astype(np.float32)
         dq = np.zeros(raw.shape, DQ_DTYPE)
@@ -98,7 +124,18 @@ class Frame:
 
     @classmethod
     def list_from_sweep(cls, sweep: Sweep) -> list["Frame"]:
-        """Every frame of a sweep as a Frame (acquisition order kept)."""
+        """Every frame of a sweep as a Frame (acquisition order kept).
+
+        Parameters
+        ----------
+        sweep : Sweep
+            Frames ``(N, H, W)`` with their per-frame metadata.
+
+        Returns
+        -------
+        list of Frame
+            N frames, each with exposure, bit depth, mosaic, kind, illumination, step, source.
+        """
         return [cls.from_raw(sweep.data[i], exposure_ms=float(sweep.exposure_ms[i]),
                              bit_depth=sweep.bit_depth, mosaic=sweep.mosaic,
                              kind=str(sweep.kind[i]), illumination=str(sweep.illumination[i]),
@@ -117,26 +154,32 @@ class Frame:
 
     @property
     def exposure_ms(self) -> float:
+        """Exposure time (ms)."""
         return float(self.meta["exposure_ms"])
 
     @property
     def bit_depth(self) -> int:
+        """ADC bit depth (full scale ``2**bit_depth - 1`` DN)."""
         return int(self.meta["bit_depth"])
 
     @property
     def mosaic(self) -> Mosaic | None:
+        """The band layout, or None."""
         return self.meta.get("mosaic")
 
     @property
     def kind(self) -> str:
+        """``"light"`` or ``"dark"``."""
         return str(self.meta.get("kind", "light"))
 
     @property
     def history(self) -> tuple:
+        """One dict per stage the frame passed (step, stage, parameters, status)."""
         return self.meta["history"]
 
     @property
     def is_cube(self) -> bool:
+        """True for a reconstructed cube ``(H, W, bands)``."""
         return self.data.ndim == 3
 
     def band_map(self) -> np.ndarray:
@@ -190,7 +233,27 @@ class Frame:
 
 def stack_mean(frames, *, robust: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Average of a stack of frames: the median when ``robust`` (outliers such as cosmic rays or
-    a glitched frame do not move it), else the mean. Returns (data, dq-OR of the stack)."""
+    a glitched frame do not move it), else the mean.
+
+    Parameters
+    ----------
+    frames : sequence of Frame
+        Frames of one shape ``(H, W)``.
+    robust : bool
+        Median (with 3 or more frames) instead of the mean.
+
+    Returns
+    -------
+    data : (H, W) float32, DN
+    dq : (H, W) uint32
+        OR of the frames' DQ.
+
+    Examples
+    --------
+    >>> fs = [Frame.from_raw(np.full((1, 2), v), exposure_ms=1, bit_depth=10) for v in (1, 2, 9)]
+    >>> stack_mean(fs)[0].tolist(), stack_mean(fs, robust=False)[0].tolist()
+    ([[2.0, 2.0]], [[4.0, 4.0]])
+    """
     data = np.stack([f.data for f in frames])
     dq = np.bitwise_or.reduce(np.stack([f.dq for f in frames]), axis=0)
     avg = np.median(data, axis=0) if (robust and len(frames) >= 3) else data.mean(axis=0)
