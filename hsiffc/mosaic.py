@@ -79,10 +79,12 @@ class Mosaic:
     # -- properties ----------------------------------------------------------------------------
     @property
     def n_bands(self) -> int:
+        """Number of bands in the pattern."""
         return int(self.pattern.max()) + 1
 
     @property
     def tile_shape(self) -> tuple[int, int]:
+        """(rows, columns) of one mosaic tile."""
         return tuple(int(s) for s in self.pattern.shape)
 
     def band_map(self, shape) -> np.ndarray:
@@ -94,6 +96,7 @@ class Mosaic:
         return self.pattern[rows[:, None], cols[None, :]]
 
     def to_dict(self) -> dict:
+        """JSON-safe description (pattern, wavelengths, offset); :meth:`from_dict` inverts it."""
         return {
             "pattern": self.pattern.tolist(),
             "wavelengths_nm": None if self.wavelengths_nm is None else list(self.wavelengths_nm),
@@ -103,6 +106,7 @@ class Mosaic:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Mosaic":
+        """The Mosaic described by :meth:`to_dict`'s output."""
         try:
             return cls(np.asarray(d["pattern"], dtype=np.int64), d.get("wavelengths_nm"),
                        tuple(d.get("offset", (0, 0))), name=d.get("name", ""))

@@ -103,14 +103,17 @@ class Sweep:
     # -- basic facts ---------------------------------------------------------------------------
     @property
     def n_frames(self) -> int:
+        """Number of frames N."""
         return int(self.data.shape[0])
 
     @property
     def frame_shape(self) -> tuple[int, int]:
+        """Frame shape (H, W) in pixels."""
         return tuple(int(s) for s in self.data.shape[1:])
 
     @property
     def full_scale_dn(self) -> int:
+        """Full scale ``2**bit_depth - 1`` (DN)."""
         return 2 ** self.bit_depth - 1
 
     @property
@@ -120,10 +123,12 @@ class Sweep:
 
     @property
     def is_light(self) -> np.ndarray:
+        """(N,) bool: light frames."""
         return self.kind == "light"
 
     @property
     def is_dark(self) -> np.ndarray:
+        """(N,) bool: dark frames."""
         return self.kind == "dark"
 
     def light_rate_relative(self) -> np.ndarray:
@@ -146,9 +151,11 @@ class Sweep:
                        illumination=self.illumination[idx])
 
     def light(self) -> "Sweep":
+        """The light frames as a new Sweep."""
         return self.select(self.is_light)
 
     def dark(self) -> "Sweep":
+        """The dark frames as a new Sweep."""
         return self.select(self.is_dark)
 
     def steps(self) -> np.ndarray:

@@ -128,6 +128,24 @@ def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
     level and dark current (``subtract_dark=False`` divides the raw response, literally as the
     paper writes it). ``method="model"``: :func:`alpha_model`. :data:`NO_ALPHA` where no light
     rate can be estimated.
+
+    Parameters
+    ----------
+    frame : (H, W) array_like, DN
+        Raw response.
+    exposure_ms : float
+        Exposure time (ms).
+    calibration : Calibration
+        Supplies a (DN/ms), b (1/DN), the dark level (DN) and dark current (DN/ms) per pixel.
+    method : "paper" or "model"
+    subtract_dark : bool
+        Paper method only: subtract the calibrated dark before dividing by the exposure.
+    signal : (H, W) array_like, DN, optional
+        Signal above the dark actually removed (overrides ``subtract_dark``).
+
+    Returns
+    -------
+    (H, W) float32 ndarray, percent
     """
     validate_method(method, ALPHA_METHODS, "alpha method")
     cal = calibration
@@ -144,6 +162,17 @@ def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
 def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent: float,
                    method: str = "paper", signal=None):
     """alpha map (:func:`alpha_map`) and DQ flags (:func:`leakage_dq`) of one raw frame.
+
+    Parameters
+    ----------
+    frame : (H, W) array_like, DN
+    exposure_ms : float
+    calibration : Calibration
+    threshold_percent : float
+        alpha above this (percent) is flagged LEAKAGE.
+    method : "paper" or "model"
+    signal : (H, W) array_like, DN, optional
+        See :func:`alpha_map`.
 
     Returns
     -------
@@ -219,6 +248,7 @@ class AlphaTable:
                    None if sel is None else np.array([np.nan if v is None else v for v in sel]))
 
     def to_dict(self) -> dict:
+        """JSON-safe dict (lists, NaN as None where needed); :meth:`from_dict` inverts it."""
         return {"exposures_ms": self.exposures_ms.tolist(),
                 "alpha_percent": [[v if np.isfinite(v) else None for v in row]
                                   for row in self.alpha.tolist()],
@@ -266,7 +296,23 @@ def alpha_table_of(responses, exposures_ms, calibration, *, signals=None, band_m
 def alpha_table(sweep: Sweep, calibration, *, method: str = "paper",
                 statistic: str = "median") -> AlphaTable:
     """alpha per band for every light exposure of ``sweep`` (frames of a step are averaged,
-    like the paper's 10-frame training images)."""
+    like the paper's 10-frame training images).
+
+    Parameters
+    ----------
+    sweep : Sweep
+        Light frames at the candidate exposures (darks are ignored).
+    calibration : Calibration
+        Of the same sensor (checked).
+    method : "paper" or "model"
+    statistic : "median" or another :func:`hsiffc.bandstats.band_reduce` statistic
+
+    Returns
+    -------
+    AlphaTable
+        ``alpha`` of shape (n_bands, n_exposures), percent; ``.select(12)`` applies the
+        paper's rule (the longest exposure under the threshold, per band).
+    """
     calibration.check_compatible(sweep)
     means = sweep.step_means()
     light = means["kind"] == "light"

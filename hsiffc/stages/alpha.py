@@ -40,6 +40,7 @@ class AlphaMask(Stage):
         self.method = method
 
     def fit(self, frames):
+        """Check the calibration against the training frames; returns ``self``."""
         self.validate_params()
         cal = self.require_calibration()
         for f in frames:
@@ -51,6 +52,7 @@ class AlphaMask(Stage):
         return self
 
     def transform(self, frame):
+        """The frame with its alpha plane (percent) and LEAKAGE / OUT_OF_DOMAIN flags added."""
         cal = self.require_calibration()
         cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
                              what="the frame")

@@ -51,6 +51,7 @@ class Stage:
         return {name: getattr(self, name) for name in self._param_names()}
 
     def set_params(self, **params) -> "Stage":
+        """Set constructor parameters by name; returns ``self`` (checked at ``fit``)."""
         valid = self._param_names()
         for key, value in params.items():
             if key not in valid:
@@ -99,14 +100,17 @@ class Stage:
         return self
 
     def is_fitted(self) -> bool:
+        """Whether :meth:`fit` has run."""
         return self.stateless or bool(getattr(self, "fitted_", False))
 
     def check_is_fitted(self) -> None:
+        """Raise :class:`NotFittedError` unless :meth:`fit` has run."""
         if not self.is_fitted():
             raise NotFittedError(f"{type(self).__name__} is not fitted yet; call fit(frames) "
                                  "first (or load a fitted pipeline)")
 
     def transform(self, frame):  # pragma: no cover - abstract
+        """A new, corrected Frame (the input is not modified)."""
         raise NotImplementedError
 
     # -- state without pickle ------------------------------------------------------------------
@@ -124,6 +128,7 @@ class Stage:
         return js, arrays
 
     def set_state(self, js: dict, arrays: dict) -> "Stage":
+        """Restore the fitted state written by :meth:`get_state` (JSON part and arrays); returns ``self``."""
         for key, value in {**js, **arrays}.items():
             if not key.endswith("_"):
                 raise ValueError(f"state key {key!r} is not a fitted attribute")

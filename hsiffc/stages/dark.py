@@ -44,6 +44,7 @@ class DarkSubtract(Stage):
         self.calibration = calibration
 
     def fit(self, frames):
+        """Build master darks (DN) from the dark training frames, per exposure; returns ``self``."""
         self.validate_params()
         groups = group_by_exposure(frames, "dark")
         if not groups and self.calibration is None:
@@ -78,6 +79,7 @@ class DarkSubtract(Stage):
                          "calibration=")
 
     def transform(self, frame):
+        """The frame less the dark matched to its exposure (DN in, DN out; ``dark_removed`` set)."""
         self.check_is_fitted()
         if frame.dark_removed is not None:
             raise ValueError("this frame is already dark-subtracted; a pipeline should have one "

@@ -39,6 +39,7 @@ class LeakageLinearise(Stage):
         self.alpha_limit_percent = alpha_limit_percent
 
     def fit(self, frames):
+        """Check the calibration against the training frames; returns ``self``."""
         self.validate_params()
         self.require_calibration()
         self.fitted_ = True
@@ -56,6 +57,7 @@ class LeakageLinearise(Stage):
         return lin.light_rate, lin.dq, lin.alpha, cal
 
     def transform(self, frame):
+        """The frame with each response replaced by ``k t`` (DN), the response without leakage."""
         k, dq, _, cal = self.light_rate(frame)
         signal = k * frame.exposure_ms
         if frame.dark_removed is None:

@@ -106,6 +106,7 @@ class Pipeline:
 
     @property
     def named_steps(self) -> dict:
+        """``{step name: stage}``."""
         return dict(self.steps)
 
     def __repr__(self):
@@ -113,6 +114,7 @@ class Pipeline:
 
     # -- parameters ----------------------------------------------------------------------------
     def get_params(self) -> dict:
+        """Every stage parameter as ``step__param``."""
         return {f"{n}__{k}": v for n, s in self.steps for k, v in s.get_params().items()}
 
     def set_params(self, **params) -> "Pipeline":
@@ -153,10 +155,12 @@ class Pipeline:
         return frame
 
     def fit_transform(self, frames, test: Frame) -> Frame:
+        """``fit(frames)`` then ``transform(test)``."""
         return self.fit(frames).transform(test)
 
     # -- persistence ---------------------------------------------------------------------------
     def manifest(self) -> dict:
+        """The JSON manifest :meth:`save` writes (format, versions, steps with parameters)."""
         return {"steps": [{"name": n, "stage": s.name or type(s).__name__,
                            "params": json_params(s),
                            "state": s.get_state()[0] if s.is_fitted() else None}

@@ -86,6 +86,7 @@ class Reconstruct(Stage):
 
     # -- fit / transform -----------------------------------------------------------------------
     def fit(self, frames) -> Reconstruct:
+        """Prepare the spectral correction matrix (if any); returns ``self``."""
         self._validate()
         if self.correction is not None:
             from ..spectral import read_imec_xml, spectral_correction_matrix
@@ -116,6 +117,7 @@ class Reconstruct(Stage):
         return self
 
     def transform(self, frame):
+        """The mosaic frame ``(H, W)`` as a cube ``(H', W', bands)`` with wavelengths in ``meta``."""
         if not self.stateless:
             self.check_is_fitted()
         self._validate()
