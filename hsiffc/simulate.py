@@ -262,6 +262,37 @@ class MosaicSensor:
         ``illumination`` None (or irradiance 0) captures dark frames. Returns a :class:`Capture`
         with ``frames`` (n_frames, H, W) uint16 and the per-pixel ground truth. ``label``
         replaces the illumination's label (e.g. to tell light levels of one lamp apart).
+
+        Parameters
+        ----------
+        exposure_ms : float
+            Exposure time (ms).
+        illumination : str or Illumination, optional
+            A lamp (``"lamp A"``, ``"2200K"``, a CIE illuminant name...) or None for darks.
+        irradiance_w_m2 : float, optional
+            Irradiance at the sensor (W/m^2); required when ``illumination`` is a name (e.g.
+            ``PAPER_LIGHT_W_M2["test"]``).
+        n_frames : int
+            Frames to capture (independent noise).
+        reflectance : callable or array, optional
+            Scene reflectance (per pixel or per wavelength) in front of the lamp.
+        vignetting : float
+            Relative light fall-off at the corners (0: uniform, as an integrating sphere).
+        seed : int, optional
+            Seeds the noise (the fixed pattern is the sensor's own).
+        label : str, optional
+
+        Returns
+        -------
+        Capture
+
+        Examples
+        --------
+        >>> sensor = MosaicSensor((8, 8), seed=1)
+        >>> cap = sensor.capture(16.125, "lamp B", irradiance_w_m2=PAPER_LIGHT_W_M2["test"],
+        ...                      n_frames=2, seed=3)
+        >>> cap.frames.shape, cap.frames.dtype.name
+        ((2, 8, 8), 'uint16')
         """
         exposure_ms = float(exposure_ms)
         if not np.isfinite(exposure_ms) or exposure_ms < 0:
