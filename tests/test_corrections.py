@@ -228,3 +228,23 @@ def test_validate_method_and_band_reduce_conventions(cal):
 def test_check_stage_prepares_dark_subtracted_frames_for_stages_that_need_them(frames):
     train, test = frames
     check_stage(create("two_point_ffc", exposure_ms=T_MS), train, test)
+
+
+def test_pipeline_files_of_format_1_still_load(frames, cal, tmp_path):
+    """Format 1 named calibrations by path only and kept the two-point flat mean per pixel."""
+    train, test = frames
+    cal_path = cal.save(tmp_path / "cal1.npz")
+    pipe = Pipeline([("dark", create("dark")),
+                     ("ffc", create("two_point_ffc", calibration=str(cal_path)))]).fit(train)
+    expected = pipe.transform(test)
+    path = pipe.save(tmp_path / "p.npz")
+    with np.load(path) as npz:
+        contents = {k: npz[k] for k in npz.files}
+    man = json.loads(contents["manifest.json"].tobytes())
+    man["format_version"] = 1
+    man["steps"][1]["params"]["calibration"] = "cal1.npz"  # relative: found beside the file
+    contents["ffc/flat_mean_"] = contents["ffc/flat_mean_"][test.band_map()]
+    contents["manifest.json"] = np.frombuffer(json.dumps(man).encode(), np.uint8)
+    np.savez(tmp_path / "v1.npz", **contents)
+    again = Pipeline.load(tmp_path / "v1.npz").transform(test)
+    assert np.array_equal(again.data, expected.data) and np.array_equal(again.dq, expected.dq)

@@ -11,6 +11,7 @@ import warnings
 
 import numpy as np
 
+from ..bandstats import band_reduce
 from ..dq import DQ_DTYPE
 from ..errors import HsiffcWarning, ParameterError
 from ..ffc import NORMALISATIONS, paper_scale, two_point_apply, two_point_fit
@@ -128,8 +129,11 @@ class TwoPointFFC(Stage):
         dq = frame.dq | self.dq_
         scale = 1.0
         if self.normalisation == "paper":
-            scale = paper_scale(frame.raw, self.flat_mean_, band_map=frame.band_map(),
-                                good=dq == 0)
+            band_map = frame.band_map()
+            flat_mean = np.asarray(self.flat_mean_)
+            if flat_mean.ndim == 2:  # pipeline files of format 1 kept it per pixel
+                flat_mean = band_reduce(flat_mean, band_map)
+            scale = paper_scale(frame.raw, flat_mean, band_map=band_map, good=dq == 0)
         return frame.replace(data=two_point_apply(frame.signal, self.gain_, scale), dq=dq,
                              corrected_by=self.name,
                              meta={"ffc": "two_point", "ffc_training_ms": self.selected_ms_})
