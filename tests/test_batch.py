@@ -545,3 +545,19 @@ def test_recorded_uniformity_is_eq6_per_band_of_the_input(world, clean_run):
     for k, frame in enumerate(frames):
         ref = uniformity_per_band(frame.data, band, dq=frame.dq)
         np.testing.assert_allclose(prov["frames"]["uniformity_before"][k], ref, rtol=1e-3)
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the overflow this test provokes
+def test_correction_that_gives_nan_is_flagged_never_written_as_nan(world, tmp_path):
+    """An exposure far outside the calibration's range makes the dark model overflow: the
+    output holds 0 DN flagged NONFINITE + DO_NOT_USE, and the summary says so."""
+    cube = read_sweep(world["good"][0])
+    odd = tmp_path / "odd.tif"
+    write_sweep(odd, replace(cube, meta={}, exposure_ms=np.full(cube.n_frames, 1e300)))
+    res = batch.correct_batch([odd], tmp_path / "out", world["cal"]).results[0]
+    assert res["status"] == "done" and any("NaN/inf" in w for w in res["warnings"])
+    c = read_corrected(tmp_path / "out" / "odd.corrected.tif")
+    assert np.isfinite(c.data).all()
+    lost = (c.dq & int(DQ.NONFINITE | DQ.DO_NOT_USE)) == int(DQ.NONFINITE | DQ.DO_NOT_USE)
+    assert lost.any() and (c.data[lost] == 0).all()
+    assert sum(c.provenance["frames"]["nonfinite_output_pixels"]) == int(lost.sum())

@@ -59,12 +59,14 @@ class FrameStats:
         self.n_bands = int(self.band.max()) + 1
         self.all_rows = len(self.rows) == shape[0]
         self.nonfinite, self.flagged, self.before, self.after = [], [], [], []
+        self.nonfinite_out: list = []
 
-    def add(self, frame, result, nonfinite: int) -> None:
-        """Record input ``frame`` and its corrected ``result`` (Frames) with its count of
-        NaN/inf pixels."""
+    def add(self, frame, result, nonfinite: int, nonfinite_out: int = 0) -> None:
+        """Record input ``frame`` and its corrected ``result`` (Frames) with its counts of
+        NaN/inf pixels in the input and in the corrected data."""
         r = self.rows
         self.nonfinite.append(int(nonfinite))
+        self.nonfinite_out.append(int(nonfinite_out))
         self.flagged.append(round(np.count_nonzero(result.dq) / result.dq.size, 6))
         light = frame.kind == "light"
         self.before.append(band_uniformity(frame.data[r], self.band, frame.dq[r])
@@ -74,7 +76,8 @@ class FrameStats:
 
     def to_dict(self) -> dict:
         """The per-frame lists, as the provenance records them."""
-        return {"nonfinite_pixels": self.nonfinite, "flagged_fraction": self.flagged,
+        return {"nonfinite_pixels": self.nonfinite, "nonfinite_output_pixels": self.nonfinite_out,
+                "flagged_fraction": self.flagged,
                 "uniformity_before": self.before, "uniformity_after": self.after,
                 "uniformity_rows": "all" if self.all_rows else len(self.rows)}
 

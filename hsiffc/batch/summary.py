@@ -85,7 +85,7 @@ class BatchSummary:
         if u is not None:
             lines.append("non-uniformity per band (eq. 6, %, good pixels, mean over light "
                          "frames): before -> after")
-            lines += [f"  band {i + 1}: {b:7.3f} -> {a:7.3f}" for i, (b, a) in enumerate(zip(*u))]
+            lines += [f"  band {i + 1}: {_pct(b)} -> {_pct(a)}" for i, (b, a) in enumerate(zip(*u))]
         warned = [r for r in self.results if r["warnings"]]
         if warned:
             lines.append("warnings:")
@@ -95,3 +95,8 @@ class BatchSummary:
             lines += [f"  {r['rel']}: {r['reason']}" for r in self.failed]
         lines.append(f"outputs in {self.outdir}")
         return "\n".join(lines)
+
+
+def _pct(value) -> str:
+    """A non-uniformity for the summary table ("n/a" where none could be measured)."""
+    return f"{value:7.3f}" if np.isfinite(value) else "    n/a"

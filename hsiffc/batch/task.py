@@ -168,8 +168,9 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
                 if result.data.shape != shape:
                     raise ValueError(f"the pipeline turned a {shape} frame into "
                                      f"{result.data.shape}; hsiffc correct writes (H, W) frames")
-                sink.write(result.data, result.dq, result.alpha)
-                stats.add(frame, result, bad)
+                data, dq, lost = _finite(result)
+                sink.write(data, dq, result.alpha)
+                stats.add(frame, result, bad, lost)
                 del frame, result
                 res["frames"] = meta.index + 1
                 if on_frame is not None:
@@ -190,6 +191,23 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
     if bad:
         res["warnings"].append(f"{sum(bad)} NaN/inf pixels in {len(bad)} frames flagged "
                                "NONFINITE (set to 0 DN)")
+    lost = [b for b in stats.nonfinite_out if b]
+    if lost:
+        res["warnings"].append(f"the correction gave {sum(lost)} NaN/inf pixels in {len(lost)} "
+                               "frames (e.g. an exposure far outside the calibration's range): "
+                               "flagged NONFINITE + DO_NOT_USE and written as 0 DN")
+
+
+def _finite(result: Frame):
+    """The corrected planes with NaN/inf data set to 0 DN and flagged (outputs are never
+    NaN/inf silently); and how many pixels that was."""
+    data, dq = result.data, result.dq
+    bad = ~np.isfinite(data)
+    n = int(np.count_nonzero(bad))
+    if n:
+        data = np.where(bad, np.float32(0), data)
+        dq = dq | np.where(bad, np.uint32(DQ.NONFINITE | DQ.DO_NOT_USE), np.uint32(0))
+    return data, dq, n
 
 
 def _to_frame(raw, meta, src, settings: Settings) -> tuple[Frame, int]:
