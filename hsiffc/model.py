@@ -329,25 +329,31 @@ def solve_ode(t_ms, k, a, b, dark, *, rtol=1e-10, atol=1e-10):
 from numba import njit as _njit, prange as _prange  # noqa: E402
 
 
-@_njit(cache=True, inline="always")
-def response_gradient_kernel(t_ms, log_t_ms, k, ln_a, ln_b, b, dark):
+@_njit(cache=True, inline="always", error_model="numpy")
+def response_gradient_kernel(t_ms, k, ln_a, b, dark, c):
     """Scalar numba kernel: response (DN) and its derivatives at one sample.
 
-    Same closed form as :func:`response` (``exp(-bY) = exp(-b d - x) + a b t phi(x)`` taken in
-    the log domain, so nothing overflows), with the derivatives of Y with respect to ``ln k``,
-    ``ln a``, ``ln b`` and ``dark``. Callable from other numba kernels; from Python use
-    :func:`response_and_gradient`.
+    The closed form of :func:`response`, ``exp(-b (Y - d)) = e^{-x} + (c / k)(1 - e^{-x})``
+    with ``x = b k t`` and ``c = a e^{b d}`` (the leakage rate at the dark level, DN/ms; the
+    leakage term is ``c b t`` at k = 0). Both terms are positive, so one log gives Y without
+    cancellation: one exp and one log per sample. Where a term could leave the range of
+    doubles (``c`` beyond 1e+-300 DN/ms, ``x`` beyond 690) the log-domain form is used instead. Callable from
+    other numba kernels; from Python use :func:`response_and_gradient`.
 
     Parameters
     ----------
-    t_ms, log_t_ms : float
-        Exposure (ms, >= 0) and its natural log (``-inf`` at t = 0).
+    t_ms : float
+        Exposure (ms, >= 0).
     k : float
         Light rate (DN/ms, >= 0).
-    ln_a, ln_b, b : float
-        ``ln a`` (a in DN/ms; ``-inf`` for a = 0), ``ln b`` and ``b = exp(ln_b)`` (1/DN).
+    ln_a : float
+        ``ln a`` (a in DN/ms; ``-inf`` for a = 0).
+    b : float
+        Leakage exponent (1/DN, > 0).
     dark : float
         Level at t = 0 (DN).
+    c : float
+        ``exp(ln_a + b * dark)``, precomputed by the caller (it is per pixel).
 
     Returns
     -------
@@ -355,38 +361,43 @@ def response_gradient_kernel(t_ms, log_t_ms, k, ln_a, ln_b, b, dark):
         Y (DN), dY/d ln k, dY/d ln a, dY/d ln b (DN), dY/d dark (1).
     """
     x = b * k * t_ms
-    if x < 1e-4:  # series of ln phi(x) and x d ln phi / dx near 0
-        lp = x * (-0.5 + x / 24.0)
+    if x < 1e-4:  # e^{-x}, 1 - e^{-x} and x e^{-x} / (1 - e^{-x}) - 1 by their series
+        ex = 1.0 - x * (1.0 - x * (0.5 - x / 6.0))
         xdlp = x * (-0.5 + x / 12.0)
+        em_over_k = b * t_ms * (1.0 - x * (0.5 - x * (1.0 / 6.0 - x / 24.0)))  # (1 - e^-x) / k
     else:
         ex = np.exp(-x)
         em = 1.0 - ex
-        lp = np.log(em / x)
         xdlp = x * ex / em - 1.0
-    a1 = -b * dark - x
-    lt = ln_a + ln_b + log_t_ms + lp
-    # n = logaddexp(a1, lt); w2 = exp(lt - n) is the leakage term's share
-    if a1 >= lt:
-        e = np.exp(lt - a1)
-        n = a1 + np.log(1.0 + e)
-        w2 = e / (1.0 + e)
-    else:
-        e = np.exp(a1 - lt)
-        n = lt + np.log(1.0 + e)
-        w2 = 1.0 / (1.0 + e)
+        em_over_k = em / k
+    if x < 690.0 and c < 1e300 and (c > 1e-300 or c == 0.0):
+        leak = c * em_over_k  # leakage term L; Z = e^{-x} + L
+        z = ex + leak
+        ln_z = np.log(z)
+        inv_z = 1.0 / z
+        w2 = leak * inv_z  # the leakage term's share of Z
+    else:  # log domain: ln L = ln a + b d + ln(em / k), taken without overflow
+        ln_leak = ln_a + b * dark + np.log(em_over_k)
+        if ln_leak > -x:
+            ln_z = ln_leak + np.log(1.0 + np.exp(-x - ln_leak))
+        else:
+            ln_z = -x + np.log(1.0 + np.exp(ln_leak + x))
+        w2 = np.exp(ln_leak - ln_z)
     w1 = 1.0 - w2
     inv_b = 1.0 / b
-    return (-n * inv_b, (w1 * x - w2 * xdlp) * inv_b, -w2 * inv_b,
-            (n - w1 * a1 - w2 * (1.0 + xdlp)) * inv_b, w1)
+    # dZ/Z with respect to ln k, ln b, from L = c (1 - e^{-x}) / k and x = b k t
+    dlnk = (x * w1 - w2 * xdlp) * inv_b
+    dlnb = (ln_z + x * w1 - w2 * (b * dark + 1.0 + xdlp)) * inv_b
+    return dark - ln_z * inv_b, dlnk, -w2 * inv_b, dlnb, w1
 
 
-@_njit(parallel=True, cache=True)
+@_njit(parallel=True, cache=True, error_model="numpy")
 def _gradient_flat(t, k, a, b, d, out):
     for i in _prange(t.size):
         ti = t[i]
-        lt = np.log(ti) if ti > 0 else -np.inf
         la = np.log(a[i]) if a[i] > 0 else -np.inf
-        y, g0, g1, g2, g3 = response_gradient_kernel(ti, lt, k[i], la, np.log(b[i]), b[i], d[i])
+        c = np.exp(la + b[i] * d[i]) if a[i] > 0 else 0.0
+        y, g0, g1, g2, g3 = response_gradient_kernel(ti, k[i], la, b[i], d[i], c)
         out[0, i] = y
         out[1, i] = g0
         out[2, i] = g1

@@ -120,7 +120,7 @@ def test_unknown_method_lists_the_valid_ones(joint):
 
 def test_clipped_and_full_well_samples_are_left_out_and_counted():
     s = MosaicSensor((16, 32), seed=3)
-    sweep = s.sweep([5.0, 10.0, 20.0, 40.0, 60.0], "lamp A", irradiance_w_m2=2 * TRAIN,
+    sweep = s.sweep([2.5, 5.0, 7.5, 10.0, 20.0, 40.0, 60.0], "lamp A", irradiance_w_m2=2 * TRAIN,
                     n_frames=2, seed=1)
     cal = calibrate(sweep)
     clipped_frames = sweep.data >= sweep.full_scale_dn

@@ -1,22 +1,19 @@
-"""Joint per-pixel fit of the leakage model to a whole sweep, vectorised over pixels.
+"""Joint per-pixel fit of the leakage model to a whole sweep: the public fit API.
 
-Every pixel p and step s share one model::
+Every pixel p and sample s share one model::
 
-    Y[s, p] = response(t[s], g[p] * r[s], a[p], b[p], d[p])
+    Y[s, p] = response(t[s], g[p] * r[s] + dc[p], a[p], b[p], d[p])        (dark in the well)
+    Y[s, p] = response(t[s], g[p] * r[s], a[p], b[p], d[p]) + dc[p] t[s]   (additive dark)
 
-with ``t`` the exposure (ms), ``r`` the step's relative light rate (photons per ms in EMVA 1288
-data; 1 for a single illumination; 0 for dark steps) and per-pixel unknowns ``g`` (DN per unit
-of r, so ``k = g r`` in DN/ms), leakage ``a`` (DN/ms), ``b`` (1/DN) and dark level ``d`` (DN).
+with ``t`` the exposure (ms), ``r`` the sample's relative light rate (photons per ms in EMVA
+1288 data; 1 for a single illumination; 0 for dark samples), per-pixel unknowns ``g`` (DN per
+unit of r, so ``k = g r`` in DN/ms), leakage ``a`` (DN/ms), ``b`` (1/DN), dark level ``d`` (DN)
+and a dark current ``dc`` (DN/ms) measured from the dark samples.
 
-The fit is a weighted Levenberg-Marquardt on ``theta = (ln g, ln a, ln b, d)`` run on all
-pixels of a chunk at once: analytic Jacobians from the closed form, a 4 x 4 normal system per
-pixel solved in one batched call, a damping factor per pixel, and pixels that have converged
-drop out of the iteration. No Python loop touches single pixels.
-
-A weak Gaussian prior on ln a and ln b (sigma ``PRIOR_SIGMA`` e-folds around the start values)
-keeps the normal equations regular for pixels whose leakage never shows inside the sweep; such
-pixels are reported with ``leak_constrained == False`` and their a, b carry the prior's
-uncertainty.
+:func:`fit_pixels` runs the per-pixel kernel of :mod:`hsiffc.calibrate.pixelfit` (dark model, linear
+model, start values, Levenberg-Marquardt with bounds and a fallback to the linear model);
+:func:`model_and_jacobian` and :func:`predict` evaluate the model for per-pixel parameters
+``theta = (ln g, ln a, ln b, d)``. All build on :mod:`hsiffc.model`.
 """
 
 from __future__ import annotations
@@ -26,27 +23,45 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import model
+from . import pixelfit
 
-_TRACE = None  # debugging aid: set to a list to record the active-pixel count
 PRIOR_SIGMA = 3.0  # e-folds, on ln a and ln b
 PARAMS = ("ln_g", "ln_a", "ln_b", "dark")
+DARK_MODELS = ("in_well", "additive")
+B_GRID = (0.002, 0.005, 0.01, 0.02, 0.05)  # 1/DN, start values tried for b
+MARGIN_GRID = (0.5, 3.0)  # saturation placed this many 1/b above the highest valid sample
 
 
 @dataclass(frozen=True, eq=False)
 class JointFit:
-    """Per-pixel result of :func:`fit_pixels` (arrays of shape (P,))."""
+    """Per-pixel result of :func:`fit_pixels` (arrays of shape (P,)).
 
-    g: np.ndarray  # DN per unit relative light rate
+    ``a`` is 0 where the linear model was used (see ``status`` and
+    :data:`hsiffc.calibrate.pixelfit.STATUS_REASONS`); parameters are NaN where no fit was possible.
+    """
+
+    g: np.ndarray  # DN/ms per unit relative light rate
     a: np.ndarray  # DN/ms
     b: np.ndarray  # 1/DN
     dark: np.ndarray  # DN
     sigma: np.ndarray  # (P, 4) standard errors of (ln g, ln a, ln b, dark)
-    rms_dn: np.ndarray  # unweighted RMS residual over valid samples, DN
+    rms_dn: np.ndarray  # unweighted RMS residual over all valid samples, DN
     chi2_red: np.ndarray  # weighted residual sum of squares per degree of freedom
     n_valid: np.ndarray
     converged: np.ndarray
     leak_constrained: np.ndarray
     iterations: int
+    status: np.ndarray  # uint8 fit status code per pixel
+    dark_current: np.ndarray  # DN/ms used for each pixel
+    chi2: np.ndarray  # weighted residual sum of squares of the model used
+    chi2_linear: np.ndarray  # ... of the plain linear model on the same samples
+
+    @property
+    def theta(self) -> np.ndarray:
+        """(P, 4) parameters (ln g, ln a, ln b, d); ln a is -inf where the linear model was
+        used."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.column_stack([np.log(self.g), np.log(self.a), np.log(self.b), self.dark])
 
 
 def model_and_jacobian(theta, t_ms, r, dark_current=0.0):
@@ -90,311 +105,170 @@ def predict(theta, t_ms, r, dark_current=0.0):
                               d)
 
 
-def _sanitised(y, t_ms, r, valid, weight):
-    """Neutralise invalid samples (NaN rates, zero exposures), which carry zero weight but must
-    not turn sums into NaN. ``t`` and ``r`` stay 1-D (S,) when given per step, which keeps
-    their logs and products cheap."""
+def _kernel_inputs(y, t_ms, r, valid, weight):
+    """(S, P) samples, validity and weights for the kernel, and the per-step arrays."""
     y = np.asarray(y, np.float64)
-    valid = np.asarray(valid, bool)
+    if y.ndim != 2:
+        raise ValueError(f"y must be (pixels, samples), got shape {y.shape}")
+    s_count = y.shape[1]
     t = np.asarray(t_ms, np.float64)
     r = np.asarray(r, np.float64)
-    step_ok = np.isfinite(t) & (t > 0) & np.isfinite(r)
-    t = np.where(step_ok, t, 1.0)
-    r = np.where(step_ok, r, 0.0)
-    ok = valid & np.isfinite(y) & step_ok
-    w = np.where(ok, np.broadcast_to(np.asarray(weight, np.float64), y.shape), 0.0)
-    return np.where(ok, y, 0.0), t, r, w
+    if t.shape != (s_count,) or r.shape != (s_count,):
+        raise ValueError(f"t_ms and r must be per sample, shape ({s_count},); got {t.shape} and "
+                         f"{r.shape}")
+    step_ok = np.isfinite(t) & (t >= 0) & np.isfinite(r) & (r >= 0)
+    w = np.broadcast_to(np.asarray(weight, np.float64), y.shape)
+    ok = np.asarray(valid, bool) & np.isfinite(y) & step_ok[None, :] & (w > 0) & np.isfinite(w)
+    t_k = np.where(step_ok, t, 0.0)
+    r_k = np.where(step_ok, r, 0.0)
+    return {"y": np.ascontiguousarray(y.T), "valid": np.ascontiguousarray(ok.T),
+            "w": np.ascontiguousarray(np.where(ok, w, 0.0).T), "t": t_k, "r": r_k,
+            "light": step_ok & (r_k > 0), "dark": step_ok & (r_k == 0)}
 
 
-def _rows(a, idx):
-    """Rows ``idx`` of a per-pixel (P, S) array; per-step (S,) arrays are shared."""
-    return a if a.ndim == 1 else a[idx]
+def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None,
+               dark_current=None, dark_model="in_well", theta0=None, b_start=None,
+               margins=MARGIN_GRID, max_iter=80, tol=1e-9, prior_sigma=PRIOR_SIGMA,
+               fallback=True, merge_darks=True) -> JointFit:
+    """Run :func:`hsiffc.calibrate.pixelfit.fit_block` on (S, P) samples; returns the fit.
+
+    Weights are ``w`` (S, P), or come from ``noise = (gain DN/e-, read variance DN^2)`` and
+    ``n_frames`` (S,) per step. See :func:`fit_pixels` for the other arguments.
+    """
+    if dark_model not in DARK_MODELS:
+        raise ValueError(f"dark_model must be one of {DARK_MODELS}, got {dark_model!r}")
+    s_count, p_count = y.shape
+    estimate = isinstance(dark_current, str)
+    if estimate and dark_current != "estimate":
+        raise ValueError(f"dark_current must be None, 'estimate' or per-pixel values, got "
+                         f"{dark_current!r}")
+    dc_in = (np.zeros(p_count) if dark_current is None or estimate
+             else np.ascontiguousarray(np.broadcast_to(
+                 np.asarray(dark_current, np.float64).ravel(), (p_count,))))
+    th0 = (np.empty((0, 4)) if theta0 is None
+           else np.ascontiguousarray(np.asarray(theta0, np.float64).reshape(p_count, 4)))
+    b_starts = np.atleast_1d(np.asarray(B_GRID if b_start is None else b_start, np.float64))
+    if w is None:
+        gain, read_var = noise if noise is not None else (0.0, 1.0)
+        nfr = np.ones(s_count) if n_frames is None else np.asarray(n_frames, np.float64)
+        w = np.empty((0, 0))
+    else:
+        gain, read_var, nfr = 0.0, 1.0, np.ones(s_count)
+    out_f = np.empty((p_count, 12))
+    out_i = np.empty((p_count, 3), np.int32)
+    pixelfit.fit_block(
+        np.ascontiguousarray(y, np.float64), np.ascontiguousarray(valid, np.bool_),
+        np.ascontiguousarray(w, np.float64), np.ascontiguousarray(nfr, np.float64),
+        float(gain), float(read_var), np.ascontiguousarray(t, np.float64),
+        np.ascontiguousarray(r, np.float64), np.ascontiguousarray(light, np.bool_),
+        np.ascontiguousarray(dark, np.bool_), bool(merge_darks), estimate, dc_in,
+        dark_model == "additive", b_starts, np.atleast_1d(np.asarray(margins, np.float64)), th0,
+        float(prior_sigma), int(max_iter), float(tol), bool(fallback), out_f, out_i)
+    return _to_fit(out_f, out_i)
 
 
-def _to_internal(theta, ln_rref):
-    """(ln g, ln a, ln b, d) -> (ln g, s, ln b, d) with s the saturation level at r_ref (DN)."""
-    b = np.exp(theta[:, 2])
-    s = (theta[:, 0] + ln_rref - theta[:, 1]) / b
-    return np.column_stack([theta[:, 0], s, theta[:, 2], theta[:, 3]])
+def _to_fit(out_f, out_i) -> JointFit:
+    th = out_f[:, 0:4]
+    sigma = out_f[:, 4:8]
+    n_fit = out_i[:, 0]
+    status = out_i[:, 1].astype(np.uint8)
+    linear = status != pixelfit.LEAKAGE
+    with np.errstate(invalid="ignore", over="ignore"):
+        chi2_red = out_f[:, 9] / np.maximum(n_fit - np.where(linear, 2, 4), 1)
+        return JointFit(g=np.exp(th[:, 0]), a=np.exp(th[:, 1]), b=np.exp(th[:, 2]),
+                        dark=th[:, 3], sigma=sigma, rms_dn=out_f[:, 11], chi2_red=chi2_red,
+                        n_valid=n_fit, converged=status == pixelfit.LEAKAGE,
+                        leak_constrained=sigma[:, 2] < 0.5,
+                        iterations=int(out_i[:, 2].max(initial=0)), status=status,
+                        dark_current=out_f[:, 8], chi2=out_f[:, 9],
+                        chi2_linear=out_f[:, 10])
 
 
-def _to_external(phi, ln_rref):
-    b = np.exp(phi[:, 2])
-    ln_a = phi[:, 0] + ln_rref - b * phi[:, 1]
-    return np.column_stack([phi[:, 0], ln_a, phi[:, 2], phi[:, 3]])
+def fit_pixels(y, t_ms, r, valid, weight, theta0=None, *, dark_current=None,
+               dark_model: str = "in_well", b_start=None, max_iter: int = 80, tol: float = 1e-9,
+               prior_sigma: float = PRIOR_SIGMA, fallback: bool = False,
+               merge_darks: bool = False) -> JointFit:
+    """Weighted per-pixel fit of the leakage model (numba, parallel over pixels).
 
-
-def _internal_jacobian(jac, phi):
-    """Chain rule from d/d(ln g, ln a, ln b, d) to d/d(ln g, s, ln b, d), in place."""
-    b = np.exp(phi[:, 2])[:, None]
-    s = phi[:, 1][:, None]
-    j_lna = jac[..., 1].copy()
-    jac[..., 0] += j_lna
-    jac[..., 1] = -b * j_lna
-    jac[..., 2] -= b * s * j_lna
-    return jac
-
-
-def fit_pixels(y, t_ms, r, valid, weight, theta0, *, dark_current=None, max_iter: int = 80,
-              tol: float = 1e-9, prior_sigma: float = PRIOR_SIGMA) -> JointFit:
-    """Weighted Levenberg-Marquardt fit of every pixel at once.
-
-    Internally a and b are replaced by b and the dynamic saturation level s at the pixel's
-    highest light rate (``ln a = ln(g r_ref) - b s``): the leakage parameters a and b are
-    strongly correlated (a tiny change of b moves ln a by b times the signal level), the
-    saturation level and b much less, so the iteration converges in a few steps.
+    Per pixel: the dark samples (``r == 0``) give the dark model and are merged into one
+    sample; the plain linear model is fitted in closed form; the leakage model is fitted by
+    Levenberg-Marquardt from start values derived from the linear one (or ``theta0``), with
+    bounded parameters and weak priors on ln b and the saturation level. Where the leakage fit
+    does not converge or fits worse than the linear model, the linear model (a = 0) is used
+    (``fallback``) and ``status`` says why.
 
     Parameters
     ----------
     y : (P, S) float
         Responses (DN) of P pixels at S samples (step means).
-    t_ms : (S,) or (P, S)
-        Exposure of each sample, ms (> 0).
-    r : (S,) or (P, S)
-        Relative light rate of each sample (0 for dark samples).
+    t_ms : (S,) float
+        Exposure of each sample, ms (>= 0).
+    r : (S,) float
+        Relative light rate of each sample (0 for dark samples; NaN: sample unusable).
     valid : (P, S) bool
-        Samples that take part (clipped and full-well samples are False).
+        Samples that take part (clipped, full-well and non-finite samples are left out).
     weight : (P, S) float
         1 / variance of each sample (DN^-2).
-    theta0 : (P, 4)
-        Start values of (ln g, ln a, ln b, dark).
-    dark_current : (P,) float, optional
-        Dark current (DN/ms) held fixed and added to the light rate (see
-        :func:`dark_current_from_darks`); default 0.
+    theta0 : (P, 4) float, optional
+        Start values of (ln g, ln a, ln b, dark); default: derived per pixel.
+    dark_current : None, "estimate" or (P,) float
+        Dark current (DN/ms): none, the slope of each pixel's dark samples against exposure
+        (clipped at 0), or given.
+    dark_model : "in_well" or "additive"
+        Whether the dark current adds to the light rate (it fills the well and leaks with the
+        signal) or to the response after the leakage.
+    b_start : float or sequence of float, optional
+        Start values of b tried (1/DN); default :data:`B_GRID`.
+    max_iter : int
+        Iterations per pixel; 0 returns the start values.
+    fallback : bool
+        Where the leakage fit fits worse than the linear model or has too few samples, the
+        linear model is returned: with ``fallback`` as ``a = 0``, otherwise as leakage
+        parameters that give the same curve (b at its start value, the leakage e^-40 of the
+        light rate at the highest sample), usable as a warm start. Where the leakage fit did
+        not converge within ``max_iter``, ``fallback`` also returns the linear model; without
+        it the last iterate is returned (``status`` says which).
+    merge_darks : bool
+        Replace each pixel's dark samples by their weighted mean (exact for the additive dark
+        model, and fewer samples to evaluate); by default every dark sample is fitted.
 
     Returns
     -------
     JointFit
     """
-    y, t, r, w = _sanitised(y, t_ms, r, valid, weight)
-    valid = w > 0
-    p_count, s_count = y.shape
-    dc = np.zeros((p_count, 1)) if dark_current is None else np.asarray(
-        dark_current, np.float64).reshape(p_count, 1)
-    rref = np.where(valid, r, 0.0).max(axis=1)
-    ln_rref = np.log(np.where(rref > 0, rref, 1.0))
-    phi = _to_internal(np.asarray(theta0, np.float64), ln_rref)
-    # weak priors: ln b within PRIOR_SIGMA e-folds, s within PRIOR_SIGMA / b0 DN of the start
-    prior_mean = phi[:, 1:3].copy()
-    prior_w = np.column_stack([(np.exp(phi[:, 2]) / prior_sigma) ** 2,
-                               np.full(p_count, 1.0 / prior_sigma ** 2)])
-
-    # The iteration evaluates the model in single precision (twice as fast; the response is
-    # good to ~1e-4 DN there, far below the noise); steps, costs and the final uncertainties
-    # are computed in double precision.
-    f32 = np.float32
-    y32, t32, r32, w32, dc32 = (np.asarray(v, f32) for v in (y, t, r, w, dc))
-
-    def evaluate(ph, idx):
-        """Residuals, internal Jacobian and cost of the pixels ``idx`` at ``ph``."""
-        ym, jac = model_and_jacobian(_to_external(ph, ln_rref[idx]).astype(f32),
-                                      _rows(t32, idx), _rows(r32, idx), dc32[idx])
-        res = ym - y32[idx]
-        c = np.einsum("ps,ps->p", w32[idx] * res, res, dtype=np.float64)
-        c += (prior_w[idx] * (ph[:, 1:3] - prior_mean[idx]) ** 2).sum(axis=1)
-        return res, _internal_jacobian(jac, ph.astype(f32)), c
-
-    # state of the active pixels, compacted as pixels converge: the model and Jacobian at an
-    # accepted trial point are reused for the next step, so each iteration costs one evaluation
-    active = np.arange(p_count)
-    res_a, jac_a, cost_a = evaluate(phi, active)
-    lam_a = np.full(p_count, 1e-3)
-    converged = np.zeros(p_count, bool)
-    it = 0
-    eye = np.eye(4)
-    for it in range(1, max_iter + 1):
-        if active.size == 0:
-            break
-        ph = phi[active]
-        w_a = w32[active]
-        jw = jac_a * w_a[..., None]
-        jtj = np.matmul(jw.transpose(0, 2, 1), jac_a).astype(np.float64)
-        grad = np.einsum("psi,ps->pi", jw, res_a, dtype=np.float64)
-        pw = prior_w[active]
-        jtj[:, 1, 1] += pw[:, 0]
-        jtj[:, 2, 2] += pw[:, 1]
-        grad[:, 1:3] += pw * (ph[:, 1:3] - prior_mean[active])
-        diag = np.einsum("pii->pi", jtj)
-        lhs = jtj + lam_a[:, None, None] * (diag[:, :, None] * eye) + 1e-12 * eye
-        step = -np.linalg.solve(lhs, grad[..., None])[..., 0]
-        step = np.where(np.isfinite(step), step, 0.0)
-        b_now = np.exp(ph[:, 2])
-        step[:, 0] = np.clip(step[:, 0], -2.0, 2.0)
-        step[:, 2] = np.clip(step[:, 2], -1.0, 1.0)
-        step[:, 1] = np.clip(step[:, 1], -3.0 / b_now, 3.0 / b_now)
-        trial = ph + step
-        res_t, jac_t, cost_t = evaluate(trial, active)
-        better = cost_t < cost_a
-        gain = cost_a - cost_t
-        rel = gain / np.maximum(cost_a, 1e-300)
-        phi[active[better]] = trial[better]
-        res_a[better] = res_t[better]
-        jac_a[better] = jac_t[better]
-        cost_a[better] = cost_t[better]
-        lam_a = np.where(better, np.maximum(lam_a / 5.0, 1e-9), np.minimum(lam_a * 8.0, 1e9))
-        size = np.abs(step)
-        size[:, 1] *= b_now
-        # converged: the cost (a chi-square) no longer moves by a meaningful amount (1e-3 in
-        # chi-square moves a parameter by ~0.03 sigma), or the steps stall at single-precision
-        # resolution (rejected although tiny)
-        done = ((better & ((rel < tol) | (gain < 1e-3))) | (size.max(axis=1) < 1e-7)
-                | (~better & (np.abs(gain) < 1e-3) & (lam_a > 1e2)) | (lam_a >= 1e9))
-        converged[active[done]] = True
-        keep = ~done
-        active, res_a, jac_a = active[keep], res_a[keep], jac_a[keep]
-        cost_a, lam_a = cost_a[keep], lam_a[keep]
-        if _TRACE is not None:
-            _TRACE.append(active.size)
-
-    theta = _to_external(phi, ln_rref)
-    # uncertainties of (ln g, ln a, ln b, d) from the weighted normal matrix at the solution
-    ym, jac = model_and_jacobian(theta, t, r, dc)
-    res = np.where(valid, ym - y, 0.0)
-    n_valid = valid.sum(axis=1)
-    dof = np.maximum(n_valid - 4, 1)
-    chi2 = np.einsum("ps,ps->p", w * res, res) / dof
-    # the same weak priors, expressed on (ln a, ln b), keep the matrix invertible
-    jint = _internal_jacobian(jac, phi)
-    jtj_int = np.matmul((jint * w[..., None]).transpose(0, 2, 1), jint)
-    jtj_int[:, 1, 1] += prior_w[:, 0]
-    jtj_int[:, 2, 2] += prior_w[:, 1]
-    try:
-        cov_int = np.linalg.inv(jtj_int)
-    except np.linalg.LinAlgError:
-        cov_int = np.linalg.pinv(jtj_int)
-    # d(ln g, ln a, ln b, d)/d(ln g, s, ln b, d)
-    b = np.exp(phi[:, 2])
-    tr = np.zeros((p_count, 4, 4))
-    tr[:, 0, 0] = 1.0
-    tr[:, 1, 0] = 1.0
-    tr[:, 1, 1] = -b
-    tr[:, 1, 2] = -b * phi[:, 1]
-    tr[:, 2, 2] = 1.0
-    tr[:, 3, 3] = 1.0
-    cov = tr @ cov_int @ np.transpose(tr, (0, 2, 1))
-    over = np.maximum(chi2, 1.0)  # inflate where the model is over-dispersed (real data)
-    sigma = np.sqrt(np.clip(np.einsum("pii->pi", cov), 0, None) * over[:, None])
-    rms = np.sqrt((res ** 2).sum(axis=1) / np.maximum(n_valid, 1))
-    # leakage is constrained when the data pin b to better than a factor 1.65 (1 sigma)
-    leak_constrained = sigma[:, 2] < 0.5
-    return JointFit(g=np.exp(theta[:, 0]), a=np.exp(theta[:, 1]), b=np.exp(theta[:, 2]),
-                    dark=theta[:, 3], sigma=sigma, rms_dn=rms, chi2_red=chi2, n_valid=n_valid,
-                    converged=converged, leak_constrained=leak_constrained, iterations=it)
-
-
-def residuals(fit: JointFit, y, t_ms, r, valid, dark_current=None) -> np.ndarray:
-    """Residuals model - data (P, S) of a fit on any set of samples (invalid ones are 0)."""
-    y, t, r, w = _sanitised(y, t_ms, r, valid, np.ones(np.shape(y)))
-    theta = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark])
-    dc = 0.0 if dark_current is None else np.asarray(dark_current, np.float64)[:, None]
-    return np.where(w > 0, predict(theta, t, r, dc) - y, 0.0)
-
-
-B_GRID = (0.002, 0.005, 0.01, 0.02, 0.05)  # 1/DN, start values tried for b
-MARGIN_GRID = (0.5, 3.0)  # saturation placed this many 1/b above the highest valid sample
-
-
-def dark_current_from_darks(y, t_ms, r, valid, weight) -> np.ndarray:
-    """Per-pixel dark current (DN/ms): weighted slope of the dark samples against exposure.
-
-    Zero where the dark samples do not span two exposures.
-    """
-    y, t, r, w = _sanitised(y, t_ms, r, valid, weight)
-    w = np.where(r == 0, w, 0.0)
-    sw, st, sy = w.sum(1), (w * t).sum(1), (w * y).sum(1)
-    stt, sty = (w * t * t).sum(1), (w * t * y).sum(1)
-    den = sw * stt - st ** 2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        slope = (sw * sty - st * sy) / den
-    ok = np.isfinite(slope) & (den > 1e-12 * np.maximum(sw * stt, 1e-300))
-    return np.where(ok, slope, 0.0)
-
-
-def merge_dark_samples(y, t_ms, r, valid, weight, dark_current=None):
-    """Replace all dark samples (r = 0) of each pixel by their weighted mean.
-
-    The dark samples' leakage term is negligible, so they only pin the dark level (and, with a
-    fixed dark current, lie on the line ``d + dc t``): one sample with the summed weight at the
-    mean dark exposure carries the same information and the fit has fewer samples to evaluate.
-    ``t_ms`` and ``r`` must be per step (1-D).
-
-    Returns y, t, r, valid, weight with the dark columns merged into the last column.
-    """
-    t = np.asarray(t_ms, np.float64)
-    r = np.asarray(r, np.float64)
-    dark = (r == 0) & np.isfinite(t) & (t > 0)
-    if dark.sum() < 2:
-        return y, t, r, valid, weight
-    w = np.where(valid, weight, 0.0)
-    wd = w[:, dark]
-    sw = wd.sum(axis=1)
-    t_mean = t[dark].mean()
-    yd = np.where(valid[:, dark], y[:, dark], 0.0)
-    if dark_current is not None:  # move every dark sample along d + dc t to the mean exposure
-        dc = np.asarray(dark_current, np.float64)[:, None]
-        yd = yd + dc * (t_mean - t[dark])[None, :]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ym = np.where(sw > 0, (wd * yd).sum(axis=1) / sw, 0.0)
-    keep = ~dark
-    y2 = np.column_stack([y[:, keep], ym])
-    w2 = np.column_stack([w[:, keep], sw])
-    v2 = np.column_stack([valid[:, keep], sw > 0])
-    t2 = np.append(t[keep], t_mean)
-    r2 = np.append(r[keep], 0.0)
-    return y2, t2, r2, v2, w2
+    k = _kernel_inputs(y, t_ms, r, valid, weight)
+    return run_kernel(k["y"], k["valid"], k["t"], k["r"], k["light"], k["dark"], w=k["w"],
+                      dark_current=dark_current, dark_model=dark_model, theta0=theta0,
+                      b_start=b_start, max_iter=max_iter, tol=tol, prior_sigma=prior_sigma,
+                      fallback=fallback, merge_darks=merge_darks)
 
 
 def initial_guess(y, t_ms, r, valid, weight, dark_current=None, *, b_grid=B_GRID,
-                  margin_grid=MARGIN_GRID) -> np.ndarray:
-    """Start values (ln g, ln a, ln b, d) per pixel, vectorised.
+                  dark_model: str = "in_well", merge_darks: bool = False) -> np.ndarray:
+    """Start values (ln g, ln a, ln b, d) per pixel (P, 4), as :func:`fit_pixels` derives them.
 
-    The dark level is the mean of valid dark samples (r = 0) or, without darks, the intercept of
-    a line through the lowest light samples; g is the weighted slope of (Y - d) against r t over
-    samples below half of the pixel's highest valid level; b is picked from a small grid by the
-    residual cost, with a set so the dynamic saturation at the pixel's highest light rate lies just
-    above its highest valid sample.
+    The dark level and g come from the linear model (g from the samples below half the pixel's
+    highest level), b from ``b_grid`` and a so that the dynamic saturation at the pixel's
+    highest light rate lies just above its highest valid sample (the best of a few margins).
     """
-    y, t, r, weight = _sanitised(y, t_ms, r, valid, weight)
-    valid = weight > 0
-    dark_s = valid & (r == 0)
-    light_s = valid & (r > 0)
-    n_dark = dark_s.sum(axis=1)
-    u = r * t  # light dose in rate units x ms
-    dc = np.zeros(y.shape[0]) if dark_current is None else np.asarray(dark_current, np.float64)
-    y_nodc = y - dc[:, None] * t  # dark current removed for the linear start values
-    with np.errstate(invalid="ignore", divide="ignore"):
-        d_dark = np.where(dark_s, y_nodc, 0).sum(axis=1) / np.maximum(n_dark, 1)
-        ymax = np.where(light_s, y, -np.inf).max(axis=1)
-        ymin_light = np.where(light_s, y, np.inf).min(axis=1)
-    d0 = np.where(n_dark > 0, d_dark, np.where(np.isfinite(ymin_light), ymin_light, 0.0))
-    half = light_s & ((y - d0[:, None]) <= 0.5 * (ymax - d0)[:, None])
-    few = half.sum(axis=1) < 2
-    half = np.where(few[:, None], light_s, half)
-    wl = np.where(half, weight, 0.0)
-    if np.any(n_dark == 0):
-        # no darks: line through the low samples gives both slope and intercept
-        sw, su, sy = wl.sum(1), (wl * u).sum(1), (wl * y_nodc).sum(1)
-        suu, suy = (wl * u * u).sum(1), (wl * u * y_nodc).sum(1)
-        den = sw * suu - su ** 2
-        with np.errstate(invalid="ignore", divide="ignore"):
-            slope = (sw * suy - su * sy) / den
-            icpt = (sy - slope * su) / sw
-        d0 = np.where((n_dark == 0) & np.isfinite(icpt), icpt, d0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        g0 = (wl * u * (y_nodc - d0[:, None])).sum(1) / (wl * u * u).sum(1)
-    g0 = np.where(np.isfinite(g0) & (g0 > 0), g0, 1e-3)
-    rmax = np.where(light_s, r, 0).max(axis=1)
-    kmax = np.maximum(g0 * rmax, 1e-6)
-    ymax = np.where(np.isfinite(ymax), ymax, d0 + 1.0)
-    best_cost = np.full(y.shape[0], np.inf)
-    best = np.zeros((y.shape[0], 4))
-    for b in b_grid:
-        for m in margin_grid:
-            ln_a = np.log(kmax) - b * (ymax + m / b)
-            th = np.column_stack([np.log(g0), ln_a, np.full_like(g0, np.log(b)), d0])
-            res = predict(th, t, r, dc[:, None]) - y
-            cost = np.where(valid, weight * res * res, 0).sum(axis=1)
-            better = cost < best_cost
-            best[better] = th[better]
-            best_cost[better] = cost[better]
-    return best
+    k = _kernel_inputs(y, t_ms, r, valid, weight)
+    fit = run_kernel(k["y"], k["valid"], k["t"], k["r"], k["light"], k["dark"], w=k["w"],
+                     dark_current=dark_current, dark_model=dark_model, b_start=b_grid,
+                     max_iter=0, merge_darks=merge_darks)
+    return fit.theta
+
+
+def residuals(fit: JointFit, y, t_ms, r, valid, dark_current=None,
+              dark_model: str = "in_well") -> np.ndarray:
+    """Residuals model - data (P, S) of a fit on any set of samples (invalid ones are 0)."""
+    y = np.asarray(y, np.float64)
+    dc = np.zeros((y.shape[0], 1)) if dark_current is None else np.asarray(
+        dark_current, np.float64).reshape(-1, 1)
+    t = np.asarray(t_ms, np.float64)
+    r = np.nan_to_num(np.asarray(r, np.float64))
+    if dark_model == "additive":
+        m = predict(fit.theta, t, r) + dc * t
+    else:
+        m = predict(fit.theta, t, r, dc)
+    ok = np.asarray(valid, bool) & np.isfinite(y) & np.isfinite(m)
+    return np.where(ok, m - y, 0.0)

@@ -1,0 +1,359 @@
+"""The per-pixel fit as one parallel numba kernel: weights, dark model, linear model, start
+values, Levenberg-Marquardt, fallback.
+
+Per pixel, in locals only (no (samples x pixels) temporaries):
+
+1. **Samples and weights**: the pixel's step means are gathered; weights are given, or come
+   from the photon-transfer noise model ``var = gain * (signal above the dark line) + read_var``
+   divided by the frames per step.
+2. **Dark model** from the dark samples (rate 0): weighted line ``d + dc t`` through them
+   (``dc`` estimated when asked, else given); with ``merge`` they enter the light fit as one
+   sample (their weighted mean, which lies on that line).
+3. **Linear model** ``Y = d + (g r + dc) t``: closed-form weighted least squares on the same
+   samples. It is the fallback and the yardstick (the leakage fit must not fit worse).
+4. **Start values** of the leakage model from the linear one: g from the samples below half the
+   pixel's highest level, b and the saturation margin from the caller (sensor-wide values) or
+   small grids (the best of them by cost).
+5. **Levenberg-Marquardt** (:mod:`hsiffc.calibrate.lm`) with bounds on every parameter.
+6. **Fallback**: where the leakage fit does not converge or fits worse than the linear model,
+   the linear model is used (a = 0); each pixel gets a status code saying which and why.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from .lm import B_MAX, B_MIN, evaluate, external_sigma, levenberg_marquardt, sample
+
+# fit status codes (one uint8 per pixel)
+LEAKAGE = 0
+LINEAR_WORSE = 1
+LINEAR_NOT_CONVERGED = 2
+TOO_FEW = 3
+NO_LIGHT = 4
+NO_SIGNAL = 5
+UNDETERMINED = 6
+NO_FIT = (NO_LIGHT, NO_SIGNAL, UNDETERMINED)  # statuses without any fitted parameters
+STATUS_REASONS = {
+    LEAKAGE: "leakage model fitted",
+    LINEAR_WORSE: "linear model used: the leakage fit was worse than the plain linear model",
+    LINEAR_NOT_CONVERGED: "linear model used: the leakage fit did not converge",
+    TOO_FEW: "linear model used: too few valid samples for the leakage model (fewer than 5)",
+    NO_LIGHT: "no valid light sample (all clipped, full-well, non-finite or missing)",
+    NO_SIGNAL: "no signal: the response does not grow with the light (dead pixel)",
+    UNDETERMINED: "fewer than two distinct valid light doses and no dark sample: the response "
+                  "is undetermined",
+}
+MIN_LEAK_SAMPLES = 5
+BLOCK = 128  # pixels per parallel task
+# columns of the float output (P, 12) and the integer output (P, 3)
+F_THETA, F_SIGMA, F_DC, F_CHI2, F_CHI2_LIN, F_RMS = 0, 4, 8, 9, 10, 11
+I_N, I_STATUS, I_ITER = 0, 1, 2
+
+
+@njit(cache=True, error_model="numpy")
+def _gather(p, y, valid, w, nfr, gain, read_var, t, light, dark, yp, wp):
+    """The pixel's samples into ``yp``; weights into ``wp`` (0: left out)."""
+    n = t.size
+    given = w.shape[0] > 0
+    for i in range(n):
+        yi = y[i, p]
+        yp[i] = yi
+        ok = valid[i, p] and np.isfinite(yi) and (light[i] or dark[i])
+        if given:
+            wi = w[i, p]
+            wp[i] = wi if ok and wi > 0 and np.isfinite(wi) else 0.0
+        else:
+            wp[i] = nfr[i] / read_var if ok else 0.0  # darks; light ones are set below
+
+
+@njit(cache=True, error_model="numpy")
+def _light_weights(yp, wp, t, light, nfr, gain, read_var, d_line, dc_line, has_dark):
+    """Noise-model weights of the light samples: signal above the dark line (or above the
+    lowest light sample without darks)."""
+    n = t.size
+    floor = np.inf
+    if not has_dark:
+        for i in range(n):
+            if wp[i] > 0 and light[i]:
+                floor = min(floor, yp[i])
+    for i in range(n):
+        if wp[i] > 0 and light[i]:
+            dark_level = d_line + dc_line * t[i] if has_dark else floor
+            wp[i] = nfr[i] / (gain * max(yp[i] - dark_level, 0.0) + read_var)
+
+
+@njit(cache=True, error_model="numpy")
+def _fit_pixel(p, yp, wp, t, r, light, dark, infit, merge, estimate_dc, dc_given, additive,
+               b_starts, margins, theta0, prior_sigma, max_iter, tol, fallback, weights_given,
+               nfr, gain, read_var, out_f, out_i, h, gv, hn, step, ph, trial, prior, cov,
+               scratch, lo, hi):
+    n = t.size
+    # -- dark samples: weighted line d + dc t; unweighted sums for their residual RMS -------
+    sw = swt = swy = swtt = swty = 0.0
+    ut = uy = utt = uty = uyy = 0.0
+    t_dark_max = 0.0
+    nd = nl = 0
+    for i in range(n):
+        wi = wp[i]
+        if wi <= 0:
+            continue
+        if dark[i]:
+            ti, yi = t[i], yp[i]
+            nd += 1
+            sw += wi
+            swt += wi * ti
+            swy += wi * yi
+            swtt += wi * ti * ti
+            swty += wi * ti * yi
+            ut += ti
+            uy += yi
+            utt += ti * ti
+            uty += ti * yi
+            uyy += yi * yi
+            t_dark_max = max(t_dark_max, ti)
+        elif light[i]:
+            nl += 1
+    dc = dc_given
+    md_t = swt / sw if sw > 0 else 0.0
+    md_y = swy / sw if sw > 0 else 0.0
+    if estimate_dc:
+        dc = 0.0
+        den = sw * swtt - swt * swt
+        if nd >= 2 and den > 1e-12 * sw * swtt:
+            dc = max((sw * swty - swt * swy) / den, 0.0)
+    if not weights_given:
+        _light_weights(yp, wp, t, light, nfr, gain, read_var, md_y - dc * md_t, dc, nd > 0)
+    md_w = sw if merge else 0.0
+    out_f[p, F_DC] = dc
+    out_i[p, I_N] = nl + nd
+    out_i[p, I_ITER] = 0
+    # -- linear model: z = y - dc t = d + g u (u = r t), same samples as the leakage fit ----
+    s0 = s1 = s2 = z0 = z1 = 0.0
+    ymax = -np.inf
+    rref = 0.0
+    for i in range(n + 1):
+        if i < n:
+            wi = wp[i]
+            if wi <= 0 or not infit[i]:
+                continue
+            u = r[i] * t[i]
+            z = yp[i] - dc * t[i]
+            if light[i]:
+                ymax = max(ymax, yp[i])
+                rref = max(rref, r[i])
+        else:
+            wi = md_w
+            if wi <= 0:
+                continue
+            u = 0.0
+            z = md_y - dc * md_t
+        s0 += wi
+        s1 += wi * u
+        s2 += wi * u * u
+        z0 += wi * z
+        z1 += wi * u * z
+    den = s0 * s2 - s1 * s1
+    nfit = nl + ((1 if md_w > 0 else 0) if merge else nd)
+    if nl == 0 or not (den > 1e-12 * s0 * s2) or rref <= 0:
+        out_i[p, I_STATUS] = NO_LIGHT if nl == 0 else UNDETERMINED
+        out_f[p, :F_DC] = np.nan
+        out_f[p, F_SIGMA:F_SIGMA + 4] = np.inf
+        out_f[p, F_CHI2:] = np.nan
+        return
+    g_lin = (s0 * z1 - s1 * z0) / den
+    d_lin = (z0 - g_lin * s1) / s0
+    chi2_lin = 0.0
+    ss_lin = 0.0
+    for i in range(n):
+        wi = wp[i]
+        if wi <= 0:
+            continue
+        res = d_lin + (g_lin * r[i] + dc) * t[i] - yp[i]
+        ss_lin += res * res
+        if infit[i]:
+            chi2_lin += wi * res * res
+    if md_w > 0:
+        res = d_lin + dc * md_t - md_y
+        chi2_lin += md_w * res * res
+    out_f[p, F_CHI2_LIN] = chi2_lin
+    if not g_lin > 0:
+        out_i[p, I_STATUS] = NO_SIGNAL
+        out_f[p, :F_DC] = np.nan
+        out_f[p, F_SIGMA:F_SIGMA + 4] = np.inf
+        out_f[p, F_CHI2] = out_f[p, F_RMS] = np.nan
+        return
+    ln_rref = np.log(rref)
+    leak_ok = nfit >= MIN_LEAK_SAMPLES
+    # -- start values ----------------------------------------------------------------------
+    best = np.inf
+    if theta0.shape[0] > 0 and np.isfinite(theta0[p, 0]) and np.isfinite(theta0[p, 2]):
+        b0 = np.exp(theta0[p, 2])
+        ph[0] = theta0[p, 0]
+        ph[1] = (theta0[p, 0] + ln_rref - theta0[p, 1]) / b0
+        ph[2] = theta0[p, 2]
+        ph[3] = theta0[p, 3]
+        if not np.isfinite(ph[1]):
+            ph[1] = ymax + 30.0 / b0
+    else:
+        # g from the samples below half the highest level (leakage bends the upper ones)
+        su = sz = 0.0
+        for i in range(n):
+            wi = wp[i]
+            if wi <= 0 or not light[i] or (yp[i] - d_lin) > 0.5 * (ymax - d_lin):
+                continue
+            u = r[i] * t[i]
+            su += wi * u * u
+            sz += wi * u * (yp[i] - dc * t[i] - d_lin)
+        g0 = sz / su if su > 0 and sz > 0 else g_lin
+        prior[:] = 0.0
+        for bi in range(b_starts.size):
+            for mi in range(margins.size):
+                trial[0] = np.log(g0)
+                trial[1] = ymax + margins[mi] / b_starts[bi]
+                trial[2] = np.log(b_starts[bi])
+                trial[3] = d_lin
+                cst = np.inf
+                if b_starts.size * margins.size > 1:
+                    cst, _, _ = evaluate(trial, yp, wp, t, r, infit, dc, additive, ln_rref, md_y,
+                                         md_w, md_t, prior, False, h, gv)
+                if cst <= best:
+                    best = cst
+                    ph[:] = trial
+    if max_iter <= 0:  # start values only
+        b = np.exp(ph[2])
+        out_f[p, 0] = ph[0]
+        out_f[p, 1] = ph[0] + ln_rref - b * ph[1]
+        out_f[p, 2] = ph[2]
+        out_f[p, 3] = ph[3]
+        out_f[p, F_SIGMA:F_SIGMA + 4] = np.nan
+        out_f[p, F_CHI2] = best
+        out_f[p, F_RMS] = np.nan
+        out_i[p, I_STATUS] = LEAKAGE if leak_ok else TOO_FEW
+        return
+    status = TOO_FEW
+    chi2 = ss = np.nan
+    b_start = np.exp(ph[2])
+    if leak_ok:
+        prior[0] = ph[1]
+        prior[1] = ph[2]
+        prior[2] = (b_start / prior_sigma) ** 2
+        prior[3] = 1.0 / prior_sigma ** 2
+        # bounds: ln g within 20 e-folds of the linear slope, b in [B_MIN, B_MAX], d and s
+        # within a wide band around the data
+        span = max(ymax - d_lin, 1.0)
+        lo[0], hi[0] = np.log(g_lin) - 20.0, np.log(g_lin) + 20.0
+        lo[3], hi[3] = d_lin - 10.0 * span - 100.0, d_lin + 10.0 * span + 100.0
+        lo[1], hi[1] = lo[3], ymax + 1e4 * span
+        lo[2], hi[2] = np.log(B_MIN), np.log(B_MAX)
+        for a in range(4):
+            ph[a] = min(max(ph[a], lo[a]), hi[a])
+        conv, it, _cost, chi2, ss = levenberg_marquardt(
+            ph, yp, wp, t, r, infit, dc, additive, ln_rref, md_y, md_w, md_t, prior, lo, hi,
+            max_iter, tol, h, gv, hn, step, trial, scratch)
+        out_i[p, I_ITER] = it
+        status = LEAKAGE
+        if not conv:
+            status = LINEAR_NOT_CONVERGED
+        elif chi2 > chi2_lin * (1.0 + 1e-9) + 1e-9:
+            status = LINEAR_WORSE
+    out_i[p, I_STATUS] = status
+    if status == LINEAR_WORSE or status == TOO_FEW or (status != LEAKAGE and fallback):
+        # the linear model: a = 0 with ``fallback``; otherwise the same curve in leakage
+        # parameters (b at its start value, the saturation level 40/b above the highest
+        # sample, where the leakage is e^-40 of the light rate), a finite warm start
+        out_f[p, 0] = np.log(g_lin)
+        out_f[p, 1] = -np.inf if fallback else np.log(g_lin) + ln_rref - b_start * ymax - 40.0
+        out_f[p, 2] = np.log(b_start)
+        out_f[p, 3] = d_lin
+        out_f[p, F_CHI2] = chi2_lin
+        out_f[p, F_RMS] = np.sqrt(ss_lin / max(nl + nd, 1))
+        # sigmas of g and d from the 2-parameter normal matrix
+        over = max(chi2_lin / max(nfit - 2, 1), 1.0)
+        out_f[p, F_SIGMA] = np.sqrt(s0 / den * over) / g_lin
+        out_f[p, F_SIGMA + 1] = np.inf
+        out_f[p, F_SIGMA + 2] = np.inf
+        out_f[p, F_SIGMA + 3] = np.sqrt(s2 / den * over)
+        return
+    b = np.exp(ph[2])
+    d = ph[3]
+    ln_a = ph[0] + ln_rref - b * ph[1]
+    out_f[p, 0] = ph[0]
+    out_f[p, 1] = ln_a
+    out_f[p, 2] = ph[2]
+    out_f[p, 3] = d
+    out_f[p, F_CHI2] = chi2
+    # unweighted RMS over all valid samples: the fitted ones come with the last evaluation;
+    # merged dark samples lie on the model's dark line d + dc t to 1e-3 DN wherever the
+    # leakage at the dark level is that small over the longest dark exposure (closed form),
+    # else they are evaluated one by one
+    if merge and nd > 0:
+        g = np.exp(ph[0])
+        c = np.exp(ln_a + b * d)
+        y_end, _, _, _, _ = sample(t_dark_max, 0.0, g, ln_a, c, dc, additive, ph[1], b, d)
+        if abs(y_end - (d + dc * t_dark_max)) < 1e-3:
+            ss += max(uyy - 2 * d * uy - 2 * dc * uty + nd * d * d + 2 * d * dc * ut
+                      + dc * dc * utt, 0.0)
+        else:
+            for i in range(n):
+                if wp[i] > 0 and dark[i]:
+                    yi, _, _, _, _ = sample(t[i], 0.0, g, ln_a, c, dc, additive, ph[1], b, d)
+                    ss += (yi - yp[i]) ** 2
+    out_f[p, F_RMS] = np.sqrt(ss / max(nl + nd, 1))
+    external_sigma(h, ph, chi2, nfit - 4, step, trial, cov, scratch)
+    out_f[p, F_SIGMA:F_SIGMA + 4] = step
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estimate_dc, dc_in,
+              additive, b_starts, margins, theta0, prior_sigma, max_iter, tol, fallback, out_f,
+              out_i):
+    """Fit every pixel (column) of ``y`` (S, P) in parallel; see the module docstring.
+
+    ``valid`` (S, P) marks usable samples; ``w`` (S, P) gives their weights (1 / variance,
+    DN^-2), or is (0, 0) to use the noise model ``nfr / (gain * signal + read_var)`` (``nfr``
+    (S,) frames per step; ``gain`` DN/e-, ``read_var`` DN^2). ``t``, ``r``, ``light``,
+    ``dark`` (S,): exposure (ms), relative light rate, sample kind. ``merge`` replaces the dark
+    samples by their weighted mean in the fit. ``dc_in`` (P,) is the dark current (DN/ms)
+    unless ``estimate_dc``; ``additive`` adds it after the leakage instead of to the light rate.
+    ``b_starts``, ``margins``: start values of b (1/DN) and of the saturation margin above the
+    highest sample (in 1/b); ``theta0`` (P, 4) start values instead, or (0, 4). Outputs are
+    filled in place: ``out_f`` (P, 12) float64 (theta 4, sigma 4, dc, chi2, chi2 of the linear
+    model, RMS) and ``out_i`` (P, 3) int32 (valid samples, status, iterations).
+    """
+    npx = y.shape[1]
+    n = t.size
+    infit = light | (dark & (not merge))
+    weights_given = w.shape[0] > 0
+    nblocks = (npx + BLOCK - 1) // BLOCK
+    for blk in prange(nblocks):
+        yp = np.empty(n)
+        wp = np.empty(n)
+        h = np.empty((4, 4))
+        hn = np.empty((4, 4))
+        cov = np.empty((4, 4))
+        scratch = np.empty((4, 5))
+        gv = np.empty(4)
+        step = np.empty(4)
+        ph = np.empty(4)
+        trial = np.empty(4)
+        prior = np.empty(4)
+        lo = np.empty(4)
+        hi = np.empty(4)
+        for p in range(blk * BLOCK, min(npx, (blk + 1) * BLOCK)):
+            _gather(p, y, valid, w, nfr, gain, read_var, t, light, dark, yp, wp)
+            _fit_pixel(p, yp, wp, t, r, light, dark, infit, merge, estimate_dc, dc_in[p],
+                       additive, b_starts, margins, theta0, prior_sigma, max_iter, tol,
+                       fallback, weights_given, nfr, gain, read_var, out_f, out_i, h, gv, hn,
+                       step, ph, trial, prior, cov, scratch, lo, hi)
+
+
+def _refresh_cache():
+    from .. import model
+    from . import kcache, lm
+
+    kcache.refresh([_gather, _light_weights, _fit_pixel, fit_block], [model, lm])
+
+
+_refresh_cache()
