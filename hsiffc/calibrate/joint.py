@@ -126,6 +126,27 @@ def _kernel_inputs(y, t_ms, r, valid, weight):
             "light": step_ok & (r_k > 0), "dark": step_ok & (r_k == 0)}
 
 
+def _dark_current_args(dark_current, p_count):
+    """(estimate?, per-pixel dark current (P,)) for the kernels."""
+    estimate = isinstance(dark_current, str)
+    if estimate and dark_current != "estimate":
+        raise ValueError(f"dark_current must be None, 'estimate' or per-pixel values, got "
+                         f"{dark_current!r}")
+    if dark_current is None or estimate:
+        return estimate, np.zeros(p_count)
+    return estimate, np.ascontiguousarray(np.broadcast_to(
+        np.asarray(dark_current, np.float64).ravel(), (p_count,)))
+
+
+def _weight_args(w, n_frames, noise, s_count):
+    """(weights or an empty array, frames per step, gain, read variance) for the kernels."""
+    if w is not None:
+        return w, np.ones(s_count), 0.0, 1.0
+    gain, read_var = noise if noise is not None else (0.0, 1.0)
+    nfr = np.ones(s_count) if n_frames is None else np.asarray(n_frames, np.float64)
+    return np.empty((0, 0)), nfr, gain, read_var
+
+
 def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None,
                dark_current=None, dark_model="in_well", theta0=None, b_start=None,
                margins=MARGIN_GRID, max_iter=80, tol=1e-9, prior_sigma=PRIOR_SIGMA,
@@ -138,22 +159,11 @@ def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None
     if dark_model not in DARK_MODELS:
         raise ValueError(f"dark_model must be one of {DARK_MODELS}, got {dark_model!r}")
     s_count, p_count = y.shape
-    estimate = isinstance(dark_current, str)
-    if estimate and dark_current != "estimate":
-        raise ValueError(f"dark_current must be None, 'estimate' or per-pixel values, got "
-                         f"{dark_current!r}")
-    dc_in = (np.zeros(p_count) if dark_current is None or estimate
-             else np.ascontiguousarray(np.broadcast_to(
-                 np.asarray(dark_current, np.float64).ravel(), (p_count,))))
+    estimate, dc_in = _dark_current_args(dark_current, p_count)
     th0 = (np.empty((0, 4)) if theta0 is None
            else np.ascontiguousarray(np.asarray(theta0, np.float64).reshape(p_count, 4)))
     b_starts = np.atleast_1d(np.asarray(B_GRID if b_start is None else b_start, np.float64))
-    if w is None:
-        gain, read_var = noise if noise is not None else (0.0, 1.0)
-        nfr = np.ones(s_count) if n_frames is None else np.asarray(n_frames, np.float64)
-        w = np.empty((0, 0))
-    else:
-        gain, read_var, nfr = 0.0, 1.0, np.ones(s_count)
+    w, nfr, gain, read_var = _weight_args(w, n_frames, noise, s_count)
     out_f = np.empty((p_count, 12))
     out_i = np.empty((p_count, 3), np.int32)
     pixelfit.fit_block(
@@ -165,6 +175,31 @@ def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None
         dark_model == "additive", b_starts, np.atleast_1d(np.asarray(margins, np.float64)), th0,
         float(prior_sigma), int(max_iter), float(tol), bool(fallback), out_f, out_i)
     return _to_fit(out_f, out_i)
+
+
+def prepared_samples(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None,
+                     dark_current=None) -> dict:
+    """The samples and weights each pixel's fit sees (as :func:`run_kernel` prepares them).
+
+    Returns a dict: ``y`` and ``w`` (P, S) step means (DN) and weights (DN^-2; 0 = left out),
+    and per pixel ``dark_weight`` (summed weight of its dark samples), ``dark_t_ms`` and
+    ``dark_dn`` (their weighted mean exposure and level: the merged dark sample) and
+    ``dark_current`` (DN/ms).
+    """
+    s_count, p_count = y.shape
+    estimate, dc_in = _dark_current_args(dark_current, p_count)
+    w, nfr, gain, read_var = _weight_args(w, n_frames, noise, s_count)
+    out_y = np.empty((p_count, s_count))
+    out_w = np.empty((p_count, s_count))
+    out_d = np.empty((p_count, 4))
+    pixelfit.pixel_samples(
+        np.ascontiguousarray(y, np.float64), np.ascontiguousarray(valid, np.bool_),
+        np.ascontiguousarray(w, np.float64), np.ascontiguousarray(nfr, np.float64),
+        float(gain), float(read_var), np.ascontiguousarray(t, np.float64),
+        np.ascontiguousarray(light, np.bool_), np.ascontiguousarray(dark, np.bool_), estimate,
+        dc_in, out_y, out_w, out_d)
+    return {"y": out_y, "w": out_w, "dark_weight": out_d[:, 0], "dark_t_ms": out_d[:, 1],
+            "dark_dn": out_d[:, 2], "dark_current": out_d[:, 3]}
 
 
 def _to_fit(out_f, out_i) -> JointFit:

@@ -9,9 +9,10 @@ priors on s and ln b keep the normal matrix regular where the data do not show l
 limits and bounds keep every iterate finite.
 
 The model and its gradient come from :func:`hsiffc.model.response_gradient_kernel`. A pixel's
-samples are passed as 1-D arrays (its step means ``yp``, weights ``wp``, and per-step ``t``,
-``r``, ``infit``), plus an optional merged sample (``md_y, md_w, md_t``: the weighted mean of
-its dark samples, which lies on the dark line).
+samples are passed as 1-D arrays (its step means ``yp``, weights ``wq``, and per-step ``t``,
+``r``), plus an optional merged sample (``md_y, md_w, md_t``: the weighted mean of
+its dark samples, which lies on the dark line). ``wq`` holds the weights of the samples in
+the fit (0 for samples left out, and for dark samples when they are merged).
 """
 
 from __future__ import annotations
@@ -33,82 +34,70 @@ def sample(t, r, g, ln_a, c, dc, additive, s, b, d):
     response as ``dc t``.
     """
     kg = g * r
-    k = kg if additive else kg + dc
-    y, dlnk, dlna, dlnb, dd = response_gradient_kernel(t, k, ln_a, b, d, c)
-    if additive:
-        y += dc * t
-    share = kg / k if k > 0 else 0.0
-    return y, dlnk * share + dlna, -b * dlna, dlnb - b * s * dlna, dd
+    if additive or dc == 0.0:
+        y, dlnk, dlna, dlnb, dd = response_gradient_kernel(t, kg, ln_a, b, d, c)
+        if additive:
+            y += dc * t
+    else:
+        k = kg + dc
+        y, dlnk, dlna, dlnb, dd = response_gradient_kernel(t, k, ln_a, b, d, c)
+        dlnk *= kg / k if k > 0 else 0.0
+    return y, dlnk + dlna, -b * dlna, dlnb - b * s * dlna, dd
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _accumulate(acc, wi, res, j0, j1, j2, j3):
+    """Add one weighted sample to (chi2, g0..g3, h00, h10, h11, h20, h21, h22, h30..h33)."""
+    w0, w1, w2, w3 = wi * j0, wi * j1, wi * j2, wi * j3
+    return (acc[0] + wi * res * res, acc[1] + w0 * res, acc[2] + w1 * res, acc[3] + w2 * res,
+            acc[4] + w3 * res, acc[5] + w0 * j0, acc[6] + w1 * j0, acc[7] + w1 * j1,
+            acc[8] + w2 * j0, acc[9] + w2 * j1, acc[10] + w2 * j2, acc[11] + w3 * j0,
+            acc[12] + w3 * j1, acc[13] + w3 * j2, acc[14] + w3 * j3)
 
 
 @njit(cache=True, error_model="numpy")
-def evaluate(ph, yp, wp, t, r, infit, dc, additive, ln_rref, md_y, md_w, md_t, prior, jac, h,
-             gv):
-    """Weighted cost (data chi-square + priors) at ``ph``; with ``jac`` also the normal matrix
-    ``h`` (4 x 4) and the half gradient ``gv``. Returns (cost, chi2, unweighted SS).
+def evaluate(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior, h, gv):
+    """Weighted cost (data chi-square + priors) at ``ph``, the normal matrix ``h`` (4 x 4) and
+    the half gradient ``gv``. Returns (cost, chi2, unweighted SS).
 
-    ``prior`` = (s0, ln b0, weight of s, weight of ln b).
+    ``wq`` holds the weights of the samples in the fit (0: left out); ``prior`` = (s0, ln b0,
+    weight of s, weight of ln b).
     """
     g = np.exp(ph[0])
     s, ln_b, d = ph[1], ph[2], ph[3]
     b = np.exp(ln_b)
     ln_a = ph[0] + ln_rref - b * s
     c = np.exp(ln_a + b * d)
-    h00 = h10 = h11 = h20 = h21 = h22 = h30 = h31 = h32 = h33 = 0.0
-    g0 = g1 = g2 = g3 = 0.0
-    chi2 = 0.0
+    acc = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     ss = 0.0
-    n = t.size
-    for i in range(n + 1):
-        if i < n:
-            wi = wp[i]
-            if wi <= 0 or not infit[i]:
-                continue
+    for i in range(t.size):
+        wi = wq[i]
+        if wi > 0.0:
             yi, j0, j1, j2, j3 = sample(t[i], r[i], g, ln_a, c, dc, additive, s, b, d)
             res = yi - yp[i]
             ss += res * res
-        else:
-            if md_w <= 0:
-                continue
-            wi = md_w
-            yi, j0, j1, j2, j3 = sample(md_t, 0.0, g, ln_a, c, dc, additive, s, b, d)
-            res = yi - md_y
-        chi2 += wi * res * res
-        if jac:
-            w0, w1, w2, w3 = wi * j0, wi * j1, wi * j2, wi * j3
-            g0 += w0 * res
-            g1 += w1 * res
-            g2 += w2 * res
-            g3 += w3 * res
-            h00 += w0 * j0
-            h10 += w1 * j0
-            h11 += w1 * j1
-            h20 += w2 * j0
-            h21 += w2 * j1
-            h22 += w2 * j2
-            h30 += w3 * j0
-            h31 += w3 * j1
-            h32 += w3 * j2
-            h33 += w3 * j3
+            acc = _accumulate(acc, wi, res, j0, j1, j2, j3)
+    if md_w > 0.0:
+        yi, j0, j1, j2, j3 = sample(md_t, 0.0, g, ln_a, c, dc, additive, s, b, d)
+        acc = _accumulate(acc, md_w, yi - md_y, j0, j1, j2, j3)
+    chi2 = acc[0]
     ds = s - prior[0]
     db = ln_b - prior[1]
-    cost = chi2 + prior[2] * ds * ds + prior[3] * db * db
-    if jac:
-        h[0, 0] = h00
-        h[1, 1] = h11 + prior[2]
-        h[2, 2] = h22 + prior[3]
-        h[3, 3] = h33
-        h[0, 1] = h[1, 0] = h10
-        h[0, 2] = h[2, 0] = h20
-        h[0, 3] = h[3, 0] = h30
-        h[1, 2] = h[2, 1] = h21
-        h[1, 3] = h[3, 1] = h31
-        h[2, 3] = h[3, 2] = h32
-        gv[0] = g0
-        gv[1] = g1 + prior[2] * ds
-        gv[2] = g2 + prior[3] * db
-        gv[3] = g3
-    return cost, chi2, ss
+    h[0, 0] = acc[5]
+    h[1, 1] = acc[7] + prior[2]
+    h[2, 2] = acc[10] + prior[3]
+    h[3, 3] = acc[14]
+    h[0, 1] = h[1, 0] = acc[6]
+    h[0, 2] = h[2, 0] = acc[8]
+    h[1, 2] = h[2, 1] = acc[9]
+    h[0, 3] = h[3, 0] = acc[11]
+    h[1, 3] = h[3, 1] = acc[12]
+    h[2, 3] = h[3, 2] = acc[13]
+    gv[0] = acc[1]
+    gv[1] = acc[2] + prior[2] * ds
+    gv[2] = acc[3] + prior[3] * db
+    gv[3] = acc[4]
+    return chi2 + prior[2] * ds * ds + prior[3] * db * db, chi2, ss
 
 
 @njit(cache=True, error_model="numpy")
@@ -145,15 +134,15 @@ def solve4(a, rhs, out, m):
 
 
 @njit(cache=True, error_model="numpy")
-def levenberg_marquardt(ph, yp, wp, t, r, infit, dc, additive, ln_rref, md_y, md_w, md_t,
-                        prior, lo, hi, max_iter, tol, h, gv, hn, step, trial, scratch):
+def levenberg_marquardt(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior, lo,
+                        hi, max_iter, tol, h, gv, hn, step, trial, scratch):
     """Iterate from ``ph`` (updated in place) to the minimum of :func:`evaluate`.
 
     ``lo``, ``hi`` (4,) bound the parameters. On return ``h`` holds the normal matrix at
     ``ph``. Returns (converged, iterations, cost, chi2, unweighted SS).
     """
-    cost, chi2, ss = evaluate(ph, yp, wp, t, r, infit, dc, additive, ln_rref, md_y, md_w, md_t,
-                              prior, True, h, gv)
+    cost, chi2, ss = evaluate(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior,
+                              h, gv)
     lam = 1e-3
     conv = False
     it = 0
@@ -185,8 +174,8 @@ def levenberg_marquardt(ph, yp, wp, t, r, infit, dc, additive, ln_rref, md_y, md
         for a in range(4):
             trial[a] = min(max(ph[a] + step[a], lo[a]), hi[a])
             size = max(size, abs(trial[a] - ph[a]) * (b_now if a == 1 else 1.0))
-        ct, chi2t, sst = evaluate(trial, yp, wp, t, r, infit, dc, additive, ln_rref, md_y, md_w,
-                                  md_t, prior, True, hn, step)
+        ct, chi2t, sst = evaluate(trial, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t,
+                                  prior, hn, step)
         gain = cost - ct
         if np.isfinite(ct) and ct < cost:
             rel = gain / max(cost, 1e-300)
@@ -240,7 +229,8 @@ def _refresh_cache():
     from .. import model
     from . import kcache
 
-    kcache.refresh([sample, evaluate, solve4, levenberg_marquardt, external_sigma], [model])
+    kcache.refresh([sample, _accumulate, evaluate, solve4, levenberg_marquardt, external_sigma],
+                   [model])
 
 
 _refresh_cache()

@@ -85,12 +85,13 @@ def _light_weights(yp, wp, t, light, nfr, gain, read_var, d_line, dc_line, has_d
 
 
 @njit(cache=True, error_model="numpy")
-def _fit_pixel(p, yp, wp, t, r, light, dark, infit, merge, estimate_dc, dc_given, additive,
-               b_starts, margins, theta0, prior_sigma, max_iter, tol, fallback, weights_given,
-               nfr, gain, read_var, out_f, out_i, h, gv, hn, step, ph, trial, prior, cov,
-               scratch, lo, hi):
+def _samples(yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr, gain,
+             read_var):
+    """Dark line of one pixel and its light weights (set in ``wp`` unless given).
+
+    Returns (dark samples, light samples, summed dark weight, weighted mean dark exposure and
+    level, dark current, unweighted dark sums t, y, tt, ty, yy, longest dark exposure)."""
     n = t.size
-    # -- dark samples: weighted line d + dc t; unweighted sums for their residual RMS -------
     sw = swt = swy = swtt = swty = 0.0
     ut = uy = utt = uty = uyy = 0.0
     t_dark_max = 0.0
@@ -125,7 +126,20 @@ def _fit_pixel(p, yp, wp, t, r, light, dark, infit, merge, estimate_dc, dc_given
             dc = max((sw * swty - swt * swy) / den, 0.0)
     if not weights_given:
         _light_weights(yp, wp, t, light, nfr, gain, read_var, md_y - dc * md_t, dc, nd > 0)
+    return nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max
+
+
+@njit(cache=True, error_model="numpy")
+def _fit_pixel(p, yp, wp, wq, t, r, light, dark, infit, merge, estimate_dc, dc_given, additive,
+               b_starts, margins, theta0, prior_sigma, max_iter, tol, fallback, weights_given,
+               nfr, gain, read_var, out_f, out_i, h, gv, hn, step, ph, trial, prior, cov,
+               scratch, lo, hi):
+    n = t.size
+    (nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max) = _samples(
+        yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr, gain, read_var)
     md_w = sw if merge else 0.0
+    for i in range(n):
+        wq[i] = wp[i] if infit[i] else 0.0
     out_f[p, F_DC] = dc
     out_i[p, I_N] = nl + nd
     out_i[p, I_ITER] = 0
@@ -216,8 +230,8 @@ def _fit_pixel(p, yp, wp, t, r, light, dark, infit, merge, estimate_dc, dc_given
                 trial[3] = d_lin
                 cst = np.inf
                 if b_starts.size * margins.size > 1:
-                    cst, _, _ = evaluate(trial, yp, wp, t, r, infit, dc, additive, ln_rref, md_y,
-                                         md_w, md_t, prior, False, h, gv)
+                    cst, _, _ = evaluate(trial, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w,
+                                         md_t, prior, h, gv)
                 if cst <= best:
                     best = cst
                     ph[:] = trial
@@ -250,8 +264,8 @@ def _fit_pixel(p, yp, wp, t, r, light, dark, infit, merge, estimate_dc, dc_given
         for a in range(4):
             ph[a] = min(max(ph[a], lo[a]), hi[a])
         conv, it, _cost, chi2, ss = levenberg_marquardt(
-            ph, yp, wp, t, r, infit, dc, additive, ln_rref, md_y, md_w, md_t, prior, lo, hi,
-            max_iter, tol, h, gv, hn, step, trial, scratch)
+            ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior, lo, hi, max_iter,
+            tol, h, gv, hn, step, trial, scratch)
         out_i[p, I_ITER] = it
         status = LEAKAGE
         if not conv:
@@ -330,6 +344,7 @@ def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estima
     for blk in prange(nblocks):
         yp = np.empty(n)
         wp = np.empty(n)
+        wq = np.empty(n)
         h = np.empty((4, 4))
         hn = np.empty((4, 4))
         cov = np.empty((4, 4))
@@ -343,17 +358,38 @@ def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estima
         hi = np.empty(4)
         for p in range(blk * BLOCK, min(npx, (blk + 1) * BLOCK)):
             _gather(p, y, valid, w, nfr, gain, read_var, t, light, dark, yp, wp)
-            _fit_pixel(p, yp, wp, t, r, light, dark, infit, merge, estimate_dc, dc_in[p],
+            _fit_pixel(p, yp, wp, wq, t, r, light, dark, infit, merge, estimate_dc, dc_in[p],
                        additive, b_starts, margins, theta0, prior_sigma, max_iter, tol,
                        fallback, weights_given, nfr, gain, read_var, out_f, out_i, h, gv, hn,
                        step, ph, trial, prior, cov, scratch, lo, hi)
 
 
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def pixel_samples(y, valid, w, nfr, gain, read_var, t, light, dark, estimate_dc, dc_in, out_y,
+                  out_w, out_dark):
+    """The samples each pixel's fit sees, as :func:`fit_block` prepares them: step means
+    ``out_y`` and weights ``out_w`` (P, S; weight 0 = left out) and ``out_dark`` (P, 4): summed
+    dark weight, weighted mean dark exposure (ms) and level (DN), dark current (DN/ms)."""
+    npx = y.shape[1]
+    weights_given = w.shape[0] > 0
+    for p in prange(npx):
+        yp = out_y[p]
+        wp = out_w[p]
+        _gather(p, y, valid, w, nfr, gain, read_var, t, light, dark, yp, wp)
+        res = _samples(yp, wp, t, light, dark, estimate_dc, dc_in[p], weights_given, nfr, gain,
+                       read_var)
+        out_dark[p, 0] = res[2]
+        out_dark[p, 1] = res[3]
+        out_dark[p, 2] = res[4]
+        out_dark[p, 3] = res[5]
+
 def _refresh_cache():
     from .. import model
     from . import kcache, lm
 
-    kcache.refresh([_gather, _light_weights, _fit_pixel, fit_block], [model, lm])
+    kcache.refresh([_gather, _light_weights, _samples, _fit_pixel, fit_block, pixel_samples],
+                   [model, lm])
 
 
 _refresh_cache()
