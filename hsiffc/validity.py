@@ -13,7 +13,6 @@ import numpy as np
 from . import model
 from .bandstats import STATISTICS as BAND_STATISTICS
 from .bandstats import band_reduce
-from .dark import subtract_dark as subtract_dark_
 from .dq import DQ, DQ_DTYPE
 from .params import validate_method
 from .sweep import Sweep
@@ -29,22 +28,21 @@ STATISTICS = BAND_STATISTICS
 NO_ALPHA = np.inf
 
 
-def alpha_paper(response, signal, exposure_ms: float, a, b) -> np.ndarray:
-    """Leakage percentage of eq. (4) with k estimated as ``signal / exposure`` (the paper's way).
+def alpha_paper(response, exposure_ms: float, a, b, dark) -> np.ndarray:
+    """Leakage percentage of eq. (4) with k estimated as ``(Y - dark) / exposure`` (the paper).
 
-    ``alpha = 100 a e^{bY} / (S / t)`` in percent, Y the raw response and S the signal above
-    the dark, evaluated element-wise in single precision (within 2e-6 relative of
-    :func:`hsiffc.model.leakage_percentage_paper` in double precision).
+    ``alpha = 100 a e^{bY} / ((Y - dark) / t)`` in percent, element-wise: the compiled kernel
+    of :func:`hsiffc.model.leakage_percentage_paper` (double precision, rounded once to float32).
 
     Parameters
     ----------
     response : (H, W) array_like, DN
         Raw response Y (the leakage acts on it).
-    signal : (H, W) array_like, DN
-        Y less the dark (pass ``response`` itself for the paper's literal ``Y / t``).
     exposure_ms : float, ms
     a : (H, W) array_like, DN/ms
     b : (H, W) array_like, 1/DN
+    dark : float or (H, W) array_like, DN
+        The dark under Y (0 gives the paper's literal ``Y / t``).
 
     Returns
     -------
@@ -52,21 +50,12 @@ def alpha_paper(response, signal, exposure_ms: float, a, b) -> np.ndarray:
 
     Examples
     --------
-    >>> alpha_paper(np.array([110.0, 5.0]), np.array([100.0, -1.0]), 10.0, 0.1, 0.0).tolist()
+    >>> alpha_paper(np.array([110.0, 5.0]), 10.0, 0.1, 0.0, np.array([10.0, 6.0])).tolist()
     [1.0, inf]
     """
-    f32 = np.float32
-    y = np.asarray(response, f32)
-    s = np.array(signal, f32, copy=True)
-    positive = s > 0
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        np.log(s, out=s, where=positive)
-        expo = np.log(np.asarray(a, f32)) + np.asarray(b, f32) * y
-        expo -= s
-        expo += f32(np.log(100.0 * exposure_ms))
-        alpha = np.exp(expo, out=expo)
-    alpha[~positive] = NO_ALPHA
-    return alpha
+    out = np.empty(np.broadcast_shapes(np.shape(response), np.shape(a), np.shape(b),
+                                       np.shape(dark)), np.float32)
+    return model.leakage_percentage_paper_into(out, response, exposure_ms, a, b, dark)
 
 
 def alpha_model(response, exposure_ms: float, a, b, dark_dn, *, full_scale_dn=None,
@@ -120,13 +109,12 @@ def leakage_dq(alpha, response, *, threshold_percent: float, full_scale_dn: floa
 
 
 def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
-              subtract_dark: bool = True, signal=None) -> np.ndarray:
+              subtract_dark: bool = True, dark=None) -> np.ndarray:
     """Per-pixel leakage percentage alpha (percent, float32) of one raw frame (DN).
 
-    ``method="paper"``: :func:`alpha_paper`, the signal being ``signal`` when given (e.g. the
-    frame less the master dark a stage removed), else the response less the calibrated dark
-    level and dark current (``subtract_dark=False`` divides the raw response, literally as the
-    paper writes it). ``method="model"``: :func:`alpha_model`. :data:`NO_ALPHA` where no light
+    ``method="paper"``: :func:`alpha_paper` with ``dark`` when given (e.g. the master dark a
+    stage removed), else the calibrated dark level and dark current at this exposure
+    (``subtract_dark=False`` divides the raw response, literally as the paper writes it). ``method="model"``: :func:`alpha_model`. :data:`NO_ALPHA` where no light
     rate can be estimated.
 
     Parameters
@@ -154,13 +142,13 @@ def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
     if method == "model":
         return alpha_model(y, exposure_ms, cal.a, cal.b, cal.dark,
                            full_scale_dn=cal.domain.get("full_scale_dn"))
-    if signal is None:
-        signal = subtract_dark_(y, cal.dark_at(exposure_ms)) if subtract_dark else y
-    return alpha_paper(y, signal, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"))
+    if dark is None:
+        dark = cal.dark_at(exposure_ms) if subtract_dark else 0.0
+    return alpha_paper(y, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"), dark)
 
 
 def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent: float,
-                   method: str = "paper", signal=None):
+                   method: str = "paper", dark=None):
     """alpha map (:func:`alpha_map`) and DQ flags (:func:`leakage_dq`) of one raw frame.
 
     Parameters
@@ -179,7 +167,7 @@ def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent:
     alpha : (H, W) float32, percent (:data:`NO_ALPHA` where not computable)
     dq : (H, W) uint32
     """
-    alpha = alpha_map(frame, exposure_ms, calibration, method=method, signal=signal)
+    alpha = alpha_map(frame, exposure_ms, calibration, method=method, dark=dark)
     dq = leakage_dq(alpha, frame, threshold_percent=threshold_percent,
                     full_scale_dn=calibration.domain["full_scale_dn"],
                     in_domain=bool(calibration.in_domain(exposure_ms)),
@@ -259,7 +247,7 @@ class AlphaTable:
                 [None if np.isnan(v) else float(v) for v in self.selected_ms]}
 
 
-def alpha_table_of(responses, exposures_ms, calibration, *, signals=None, band_map=None,
+def alpha_table_of(responses, exposures_ms, calibration, *, darks=None, band_map=None,
                    method: str = "paper", statistic: str = "median",
                    wavelengths_nm=None) -> AlphaTable:
     """alpha per band of one averaged raw frame per exposure.
@@ -270,8 +258,8 @@ def alpha_table_of(responses, exposures_ms, calibration, *, signals=None, band_m
         Raw response at each exposure (e.g. the mean of its frames).
     exposures_ms : (E,) array_like, ms
     calibration : Calibration
-    signals : (E, H, W) array_like, DN, optional
-        Signal above the dark removed (default: response less the calibrated dark).
+    darks : (E, H, W) array_like, DN, optional
+        The dark under each response (default: the calibrated dark at each exposure).
     band_map : (H, W) int array, optional
     method, statistic : see :func:`alpha_map` and :func:`hsiffc.bandstats.band_reduce`
     wavelengths_nm : sequence of float, optional
@@ -286,7 +274,7 @@ def alpha_table_of(responses, exposures_ms, calibration, *, signals=None, band_m
     columns = []
     for j, e in enumerate(exposures):
         alpha = alpha_map(responses[j], float(e), calibration, method=method,
-                          signal=None if signals is None else signals[j])
+                          dark=None if darks is None else darks[j])
         columns.append(band_reduce(alpha, band_map, statistic=statistic))
     table = np.stack(columns, axis=1)
     return AlphaTable(exposures, np.where(np.isnan(table), NO_ALPHA, table),

@@ -65,8 +65,8 @@ def test_alpha_mask_equals_validity_flags(frames, cal, after_dark):
     steps = [("dark", create("dark"))] if after_dark else []
     pipe = Pipeline(steps + [("mask", create("alpha_mask", calibration=cal))]).fit(train)
     out = pipe.transform(test)
-    signal = test.data - stack_mean(_stack(train, "dark"))[0] if after_dark else None
-    alpha, dq = validity_flags(test.data, T_MS, cal, threshold_percent=12.0, signal=signal)
+    dark = stack_mean(_stack(train, "dark"))[0] if after_dark else None
+    alpha, dq = validity_flags(test.data, T_MS, cal, threshold_percent=12.0, dark=dark)
     assert np.array_equal(out.alpha, alpha) and np.array_equal(out.dq, test.dq | dq)
     assert np.isinf(alpha).sum() == ((dq & DQ.LEAKAGE) != 0)[np.isinf(alpha)].sum()
 

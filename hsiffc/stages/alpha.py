@@ -13,8 +13,7 @@ class AlphaMask(Stage):
 
     Runs :func:`hsiffc.validity.validity_flags` on the frame's raw response (``frame.raw``: the
     data plus the dark a stage actually removed, since the leakage acts on the raw response);
-    the signal is the dark-subtracted data when a dark stage ran, else the response less the
-    calibrated dark. The frame keeps its data; it gains an ``alpha`` plane (percent; ``inf``
+    the dark under it is the one a dark stage removed, else the calibrated dark. The frame keeps its data; it gains an ``alpha`` plane (percent; ``inf``
     where no light rate can be estimated) and DQ bits: LEAKAGE (alpha over
     ``threshold_percent`` or undefined), SATURATED, OUT_OF_DOMAIN (exposure outside the
     calibrated range), and the calibration's own pixel flags.
@@ -56,9 +55,8 @@ class AlphaMask(Stage):
         cal = self.require_calibration()
         cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
                              what="the frame")
-        signal = None if frame.dark_removed is None else frame.signal
         alpha, dq = validity_flags(frame.raw, frame.exposure_ms, cal,
                                    threshold_percent=float(self.threshold_percent),
-                                   method=self.method, signal=signal)
+                                   method=self.method, dark=frame.dark_removed)
         return frame.replace(dq=frame.dq | dq, alpha=alpha,
                              meta={"alpha_threshold_percent": float(self.threshold_percent)})

@@ -109,9 +109,9 @@ class TwoPointFFC(Stage):
             raise ParameterError(f"{self.name}: give exposure_ms= or calibration= (to select "
                                  "the training exposure per band by the leakage percentage)")
         raws = np.stack([np.mean([f.raw for f in s], axis=0) for s in flats.values()])
-        signals = np.stack([np.mean([f.signal for f in s], axis=0) for s in flats.values()])
+        darks = np.stack([s[0].dark_removed for s in flats.values()])
         mosaic = next(iter(flats.values()))[0].mosaic
-        table = alpha_table_of(raws, list(flats), cal, signals=signals, band_map=band_map,
+        table = alpha_table_of(raws, list(flats), cal, darks=darks, band_map=band_map,
                                wavelengths_nm=mosaic.wavelengths_nm if mosaic else None)
         sel = table.select(float(self.threshold_percent)).selected_ms
         fallback = min(flats)
