@@ -76,6 +76,7 @@ class TiffInput:
                                  str(self.illumination[k]), str(self.path))
 
     def close(self) -> None:
+        """Close the input file."""
         self._tf.close()
 
     def __enter__(self):

@@ -28,14 +28,17 @@ class BatchSummary:
 
     @property
     def done(self):
+        """Results of the files corrected in this run."""
         return self._with("done")
 
     @property
     def skipped(self):
+        """Results of the files skipped (outputs complete and up to date)."""
         return self._with("skipped")
 
     @property
     def failed(self):
+        """Results of the files that failed, each with its reason."""
         return self._with("failed")
 
     @property
@@ -60,6 +63,7 @@ class BatchSummary:
         return out[0], out[1]
 
     def to_dict(self) -> dict:
+        """JSON-safe summary with one result per file (``--json``)."""
         u = self.uniformity()
         return json_safe({"outdir": self.outdir, "seconds": self.seconds,
                           "counts": {s: len(self._with(s)) for s in ("done", "skipped", "failed")},
@@ -70,6 +74,7 @@ class BatchSummary:
                           "results": self.results})
 
     def to_text(self) -> str:
+        """The summary the command line prints at the end of a batch."""
         done = self.done
         frames = sum(r["frames"] for r in done)
         mb = sum(r["bytes"] for r in done) / 1e6
