@@ -28,6 +28,7 @@ _REGENERATED = pytest.StashKey[list]()
 
 
 def pytest_addoption(parser):
+    """Add ``--regen-golden`` and the ``golden_dir`` ini option."""
     group = parser.getgroup("hsiffc", "hsiffc golden-image regression tests")
     group.addoption("--regen-golden", action="store_true", default=False, dest="regen_golden",
                     help="write the arrays passed to the `golden` fixture as new golden files "
@@ -38,6 +39,7 @@ def pytest_addoption(parser):
 
 
 def pytest_configure(config):
+    """Register the plugin's state for this test session."""
     config.stash[_REGENERATED] = []
 
 
@@ -77,6 +79,7 @@ def golden(request):
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """List the golden files regenerated in this session."""
     regenerated = config.stash.get(_REGENERATED, [])
     if not regenerated:
         return

@@ -61,10 +61,12 @@ class SensorParams:
 
     @property
     def full_scale_dn(self) -> int:
+        """``2**bit_depth - 1`` (DN)."""
         return 2 ** int(self.bit_depth) - 1
 
     @property
     def leak_a_dn_per_ms(self) -> float:
+        """Leakage amplitude a (DN/ms) implied by the reference rate and level."""
         return float(self.leak_rate_dn_per_ms * np.exp(-self.leak_b_per_dn * self.leak_ref_dn))
 
 
@@ -249,6 +251,7 @@ class MosaicSensor:
         return self.illumination(illumination, irradiance_w_m2, vignetting=vignetting)
 
     def truth(self, k_dn_per_ms: np.ndarray) -> Truth:
+        """Per-pixel ground truth for light rates ``k_dn_per_ms`` (H, W), DN/ms."""
         return Truth(k_dn_per_ms=k_dn_per_ms, dark_current_dn_per_ms=self.dark_current,
                      a_dn_per_ms=self.a_dn_per_ms, b_per_dn=self.b_per_dn, dark_dn=self.dark_dn,
                      hot=self.hot, dead=self.dead, band=self.band_map)

@@ -75,18 +75,22 @@ class Calibration:
 
     @property
     def a(self) -> np.ndarray:
+        """Leakage amplitude a per pixel, (H, W), DN/ms."""
         return self.arrays["a_dn_per_ms"]
 
     @property
     def b(self) -> np.ndarray:
+        """Leakage exponent b per pixel, (H, W), 1/DN."""
         return self.arrays["b_per_dn"]
 
     @property
     def dark(self) -> np.ndarray:
+        """Dark level at zero exposure per pixel, (H, W), DN."""
         return self.arrays["dark_dn"]
 
     @property
     def dark_current(self) -> np.ndarray:
+        """Dark current per pixel, (H, W), DN/ms."""
         return self.arrays.get("dark_current_dn_per_ms", np.zeros(self.frame_shape))
 
     def f32(self, name: str) -> np.ndarray:
@@ -105,14 +109,17 @@ class Calibration:
 
     @property
     def frame_shape(self) -> tuple[int, int]:
+        """(H, W) of the frames it was fitted on."""
         return tuple(int(s) for s in self.domain["frame_shape"])
 
     @property
     def bit_depth(self) -> int:
+        """ADC bit depth of the frames it was fitted on."""
         return int(self.domain["bit_depth"])
 
     @property
     def mosaic(self) -> Mosaic | None:
+        """The band layout, or None."""
         m = self.domain.get("mosaic")
         return Mosaic.from_dict(m) if m else None
 
@@ -152,6 +159,7 @@ class Calibration:
         return cls.load(value)
 
     def manifest(self) -> dict:
+        """The JSON manifest saved with the arrays (format, versions, method, validity domain, training data)."""
         return {"format": FORMAT, "format_version": FORMAT_VERSION,
                 "hsiffc_version": self.hsiffc_version, "created": self.created,
                 "method": self.method, "domain": self.domain, "fitted_on": self.fitted_on,
@@ -160,6 +168,7 @@ class Calibration:
                 "identity": self.identity}
 
     def summary(self) -> str:
+        """Percentiles of each parameter, sample counts and flagged pixels, as text."""
         d = self.domain
         h, w = self.frame_shape
         lines = [f"hsiffc calibration ({self.method}) of a {w} x {h} px, {d['bit_depth']}-bit "

@@ -59,6 +59,7 @@ class BandSet:
 
     @property
     def n_bands(self) -> int:
+        """Number of bands."""
         return int(self.responses.shape[0])
 
     def __eq__(self, other):
@@ -92,6 +93,7 @@ class BandSet:
 
     @classmethod
     def from_dict(cls, d: dict) -> "BandSet":
+        """The BandSet described by :meth:`to_dict`'s output."""
         try:
             return cls(np.asarray(d["wavelengths_nm"], dtype=np.float64),
                        np.asarray(d["responses"], dtype=np.float64),

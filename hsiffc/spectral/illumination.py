@@ -105,12 +105,14 @@ class Illumination:
         return g / g.max()
 
     def to_dict(self) -> dict:
+        """JSON-safe description; :meth:`from_dict` inverts it."""
         return {"label": self.label, "wavelengths_nm": self.wavelengths_nm.tolist(),
                 "spectral_irradiance": self.spectral_irradiance.tolist(),
                 "vignetting": self.vignetting}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Illumination":
+        """The Illumination described by :meth:`to_dict`'s output."""
         try:
             return cls(d["label"], np.asarray(d["wavelengths_nm"], dtype=np.float64),
                        np.asarray(d["spectral_irradiance"], dtype=np.float64),
