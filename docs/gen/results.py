@@ -208,14 +208,53 @@ def _rows_paper():
 
 ROWS = (_rows_demo, _rows_paper)
 
+#: (benchmark, figure key, label, unit, (ratio key, how to say the ratio) or None)
+SPEED = (
+    ("bench_foundation", "closed_form_mpx_s", "leakage-model response (closed form)", "Mpx/s",
+     ("closed_form_speedup", "x faster than solve_ivp per pixel")),
+    ("bench_foundation", "inversion_mpx_s", "inversion (light rate from a response)", "Mpx/s",
+     None),
+    ("bench_pipeline", "dark_mask_ffc_mpx_s", "dark + alpha mask + two-point FFC with DQ", "Mpx/s",
+     ("ratio_plain_over_dark_mask_ffc", "x the time of plain numpy (raw - dark) * gain")),
+    ("bench_pipeline", "pipeline_bilinear_mpx_s", "full pipeline, bilinear reconstruction",
+     "Mpx/s", None),
+    ("bench_pipeline", "pipeline_ppid_mpx_s", "full pipeline, PPID reconstruction", "Mpx/s", None),
+    ("bench_calibration", "calibrate_s", "calibrate a 2048 x 1088 sensor (20 exposures)", "s",
+     ("speedup_vs_curve_fit", "x faster than scipy curve_fit per pixel")),
+    ("bench_batch", "default_frames_s", "hsiffc correct, 1 worker, default pipeline", "frames/s",
+     ("default_ratio_to_io_bound", "of the tifffile read + write bound")),
+)
+
+
+def _speed_rows():
+    b = _load("benchmarks", "benchmarks.json")
+    if not b:
+        return []
+    rows = []
+    for bench, key, label, unit, ratio in SPEED:
+        res = b.get(bench) or {}
+        if key not in res:
+            continue
+        against = ""
+        if ratio and ratio[0] in res:
+            against = f"{res[ratio[0]]:.3g} {ratio[1]}"
+        rows.append((label, f"{res[key]:.3g} {unit}", against))
+    return rows
+
 
 def readme_block() -> str:
-    """The README's headline-results table, from the stored outputs of the results pages."""
+    """The README's headline-results tables, from the stored outputs of the results pages."""
     rows = [r for fn in ROWS for r in fn()]
     lines = [BEGIN, "", "| measure | before | after | how it was measured |", "|---|---|---|---|"]
     for what, before, after, page in rows:
         lines.append(f"| {what} | {before} | {after} | [{page.split('/')[-1][:-3]}]"
                      f"(docs/{page}) |")
+    speed = _speed_rows()
+    if speed:
+        lines += ["", "| speed (2048 x 1088 frames, 2 cores) | figure | against a baseline in the "
+                  "same run |", "|---|---|---|"]
+        lines += [f"| {a} | {b} | {c} |" for a, b, c in speed]
+        lines += ["", "Speed from [the benchmarks](docs/results/benchmarks.md)."]
     return "\n".join(lines + ["", END])
 
 
