@@ -151,7 +151,11 @@ def _body_benchmarks(d: Path, stdout: str) -> str:
             "[benchmarks.json](benchmarks/benchmarks.json).\n")
 
 
-BODIES = {"demo": _body_demo, "paper": _body_paper, "emva-leakage": _body_emva,
+def _body_ffc_study(d: Path, stdout: str) -> str:
+    return _report_md(d / "ffc_study.md", "ffc-study")
+
+
+BODIES = {"ffc-study": _body_ffc_study, "demo": _body_demo, "paper": _body_paper, "emva-leakage": _body_emva,
           "benchmarks": _body_benchmarks}
 
 
@@ -206,7 +210,30 @@ def _rows_paper():
     return out
 
 
-ROWS = (_rows_demo, _rows_paper)
+def _rows_ffc_study():
+    s = _load("ffc-study", "ffc_study.json")
+    if not s:
+        return []
+    out = []
+    for row in s["summary"]:
+        m = row["methods"]
+        if not row["n_steps"] or "raw" not in m:
+            continue
+        lo, hi = row["signal_range_dn"]
+        after = []
+        for name, label in (("model_ffc", "model_ffc"),
+                            ("two_point_stack", "two-point, 100-frame flat"),
+                            ("two_point_2frame", "two-point, 2-frame flat")):
+            if name in m:
+                after.append(f"{m[name]['fpn_percent_median']:.2f} % {label}")
+        out.append((f"fixed-pattern non-uniformity, real EMVA 1288 CMOS sweep, held-out steps "
+                    f"at {lo:g}-{hi:g} DN ({row['n_steps']} steps, median)",
+                    f"{m['raw']['fpn_percent_median']:.2f} %", "; ".join(after),
+                    "results/ffc-study.md"))
+    return out
+
+
+ROWS = (_rows_ffc_study, _rows_demo, _rows_paper)
 
 #: (benchmark, figure key, label, unit, (ratio key, how to say the ratio) or None)
 SPEED = (
