@@ -69,6 +69,8 @@ def measure(name: str) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     argv = cmd(tmp)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
+                            capture_output=True, text=True).stdout.strip()
     t0 = time.perf_counter()
     proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})
@@ -85,8 +87,6 @@ def measure(name: str) -> None:
             p.unlink()
     stdout = proc.stdout.replace(str(tmp), f"docs/results/{name}")
     (tmp / "stdout.txt").write_text(stdout, encoding="utf-8")
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
-                            capture_output=True, text=True).stdout.strip()
     run = {"command": _display(argv, tmp).replace(str(tmp.relative_to(ROOT)),
                                                     f"docs/results/{name}"),
            "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
