@@ -84,3 +84,16 @@ def test_readme_results_table_is_generated():
     i, j = text.index(gen.BEGIN), text.index(gen.END) + len(gen.END)
     assert text[i:j] == gen.readme_block(), \
         "README results table is stale or edited: run python3 docs/gen/results.py --render-only all"
+
+
+def test_readme_pipeline_example_runs(tmp_path, monkeypatch):
+    """The README's Python example runs as written (from the repository root)."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    code = re.findall(r"```python\n(.*?)```", text, re.S)[0]
+    monkeypatch.chdir(ROOT)
+    code = code.replace('pipe.save("pipeline.npz")', f'pipe.save({str(tmp_path / "p.npz")!r})')
+    scope = {}
+    exec(compile(code, "README.md", "exec"), scope)  # noqa: S102 (our own README)
+    cube = scope["cube"]
+    assert cube.data.shape == (96, 128, 8) and cube.dq.shape == cube.data.shape
+    assert (tmp_path / "p.npz").is_file()
