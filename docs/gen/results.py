@@ -42,9 +42,6 @@ PAGES = {
     "emva-leakage": ("Real data: linear against leakage model",
                      lambda out: [PY, "-m", "hsiffc.reports.emva_leakage", str(EMVA), str(out)],
                      ("emva_leakage.md", "emva_leakage_pixels.png")),
-    "benchmarks": ("Benchmarks",
-                   lambda out: [PY, "benchmarks/run.py", "--json", str(out / "benchmarks.json")],
-                   ("benchmarks.json",)),
 }
 
 
