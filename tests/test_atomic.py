@@ -185,3 +185,14 @@ def test_folder_lock_refuses_a_second_holder_and_names_the_first(tmp_path):
         proc.wait(timeout=30)
     with folder_lock(tmp_path) as me:  # released when the holder ends
         assert json.loads((tmp_path / ".hsiffc.lock").read_text())["pid"] == me["pid"]
+
+
+def test_golden_regeneration_replaces_the_file_on_purpose(tmp_path):
+    """``regenerate=True`` (``pytest --regen-golden``) is the explicit ask to replace."""
+    import numpy as np
+
+    from hsiffc.testing import assert_golden
+
+    assert_golden("case", {"a": np.zeros(3)}, golden_dir=tmp_path, regenerate=True)
+    assert_golden("case", {"a": np.ones(3)}, golden_dir=tmp_path, regenerate=True)
+    assert_golden("case", {"a": np.ones(3)}, golden_dir=tmp_path)
