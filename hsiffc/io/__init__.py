@@ -1,50 +1,52 @@
 """Reading and writing frames, sweeps and cubes.
 
-* :func:`read_sweep` opens any supported input and returns a :class:`~hsiffc.Sweep`:
-  an hsiffc TIFF (``.tif``/``.tiff``, see :mod:`hsiffc.io.tiff`) or an EMVA 1288 measurement
-  (its descriptor ``.txt`` or the folder holding it, see :mod:`hsiffc.io.emva`).
+* :func:`open_source` opens files, folders or globs of any supported format as one
+  :class:`FrameSource`: headers parsed once, size limits and file structure checked, metadata
+  resolved (file, then sidecar, then options), frames decoded one at a time.
+* :func:`read_sweep` = ``open_source(...).to_sweep()``: a :class:`~hsiffc.Sweep` in memory.
 * :func:`write_sweep` writes a sweep as an hsiffc TIFF (atomically).
+* :func:`read_sweep_tiff` and :func:`read_emva1288` read the two self-describing formats with
+  their specific options.
+
+Formats, the metadata order, the sidecar format and the limits are documented in
+``docs/formats-and-metadata.md``.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from ..errors import DataFormatError
+from .corrected import read_corrected
 from .emva import read_emva1288
+from .limits import ReadLimits, default_limits
+from .metadata import MetadataConflictWarning, Overrides
+from .quirks import LayoutWarning
+from .readers import ACCEPTED
+from .source import FrameMeta, FrameSource, expand_inputs, open_source
 from .tiff import TIFF_SUFFIXES, read_sweep_tiff, write_sweep
-from .corrected import read_corrected  # noqa: E402  (outputs of hsiffc correct)
 
-__all__ = ["read_sweep", "read_sweep_tiff", "read_emva1288", "write_sweep", "read_corrected"]
+__all__ = ["open_source", "FrameSource", "FrameMeta", "Overrides", "ReadLimits",
+           "default_limits", "expand_inputs", "read_sweep", "read_sweep_tiff", "read_emva1288",
+           "write_sweep", "read_corrected", "LayoutWarning", "MetadataConflictWarning",
+           "TIFF_SUFFIXES", "ACCEPTED"]
 
-_ACCEPTED = ("an hsiffc TIFF (.tif/.tiff), an EMVA 1288 descriptor (.txt) or a folder holding "
-             "one EMVA 1288 descriptor")
 
-
-def read_sweep(path):
+def read_sweep(path, **options):
     """Read frames and their metadata from ``path`` into a :class:`~hsiffc.Sweep`.
 
     Parameters
     ----------
-    path : str or Path
-        ``.tif``/``.tiff`` -> :func:`read_sweep_tiff`; ``.txt`` or a folder ->
-        :func:`read_emva1288` (exposure times in the descriptor taken as ns, the EMVA 1288
-        convention; call :func:`read_emva1288` directly to choose another unit).
+    path : str, Path or sequence of them
+        Any input :func:`open_source` accepts: an hsiffc or plain TIFF, PNG, ENVI ``.hdr``,
+        FITS, an EMVA 1288 descriptor (``.txt``; exposure times in ns, the EMVA 1288 convention;
+        call :func:`read_emva1288` to choose another unit), a folder or a glob.
+    **options
+        Metadata for files that lack it (``exposure_ms``, ``bit_depth``, ``kind``, ``mosaic``,
+        ``illumination``, ``bit_shift``, ``sidecar``) and ``limits``.
 
     Raises
     ------
     DataFormatError
         The path does not exist or is none of the accepted inputs (the message lists them), or
-        the file itself is invalid.
+        the file itself is invalid, or metadata are missing.
     """
-    path = Path(path)
-    if not path.exists():
-        raise DataFormatError(f"not found; give {_ACCEPTED}", path=path)
-    if path.is_dir():
-        return read_emva1288(path)
-    suffix = path.suffix.lower()
-    if suffix in TIFF_SUFFIXES:
-        return read_sweep_tiff(path)
-    if suffix == ".txt":
-        return read_emva1288(path)
-    raise DataFormatError(f"unsupported input {path.name!r}; give {_ACCEPTED}", path=path)
+    with open_source(path, **options) as src:
+        return src.to_sweep()

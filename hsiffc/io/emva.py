@@ -32,13 +32,25 @@ import tifffile
 
 from ..errors import DataFormatError
 from ..sweep import Sweep
-from .tiff import EXPOSURE_UNITS_MS, exposure_to_ms
+from .document import EXPOSURE_UNITS_MS, exposure_to_ms
+from .layout import FileLayout
+from .limits import ReadLimits, default_limits
 
-__all__ = ["read_emva1288", "find_emva_descriptor", "DEFAULT_DESCRIPTOR_NAME"]
+__all__ = ["read_emva1288", "open_emva1288", "find_emva_descriptor", "has_emva_descriptor",
+           "DEFAULT_DESCRIPTOR_NAME"]
 
 DEFAULT_DESCRIPTOR_NAME = "EMVA1288_Data.txt"
 SPATIAL_FACTOR = 2.0  # a step with more than this x the median images per step is "spatial"
 _VERSION_LINE = re.compile(r"^\s*v\s+\S", re.MULTILINE)
+
+
+def has_emva_descriptor(folder) -> bool:
+    """True when ``folder`` holds exactly one EMVA 1288 descriptor."""
+    try:
+        find_emva_descriptor(folder)
+    except DataFormatError:
+        return False
+    return True
 
 
 def find_emva_descriptor(folder) -> Path:
@@ -241,6 +253,20 @@ def read_emva1288(path, *, exposure_unit: str = "ns", steps=None,
         bit depth, missing/unreadable/truncated image, image of the wrong size or with values
         beyond the bit depth. Messages name the descriptor, the line number and the image.
     """
+    from .source import FrameSource
+    from .metadata import Overrides
+
+    limits = default_limits()
+    layout = open_emva1288(path, limits, exposure_unit=exposure_unit, steps=steps,
+                           max_frames_per_step=max_frames_per_step)
+    with FrameSource([layout], Overrides(), limits, label=str(layout.path)) as src:
+        return src.to_sweep()
+
+
+def open_emva1288(path, limits: ReadLimits, *, exposure_unit: str = "ns", steps=None,
+                  max_frames_per_step: int | None = None) -> FileLayout:
+    """The :class:`~hsiffc.io.layout.FileLayout` of an EMVA 1288 measurement (see
+    :func:`read_emva1288`); images are decoded one at a time when read."""
     import cv2  # opencv-python-headless (core dependency); imported here to keep import light
 
     path = Path(path)
@@ -266,39 +292,50 @@ def read_emva1288(path, *, exposure_unit: str = "ns", steps=None,
 
     bits, height, width = header["bits"], header["height"], header["width"]
     full_scale = 2 ** bits - 1
-    dtype = np.uint8 if bits <= 8 else np.uint16
+    dtype = np.dtype(np.uint8 if bits <= 8 else np.uint16)
     plan = []  # (step id, step, image text, line)
     for sid in wanted:
         s = all_steps[sid]
         images = s.images if max_frames_per_step is None else s.images[:int(max_frames_per_step)]
         plan.extend((sid, s, name, lineno) for name, lineno in images)
-
-    data = np.empty((len(plan), height, width), dtype=dtype)
+    limits.check_frames(path=descriptor, n_frames=len(plan), shape=(height, width),
+                        itemsize=dtype.itemsize)
     root = descriptor.parent
-    with _quiet_opencv(cv2):
-        for k, (_, _, name, lineno) in enumerate(plan):
-            image = root / name.replace("\\", "/")
+
+    def read(k: int) -> np.ndarray:
+        _, _, name, lineno = plan[k]
+        image = root / name.replace("\\", "/")
+        with _quiet_opencv(cv2):
             array = _load_image(cv2, image, descriptor, lineno)
-            if array.shape != (height, width):
-                raise DataFormatError(
-                    f"line {lineno}: image {image} is {array.shape} but the 'n' line says "
-                    f"{height} rows x {width} columns (single channel); fix the 'n' line or the "
-                    "image", path=descriptor)
-            if not np.issubdtype(array.dtype, np.integer) or array.dtype.itemsize > data.itemsize:
-                raise DataFormatError(
-                    f"line {lineno}: image {image} has dtype {array.dtype}, which does not fit a "
-                    f"{bits}-bit measurement; fix the bit depth on the 'n' line", path=descriptor)
-            if int(array.max()) > full_scale:
-                raise DataFormatError(
-                    f"line {lineno}: image {image} has values up to {int(array.max())} DN, above "
-                    f"the {bits}-bit full scale {full_scale} DN; fix the bit depth on the 'n' line",
-                    path=descriptor)
-            data[k] = array
+        if array.shape != (height, width):
+            raise DataFormatError(
+                f"line {lineno}: image {image} is {array.shape} but the 'n' line says "
+                f"{height} rows x {width} columns (single channel); fix the 'n' line or the "
+                "image", path=descriptor)
+        if not np.issubdtype(array.dtype, np.integer) or array.dtype.itemsize > dtype.itemsize:
+            raise DataFormatError(
+                f"line {lineno}: image {image} has dtype {array.dtype}, which does not fit a "
+                f"{bits}-bit measurement; fix the bit depth on the 'n' line", path=descriptor)
+        if int(array.max()) > full_scale:
+            raise DataFormatError(
+                f"line {lineno}: image {image} has values up to {int(array.max())} DN, above "
+                f"the {bits}-bit full scale {full_scale} DN; fix the bit depth on the 'n' line",
+                path=descriptor)
+        return array.astype(dtype, copy=False)
 
     step_ids = np.array([p[0] for p in plan], dtype=np.int64)
-    exposure_ms = exposure_to_ms([p[1].exposure for p in plan], exposure_unit)
     read_ids = list(dict.fromkeys(step_ids.tolist()))
-    meta = {
+    layout = FileLayout(path=descriptor, format="emva1288", n_frames=len(plan),
+                        shape=(height, width), dtype=dtype, read=read, strict=True)
+    origin = "file (EMVA 1288 descriptor)"
+    layout.give("exposure_ms", exposure_to_ms([p[1].exposure for p in plan], exposure_unit),
+                origin)
+    layout.give("kind", np.array([p[1].kind for p in plan], dtype=object), origin)
+    layout.give("photons", np.array([p[1].photons for p in plan], dtype=np.float64), origin)
+    layout.give("step", step_ids, origin)
+    layout.give("bit_depth", bits, origin)
+    layout.give("illumination", "", origin)
+    layout.meta.update({
         "format": "emva1288",
         "version": header["version"],
         "comments": header["comments"],
@@ -307,7 +344,5 @@ def read_emva1288(path, *, exposure_unit: str = "ns", steps=None,
         "spatial_steps": [s for s in read_ids if s in spatial_all],
         "sweep_steps": [s for s in read_ids if s not in spatial_all],
         "image_files": [p[2] for p in plan],
-    }
-    return Sweep(data=data, exposure_ms=exposure_ms, kind=[p[1].kind for p in plan],
-                 bit_depth=bits, step=step_ids, photons=[p[1].photons for p in plan],
-                 illumination="", source=str(descriptor), meta=meta)
+    })
+    return layout

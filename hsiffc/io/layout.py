@@ -1,0 +1,71 @@
+"""What a format reader knows about one file from its header, before any pixel is decoded.
+
+Every format module (:mod:`~hsiffc.io.tiffpages`, :mod:`~hsiffc.io.images`,
+:mod:`~hsiffc.io.envi`, :mod:`~hsiffc.io.fits`, :mod:`~hsiffc.io.emva`) turns a path into a
+:class:`FileLayout`; :func:`hsiffc.io.open_source` checks the layouts against the size limits,
+resolves the metadata and streams the frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["FileLayout", "FIELDS", "PER_FRAME_FIELDS"]
+
+#: Metadata fields a frame source resolves (see :mod:`hsiffc.io.metadata`).
+FIELDS = ("exposure_ms", "kind", "illumination", "photons", "step", "bit_depth", "mosaic",
+          "bit_shift")
+#: Fields that may differ from frame to frame (a scalar means "the same for every frame").
+PER_FRAME_FIELDS = ("exposure_ms", "kind", "illumination", "photons", "step")
+
+
+@dataclass
+class FileLayout:
+    """One input file as its header describes it.
+
+    Attributes
+    ----------
+    path : Path
+    format : str
+        ``"hsiffc-tiff"``, ``"tiff"``, ``"png"``, ``"envi"``, ``"fits"`` or ``"emva1288"``.
+    n_frames : int
+    shape : tuple of int
+        Stored shape of one frame: ``(H, W)``, or ``(H, W, C)`` for multi-channel images.
+    dtype : numpy.dtype
+        Stored sample type.
+    read : callable
+        ``read(k) -> ndarray`` decodes frame ``k`` (stored shape and dtype).
+    close : callable
+        Releases the open file handle, if any (``read`` reopens it when called again).
+    fields : dict
+        Metadata found in the file itself: field name -> scalar or per-frame sequence.
+    origins : dict
+        Field name -> where in the file it was found (e.g. ``"EXIF ExposureTime"``).
+    meta : dict
+        Anything else worth keeping (JSON-serialisable): header text fields, gain, ...
+    strict : bool
+        The file is self-describing (hsiffc TIFF, EMVA 1288): values it gives are not
+        overridden by a sidecar or options.
+    """
+
+    path: Path
+    format: str
+    n_frames: int
+    shape: tuple
+    dtype: np.dtype
+    read: Callable[[int], np.ndarray]
+    close: Callable[[], None] = lambda: None
+    fields: dict = field(default_factory=dict)
+    origins: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+    strict: bool = False
+
+    def give(self, name: str, value, origin: str) -> None:
+        """Record a metadata field found in the file (ignored when ``value`` is None)."""
+        if value is not None:
+            self.fields[name] = value
+            self.origins[name] = origin

@@ -1,0 +1,102 @@
+"""Size limits checked from a file's header before any pixel is decoded.
+
+A file's header states its frame size, frame count and sample type; hsiffc compares those
+numbers with :class:`ReadLimits` *before* it decodes or allocates anything, so a small crafted
+file that claims a huge image (a 9 KB deflate TIFF "of 32000 x 32000 pixels") is refused at once
+with a one-line error instead of exhausting memory.
+
+Defaults (each can be raised per call, ``open_source(..., limits=ReadLimits(...))``, or for a
+whole process with an environment variable):
+
+==========================  ====================  ========================================
+limit                       default               environment variable
+==========================  ====================  ========================================
+pixels per frame            100 000 000 (100 MP)  ``HSIFFC_MAX_FRAME_PIXELS``
+frames per input            1 000 000             ``HSIFFC_MAX_FRAMES``
+bytes loaded at once        8 GiB                 ``HSIFFC_MAX_BYTES``
+==========================  ====================  ========================================
+
+"Bytes loaded at once" is the decoded size of everything a command holds in memory together:
+a whole sweep for ``info``/``calibrate``/``fit`` (:meth:`FrameSource.to_sweep`), a single frame
+when frames are streamed (``hsiffc correct``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from ..errors import DataFormatError
+
+__all__ = ["ReadLimits", "default_limits"]
+
+_ENV = {"max_frame_pixels": "HSIFFC_MAX_FRAME_PIXELS", "max_frames": "HSIFFC_MAX_FRAMES",
+        "max_bytes": "HSIFFC_MAX_BYTES"}
+
+
+@dataclass(frozen=True)
+class ReadLimits:
+    """Largest input hsiffc reads without being asked (see the module docstring).
+
+    Parameters
+    ----------
+    max_frame_pixels : int
+        Pixels per frame (H x W x channels).
+    max_frames : int
+        Frames in one input (a file, folder or glob).
+    max_bytes : int
+        Decoded bytes held in memory at once.
+    """
+
+    max_frame_pixels: int = 100_000_000
+    max_frames: int = 1_000_000
+    max_bytes: int = 8 * 1024 ** 3
+
+    def check_frames(self, *, path, n_frames: int, shape, itemsize: int) -> None:
+        """Refuse a header that states more than the limits allow (nothing decoded yet).
+
+        Raises
+        ------
+        DataFormatError
+            One line naming the file, the stated size, the limit and how to raise it.
+        """
+        pixels = 1
+        for s in shape:
+            pixels *= int(s)
+        dims = " x ".join(str(int(s)) for s in shape)
+        if any(int(s) <= 0 for s in shape) or n_frames < 0:
+            raise DataFormatError(f"the header states an empty or negative size ({n_frames} "
+                                  f"frames of {dims}); the file is damaged", path=path)
+        if pixels > self.max_frame_pixels:
+            raise DataFormatError(
+                f"the header states frames of {dims} = {pixels:,} pixels, more than the limit of "
+                f"{self.max_frame_pixels:,}; if the file is genuine, raise the limit "
+                f"({_ENV['max_frame_pixels']}=...)", path=path)
+        if n_frames > self.max_frames:
+            raise DataFormatError(
+                f"the header states {n_frames:,} frames, more than the limit of "
+                f"{self.max_frames:,}; if the file is genuine, raise the limit "
+                f"({_ENV['max_frames']}=...)", path=path)
+        self.check_bytes(path=path, nbytes=pixels * int(itemsize), what="one frame")
+
+    def check_bytes(self, *, path, nbytes: int, what: str) -> None:
+        """Refuse to hold ``nbytes`` decoded bytes in memory at once."""
+        if nbytes > self.max_bytes:
+            raise DataFormatError(
+                f"{what} would take {nbytes / 1024 ** 3:.3g} GiB in memory, more than the limit "
+                f"of {self.max_bytes / 1024 ** 3:.3g} GiB; read fewer frames, stream them "
+                f"(hsiffc correct), or raise the limit ({_ENV['max_bytes']}=...)", path=path)
+
+
+def default_limits() -> ReadLimits:
+    """The limits in force: :class:`ReadLimits` defaults, raised by the environment variables."""
+    values = {}
+    for name, env in _ENV.items():
+        text = os.environ.get(env)
+        if text:
+            try:
+                values[name] = int(float(text))
+            except ValueError:
+                raise DataFormatError(f"environment variable {env}={text!r} is not a number; "
+                                      "give a whole number") from None
+    return ReadLimits(**values)

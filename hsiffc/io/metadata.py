@@ -1,0 +1,239 @@
+"""Where a frame's metadata come from: the file, a sidecar, or the command line, in that order.
+
+For every field (exposure, kind, illumination, bit depth, mosaic, bit shift, photons, step)
+:func:`resolve_fields` takes the first of
+
+1. the file itself (hsiffc JSON document, EMVA 1288 descriptor, ENVI header, FITS header,
+   TIFF tags such as EXIF ``ExposureTime``);
+2. a sidecar next to the data (``hsiffc.toml`` / ``hsiffc.csv``, :mod:`hsiffc.io.sidecar`);
+3. command-line options / keyword arguments (:class:`Overrides`).
+
+A lower-priority value that disagrees with the one used is reported with a
+:class:`MetadataConflictWarning` (the file's own record wins; fix the file or the sidecar).
+Defaults: ``kind`` "light", ``illumination`` "" (unknown), ``photons`` unknown; the bit depth
+is inferred later from the values or the dtype (with a warning). A missing exposure time is an
+error that names the file and the three ways to give it.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from dataclasses import dataclass, fields as dc_fields
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataFormatError, HsiffcWarning
+from ..mosaic import Mosaic
+from ..sweep import FRAME_KINDS
+from .layout import FileLayout, PER_FRAME_FIELDS
+
+__all__ = ["Overrides", "ActiveArea", "MetadataConflictWarning", "parse_mosaic",
+           "resolve_fields", "missing_field_error", "HOW_TO_GIVE"]
+
+#: How to give each field: (sidecar key and example, command-line option and example).
+HOW_TO_GIVE = {
+    "exposure_ms": ("exposure_ms = 10.0", "--exposure-ms 10"),
+    "kind": ('kind = "dark"', "--kind dark"),
+    "bit_depth": ("bit_depth = 12", "--bit-depth 12"),
+    "mosaic": ('mosaic = "5x5"', "--mosaic 5x5"),
+    "illumination": ('illumination = "halogen"', "--illumination halogen"),
+    "bit_shift": ("bit_shift = 4", "--bit-shift 4"),
+    "photons": ("photons = 1000.0", "(no option)"),
+}
+_TILE = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
+
+
+class MetadataConflictWarning(HsiffcWarning):
+    """A sidecar or option disagrees with a value the file itself gives (the file wins)."""
+
+
+@dataclass(frozen=True)
+class ActiveArea:
+    """The part of the sensor covered by the filter mosaic, in pixels (from an IMEC XML)."""
+
+    row: int
+    col: int
+    height: int
+    width: int
+
+    def crop(self, frame: np.ndarray) -> np.ndarray:
+        """The active area of a full-sensor frame (a view)."""
+        return frame[self.row:self.row + self.height, self.col:self.col + self.width]
+
+
+@dataclass(frozen=True)
+class Overrides:
+    """Metadata given on the command line or as keyword arguments (lowest priority).
+
+    Parameters
+    ----------
+    exposure_ms : float, optional
+    bit_depth : int, optional
+    kind : {"light", "dark"}, optional
+    mosaic : str or Mosaic, optional
+        ``"4x4"``, ``"5x5"``, ``"WxH"`` or the path of an IMEC sensor calibration XML.
+    illumination : str, optional
+    bit_shift : int, optional
+        Right shift for data left-aligned in 16-bit words (0 turns detection off).
+    sidecar : path, optional
+        Sidecar to use instead of the ``hsiffc.toml``/``hsiffc.csv`` next to each file.
+    """
+
+    exposure_ms: float | None = None
+    bit_depth: int | None = None
+    kind: str | None = None
+    mosaic: object = None
+    illumination: str | None = None
+    bit_shift: int | None = None
+    sidecar: object = None
+
+    def __post_init__(self):
+        if self.exposure_ms is not None and not (np.isfinite(self.exposure_ms)
+                                                 and self.exposure_ms >= 0):
+            raise DataFormatError(f"exposure_ms must be a finite number >= 0 ms, got "
+                                  f"{self.exposure_ms!r}")
+        if self.bit_depth is not None and not 1 <= int(self.bit_depth) <= 32:
+            raise DataFormatError(f"bit_depth must be a whole number 1..32, got {self.bit_depth!r}")
+        if self.bit_shift is not None and not 0 <= int(self.bit_shift) <= 15:
+            raise DataFormatError(f"bit_shift must be a whole number 0..15, got {self.bit_shift!r}")
+        if self.kind is not None and self.kind not in FRAME_KINDS:
+            raise DataFormatError(f"kind must be one of {list(FRAME_KINDS)}, got {self.kind!r}")
+
+    def given(self) -> dict:
+        """The metadata fields given (not None), sidecar excluded."""
+        return {f.name: getattr(self, f.name) for f in dc_fields(self)
+                if f.name != "sidecar" and getattr(self, f.name) is not None}
+
+
+def parse_mosaic(spec, *, base=None, path=None) -> tuple[Mosaic, ActiveArea | None]:
+    """A mosaic from ``"4x4"``, ``"5x5"``, ``"WxH"`` (tile width x height) or an IMEC XML path.
+
+    Returns the mosaic and, for an IMEC XML, the active (filter) area to crop frames to; the
+    returned mosaic then has offset (0, 0) because it applies to the cropped frames.
+    """
+    if isinstance(spec, Mosaic):
+        return spec, None
+    text = str(spec).strip()
+    match = _TILE.match(text)
+    if match:
+        width, height = int(match.group(1)), int(match.group(2))
+        if width < 1 or height < 1:
+            raise DataFormatError(f"mosaic {text!r}: tile sizes must be >= 1", path=path)
+        return Mosaic.rectangular(height, width, name=f"{width}x{height}"), None
+    xml = Path(text)
+    if base is not None and not xml.is_absolute():
+        xml = Path(base) / xml
+    if xml.suffix.lower() != ".xml":
+        raise DataFormatError(f"mosaic {text!r} is not 4x4, 5x5, WxH (e.g. 5x5) or the path of "
+                              "an IMEC sensor calibration .xml", path=path)
+    if not xml.is_file():
+        raise DataFormatError(f"mosaic file {xml} not found; check the path", path=path)
+    from ..spectral.imec import read_imec_xml
+
+    cal = read_imec_xml(xml)
+    mosaic = cal.mosaic()
+    fa = cal.filter_area
+    area = ActiveArea(fa.offset_y, fa.offset_x, fa.height, fa.width)
+    return Mosaic(mosaic.pattern, mosaic.wavelengths_nm, (0, 0), name=mosaic.name), area
+
+
+def missing_field_error(path, name: str, *, sidecar=None) -> DataFormatError:
+    """The error for a field none of the three sources gives."""
+    side, option = HOW_TO_GIVE[name]
+    where = f"in {Path(sidecar).name}" if sidecar else "in a sidecar hsiffc.toml next to it"
+    return DataFormatError(
+        f"no {name} for this file; give it (1) in the file itself (an hsiffc TIFF: "
+        f"hsiffc import; ENVI/FITS header; TIFF EXIF ExposureTime), (2) {where} "
+        f"([defaults] or a [[files]] entry: {side}), or (3) on the command line ({option})",
+        path=path)
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, Mosaic) or isinstance(b, Mosaic):
+        return a == b
+    try:
+        return bool(np.all(np.asarray(a) == np.asarray(b)))
+    except (TypeError, ValueError):
+        return False
+
+
+def _per_frame(layout: FileLayout, name, value, origin):
+    arr = np.asarray(value, dtype=object if name in ("kind", "illumination") else None)
+    if arr.ndim == 0:
+        return value
+    if arr.shape != (layout.n_frames,):
+        raise DataFormatError(f"{name} from {origin} has {arr.size} values but the file has "
+                              f"{layout.n_frames} frames; give one value or one per frame",
+                              path=layout.path)
+    return arr
+
+
+def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides) -> tuple[dict, dict]:
+    """Fields and their origins for one file (file, then sidecar, then overrides).
+
+    Parameters
+    ----------
+    layout : FileLayout
+    sidecar : Sidecar or None
+    overrides : Overrides
+
+    Returns
+    -------
+    values : dict
+        Field -> value; ``mosaic`` is a Mosaic, ``active_area`` an ActiveArea or absent.
+    origins : dict
+        Field -> where the value came from.
+    """
+    side = sidecar.fields_for(layout.path) if sidecar is not None else {}
+    side_label = f"sidecar {sidecar.path.name}" if sidecar is not None else ""
+    given = overrides.given()
+    values, origins = {}, {}
+    for name in ("exposure_ms", "kind", "illumination", "photons", "step", "bit_depth",
+                 "mosaic", "bit_shift"):
+        candidates = []
+        if name in layout.fields:
+            candidates.append((layout.fields[name], layout.origins.get(name, "file")))
+        if name in side:
+            candidates.append((side[name], side_label))
+        if name in given:
+            candidates.append((given[name], "--" + name.replace("_", "-")))
+        if not candidates:
+            continue
+        value, origin = candidates[0]
+        if name == "mosaic" and not isinstance(value, Mosaic):
+            base = sidecar.path.parent if origin == side_label else None
+            value, area = parse_mosaic(value, base=base, path=layout.path)
+            if area is not None:
+                values["active_area"] = area
+        for other, other_origin in candidates[1:]:
+            if name == "mosaic" and not isinstance(other, Mosaic):
+                base = sidecar.path.parent if other_origin == side_label else None
+                other = parse_mosaic(other, base=base, path=layout.path)[0]
+            if not _same(value, other):
+                warnings.warn(f"{layout.path}: {name} from {other_origin} ({_short(other)}) "
+                              f"ignored; the {origin} says {_short(value)} and comes first",
+                              MetadataConflictWarning, stacklevel=3)
+        if name in PER_FRAME_FIELDS:
+            value = _per_frame(layout, name, value, origin)
+        if name == "kind":
+            bad = sorted(set(np.atleast_1d(value).tolist()) - set(FRAME_KINDS))
+            if bad:
+                raise DataFormatError(f"kind {bad} from {origin} is not one of "
+                                      f"{list(FRAME_KINDS)}", path=layout.path)
+        values[name], origins[name] = value, origin
+    if "exposure_ms" not in values:
+        raise missing_field_error(layout.path, "exposure_ms",
+                                  sidecar=None if sidecar is None else sidecar.path)
+    for name, default in (("kind", "light"), ("illumination", "")):
+        if name not in values:
+            values[name], origins[name] = default, f"default ({default or 'unknown'})"
+    return values, origins
+
+
+def _short(value) -> str:
+    if isinstance(value, Mosaic):
+        return f"{value.tile_shape[0]}x{value.tile_shape[1]} {value.name!r}"
+    arr = np.asarray(value, dtype=object)
+    return repr(value) if arr.ndim == 0 else f"{arr.size} values from {arr.flat[0]!r}"

@@ -1,0 +1,404 @@
+"""The one streaming reader: :func:`open_source` -> :class:`FrameSource`.
+
+A frame source is opened from a file, a folder, a glob or a list of them. It parses every
+header once, checks the size limits and the file structure, resolves the metadata of every
+frame (file, then sidecar, then options: :mod:`hsiffc.io.metadata`) and then knows, before any
+pixel is decoded, the number of frames, their shape, dtype, exposure, kind, bit depth and
+mosaic. Frames are decoded one at a time::
+
+    from hsiffc.io import open_source
+
+    with open_source("raw/", exposure_ms=20, bit_depth=12, mosaic="5x5") as src:
+        print(src.n_frames, src.frame_shape, src.origins["exposure_ms"])
+        for raw, meta in src:            # (H, W) ndarray in DN, FrameMeta
+            ...
+    sweep = open_source("sweep.tif").to_sweep()   # everything in memory, as a Sweep
+
+Formats: hsiffc TIFF and plain TIFF (any compression imagecodecs decodes), PNG (8/16-bit),
+ENVI (``.hdr`` + data), FITS (with astropy), EMVA 1288 descriptors; see
+``docs/formats-and-metadata.md``.
+"""
+
+from __future__ import annotations
+
+import glob as globmod
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ..errors import DataFormatError
+from ..frame import Frame
+from ..sweep import Sweep
+from . import quirks
+from .layout import FileLayout
+from .limits import ReadLimits, default_limits
+from .metadata import Overrides, missing_field_error, resolve_fields
+from .readers import ACCEPTED, list_folder, open_layout
+from .sidecar import Sidecar, find_sidecar
+
+__all__ = ["open_source", "FrameSource", "FrameMeta", "expand_inputs"]
+
+
+@dataclass(frozen=True)
+class FrameMeta:
+    """Metadata of one frame of a :class:`FrameSource`.
+
+    Attributes
+    ----------
+    index : int
+        Position in the source (acquisition order).
+    exposure_ms : float
+        Exposure time in milliseconds.
+    kind : str
+        "light" or "dark".
+    illumination : str
+    photons : float
+        Mean photons per pixel (NaN when unknown).
+    step : int or None
+        Acquisition step, when the file states it.
+    path : str
+        File the frame comes from.
+    page : int
+        Frame index inside that file.
+    """
+
+    index: int
+    exposure_ms: float
+    kind: str
+    illumination: str
+    photons: float
+    step: int | None
+    path: str
+    page: int
+
+
+def expand_inputs(inputs) -> list[Path]:
+    """Files named by ``inputs`` (paths, folders, globs), in order; folders sorted by name.
+
+    A folder that holds an EMVA 1288 descriptor stands for itself (the descriptor is read).
+    """
+    items = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
+    out: list[Path] = []
+    for item in items:
+        text = str(item)
+        if not Path(text).exists() and any(c in text for c in "*?["):
+            matches = sorted(Path(m) for m in globmod.glob(text))
+            if not matches:
+                raise DataFormatError(f"no file matches the pattern {text!r}; check it (quote "
+                                      "it so the shell does not expand it)")
+            out.extend(m for m in matches if m.is_file())
+            continue
+        path = Path(text)
+        if not path.exists():
+            raise DataFormatError(f"not found; check the path (give {ACCEPTED})", path=path)
+        out.extend(list_folder(path) if path.is_dir() else [path])
+    return out
+
+
+def open_source(inputs, *, limits: ReadLimits | None = None, overrides: Overrides | None = None,
+                **options) -> "FrameSource":
+    """Open files, folders or globs as one stream of frames (nothing decoded yet).
+
+    Parameters
+    ----------
+    inputs : path, str or sequence of them
+        Files of any supported format, folders (their image files, sorted by name, or the
+        EMVA 1288 measurement they hold) or glob patterns (``"raw/*.tif"``).
+    limits : ReadLimits, optional
+        Size limits (default :func:`~hsiffc.io.limits.default_limits`).
+    overrides : Overrides, optional
+        Metadata from the command line; or give its fields as keywords: ``exposure_ms``,
+        ``bit_depth``, ``kind``, ``mosaic``, ``illumination``, ``bit_shift``, ``sidecar``.
+
+    Returns
+    -------
+    FrameSource
+
+    Raises
+    ------
+    DataFormatError
+        A missing or unreadable input, a header over the limits, a truncated file, missing
+        metadata (the message names the file, the field and the three ways to give it), or files
+        that disagree on frame shape, bit depth or mosaic.
+    """
+    if overrides is None:
+        overrides = Overrides(**options)
+    elif options:
+        raise TypeError("give either overrides= or metadata keywords, not both")
+    limits = limits or default_limits()
+    files = expand_inputs(inputs)
+    if not files:
+        raise DataFormatError(f"no image file in {inputs}; give TIFF, PNG, ENVI (.hdr), FITS "
+                              "files or an EMVA 1288 descriptor")
+    layouts = []
+    try:
+        for f in files:
+            layouts.append(open_layout(f, limits))
+        limits.check_frames(path=files[0], n_frames=sum(lay.n_frames for lay in layouts),
+                            shape=layouts[0].shape, itemsize=layouts[0].dtype.itemsize)
+        return FrameSource(layouts, overrides, limits, label=_label(inputs, files))
+    except BaseException:
+        for lay in layouts:
+            lay.close()
+        raise
+
+
+def _label(inputs, files) -> str:
+    if isinstance(inputs, (str, Path)):
+        return str(files[0]) if len(files) == 1 else str(inputs)
+    return str(files[0]) if len(files) == 1 else f"{len(files)} files from {files[0].parent}"
+
+
+class FrameSource:
+    """Frames of one or more files with their resolved metadata (see :func:`open_source`).
+
+    Attributes
+    ----------
+    n_frames : int
+    frame_shape : (int, int)
+        (H, W) of the frames yielded (after channel selection and active-area crop).
+    dtype : numpy.dtype
+        Sample type of the frames yielded.
+    bit_depth : int
+    mosaic : Mosaic or None
+    exposure_ms, kind, illumination, photons : (N,) arrays
+    step : (N,) int array or None
+    origins : dict
+        Field -> where its value came from (``"file (EXIF ExposureTime)"``, ``"sidecar
+        hsiffc.toml"``, ``"--exposure-ms"``, ...); several origins are joined with " + ".
+    notes : list of str
+        Layout quirks handled (equal channels, shift, crop).
+    files : list of Path
+    meta : dict
+    """
+
+    def __init__(self, layouts: list[FileLayout], overrides: Overrides, limits: ReadLimits,
+                 *, label: str = ""):
+        self.layouts, self.limits, self.label = layouts, limits, label
+        self.files = [lay.path for lay in layouts]
+        self.notes: list[str] = []
+        sidecars: dict[Path, Sidecar | None] = {}
+        resolved = []
+        for lay in layouts:
+            if overrides.sidecar is not None:
+                side_path = Path(overrides.sidecar)
+            else:
+                side_path = None if lay.strict else find_sidecar(lay.path.parent)
+            if side_path is not None and side_path not in sidecars:
+                sidecars[side_path] = Sidecar(side_path)
+            resolved.append(resolve_fields(lay, sidecars.get(side_path), overrides))
+        self._starts = np.cumsum([0] + [lay.n_frames for lay in layouts])
+        self.n_frames = int(self._starts[-1])
+        self._global(layouts, resolved)
+
+        def column(name, dtype):
+            parts = [np.broadcast_to(np.asarray(values[name], dtype=dtype), (lay.n_frames,))
+                     for lay, (values, _) in zip(layouts, resolved)]
+            return np.concatenate(parts) if parts else np.empty(0, dtype)
+
+        self.exposure_ms = column("exposure_ms", np.float64)
+        self.kind = column("kind", object).astype(str)
+        self.illumination = column("illumination", object).astype(str)
+        self.photons = np.concatenate([np.broadcast_to(np.asarray(
+            v.get("photons", np.nan), np.float64), (lay.n_frames,))
+            for lay, (v, _) in zip(layouts, resolved)])
+        if all("step" in v for v, _ in resolved):
+            self.step = column("step", np.int64)
+        else:
+            self.step = None
+        if np.any(~np.isfinite(self.exposure_ms) | (self.exposure_ms < 0)):
+            raise DataFormatError("exposure times must be finite and >= 0 ms", path=self.label)
+        self.origins = {}
+        for _, origins in resolved:
+            for name, origin in origins.items():
+                known = self.origins.setdefault(name, [])
+                if origin not in known:
+                    known.append(origin)
+        self.origins = {k: " + ".join(v) for k, v in self.origins.items()}
+        self.origins.setdefault("bit_depth", self._bits_origin)
+        self.format = "+".join(sorted({lay.format for lay in layouts}))
+        self.strict = all(lay.strict for lay in layouts)
+        self.meta = dict(layouts[0].meta) if len(layouts) == 1 else {
+            "files": [str(p) for p in self.files]}
+
+    # -- resolution of the per-source facts -----------------------------------------------------
+    def _agree(self, name, values, layouts):
+        """The one value of a per-source field over all files (None if none gives it)."""
+        found = [(v[name], lay.path) for (v, _), lay in zip(values, layouts) if name in v]
+        if not found:
+            return None
+        first, where = found[0]
+        for value, path in found[1:]:
+            same = first == value if not isinstance(first, np.ndarray) else np.array_equal(
+                first, value)
+            if not same:
+                raise DataFormatError(f"{name} differs between {where} ({first!r}) and this file "
+                                      f"({value!r}); read them separately", path=path)
+        return first
+
+    def _global(self, layouts, resolved):
+        shapes = {lay.shape for lay in layouts}
+        dtypes = {lay.dtype for lay in layouts}
+        if len(shapes) != 1 or len(dtypes) != 1:
+            raise DataFormatError(f"the files hold frames of different shapes or dtypes "
+                                  f"({sorted(map(str, shapes))}, {sorted(map(str, dtypes))}); "
+                                  "read them separately", path=self.label)
+        stored = layouts[0].shape
+        self.dtype = layouts[0].dtype
+        self.mosaic = self._agree("mosaic", resolved, layouts)
+        self.active_area = self._agree("active_area", resolved, layouts)
+        bits = self._agree("bit_depth", resolved, layouts)
+        shift = self._agree("bit_shift", resolved, layouts)
+        self._bits_origin = resolved[0][1].get("bit_depth", "")
+        self.channels = stored[2] if len(stored) == 3 else 0
+        if len(stored) not in (2, 3):
+            raise DataFormatError(f"frames of shape {stored} are not images", path=self.label)
+        needs_peek = self.channels or (bits is None and shift is None and self.dtype.kind in "ui")
+        needs_peek = needs_peek or (shift is None and self.dtype == np.uint16 and bits
+                                    and bits < 16)
+        strict = any(lay.strict for lay in layouts)
+        first = self._decode(0, peek=True) if needs_peek and self.n_frames else None
+        if shift is None and first is not None and self.dtype == np.uint16 and not strict:
+            shift = quirks.detect_left_aligned(first, bits)
+            if shift:
+                self.notes.append(f"samples left-aligned in 16-bit words: shifted right by "
+                                  f"{shift} bits (detected from the values; --bit-shift 0 "
+                                  "turns this off)")
+                if bits is None:
+                    bits = 16 - shift
+                    self._bits_origin = f"detected (left-aligned by {shift} bits)"
+                    warnings.warn(f"{self.label}: {self.notes[-1]}; bit depth {bits}",
+                                  quirks.LayoutWarning, stacklevel=4)
+        self.bit_shift = int(shift or 0)
+        if bits is None and self.bit_shift:
+            bits = 8 * self.dtype.itemsize - self.bit_shift
+            self._bits_origin = "--bit-shift"
+        if bits is None:
+            if self.dtype.kind == "f":
+                raise missing_field_error(self.label, "bit_depth")
+            bits = quirks.infer_bit_depth(self.dtype, self.label)
+            self._bits_origin = f"dtype {self.dtype} (assumed; full scale may be wrong)"
+        self.bit_depth = int(bits)
+        h, w = stored[:2]
+        area = self.active_area
+        if area is not None:
+            if (h, w) == (area.height, area.width):
+                self.active_area = None  # already cropped
+            elif h < area.row + area.height or w < area.col + area.width:
+                raise DataFormatError(
+                    f"frames of {h} x {w} px do not contain the mosaic's filter area (rows "
+                    f"{area.row}..{area.row + area.height - 1}, columns {area.col}.."
+                    f"{area.col + area.width - 1}); give the matching sensor XML", path=self.label)
+            else:
+                h, w = area.height, area.width
+                self.notes.append(f"frames cropped to the mosaic's active area: rows "
+                                  f"{area.row}..{area.row + h - 1}, columns {area.col}.."
+                                  f"{area.col + w - 1} (IMEC filter area)")
+        self.frame_shape = (int(h), int(w))
+        if self.channels:
+            self.notes.append(f"{self.channels}-channel image with equal channels: channel 0 "
+                              "used")
+
+    # -- decoding -------------------------------------------------------------------------------
+    def _locate(self, index: int) -> tuple[FileLayout, int]:
+        if not 0 <= index < self.n_frames:
+            raise IndexError(f"frame {index} out of range (0..{self.n_frames - 1})")
+        f = int(np.searchsorted(self._starts, index, side="right") - 1)
+        return self.layouts[f], index - int(self._starts[f])
+
+    def _decode(self, index: int, peek: bool = False) -> np.ndarray:
+        lay, k = self._locate(index)
+        raw = lay.read(k)
+        if raw.shape != lay.shape:
+            raise DataFormatError(f"frame {k} decodes to shape {raw.shape} but the header says "
+                                  f"{lay.shape}; the file is damaged", path=lay.path)
+        raw = quirks.single_channel(raw, lay.path, k)
+        return raw if peek else self._finish(raw, lay, k)
+
+    def _finish(self, raw, lay, k):
+        raw = quirks.unshift(raw, self.bit_shift, lay.path, k)
+        if self.active_area is not None:
+            raw = self.active_area.crop(raw)
+        if raw.dtype.kind in "ui" and raw.size and int(raw.max()) > 2 ** self.bit_depth - 1:
+            raise DataFormatError(
+                f"frame {k}: data exceed the stated bit depth: maximum {int(raw.max())} DN > "
+                f"{2 ** self.bit_depth - 1} DN (2**{self.bit_depth}-1); fix the bit depth "
+                f"(from {self._bits_origin or 'the file'}) or give --bit-shift", path=lay.path)
+        return raw
+
+    def read(self, index: int) -> np.ndarray:
+        """Frame ``index`` as an (H, W) array of DN (decoded now)."""
+        return self._decode(index)
+
+    def frame_meta(self, index: int) -> FrameMeta:
+        """The metadata of frame ``index``."""
+        lay, k = self._locate(index)
+        return FrameMeta(index, float(self.exposure_ms[index]), str(self.kind[index]),
+                         str(self.illumination[index]), float(self.photons[index]),
+                         None if self.step is None else int(self.step[index]), str(lay.path), k)
+
+    def __iter__(self) -> Iterator[tuple[np.ndarray, FrameMeta]]:
+        for f, lay in enumerate(self.layouts):
+            try:
+                for k in range(lay.n_frames):
+                    index = int(self._starts[f]) + k
+                    yield self._decode(index), self.frame_meta(index)
+            finally:
+                lay.close()
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def frames(self) -> Iterator[Frame]:
+        """Every frame as a :class:`~hsiffc.frame.Frame` (float32 DN, DQ plane), streamed."""
+        for raw, m in self:
+            extra = {} if m.step is None else {"step": m.step}
+            yield Frame.from_raw(raw, exposure_ms=m.exposure_ms, bit_depth=self.bit_depth,
+                                 mosaic=self.mosaic, kind=m.kind, illumination=m.illumination,
+                                 source=m.path, **extra)
+
+    def to_sweep(self) -> Sweep:
+        """All frames in memory as a :class:`~hsiffc.Sweep` (checked against ``max_bytes``)."""
+        shape = (self.n_frames,) + self.frame_shape
+        self.limits.check_bytes(path=self.label, nbytes=int(np.prod(shape)) * self.dtype.itemsize,
+                                what=f"{self.n_frames} frames of {self.frame_shape}")
+        data = np.empty(shape, self.dtype)
+        for raw, m in self:
+            data[m.index] = raw
+        meta = dict(self.meta)
+        if not self.strict:  # self-describing files keep their meta as written
+            meta["layout_notes"] = list(self.notes)
+            meta["metadata_origins"] = dict(self.origins)
+        try:
+            return Sweep(data=data, exposure_ms=self.exposure_ms, kind=self.kind,
+                         bit_depth=self.bit_depth, step=self.step, photons=self.photons,
+                         illumination=self.illumination, mosaic=self.mosaic,
+                         source=self.label, meta=meta)
+        except ValueError as exc:
+            raise DataFormatError(f"inconsistent metadata: {exc}", path=self.label) from exc
+
+    def close(self) -> None:
+        for lay in self.layouts:
+            lay.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def describe(self) -> str:
+        """A few lines: frames, shape, dtype, bit depth, mosaic, each field's origin, notes."""
+        mos = "none" if self.mosaic is None else (
+            f"{self.mosaic.tile_shape[0]}x{self.mosaic.tile_shape[1]} {self.mosaic.name}".strip())
+        lines = [f"{self.label}: {self.n_frames} frames of {self.frame_shape[0]} x "
+                 f"{self.frame_shape[1]} px, {self.dtype}, {self.bit_depth}-bit, mosaic {mos} "
+                 f"({self.format})"]
+        for name in ("exposure_ms", "kind", "illumination", "bit_depth", "mosaic", "bit_shift"):
+            if name in self.origins:
+                lines.append(f"  {name:<13} from {self.origins[name]}")
+        lines.extend(f"  note: {n}" for n in self.notes)
+        return "\n".join(lines)
