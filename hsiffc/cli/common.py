@@ -83,3 +83,41 @@ def json_default(obj):
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON-serialisable: {type(obj).__name__}")
+
+
+def add_input_options(parser) -> None:
+    """The metadata options every command that reads frames accepts (lowest priority: values the
+    files or their sidecar give come first; see docs/formats-and-metadata.md)."""
+    g = parser.add_argument_group(
+        "input metadata", "for files that do not carry it (the file, then a sidecar "
+        "hsiffc.toml/hsiffc.csv next to it, then these options)")
+    g.add_argument("--exposure-ms", type=float, default=None, metavar="MS",
+                   help="exposure time of every frame, in milliseconds")
+    g.add_argument("--bit-depth", type=int, default=None, metavar="BITS",
+                   help="ADC bit depth (full scale 2**BITS-1 DN); default: from the file, else "
+                        "detected or assumed from the dtype with a warning")
+    g.add_argument("--kind", choices=("light", "dark"), default=None,
+                   help="frame kind (default light)")
+    g.add_argument("--mosaic", default=None, metavar="SPEC",
+                   help="4x4, 5x5, WxH (tile width x height) or an IMEC sensor XML (frames are "
+                        "then cropped to its filter area and get its band wavelengths)")
+    g.add_argument("--illumination", default=None, metavar="LABEL",
+                   help="label of the light source")
+    g.add_argument("--bit-shift", type=int, default=None, metavar="N",
+                   help="right shift for samples left-aligned in 16-bit words (4 for 12-bit, 6 "
+                        "for 10-bit; 0 turns the detection off)")
+    g.add_argument("--sidecar", type=Path, default=None, metavar="FILE",
+                   help="sidecar (.toml or .csv) to use instead of hsiffc.toml/.csv next to "
+                        "the data")
+
+
+def input_overrides(args, **fixed):
+    """:class:`hsiffc.io.Overrides` from the options of :func:`add_input_options` (``fixed``
+    replaces some, e.g. ``kind="dark"``)."""
+    from ..io import Overrides
+
+    values = {name: getattr(args, name, None) for name in
+              ("exposure_ms", "bit_depth", "kind", "mosaic", "illumination", "bit_shift",
+               "sidecar")}
+    values.update(fixed)
+    return Overrides(**values)

@@ -8,7 +8,8 @@ import numpy as np
 
 from ..errors import HsiffcError
 from .args import count, exposure_ms, percent, positive, real
-from .common import add_overwrite, first_nonfinite, nonfinite_samples, write_json
+from .common import (add_input_options, add_overwrite, first_nonfinite, input_overrides,
+                     nonfinite_samples, write_json)
 
 
 def register(sub) -> None:
@@ -20,38 +21,60 @@ def register(sub) -> None:
 
 
 def _add_info(sub):
-    p = sub.add_parser("info", help="describe a sweep (hsiffc TIFF or EMVA 1288)")
-    p.add_argument("sweep", type=Path)
+    p = sub.add_parser("info", help="describe frames of any supported format and where each "
+                                    "metadata field came from")
+    p.add_argument("sweep", type=Path, nargs="+", help="files, folders or globs")
     p.add_argument("--json", type=Path, default=None, help="also write the description as JSON")
+    add_input_options(p)
     add_overwrite(p)
     p.set_defaults(func=_cmd_info, input_args=("sweep",), output_args=("json",))
 
 
 def _cmd_info(args) -> int:
-    from ..io import read_sweep
+    from ..io import open_source
 
-    sweep = read_sweep(args.sweep)
-    print(sweep.summary())
-    steps = sweep.step_means()
+    with open_source(args.sweep, overrides=input_overrides(args)) as src:
+        print(src.describe())
+        steps = _stream_steps(src)
     print(f"{'step':>5} {'kind':>5} {'exposure_ms':>12} {'photons':>10} {'frames':>6} "
           f"{'mean_dn':>9} {'max_dn':>7}")
-    for i in range(len(steps["step"])):
-        print(f"{steps['step'][i]:>5} {steps['kind'][i]:>5} {steps['exposure_ms'][i]:>12.6g} "
-              f"{steps['photons'][i]:>10.4g} {steps['n_frames'][i]:>6} "
-              f"{steps['data'][i].mean():>9.2f} {steps['data'][i].max():>7.0f}")
+    for s in steps:
+        print(f"{s['step']:>5} {s['kind']:>5} {s['exposure_ms']:>12.6g} "
+              f"{np.nan if s['photons'] is None else s['photons']:>10.4g} {s['n_frames']:>6} "
+              f"{s['mean_dn']:>9.2f} {s['max_dn']:>7.0f}")
     if args.json:
-        doc = {"source": str(args.sweep), "summary": sweep.summary(),
-               "n_frames": sweep.n_frames, "frame_shape": list(sweep.frame_shape),
-               "bit_depth": sweep.bit_depth,
-               "steps": [{"step": int(steps["step"][i]), "kind": str(steps["kind"][i]),
-                          "exposure_ms": float(steps["exposure_ms"][i]),
-                          "photons": None if np.isnan(steps["photons"][i])
-                          else float(steps["photons"][i]),
-                          "n_frames": int(steps["n_frames"][i]),
-                          "mean_dn": float(steps["data"][i].mean())}
-                         for i in range(len(steps["step"]))]}
+        doc = {"source": src.label, "files": [str(f) for f in src.files], "format": src.format,
+               "n_frames": src.n_frames, "frame_shape": list(src.frame_shape),
+               "dtype": str(src.dtype), "bit_depth": src.bit_depth,
+               "mosaic": None if src.mosaic is None else src.mosaic.to_dict(),
+               "origins": src.origins, "notes": src.notes, "steps": steps}
         write_json(args.json, doc)
     return 0
+
+
+def _stream_steps(src) -> list:
+    """Per acquisition step: kind, exposure, photons, frame count, mean and max DN (streamed:
+    one frame in memory at a time). Without step ids, consecutive frames with equal settings
+    form a step."""
+    steps: list = []
+    key_prev, step_id = None, -1
+    for raw, m in src:
+        key = (m.exposure_ms, m.kind, m.illumination)
+        if m.step is not None:
+            new, step_id = m.step != step_id, m.step
+        else:
+            new = key != key_prev
+            step_id += int(new)
+        key_prev = key
+        if new or not steps:
+            steps.append({"step": int(step_id), "kind": m.kind, "exposure_ms": m.exposure_ms,
+                          "photons": None if np.isnan(m.photons) else m.photons,
+                          "n_frames": 0, "mean_dn": 0.0, "max_dn": -np.inf})
+        s = steps[-1]
+        s["n_frames"] += 1
+        s["mean_dn"] += (float(raw.mean(dtype=np.float64)) - s["mean_dn"]) / s["n_frames"]
+        s["max_dn"] = max(s["max_dn"], float(raw.max()))
+    return steps
 
 
 def _add_simulate(sub):
@@ -107,7 +130,9 @@ def _add_calibrate(sub):
         "calibrate", help="calibrate the leakage model of every pixel from a sweep",
         description="Fit k (responsivity), a, b and the dark level of every pixel from an "
                     "exposure sweep (hsiffc TIFF or EMVA 1288) and write a calibration file (.npz).")
-    p.add_argument("sweep", type=Path, help="sweep: hsiffc TIFF, EMVA 1288 descriptor or folder")
+    p.add_argument("sweep", type=Path, nargs="+",
+                   help="sweep: files of any supported format, folders or globs")
+    add_input_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.npz)")
     p.add_argument("--method", choices=("joint", "paper"), default="joint",
                    help="joint per-pixel fit (default) or the paper's procedure (several "
@@ -125,7 +150,7 @@ def _cmd_calibrate(args) -> int:
     from ..calibrate import calibrate
     from ..io import read_sweep
 
-    sweep = read_sweep(args.sweep)
+    sweep = read_sweep(args.sweep, overrides=input_overrides(args))
     if args.steps == "sweep" and "sweep_steps" in sweep.meta:
         sweep = sweep.select(np.isin(sweep.step, sweep.meta["sweep_steps"]))
     print(sweep.summary())
@@ -166,7 +191,9 @@ def _add_select(sub):
         description="For each band, the longest candidate exposure whose leakage percentage "
                     "alpha stays under the threshold (the paper's section IV.2), with a table of "
                     "alpha per band and exposure like the paper's Table I.")
-    p.add_argument("sweep", type=Path, help="candidate training frames (one step per exposure)")
+    p.add_argument("sweep", type=Path, nargs="+",
+                   help="candidate training frames (one step per exposure)")
+    add_input_options(p)
     p.add_argument("--calibration", type=Path, required=True, help="calibration file (.npz)")
     p.add_argument("--threshold", type=percent, required=True, help="alpha threshold in percent")
     p.add_argument("--alpha", choices=("paper", "model"), default="paper",
@@ -184,7 +211,7 @@ def _cmd_select(args) -> int:
     from ..io import read_sweep
     from ..validity import alpha_table
 
-    sweep = read_sweep(args.sweep)
+    sweep = read_sweep(args.sweep, overrides=input_overrides(args))
     cal = Calibration.load(args.calibration)
     table = alpha_table(sweep, cal, method=args.alpha, statistic=args.statistic)
     table = table.select(args.threshold)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import HsiffcError
 from .args import count, percent, real
-from .common import add_overwrite, write_json
+from .common import add_input_options, add_overwrite, input_overrides, write_json
 
 
 def register(sub) -> None:
@@ -47,10 +47,18 @@ def _add_fit(sub):
                     "stage and parameters), fit it on training frames (darks and flats, hsiffc "
                     "TIFF or EMVA 1288) and save the fitted pipeline (.npz, no pickle).")
     p.add_argument("description", type=Path, help="pipeline TOML file")
-    p.add_argument("training", type=Path, nargs="+", help="training sweeps (darks, flats)")
+    p.add_argument("training", type=Path, nargs="*",
+                   help="training frames (darks, flats): files of any supported format, "
+                        "folders or globs")
+    p.add_argument("--dark", type=Path, nargs="+", default=[], metavar="PATH",
+                   help="dark reference frames (read as kind dark)")
+    p.add_argument("--flat", "--white", dest="flat", type=Path, nargs="+", default=[],
+                   metavar="PATH", help="flat / white reference frames (read as kind light)")
     p.add_argument("-o", "--output", type=Path, required=True, help="fitted pipeline (.npz)")
+    add_input_options(p)
     add_overwrite(p)
-    p.set_defaults(func=_cmd_fit, input_args=("description", "training"), output_args=("output",))
+    p.set_defaults(func=_cmd_fit, input_args=("description", "training", "dark", "flat"),
+                   output_args=("output",))
 
 
 def _cmd_fit(args) -> int:
@@ -60,8 +68,12 @@ def _cmd_fit(args) -> int:
 
     pipe = Pipeline.from_toml(args.description)
     frames, first = [], None
-    for path in args.training:
-        sweep = read_sweep(path)
+    inputs = ([(p, {}) for p in args.training] + [(p, {"kind": "dark"}) for p in args.dark]
+              + [(p, {"kind": "light"}) for p in args.flat])
+    if not inputs:
+        raise HsiffcError("give training frames: TRAINING paths, --dark and/or --flat")
+    for path, fixed in inputs:
+        sweep = read_sweep(path, overrides=input_overrides(args, **fixed))
         print(sweep.summary())
         shape = tuple(sweep.frame_shape)
         if first is None:

@@ -6,7 +6,8 @@ from pathlib import Path
 
 from ..errors import HsiffcError
 from .args import count, percent
-from .common import DEFAULT_SAMPLES, add_overwrite, first_nonfinite, nonfinite_samples
+from .common import (DEFAULT_SAMPLES, add_input_options, add_overwrite, first_nonfinite,
+                     input_overrides, nonfinite_samples)
 
 
 def register(sub) -> None:
@@ -136,7 +137,8 @@ def _add_diagnose(sub):
                     "candidate effect, select those that beat the base model by more than the "
                     "noise allows, and report what remains unexplained.")
     p.add_argument("sweep", type=Path, nargs="?",
-                   help="sweep: hsiffc TIFF, EMVA 1288 descriptor or folder")
+                   help="sweep: a file of any supported format, a folder or a glob")
+    add_input_options(p)
     p.add_argument("--json", type=Path, default=None, help="write the result as JSON")
     p.add_argument("--report", type=Path, default=None,
                    help="folder for report.md, residuals.png and diagnosis.json")
@@ -162,7 +164,7 @@ def _cmd_diagnose(args) -> int:
         return 0
     if args.sweep is None:
         raise HsiffcError("give a SWEEP to diagnose (or --list-effects)")
-    sweep = read_sweep(args.sweep)
+    sweep = read_sweep(args.sweep, overrides=input_overrides(args))
     print(sweep.summary())
     bad = nonfinite_samples(sweep, args.sweep, what="diagnose")
     if bad:

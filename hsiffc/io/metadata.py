@@ -236,4 +236,6 @@ def _short(value) -> str:
     if isinstance(value, Mosaic):
         return f"{value.tile_shape[0]}x{value.tile_shape[1]} {value.name!r}"
     arr = np.asarray(value, dtype=object)
-    return repr(value) if arr.ndim == 0 else f"{arr.size} values from {arr.flat[0]!r}"
+    first = arr.item() if arr.ndim == 0 else arr.flat[0]
+    first = first.item() if isinstance(first, np.generic) else first
+    return repr(first) if arr.ndim == 0 else f"{arr.size} values from {first!r}"

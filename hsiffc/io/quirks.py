@@ -31,7 +31,7 @@ class LayoutWarning(HsiffcWarning):
     """A layout guess hsiffc made about a file (bit depth from the dtype, detected shift)."""
 
 
-def single_channel(raw: np.ndarray, path, k: int) -> np.ndarray:
+def single_channel(raw: np.ndarray, path, k: int, hint: str = "") -> np.ndarray:
     """Channel 0 of an (H, W, C) frame whose colour channels are equal; (H, W) unchanged."""
     if raw.ndim == 2:
         return raw
@@ -44,8 +44,8 @@ def single_channel(raw: np.ndarray, path, k: int) -> np.ndarray:
         if not np.array_equal(first, raw[..., c]):
             raise DataFormatError(
                 f"frame {k} is a colour image ({raw.shape[2]} channels that differ); hsiffc "
-                "reads raw single-channel mosaic frames - save the camera's mono/raw output",
-                path=path)
+                "reads raw single-channel mosaic frames - save the camera's mono/raw output"
+                + hint, path=path)
     if raw.shape[2] in (2, 4):  # the last channel is alpha: equal to the others or constant
         alpha = raw[..., -1]
         if not (np.array_equal(alpha, first) or np.all(alpha == alpha.flat[0])):

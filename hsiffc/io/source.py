@@ -249,6 +249,7 @@ class FrameSource:
         stored = layouts[0].shape
         self.dtype = layouts[0].dtype
         self.mosaic = self._agree("mosaic", resolved, layouts)
+        self._attach_wavelengths(layouts, resolved)
         self.active_area = self._agree("active_area", resolved, layouts)
         bits = self._agree("bit_depth", resolved, layouts)
         shift = self._agree("bit_shift", resolved, layouts)
@@ -302,6 +303,19 @@ class FrameSource:
             self.notes.append(f"{self.channels}-channel image with equal channels: channel 0 "
                               "used")
 
+    def _attach_wavelengths(self, layouts, resolved):
+        """Band centres a file states apart from its mosaic (ENVI ``wavelength``, hsiffc JSON
+        ``wavelengths_nm``) join a mosaic that has none, when the band counts agree."""
+        from ..mosaic import Mosaic
+
+        wl = layouts[0].meta.get("wavelengths_nm")
+        m = self.mosaic
+        if m is None or m.wavelengths_nm is not None or wl is None or len(wl) != m.n_bands:
+            return
+        self.mosaic = Mosaic(m.pattern, tuple(wl), m.offset, name=m.name)
+        for _, origins in resolved:
+            origins["wavelengths_nm"] = f"file ({layouts[0].format} wavelengths)"
+
     # -- decoding -------------------------------------------------------------------------------
     def _locate(self, index: int) -> tuple[FileLayout, int]:
         if not 0 <= index < self.n_frames:
@@ -315,7 +329,7 @@ class FrameSource:
         if raw.shape != lay.shape:
             raise DataFormatError(f"frame {k} decodes to shape {raw.shape} but the header says "
                                   f"{lay.shape}; the file is damaged", path=lay.path)
-        raw = quirks.single_channel(raw, lay.path, k)
+        raw = quirks.single_channel(raw, lay.path, k, lay.meta.get("channel_hint", ""))
         return raw if peek else self._finish(raw, lay, k)
 
     def _finish(self, raw, lay, k):
@@ -386,6 +400,12 @@ class FrameSource:
 
     def __enter__(self):
         return self
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: nothing left to release
+            pass
 
     def __exit__(self, *exc):
         self.close()

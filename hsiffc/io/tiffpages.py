@@ -259,6 +259,10 @@ def _layout(tf, path: Path, size: int, limits: ReadLimits, log: TiffLog) -> File
     bits = int(first.bitspersample)
     if bits % 8 and bits < 32:
         layout.give("bit_depth", bits, "file (TIFF BitsPerSample)")
+    if separate:
+        layout.meta["channel_hint"] = (
+            "; if the planes are separate frames (tifffile stores a (3, H, W) array as planar "
+            "RGB unless told otherwise), write them with photometric='minisblack'")
     if description.strip():
         layout.meta["tiff_description"] = description.strip()[:2000]
     return layout

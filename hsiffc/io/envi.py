@@ -1,0 +1,240 @@
+"""ENVI raster files: a text header ``NAME.hdr`` beside a raw binary data file.
+
+Header (the ENVI header format): a first line ``ENVI``, then ``key = value`` lines; a value in
+braces ``{...}`` is a list and may span lines; ``;`` starts a comment line. Keys read:
+
+* ``samples`` (columns), ``lines`` (rows), ``bands``; ``header offset`` (bytes before the data);
+* ``data type``: 1 uint8, 2 int16, 3 int32, 4 float32, 5 float64, 12 uint16, 13 uint32,
+  14 int64, 15 uint64 (complex types are refused);
+* ``interleave``: ``bsq`` (band after band), ``bil`` (bands interleaved by line) or ``bip``
+  (by pixel); ``byte order``: 0 little-endian, 1 big-endian;
+* ``wavelength`` (with ``wavelength units``: nm, um/micrometers) -> mosaic band centres;
+* not in the core spec but written by camera software, read when present: exposure as
+  ``exposure time``, ``integration time``, ``tint``, ``shutter`` or ``exposure_ms`` (milliseconds,
+  or the unit in ``exposure time units`` / ``exposure units``; one value or one per band),
+  ``gain`` (kept in ``meta``), ``bit depth`` / ``data bit depth``.
+
+The data file is ``NAME`` (the header name without ``.hdr``) or ``NAME`` with one of ``.img``,
+``.raw``, ``.dat``, ``.bsq``, ``.bil``, ``.bip``. As raw input each band is one (lines x
+samples) frame, so a single-band file is one frame. A header whose ``wavelength`` list has one
+entry per band (``bands`` > 1) describes a spectral cube, not raw frames, and is refused by the
+frame reader (read it with :func:`read_envi`).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataFormatError
+from .layout import FileLayout
+from .limits import ReadLimits, default_limits
+
+__all__ = ["parse_envi_header", "open_envi", "read_envi", "envi_paths", "ENVI_DTYPES"]
+
+ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8",
+               15: "u8"}
+_DATA_SUFFIXES = ("", ".img", ".raw", ".dat", ".bsq", ".bil", ".bip")
+_EXPOSURE_KEYS = ("exposure_ms", "exposure time", "integration time", "tint", "shutter",
+                  "exposure")
+_UNITS_MS = {"s": 1e3, "sec": 1e3, "seconds": 1e3, "ms": 1.0, "msec": 1.0, "milliseconds": 1.0,
+             "us": 1e-3, "usec": 1e-3, "microseconds": 1e-3, "ns": 1e-6, "nanoseconds": 1e-6}
+_ENTRY = re.compile(r"^\s*([^=]+?)\s*=\s*(.*)$")
+
+
+def parse_envi_header(path) -> dict:
+    """``key -> value`` of an ENVI header (keys lower-case; lists as lists of strings)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise DataFormatError(f"cannot read the ENVI header ({exc})", path=path) from exc
+    lines = text.splitlines()
+    if not lines or lines[0].strip() != "ENVI":
+        raise DataFormatError("not an ENVI header (the first line must be 'ENVI')", path=path)
+    out: dict = {}
+    i = 1
+    while i < len(lines):
+        line = lines[i]
+        i += 1
+        if not line.strip() or line.lstrip().startswith(";"):
+            continue
+        match = _ENTRY.match(line)
+        if not match:
+            raise DataFormatError(f"line {i}: {line.strip()[:60]!r} is not 'key = value'",
+                                  path=path)
+        key, value = match.group(1).strip().lower(), match.group(2).strip()
+        if value.startswith("{"):
+            while "}" not in value and i < len(lines):
+                value += "\n" + lines[i]
+                i += 1
+            if "}" not in value:
+                raise DataFormatError(f"the value of {key!r} opens '{{' but never closes it; "
+                                      "the header is truncated", path=path)
+            inner = value[1:value.index("}")]
+            value = [v.strip() for v in inner.replace("\n", " ").split(",")] if inner.strip() \
+                else []
+        out[key] = value
+    return out
+
+
+def envi_paths(path) -> tuple[Path, Path]:
+    """(header, data file) for an ENVI header or data file path."""
+    path = Path(path)
+    if path.suffix.lower() == ".hdr":
+        header = path
+        base = path.with_suffix("")
+    else:
+        header, base = path.with_suffix(".hdr"), path.with_suffix("")
+        if not header.is_file():
+            header = path.with_name(path.name + ".hdr")
+        if path.is_file() and header.is_file():
+            return header, path
+    if not header.is_file():
+        raise DataFormatError("ENVI header not found; give the .hdr file", path=path)
+    for suffix in _DATA_SUFFIXES:
+        candidate = base.with_name(base.name + suffix)
+        if candidate.is_file() and candidate != header:
+            return header, candidate
+    raise DataFormatError(f"the data file of this ENVI header is missing (looked for "
+                          f"{base.name} with {', '.join(s or 'no suffix' for s in _DATA_SUFFIXES)}"
+                          "); copy it next to the header", path=header)
+
+
+def _int(head, key, path, default=None):
+    value = head.get(key, default)
+    try:
+        return int(str(value))
+    except (TypeError, ValueError):
+        raise DataFormatError(f"the header needs a whole number for {key!r}, got {value!r}",
+                              path=path) from None
+
+
+def _floats(values, key, path):
+    try:
+        return [float(v) for v in (values if isinstance(values, list) else [values])]
+    except ValueError:
+        raise DataFormatError(f"{key!r} holds a value that is not a number", path=path) from None
+
+
+def _geometry(header: Path, head: dict, data: Path, limits: ReadLimits):
+    for key in ("samples", "lines", "bands", "data type"):
+        if key not in head:
+            raise DataFormatError(f"the header has no {key!r}; it is not a complete ENVI header",
+                                  path=header)
+    samples, lines, bands = (_int(head, k, header) for k in ("samples", "lines", "bands"))
+    code = _int(head, "data type", header)
+    if code not in ENVI_DTYPES:
+        raise DataFormatError(f"data type {code} is not supported (complex or unknown); hsiffc "
+                              f"reads {sorted(ENVI_DTYPES)}", path=header)
+    order = _int(head, "byte order", header, 0)
+    dtype = np.dtype(ENVI_DTYPES[code]).newbyteorder(">" if order == 1 else "<")
+    interleave = str(head.get("interleave", "bsq")).lower()
+    if interleave not in ("bsq", "bil", "bip"):
+        raise DataFormatError(f"interleave {interleave!r} is not bsq, bil or bip", path=header)
+    offset = _int(head, "header offset", header, 0)
+    limits.check_frames(path=header, n_frames=bands, shape=(lines, samples),
+                        itemsize=dtype.itemsize)
+    need = offset + samples * lines * bands * dtype.itemsize
+    size = data.stat().st_size
+    if size < need:
+        raise DataFormatError(f"data file {data.name} is truncated: the header needs {need} "
+                              f"bytes but the file has {size}; copy it again", path=header)
+    shape = {"bsq": (bands, lines, samples), "bil": (lines, bands, samples),
+             "bip": (lines, samples, bands)}[interleave]
+    return shape, dtype, offset, interleave, (lines, samples, bands)
+
+
+def _wavelengths_nm(head, header):
+    if "wavelength" not in head:
+        return None
+    values = _floats(head["wavelength"], "wavelength", header)
+    units = str(head.get("wavelength units", "nm")).lower()
+    scale = {"nm": 1.0, "nanometers": 1.0, "um": 1e3, "micrometers": 1e3, "microns": 1e3}.get(units)
+    if scale is None:
+        raise DataFormatError(f"wavelength units {units!r} are not nm or micrometers",
+                              path=header)
+    return [v * scale for v in values]
+
+
+def open_envi(path, limits: ReadLimits) -> FileLayout:
+    """Parse an ENVI header and return the :class:`FileLayout` of its bands as frames."""
+    header, data = envi_paths(path)
+    head = parse_envi_header(header)
+    shape, dtype, offset, interleave, (lines, samples, bands) = _geometry(header, head, data,
+                                                                          limits)
+    wavelengths = _wavelengths_nm(head, header)
+    if wavelengths is not None and bands > 1 and len(wavelengths) == bands:
+        raise DataFormatError(f"holds a spectral cube ({bands} bands with one wavelength each), "
+                              "not raw mosaic frames; hsiffc reads raw frames (one band per "
+                              "frame) - read cubes with hsiffc.io.envi.read_envi", path=header)
+    state = {"map": None}
+
+    def read(k: int) -> np.ndarray:
+        if state["map"] is None:
+            state["map"] = np.memmap(data, dtype=dtype, mode="r", offset=offset, shape=shape)
+        m = state["map"]
+        frame = m[k] if interleave == "bsq" else (m[:, k, :] if interleave == "bil" else m[:, :, k])
+        return np.ascontiguousarray(frame, dtype=dtype.newbyteorder("="))
+
+    def close():
+        state["map"] = None
+
+    layout = FileLayout(path=header, format="envi", n_frames=bands, shape=(lines, samples),
+                        dtype=dtype.newbyteorder("="), read=read, close=close)
+    for key in _EXPOSURE_KEYS:
+        if key in head:
+            values = _floats(head[key], key, header)
+            unit = str(head.get(f"{key} units", head.get("exposure units", "ms"))).lower()
+            if unit not in _UNITS_MS:
+                raise DataFormatError(f"unknown unit {unit!r} for {key!r}; use s, ms, us or ns",
+                                      path=header)
+            ms = np.array(values) * _UNITS_MS[unit]
+            layout.give("exposure_ms", ms[0] if ms.size == 1 else ms,
+                        f"file (ENVI header '{key}')")
+            break
+    for key in ("bit depth", "data bit depth"):
+        if key in head:
+            layout.give("bit_depth", _int(head, key, header), f"file (ENVI header '{key}')")
+    if wavelengths is not None:
+        layout.meta["wavelengths_nm"] = wavelengths
+    for key in ("gain", "description", "sensor type", "band names"):
+        if key in head:
+            layout.meta[key.replace(" ", "_")] = head[key]
+    layout.meta["envi_interleave"] = interleave
+    return layout
+
+
+def read_envi(path, *, limits: ReadLimits | None = None) -> tuple[np.ndarray, dict]:
+    """A whole ENVI raster as ``(lines, samples, bands)`` (channels last) and its header.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.hdr`` or the data file.
+    limits : ReadLimits, optional
+
+    Returns
+    -------
+    cube : (H, W, B) ndarray in the file's sample type (native byte order)
+    header : dict
+        The parsed header (:func:`parse_envi_header`), plus ``wavelengths_nm`` (floats, nm)
+        when the header has wavelengths.
+    """
+    limits = limits or default_limits()
+    header, data = envi_paths(path)
+    head = parse_envi_header(header)
+    shape, dtype, offset, interleave, (lines, samples, bands) = _geometry(header, head, data,
+                                                                          limits)
+    limits.check_bytes(path=header, nbytes=lines * samples * bands * dtype.itemsize,
+                       what="the cube")
+    raw = np.fromfile(data, dtype=dtype, count=lines * samples * bands, offset=offset)
+    raw = raw.reshape(shape)
+    axes = {"bsq": (1, 2, 0), "bil": (0, 2, 1), "bip": (0, 1, 2)}[interleave]
+    cube = np.ascontiguousarray(raw.transpose(axes), dtype=dtype.newbyteorder("="))
+    wavelengths = _wavelengths_nm(head, header)
+    if wavelengths is not None:
+        head["wavelengths_nm"] = wavelengths
+    return cube, head

@@ -1,0 +1,101 @@
+"""Writing ENVI pairs (``NAME.hdr`` + ``NAME.img``) for users whose next tool is ENVI or SPy.
+
+The header follows the ENVI header format (see :mod:`hsiffc.io.envi`): ``samples``,
+``lines``, ``bands``, ``header offset = 0``, ``file type = ENVI Standard``, ``data type``,
+``interleave``, ``byte order = 0`` (little-endian), ``wavelength units = Nanometers`` and
+``wavelength = {...}`` when wavelengths are known, ``band names``, ``description`` and any extra
+``key = value`` pairs given. Both files are written atomically, the data first, the header last
+(a reader that finds the header finds complete data).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path
+from ..errors import DataFormatError
+from .envi import ENVI_DTYPES
+
+__all__ = ["write_envi"]
+
+_CODES = {np.dtype(v).newbyteorder("<"): k for k, v in ENVI_DTYPES.items()}
+
+
+def _value(value) -> str:
+    if isinstance(value, (list, tuple, np.ndarray)):
+        items = [f"{v:.6g}" if isinstance(v, (float, np.floating)) else str(v) for v in value]
+        return "{" + ", ".join(items) + "}"
+    text = str(value)
+    if any(c in text for c in "{}\n"):
+        raise DataFormatError(f"ENVI header value {text[:40]!r} may not contain braces or line "
+                              "breaks")
+    return text
+
+
+def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description: str = "",
+               interleave: str = "bsq", extra: dict | None = None,
+               overwrite: bool | None = None) -> tuple[Path, Path]:
+    """Write an (H, W, bands) cube (or an (H, W) image) as an ENVI header + data pair.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``NAME.hdr``, ``NAME.img`` or ``NAME``; the pair ``NAME.hdr`` + ``NAME.img`` is written.
+    cube : (H, W) or (H, W, B) ndarray
+        Samples kept as they are (uint8/16/32, int16/32/64, float32/64), little-endian.
+    wavelengths_nm : sequence of B floats, optional
+        Band centres, written as ``wavelength`` with ``wavelength units = Nanometers``.
+    band_names : sequence of B str, optional
+    description : str
+    interleave : {"bsq", "bil", "bip"}
+    extra : dict, optional
+        More header entries (``key -> value``; lists are written in braces), e.g.
+        ``{"exposure time": 20.0, "data ignore value": 0}``.
+    overwrite : bool, optional
+        Replace existing files (default: the command's write policy; refuse).
+
+    Returns
+    -------
+    (header path, data path)
+    """
+    path = Path(path)
+    base = path.with_suffix("") if path.suffix.lower() in (".hdr", ".img") else path
+    header, data = base.with_name(base.name + ".hdr"), base.with_name(base.name + ".img")
+    cube = np.asarray(cube)
+    if cube.ndim == 2:
+        cube = cube[:, :, None]
+    if cube.ndim != 3:
+        raise DataFormatError(f"an ENVI cube is (H, W) or (H, W, bands), got shape {cube.shape}",
+                              path=header)
+    dtype = cube.dtype.newbyteorder("<")
+    if dtype not in _CODES:
+        raise DataFormatError(f"samples of dtype {cube.dtype} cannot be written to ENVI; convert "
+                              "to float32 or uint16", path=header)
+    lines, samples, bands = cube.shape
+    if interleave not in ("bsq", "bil", "bip"):
+        raise ValueError(f"interleave must be bsq, bil or bip, got {interleave!r}")
+    axes = {"bsq": (2, 0, 1), "bil": (0, 2, 1), "bip": (0, 1, 2)}[interleave]
+    entries = {"description": _value(description or "written by hsiffc"),
+               "samples": samples, "lines": lines, "bands": bands, "header offset": 0,
+               "file type": "ENVI Standard", "data type": _CODES[dtype],
+               "interleave": interleave, "byte order": 0}
+    if wavelengths_nm is not None:
+        wavelengths = [float(w) for w in wavelengths_nm]
+        if len(wavelengths) != bands:
+            raise DataFormatError(f"{len(wavelengths)} wavelengths for {bands} bands", path=header)
+        entries["wavelength units"] = "Nanometers"
+        entries["wavelength"] = _value(wavelengths)
+    if band_names is not None:
+        entries["band names"] = _value(list(band_names))
+    for key, value in (extra or {}).items():
+        entries[str(key).lower()] = _value(value)
+    text = "ENVI\n" + "".join(f"{k} = {v if isinstance(v, str) else _value(v)}\n"
+                              for k, v in entries.items())
+    with atomic_path(data, overwrite=overwrite) as tmp:
+        with open(tmp, "wb") as fh:
+            np.ascontiguousarray(cube.transpose(axes), dtype=dtype).tofile(fh)
+    with atomic_path(header, overwrite=overwrite) as tmp:
+        Path(tmp).write_text(text, encoding="utf-8")
+    return header, data
