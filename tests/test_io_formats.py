@@ -222,3 +222,30 @@ def test_emva_descriptor_through_open_source(emva_dir):
         assert src.format == "emva1288" and src.n_frames == 600 and src.bit_depth == 8
         raw, meta = next(iter(src))
         assert raw.shape == (128, 256) and meta.step == 0
+
+
+def test_stream_twice_random_access_and_prefetch_off(tmp_path):
+    data = frames(5)
+    path = tmp_path / "s.tif"
+    tifffile.imwrite(path, data, compression="lzw", photometric="minisblack")
+    src = open_source(path, exposure_ms=1, bit_depth=12)
+    first = np.stack([raw for raw, _ in src])
+    np.testing.assert_array_equal(src.read(3), data[3])       # reopened after the pass
+    src.prefetch = 0
+    second = np.stack([raw for raw, _ in src])
+    np.testing.assert_array_equal(first, data)
+    np.testing.assert_array_equal(second, data)
+    src.close()
+
+
+def test_bad_frame_in_the_middle_stops_the_stream(tmp_path):
+    data = frames(4, bits=8, dtype=np.uint16)
+    data[2, 0, 0] = 4000
+    path = tmp_path / "s.tif"
+    tifffile.imwrite(path, data, photometric="minisblack")
+    seen = []
+    with pytest.raises(DataFormatError, match="frame 2"):
+        with open_source(path, exposure_ms=1, bit_depth=8) as src:
+            for raw, meta in src:
+                seen.append(meta.index)
+    assert seen == [0, 1]

@@ -99,7 +99,7 @@ def open_fits(path, limits: ReadLimits) -> FileLayout:
             state["hdul"] = None
 
     layout = FileLayout(path=path, format="fits", n_frames=n, shape=(h, w), dtype=dtype,
-                        read=read, close=close)
+                        read=read, close=close, parallel=False)
     for key in ("EXPTIME", "EXPOSURE"):
         if key in head:
             layout.give("exposure_ms", float(head[key]) * 1e3, f"file (FITS {key})")

@@ -50,6 +50,8 @@ class FileLayout:
     strict : bool
         The file is self-describing (hsiffc TIFF, EMVA 1288): values it gives are not
         overridden by a sidecar or options.
+    parallel : bool
+        ``read`` may run on several threads at once (frames are decoded ahead).
     """
 
     path: Path
@@ -63,6 +65,7 @@ class FileLayout:
     origins: dict = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
     strict: bool = False
+    parallel: bool = True
 
     def give(self, name: str, value, origin: str) -> None:
         """Record a metadata field found in the file (ignored when ``value`` is None)."""

@@ -22,6 +22,7 @@ ENVI (``.hdr`` + data), FITS (with astropy), EMVA 1288 descriptors; see
 from __future__ import annotations
 
 import glob as globmod
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -180,6 +181,9 @@ class FrameSource:
         self.layouts, self.limits, self.label = layouts, limits, label
         self.files = [lay.path for lay in layouts]
         self.notes: list[str] = []
+        self._peeked = None
+        #: Frames decoded ahead on worker threads while iterating (0: none).
+        self.prefetch = 2 if (os.cpu_count() or 1) > 1 else 0
         sidecars: dict[Path, Sidecar | None] = {}
         resolved = []
         for lay in layouts:
@@ -262,6 +266,7 @@ class FrameSource:
                                     and bits < 16)
         strict = any(lay.strict for lay in layouts)
         first = self._decode(0, peek=True) if needs_peek and self.n_frames else None
+        self._peeked = first  # frame 0, decoded once: reused by the first read
         if shift is None and first is not None and self.dtype == np.uint16 and not strict:
             shift = quirks.detect_left_aligned(first, bits)
             if shift:
@@ -325,6 +330,9 @@ class FrameSource:
 
     def _decode(self, index: int, peek: bool = False) -> np.ndarray:
         lay, k = self._locate(index)
+        if index == 0 and self._peeked is not None:
+            raw, self._peeked = self._peeked, None
+            return raw if peek else self._finish(raw, lay, k)
         raw = lay.read(k)
         if raw.shape != lay.shape:
             raise DataFormatError(f"frame {k} decodes to shape {raw.shape} but the header says "
@@ -355,6 +363,46 @@ class FrameSource:
                          None if self.step is None else int(self.step[index]), str(lay.path), k)
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, FrameMeta]]:
+        """Frames in order as ``(raw, FrameMeta)``. With ``prefetch`` > 0 (default: 2 on a
+        machine with several cores) the next frames are decoded on worker threads while the
+        caller works on the current one (codecs release the GIL); at most ``prefetch + 1``
+        frames are in memory."""
+        if self.prefetch < 1 or self.n_frames < 2 or not all(lay.parallel
+                                                              for lay in self.layouts):
+            yield from self._sequential()
+            return
+        from collections import deque
+        from concurrent.futures import ThreadPoolExecutor
+
+        ends = {int(self._starts[f + 1]) - 1: lay for f, lay in enumerate(self.layouts)}
+        with ThreadPoolExecutor(self.prefetch, thread_name_prefix="hsiffc-read") as pool:
+            queue: deque = deque()
+            ahead = iter(range(self.n_frames))
+            try:
+                for index in ahead:
+                    queue.append((index, pool.submit(self._decode, index)))
+                    if len(queue) > self.prefetch:
+                        yield self._take(queue, ends)
+                while queue:
+                    yield self._take(queue, ends)
+            finally:
+                for _, future in queue:
+                    future.cancel()
+                for _, future in queue:
+                    if not future.cancelled():
+                        future.exception()
+                self.close()
+
+    def _take(self, queue, ends):
+        index, future = queue.popleft()
+        raw = future.result()
+        if index in ends:
+            done = ends[index]
+            if not any(self._locate(i)[0] is done for i, _ in queue):
+                done.close()
+        return raw, self.frame_meta(index)
+
+    def _sequential(self):
         for f, lay in enumerate(self.layouts):
             try:
                 for k in range(lay.n_frames):

@@ -188,6 +188,7 @@ def open_tiff(path, limits: ReadLimits) -> FileLayout:
 
 
 def _layout(tf, path: Path, size: int, limits: ReadLimits, log: TiffLog) -> FileLayout:
+    tf.filehandle.lock = True  # frames may be decoded on several threads (seek + read locked)
     pages = list(tf.pages)
     if not pages:
         raise DataFormatError("the TIFF holds no image page; rewrite it", path=path)
@@ -234,17 +235,28 @@ def _layout(tf, path: Path, size: int, limits: ReadLimits, log: TiffLog) -> File
             "- copy or write it again", path=path)
     _check_codec(first, path)
 
+    state = {"tf": tf, "pages": pages}
+
     def read(k: int) -> np.ndarray:
+        if state["tf"] is None:  # closed after an earlier pass: open again
+            state["tf"] = tifffile.TiffFile(path)
+            state["tf"].filehandle.lock = True
+            state["pages"] = list(state["tf"].pages)
         try:
-            data = pages[k].asarray()
+            data = state["pages"][k].asarray()
             return np.moveaxis(data, 0, -1) if separate else data
         except Exception as exc:  # a damaged strip, a codec error...
             raise DataFormatError(f"frame {k} cannot be decoded ({type(exc).__name__}: {exc}); "
                                   "copy or write the file again", path=path) from exc
 
+    def close() -> None:
+        if state["tf"] is not None:
+            state["tf"].close()
+            state["tf"], state["pages"] = None, []
+
     layout = FileLayout(path=path, format="hsiffc-tiff" if hsiffc_doc else "tiff",
                         n_frames=n, shape=shapes[0], dtype=np.dtype(dtypes[0]), read=read,
-                        close=tf.close, strict=hsiffc_doc is not None)
+                        close=close, strict=hsiffc_doc is not None)
     if hsiffc_doc is not None:
         fields, meta = document_fields(hsiffc_doc, n, path)
         for name, value in fields.items():
