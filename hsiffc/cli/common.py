@@ -91,9 +91,11 @@ def add_input_options(parser) -> None:
     g = parser.add_argument_group(
         "input metadata", "for files that do not carry it (the file, then a sidecar "
         "hsiffc.toml/hsiffc.csv next to it, then these options)")
-    g.add_argument("--exposure-ms", type=float, default=None, metavar="MS",
+    from .args import count, exposure_ms
+
+    g.add_argument("--exposure-ms", type=exposure_ms, default=None, metavar="MS",
                    help="exposure time of every frame, in milliseconds")
-    g.add_argument("--bit-depth", type=int, default=None, metavar="BITS",
+    g.add_argument("--bit-depth", type=count, default=None, metavar="BITS",
                    help="ADC bit depth (full scale 2**BITS-1 DN); default: from the file, else "
                         "detected or assumed from the dtype with a warning")
     g.add_argument("--kind", choices=("light", "dark"), default=None,
