@@ -149,7 +149,7 @@ def _weight_args(w, n_frames, noise, s_count):
 
 def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None,
                dark_current=None, dark_model="in_well", theta0=None, b_start=None,
-               margins=MARGIN_GRID, max_iter=80, tol=1e-9, prior_sigma=PRIOR_SIGMA,
+               margins=MARGIN_GRID, max_iter=200, tol=1e-9, prior_sigma=PRIOR_SIGMA,
                fallback=True, merge_darks=True) -> JointFit:
     """Run :func:`hsiffc.calibrate.pixelfit.fit_block` on (S, P) samples; returns the fit.
 
@@ -220,7 +220,7 @@ def _to_fit(out_f, out_i) -> JointFit:
 
 
 def fit_pixels(y, t_ms, r, valid, weight, theta0=None, *, dark_current=None,
-               dark_model: str = "in_well", b_start=None, max_iter: int = 80, tol: float = 1e-9,
+               dark_model: str = "in_well", b_start=None, max_iter: int = 200, tol: float = 1e-9,
                prior_sigma: float = PRIOR_SIGMA, fallback: bool = False,
                merge_darks: bool = False) -> JointFit:
     """Weighted per-pixel fit of the leakage model (numba, parallel over pixels).

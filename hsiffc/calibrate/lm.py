@@ -135,10 +135,11 @@ def solve4(a, rhs, out, m):
 
 @njit(cache=True, error_model="numpy")
 def levenberg_marquardt(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior, lo,
-                        hi, max_iter, tol, h, gv, hn, step, trial, scratch):
+                        hi, s_step_min, max_iter, tol, h, gv, hn, step, trial, scratch):
     """Iterate from ``ph`` (updated in place) to the minimum of :func:`evaluate`.
 
-    ``lo``, ``hi`` (4,) bound the parameters. On return ``h`` holds the normal matrix at
+    ``lo``, ``hi`` (4,) bound the parameters. A step moves ln g by at most 2, ln b by at most
+    1 and s by at most 3/b or ``s_step_min`` (DN), whichever is larger. On return ``h`` holds the normal matrix at
     ``ph``. Returns (converged, iterations, cost, chi2, unweighted SS).
     """
     cost, chi2, ss = evaluate(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior,
@@ -151,10 +152,20 @@ def levenberg_marquardt(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_
             for c in range(4):
                 hn[a, c] = h[a, c]
             hn[a, a] += lam * h[a, a] + 1e-12
-            gv[a] = -gv[a]
-        ok = solve4(hn, gv, step, scratch)
+            trial[a] = -gv[a]
+        ok = solve4(hn, trial, step, scratch)
+        # a parameter at a bound that the step pushes outward is held there (active set)
+        fixed = False
         for a in range(4):
-            gv[a] = -gv[a]
+            if ok and ((ph[a] <= lo[a] and step[a] < 0) or (ph[a] >= hi[a] and step[a] > 0)):
+                for c in range(4):
+                    hn[a, c] = 0.0
+                    hn[c, a] = 0.0
+                hn[a, a] = 1.0
+                trial[a] = 0.0
+                fixed = True
+        if fixed:
+            ok = solve4(hn, trial, step, scratch)
         if not ok:
             lam *= 8.0
             if lam >= 1e9:
@@ -169,7 +180,8 @@ def levenberg_marquardt(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_
         b_now = np.exp(ph[2])
         step[0] = min(max(step[0], -2.0), 2.0)
         step[2] = min(max(step[2], -1.0), 1.0)
-        step[1] = min(max(step[1], -3.0 / b_now), 3.0 / b_now)
+        s_step = max(3.0 / b_now, s_step_min)
+        step[1] = min(max(step[1], -s_step), s_step)
         size = 0.0
         for a in range(4):
             trial[a] = min(max(ph[a] + step[a], lo[a]), hi[a])

@@ -264,8 +264,8 @@ def _fit_pixel(p, yp, wp, wq, t, r, light, dark, infit, merge, estimate_dc, dc_g
         for a in range(4):
             ph[a] = min(max(ph[a], lo[a]), hi[a])
         conv, it, _cost, chi2, ss = levenberg_marquardt(
-            ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior, lo, hi, max_iter,
-            tol, h, gv, hn, step, trial, scratch)
+            ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior, lo, hi,
+            0.2 * span, max_iter, tol, h, gv, hn, step, trial, scratch)
         out_i[p, I_ITER] = it
         status = LEAKAGE
         if not conv:

@@ -192,6 +192,12 @@ class Calibration:
             for bit in (DQ.NOT_CONVERGED, DQ.LEAK_UNCONSTRAINED, DQ.DO_NOT_USE):
                 n = int(((f & int(bit)) != 0).sum())
                 lines.append(f"  pixels flagged {bit.name:<19} {n} ({100 * n / f.size:.2f} %)")
+        n_px = int(np.prod(self.frame_shape))
+        for reason, n in self.fitted_on.get("fit_status", {}).items():
+            lines.append(f"  {n} px ({100 * n / n_px:.2f} %): {reason}")
+        dark = self.fitted_on.get("dark_model")
+        if dark:
+            lines.append(f"  dark model: {dark.get('description', dark.get('model'))}")
         return "\n".join(lines)
 
     # -- validation ----------------------------------------------------------------------------

@@ -89,6 +89,20 @@ def kernel_samples(smp: Samples, ptc: PhotonTransfer | None) -> dict:
             "noise": None if ptc is None else (ptc.gain_dn_per_e, ptc.read_var_dn2)}
 
 
+def _dark_slopes(ks) -> np.ndarray:
+    """Per-pixel least-squares slope (DN/ms) of the valid dark samples against exposure, not
+    clipped at 0 (the pilot's test of whether the sensor has a dark current at all)."""
+    use = ks["valid"] & ks["dark"][:, None]
+    t = np.where(use, ks["t"][:, None], 0.0)
+    y = np.where(use, ks["y"], 0.0)
+    n = use.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tm, ym = t.sum(0) / n, y.sum(0) / n
+        slope = (np.where(use, (t - tm) * (y - ym), 0).sum(0)
+                 / np.where(use, (t - tm) ** 2, 0).sum(0))
+    return slope[np.isfinite(slope)]
+
+
 def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model, seed=0):
     """Sensor-wide choices on a random sample of pixels: dark current used or not, dark model,
     start value of b. Returns (use_dc, dark_model, b0, report dict)."""
@@ -105,8 +119,7 @@ def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model
     report = {"n_pilot_pixels": int(idx.size), "n_dark_exposures": int(dark_exposures.size)}
     use_dc = False
     if dark_current is True or (dark_current == "auto" and dark_exposures.size >= 2):
-        fit = run_kernel(**ks, dark_current="estimate", max_iter=0)
-        dc = fit.dark_current
+        dc = _dark_slopes(ks)
         med = float(np.median(dc))
         se = 1.4826 * float(np.median(np.abs(dc - med))) / np.sqrt(dc.size)
         use_dc = dark_current is True or med > 3 * se
