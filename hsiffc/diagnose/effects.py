@@ -8,7 +8,8 @@ rate), the exposure and the acquisition order. Each effect can also be *injected
 simulated frames, so that diagnosis can be tested on data with an undeclared effect.
 
 Scopes: ``global`` (a few parameters shared by the sensor), ``pixel`` (parameters per pixel),
-``step`` (one parameter per light step, shared by the pixels).
+``step`` (one parameter per light step, shared by the pixels), ``pair`` (a change between the
+frames of one step: fitted on the frame differences, it acts on the held-out frames only).
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ class Effect:
 
     def n_params(self, n_pixels: int, n_light_steps: int) -> int:
         m = len(self.param_names)
-        return {"global": m, "pixel": m * n_pixels, "step": n_light_steps}[self.scope]
+        return {"global": m, "pair": m, "pixel": m * n_pixels, "step": n_light_steps}[self.scope]
 
 
 def _legendre(x, n):
@@ -86,13 +87,15 @@ _register(Effect(
                "short exposures and low signal"),
 ))
 _register(Effect(
-    "gain_nonlinearity",
-    "sensor-wide quadratic and cubic response nonlinearity (EMVA 1288 linearity error)",
+    "readout_nonlinearity",
+    "sensor-wide response nonlinearity that depends on the signal only (ADC / source-follower "
+    "compression; EMVA 1288 linearity error): quadratic and cubic in the signal",
     "global", ("c2", "c3"),
     lambda c: _stack((c.signal / c.full_scale) ** 2, (c.signal / c.full_scale) ** 3),
-    lambda p: (f"the response bends with signal (quadratic {p['c2']:.3g}, cubic {p['c3']:.3g} "
-               "DN per full scale): a conversion-gain or source-follower nonlinearity shared by "
-               "the sensor"),
+    lambda p: (f"the response bends with signal alone (quadratic {p['c2']:.3g}, cubic "
+               f"{p['c3']:.3g} DN per full scale; {p['deviation_at_full_scale_dn']:.3g} DN at full "
+               "scale, negative = compressive): a readout (ADC or source-follower) nonlinearity "
+               "shared by the sensor, which unlike leakage does not depend on the light rate"),
 ))
 _register(Effect(
     "pixel_nonlinearity",
@@ -129,6 +132,19 @@ _register(Effect(
                "(incomplete charge transfer or persistence)"),
 ))
 
+_register(Effect(
+    "frame_light_change",
+    "the light changes between the frames of one step (source warming or flicker): the second "
+    "frame of a step sees a light rate (1 + eps) times the first",
+    "pair", ("eps",),
+    lambda c: _stack(c.dydlnk),
+    lambda p: (f"the light of a step's next frame differs by {100 * p['eps']:.3g} % from the frame "
+               "before (equally in every pixel): the light source drifts within a step (warm-up, "
+               "flicker); frames of one step are not exchangeable"),
+))
+
+ALIASES = {"gain_nonlinearity": "readout_nonlinearity"}  # earlier name, still accepted
+
 # an effect outside the library, for testing that structure nobody declared is reported
 OUTSIDE = {
     "adc_ripple": "periodic ADC differential nonlinearity: + A sin(2 pi Y / 37 DN)",
@@ -141,18 +157,22 @@ def inject(name: str, size: float, *, t, k, signal, order, prev_signal, light, f
 
     Arguments are (P, S) arrays of the true exposure, light rate and signal (S steps, P pixels).
     ``size`` is in each effect's natural unit: DN/ms (dark_current, median of a log-normal
-    per-pixel spread), ms (exposure_offset), DN at full scale (gain_nonlinearity: the quadratic
-    term; pixel_nonlinearity: the per-pixel spread), DN (offset_drift: linear peak;
-    adc_ripple: amplitude), relative (illumination_error: RMS; image_lag: fraction).
+    per-pixel spread), ms (exposure_offset), DN at full scale (readout_nonlinearity: the quadratic
+    term, negative = compressive; pixel_nonlinearity: the per-pixel spread), DN (offset_drift:
+    linear peak; adc_ripple: amplitude), relative (illumination_error: RMS; image_lag: fraction;
+    frame_light_change: light change per frame within a step, applied by :func:`add_effect`).
     """
     fs = full_scale
+    name = ALIASES.get(name, name)
     if name == "dark_current":
         dc = size * rng.lognormal(0.0, 0.3, size=(t.shape[0], 1))
         return dc * t
     if name == "exposure_offset":  # Y(t + t0) - Y(t), to first order
         return size * dydt
-    if name == "gain_nonlinearity":
+    if name == "readout_nonlinearity":
         return size * (signal / fs) ** 2
+    if name == "frame_light_change":  # per frame index within the step: see add_effect
+        return size * np.where(light, dydlnk, 0.0)
     if name == "pixel_nonlinearity":
         c = size * rng.standard_normal((t.shape[0], 1))
         return c * (signal / fs) ** 2
@@ -206,10 +226,17 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0):
     extra = inject(name, size, t=np.broadcast_to(t, signal.shape), k=k_light * light[None, :],
                    signal=signal, order=order, prev_signal=prev, light=light,
                    full_scale=float(sweep.full_scale_dn), rng=rng, dydt=dydt, dydlnk=dydlnk)
+    if name == "dark_current":  # the extra charge is collected (and leaks) like the light's
+        extra = _model_mod.response(t[None, :], k + extra / np.maximum(t[None, :], 1e-12), a, b, d) - expected
     data = sweep.data.astype(np.float64)
+    per_frame = ALIASES.get(name, name) == "frame_light_change"
     for i, s in enumerate(steps):
-        sel = sweep.step == s
-        data[sel] += extra[:, i].reshape(h, w)
+        sel = np.flatnonzero(sweep.step == s)
+        if per_frame:  # frame j of the step sees the light (1 + size) ** j times the first
+            for j, f in enumerate(sel):
+                data[f] += j * extra[:, i].reshape(h, w)
+        else:
+            data[sel] += extra[:, i].reshape(h, w)
     data = np.clip(np.rint(data), 0, sweep.full_scale_dn).astype(sweep.data.dtype)
     meta = dict(sweep.meta)
     meta["injected_effect"] = {"name": name, "size": size, "seed": seed}

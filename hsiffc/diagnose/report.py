@@ -9,6 +9,7 @@ import numpy as np
 
 from ..atomic import atomic_path, atomic_write_text
 from .effects import EFFECTS
+from .structure import bin_index
 
 
 def public(result: dict) -> dict:
@@ -20,25 +21,24 @@ def write_json(result: dict, path) -> None:
     atomic_write_text(Path(path), json.dumps(public(result), indent=2, default=float) + "\n")
 
 
-def _binned(x, res, mask, bins):
+def binned(x, res, mask, bins):
+    """Mean and standard error of ``res`` in bins of ``x`` (quantile bins, or one bin per
+    distinct value where the quantiles collapse); returns (centres, means, standard errors)."""
+    x = np.broadcast_to(x, res.shape)
+    idx = bin_index(x, mask, bins)[mask]
     xv, rv = x[mask], res[mask]
     if xv.size == 0:
         return np.array([]), np.array([]), np.array([])
-    edges = np.unique(np.percentile(xv, np.linspace(0, 100, bins + 1)))
-    idx = np.clip(np.searchsorted(edges[1:-1], xv), 0, len(edges) - 2)
-    n = np.bincount(idx, minlength=len(edges) - 1)
+    n = np.bincount(idx)
     keep = n > 0
-    mean = np.bincount(idx, weights=rv, minlength=len(edges) - 1)[keep] / n[keep]
-    centre = np.bincount(idx, weights=xv, minlength=len(edges) - 1)[keep] / n[keep]
-    var = np.bincount(idx, weights=rv * rv, minlength=len(edges) - 1)[keep] / n[keep] - mean ** 2
+    mean = np.bincount(idx, weights=rv)[keep] / n[keep]
+    centre = np.bincount(idx, weights=xv)[keep] / n[keep]
+    var = np.bincount(idx, weights=rv * rv)[keep] / n[keep] - mean ** 2
     return centre, mean, np.sqrt(np.maximum(var, 0) / n[keep])
 
 
 def _plot(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: no backend state is touched
 
     a = result["_arrays"]
     valid, light = a["valid"], a["light"]
@@ -53,11 +53,12 @@ def _plot(result: dict, path: Path) -> None:
         ("row", np.broadcast_to(a["rows"][:, None], shape), valid, 16),
         ("column", np.broadcast_to(a["cols"][:, None], shape), valid, 16),
     ]
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5), dpi=90)
+    fig = Figure(figsize=(12, 6.5), dpi=90)
+    axes = fig.subplots(2, 3)
     for ax, (label, x, mask, bins) in zip(axes.ravel(), panels):
         for key, colour, name in (("res_before", "tab:orange", "base model"),
                                   ("res_after", "tab:blue", "with selected effects")):
-            c, m, se = _binned(x, a[key], mask, bins)
+            c, m, se = binned(x, a[key], mask, bins)
             ax.errorbar(c, m, yerr=se, fmt="o-", ms=3, lw=1, color=colour, label=name)
         ax.axhline(0, color="k", lw=0.6)
         ax.set_xlabel(label)
@@ -68,7 +69,6 @@ def _plot(result: dict, path: Path) -> None:
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
-    plt.close(fig)
 
 
 def write_report(result: dict, outdir) -> Path:
@@ -87,7 +87,13 @@ def write_report(result: dict, outdir) -> Path:
              f"| temporal noise floor | {result['noise_floor_dn']:.4g} | |",
              f"| base model | {b['rms_dn']:.4g} | {b['systematic_rms_dn']:.4g} |",
              f"| with the selected effects | {af['rms_dn']:.4g} | {af['systematic_rms_dn']:.4g} |",
-             "", f"Selection rule: {result['selection_rule']}.", ""]
+             "", f"Selection rule: {result['selection_rule']}.", "",
+             f"Noise measured from: {result['noise_source']}.", "",
+             f"Dark model: {result['dark_model']['model']} ({result['dark_model']['reason']}).",
+             "", f"Leakage: **{result['leakage']['verdict']}** ({result['leakage']['reason']}).",
+             ""]
+    if result["design"]["notes"]:
+        lines += [f"Design note: {n}." for n in result["design"]["notes"]] + [""]
     if result["effects"]:
         lines += ["## Selected effects", ""]
         for e in result["effects"]:
@@ -96,11 +102,14 @@ def write_report(result: dict, outdir) -> Path:
             lines += [f"- **{e['name']}** ({params}): {e['interpretation']}."]
     else:
         lines += ["No candidate effect beats the base model by more than the noise allows.", ""]
+    if result["skipped"]:
+        lines += ["", "## Candidates this design cannot identify (skipped)", ""]
+        lines += [f"- `{s['name']}`: {s['reason']}." for s in result["skipped"]]
     lines += ["", "## Candidates", "",
-              "| round | effect | held-out RMS (DN) | gain in MSE (DN^2) | standard error | BIC | "
-              "selected |", "|---|---|---|---|---|---|---|"]
+              "| base | round | effect | held-out RMS (DN) | gain in MSE (DN^2) | standard error | "
+              "BIC | selected |", "|---|---|---|---|---|---|---|---|"]
     for c in result["candidates"]:
-        lines.append(f"| {c['round']} | {c['name']} | {c['heldout_rms_dn']:.4g} | "
+        lines.append(f"| {c['base']} | {c['round']} | {c['name']} | {c['heldout_rms_dn']:.4g} | "
                      f"{c['heldout_mse_gain_dn2']:.3g} | {c['gain_standard_error_dn2']:.2g} | "
                      f"{c['criterion']:.6g} | {'yes' if c.get('selected_in_round') else ''} |")
     lines += ["", "## Structure left in the held-out residual", "",

@@ -1,0 +1,172 @@
+"""The base models diagnose fits per pixel before any candidate effect.
+
+Two families share one interface (``start``, ``fit``, ``evaluate``):
+
+- :class:`LeakageBase`, the paper's model ``dY/dt = k - a e^{bY}`` with ``k = g r + dc``:
+  per pixel (ln g, ln a, ln b, dark), fitted with the calibration's public fit
+  (:func:`hsiffc.calibrate.fit_pixels`) from two starts (the calibration's own and the linear
+  model's), keeping the better one per pixel, so the leakage base never fits worse than a
+  straight line on the same samples;
+- :class:`LinearBase`, ``Y = dark + (g r + dc) t``: per pixel (g, dark), solved in closed form.
+
+The last column of theta is the per-pixel dark current ``dc`` (DN/ms). With ``dark_current``
+true it is part of the base: measured from the dark samples of whatever the base is fitted to
+(the data less the effects fitted so far, so an effect that also shows in the darks, such as
+lag or drift, is not mistaken for dark current) and its column enters the Jacobian; otherwise
+it stays 0 (see :func:`hsiffc.diagnose.design.dark_model`). Arrays are (P, S): P pixels, S
+steps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..calibrate import fit_pixels, initial_guess, model_and_jacobian, predict
+from ..calibrate.joint import dark_current_from_darks
+
+LINEAR_LN_A = -60.0  # ln a (DN/ms) of a leakage parameter set that is a straight line in practice
+LINEAR_LN_B = float(np.log(0.01))
+
+
+class _Base:
+    n_core = 0
+
+    def __init__(self, dark_current: bool):
+        self.dark_current = bool(dark_current)
+
+    @property
+    def n_params(self):
+        return self.n_core + int(self.dark_current)
+
+    def dc(self, theta):
+        return theta[:, -1:]
+
+    def with_dc(self, jac, t):
+        """Append the dark-current column dY/d(dc) ~ t when it is part of the base."""
+        if not self.dark_current:
+            return jac
+        return np.concatenate([jac, np.broadcast_to(t, jac.shape[:2])[..., None]], axis=-1)
+
+    def measure_dc(self, y, t, r, valid, w, theta0):
+        if not self.dark_current:
+            return theta0[:, -1]
+        return np.clip(dark_current_from_darks(y, t, r, valid, w), 0.0, None)
+
+
+class LinearBase(_Base):
+    """``Y = dark + (g r + dc) t`` per pixel; theta (P, 3) = (g, dark, dc)."""
+
+    name = "linear"
+    n_core = 2
+    describe = "linear response with a dark level (no leakage), per pixel (k, d)"
+
+    def evaluate(self, theta, t, r):
+        """Model (P, S), Jacobian (P, S, n), light rate k (P, S), dY/dt (P, S), dY/dln g."""
+        g, d, dc = theta[:, 0:1], theta[:, 1:2], theta[:, 2:3]
+        u = np.broadcast_to(r * t, (theta.shape[0], np.size(t)))
+        m = d + g * u + dc * t
+        jac = self.with_dc(np.stack([u, np.ones_like(m)], axis=-1), t)
+        k = np.broadcast_to(g * r, m.shape)
+        return m, jac, k, k + dc, g * u
+
+    def predict(self, theta, t, r):
+        return self.evaluate(theta, t, r)[0]
+
+    def dark(self, theta):
+        return theta[:, 1:2]
+
+    def fit(self, y, t, r, valid, w, theta0=None, max_iter=None):
+        """Weighted least squares per pixel (closed form)."""
+        if theta0 is None:
+            theta0 = np.zeros((y.shape[0], 3))
+        dc = self.measure_dc(y, t, r, valid, w, theta0)
+        u = np.broadcast_to(r * t, y.shape)
+        z = y - dc[:, None] * t
+        ww = np.where(valid, w, 0.0)
+        sw, su, sz = ww.sum(1), (ww * u).sum(1), (ww * z).sum(1)
+        suu, suz = (ww * u * u).sum(1), (ww * u * z).sum(1)
+        det = sw * suu - su ** 2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            g = (sw * suz - su * sz) / det
+            d = (sz - g * su) / sw
+        ok = np.isfinite(g) & np.isfinite(d) & (det > 1e-12 * np.maximum(sw * suu, 1e-300))
+        new = np.column_stack([g, d, dc])
+        return np.where(ok[:, None], new, theta0)
+
+    def start(self, y, t, r, valid, w, dc0=None):
+        theta0 = np.zeros((y.shape[0], 3))
+        if dc0 is not None:
+            theta0[:, 2] = dc0
+        return self.fit(y, t, r, valid, w, theta0)
+
+    def restart(self, y, t, r, valid, w, theta_warm, max_iter=None):
+        return self.fit(y, t, r, valid, w, theta_warm)  # closed form: no start to improve
+
+
+class LeakageBase(_Base):
+    """The paper's leakage model per pixel; theta (P, 5) = (ln g, ln a, ln b, dark, dc)."""
+
+    name = "leakage"
+    n_core = 4
+    describe = "leakage model dY/dt = k - a exp(bY), per pixel (k, a, b, d)"
+
+    def evaluate(self, theta, t, r):
+        dc = theta[:, 4:5]
+        m, jac = model_and_jacobian(theta[:, :4], t, r, dc)
+        kl = np.broadcast_to(np.exp(theta[:, 0:1]) * r, m.shape)
+        with np.errstate(over="ignore"):
+            leak = np.exp(np.minimum(theta[:, 1:2] + np.exp(theta[:, 2:3]) * m, 700.0))
+        return m, self.with_dc(jac, t), kl, kl + dc - leak, jac[..., 0]
+
+    def predict(self, theta, t, r):
+        return predict(theta[:, :4], t, r, theta[:, 4:5])
+
+    def dark(self, theta):
+        return theta[:, 3:4]
+
+    def _cost(self, theta, y, t, r, valid, w):
+        res = np.where(valid, y - self.predict(theta, t, r), 0.0)
+        c = (w * res * res).sum(axis=1)
+        return np.where(np.isfinite(c), c, np.inf)
+
+    def from_linear(self, lin):
+        """Leakage parameters that reproduce a linear fit (leakage switched off)."""
+        g = np.clip(lin[:, 0], 1e-9, None)
+        return np.column_stack([np.log(g), np.full(len(g), LINEAR_LN_A),
+                                np.full(len(g), LINEAR_LN_B), lin[:, 1], lin[:, 2]])
+
+    def fit(self, y, t, r, valid, w, theta0, max_iter=15):
+        dc = self.measure_dc(y, t, r, valid, w, theta0)
+        fit = fit_pixels(y, t, r, valid, w, theta0[:, :4], dark_current=dc, max_iter=max_iter)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            theta = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark, dc])
+        theta = np.where(np.all(np.isfinite(theta), axis=1)[:, None], theta, theta0)
+        # never worse than where it started (a diverging pixel keeps its start)
+        worse = self._cost(theta, y, t, r, valid, w) > self._cost(theta0, y, t, r, valid, w)
+        return np.where(worse[:, None], theta0, theta)
+
+    def restart(self, y, t, r, valid, w, theta_warm, max_iter=15):
+        """Refit from the warm parameters and from fresh starts; per pixel the best. Used when
+        an effect removed from the data is large enough to have distorted the warm start."""
+        warm = self.fit(y, t, r, valid, w, theta_warm, max_iter=max_iter)
+        fresh = self.start(y, t, r, valid, w, theta_warm[:, -1])
+        better = self._cost(fresh, y, t, r, valid, w) < self._cost(warm, y, t, r, valid, w)
+        return np.where(better[:, None], fresh, warm)
+
+    def start(self, y, t, r, valid, w, dc0=None, max_iter=40):
+        """Fit from the calibration's start and from the linear model; per pixel the better."""
+        lin = LinearBase(self.dark_current).start(y, t, r, valid, w, dc0)
+        from_lin = self.from_linear(lin)
+        try:
+            guess = initial_guess(y, t, r, valid, w, lin[:, 2])
+            guess = np.column_stack([guess, lin[:, 2]])
+        except (FloatingPointError, ValueError):
+            guess = from_lin
+        guess = np.where(np.all(np.isfinite(guess), axis=1)[:, None], guess, from_lin)
+        a = self.fit(y, t, r, valid, w, guess, max_iter=max_iter)
+        b = self.fit(y, t, r, valid, w, from_lin, max_iter=max_iter)
+        better_b = self._cost(b, y, t, r, valid, w) < self._cost(a, y, t, r, valid, w)
+        return np.where(better_b[:, None], b, a)
+
+
+BASES = {"leakage": LeakageBase, "linear": LinearBase}

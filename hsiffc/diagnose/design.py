@@ -1,0 +1,225 @@
+"""What a sweep's design allows diagnose to do: held-out split, dark model, noise, and which
+candidate effects the design can identify.
+
+Held-out design: with two or more frames in every step, the fit half is the first frame of each
+step (frames 0, 2, ...) and the held-out half the other frames of the same step; with one frame
+per step, alternate steps of each kind (light, dark) in acquisition order are held out, and the
+model must predict steps it has not seen.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..calibrate.joint import dark_current_from_darks
+from ..calibrate.samples import collect_samples, photon_transfer
+from ..errors import DataFormatError
+from ..sweep import Sweep
+
+MIN_SEPARABLE = 0.02  # smallest fraction of an effect the base must leave separable
+
+
+@dataclass
+class Design:
+    """Facts of a sweep's design that decide what can be fitted and identified."""
+
+    pairs: bool  # two or more frames in every step
+    held_out: str
+    n_light_steps: int
+    n_dark_steps: int
+    light_exposures: int  # distinct exposures of usable light steps
+    dark_exposures: int  # distinct exposures of dark steps
+    light_rates: int  # distinct light rates (relative) of usable light steps
+    exposures: int  # distinct exposures of all usable steps
+    rate_at_equal_signal: bool  # light rates differ at equal signal (leakage vs compression)
+    notes: list = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {k: v for k, v in self.__dict__.items()}
+
+
+def subset(sweep: Sweep, max_pixels: int, seed: int):
+    """A random subset of pixels as a (N, 1, P) sweep, with their rows, columns and band."""
+    h, w = sweep.frame_shape
+    n = h * w
+    rng = np.random.default_rng(seed)
+    idx = np.sort(rng.choice(n, size=min(n, max_pixels), replace=False))
+    rr, cc = np.unravel_index(idx, (h, w))
+    band = (sweep.mosaic.band_map((h, w))[rr, cc] if sweep.mosaic is not None
+            else np.zeros(idx.size, int))
+    sub = replace(sweep, data=np.ascontiguousarray(sweep.data[:, rr, cc])[:, None, :],
+                  mosaic=None, meta={})
+    return sub, rr, cc, band
+
+
+def _pair_split(sweep: Sweep):
+    fit_idx, ho_idx, gap = [], [], []
+    for s in sweep.steps():
+        sel = np.flatnonzero(sweep.step == s)
+        fit_idx += sel[0::2].tolist()
+        ho_idx += sel[1::2].tolist()
+        gap.append(np.mean(np.arange(sel.size)[1::2]) - np.mean(np.arange(sel.size)[0::2]))
+    return sweep.select(np.array(fit_idx)), sweep.select(np.array(ho_idx)), float(np.mean(gap))
+
+
+def samples(sub: Sweep, full_well_dn=None):
+    """Fit and held-out samples of a (pixel-subset) sweep.
+
+    Returns a dict with y, y_ho (P, S), valid, valid_ho (P, S), t, r, kind, step (S,), n_fit,
+    n_ho (S,) frames per sample, pairs (bool), frame_gap, held_out (description), usable (S,).
+    """
+    counts = np.array([(sub.step == s).sum() for s in sub.steps()])
+    pairs = bool(np.all(counts >= 2))
+    if pairs:
+        fit_sw, ho_sw, gap = _pair_split(sub)
+        sf = collect_samples(fit_sw, full_well_dn=full_well_dn)
+        sh = collect_samples(ho_sw, full_well_dn=full_well_dn)
+        valid = (sf.valid & sh.valid).T
+        out = dict(y=sf.y.T.astype(np.float64), y_ho=sh.y.T.astype(np.float64), valid=valid,
+                   valid_ho=valid.copy(), n_fit=sf.n_frames, n_ho=sh.n_frames, frame_gap=gap,
+                   held_out="second frame of every step (the first fits the model)")
+    else:
+        sf = collect_samples(sub, full_well_dn=full_well_dn)
+        fit_col = np.zeros(len(sf.step), bool)
+        for kind in ("light", "dark"):
+            cols = np.flatnonzero((sf.kind == kind) & sf.usable_step)
+            fit_col[cols[0::2]] = True
+        valid = sf.valid.T
+        y = sf.y.T.astype(np.float64)
+        out = dict(y=y, y_ho=y, valid=valid & fit_col[None, :], valid_ho=valid & ~fit_col[None, :],
+                   n_fit=sf.n_frames, n_ho=sf.n_frames, frame_gap=0.0,
+                   held_out=("alternate steps of each kind in acquisition order (some steps have "
+                             "one frame, so frame pairs cannot be held out)"))
+    usable = sf.usable_step
+    out.update(t=np.where(usable, sf.exposure_ms, 1.0), r=np.where(usable, np.nan_to_num(sf.rate),
+                                                                  0.0),
+               kind=sf.kind, step=sf.step, usable=usable, pairs=pairs)
+    out["valid"] &= usable[None, :]
+    out["valid_ho"] &= usable[None, :]
+    return out
+
+
+def describe(smp) -> Design:
+    light = (smp["kind"] == "light") & smp["usable"]
+    dark = (smp["kind"] == "dark") & smp["usable"]
+    t, r = smp["t"], smp["r"]
+    # light rates that differ at equal signal: two light steps with about equal dose r t
+    # (within 30 %) whose rates differ by more than 30 %
+    u = r * t
+    li = np.flatnonzero(light)
+    equal = False
+    for i in li:
+        close = li[(np.abs(u[li] / u[i] - 1) < 0.3) & (u[li] > 0)]
+        if close.size and np.any(np.abs(r[close] / r[i] - 1) > 0.3):
+            equal = True
+            break
+    return Design(pairs=smp["pairs"], held_out=smp["held_out"], n_light_steps=int(light.sum()),
+                  n_dark_steps=int(dark.sum()),
+                  light_exposures=int(np.unique(t[light]).size),
+                  dark_exposures=int(np.unique(t[dark]).size),
+                  light_rates=int(np.unique(np.round(r[light], 12)).size),
+                  exposures=int(np.unique(t[light | dark]).size),
+                  rate_at_equal_signal=bool(equal))
+
+
+def dark_model(y, t, r, valid, w, design: Design):
+    """Whether the dark current is part of the base model, and why: only when the dark samples
+    of the fit half span two exposures and the pixels as a whole show a dark current above the
+    noise. Returns (bool, description dict)."""
+    if design.dark_exposures < 2:
+        why = ("no dark frames" if design.n_dark_steps == 0 else
+               "dark frames at one exposure only")
+        return False, {"model": "constant dark level per pixel", "reason": why + ": a dark "
+                       "current cannot be measured from them"}
+    dc = dark_current_from_darks(y, t, r, valid, w)
+    med = float(np.median(dc))
+    se = float(1.4826 * np.median(np.abs(dc - med)) / np.sqrt(dc.size))
+    if not med > 3 * se:
+        return False, {"model": "constant dark level per pixel", "reason": (
+            f"the dark frames at {design.dark_exposures} exposures show no dark current above "
+            f"the noise (median {med:.3g} DN/ms, standard error {se:.2g})")}
+    return True, {
+        "model": "dark level + dark current per pixel (measured from the dark frames)",
+        "n_dark_exposures": design.dark_exposures,
+        "reason": (f"the dark frames at {design.dark_exposures} exposures grow with exposure "
+                   f"({med / max(se, 1e-300):.0f} standard errors): the dark current is part of "
+                   "the base model, added to the light rate and measured from the dark samples "
+                   "less the selected effects")}
+
+
+def describe_dark_current(dc, desc: dict) -> dict:
+    """The dark-current figures of the final model added to the dark model's description."""
+    if "dark current" not in desc["model"]:
+        return desc
+    med = float(np.median(dc))
+    return {**desc, "median_dark_current_dn_per_ms": med,
+            "spread_dark_current_dn_per_ms": float(1.4826 * np.median(np.abs(dc - med)))}
+
+
+def structural_skip(name, design: Design, dark) -> str | None:
+    """Why the design cannot identify effect ``name`` (None when it can, as far as the design
+    alone tells; see also :func:`hsiffc.diagnose.fitting.separable_fraction`)."""
+    from .effects import EFFECTS
+
+    scope = EFFECTS[name].scope
+    if name == "dark_current" and "dark current" in dark["model"]:
+        return "already in the base model (measured from the dark frames)"
+    if name == "dark_current" and design.exposures < 2:
+        return ("every sample has the same exposure: a dark current is indistinguishable from "
+                "the dark level")
+    if name == "exposure_offset" and design.light_exposures < 2:
+        return ("all light steps share one exposure: a timing offset is indistinguishable from "
+                "the light rate (responsivity)")
+    if scope == "step" and not design.pairs:
+        return ("one frame per step: a per-step error cannot be predicted for a held-out step "
+                "(it needs two frames per step)")
+    if scope == "pair" and not design.pairs:
+        return "one frame per step: a change between the frames of a step cannot be seen"
+    if scope == "step" and design.n_light_steps < 3:
+        return "fewer than 3 light steps"
+    return None
+
+
+def noise_pairs(smp, valid):
+    """Temporal variance of one frame per step (S,), from the frame pairs, mean over pixels."""
+    y, y_ho = smp["y"], smp["y_ho"]
+    pair = (y - y_ho) ** 2 / (1.0 / smp["n_fit"][None, :] + 1.0 / smp["n_ho"][None, :])
+    return np.where(valid, pair, 0).sum(0) / np.maximum(valid.sum(0), 1)
+
+
+def noise_from_spread(res_ho, valid_ho, signal, pred_var, n_frames):
+    """Temporal variance of one frame per step (S,) without frame pairs: per held-out step, the
+    robust spread across pixels of the held-out residual (a linear trend in signal removed; a
+    common error of the step does not enter), minus the prediction's own variance, then a
+    photon-transfer line ``var = K signal + R`` through the steps. Systematic errors that differ
+    from pixel to pixel at equal signal inflate it (conservative)."""
+    rows = []
+    for s in range(res_ho.shape[1]):
+        ok = valid_ho[:, s]
+        if ok.sum() < 20:
+            continue
+        x, v = signal[ok, s], res_ho[ok, s]
+        a = np.column_stack([np.ones_like(x), x - x.mean()])
+        v = v - a @ np.linalg.lstsq(a, v, rcond=None)[0]
+        var = (1.4826 * np.median(np.abs(v - np.median(v)))) ** 2 - np.mean(pred_var[ok, s])
+        rows.append((float(np.median(x)), max(var, 0.0) * n_frames[s]))
+    if not rows:
+        raise DataFormatError("no held-out step has 20 valid pixels, so the noise cannot be "
+                              "measured; analyse more pixels (--pixels) or record two frames "
+                              "per step")
+    sig, var = np.array(rows).T
+    if len(rows) >= 3 and np.ptp(sig) > 0:
+        k, r0 = np.polyfit(np.maximum(sig, 0), var, 1)
+    else:
+        k, r0 = 0.0, float(np.median(var))
+    k, r0 = max(k, 0.0), max(r0, 1.0 / 12.0)
+    return lambda s_dn: k * np.maximum(s_dn, 0.0) + r0
+
+
+def frame_variance(sub, smp):
+    """Per-frame variance model (callable on signal above dark) from the photon transfer curve
+    where the design has frame pairs; None otherwise."""
+    ptc = photon_transfer(sub) if smp["pairs"] else None
+    return None if ptc is None else ptc.variance

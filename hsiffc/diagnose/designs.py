@@ -1,0 +1,103 @@
+"""Simulated sweeps of the designs users bring (for tests, the docs and the benchmark), and a
+writer of the EMVA 1288 format (descriptor + PNG images, as :func:`hsiffc.io.read_emva1288`
+reads it).
+
+Designs (``design=``):
+
+- ``"mixed"``: light steps whose exposure (2-200 ms, shuffled) and light level both change, as
+  in an EMVA 1288 sweep with a changing lamp; acquisition order and exposure are not confounded;
+- ``"exposure"``: an exposure sweep (2-200 ms, increasing) at one light level;
+- ``"light"``: a light sweep at one fixed exposure (20 ms), levels increasing (EMVA 1288 allows
+  it; its reference simulations use it).
+
+Each light step is followed by a dark step at the same exposure when ``darks`` is true.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path, atomic_write_text
+from ..simulate import PAPER_LIGHT_W_M2, MosaicSensor, SensorParams
+from ..sweep import Sweep
+
+DESIGNS = ("mixed", "exposure", "light")
+
+
+def design_steps(design: str, n_steps: int, seed: int):
+    """Exposures (ms) and relative light levels of the light steps of a design."""
+    rng = np.random.default_rng(seed)
+    if design == "mixed":
+        t = rng.permutation(np.round(np.geomspace(2, 200, n_steps), 3))
+        return t, np.exp(rng.uniform(np.log(0.15), 0.0, n_steps))
+    if design == "exposure":
+        return np.round(np.geomspace(2, 200, n_steps), 3), np.full(n_steps, 0.25)
+    if design == "light":
+        return np.full(n_steps, 20.0), np.linspace(0.02, 1.0, n_steps)
+    raise ValueError(f"unknown design {design!r}; choose one of {DESIGNS}")
+
+
+def simulated_sweep(design: str = "mixed", *, shape=(24, 32), n_steps: int = 40,
+                    n_frames: int = 2, darks: bool = True, seed: int = 1, irradiance=None,
+                    **params) -> Sweep:
+    """A simulated sweep of a design (see the module docstring) on the default 8-band sensor.
+
+    ``params`` override :class:`hsiffc.simulate.SensorParams` fields (default: no dark
+    current, so that the base model's constant dark level is right). ``irradiance`` (W/m^2)
+    defaults to the paper's training level (lamp A).
+    """
+    params.setdefault("dark_current_dn_per_ms", 0.0)
+    sensor = MosaicSensor(shape, seed=seed, params=SensorParams(**params))
+    t, levels = design_steps(design, n_steps, seed)
+    irr = PAPER_LIGHT_W_M2["training"] if irradiance is None else irradiance
+    return sensor.sweep_varying_light(t, levels, "lamp A", irradiance_w_m2=irr,
+                                      n_frames=n_frames, darks=darks, seed=seed + 100)
+
+
+def write_emva1288(sweep: Sweep, folder, *, overwrite: bool = False) -> Path:
+    """Write a sweep as an EMVA 1288 measurement: ``EMVA1288_Data.txt`` (exposures in ns,
+    photons per pixel per step) and one 8- or 16-bit PNG per frame under ``images/``.
+
+    Light steps need photon counts (``sweep.photons``); a simulated sweep from
+    ``sweep_varying_light`` has relative ones. Returns the descriptor path.
+
+    Raises
+    ------
+    FileExistsError
+        The descriptor exists and ``overwrite`` is false.
+    ValueError
+        A light step has no photon count.
+    """
+    import cv2
+
+    folder = Path(folder)
+    descriptor = folder / "EMVA1288_Data.txt"
+    if descriptor.exists() and not overwrite:
+        raise FileExistsError(f"{descriptor}: exists; pass overwrite=True to replace it")
+    light = sweep.kind == "light"
+    if np.any(light & ~np.isfinite(sweep.photons)):
+        raise ValueError("every light frame needs a photon count (sweep.photons) to be written "
+                         "in EMVA 1288 format")
+    dtype = np.uint8 if sweep.bit_depth <= 8 else np.uint16
+    h, w = sweep.frame_shape
+    lines = ["# simulated by hsiffc (hsiffc.diagnose.designs.write_emva1288)",
+             f"# {sweep.summary()}", "v 3.0", f"n {sweep.bit_depth} {w} {h}"]
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    for i, s in enumerate(sweep.steps()):
+        sel = np.flatnonzero(sweep.step == s)
+        f0 = sel[0]
+        exp_ns = sweep.exposure_ms[f0] * 1e6
+        lines.append(f"b {exp_ns:.6g} {sweep.photons[f0]:.9g}" if light[f0]
+                     else f"d {exp_ns:.6g}")
+        for j, f in enumerate(sel):
+            name = f"images/{'b' if light[f0] else 'd'}_{i:03d}_snap_{j + 1:03d}.png"
+            ok, buf = cv2.imencode(".png", np.ascontiguousarray(sweep.data[f]).astype(dtype))
+            if not ok:
+                raise OSError(f"{folder / name}: PNG encoding failed")
+            with atomic_path(folder / name) as tmp:
+                Path(tmp).write_bytes(buf.tobytes())
+            lines.append(f"i {name}")
+    atomic_write_text(descriptor, "\n".join(lines) + "\n")
+    return descriptor

@@ -1,0 +1,142 @@
+"""Greedy selection of candidate effects on the held-out error, and the leakage check (is the
+bending of the response leakage, or a readout nonlinearity that depends on the signal only?)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .effects import EFFECTS
+from .fitting import Data, State, describe_params, fitpredict
+
+SELECT_SIGMAS = 5.0  # held-out improvement needed, in standard errors of the paired difference
+MIN_GAIN_OF_NOISE = 0.08  # ... and at least this fraction of the noise floor, as an RMS
+MIN_EXPLAINED = 0.5  # ... and at least this fraction of the current systematic error
+TIE_SIGMAS = 2.0  # two models whose held-out errors differ by less are equally good
+
+RULE = (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} standard errors of the "
+        f"paired difference, by more than ({MIN_GAIN_OF_NOISE:g} x noise floor)^2 and by more than "
+        f"{MIN_EXPLAINED:g} of the current systematic error (which must itself exceed "
+        f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2); among those the lowest BIC")
+
+
+@dataclass
+class Fitted:
+    """A model with its held-out residual and figures."""
+
+    state: State
+    names: list
+    res: np.ndarray  # held-out residual (P, S), 0 outside valid_ho
+    mse: float
+    bic: float
+    n_params: int
+
+
+def evaluate(state: State, names, data: Data, n_pix: int, n_light: int) -> Fitted:
+    vh, vf = data.valid_ho, data.valid
+    res = np.where(vh, data.y_ho - state.prediction - state.ho_extra, 0.0)
+    res_fit = np.where(vf, data.y - state.prediction, 0.0)
+    n_ho, n_fit = max(int(vh.sum()), 1), max(int(vf.sum()), 1)
+    k = state.base.n_params * n_pix + sum(EFFECTS[n].n_params(n_pix, n_light) for n in names)
+    rss_w = float((data.w * res_fit ** 2).sum())
+    bic = n_fit * np.log(max(rss_w, 1e-300) / n_fit) + k * np.log(n_fit)
+    mse = float((res ** 2).sum() / n_ho)
+    return Fitted(state, list(names), res, mse if np.isfinite(mse) else np.inf, float(bic), k)
+
+
+def paired(a: Fitted, b: Fitted, valid_ho):
+    """Mean and standard error of the held-out squared-error gain of b over a."""
+    d = a.res[valid_ho] ** 2 - b.res[valid_ho] ** 2
+    return float(d.mean()), float(d.std() / np.sqrt(max(d.size, 1)))
+
+
+def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_light: int,
+           candidates: list, label: str) -> Fitted:
+    """Add effects while one beats the current model by more than the noise allows."""
+    current = start
+    for round_ in range(len(names)):
+        best = None
+        for name in names:
+            if name in current.names:
+                continue
+            trial = evaluate(fitpredict(current.names + [name], data, current.state), 
+                             current.names + [name], data, n_pix, n_light)
+            gain, se = paired(current, trial, data.valid_ho)
+            systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
+            entry = {"name": name, "base": label, "round": round_ + 1,
+                     "heldout_rms_dn": float(np.sqrt(trial.mse)), "criterion": trial.bic,
+                     "criterion_name": "BIC (fit half, weighted)",
+                     "heldout_mse_gain_dn2": gain, "gain_standard_error_dn2": se,
+                     "explained_fraction_of_systematic": float(gain / systematic2),
+                     "params": describe_params(name, trial.state.effects[name][0]),
+                     "selected_in_round": False}
+            candidates.append(entry)
+            floor2 = (MIN_GAIN_OF_NOISE * noise_floor) ** 2
+            beats = (np.isfinite(trial.mse) and np.isfinite(trial.bic)
+                     and current.mse - noise_floor ** 2 > floor2
+                     and gain > SELECT_SIGMAS * se and gain > floor2
+                     and gain > MIN_EXPLAINED * systematic2)
+            if beats and (best is None or trial.bic < best[0].bic):
+                best = (trial, entry)
+        if best is None:
+            break
+        best[1]["selected_in_round"] = True
+        current = best[0]
+    return current
+
+
+def equally_good(a: Fitted, b: Fitted, valid_ho, noise_floor) -> bool:
+    """b's held-out error is not measurably worse than a's."""
+    gain, se = paired(a, b, valid_ho)  # > 0: b better
+    return gain > -(TIE_SIGMAS * se + (0.5 * MIN_GAIN_OF_NOISE * noise_floor) ** 2)
+
+
+def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_floor, n_pix,
+                  n_light, design, candidates) -> tuple[Fitted, dict]:
+    """Is the bending of the response leakage? Compare the leakage model (with its selected
+    effects) to a linear response with a readout nonlinearity (signal only) and its own
+    selected effects; keep the simpler one where both are equally good on held-out data."""
+    rn = "readout_nonlinearity"
+    shape_only = ("every signal level is reached at one light rate in this design, so leakage "
+                  "and a readout nonlinearity differ only in the shape of the response")
+    by_rate = ("this design reaches equal signal at different light rates, where leakage (which "
+               "depends on the light rate) and a readout nonlinearity (signal only) differ")
+    why_design = by_rate if design.rate_at_equal_signal else shape_only
+    out = {"design_separates_by_light_rate": design.rate_at_equal_signal}
+    if rn not in names:
+        out.update(verdict="not tested", reason=(
+            f"{rn} is not a candidate, or not identifiable next to a linear response"))
+        return leak, out
+    alt_names = [n for n in leak.names if n in names and n != rn] + [rn]
+    alt = evaluate(fitpredict(alt_names, data, linear_start.state), alt_names, data, n_pix,
+                   n_light)
+    if not equally_good(leak, alt, data.valid_ho, noise_floor):
+        gain, se = paired(alt, leak, data.valid_ho)
+        out.update(verdict="needed", heldout_rms_leakage_dn=float(np.sqrt(leak.mse)),
+                   heldout_rms_without_dn=float(np.sqrt(alt.mse)), reason=(
+                       f"a linear response with a readout nonlinearity fits the held-out data "
+                       f"worse ({np.sqrt(alt.mse):.4g} against {np.sqrt(leak.mse):.4g} DN, "
+                       f"{gain / max(se, 1e-300):.0f} standard errors); {why_design}"))
+        return leak, out
+    linear = greedy(linear_start, names, data, noise_floor, n_pix, n_light, candidates,
+                    label="linear")
+    if not equally_good(leak, linear, data.valid_ho, noise_floor):
+        linear = alt  # the greedy search stopped short of a model known to be as good
+    what = f"a linear response with {', '.join(linear.names) or 'no effect'}"
+    out.update(heldout_rms_leakage_dn=float(np.sqrt(leak.mse)),
+               heldout_rms_without_dn=float(np.sqrt(linear.mse)))
+    if linear.bic >= leak.bic:
+        out.update(verdict="cannot tell", reason=(
+            f"{what} fits the held-out data as well, but not more simply (BIC); {why_design}; "
+            "the leakage model is kept"))
+        return leak, out
+    leak_worse = not equally_good(linear, leak, data.valid_ho, noise_floor)
+    verdict = "not needed" if (leak_worse or design.rate_at_equal_signal) else "cannot tell"
+    out.update(verdict=verdict, reason=(
+        f"{what} fits the held-out data as well as the leakage model "
+        f"({np.sqrt(linear.mse):.4g} against {np.sqrt(leak.mse):.4g} DN) with fewer parameters "
+        f"(BIC {linear.bic:.6g} against {leak.bic:.6g}); {why_design}"
+        + ("" if verdict == "not needed" else
+           "; the simpler model is kept and the bending is not blamed on leakage")))
+    return linear, out
