@@ -23,8 +23,8 @@ from ..sweep import Sweep
 from . import design as ds
 from .bases import LeakageBase, LinearBase
 from .effects import ALIASES, EFFECTS, OUTSIDE, inject
-from .fitting import (Data, State, context, describe_params, fitpredict, projector, refit_base,
-                      separable_fraction)
+from .fitting import (Data, State, context, describe_params, fitpredict, gram, projector,
+                      refit_base, separable_fraction)
 from .select import RULE, evaluate, greedy, leakage_check
 from .structure import groupings, structure
 
@@ -41,9 +41,9 @@ def list_effects() -> list[dict]:
 def _prediction_variance(base, theta, data):
     """Variance the base fit's own noise adds to each prediction (linearised: j C j^T)."""
     _, jac, *_ = base.evaluate(theta, data.t, data.r)
-    normal = np.einsum("psi,ps,psj->pij", jac, data.w, jac)
+    normal = gram(jac, data.w, jac)
     normal += 1e-9 * (np.einsum("pii->p", normal)[:, None, None] + 1e-30) * np.eye(jac.shape[-1])
-    return np.clip(np.einsum("psi,pij,psj->ps", jac, np.linalg.pinv(normal), jac), 0, None)
+    return np.clip((np.matmul(jac, np.linalg.pinv(normal)) * jac).sum(axis=-1), 0, None)
 
 
 def _identifiable(names, base, theta, data, des, dark_desc):
@@ -202,7 +202,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         if not smp["pairs"]:
             y_sim_ho = y_sim
         sim_data = Data(**{**data.__dict__, "y": y_sim, "y_ho": y_sim_ho})
-        sim = (fitpredict(selected, sim_data, current, rounds=2) if selected
+        sim = (fitpredict(selected, sim_data, current, quick=True) if selected
                else refit_base(y_sim, sim_data, current))
         sim_res = np.where(valid_ho, y_sim_ho - sim.prediction - sim.ho_extra, 0.0)
         for f in structure(sim_res, valid_ho, groups, noise_floor)[0]:

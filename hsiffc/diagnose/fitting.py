@@ -70,17 +70,22 @@ def context(base, theta, data: Data):
     return m, jac, ctx
 
 
+def gram(a, w, b):
+    """Per pixel a^T W b: (P, S, i), (P, S), (P, S, j) -> (P, i, j), as batched matmuls."""
+    return np.matmul((a * w[..., None]).transpose(0, 2, 1), b)
+
+
 def projector(jac, w):
     """Per pixel, the map v -> v - J (J^T W J)^-1 J^T W v (what the base cannot absorb)."""
-    normal = np.einsum("psi,ps,psj->pij", jac, w, jac)
+    normal = gram(jac, w, jac)
     normal += 1e-9 * (np.einsum("pii->p", normal)[:, None, None] + 1e-30) * np.eye(jac.shape[-1])
     inv = np.linalg.pinv(normal)
+    jw_t = (jac * w[..., None]).transpose(0, 2, 1)  # (P, n, S)
 
     def project(v):  # v: (P, S) or (P, S, m)
         squeeze = v.ndim == 2
         vv = v[..., None] if squeeze else v
-        coef = np.einsum("pij,psj,ps,psm->pim", inv, jac, w, vv)
-        out = vv - np.einsum("psi,pim->psm", jac, coef)
+        out = vv - np.matmul(jac, np.matmul(inv, np.matmul(jw_t, vv)))
         return out[..., 0] if squeeze else out
     return project
 
@@ -94,8 +99,8 @@ def separable_fraction(effect, ctx, project, w) -> float:
     X = effect.columns(ctx)
     Xp = project(X)
     if effect.scope == "global":
-        g = np.einsum("psi,ps,psj->ij", X, w, X)
-        gp = np.einsum("psi,ps,psj->ij", Xp, w, Xp)
+        g = gram(X, w, X).sum(axis=0)
+        gp = gram(Xp, w, Xp).sum(axis=0)
         if not np.all(np.isfinite(g)) or np.trace(g) <= 0:
             return 0.0
         scale = np.sqrt(np.clip(np.diag(g), 1e-300, None))
@@ -105,8 +110,8 @@ def separable_fraction(effect, ctx, project, w) -> float:
         except (linalg.LinAlgError, ValueError):
             return 0.0
         return float(max(ev.min(), 0.0))
-    num = np.einsum("psi,ps,psi->p", Xp, w, Xp)
-    den = np.einsum("psi,ps,psi->p", X, w, X)
+    num = (Xp * Xp * w[..., None]).sum(axis=(1, 2))
+    den = (X * X * w[..., None]).sum(axis=(1, 2))
     ok = den > 0
     return float(np.median(num[ok] / den[ok])) if ok.any() else 0.0
 
@@ -118,16 +123,16 @@ def fit_effect(effect, ctx, res, w, project=None):
     Xp = project(X) if joint else X
     rp = project(res) if joint else res
     if effect.scope == "global":
-        a = np.einsum("psi,ps,psj->ij", Xp, w, Xp)
-        b = np.einsum("psi,ps,ps->i", Xp, w, rp)
+        a = gram(Xp, w, Xp).sum(axis=0)
+        b = gram(Xp, w, rp[..., None]).sum(axis=0)[:, 0]
         theta = np.linalg.lstsq(a + 1e-12 * np.trace(a) * np.eye(a.shape[0]), b, rcond=None)[0]
-        return theta, np.einsum("psi,i->ps", X, theta)
+        return theta, X @ theta
     if effect.scope == "pixel":
-        a = np.einsum("psi,ps,psj->pij", Xp, w, Xp)
-        b = np.einsum("psi,ps,ps->pi", Xp, w, rp)
+        a = gram(Xp, w, Xp)
+        b = gram(Xp, w, rp[..., None])
         a = a + 1e-9 * (np.einsum("pii->p", a)[:, None, None] + 1e-30) * np.eye(a.shape[1])
-        theta = np.linalg.solve(a, b[..., None])[..., 0]
-        return theta, np.einsum("psi,pi->ps", X, theta)
+        theta = np.linalg.solve(a, b)[..., 0]
+        return theta, np.matmul(X, theta[..., None])[..., 0]
     # step: one factor per light step, shared by the pixels
     x = X[..., 0]
     num = (w * x * res).sum(axis=0)
@@ -162,8 +167,15 @@ def cost(state, data: Data) -> float:
     return float((data.w * res * res).sum())
 
 
-def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=15) -> State:
-    """Fit the base + the named effects jointly (see the module docstring)."""
+def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=15,
+               quick=False) -> State:
+    """Fit the base + the named effects jointly (see the module docstring).
+
+    With ``quick``, effects small against the noise (RMS below ``BIG_EFFECT`` sigma) stop after
+    the first joint step: the base model's response to them is its linearised least-squares
+    update (exact to first order), with no nonlinear refit; ``state.theta`` is then that of
+    ``state0``. Large effects are always iterated to convergence.
+    """
     base = state0.base
     state = State(base, state0.theta.copy())
     plain = [n for n in names if EFFECTS[n].scope != "pair"]
@@ -180,6 +192,10 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=15
         # an effect that moves the data by more than its noise has distorted the base it was
         # first fitted against: refit the base from fresh starts too (per pixel the best)
         big = first and np.mean(data.w * added ** 2, where=data.valid) > BIG_EFFECT ** 2
+        if quick and first and not big:  # linearised base update, no refit
+            res = np.where(data.valid, data.y - m - total, 0.0)
+            state.prediction = m + (res - project(res)) + total
+            return _pair_effects(names, state, ctx, data)
         refit = base.restart if big else base.fit
         state.theta = refit(data.y - total, data.t, data.r, data.valid, data.w, state.theta,
                             max_iter=base_iter)
@@ -194,16 +210,26 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=15
         res = np.where(data.valid, data.y - m - state.sum_effects(m.shape, skip=name), 0.0)
         state.effects[name] = fit_effect(EFFECTS[name], ctx, res, data.w)
     state.prediction = m + state.sum_effects(m.shape)
+    return _pair_effects(names, state, ctx, data)
+
+
+def _pair_effects(names, state, ctx, data):
     for name in names:
         if EFFECTS[name].scope == "pair":
             state.effects[name] = fit_pair_effect(EFFECTS[name], ctx, data, state.prediction)
             state.ho_extra = state.ho_extra + state.effects[name][1]
+    if state.prediction is None:
+        state.prediction = state.base.predict(state.theta, data.t, data.r)
     return state
 
 
 def refit_base(y, data: Data, state0: State) -> State:
-    st = State(state0.base, state0.base.fit(y, data.t, data.r, data.valid, data.w, state0.theta))
-    st.prediction = st.base.predict(st.theta, data.t, data.r)
+    """The base model refitted to ``y`` near ``state0``, linearised (one Gauss-Newton step;
+    used on data simulated from ``state0`` itself, where that step is the fit)."""
+    m, jac, _ = context(state0.base, state0.theta, data)
+    res = np.where(data.valid, y - m, 0.0)
+    st = State(state0.base, state0.theta)
+    st.prediction = m + (res - projector(jac, data.w)(res))
     return st
 
 

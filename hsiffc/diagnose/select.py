@@ -60,7 +60,7 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         for name in names:
             if name in current.names:
                 continue
-            trial = evaluate(fitpredict(current.names + [name], data, current.state), 
+            trial = evaluate(fitpredict(current.names + [name], data, current.state, quick=True),
                              current.names + [name], data, n_pix, n_light)
             gain, se = paired(current, trial, data.valid_ho)
             systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
@@ -82,7 +82,8 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         if best is None:
             break
         best[1]["selected_in_round"] = True
-        current = best[0]
+        chosen = best[0].names
+        current = evaluate(fitpredict(chosen, data, current.state), chosen, data, n_pix, n_light)
     return current
 
 
