@@ -38,9 +38,13 @@ def list_effects() -> list[dict]:
              "summary": e.summary} for e in EFFECTS.values()]
 
 
-def _prediction_variance(base, theta, data):
-    """Variance the base fit's own noise adds to each prediction (linearised: j C j^T)."""
-    _, jac, *_ = base.evaluate(theta, data.t, data.r)
+def _prediction_variance(base, theta, data, state=None):
+    """Variance the fit's own noise adds to each prediction (linearised: j C j^T), of the base
+    model or (with ``state``) of the base with the per-pixel effects of a fitted model."""
+    _, jac, ctx = context(base, theta, data)
+    if state is not None:
+        cols = [EFFECTS[n].columns(ctx) for n in state.effects if EFFECTS[n].scope == "pixel"]
+        jac = np.concatenate([jac] + cols, axis=-1)
     normal = gram(jac, data.w, jac)
     normal += 1e-9 * (np.einsum("pii->p", normal)[:, None, None] + 1e-30) * np.eye(jac.shape[-1])
     return np.clip((np.matmul(jac, np.linalg.pinv(normal)) * jac).sum(axis=-1), 0, None)
@@ -210,10 +214,14 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     findings, unexplained = structure(final.res, valid_ho, groups, noise_floor, null=null)
     findings_before, _ = structure(base_fit.res, valid_ho, groups, noise_floor, null=null)
 
-    def figs(mse):
+    def figs(mse, floor):
         rms = float(np.sqrt(mse))
-        return {"rms_dn": rms,
-                "systematic_rms_dn": float(np.sqrt(max(rms ** 2 - noise_floor ** 2, 0.0)))}
+        return {"rms_dn": rms, "noise_floor_dn": floor,
+                "systematic_rms_dn": float(np.sqrt(max(rms ** 2 - floor ** 2, 0.0)))}
+
+    # the final model's own fit noise (its base may be less well determined next to an effect)
+    pv_final = _prediction_variance(current.base, current.theta, data, current)
+    floor_after = float(np.sqrt(np.mean((noise2 + pv_final)[valid_ho])))
 
     chosen = []
     for name in selected:
@@ -232,7 +240,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         "noise_floor_dn": noise_floor,
         "noise_source": ("frame pairs (second minus first frame of every step)" if smp["pairs"]
                          else "spread of the held-out residual across pixels within a step"),
-        "before": figs(base_fit.mse), "after": figs(final.mse),
+        "before": figs(base_fit.mse, noise_floor), "after": figs(final.mse, floor_after),
         "selected_effects": selected, "effects": chosen, "skipped": skipped,
         "candidates": candidates, "unexplained": bool(unexplained),
         "residual_structure_after": findings, "residual_structure_before": findings_before,

@@ -18,7 +18,7 @@ from scipy import linalg
 
 from .effects import EFFECTS, Context
 
-MAX_ROUNDS = 8
+MAX_ROUNDS = 16
 ROUND_TOL = 1e-4  # relative fall of the weighted cost that ends the alternation
 BIG_EFFECT = 2.0  # RMS of a newly added effect, in noise sigmas, that calls for fresh base starts
 
@@ -167,7 +167,7 @@ def cost(state, data: Data) -> float:
     return float((data.w * res * res).sum())
 
 
-def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=15,
+def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=40,
                quick=False) -> State:
     """Fit the base + the named effects jointly (see the module docstring).
 
