@@ -177,12 +177,18 @@ def _cmd_diagnose(args) -> int:
     except ValueError as exc:
         raise HsiffcError(str(exc)) from exc
     b, a = result["before"], result["after"]
-    print(f"noise floor {result['noise_floor_dn']:.4g} DN; held-out RMS {b['rms_dn']:.4g} DN "
-          f"(systematic {b['systematic_rms_dn']:.4g}) with the base model, {a['rms_dn']:.4g} DN "
-          f"(systematic {a['systematic_rms_dn']:.4g}) with {result['selected_effects'] or 'no'} "
-          "effects")
+    print(f"held-out: {result['held_out']}; noise floor {result['noise_floor_dn']:.4g} DN "
+          f"({result['noise_source']})")
+    print(f"base model: {result['base_model']}")
+    print(f"held-out RMS {b['rms_dn']:.4g} DN (systematic {b['systematic_rms_dn']:.4g}) with the "
+          f"base model, {a['rms_dn']:.4g} DN (systematic {a['systematic_rms_dn']:.4g}) with "
+          f"{result['selected_effects'] or 'no'} effects")
     for e in result["effects"]:
         print(f"  {e['name']}: {e['interpretation']}")
+    print(f"  dark model: {result['dark_model']['model']}")
+    print(f"  leakage: {result['leakage']['verdict']} ({result['leakage']['reason']})")
+    for s_ in result["skipped"]:
+        print(f"  skipped {s_['name']}: {s_['reason']}")
     print("  unexplained structure remains" if result["unexplained"]
           else "  no structure beyond the noise remains")
     print(f"  ({result['runtime_s']:.1f} s)")

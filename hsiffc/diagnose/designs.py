@@ -65,8 +65,8 @@ def write_emva1288(sweep: Sweep, folder, *, overwrite: bool = False) -> Path:
 
     Raises
     ------
-    FileExistsError
-        The descriptor exists and ``overwrite`` is false.
+    hsiffc.atomic.OutputExistsError
+        A file to write exists and ``overwrite`` is false.
     ValueError
         A light step has no photon count.
     """
@@ -74,8 +74,6 @@ def write_emva1288(sweep: Sweep, folder, *, overwrite: bool = False) -> Path:
 
     folder = Path(folder)
     descriptor = folder / "EMVA1288_Data.txt"
-    if descriptor.exists() and not overwrite:
-        raise FileExistsError(f"{descriptor}: exists; pass overwrite=True to replace it")
     light = sweep.kind == "light"
     if np.any(light & ~np.isfinite(sweep.photons)):
         raise ValueError("every light frame needs a photon count (sweep.photons) to be written "
@@ -96,8 +94,8 @@ def write_emva1288(sweep: Sweep, folder, *, overwrite: bool = False) -> Path:
             ok, buf = cv2.imencode(".png", np.ascontiguousarray(sweep.data[f]).astype(dtype))
             if not ok:
                 raise OSError(f"{folder / name}: PNG encoding failed")
-            with atomic_path(folder / name) as tmp:
+            with atomic_path(folder / name, overwrite=overwrite) as tmp:
                 Path(tmp).write_bytes(buf.tobytes())
             lines.append(f"i {name}")
-    atomic_write_text(descriptor, "\n".join(lines) + "\n")
+    atomic_write_text(descriptor, "\n".join(lines) + "\n", overwrite=overwrite)
     return descriptor

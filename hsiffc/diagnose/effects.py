@@ -60,6 +60,14 @@ def _stack(*cols):
     return np.stack(np.broadcast_arrays(*cols), axis=-1)
 
 
+def _dy_dk(c):
+    """dY/dk: how the response moves with an extra rate collected in the well (DN per DN/ms);
+    the exposure for darks (no leakage there)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        light = np.where(c.k > 0, c.dydlnk / np.where(c.k > 0, c.k, 1.0), c.t)
+    return np.where(c.light[None, :], light, c.t)
+
+
 EFFECTS: dict[str, Effect] = {}
 
 
@@ -72,7 +80,7 @@ _register(Effect(
     "dark_current",
     "dark signal growing with exposure, per pixel (thermal generation; EMVA 1288 dark current)",
     "pixel", ("dark_current_dn_per_ms",),
-    lambda c: _stack(c.t),
+    lambda c: _stack(_dy_dk(c)),
     lambda p: (f"the dark level rises by {p['median_dark_current_dn_per_ms']:.3g} DN/ms "
                "(median pixel): thermally generated charge, which grows with exposure and "
                "temperature"),

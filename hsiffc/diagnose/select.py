@@ -56,7 +56,7 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
     """Add effects while one beats the current model by more than the noise allows."""
     current = start
     for round_ in range(len(names)):
-        best = None
+        passed = []
         for name in names:
             if name in current.names:
                 continue
@@ -77,10 +77,13 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                      and current.mse - noise_floor ** 2 > floor2
                      and gain > SELECT_SIGMAS * se and gain > floor2
                      and gain > MIN_EXPLAINED * systematic2)
-            if beats and (best is None or trial.bic < best[0].bic):
-                best = (trial, entry)
-        if best is None:
+            if beats:
+                passed.append((trial, entry))
+        if not passed:
             break
+        # among those that pass, the most parsimonious (lowest BIC): a per-step effect predicts
+        # the held-out frame of its own step and would otherwise absorb what is common to a step
+        best = min(passed, key=lambda p: p[0].bic)
         best[1]["selected_in_round"] = True
         chosen = best[0].names
         current = evaluate(fitpredict(chosen, data, current.state), chosen, data, n_pix, n_light)
