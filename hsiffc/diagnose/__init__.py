@@ -34,6 +34,8 @@ MIN_LIGHT_STEPS = 4
 
 
 def list_effects() -> list[dict]:
+    """The effect library: one dict per effect with ``name``, ``scope``, ``params`` and
+    ``summary`` (what ``hsiffc diagnose --list-effects`` prints)."""
     return [{"name": e.name, "scope": e.scope, "params": list(e.param_names),
              "summary": e.summary} for e in EFFECTS.values()]
 

@@ -22,7 +22,26 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibrate import fit_pixels, initial_guess, model_and_jacobian, predict
-from ..calibrate.joint import dark_current_from_darks
+
+def weighted_line(x, z, w):
+    """Per row, the weighted least-squares line ``z = intercept + slope x``; arrays (P, S).
+    Returns (slope, intercept, ok) of shape (P,); ok is False where x does not vary."""
+    sw, sx, sz = w.sum(1), (w * x).sum(1), (w * z).sum(1)
+    sxx, sxz = (w * x * x).sum(1), (w * x * z).sum(1)
+    det = sw * sxx - sx ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = (sw * sxz - sx * sz) / det
+        icpt = (sz - slope * sx) / sw
+    ok = np.isfinite(slope) & np.isfinite(icpt) & (det > 1e-12 * np.maximum(sw * sxx, 1e-300))
+    return np.where(ok, slope, 0.0), np.where(ok, icpt, 0.0), ok
+
+
+def dark_current_from_darks(y, t, r, valid, w):
+    """Per-pixel dark current (P,) in DN/ms: the weighted slope of the dark samples (r = 0)
+    against exposure; 0 where they do not span two exposures."""
+    wd = np.where(valid & (np.broadcast_to(r, y.shape) == 0), w, 0.0)
+    return weighted_line(np.broadcast_to(t, y.shape), np.where(wd > 0, y, 0.0), wd)[0]
+
 
 LINEAR_LN_A = -60.0  # ln a (DN/ms) of a leakage parameter set that is a straight line in practice
 LINEAR_LN_B = float(np.log(0.01))
@@ -80,16 +99,9 @@ class LinearBase(_Base):
         if theta0 is None:
             theta0 = np.zeros((y.shape[0], 3))
         dc = self.measure_dc(y, t, r, valid, w, theta0)
-        u = np.broadcast_to(r * t, y.shape)
-        z = y - dc[:, None] * t
         ww = np.where(valid, w, 0.0)
-        sw, su, sz = ww.sum(1), (ww * u).sum(1), (ww * z).sum(1)
-        suu, suz = (ww * u * u).sum(1), (ww * u * z).sum(1)
-        det = sw * suu - su ** 2
-        with np.errstate(invalid="ignore", divide="ignore"):
-            g = (sw * suz - su * sz) / det
-            d = (sz - g * su) / sw
-        ok = np.isfinite(g) & np.isfinite(d) & (det > 1e-12 * np.maximum(sw * suu, 1e-300))
+        g, d, ok = weighted_line(np.broadcast_to(r * t, y.shape),
+                                 np.where(valid, y - dc[:, None] * t, 0.0), ww)
         new = np.column_stack([g, d, dc])
         return np.where(ok[:, None], new, theta0)
 

@@ -13,10 +13,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..calibrate.joint import dark_current_from_darks
 from ..calibrate.samples import collect_samples, photon_transfer
 from ..errors import DataFormatError
 from ..sweep import Sweep
+from .bases import dark_current_from_darks
 
 MIN_SEPARABLE = 0.02  # smallest fraction of an effect the base must leave separable
 
