@@ -60,6 +60,10 @@ class FixedPattern:
     n_pixels : (bands,) int
         Pixels used.
     n_frames : int
+    fpn_se_percent : (bands,) float
+        Standard error of ``fpn_percent`` from the finite number of pixels and frames (normal
+        noise): ``var(s2_fixed) = 2 (s2_fixed + sigma2_t / L)^2 / P + 2 sigma2_t^2 / (P L^2 (L - 1))``,
+        propagated to the percentage (at least ``100 sqrt(SE of the variance) / mean``).
     """
 
     mean_dn: np.ndarray
@@ -70,6 +74,7 @@ class FixedPattern:
     eq6_percent: np.ndarray
     n_pixels: np.ndarray
     n_frames: int
+    fpn_se_percent: np.ndarray | None = None
 
     @property
     def pooled_fpn_percent(self) -> float:
@@ -87,7 +92,7 @@ class FixedPattern:
         """JSON-safe dict (lists per band, pooled figures)."""
         out = {k: np.asarray(getattr(self, k)).tolist() for k in (
             "mean_dn", "fpn_var_dn2", "fpn_dn", "fpn_percent", "temporal_dn", "eq6_percent",
-            "n_pixels")}
+            "n_pixels", "fpn_se_percent")}
         out.update(n_frames=self.n_frames, pooled_fpn_percent=self.pooled_fpn_percent,
                    pooled_eq6_percent=self.pooled_eq6_percent)
         return out
@@ -191,11 +196,15 @@ def fixed_pattern_nonuniformity(stack, band_map=None, *, dark=None, mask=None) -
     mean, fpn, tvar, eq6, npx = (np.array(c) for c in zip(*rows))
     fpn_dn = np.sqrt(np.clip(np.nan_to_num(fpn, nan=0.0), 0.0, None))
     fpn_dn = np.where(np.isfinite(fpn), fpn_dn, np.nan)
+    n_fr = int(s.shape[0])
     with np.errstate(divide="ignore", invalid="ignore"):
         pct = 100.0 * fpn_dn / mean
+        var_se = np.sqrt(2 * (np.clip(fpn, 0, None) + tvar / n_fr) ** 2 / npx
+                         + 2 * tvar ** 2 / (npx * n_fr ** 2 * (n_fr - 1)))
+        se_pct = 100.0 * var_se / (2 * np.maximum(fpn_dn, np.sqrt(var_se))) / mean
     return FixedPattern(mean_dn=mean, fpn_var_dn2=fpn, fpn_dn=fpn_dn, fpn_percent=pct,
                         temporal_dn=np.sqrt(tvar), eq6_percent=eq6, n_pixels=npx.astype(np.int64),
-                        n_frames=int(s.shape[0]))
+                        n_frames=n_fr, fpn_se_percent=se_pct)
 
 
 def _eq6(values) -> float:

@@ -85,3 +85,13 @@ def test_before_after_two_point_on_simulated_flat():
     assert r["before"].pooled_fpn_percent == pytest.approx(1.0, abs=0.2)
     assert r["after"].pooled_fpn_percent < 0.6
     assert r["improvement_percent_points"] > 0.4
+
+
+def test_standard_error_matches_the_spread_over_repeats():
+    rng = np.random.default_rng(8)
+    pattern = 100.0 * (1 + 0.004 * rng.standard_normal((64, 64)))
+    results = [fixed_pattern_nonuniformity(pattern + 2.0 * rng.standard_normal((2, 64, 64)))
+               for _ in range(60)]
+    pct = np.array([r.fpn_percent[0] for r in results])
+    se = np.median([r.fpn_se_percent[0] for r in results])
+    assert pct.std() == pytest.approx(se, rel=0.3)
