@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import model
+from .bandstats import band_reduce
 from .dq import DQ, DQ_DTYPE
 
 __all__ = ["FlatStack", "ModelFlat", "relative_responsivity", "flat_responsivity",
@@ -36,17 +37,6 @@ __all__ = ["FlatStack", "ModelFlat", "relative_responsivity", "flat_responsivity
 
 #: calibration flags that make a pixel's responsivity unusable (gain 1 and NO_FLAT)
 UNUSABLE = DQ.DO_NOT_USE | DQ.NOT_CONVERGED
-
-
-def _band_mean(values, band_map, good) -> np.ndarray:
-    """Mean per band over good finite pixels (NaN for an empty band), (n_bands,)."""
-    v = np.asarray(values, np.float64)
-    use = np.asarray(good, bool) & np.isfinite(v)
-    n = int(band_map.max()) + 1
-    sums = np.bincount(band_map[use], weights=v[use], minlength=n)
-    counts = np.bincount(band_map[use], minlength=n)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
 
 
 @dataclass(frozen=True)
@@ -125,7 +115,7 @@ def relative_responsivity(responsivity, band_map, good) -> np.ndarray:
     """``g / mean_band(g)`` over the good pixels (NaN where g is not positive and finite)."""
     g = np.asarray(responsivity, np.float64)
     ok = np.asarray(good, bool) & np.isfinite(g) & (g > 0)
-    mean = _band_mean(g, band_map, ok)[band_map]
+    mean = band_reduce(g, band_map, ok)[band_map]
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(ok, g / mean, np.nan)
 

@@ -225,8 +225,8 @@ def uniformity_before_after(frames, pipeline, *, dark=None) -> dict:
         Anything with ``transform(frame) -> Frame``.
     dark : (H, W) array or float, optional, DN
         Subtracted from the raw frames for "before" (so both sides are signal above dark).
-        Default: the dark the pipeline removed, when the corrected frame records it (attribute
-        ``dark`` or ``meta["dark_removed"]``), else none.
+        Default: the dark the pipeline removed (the corrected frame's ``dark_removed``), else
+        none.
 
     Returns
     -------
@@ -246,9 +246,7 @@ def uniformity_before_after(frames, pipeline, *, dark=None) -> dict:
                          f"{out.shape[1:]}); compare before reconstruction")
     good = np.all([f.dq == 0 for f in frames] + [c.dq == 0 for c in corrected], axis=0)
     if dark is None:
-        dark = getattr(corrected[0], "dark", None)
-        if dark is None:
-            dark = corrected[0].meta.get("dark_removed")
+        dark = corrected[0].dark_removed
     band_map = frames[0].band_map()
     before = fixed_pattern_nonuniformity(raw, band_map, dark=dark, mask=good)
     after = fixed_pattern_nonuniformity(out, band_map, mask=good)

@@ -36,7 +36,7 @@ def sample_cal(sample_cubes, tmp_path_factory):
 
 
 def _params_for(name, cal_path):
-    needs_cal = {"alpha_mask", "linearise", "two_point_ffc"}
+    needs_cal = {"alpha_mask", "linearise", "two_point_ffc", "model_ffc"}
     return {"calibration": str(cal_path)} if name in needs_cal else {}
 
 

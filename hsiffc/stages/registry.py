@@ -28,6 +28,7 @@ BUILTIN = {
     "two_point_ffc": "hsiffc.stages.ffc:TwoPointFFC",
     "polynomial_ffc": "hsiffc.stages.ffc:PolynomialFFC",
     "linearise": "hsiffc.stages.linearise:LeakageLinearise",
+    "model_ffc": "hsiffc.stages.model_ffc:ModelFFC",
     "reconstruct": "hsiffc.stages.reconstruct:Reconstruct",
 }
 

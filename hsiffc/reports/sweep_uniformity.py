@@ -1,0 +1,182 @@
+"""Fixed-pattern non-uniformity of every step of a sweep, raw and after corrections.
+
+Used by ``hsiffc uniformity`` and the FFC study (:mod:`hsiffc.reports.ffc_study`). For every
+light step with two or more frames: exposure, signal level (DN above dark), the fractions of
+clipped and flagged pixels, and per correction eq. (6) and the fixed-pattern non-uniformity of
+:mod:`hsiffc.uniformity` (temporal noise removed). All methods of a step are measured over the
+same pixels: those with no DQ bit set in any raw or corrected frame of the step.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..dq import DQ
+from ..uniformity import FixedPattern, fixed_pattern_nonuniformity
+
+__all__ = ["SIGNAL_RANGES_DN", "StepUniformity", "step_uniformity", "sweep_uniformity",
+           "summarise", "to_json", "plot_uniformity"]
+
+log = logging.getLogger(__name__)
+
+#: signal ranges (DN above dark) of the summary: low light, linear range, upper range, top
+SIGNAL_RANGES_DN = ((5.0, 30.0), (30.0, 100.0), (100.0, 200.0), (200.0, 255.0))
+#: steps with more clipped pixels than this are listed but left out of the summary
+MAX_CLIPPED_FRACTION = 0.01
+
+
+@dataclass
+class StepUniformity:
+    """Uniformity of one sweep step, raw and per correction (pooled over bands)."""
+
+    step: int
+    exposure_ms: float
+    signal_dn: float
+    clipped_fraction: float
+    flagged_fraction: float
+    raw: FixedPattern
+    corrected: dict = field(default_factory=dict)  # name -> FixedPattern
+
+    def figures(self, name: str | None = None) -> dict:
+        """``{"eq6_percent", "fpn_percent"}`` of the raw frames (name None) or a correction."""
+        fp = self.raw if name is None else self.corrected[name]
+        return {"eq6_percent": fp.pooled_eq6_percent, "fpn_percent": fp.pooled_fpn_percent}
+
+
+def step_uniformity(frames, corrections: dict, *, dark=None) -> StepUniformity:
+    """Fixed-pattern non-uniformity of one step's frames, raw and after each correction.
+
+    Parameters
+    ----------
+    frames : list of Frame
+        >= 2 raw frames of one step.
+    corrections : dict of name -> object with ``transform(frame)``
+        Fitted pipelines or stages (may be empty).
+    dark : (H, W) array or float, optional, DN
+        Subtracted from the raw frames (default: the dark the first correction removed, else
+        none).
+    """
+    frames = list(frames)
+    raw = np.stack([f.data for f in frames])
+    outs = {name: [c.transform(f) for f in frames] for name, c in corrections.items()}
+    clipped = np.any([(f.dq & int(DQ.SATURATED)) != 0 for f in frames], axis=0)
+    bad = np.any([f.dq != 0 for f in frames], axis=0)
+    for out in outs.values():
+        bad |= np.any([o.dq != 0 for o in out], axis=0)
+    if dark is None:
+        dark = next((o[0].dark_removed for o in outs.values()
+                     if o[0].dark_removed is not None), None)
+    band_map = frames[0].band_map()
+    good = ~bad
+    raw_fp = fixed_pattern_nonuniformity(raw, band_map, dark=dark, mask=good)
+    corrected = {name: fixed_pattern_nonuniformity(np.stack([o.data for o in out]), band_map,
+                                                   mask=good) for name, out in outs.items()}
+    signal = raw.mean(axis=0) - (0.0 if dark is None else dark)
+    return StepUniformity(step=int(frames[0].meta.get("step", -1)),
+                          exposure_ms=frames[0].exposure_ms,
+                          signal_dn=float(np.mean(signal[good])) if good.any() else float("nan"),
+                          clipped_fraction=float(clipped.mean()),
+                          flagged_fraction=float(bad.mean()), raw=raw_fp, corrected=corrected)
+
+
+def sweep_uniformity(frames, corrections: dict, *, dark_for=None, steps=None) -> list:
+    """:func:`step_uniformity` for every light step with two or more frames.
+
+    Parameters
+    ----------
+    frames : list of Frame
+        The sweep's frames (``meta["step"]`` groups them; else exposure and illumination).
+    corrections : dict of name -> fitted pipeline or stage
+    dark_for : callable, optional
+        ``dark_for(exposure_ms) -> (H, W)`` dark for the raw figures (default: the dark the
+        first correction removed).
+    steps : iterable of int, optional
+        Only these steps.
+    """
+    groups: dict = {}
+    for f in frames:
+        if f.kind != "light" or f.is_cube:
+            continue
+        key = f.meta.get("step", (f.exposure_ms, f.meta.get("illumination", "")))
+        groups.setdefault(key, []).append(f)
+    wanted = None if steps is None else set(int(s) for s in steps)
+    out = []
+    for key, group in groups.items():
+        if len(group) < 2 or (wanted is not None and key not in wanted):
+            continue
+        dark = None if dark_for is None else dark_for(group[0].exposure_ms)
+        out.append(step_uniformity(group, corrections, dark=dark))
+        log.debug("step %s: %.1f DN", key, out[-1].signal_dn)
+    return sorted(out, key=lambda s: s.signal_dn)
+
+
+def summarise(steps, methods, *, ranges=SIGNAL_RANGES_DN,
+              max_clipped_fraction: float = MAX_CLIPPED_FRACTION) -> list:
+    """Per signal range and method: the median and the worst step's fixed-pattern percent.
+
+    Steps with more than ``max_clipped_fraction`` of their pixels clipped are left out.
+    ``methods`` are correction names; "raw" is always included first.
+    """
+    rows = []
+    for lo, hi in ranges:
+        sel = [s for s in steps if lo <= s.signal_dn < hi
+               and s.clipped_fraction <= max_clipped_fraction]
+        row = {"signal_range_dn": [lo, hi], "n_steps": len(sel), "methods": {}}
+        for name in ("raw", *methods):
+            vals = np.array([s.figures(None if name == "raw" else name)["fpn_percent"]
+                             for s in sel])
+            eq6 = np.array([s.figures(None if name == "raw" else name)["eq6_percent"]
+                            for s in sel])
+            if vals.size:
+                worst = int(np.nanargmax(vals))
+                row["methods"][name] = {
+                    "fpn_percent_median": float(np.nanmedian(vals)),
+                    "fpn_percent_max": float(vals[worst]),
+                    "worst_step": sel[worst].step,
+                    "worst_signal_dn": sel[worst].signal_dn,
+                    "eq6_percent_median": float(np.nanmedian(eq6))}
+        rows.append(row)
+    return rows
+
+
+def to_json(steps, methods, summary) -> dict:
+    """The document ``hsiffc uniformity`` writes: ``{"steps": [...], "summary": [...]}``."""
+    out = []
+    for s in steps:
+        row = {"step": s.step, "exposure_ms": s.exposure_ms, "signal_dn": s.signal_dn,
+               "clipped_fraction": s.clipped_fraction, "flagged_fraction": s.flagged_fraction,
+               "raw": s.figures()}
+        row["corrected"] = {name: s.figures(name) for name in methods}
+        out.append(row)
+    return {"steps": out, "summary": summary}
+
+
+def plot_uniformity(steps, methods, *, title: str = ""):
+    """Fixed-pattern non-uniformity (percent) against signal level, one line per method.
+
+    Returns a new :class:`matplotlib.figure.Figure` (object API; no backend is switched).
+    """
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7.0, 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    sig = np.array([s.signal_dn for s in steps])
+    for name in ("raw", *methods):
+        fpn = np.array([s.figures(None if name == "raw" else name)["fpn_percent"]
+                        for s in steps])
+        ax.plot(sig, fpn, marker="o", ms=3, lw=1, label=name)
+    clipped = [s.signal_dn for s in steps if s.clipped_fraction > MAX_CLIPPED_FRACTION]
+    if clipped:
+        ax.axvspan(min(clipped), max(sig), color="0.9", zorder=0,
+                   label=f"> {100 * MAX_CLIPPED_FRACTION:g} % pixels clipped")
+    ax.set_xlabel("signal level: mean DN above dark")
+    ax.set_ylabel("fixed-pattern non-uniformity (%)\n(temporal noise removed, EMVA 1288)")
+    ax.set_yscale("log")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=9)
+    return fig

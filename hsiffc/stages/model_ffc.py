@@ -1,0 +1,115 @@
+"""Model-based flat-field correction stage: wraps :mod:`hsiffc.model_ffc`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..dq import DQ_DTYPE
+from ..errors import ParameterError
+from ..model_ffc import FlatStack, model_ffc_apply, model_flat_fit
+from ..params import Param
+from ._common import CALIBRATION, THRESHOLD
+from .base import Stage
+
+
+def flat_stacks(frames, min_frames: int):
+    """Light frames grouped by (exposure, illumination, step); the groups with at least
+    ``min_frames`` frames are flat stacks."""
+    groups: dict[tuple, list] = {}
+    for f in frames:
+        if f.kind == "light" and not f.is_cube:
+            key = (f.exposure_ms, str(f.meta.get("illumination", "")), f.meta.get("step"))
+            groups.setdefault(key, []).append(f)
+    return [g for g in groups.values() if len(g) >= min_frames]
+
+
+class ModelFFC(Stage):
+    """Flat-field correction from the calibration's per-pixel model (beyond the paper).
+
+    Each response is inverted with the pixel's leakage model (light rate k from the dark level:
+    the dark a preceding ``dark`` stage removed, else the calibration's dark at the frame's
+    exposure), divided by the pixel's responsivity relative to its band's mean, and returned as
+    ``k t`` in DN above dark on the band-mean scale: a uniform scene gives a uniform frame and a
+    spectrum keeps its shape up to strong leakage. The responsivity map comes from the
+    calibration's sweep fit and, combined by inverse variance, from every flat stack among the
+    training frames (``min_flat_frames`` or more frames of one step); :attr:`sigma_ln_gain_` is
+    each pixel's 1-sigma relative uncertainty of its factor and :attr:`uncertainty_` says per
+    band how much comes from the sweep, the flats and the model's inconsistency with them.
+
+    Flags (value kept, never deleted): SATURATED (clipped), LEAKAGE (model alpha over
+    ``alpha_limit_percent``), BELOW_DARK, UNREACHABLE, NOT_CONVERGED, NO_FLAT (no usable
+    responsivity: factor 1).
+
+    Parameters
+    ----------
+    calibration : path or Calibration
+    alpha_limit_percent : float
+        Responses whose model alpha exceeds this are flagged LEAKAGE.
+    flat_alpha_percent : float
+        Model alpha at which the flat stacks' share of the factor has gone to zero (see
+        :func:`hsiffc.model_ffc.model_ffc_apply`).
+    min_flat_frames : int
+        Light frames of one step needed to count as a flat stack.
+    """
+
+    name = "model_ffc"
+    requires = frozenset({"mosaic", "response"})
+    produces = frozenset({"dark_subtracted"})
+    removes = frozenset({"raw", "response"})
+    param_spec = {"calibration": CALIBRATION, "alpha_limit_percent": THRESHOLD,
+                  "flat_alpha_percent": THRESHOLD,
+                  "min_flat_frames": Param("integer", low=2)}
+
+    def __init__(self, *, calibration=None, alpha_limit_percent: float = 50.0,
+                 flat_alpha_percent: float = 5.0, min_flat_frames: int = 8):
+        self.calibration = calibration
+        self.alpha_limit_percent = alpha_limit_percent
+        self.flat_alpha_percent = flat_alpha_percent
+        self.min_flat_frames = min_flat_frames
+
+    def _cal_for(self, frame):
+        cal = self.require_calibration()
+        cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
+                             what="the frame")
+        return cal
+
+    def _dark(self, frame, cal):
+        return frame.dark_removed if frame.dark_removed is not None else cal.dark_at(
+            frame.exposure_ms)
+
+    def fit(self, frames):
+        self.validate_params()
+        cal = self.require_calibration()
+        if "responsivity" not in cal.arrays:
+            raise ParameterError(f"{self.name}: the calibration has no 'responsivity' map; "
+                                 "make it with 'hsiffc calibrate' (method joint)")
+        frames = [f for f in frames if not f.is_cube]
+        band_map = (frames[0].band_map() if frames else
+                    (cal.mosaic.band_map(cal.frame_shape) if cal.mosaic else
+                     np.zeros(cal.frame_shape, np.int64)))
+        stacks = []
+        for group in flat_stacks(frames, int(self.min_flat_frames)):
+            cal = self._cal_for(group[0])
+            usable = np.all([f.dq == 0 for f in group], axis=0)
+            stacks.append(FlatStack.from_arrays([f.raw for f in group], group[0].exposure_ms,
+                                                self._dark(group[0], cal), usable=usable))
+        mf = model_flat_fit(cal["responsivity"], cal.arrays.get("sigma_ln_g"), cal.a, cal.b,
+                            band_map, flags=cal.arrays.get("flags"), flats=stacks)
+        self.gain_, self.gain_sweep_ = mf.gain, mf.gain_sweep
+        self.sigma_ln_gain_, self.flat_weight_, self.dq_ = mf.sigma_ln_gain, mf.flat_weight, mf.dq
+        self.uncertainty_ = mf.summary
+        self.fitted_ = True
+        return self
+
+    def transform(self, frame):
+        self.check_is_fitted()
+        cal = self._cal_for(frame)
+        dark = self._dark(frame, cal)
+        out, dq, _ = model_ffc_apply(
+            frame.raw, frame.exposure_ms, cal.a, cal.b, dark, self.gain_,
+            gain_sweep=self.gain_sweep_, flat_alpha_percent=float(self.flat_alpha_percent),
+            full_scale_dn=2 ** frame.bit_depth - 1,
+            alpha_limit_percent=float(self.alpha_limit_percent))
+        return frame.replace(data=out, dq=frame.dq | dq | self.dq_.astype(DQ_DTYPE),
+                             dark_removed=np.asarray(dark, np.float32), corrected_by=self.name,
+                             meta={"ffc": "model"})
