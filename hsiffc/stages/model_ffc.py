@@ -8,7 +8,7 @@ from ..dq import DQ_DTYPE
 from ..errors import ParameterError
 from ..model_ffc import FlatStack, model_ffc_apply, model_flat_fit
 from ..params import Param
-from ._common import CALIBRATION, THRESHOLD
+from .common import CALIBRATION, THRESHOLD
 from .base import Stage
 
 
