@@ -301,6 +301,12 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     y = np.asarray(response, np.float64)
     a64, b64 = np.asarray(a, np.float64), np.asarray(b, np.float64)
     d64 = np.asarray(dark, np.float64)
+    if not exposure_ms > 0:  # no light was integrated: nothing to invert, only the offset
+        out = (y - d64) * np.asarray(gain, np.float64)
+        dq = np.zeros(y.shape, DQ_DTYPE)
+        dq[~np.isfinite(out)] |= DQ_DTYPE(DQ.NONFINITE)
+        return (np.where(np.isfinite(out), out, 0.0).astype(np.float32), dq,
+                np.zeros(y.shape, np.float32))
     inv = model.invert_response(y, exposure_ms, a64, b64, d64, full_scale=full_scale_dn)
     k_light = inv.k - np.asarray(dark_current, np.float64)
     below = (inv.flags & DQ_DTYPE(DQ.BELOW_DARK)) != 0

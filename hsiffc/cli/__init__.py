@@ -19,14 +19,14 @@ import sys
 from .. import __version__
 from ..atomic import write_policy
 from ..errors import HsiffcError
-from . import data, importer, pipeline, reports
+from . import data, importer, pipeline, reports, uniformity
 from .args import OneLineParser
 from .common import check_declared_outputs, declared
 
 log = logging.getLogger("hsiffc")
 
 #: modules whose ``register(sub)`` adds sub-commands, in the order ``--help`` lists them
-COMMAND_MODULES = [reports, data, pipeline, importer]
+COMMAND_MODULES = [reports, data, pipeline, importer, uniformity]
 
 EXIT_USAGE = 2
 EXIT_INTERNAL = 3

@@ -26,7 +26,8 @@ from ..io import read_sweep
 from ..stages import Pipeline, create
 from .sweep_uniformity import summarise, sweep_uniformity
 
-__all__ = ["FFCStudy", "run_ffc_study", "render_markdown", "METHODS", "FLAT_LEVEL_DN"]
+__all__ = ["FFCStudy", "run_ffc_study", "render_markdown", "to_dict", "write_ffc_study", "METHODS",
+           "FLAT_LEVEL_DN"]
 
 log = logging.getLogger(__name__)
 
@@ -212,3 +213,37 @@ def render_markdown(res: FFCStudy) -> str:
               "`hsiffc.reports.ffc_study.run_ffc_study`)."]
     return "\n".join(lines) + "\n"
 
+
+
+def to_dict(res: FFCStudy) -> dict:
+    """JSON-safe form of the study (the per-step table in the ``hsiffc uniformity`` format)."""
+    from .sweep_uniformity import to_json
+
+    doc = to_json(res.steps, METHODS, res.summary)
+    doc.update(source=res.source, flat_2frame=res.flat_2frame, flat_stack=res.flat_stack,
+               calibration=res.calibration, uncertainty=res.uncertainty, goals=res.goals,
+               worst=res.worst)
+    return doc
+
+
+def write_ffc_study(emva_dir, outdir, *, calibration=None) -> list:
+    """Run the study and write ``ffc_study.md``, ``ffc_study.json`` and ``ffc_study.png``
+    into ``outdir`` (atomically; existing files only under the caller's overwrite policy)."""
+    import json
+    from pathlib import Path
+
+    from .._json import json_safe
+    from ..atomic import atomic_path, atomic_write_text
+    from .sweep_uniformity import plot_uniformity
+
+    res = run_ffc_study(emva_dir, calibration=calibration)
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "ffc_study.md", out / "ffc_study.json", out / "ffc_study.png"]
+    atomic_write_text(paths[0], render_markdown(res) + "\n![fixed-pattern non-uniformity "
+                      "against signal](ffc_study.png)\n")
+    atomic_write_text(paths[1], json.dumps(json_safe(to_dict(res)), indent=1) + "\n")
+    fig = plot_uniformity(res.steps, METHODS, title="EMVA 1288 CMOS sweep, odd (held-out) steps")
+    with atomic_path(paths[2]) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    return paths

@@ -155,7 +155,9 @@ def to_json(steps, methods, summary) -> dict:
 
 
 def plot_uniformity(steps, methods, *, title: str = ""):
-    """Fixed-pattern non-uniformity (percent) against signal level, one line per method.
+    """Fixed-pattern non-uniformity (percent) against signal level, one line per method
+    (steps from 5 DN; a step whose fixed pattern is below what its frames can measure, 0 %, is
+    left as a gap).
 
     Returns a new :class:`matplotlib.figure.Figure` (object API; no backend is switched).
     """
@@ -163,16 +165,18 @@ def plot_uniformity(steps, methods, *, title: str = ""):
 
     fig = Figure(figsize=(7.0, 4.2), layout="constrained")
     ax = fig.add_subplot()
+    steps = [s for s in steps if s.signal_dn >= SIGNAL_RANGES_DN[0][0]]
     sig = np.array([s.signal_dn for s in steps])
     for name in ("raw", *methods):
         fpn = np.array([s.figures(None if name == "raw" else name)["fpn_percent"]
                         for s in steps])
-        ax.plot(sig, fpn, marker="o", ms=3, lw=1, label=name)
+        # a fixed pattern below what two frames can measure has no place on a log axis
+        ax.plot(sig, np.where(fpn > 0, fpn, np.nan), marker="o", ms=3, lw=1, label=name)
     clipped = [s.signal_dn for s in steps if s.clipped_fraction > MAX_CLIPPED_FRACTION]
     if clipped:
         ax.axvspan(min(clipped), max(sig), color="0.9", zorder=0,
                    label=f"> {100 * MAX_CLIPPED_FRACTION:g} % pixels clipped")
-    ax.set_xlabel("signal level: mean DN above dark")
+    ax.set_xlabel(f"signal level: mean DN above dark (steps from {SIGNAL_RANGES_DN[0][0]:g} DN)")
     ax.set_ylabel("fixed-pattern non-uniformity (%)\n(temporal noise removed, EMVA 1288)")
     ax.set_yscale("log")
     ax.grid(True, which="both", alpha=0.3)

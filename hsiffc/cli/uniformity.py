@@ -1,0 +1,121 @@
+"""``uniformity`` (fixed-pattern non-uniformity of a sweep, raw and corrected) and
+``study-ffc`` (the held-out FFC study on the real EMVA 1288 sweep)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import HsiffcError
+from .common import add_overwrite, write_json
+
+
+def register(sub) -> None:
+    """Add this module's sub-commands to the parser's sub-parsers."""
+    _add_uniformity(sub)
+    _add_study(sub)
+
+
+def _add_uniformity(sub):
+    p = sub.add_parser(
+        "uniformity", help="fixed-pattern non-uniformity of every step of a sweep, raw and "
+                           "corrected (EMVA 1288: temporal noise removed)",
+        description="For every light step with two or more frames: exposure, signal level (DN "
+                    "above dark), clipped and flagged fractions, eq. (6) and the fixed-pattern "
+                    "non-uniformity (EMVA 1288 Release 4.0: spatial variance of the step mean "
+                    "minus temporal variance / frames), raw and after the correction: the "
+                    "fitted pipeline given, else the model-based FFC (model_ffc) from the "
+                    "calibration. A summary per signal range, JSON and an optional plot.")
+    p.add_argument("sweep", type=Path, help="sweep: multi-page TIFF or EMVA 1288 folder/.txt")
+    p.add_argument("--calibration", type=Path, default=None,
+                   help="calibration (.npz): model_ffc corrects (or the pipeline uses it)")
+    p.add_argument("--pipeline", type=Path, default=None,
+                   help="fitted pipeline (.npz from 'hsiffc fit') to measure instead")
+    p.add_argument("--json", type=Path, required=True, help="output JSON")
+    p.add_argument("--plot", type=Path, default=None, help="also plot against signal (PNG)")
+    add_overwrite(p)
+    p.set_defaults(func=_cmd_uniformity, input_args=("sweep", "calibration", "pipeline"),
+                   output_args=("json", "plot"))
+
+
+def _correction(args):
+    from ..calibrate import Calibration
+    from ..stages import Pipeline, create
+
+    cal = Calibration.load(args.calibration) if args.calibration else None
+    if args.pipeline is not None:
+        if args.pipeline.suffix != ".npz":
+            raise HsiffcError(f"{args.pipeline}: --pipeline takes a fitted pipeline (.npz from "
+                              "'hsiffc fit'); fit a TOML description first")
+        pipe = Pipeline.load(args.pipeline, calibration=cal)
+        if any(s.name == "reconstruct" for _, s in pipe.steps):
+            raise HsiffcError(f"{args.pipeline}: the pipeline reconstructs cubes; measure a "
+                              "pipeline that keeps mosaic frames (H, W)")
+        return {"pipeline": pipe}
+    if cal is not None:
+        return {"model_ffc": create("model_ffc", calibration=cal).fit([])}
+    return {}
+
+
+def _cmd_uniformity(args) -> int:
+    from .._json import json_safe
+    from ..frame import Frame
+    from ..io import read_sweep
+    from ..reports.sweep_uniformity import (plot_uniformity, summarise, sweep_uniformity,
+                                            to_json)
+
+    corrections = _correction(args)
+    sweep = read_sweep(args.sweep)
+    frames = Frame.list_from_sweep(sweep)
+    dark_frames = [f for f in frames if f.kind == "dark"]
+    dark_for = None
+    if dark_frames:  # raw figures: per-pixel line through all dark masters (low noise)
+        from ..stages import create
+
+        stage = create("dark", match="scale", average="mean").fit(dark_frames)
+        dark_for = (lambda t: stage.dark_for(t, sweep.frame_shape)[0])
+    steps = sweep_uniformity(frames, corrections, dark_for=dark_for)
+    if not steps:
+        raise HsiffcError(f"{args.sweep}: no light step with two or more frames; the fixed "
+                          "pattern cannot be told from temporal noise with one frame per step")
+    methods = tuple(corrections)
+    summary = summarise(steps, methods)
+    write_json(args.json, json_safe(to_json(steps, methods, summary)))
+    if args.plot:
+        from ..atomic import atomic_path
+
+        fig = plot_uniformity(steps, methods, title=str(args.sweep))
+        with atomic_path(args.plot) as tmp:
+            fig.savefig(tmp, dpi=120, format="png")
+    print(f"{'signal (DN)':<12} {'steps':>5}  " + "  ".join(f"{m:>18}" for m in ("raw", *methods)))
+    for row in summary:
+        lo, hi = row["signal_range_dn"]
+        cells = [f"{row['methods'][m]['fpn_percent_median']:>17.2f}%" if m in row["methods"]
+                 else f"{'-':>18}" for m in ("raw", *methods)]
+        print(f"{f'{lo:g}-{hi:g}':<12} {row['n_steps']:>5}  " + "  ".join(cells))
+    print(f"fixed-pattern non-uniformity (EMVA 1288, temporal noise removed), median per range; "
+          f"{len(steps)} steps written to {args.json}")
+    return 0
+
+
+def _add_study(sub):
+    p = sub.add_parser(
+        "study-ffc", help="held-out flat-field correction study on the real EMVA 1288 sweep",
+        description="Calibrate on the even light steps and the darks of an EMVA 1288 sweep, "
+                    "correct the odd light steps with two-point FFC (2-frame flat, flat stack) "
+                    "and model_ffc, and write ffc_study.md, ffc_study.json and "
+                    "ffc_study.png (fixed-pattern non-uniformity against signal) into OUTDIR.")
+    p.add_argument("outdir", type=Path, help="folder for the page (created if missing)")
+    p.add_argument("--emva", type=Path, default=Path("../shared/data/emva1288-cmos8-roi"),
+                   help="EMVA 1288 folder (default: ../shared/data/emva1288-cmos8-roi)")
+    add_overwrite(p, "replace the files of an earlier study in OUTDIR")
+    p.set_defaults(func=_cmd_study, input_args=("emva",), output_dirs=("outdir",))
+
+
+def _cmd_study(args) -> int:
+    from ..reports.ffc_study import write_ffc_study
+
+    if not args.emva.exists():
+        raise HsiffcError(f"--emva: {args.emva} not found; give the EMVA 1288 measurement folder")
+    paths = write_ffc_study(args.emva, args.outdir)
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
