@@ -33,7 +33,7 @@ from .bandstats import band_reduce
 from .dq import DQ, DQ_DTYPE
 
 __all__ = ["FlatStack", "ModelFlat", "relative_responsivity", "flat_responsivity",
-           "model_flat_fit", "model_ffc_apply"]
+           "model_flat_fit", "model_ffc_apply", "correction_uncertainty"]
 
 #: calibration flags that make a pixel's responsivity unusable (gain 1 and NO_FLAT)
 UNUSABLE = DQ.DO_NOT_USE | DQ.NOT_CONVERGED
@@ -329,3 +329,40 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     out = np.where(finite, out, 0.0)
     alpha = np.minimum(np.nan_to_num(alpha, nan=np.inf), np.finfo(np.float32).max)
     return out.astype(np.float32), dq, alpha.astype(np.float32)
+
+
+def correction_uncertainty(response, exposure_ms: float, a, b, dark, sigma_ln_gain, *,
+                           sigma_dark_dn=0.0) -> np.ndarray:
+    """1-sigma relative error (fraction) of each corrected pixel from the calibration's noise.
+
+    The factor's own error (``sigma_ln_gain``) and the dark level's error propagated through
+    the inversion at this response, ``d ln k = -(dY/d dark) d dark / (dY/d ln k)``, in
+    quadrature. Its RMS over a band is the fixed-pattern floor the calibration sets for a
+    uniform scene at this level: the dark term dominates at low signal, the factor's error in
+    the linear range. Where leakage bends the response the errors of the fitted a and b add;
+    they are not included (the calibration stores their sigmas but not their strong mutual
+    correlation, and without it the propagated error is far too large).
+
+    Parameters
+    ----------
+    response : (H, W) array_like, DN
+    exposure_ms : float, ms (> 0)
+    a, b, dark : (H, W) array_like
+    sigma_ln_gain : (H, W) array_like
+        :attr:`ModelFlat.sigma_ln_gain`.
+    sigma_dark_dn : (H, W) array_like or float
+        The calibration's ``sigma_dark_dn``.
+
+    Returns
+    -------
+    (H, W) float64 (inf where the response cannot be inverted)
+    """
+    y = np.asarray(response, np.float64)
+    a64, b64, d64 = (np.asarray(v, np.float64) for v in (a, b, dark))
+    inv = model.invert_response(y, exposure_ms, a64, b64, d64)
+    _, dy_lnk, _, _, dy_d = model.response_and_gradient(
+        exposure_ms, np.maximum(inv.k, 1e-300), a64, b64, d64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        dark_part = dy_d * np.nan_to_num(np.asarray(sigma_dark_dn, np.float64)) / dy_lnk
+    out = np.sqrt(np.asarray(sigma_ln_gain, np.float64) ** 2 + dark_part ** 2)
+    return np.where(np.isfinite(out) & (inv.k > 0), out, np.inf)
