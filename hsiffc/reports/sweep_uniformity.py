@@ -77,7 +77,7 @@ def step_uniformity(frames, corrections: dict, *, dark=None) -> StepUniformity:
     signal = raw.mean(axis=0) - (0.0 if dark is None else dark)
     return StepUniformity(step=int(frames[0].meta.get("step", -1)),
                           exposure_ms=frames[0].exposure_ms,
-                          signal_dn=float(np.mean(signal[good])) if good.any() else float("nan"),
+                          signal_dn=float(np.mean(signal[good] if good.any() else signal)),
                           clipped_fraction=float(clipped.mean()),
                           flagged_fraction=float(bad.mean()), raw=raw_fp, corrected=corrected)
 

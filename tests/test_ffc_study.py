@@ -1,0 +1,93 @@
+"""The held-out FFC study on the real EMVA 1288 CMOS sweep, and the ``uniformity`` and
+``study-ffc`` commands."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hsiffc.calibrate import calibrate
+from hsiffc.cli import main
+from hsiffc.io import read_sweep
+from hsiffc.reports.ffc_study import render_markdown, run_ffc_study
+
+
+@pytest.fixture(scope="module")
+def study(emva_dir):
+    return run_ffc_study(emva_dir)
+
+
+def test_model_ffc_beats_two_point_on_the_real_sweep(study):
+    rows = {row["signal_range_dn"][0]: row["methods"] for row in study.summary}
+    assert set(rows) == {5.0, 30.0, 100.0, 200.0}
+    for lo, m in rows.items():
+        model = m["model_ffc"]["fpn_percent_median"]
+        best_two_point = min(m["two_point_2frame"]["fpn_percent_median"],
+                             m["two_point_stack"]["fpn_percent_median"])
+        assert model <= best_two_point, (lo, m)
+        if lo >= 30:
+            assert model <= 0.3, (lo, model)
+        # a 2-frame flat prints its temporal noise into every frame: worse than raw
+        assert m["two_point_2frame"]["fpn_percent_median"] > m["raw"]["fpn_percent_median"]
+    # the model keeps the top of the range flat where the flat's gain no longer fits
+    assert rows[200.0]["model_ffc"]["fpn_percent_median"] < 0.6 * rows[200.0][
+        "two_point_stack"]["fpn_percent_median"]
+    assert all(study.goals.values())
+    assert study.flat_stack["n_frames"] == 100
+    assert 100 < study.flat_2frame["signal_dn"] < 150
+
+
+def test_study_states_the_uncertainty_and_the_worst_step(study):
+    u = study.uncertainty["bands"][0]
+    assert 0 < u["sigma_combined_rms_percent"] < u["sigma_sweep_median_percent"]
+    assert u["flat0_sigma_median_percent"] > 0
+    assert study.worst["signal_dn"] >= 30 and study.worst["fpn_percent"] > 0
+    page = render_markdown(study)
+    assert "| 30-100 |" in page and "Worst model_ffc step" in page
+    assert "combined (inverse variance)" in page
+
+
+def test_uniformity_command_on_sample_cubes(sample_cubes, tmp_path, capsys):
+    sweep = sample_cubes / "sweep_2900K.tif"
+    cal = tmp_path / "cal.npz"
+    calibrate(read_sweep(sweep)).save(cal)
+    out = tmp_path / "u.json"
+    assert main(["uniformity", str(sweep), "--calibration", str(cal), "--json", str(out),
+                 "--plot", str(tmp_path / "u.png")]) == 0
+    doc = json.loads(out.read_text())
+    assert set(doc) == {"steps", "summary"}
+    step = doc["steps"][0]
+    assert {"step", "exposure_ms", "signal_dn", "clipped_fraction", "flagged_fraction", "raw",
+            "corrected"} <= set(step)
+    assert set(step["raw"]) == {"eq6_percent", "fpn_percent"}
+    assert set(step["corrected"]) == {"model_ffc"}
+    unclipped = [s for s in doc["steps"] if s["clipped_fraction"] < 0.01
+                 and (s["signal_dn"] or 0) > 30]
+    assert unclipped
+    # the calibration's own sweep: the correction removes the simulated 1 % pattern
+    def values(get):  # JSON null: no usable pixel in that step
+        return np.array([np.nan if get(s) is None else get(s) for s in unclipped], float)
+
+    raw = np.nanmedian(values(lambda s: s["raw"]["fpn_percent"]))
+    corrected = np.nanmedian(values(lambda s: s["corrected"]["model_ffc"]["fpn_percent"]))
+    assert raw > 0.7 and corrected < 0.5 * raw
+    assert (tmp_path / "u.png").stat().st_size > 10_000
+    assert "fixed-pattern non-uniformity" in capsys.readouterr().out
+
+
+def test_uniformity_command_without_multi_frame_steps(tmp_path, capsys):
+    from hsiffc.io.tiff import write_sweep
+    from hsiffc.sweep import Sweep
+
+    path = tmp_path / "one.tif"
+    write_sweep(path, Sweep(np.full((2, 8, 8), 100, np.uint16), [1.0, 2.0],
+                                 ["light", "light"], 10))
+    assert main(["uniformity", str(path), "--json", str(tmp_path / "u.json")]) == 2
+    assert "two or more frames" in capsys.readouterr().err
+
+
+def test_study_command_names_a_missing_folder(tmp_path, capsys):
+    assert main(["study-ffc", str(tmp_path / "out"), "--emva", str(tmp_path / "nope")]) == 2
+    assert "nope" in capsys.readouterr().err
