@@ -199,8 +199,10 @@ def render_markdown(res: FFCStudy) -> str:
                      f"{u['flat0_sigma_median_percent']:.3f} % (its temporal noise / "
                      f"sqrt({res.flat_stack['n_frames']}));")
     lines += [f"- combined (inverse variance): RMS {u['sigma_combined_rms_percent']:.3f} %: "
-              "the fixed-pattern floor the calibration data set; below about 1 % model alpha "
-              "model_ffc is limited by it, above that by the sweep fit alone.", "",
+              "the fixed-pattern floor the calibration data set where the response is linear. The "
+              "flat stack's share falls to zero at 5 % model alpha (parameter "
+              "`flat_alpha_percent`); above that the sweep fit alone sets the floor, and near "
+              "full scale the errors of the fitted leakage a and b add.", "",
               "Eq. (6) on single frames (temporal noise included) for comparison, median per "
               "range:", "", "| signal (DN) | " + " | ".join(cols) + " |",
               "|---|" + "---|" * len(cols)]
