@@ -153,6 +153,7 @@ def test_pipeline_load_on_a_malformed_manifest(tmp_path):
 # -- degenerate data --------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["zero.tif", "ninf.tif"])
 def test_calibrate_with_a_zero_exposure_or_an_inf_pixel(data, tmp_path, capsys, name):
+    """Either refused with one line naming the file, or calibrated with finite parameters."""
     out = tmp_path / "cal.npz"
     code = main(["calibrate", str(data / name), "-o", str(out)])
     if code == 2:
@@ -180,5 +181,5 @@ def test_diagnose_never_prints_nan(data, capsys, name):
 def test_all_nan_sweep_does_not_calibrate(data, tmp_path, capsys):
     out = tmp_path / "cal.npz"
     assert main(["calibrate", str(data / "nan.tif"), "-o", str(out)]) == 2
-    _error(capsys, "nan.tif", "NaN")
+    _error(capsys, "nan.tif", "non-finite")
     assert not out.exists()

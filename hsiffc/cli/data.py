@@ -8,8 +8,7 @@ import numpy as np
 
 from ..errors import HsiffcError
 from .args import count, exposure_ms, percent, positive, real
-from .common import (add_input_options, add_overwrite, first_nonfinite, input_overrides,
-                     nonfinite_samples, write_json)
+from .common import add_input_options, add_overwrite, input_overrides, write_json
 
 
 def register(sub) -> None:
@@ -156,9 +155,6 @@ def _cmd_calibrate(args) -> int:
     print(sweep.summary())
     if args.output.suffix != ".npz":
         raise HsiffcError(f"{args.output}: the calibration file must end in .npz; rename it")
-    bad = nonfinite_samples(sweep, args.sweep, what="calibrate")
-    if bad:
-        print(f"  note: {bad} NaN/inf samples (first at {first_nonfinite(sweep)}) are left out")
     cal = calibrate(sweep, method=args.method, full_well_dn=args.full_well_dn)
     cal.save(args.output, overwrite=args.overwrite)
     print(cal.summary())
