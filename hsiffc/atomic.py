@@ -134,9 +134,26 @@ def write_policy(*, overwrite: bool = False, inputs=()):
         _POLICY.reset(token)
 
 
-def protect_inputs(paths) -> None:
-    """Add ``paths`` to the inputs of the policy in force (e.g. files a batch discovered)."""
-    current_policy().protect(paths)
+@contextlib.contextmanager
+def protect_inputs(paths):
+    """Protect ``paths`` (e.g. the files a batch discovered) as inputs inside the block.
+
+    Under a :func:`write_policy` (a CLI command) they stay protected until that policy ends,
+    so the command's later writes (its ``--json``) cannot replace them either; without one
+    (library use) only inside the block.
+    """
+    policy = current_policy()
+    added = set()
+    for p in paths:
+        if p is not None:
+            added |= _keys(p)
+    added -= policy.inputs
+    policy.inputs |= added
+    try:
+        yield
+    finally:
+        if _POLICY.get() is None:
+            policy.inputs -= added
 
 
 # -- checks -----------------------------------------------------------------------------------

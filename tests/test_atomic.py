@@ -196,3 +196,19 @@ def test_golden_regeneration_replaces_the_file_on_purpose(tmp_path):
     assert_golden("case", {"a": np.zeros(3)}, golden_dir=tmp_path, regenerate=True)
     assert_golden("case", {"a": np.ones(3)}, golden_dir=tmp_path, regenerate=True)
     assert_golden("case", {"a": np.ones(3)}, golden_dir=tmp_path)
+
+
+def test_protected_inputs_last_for_the_command_not_for_the_process(tmp_path):
+    from hsiffc.atomic import protect_inputs
+
+    raw = tmp_path / "raw.tif"
+    raw.write_bytes(b"raw")
+    with protect_inputs([raw]), pytest.raises(OutputError, match="input"):
+        atomic_write_text(raw, "x", overwrite=True)
+    atomic_write_text(raw, "library use: free again", overwrite=True)
+    with write_policy(overwrite=True):
+        with protect_inputs([raw]):
+            pass
+        with pytest.raises(OutputError, match="input"):  # still the same command
+            atomic_write_text(raw, "x")
+    assert raw.read_text() == "library use: free again"

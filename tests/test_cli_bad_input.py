@@ -183,3 +183,15 @@ def test_all_nan_sweep_does_not_calibrate(data, tmp_path, capsys):
     assert main(["calibrate", str(data / "nan.tif"), "-o", str(out)]) == 2
     _error(capsys, "nan.tif", "non-finite")
     assert not out.exists()
+
+
+def test_correct_never_writes_its_json_over_an_input_found_in_a_folder(data, tmp_path, capsys):
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    (raw / "a.tif").write_bytes((data / "s.tif").read_bytes())
+    before = (raw / "a.tif").read_bytes()
+    code = main(["correct", str(raw), "--calibration", str(data / "cal.npz"), "-o",
+                 str(tmp_path / "out"), "-q", "--json", str(raw / "a.tif"), "--overwrite"])
+    assert code == 2
+    _error(capsys, "a.tif", "input of this command")
+    assert (raw / "a.tif").read_bytes() == before

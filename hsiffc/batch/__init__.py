@@ -106,8 +106,8 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
     ctx = context_for(settings, cal)  # validates the pipeline here, before any file is touched
     del cal
     jobs, ignored = plan_jobs(inputs, outdir)
-    protect_inputs([j.input for j in jobs] + [cal_path, settings.pipeline])
-    with folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
+    with protect_inputs([j.input for j in jobs] + [cal_path, settings.pipeline]), \
+            folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
         if observer is not None:
             observer.start(len(jobs))
         try:
