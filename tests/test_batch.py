@@ -217,8 +217,8 @@ def test_each_bad_input_is_reported_with_its_reason_and_the_rest_carries_on(worl
         "truncated.tif": "truncated",
         "wrong_shape.tif": "frame shape (16, 48)",
         "wrong_bits.tif": "bit depth 12",
-        "plain_no_metadata.tif": "without hsiffc metadata",
-        "no_exposure.tif": "no 'exposure'",
+        "plain_no_metadata.tif": "no exposure_ms for this file",
+        "no_exposure.tif": "has no 'exposure'",
     }
     for name, reason in expected_failures.items():
         assert status[name]["status"] == "failed", name
@@ -561,3 +561,40 @@ def test_correction_that_gives_nan_is_flagged_never_written_as_nan(world, tmp_pa
     lost = (c.dq & int(DQ.NONFINITE | DQ.DO_NOT_USE)) == int(DQ.NONFINITE | DQ.DO_NOT_USE)
     assert lost.any() and (c.data[lost] == 0).all()
     assert sum(c.provenance["frames"]["nonfinite_output_pixels"]) == int(lost.sum())
+
+
+def test_metadata_options_correct_plain_tiffs_and_count_in_the_fingerprint(world, tmp_path):
+    """Files without metadata take it from the command line; other values redo the outputs."""
+    cube = read_sweep(world["good"][0])
+    plain = tmp_path / "plain.tif"
+    tifffile.imwrite(plain, cube.data, photometric="minisblack")
+    args = [plain, "--calibration", world["cal"], "-o", tmp_path / "out", "-q", "--bit-depth",
+            "10"]
+    assert _run(*args) == 1  # no exposure: the file fails with the three ways to give it
+    assert _run(*args, "--exposure-ms", "10") == 0
+    prov = read_provenance(tmp_path / "out" / "plain.corrected.tif")
+    assert prov["exposure"] == [10.0] * cube.n_frames
+    assert prov["pipeline"]["input_overrides"]["exposure_ms"] == "10.0"
+    again = batch.correct_batch([plain], tmp_path / "out", world["cal"],
+                                overrides={"exposure_ms": 10.0, "bit_depth": 10})
+    assert again.skipped  # same metadata: up to date
+    other = batch.correct_batch([plain], tmp_path / "out", world["cal"],
+                                overrides={"exposure_ms": 20.0, "bit_depth": 10})
+    assert other.done and "other parameters" in other.done[0]["warnings"][0]
+
+
+def test_size_limits_apply_before_any_decode_and_the_batch_carries_on(world, tmp_path,
+                                                                       monkeypatch):
+    """io's header limits (here lowered through their environment variable) fail the file
+    that exceeds them, with the limit's name, and nothing is written for it."""
+    big = tmp_path / "big.tif"
+    cube = read_sweep(world["good"][0])
+    write_sweep(big, replace(cube, meta={}, data=np.tile(cube.data, (1, 2, 1)),
+                             mosaic=cube.mosaic))
+    monkeypatch.setenv("HSIFFC_MAX_FRAME_PIXELS", str(SHAPE[0] * SHAPE[1]))
+    summary = batch.correct_batch([big, world["good"][1]], tmp_path / "out", world["cal"])
+    status = {Path(r["input"]).name: r for r in summary.results}
+    assert status["big.tif"]["status"] == "failed"
+    assert "HSIFFC_MAX_FRAME_PIXELS" in status["big.tif"]["reason"]
+    assert status["cube_1.tif"]["status"] == "done" and summary.exit_status == 1
+    assert not (tmp_path / "out" / "big.corrected.tif").exists()

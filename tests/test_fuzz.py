@@ -95,6 +95,42 @@ def test_truncated_input_at_any_point(world, tmp_path, fraction):
                                           world["reference"])
 
 
+def _field_values():
+    plain = st.one_of(st.none(), st.booleans(), st.integers(-2 ** 40, 2 ** 40),
+                      st.floats(allow_nan=True, allow_infinity=True),
+                      st.text(max_size=8))
+    return st.one_of(plain, st.lists(plain, max_size=8))
+
+
+@FUZZ
+@given(field=st.sampled_from(["exposure", "exposure_unit", "bit_depth", "kind", "n_frames",
+                              "illumination", "mosaic", "format", "format_version", "step",
+                              "photons"]),
+       value=_field_values())
+def test_odd_header_fields(world, tmp_path, field, value):
+    with tempfile.TemporaryDirectory(dir=tmp_path) as d:
+        d = Path(d)
+        doc = dict(world["doc"])
+        doc[field] = value
+        text = json.dumps(doc)  # NaN/inf as the bare words a careless writer produces
+        path = d / "odd.tif"
+        tifffile.imwrite(path, world["data"], photometric="minisblack", description=text,
+                         metadata=None)
+        before = _digest(path)
+        code, err = _run(["info", path, "--json", d / "info.json"])
+        _assert_clean(code, err, allowed=(0, 2))
+        if code == 0:
+            json.loads((d / "info.json").read_text(), parse_constant=_no_constants)
+        code, err = _run(["correct", path, "--calibration", world["cal"], "-o", d / "out", "-q"])
+        _assert_clean(code, err)
+        assert _digest(path) == before
+        _check_outputs(d / "out")
+
+
+def _no_constants(name):
+    raise AssertionError(f"{name} written into a JSON output")
+
+
 @FUZZ
 @given(option=st.sampled_from(["--threshold", "--workers", "--wait"]),
        value=st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr),

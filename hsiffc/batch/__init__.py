@@ -42,7 +42,8 @@ __all__ = ["BatchError", "BatchSummary", "Job", "Settings", "check_scheduler", "
 def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_percent: float = 12.0,
                   linearise: bool = False, workers: int = 1, scheduler: str | None = None,
                   overwrite: bool = False, nan: str = "flag", hash_inputs: bool = True,
-                  observer=None, wait_s: float = 0.0) -> BatchSummary:
+                  overrides: dict | None = None, observer=None,
+                  wait_s: float = 0.0) -> BatchSummary:
     """Correct every input (files, folders, globs) into ``outdir``; see ``hsiffc correct``.
 
     Parameters
@@ -75,6 +76,10 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
         the file.
     hash_inputs : bool
         Record each input's sha256 in the provenance (one extra read of the input).
+    overrides : dict, optional
+        Metadata for inputs that do not carry it (in their file or a sidecar): fields of
+        :class:`hsiffc.io.Overrides` (``exposure_ms``, ``bit_depth``, ``kind``, ``mosaic``,
+        ``illumination``, ``bit_shift``, ``sidecar``). Part of the outputs' fingerprint.
     observer : object, optional
         Told of progress: ``start(n_files)``, ``frame(nbytes)`` (in-process runs only),
         ``file(result, counted_frames)`` and ``close()`` (the CLI's progress bar).
@@ -100,7 +105,8 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
     settings = Settings(calibration=str(cal_path), calibration_identity=cal.identity,
                         pipeline=None if pipeline is None else str(Path(pipeline).resolve()),
                         threshold_percent=float(threshold_percent), linearise=bool(linearise),
-                        overwrite=bool(overwrite), nan=nan, hash_inputs=bool(hash_inputs))
+                        overwrite=bool(overwrite), nan=nan, hash_inputs=bool(hash_inputs),
+                        overrides=_overrides(overrides))
     if settings.pipeline and not Path(settings.pipeline).is_file():
         raise BatchError(f"{pipeline}: pipeline file not found")
     ctx = context_for(settings, cal)  # validates the pipeline here, before any file is touched
@@ -122,6 +128,18 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
                         {"path": str(cal_path), "identity": ctx.identity},
                         {k: v for k, v in ctx.info.items() if k != "steps"} | {"steps": steps},
                         ignored)
+
+
+def _overrides(values) -> tuple:
+    """Input overrides as sorted (name, value) pairs (None dropped; paths made absolute so
+    workers elsewhere find them); checked here, before any file is read."""
+    from ..io import Overrides
+
+    given = {k: v for k, v in (values or {}).items() if v is not None}
+    if "sidecar" in given:
+        given["sidecar"] = str(Path(given["sidecar"]).resolve())
+    Overrides(**given)  # raises DataFormatError for a bad value
+    return tuple(sorted(given.items()))
 
 
 def _check_options(nan, workers, scheduler, threshold_percent) -> int:

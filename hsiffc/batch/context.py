@@ -100,6 +100,8 @@ class Settings:
     overwrite: bool = False
     nan: str = "flag"
     hash_inputs: bool = True
+    #: metadata for inputs that do not carry it (fields of :class:`hsiffc.io.Overrides`)
+    overrides: tuple = ()
 
 
 @dataclass
@@ -119,7 +121,7 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
     """The calibration and pipeline of these settings, built once per process (from
     ``calibration`` when it is already loaded)."""
     key = (settings.calibration, settings.calibration_identity, settings.pipeline,
-           settings.threshold_percent, settings.linearise)
+           settings.threshold_percent, settings.linearise, settings.overrides)
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         cal = calibration if calibration is not None else Calibration.load(settings.calibration)
@@ -142,8 +144,12 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
         norm = [{**s, "params": {k: (f"identity:{identity}" if k == "calibration" and v
                                      else v) for k, v in s["params"].items()}} for s in steps]
         info["steps"] = steps
+        info["input_overrides"] = {k: str(v) for k, v in settings.overrides}
+        basis = {"steps": norm, "file": info["sha256"]}
+        if info["input_overrides"]:
+            basis["overrides"] = info["input_overrides"]
         info["fingerprint"] = hashlib.sha256(json.dumps(
-            {"steps": norm, "file": info["sha256"]}, sort_keys=True).encode()).hexdigest()[:16]
+            basis, sort_keys=True).encode()).hexdigest()[:16]
         info["alpha_computed"] = any(s["stage"] == "alpha_mask" for s in steps)
         ctx = Context(cal, identity, pipe, info)
         if len(_CONTEXTS) > 4:

@@ -132,7 +132,7 @@ def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame) ->
     st = os.stat(path)
     hasher = Background(sha256_file, path) if settings.hash_inputs else None
     try:
-        with open_input(path) as src:
+        with open_input(path, settings.overrides) as src:
             ctx.calibration.check_compatible(frame_shape=src.frame_shape,
                                              bit_depth=src.bit_depth, mosaic=src.mosaic,
                                              what=path.name)

@@ -131,6 +131,7 @@ def _add_correct(sub):
                    help="when another run is writing into OUTDIR, wait up to SECONDS for it to "
                         "finish (default: refuse at once, naming that run)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_input_options(p)
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
     p.set_defaults(func=_cmd_correct, input_args=("inputs", "calibration", "pipeline"),
                    output_args=("json",))
@@ -190,6 +191,7 @@ def _cmd_correct(args) -> int:
                                 linearise=args.linearise, workers=args.workers,
                                 scheduler=args.scheduler, overwrite=args.overwrite, nan=args.nan,
                                 hash_inputs=not args.no_hash, wait_s=args.wait,
+                                overrides=vars(input_overrides(args)),
                                 observer=Progress() if show else None)
     except KeyboardInterrupt:
         print("hsiffc correct: interrupted; finished outputs are kept (no partial file is left "
