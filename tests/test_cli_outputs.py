@@ -50,10 +50,15 @@ def _commands(f, out):
         "diagnose --report": ["diagnose", s, "--report", out],
         "paper OUTDIR": ["paper", out],
         "demo -o": ["demo", str(f["root"]), "-o", out],
+        "import -o": ["import", s, "-o", out],
+        "uniformity --json": ["uniformity", s, "--calibration", c, "--json", out],
+        "uniformity --plot": ["uniformity", s, "--calibration", c, "--json",
+                              str(f["root"] / "u.json"), "--plot", out],
+        "study-ffc OUTDIR": ["study-ffc", out],
     }
 
 
-FOLDER_OUTPUTS = {"diagnose --report", "paper OUTDIR", "demo -o"}
+FOLDER_OUTPUTS = {"diagnose --report", "paper OUTDIR", "demo -o", "study-ffc OUTDIR"}
 OPTIONS = list(_commands({"sweep": "", "cal": "", "toml": "", "root": Path()}, "x"))
 
 
@@ -65,7 +70,8 @@ def test_existing_output_is_refused_without_overwrite(files, tmp_path, capsys, o
         kept = out / "report.md"
     else:
         out = kept = tmp_path / ("out.npz" if option in ("calibrate -o", "fit -o") else
-                                 "out.tif" if option == "simulate OUTPUT" else "out.json")
+                                 "out.tif" if option in ("simulate OUTPUT", "import -o") else
+                                 "out.png" if option == "uniformity --plot" else "out.json")
     kept.write_text("an earlier result")
     before = {p: p.stat().st_mtime_ns for p in files["root"].iterdir()}
     assert main(_commands(files, str(out))[option]) == 2
