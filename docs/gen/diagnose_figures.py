@@ -30,14 +30,14 @@ from hsiffc.diagnose.effects import add_effect
 DOC = Path(__file__).resolve().parents[1] / "diagnose.md"
 EMVA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "emva1288-cmos8-roi"
 LADDERS = {
-    "dark_current": ("DN/ms", [0.005, 0.01, 0.02, 0.04]),
+    "dark_current": ("DN/ms, no dark frames", [0.02, 0.04, 0.1, 0.2, 0.5]),
     "exposure_offset": ("ms", [0.0125, 0.025, 0.05, 0.1]),
     "readout_nonlinearity": ("DN at full scale", [5.0, 10.0, 20.0, 40.0]),
     "pixel_nonlinearity": ("DN spread at full scale", [20.0, 40.0, 80.0]),
     "offset_drift": ("DN peak", [0.25, 0.5, 1.0, 2.0]),
     "illumination_error": ("relative RMS per step", [0.001, 0.002, 0.004, 0.008]),
     "image_lag": ("fraction", [0.0005, 0.001, 0.002, 0.004]),
-    "frame_light_change": ("relative per frame", [0.00025, 0.0005, 0.001, 0.002]),
+    "frame_light_change": ("relative per frame", [0.001, 0.002, 0.004, 0.008]),
 }
 DESIGNS = {
     "mixed (EMVA-like, shuffled exposures and light)": dict(design="mixed"),
