@@ -30,14 +30,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from .dq import DQ_DTYPE
-from .kernels import leakage
+from .kernels import gradient, leakage
 from .kernels.operands import flat_operands
 
 __all__ = [
     "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
     "dynamic_saturation_level", "leakage_rate", "leakage_percentage",
     "leakage_percentage_paper", "exposure_at_leakage_percentage", "invert_response",
-    "Inversion", "solve_ode", "response_and_gradient", "response_gradient_kernel",
+    "Inversion", "solve_ode", "response_and_gradient",
 ]
 
 
@@ -323,88 +323,6 @@ def solve_ode(t_ms, k, a, b, dark, *, rtol=1e-10, atol=1e-10):
     return sol.y[0]
 
 
-# -- response and its gradient, one scalar kernel (used by the calibration's per-pixel fit) ------
-# Kept as a separate section so the fit and the vectorised array function share one
-# implementation of the closed form's derivatives.
-from numba import njit as _njit, prange as _prange  # noqa: E402
-
-
-@_njit(cache=True, inline="always", error_model="numpy")
-def response_gradient_kernel(t_ms, k, ln_a, b, dark, c):
-    """Scalar numba kernel: response (DN) and its derivatives at one sample.
-
-    The closed form of :func:`response`, ``exp(-b (Y - d)) = e^{-x} + (c / k)(1 - e^{-x})``
-    with ``x = b k t`` and ``c = a e^{b d}`` (the leakage rate at the dark level, DN/ms; the
-    leakage term is ``c b t`` at k = 0). Both terms are positive, so one log gives Y without
-    cancellation: one exp and one log per sample. Where a term could leave the range of
-    doubles (``c`` beyond 1e+-300 DN/ms, ``x`` beyond 690) the log-domain form is used instead. Callable from
-    other numba kernels; from Python use :func:`response_and_gradient`.
-
-    Parameters
-    ----------
-    t_ms : float
-        Exposure (ms, >= 0).
-    k : float
-        Light rate (DN/ms, >= 0).
-    ln_a : float
-        ``ln a`` (a in DN/ms; ``-inf`` for a = 0).
-    b : float
-        Leakage exponent (1/DN, > 0).
-    dark : float
-        Level at t = 0 (DN).
-    c : float
-        ``exp(ln_a + b * dark)``, precomputed by the caller (it is per pixel).
-
-    Returns
-    -------
-    tuple of 5 floats
-        Y (DN), dY/d ln k, dY/d ln a, dY/d ln b (DN), dY/d dark (1).
-    """
-    x = b * k * t_ms
-    if x < 1e-4:  # e^{-x}, 1 - e^{-x} and x e^{-x} / (1 - e^{-x}) - 1 by their series
-        ex = 1.0 - x * (1.0 - x * (0.5 - x / 6.0))
-        xdlp = x * (-0.5 + x / 12.0)
-        em_over_k = b * t_ms * (1.0 - x * (0.5 - x * (1.0 / 6.0 - x / 24.0)))  # (1 - e^-x) / k
-    else:
-        ex = np.exp(-x)
-        em = 1.0 - ex
-        xdlp = x * ex / em - 1.0
-        em_over_k = em / k
-    if x < 690.0 and c < 1e300 and (c > 1e-300 or c == 0.0):
-        leak = c * em_over_k  # leakage term L; Z = e^{-x} + L
-        z = ex + leak
-        ln_z = np.log(z)
-        inv_z = 1.0 / z
-        w2 = leak * inv_z  # the leakage term's share of Z
-    else:  # log domain: ln L = ln a + b d + ln(em / k), taken without overflow
-        ln_leak = ln_a + b * dark + np.log(em_over_k)
-        if ln_leak > -x:
-            ln_z = ln_leak + np.log(1.0 + np.exp(-x - ln_leak))
-        else:
-            ln_z = -x + np.log(1.0 + np.exp(ln_leak + x))
-        w2 = np.exp(ln_leak - ln_z)
-    w1 = 1.0 - w2
-    inv_b = 1.0 / b
-    # dZ/Z with respect to ln k, ln b, from L = c (1 - e^{-x}) / k and x = b k t
-    dlnk = (x * w1 - w2 * xdlp) * inv_b
-    dlnb = (ln_z + x * w1 - w2 * (b * dark + 1.0 + xdlp)) * inv_b
-    return dark - ln_z * inv_b, dlnk, -w2 * inv_b, dlnb, w1
-
-
-@_njit(parallel=True, cache=True, error_model="numpy")
-def _gradient_flat(t, k, a, b, d, out):
-    for i in _prange(t.size):
-        ti = t[i]
-        la = np.log(a[i]) if a[i] > 0 else -np.inf
-        c = np.exp(la + b[i] * d[i]) if a[i] > 0 else 0.0
-        y, g0, g1, g2, g3 = response_gradient_kernel(ti, k[i], la, b[i], d[i], c)
-        out[0, i] = y
-        out[1, i] = g0
-        out[2, i] = g1
-        out[3, i] = g2
-        out[4, i] = g3
-
-
 def response_and_gradient(t_ms, k, a, b, dark):
     """Response of the leakage model and its derivatives, for whole arrays (numba, parallel).
 
@@ -425,11 +343,10 @@ def response_and_gradient(t_ms, k, a, b, dark):
     >>> round(float(y), 6)
     70.0
     """
-    t_ms, k, a, b, dark = np.broadcast_arrays(*_f64(t_ms, k, a, b, dark))
+    shape, ops = flat_operands(t_ms, k, a, b, dark)
     _check_positive_b(b)
-    if np.any(t_ms < 0) or np.any(k < 0) or np.any(a < 0):
+    if np.any(np.asarray(t_ms) < 0) or np.any(np.asarray(k) < 0) or np.any(np.asarray(a) < 0):
         raise ValueError("t_ms, k and a must be >= 0")
-    shape = t_ms.shape
-    out = np.empty((5, t_ms.size))
-    _gradient_flat(*(np.ascontiguousarray(v).ravel() for v in (t_ms, k, a, b, dark)), out)
+    out = np.empty((5, int(np.prod(shape))))
+    gradient.response_gradient_kernel(*ops, out)
     return tuple(o.reshape(shape) for o in out)

@@ -8,11 +8,10 @@ b times the signal level); s and b much less, so the iteration converges in a fe
 priors on s and ln b keep the normal matrix regular where the data do not show leakage; step
 limits and bounds keep every iterate finite.
 
-The model and its gradient come from :func:`hsiffc.model.response_gradient_kernel`. A pixel's
-samples are passed as 1-D arrays (its step means ``yp``, weights ``wq``, and per-step ``t``,
-``r``), plus an optional merged sample (``md_y, md_w, md_t``: the weighted mean of
-its dark samples, which lies on the dark line). ``wq`` holds the weights of the samples in
-the fit (0 for samples left out, and for dark samples when they are merged).
+The model and its gradient come from :mod:`hsiffc.kernels.gradient`. A pixel's samples are
+passed as 1-D arrays: step means ``yq``, weights ``wq`` (0: left out), exposures ``tq`` and
+relative light rates ``rq``; the last entry may be the merged dark sample (the weighted mean
+of the pixel's dark samples, which lies on its dark line).
 """
 
 from __future__ import annotations
@@ -20,83 +19,108 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ..model import response_gradient_kernel
+from ..kernels.gradient import response_gradient_fast, response_gradient_point
 
 B_MIN, B_MAX = 1e-6, 1.0  # bounds of b, 1/DN
 CONVERGED_CHI2 = 1e-3  # chi-square gain below which a pixel is converged (~0.03 sigma)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def sample(t, r, g, ln_a, c, dc, additive, s, b, d):
-    """Model value and Jacobian with respect to (ln g, s, ln b, d) at one sample.
-
-    ``c = exp(ln_a + b d)``; ``dc`` (DN/ms) adds to the light rate, or (``additive``) to the
-    response as ``dc t``.
-    """
-    kg = g * r
-    if additive or dc == 0.0:
-        y, dlnk, dlna, dlnb, dd = response_gradient_kernel(t, kg, ln_a, b, d, c)
-        if additive:
-            y += dc * t
-    else:
-        k = kg + dc
-        y, dlnk, dlna, dlnb, dd = response_gradient_kernel(t, k, ln_a, b, d, c)
-        dlnk *= kg / k if k > 0 else 0.0
-    return y, dlnk + dlna, -b * dlna, dlnb - b * s * dlna, dd
+def _internal(y, dlnk, dlna, dlnb, dd, t, kg, k, dc, additive, s, b):
+    """Response and Jacobian in (ln g, s, ln b, d) from the model's point derivatives."""
+    share = kg / (k if k > 0.0 else 1.0) if k > 0.0 else 0.0
+    y_out = y + dc * t if additive else y
+    return y_out, dlnk * share + dlna, -b * dlna, dlnb - b * s * dlna, dd
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _accumulate(acc, wi, res, j0, j1, j2, j3):
-    """Add one weighted sample to (chi2, g0..g3, h00, h10, h11, h20, h21, h22, h30..h33)."""
-    w0, w1, w2, w3 = wi * j0, wi * j1, wi * j2, wi * j3
-    return (acc[0] + wi * res * res, acc[1] + w0 * res, acc[2] + w1 * res, acc[3] + w2 * res,
-            acc[4] + w3 * res, acc[5] + w0 * j0, acc[6] + w1 * j0, acc[7] + w1 * j1,
-            acc[8] + w2 * j0, acc[9] + w2 * j1, acc[10] + w2 * j2, acc[11] + w3 * j0,
-            acc[12] + w3 * j1, acc[13] + w3 * j2, acc[14] + w3 * j3)
+def sample(t, r, g, ln_a, dc, additive, s, b, d):
+    """Model value and Jacobian with respect to (ln g, s, ln b, d) at one sample, any input.
+
+    ``dc`` (DN/ms) adds to the light rate, or (``additive``) to the response as ``dc t``.
+    """
+    kg = g * r
+    k = kg if additive else kg + dc
+    y, dlnk, dlna, dlnb, dd = response_gradient_point(t, k, ln_a, b, d)
+    return _internal(y, dlnk, dlna, dlnb, dd, t, kg, k, dc, additive, s, b)
 
 
 @njit(cache=True, error_model="numpy")
-def evaluate(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior, h, gv):
+def evaluate(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, h, gv, buf):
     """Weighted cost (data chi-square + priors) at ``ph``, the normal matrix ``h`` (4 x 4) and
     the half gradient ``gv``. Returns (cost, chi2, unweighted SS).
 
-    ``wq`` holds the weights of the samples in the fit (0: left out); ``prior`` = (s0, ln b0,
-    weight of s, weight of ln b).
+    ``yq``, ``wq``, ``tq``, ``rq`` are the pixel's samples (weight 0: left out); ``prior`` =
+    (s0, ln b0, weight of s, weight of ln b); ``buf`` a (6, n) scratch array. The model is
+    evaluated for all samples in one branch-free loop (vectorised), repaired by the
+    log-domain form where it cannot hold, then accumulated.
     """
     g = np.exp(ph[0])
     s, ln_b, d = ph[1], ph[2], ph[3]
     b = np.exp(ln_b)
     ln_a = ph[0] + ln_rref - b * s
     c = np.exp(ln_a + b * d)
-    acc = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    ss = 0.0
-    for i in range(t.size):
+    n = tq.size
+    bad = 0
+    for i in range(n):
+        kg = g * rq[i]
+        k = kg if additive else kg + dc
+        y, dlnk, dlna, dlnb, dd, ok = response_gradient_fast(tq[i], k, b, d, c)
+        y, j0, j1, j2, j3 = _internal(y, dlnk, dlna, dlnb, dd, tq[i], kg, k, dc, additive, s, b)
+        buf[0, i] = y - yq[i]
+        buf[1, i] = j0
+        buf[2, i] = j1
+        buf[3, i] = j2
+        buf[4, i] = j3
+        bad += 0 if ok else 1
+    if bad:  # rare: the whole pixel in the log-domain form
+        for i in range(n):
+            y, j0, j1, j2, j3 = sample(tq[i], rq[i], g, ln_a, dc, additive, s, b, d)
+            buf[0, i] = y - yq[i]
+            buf[1, i] = j0
+            buf[2, i] = j1
+            buf[3, i] = j2
+            buf[4, i] = j3
+    chi2 = ss = 0.0
+    h00 = h10 = h11 = h20 = h21 = h22 = h30 = h31 = h32 = h33 = 0.0
+    g0 = g1 = g2 = g3 = 0.0
+    for i in range(n):
         wi = wq[i]
         if wi > 0.0:
-            yi, j0, j1, j2, j3 = sample(t[i], r[i], g, ln_a, c, dc, additive, s, b, d)
-            res = yi - yp[i]
+            res, j0, j1, j2, j3 = buf[0, i], buf[1, i], buf[2, i], buf[3, i], buf[4, i]
             ss += res * res
-            acc = _accumulate(acc, wi, res, j0, j1, j2, j3)
-    if md_w > 0.0:
-        yi, j0, j1, j2, j3 = sample(md_t, 0.0, g, ln_a, c, dc, additive, s, b, d)
-        acc = _accumulate(acc, md_w, yi - md_y, j0, j1, j2, j3)
-    chi2 = acc[0]
+            chi2 += wi * res * res
+            w0, w1, w2, w3 = wi * j0, wi * j1, wi * j2, wi * j3
+            g0 += w0 * res
+            g1 += w1 * res
+            g2 += w2 * res
+            g3 += w3 * res
+            h00 += w0 * j0
+            h10 += w1 * j0
+            h11 += w1 * j1
+            h20 += w2 * j0
+            h21 += w2 * j1
+            h22 += w2 * j2
+            h30 += w3 * j0
+            h31 += w3 * j1
+            h32 += w3 * j2
+            h33 += w3 * j3
     ds = s - prior[0]
     db = ln_b - prior[1]
-    h[0, 0] = acc[5]
-    h[1, 1] = acc[7] + prior[2]
-    h[2, 2] = acc[10] + prior[3]
-    h[3, 3] = acc[14]
-    h[0, 1] = h[1, 0] = acc[6]
-    h[0, 2] = h[2, 0] = acc[8]
-    h[1, 2] = h[2, 1] = acc[9]
-    h[0, 3] = h[3, 0] = acc[11]
-    h[1, 3] = h[3, 1] = acc[12]
-    h[2, 3] = h[3, 2] = acc[13]
-    gv[0] = acc[1]
-    gv[1] = acc[2] + prior[2] * ds
-    gv[2] = acc[3] + prior[3] * db
-    gv[3] = acc[4]
+    h[0, 0] = h00
+    h[1, 1] = h11 + prior[2]
+    h[2, 2] = h22 + prior[3]
+    h[3, 3] = h33
+    h[0, 1] = h[1, 0] = h10
+    h[0, 2] = h[2, 0] = h20
+    h[1, 2] = h[2, 1] = h21
+    h[0, 3] = h[3, 0] = h30
+    h[1, 3] = h[3, 1] = h31
+    h[2, 3] = h[3, 2] = h32
+    gv[0] = g0
+    gv[1] = g1 + prior[2] * ds
+    gv[2] = g2 + prior[3] * db
+    gv[3] = g3
     return chi2 + prior[2] * ds * ds + prior[3] * db * db, chi2, ss
 
 
@@ -134,16 +158,15 @@ def solve4(a, rhs, out, m):
 
 
 @njit(cache=True, error_model="numpy")
-def levenberg_marquardt(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior, lo,
-                        hi, s_step_min, max_iter, tol, h, gv, hn, step, trial, scratch):
+def levenberg_marquardt(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, lo, hi, s_step_min,
+                        max_iter, tol, h, gv, hn, step, trial, scratch, buf):
     """Iterate from ``ph`` (updated in place) to the minimum of :func:`evaluate`.
 
     ``lo``, ``hi`` (4,) bound the parameters. A step moves ln g by at most 2, ln b by at most
     1 and s by at most 3/b or ``s_step_min`` (DN), whichever is larger. On return ``h`` holds the normal matrix at
     ``ph``. Returns (converged, iterations, cost, chi2, unweighted SS).
     """
-    cost, chi2, ss = evaluate(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior,
-                              h, gv)
+    cost, chi2, ss = evaluate(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, h, gv, buf)
     lam = 1e-3
     conv = False
     it = 0
@@ -186,8 +209,8 @@ def levenberg_marquardt(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_
         for a in range(4):
             trial[a] = min(max(ph[a] + step[a], lo[a]), hi[a])
             size = max(size, abs(trial[a] - ph[a]) * (b_now if a == 1 else 1.0))
-        ct, chi2t, sst = evaluate(trial, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t,
-                                  prior, hn, step)
+        ct, chi2t, sst = evaluate(trial, yq, wq, tq, rq, dc, additive, ln_rref, prior, hn, step,
+                                  buf)
         gain = cost - ct
         if np.isfinite(ct) and ct < cost:
             rel = gain / max(cost, 1e-300)
@@ -216,33 +239,46 @@ def levenberg_marquardt(ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_
 def external_sigma(h, ph, chi2, dof, out, col, cov, scratch):
     """Standard errors of (ln g, ln a, ln b, d) into ``out`` (4,) from the normal matrix ``h``
     in (ln g, s, ln b, d) (``ln a = ln g + ln r_ref - b s``), inflated by the reduced
-    chi-square where it exceeds 1. ``col`` (4,) and ``cov``, ``scratch`` are scratch arrays."""
-    for c in range(4):
-        for a in range(4):
-            col[a] = 1.0 if a == c else 0.0
-        if not solve4(h, col, out, scratch):
-            out[:] = np.inf
-            return
-        for a in range(4):
-            cov[a, c] = out[a]
+    chi-square where it exceeds 1: with ``h = L L^T`` (Cholesky, into ``cov``), the variance
+    of ``v . phi`` is ``|L^-1 v|^2``. ``col`` (4,) and ``scratch`` are scratch arrays."""
+    for a in range(4):
+        for c in range(a + 1):
+            acc = h[a, c]
+            for m in range(c):
+                acc -= cov[a, m] * cov[c, m]
+            if a == c:
+                if not acc > 0.0:
+                    out[:] = np.inf
+                    return
+                cov[a, a] = np.sqrt(acc)
+            else:
+                cov[a, c] = acc / cov[c, c]
     b = np.exp(ph[2])
     over = max(chi2 / max(dof, 1), 1.0)
-    v1 = -b
-    v2 = -b * ph[1]
-    var_lna = (cov[0, 0] + v1 * v1 * cov[1, 1] + v2 * v2 * cov[2, 2] + 2 * v1 * cov[0, 1]
-               + 2 * v2 * cov[0, 2] + 2 * v1 * v2 * cov[1, 2])
-    out[0] = np.sqrt(max(cov[0, 0], 0.0) * over)
-    out[1] = np.sqrt(max(var_lna, 0.0) * over)
-    out[2] = np.sqrt(max(cov[2, 2], 0.0) * over)
-    out[3] = np.sqrt(max(cov[3, 3], 0.0) * over)
+    for q in range(4):
+        # v: ln g; ln a (d ln a = d ln g - b ds - b s d ln b); ln b; d
+        for a in range(4):
+            col[a] = 0.0
+        if q == 1:
+            col[0], col[1], col[2] = 1.0, -b, -b * ph[1]
+        else:
+            col[q] = 1.0
+        var = 0.0
+        for a in range(4):  # forward substitution L z = v, var = z . z
+            acc = col[a]
+            for m in range(a):
+                acc -= cov[a, m] * scratch[0, m]
+            scratch[0, a] = acc / cov[a, a]
+            var += scratch[0, a] * scratch[0, a]
+        out[q] = np.sqrt(var * over)
 
 
 def _refresh_cache():
-    from .. import model
+    from ..kernels import gradient, launch, vmath
     from . import kcache
 
-    kcache.refresh([sample, _accumulate, evaluate, solve4, levenberg_marquardt, external_sigma],
-                   [model])
+    kcache.refresh([_internal, sample, evaluate, solve4, levenberg_marquardt, external_sigma],
+                   [gradient, vmath, launch])
 
 
 _refresh_cache()

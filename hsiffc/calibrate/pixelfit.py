@@ -53,19 +53,22 @@ I_N, I_STATUS, I_ITER = 0, 1, 2
 
 
 @njit(cache=True, error_model="numpy")
-def _gather(p, y, valid, w, nfr, gain, read_var, t, light, dark, yp, wp):
-    """The pixel's samples into ``yp``; weights into ``wp`` (0: left out)."""
-    n = t.size
+def _gather(p0, p1, y, valid, w, nfr, read_var, light, dark, ty, tw):
+    """Samples of pixels ``p0:p1`` into the rows of ``ty``; their weights into ``tw`` (0: left
+    out; without given weights the darks' ``nfr / read_var``, the light ones set later). Reads
+    ``y`` (S, P) row by row, so memory is streamed."""
     given = w.shape[0] > 0
-    for i in range(n):
-        yi = y[i, p]
-        yp[i] = yi
-        ok = valid[i, p] and np.isfinite(yi) and (light[i] or dark[i])
-        if given:
-            wi = w[i, p]
-            wp[i] = wi if ok and wi > 0 and np.isfinite(wi) else 0.0
-        else:
-            wp[i] = nfr[i] / read_var if ok else 0.0  # darks; light ones are set below
+    for i in range(light.size):
+        use = light[i] or dark[i]
+        for p in range(p0, p1):
+            yi = y[i, p]
+            ty[p - p0, i] = yi
+            ok = use and valid[i, p] and np.isfinite(yi)
+            if given:
+                wi = w[i, p]
+                tw[p - p0, i] = wi if ok and wi > 0 and np.isfinite(wi) else 0.0
+            else:
+                tw[p - p0, i] = nfr[i] / read_var if ok else 0.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -130,7 +133,7 @@ def _samples(yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr, 
 
 
 @njit(cache=True, error_model="numpy")
-def _fit_pixel(p, yp, wp, wq, t, r, light, dark, infit, merge, estimate_dc, dc_given, additive,
+def _fit_pixel(p, yp, wp, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, estimate_dc, dc_given, additive,
                b_starts, margins, theta0, prior_sigma, max_iter, tol, fallback, weights_given,
                nfr, gain, read_var, out_f, out_i, h, gv, hn, step, ph, trial, prior, cov,
                scratch, lo, hi):
@@ -138,8 +141,12 @@ def _fit_pixel(p, yp, wp, wq, t, r, light, dark, infit, merge, estimate_dc, dc_g
     (nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max) = _samples(
         yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr, gain, read_var)
     md_w = sw if merge else 0.0
-    for i in range(n):
+    for i in range(n):  # the fit's samples: the light ones (and unmerged darks), merged dark
+        yq[i] = yp[i]
         wq[i] = wp[i] if infit[i] else 0.0
+        tq[i] = t[i]
+        rq[i] = r[i]
+    yq[n], wq[n], tq[n], rq[n] = md_y, md_w, md_t, 0.0
     out_f[p, F_DC] = dc
     out_i[p, I_N] = nl + nd
     out_i[p, I_ITER] = 0
@@ -230,8 +237,8 @@ def _fit_pixel(p, yp, wp, wq, t, r, light, dark, infit, merge, estimate_dc, dc_g
                 trial[3] = d_lin
                 cst = np.inf
                 if b_starts.size * margins.size > 1:
-                    cst, _, _ = evaluate(trial, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w,
-                                         md_t, prior, h, gv)
+                    cst, _, _ = evaluate(trial, yq, wq, tq, rq, dc, additive, ln_rref, prior, h,
+                                         gv, buf)
                 if cst <= best:
                     best = cst
                     ph[:] = trial
@@ -264,8 +271,8 @@ def _fit_pixel(p, yp, wp, wq, t, r, light, dark, infit, merge, estimate_dc, dc_g
         for a in range(4):
             ph[a] = min(max(ph[a], lo[a]), hi[a])
         conv, it, _cost, chi2, ss = levenberg_marquardt(
-            ph, yp, wq, t, r, dc, additive, ln_rref, md_y, md_w, md_t, prior, lo, hi,
-            0.2 * span, max_iter, tol, h, gv, hn, step, trial, scratch)
+            ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, lo, hi, 0.2 * span, max_iter,
+            tol, h, gv, hn, step, trial, scratch, buf)
         out_i[p, I_ITER] = it
         status = LEAKAGE
         if not conv:
@@ -304,15 +311,14 @@ def _fit_pixel(p, yp, wp, wq, t, r, light, dark, infit, merge, estimate_dc, dc_g
     # else they are evaluated one by one
     if merge and nd > 0:
         g = np.exp(ph[0])
-        c = np.exp(ln_a + b * d)
-        y_end, _, _, _, _ = sample(t_dark_max, 0.0, g, ln_a, c, dc, additive, ph[1], b, d)
+        y_end, _, _, _, _ = sample(t_dark_max, 0.0, g, ln_a, dc, additive, ph[1], b, d)
         if abs(y_end - (d + dc * t_dark_max)) < 1e-3:
             ss += max(uyy - 2 * d * uy - 2 * dc * uty + nd * d * d + 2 * d * dc * ut
                       + dc * dc * utt, 0.0)
         else:
             for i in range(n):
                 if wp[i] > 0 and dark[i]:
-                    yi, _, _, _, _ = sample(t[i], 0.0, g, ln_a, c, dc, additive, ph[1], b, d)
+                    yi, _, _, _, _ = sample(t[i], 0.0, g, ln_a, dc, additive, ph[1], b, d)
                     ss += (yi - yp[i]) ** 2
     out_f[p, F_RMS] = np.sqrt(ss / max(nl + nd, 1))
     external_sigma(h, ph, chi2, nfit - 4, step, trial, cov, scratch)
@@ -342,9 +348,16 @@ def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estima
     weights_given = w.shape[0] > 0
     nblocks = (npx + BLOCK - 1) // BLOCK
     for blk in prange(nblocks):
-        yp = np.empty(n)
-        wp = np.empty(n)
-        wq = np.empty(n)
+        p0 = blk * BLOCK
+        p1 = min(npx, p0 + BLOCK)
+        ty = np.empty((BLOCK, n))
+        tw = np.empty((BLOCK, n))
+        _gather(p0, p1, y, valid, w, nfr, read_var, light, dark, ty, tw)
+        yq = np.empty(n + 1)
+        wq = np.empty(n + 1)
+        tq = np.empty(n + 1)
+        rq = np.empty(n + 1)
+        buf = np.empty((5, n + 1))
         h = np.empty((4, 4))
         hn = np.empty((4, 4))
         cov = np.empty((4, 4))
@@ -356,9 +369,8 @@ def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estima
         prior = np.empty(4)
         lo = np.empty(4)
         hi = np.empty(4)
-        for p in range(blk * BLOCK, min(npx, (blk + 1) * BLOCK)):
-            _gather(p, y, valid, w, nfr, gain, read_var, t, light, dark, yp, wp)
-            _fit_pixel(p, yp, wp, wq, t, r, light, dark, infit, merge, estimate_dc, dc_in[p],
+        for p in range(p0, p1):
+            _fit_pixel(p, ty[p - p0], tw[p - p0], yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, estimate_dc, dc_in[p],
                        additive, b_starts, margins, theta0, prior_sigma, max_iter, tol,
                        fallback, weights_given, nfr, gain, read_var, out_f, out_i, h, gv, hn,
                        step, ph, trial, prior, cov, scratch, lo, hi)
@@ -373,23 +385,24 @@ def pixel_samples(y, valid, w, nfr, gain, read_var, t, light, dark, estimate_dc,
     dark weight, weighted mean dark exposure (ms) and level (DN), dark current (DN/ms)."""
     npx = y.shape[1]
     weights_given = w.shape[0] > 0
-    for p in prange(npx):
-        yp = out_y[p]
-        wp = out_w[p]
-        _gather(p, y, valid, w, nfr, gain, read_var, t, light, dark, yp, wp)
-        res = _samples(yp, wp, t, light, dark, estimate_dc, dc_in[p], weights_given, nfr, gain,
-                       read_var)
-        out_dark[p, 0] = res[2]
-        out_dark[p, 1] = res[3]
-        out_dark[p, 2] = res[4]
-        out_dark[p, 3] = res[5]
+    for blk in prange((npx + BLOCK - 1) // BLOCK):
+        p0 = blk * BLOCK
+        p1 = min(npx, p0 + BLOCK)
+        _gather(p0, p1, y, valid, w, nfr, read_var, light, dark, out_y[p0:p1], out_w[p0:p1])
+        for p in range(p0, p1):
+            res = _samples(out_y[p], out_w[p], t, light, dark, estimate_dc, dc_in[p],
+                           weights_given, nfr, gain, read_var)
+            out_dark[p, 0] = res[2]
+            out_dark[p, 1] = res[3]
+            out_dark[p, 2] = res[4]
+            out_dark[p, 3] = res[5]
 
 def _refresh_cache():
-    from .. import model
+    from ..kernels import gradient, launch, vmath
     from . import kcache, lm
 
     kcache.refresh([_gather, _light_weights, _samples, _fit_pixel, fit_block, pixel_samples],
-                   [model, lm])
+                   [gradient, vmath, launch, lm])
 
 
 _refresh_cache()
