@@ -196,12 +196,14 @@ def inject(name: str, size: float, *, t, k, signal, order, prev_signal, light, f
     raise KeyError(f"unknown effect {name!r}; known: {sorted(EFFECTS) + sorted(OUTSIDE)}")
 
 
-def add_effect(sweep, name: str, size: float, *, seed: int = 0):
+def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = False):
     """A copy of a simulated sweep (with ``meta["truth"]``) with effect ``name`` added to its
     raw frames (then rounded and clipped to the ADC range as the sensor would).
 
     The effect acts on the true signal of each step: light steps use the truth's light rate,
-    dark steps none; acquisition order is the frame order.
+    dark steps none; acquisition order is the frame order. ``in_well`` (dark_current only):
+    the extra dark charge is collected in the well and leaks with the signal (through the
+    model's ODE), instead of adding to the response after it (the default).
     """
     from dataclasses import replace as _replace
 
@@ -234,8 +236,9 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0):
     extra = inject(name, size, t=np.broadcast_to(t, signal.shape), k=k_light * light[None, :],
                    signal=signal, order=order, prev_signal=prev, light=light,
                    full_scale=float(sweep.full_scale_dn), rng=rng, dydt=dydt, dydlnk=dydlnk)
-    if name == "dark_current":  # the extra charge is collected (and leaks) like the light's
-        extra = _model_mod.response(t[None, :], k + extra / np.maximum(t[None, :], 1e-12), a, b, d) - expected
+    if name == "dark_current" and in_well:  # collected (and leaking) like the light's charge
+        extra = _model_mod.response(t[None, :], k + extra / np.maximum(t[None, :], 1e-12), a, b,
+                                    d) - expected
     data = sweep.data.astype(np.float64)
     per_frame = ALIASES.get(name, name) == "frame_light_change"
     for i, s in enumerate(steps):
