@@ -224,17 +224,6 @@ class AlphaTable:
                          "record shorter exposures or raise the threshold")
         return "\n".join(lines)
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "AlphaTable":
-        """The table of :meth:`to_dict` (missing alphas become :data:`NO_ALPHA`)."""
-        sel = d.get("selected_ms")
-        return cls(np.asarray(d["exposures_ms"], float),
-                   np.array([[NO_ALPHA if v is None else v for v in row]
-                             for row in d["alpha_percent"]], float),
-                   tuple(d["wavelengths_nm"]) if d.get("wavelengths_nm") else None,
-                   d["statistic"], d["method"], d.get("threshold_percent"),
-                   None if sel is None else np.array([np.nan if v is None else v for v in sel]))
-
     def to_dict(self) -> dict:
         """JSON-safe dict (lists, NaN as None where needed); :meth:`from_dict` inverts it."""
         return {"exposures_ms": self.exposures_ms.tolist(),

@@ -9,6 +9,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from hsiffc.bandstats import band_reduce
 from hsiffc.calibrate import Calibration, calibrate
@@ -20,7 +22,7 @@ from hsiffc.io import read_sweep
 from hsiffc.linearise import linearise
 from hsiffc.params import validate_method
 from hsiffc.polyffc import polynomial_apply, polynomial_fit
-from hsiffc.stages import Pipeline, check_stage, create
+from hsiffc.stages import Pipeline, check_stage, create, registry
 from hsiffc.validity import alpha_table_of, validity_flags
 
 T_MS = 32.25  # a training flat, a dark stack and a test frame share this exposure
@@ -248,3 +250,28 @@ def test_pipeline_files_of_format_1_still_load(frames, cal, tmp_path):
     np.savez(tmp_path / "v1.npz", **contents)
     again = Pipeline.load(tmp_path / "v1.npz").transform(test)
     assert np.array_equal(again.data, expected.data) and np.array_equal(again.dq, expected.dq)
+
+
+DECLARED = [(registry.get(name), key) for name in registry.BUILTIN
+            for key in registry.get(name).param_spec]
+
+
+@settings(max_examples=60, deadline=None)
+@given(value=st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6),
+                       st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=8),
+                       st.lists(st.integers(), max_size=2)),
+       pick=st.integers(0, 10**6))
+def test_any_parameter_value_is_accepted_or_refused_in_one_line(value, pick):
+    """Fuzz: every declared parameter of every built-in stage either accepts a value or raises
+    ParameterError naming it - never another exception."""
+    cls, key = DECLARED[pick % len(DECLARED)]
+    stage = cls(**{key: value})
+    try:
+        stage.validate_params()
+    except ParameterError as exc:
+        assert f"{key}=" in str(exc) and "\n" not in str(exc)
+    else:
+        param = type(stage).param_spec[key]
+        assert param.accepts(value)
+        if param.kind in ("number", "integer") and value is not None:
+            assert np.isfinite(value) and (param.low is None or value >= param.low)

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..calibrate.product import Calibration
-from ..errors import DataFormatError
 from ..stages import Pipeline, create
 from .plan import BatchError
 
@@ -43,9 +42,10 @@ def default_pipeline(calibration, *, threshold_percent: float = 12.0,
 def load_pipeline(path, calibration: Calibration, notes: list | None = None) -> Pipeline:
     """A fitted pipeline file whose stages use ``calibration``.
 
-    A stage's own calibration must have the same identity (else BatchError); when the file it
-    names cannot be found (as given, or beside the pipeline file) ``calibration`` is used and a
-    note is appended to ``notes``.
+    A stage's own calibration must have the same identity (else BatchError).
+    :meth:`~hsiffc.stages.Pipeline.load` resolves the calibrations: a step recorded with
+    ``calibration``'s identity gets it without reading a file; a format-1 file whose calibration
+    path is not found gets it too.
     """
     path = Path(path)
     notes = [] if notes is None else notes
@@ -59,33 +59,16 @@ def load_pipeline(path, calibration: Calibration, notes: list | None = None) -> 
                              "corrected mosaic frames (H, W): fit a pipeline without it")
         if not stage.is_fitted():
             raise BatchError(f"{path}: step {name!r} is not fitted; fit it with 'hsiffc fit'")
-        ref = stage.get_params().get("calibration")
-        if ref is None:
-            continue
-        other = ref if isinstance(ref, Calibration) else _find_cal(ref, path)
+        other = stage.get_params().get("calibration")
         if other is None:
-            # the file the pipeline names is not here (moved, or a path relative to where it
-            # was fitted): the stage gets --calibration, which the provenance records
-            notes.append(f"step {name!r}: its calibration {ref} is not found; "
-                         f"--calibration {calibration.identity} is used")
-        elif other.identity != calibration.identity:
-            raise BatchError(f"{path}: step {name!r} uses calibration {other.identity} ({ref}) "
-                             f"but --calibration is {calibration.identity}: pass the calibration "
-                             "the pipeline was fitted with, or fit the pipeline again")
+            continue
+        if other.identity != calibration.identity:
+            raise BatchError(f"{path}: step {name!r} uses calibration {other.identity} "
+                             f"({other.path or 'embedded'}) but --calibration is "
+                             f"{calibration.identity}: pass the calibration the pipeline was "
+                             "fitted with, or fit the pipeline again")
         stage.set_params(calibration=calibration)  # loaded once, not per frame
     return pipe
-
-
-def _find_cal(ref, pipeline_path: Path) -> Calibration | None:
-    ref = Path(ref)
-    for cand in (ref, pipeline_path.parent / ref, pipeline_path.parent / ref.name):
-        if cand.is_file():
-            try:
-                return Calibration.load(cand)
-            except DataFormatError as exc:
-                raise BatchError(f"{pipeline_path}: the calibration {cand} it names cannot be "
-                                 f"read: {exc}") from exc
-    return None
 
 
 @dataclass(frozen=True)
