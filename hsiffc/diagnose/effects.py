@@ -196,14 +196,14 @@ def inject(name: str, size: float, *, t, k, signal, order, prev_signal, light, f
     raise KeyError(f"unknown effect {name!r}; known: {sorted(EFFECTS) + sorted(OUTSIDE)}")
 
 
-def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = False):
+def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = True):
     """A copy of a simulated sweep (with ``meta["truth"]``) with effect ``name`` added to its
     raw frames (then rounded and clipped to the ADC range as the sensor would).
 
     The effect acts on the true signal of each step: light steps use the truth's light rate,
-    dark steps none; acquisition order is the frame order. ``in_well`` (dark_current only):
-    the extra dark charge is collected in the well and leaks with the signal (through the
-    model's ODE), instead of adding to the response after it (the default).
+    dark steps none; acquisition order is the frame order. ``in_well`` (dark_current only; the
+    default): the extra dark charge is collected in the well and leaks with the signal (through
+    the model's ODE); False adds it to the response after the leakage.
     """
     from dataclasses import replace as _replace
 
