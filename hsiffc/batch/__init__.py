@@ -39,7 +39,7 @@ __all__ = ["BatchError", "BatchSummary", "Job", "Settings", "check_scheduler", "
            "plan_jobs"]
 
 
-def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_percent: float = 12.0,
+def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_percent: float = 12.0,
                   linearise: bool = False, workers: int = 1, scheduler: str | None = None,
                   overwrite: bool = False, nan: str = "flag", hash_inputs: bool = True,
                   overrides: dict | None = None, observer=None,
@@ -100,9 +100,13 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
     """
     t0 = time.perf_counter()
     workers = _check_options(nan, workers, scheduler, threshold_percent)
-    cal_path = Path(calibration).resolve()
-    cal = Calibration.load(cal_path)
-    settings = Settings(calibration=str(cal_path), calibration_identity=cal.identity,
+    if calibration is None and pipeline is None:
+        raise BatchError("give --calibration (for the default pipeline) or --pipeline (a fitted "
+                         "pipeline; a calibration is needed only if its stages use one)")
+    cal_path = None if calibration is None else Path(calibration).resolve()
+    cal = None if cal_path is None else Calibration.load(cal_path)
+    settings = Settings(calibration=None if cal_path is None else str(cal_path),
+                        calibration_identity=None if cal is None else cal.identity,
                         pipeline=None if pipeline is None else str(Path(pipeline).resolve()),
                         threshold_percent=float(threshold_percent), linearise=bool(linearise),
                         overwrite=bool(overwrite), nan=nan, hash_inputs=bool(hash_inputs),
@@ -112,7 +116,7 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
     ctx = context_for(settings, cal)  # validates the pipeline here, before any file is touched
     del cal
     jobs, ignored = plan_jobs(inputs, outdir)
-    with protect_inputs([j.input for j in jobs] + [cal_path, settings.pipeline]), \
+    with protect_inputs([j.input for j in jobs] + [p for p in (cal_path, settings.pipeline) if p]), \
             folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
         if observer is not None:
             observer.start(len(jobs))
@@ -125,7 +129,8 @@ def correct_batch(inputs, outdir, calibration, *, pipeline=None, threshold_perce
     steps = [s["name"] for s in ctx.info["steps"]]
     return BatchSummary([results[i] for i in sorted(results)], time.perf_counter() - t0,
                         str(Path(outdir).resolve()),
-                        {"path": str(cal_path), "identity": ctx.identity},
+                        {"path": None if cal_path is None else str(cal_path),
+                         "identity": ctx.identity},
                         {k: v for k, v in ctx.info.items() if k != "steps"} | {"steps": steps},
                         ignored)
 

@@ -39,7 +39,7 @@ def default_pipeline(calibration, *, threshold_percent: float = 12.0,
     return Pipeline(steps)
 
 
-def load_pipeline(path, calibration: Calibration, notes: list | None = None) -> Pipeline:
+def load_pipeline(path, calibration: Calibration | None, notes: list | None = None) -> Pipeline:
     """A fitted pipeline file whose stages use ``calibration``.
 
     A stage's own calibration must have the same identity (else BatchError).
@@ -62,6 +62,9 @@ def load_pipeline(path, calibration: Calibration, notes: list | None = None) -> 
         other = stage.get_params().get("calibration")
         if other is None:
             continue
+        if calibration is None:
+            raise BatchError(f"{path}: step {name!r} uses a calibration; pass it with "
+                             "--calibration")
         if other.identity != calibration.identity:
             raise BatchError(f"{path}: step {name!r} uses calibration {other.identity} "
                              f"({other.path or 'embedded'}) but --calibration is "
@@ -75,8 +78,8 @@ def load_pipeline(path, calibration: Calibration, notes: list | None = None) -> 
 class Settings:
     """Everything a task needs besides its Job (plain values, sent to the workers)."""
 
-    calibration: str
-    calibration_identity: str
+    calibration: str | None  # None: a fitted pipeline that needs no calibration
+    calibration_identity: str | None
     pipeline: str | None = None
     threshold_percent: float = 12.0
     linearise: bool = False
@@ -91,8 +94,8 @@ class Settings:
 class Context:
     """A batch's loaded calibration and pipeline, and what the provenance says of them."""
 
-    calibration: Calibration
-    identity: str  # the calibration's (a content hash: computed once)
+    calibration: Calibration | None
+    identity: str | None  # the calibration's (a content hash: computed once)
     pipeline: Pipeline
     info: dict
 
@@ -107,8 +110,10 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
            settings.threshold_percent, settings.linearise, settings.overrides)
     ctx = _CONTEXTS.get(key)
     if ctx is None:
-        cal = calibration if calibration is not None else Calibration.load(settings.calibration)
-        if calibration is None and cal.identity != settings.calibration_identity:
+        cal = calibration
+        if cal is None and settings.calibration is not None:
+            cal = Calibration.load(settings.calibration)
+        if calibration is None and cal is not None and cal.identity != settings.calibration_identity:
             raise BatchError(f"{settings.calibration}: the calibration changed since the batch "
                              f"started (identity {cal.identity}, expected "
                              f"{settings.calibration_identity})")

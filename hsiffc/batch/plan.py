@@ -14,7 +14,7 @@ from pathlib import Path, PurePath
 
 from ..errors import HsiffcError
 from ..io.corrected import SUFFIX
-from ..io.tiff import TIFF_SUFFIXES
+from ..io.readers import IMAGE_SUFFIXES
 
 __all__ = ["BatchError", "Job", "discover_inputs", "output_name", "plan_jobs"]
 
@@ -27,7 +27,8 @@ class BatchError(HsiffcError):
 
 
 def _is_tiff(path) -> bool:
-    return PurePath(path).suffix.lower() in TIFF_SUFFIXES
+    """An image file hsiffc reads (TIFF, PNG, ENVI header, FITS)."""
+    return PurePath(path).suffix.lower() in IMAGE_SUFFIXES
 
 
 def _is_output(path) -> bool:
@@ -69,7 +70,8 @@ def discover_inputs(args) -> tuple[list[tuple[Path, PurePath]], list[Path]]:
             files = [Path(m) for m in sorted(glob.glob(text, recursive=True))
                      if Path(m).is_file() and _is_tiff(m)]
             if not files:
-                raise BatchError(f"{text}: the pattern matches no TIFF file (.tif/.tiff)")
+                raise BatchError(f"{text}: the pattern matches no TIFF or other image file "
+                                 "(.tif/.tiff, .png, .hdr, .fits)")
             for f in files:
                 rel = PurePath(os.path.relpath(f, root)) if root else PurePath(f)
                 if rel.parts and rel.parts[0] == "..":
@@ -84,7 +86,8 @@ def discover_inputs(args) -> tuple[list[tuple[Path, PurePath]], list[Path]]:
             files = sorted(q for q in path.rglob("*")
                            if q.is_file() and _is_tiff(q) and not _hidden(q.relative_to(path)))
             if not files:
-                raise BatchError(f"{path}: the folder holds no TIFF file (.tif/.tiff)")
+                raise BatchError(f"{path}: the folder holds no TIFF or other image file "
+                                 "(.tif/.tiff, .png, .hdr, .fits)")
             for f in files:
                 if _is_output(f):
                     ignored.append(f)
@@ -92,8 +95,8 @@ def discover_inputs(args) -> tuple[list[tuple[Path, PurePath]], list[Path]]:
                     add(f, f.relative_to(path))
         elif path.is_file():
             if not _is_tiff(path):
-                raise BatchError(f"{path}: not a TIFF file name (.tif/.tiff); hsiffc correct "
-                                 "reads hsiffc TIFF frames or cubes")
+                raise BatchError(f"{path}: not a TIFF file name (.tif/.tiff) nor another image "
+                                 "format hsiffc correct reads (.png, .hdr, .fits)")
             add(path, PurePath(path.name))
         elif path.exists():
             raise BatchError(f"{path}: neither a regular file nor a folder")

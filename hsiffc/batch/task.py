@@ -133,9 +133,10 @@ def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame) ->
     hasher = Background(sha256_file, path) if settings.hash_inputs else None
     try:
         with open_input(path, settings.overrides) as src:
-            ctx.calibration.check_compatible(frame_shape=src.frame_shape,
-                                             bit_depth=src.bit_depth, mosaic=src.mosaic,
-                                             what=path.name)
+            if ctx.calibration is not None:
+                ctx.calibration.check_compatible(frame_shape=src.frame_shape,
+                                                 bit_depth=src.bit_depth, mosaic=src.mosaic,
+                                                 what=path.name)
             stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st, hasher=hasher)
     finally:
         if hasher is not None:
@@ -234,8 +235,9 @@ def _provenance(job: Job, settings: Settings, ctx: Context, src, st) -> dict:
     cal, mosaic = ctx.calibration, src.mosaic
     return {"input": {"path": job.input, "relative": job.rel, "size": st.st_size,
                       "mtime_ns": st.st_mtime_ns, "sha256": None},
-            "calibration": {"identity": ctx.identity, "path": settings.calibration,
-                            "method": cal.method, "fitted_on": cal.fitted_on.get("source")},
+            "calibration": None if cal is None else {
+                "identity": ctx.identity, "path": settings.calibration, "method": cal.method,
+                "fitted_on": cal.fitted_on.get("source")},
             "pipeline": ctx.info, "alpha_computed": ctx.info["alpha_computed"],
             "hsiffc_version": __version__, "exposure_unit": "ms",
             "exposure": [float(e) for e in src.exposure_ms], "kind": [str(k) for k in src.kind],

@@ -103,8 +103,11 @@ def _add_correct(sub):
                     "provenance JSON). Outputs appear atomically; a rerun skips the outputs that "
                     "are complete and up to date. Exit status 0: every file done or skipped; "
                     "1: some file failed (listed with its reason); 2: usage error.")
-    p.add_argument("inputs", nargs="+", help="TIFF files, folders or globs (quote globs)")
-    p.add_argument("--calibration", type=Path, required=True, help="calibration file (.npz)")
+    p.add_argument("inputs", nargs="+",
+                   help="image files (TIFF, PNG, ENVI .hdr, FITS), folders or globs (quote globs)")
+    p.add_argument("--calibration", type=Path, default=None,
+                   help="calibration file (.npz); needed by the default pipeline and by a "
+                        "--pipeline whose stages use one")
     p.add_argument("-o", "--outdir", type=Path, required=True, help="output folder")
     p.add_argument("--pipeline", type=Path, default=None,
                    help="fitted pipeline (.npz from 'hsiffc fit'); default: dark from the "
@@ -133,6 +136,10 @@ def _add_correct(sub):
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_input_options(p)
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
+    p.add_argument("--format", choices=("tiff", "envi"), default="tiff",
+                   help="envi: also write every corrected frame as an ENVI cube (one spectrum "
+                        "per mosaic tile, band wavelengths in the header) and its DQ cube next "
+                        "to the corrected TIFF")
     p.set_defaults(func=_cmd_correct, input_args=("inputs", "calibration", "pipeline"),
                    output_args=("json",))
 
@@ -181,6 +188,18 @@ class Progress:
         self._p.stop()
 
 
+def _envi_outputs(summary, *, overwrite: bool) -> None:
+    """ENVI cubes of the outputs this run wrote (and of skipped ones that have none yet)."""
+    from ..io.envi_write import corrected_to_envi
+
+    for r in summary.done + summary.skipped:
+        out = Path(r["output"])
+        if r["status"] == "skipped" and out.with_suffix(".hdr").exists() and not overwrite:
+            continue
+        corrected_to_envi(out, overwrite=True)
+        print(f"wrote ENVI cubes for {out.name}")
+
+
 def _cmd_correct(args) -> int:
     from ..batch import correct_batch
 
@@ -198,6 +217,8 @@ def _cmd_correct(args) -> int:
               "under a final name): run the same command again to resume", file=sys.stderr)
         return 130
     print(summary.to_text())
+    if args.format == "envi":
+        _envi_outputs(summary, overwrite=args.overwrite)
     if args.json:
         write_json(args.json, summary.to_dict())
     return summary.exit_status

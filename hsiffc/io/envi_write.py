@@ -18,7 +18,7 @@ from ..atomic import atomic_path
 from ..errors import DataFormatError
 from .envi import ENVI_DTYPES
 
-__all__ = ["write_envi"]
+__all__ = ["write_envi", "corrected_to_envi"]
 
 _CODES = {np.dtype(v).newbyteorder("<"): k for k, v in ENVI_DTYPES.items()}
 
@@ -99,3 +99,47 @@ def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description:
     with atomic_path(header, overwrite=overwrite) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
     return header, data
+
+
+def corrected_to_envi(path, *, overwrite: bool | None = None) -> list[Path]:
+    """Write a corrected file (an output of ``hsiffc correct``) as ENVI cubes beside it.
+
+    Each frame becomes ``NAME.hdr``/``NAME.img`` (``NAME_fKKKK`` when the file holds several
+    frames; ``NAME`` is the corrected file's name without ``.tif``): an ``(H', W', bands)``
+    float32 cube of one spectrum per mosaic tile (:func:`hsiffc.reconstruct.tile_cube`, DN as
+    corrected) with the band centres as ``wavelength`` when the mosaic has them, and a matching
+    ``NAME.dq.hdr``/``.img`` uint32 cube of the DQ bits. Without a mosaic the frame is written
+    as a one-band image.
+
+    Returns
+    -------
+    list of Path
+        The header files written (data and DQ for every frame).
+    """
+    from ..mosaic import Mosaic
+    from ..reconstruct import tile_cube
+    from .corrected import iter_corrected, read_provenance
+
+    path = Path(path)
+    prov = read_provenance(path)
+    mosaic = None if prov.get("mosaic") is None else Mosaic.from_dict(prov["mosaic"])
+    n = int(prov["n_frames"])
+    base = path.with_suffix("")
+    exposure = prov.get("exposure") or [None] * n
+    kinds = prov.get("kind") or [""] * n
+    written = []
+    for k, data, dq, _ in iter_corrected(path):
+        cube, cube_dq = (tile_cube(data, mosaic, dq=dq) if mosaic is not None
+                         else (data[:, :, None], dq[:, :, None]))
+        name = base if n == 1 else base.with_name(f"{base.name}_f{k:04d}")
+        wl = None if mosaic is None else mosaic.wavelengths_nm
+        extra = {"exposure time": exposure[k], "exposure time units": "ms", "frame kind": kinds[k],
+                 "source": path.name} if exposure[k] is not None else {"source": path.name}
+        hdr, _ = write_envi(name, cube.astype(np.float32), wavelengths_nm=wl,
+                            description=f"hsiffc corrected frame {k} of {path.name} (DN)",
+                            extra=extra, overwrite=overwrite)
+        dq_hdr, _ = write_envi(name.with_name(name.name + ".dq"), cube_dq.astype(np.uint32),
+                               wavelengths_nm=wl, description=f"hsiffc DQ bits of frame {k}",
+                               overwrite=overwrite)
+        written += [hdr, dq_hdr]
+    return written

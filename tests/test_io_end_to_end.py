@@ -1,0 +1,92 @@
+"""The everyday workflow without a sweep, in the README's words: a folder of plain 8-bit
+compressed TIFFs of a 5x5 mosaic camera, a dark and a white reference, metadata from a sidecar,
+``hsiffc fit`` + ``hsiffc correct``, and a cube with 25 bands and the IMEC wavelengths."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tifffile
+
+from hsiffc.cli import main
+from hsiffc.io import read_corrected
+from hsiffc.io.envi import read_envi
+from hsiffc.spectral.imec import read_imec_xml
+
+SENSOR = (1088, 2048)  # CMV2000
+
+
+def _camera_frames(rng, gain, dark, level, n):
+    """8-bit frames as the camera software saves them: dark offset + gain x level + noise."""
+    out = []
+    for _ in range(n):
+        signal = dark + gain * level + rng.normal(0, 1.0, SENSOR)
+        out.append(np.clip(np.rint(signal), 0, 255).astype(np.uint8))
+    return out
+
+
+def _nonuniformity(frame, mosaic, rows=slice(100, 300)):
+    """Mean over bands of 100 std/mean within the band (a fixed-pattern measure)."""
+    band = mosaic.band_map(frame.shape)[rows]
+    values = frame[rows]
+    return float(np.mean([100 * values[band == b].std() / values[band == b].mean()
+                          for b in range(mosaic.n_bands)]))
+
+
+def test_folder_of_camera_tiffs_fit_correct_cube(tmp_path, imec_xml, capsys):
+    rng = np.random.default_rng(5)
+    gain = rng.uniform(0.8, 1.2, SENSOR)            # pixel response non-uniformity
+    dark = rng.uniform(4, 8, SENSOR)                # dark offset per pixel, DN
+    refs, raw = tmp_path / "refs", tmp_path / "raw"
+    refs.mkdir()
+    raw.mkdir()
+    for i, f in enumerate(_camera_frames(rng, gain, dark, 0.0, 2)):
+        tifffile.imwrite(refs / f"dark_{i}.tif", f, compression="lzw")
+    for i, f in enumerate(_camera_frames(rng, gain, dark, 150.0, 2)):
+        tifffile.imwrite(refs / f"white_{i}.tif", f, compression="lzw")
+    scene_level = 150.0 * (0.5 + 0.3 * np.sin(np.arange(SENSOR[1]) / 200.0))[None, :]
+    for i, f in enumerate(_camera_frames(rng, gain, dark, scene_level, 2)):
+        tifffile.imwrite(raw / f"scene_{i}.tif", f, compression="zlib")
+    sidecar = (f'[defaults]\nbit_depth = 8\nmosaic = "{imec_xml}"\nexposure_ms = 20.0\n\n'
+               '[[files]]\nmatch = "dark_*"\nkind = "dark"\n\n'
+               '[[files]]\nmatch = "white_*"\nkind = "light"\nillumination = "halogen"\n')
+    (refs / "hsiffc.toml").write_text(sidecar)
+    (raw / "hsiffc.csv").write_text("file,exposure_ms,kind,bit_depth,mosaic\n"
+                                    f"scene_*.tif,20,light,8,{imec_xml}\n")
+    (tmp_path / "pipe.toml").write_text(
+        '[[step]]\nname = "dark"\nstage = "dark"\n\n'
+        '[[step]]\nname = "ffc"\nstage = "two_point_ffc"\nexposure_ms = 20.0\n')
+
+    assert main(["info", str(refs)]) == 0
+    text = capsys.readouterr().out
+    assert "sidecar hsiffc.toml" in text and "active area" in text
+
+    assert main(["fit", str(tmp_path / "pipe.toml"), str(refs),
+                 "-o", str(tmp_path / "pipe.npz")]) == 0
+    assert main(["correct", "--pipeline", str(tmp_path / "pipe.npz"), str(raw),
+                 "-o", str(tmp_path / "out"), "--format", "envi", "-q"]) == 0
+    capsys.readouterr()
+
+    out = read_corrected(tmp_path / "out" / "scene_0.corrected.tif")
+    assert out.data.shape == (1, 1080, 2045)       # one file, one frame; cropped to the IMEC filter area
+    assert out.provenance["calibration"] is None   # no calibration needed
+    imec = read_imec_xml(imec_xml)
+    mosaic = imec.mosaic()
+    truth = np.broadcast_to(scene_level, SENSOR)[3:1083, :2045]   # the scene, without the sensor
+    raw0 = tifffile.imread(raw / "scene_0.tif")[3:1083, :2045].astype(np.float64)
+    before = _nonuniformity(raw0 / truth, mosaic)
+    after = _nonuniformity(out.data[0] / truth, mosaic)
+    assert after < before / 3, (before, after)     # the fixed pattern is removed
+
+    cube, head = read_envi(tmp_path / "out" / "scene_0.corrected.hdr")
+    assert cube.shape == (216, 409, 25)
+    np.testing.assert_allclose(head["wavelengths_nm"], imec.bands.centres_nm, rtol=1e-5)
+    dq_cube, _ = read_envi(tmp_path / "out" / "scene_0.corrected.dq.hdr")
+    assert dq_cube.shape == cube.shape and dq_cube.dtype == np.uint32
+    assert np.isfinite(cube).all()
+
+
+def test_correct_without_calibration_needs_a_pipeline(tmp_path, capsys):
+    tifffile.imwrite(tmp_path / "a.tif", np.zeros((10, 10), np.uint8))
+    assert main(["correct", str(tmp_path / "a.tif"), "-o", str(tmp_path / "out")]) == 2
+    assert "--calibration" in capsys.readouterr().err
