@@ -116,7 +116,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
     ctx = context_for(settings, cal)  # validates the pipeline here, before any file is touched
     del cal
     jobs, ignored = plan_jobs(inputs, outdir)
-    with protect_inputs([j.input for j in jobs] + [p for p in (cal_path, settings.pipeline) if p]), \
+    used = [p for p in (cal_path, settings.pipeline) if p]
+    with protect_inputs([j.input for j in jobs] + used), \
             folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
         if observer is not None:
             observer.start(len(jobs))
