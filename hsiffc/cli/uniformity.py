@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import HsiffcError
-from .common import add_overwrite, write_json
+from .common import add_input_options, add_overwrite, input_overrides, write_json
 
 
 def register(sub) -> None:
@@ -26,6 +26,7 @@ def _add_uniformity(sub):
                     "fitted pipeline given, else the model-based FFC (model_ffc) from the "
                     "calibration. A summary per signal range, JSON and an optional plot.")
     p.add_argument("sweep", type=Path, help="sweep: multi-page TIFF or EMVA 1288 folder/.txt")
+    add_input_options(p)
     p.add_argument("--calibration", type=Path, default=None,
                    help="calibration (.npz): model_ffc corrects (or the pipeline uses it)")
     p.add_argument("--pipeline", type=Path, default=None,
@@ -64,7 +65,7 @@ def _cmd_uniformity(args) -> int:
                                             to_json)
 
     corrections = _correction(args)
-    sweep = read_sweep(args.sweep)
+    sweep = read_sweep(args.sweep, overrides=input_overrides(args))
     frames = Frame.list_from_sweep(sweep)
     dark_frames = [f for f in frames if f.kind == "dark"]
     dark_for = None

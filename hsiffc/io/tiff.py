@@ -199,23 +199,3 @@ def read_sweep_tiff(path) -> Sweep:
     with FrameSource([layout], Overrides(), limits, label=str(path)) as src:
         return src.to_sweep()
 
-
-# -- legacy names used by hsiffc/batch.py until it reads through open_source -----------------------
-# (to be deleted when batch switches to hsiffc.io.open_source; do not use in new code)
-def _ifd_end(tf, page) -> int:
-    from .tiffpages import ifd_ends
-    return ifd_ends(tf, page)[0]
-
-
-def _legacy():
-    from . import document, tiffpages
-    return {"_CollectLog": tiffpages.TiffLog, "_parse_document": document.parse_document,
-            "_per_frame": document.per_frame_field, "_floats": document.as_floats,
-            "_strings": document.as_strings}
-
-
-def __getattr__(name):
-    legacy = _legacy()
-    if name in legacy:
-        return legacy[name]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
