@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 
 from ..errors import DataFormatError
 from ..sweep import Sweep
@@ -74,8 +75,9 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                     rows: slice | None = None) -> Samples:
     """Step means and validity of every pixel (optionally of a band of ``rows`` only)."""
     steps = sweep.steps()
-    data = sweep.data if rows is None else sweep.data[:, rows]
-    shape = data.shape[1:]
+    rows = rows or slice(0, sweep.frame_shape[0])
+    r0, r1, _ = rows.indices(sweep.frame_shape[0])
+    shape = (r1 - r0, sweep.frame_shape[1])
     fs = sweep.full_scale_dn
     means = np.empty((len(steps), shape[0] * shape[1]), np.float32)
     clipped = np.empty(means.shape, bool)
@@ -84,16 +86,18 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     kind = np.empty(len(steps), "U5")
     photons = np.empty(len(steps))
     illum = np.empty(len(steps), object)
-    for i, s in enumerate(steps):
-        sel = np.flatnonzero(sweep.step == s)
-        frames = data[sel].reshape(sel.size, -1)
-        means[i] = frames.mean(axis=0, dtype=np.float64)
-        clipped[i] = (frames >= fs).any(axis=0)
-        exposure[i] = sweep.exposure_ms[sel[0]]
-        n_frames[i] = sel.size
-        kind[i] = sweep.kind[sel[0]]
-        photons[i] = sweep.photons[sel[0]]
-        illum[i] = sweep.illumination[sel[0]]
+    frames_of = [np.flatnonzero(sweep.step == s) for s in steps]
+    sel = np.zeros((len(steps), max(f.size for f in frames_of)), np.int64)
+    for i, f in enumerate(frames_of):
+        sel[i, :f.size] = f
+    _step_means(sweep.data, sel, np.array([f.size for f in frames_of]), r0, r1, float(fs),
+                means, clipped)
+    for i, f in enumerate(frames_of):
+        n_frames[i] = f.size
+        exposure[i] = sweep.exposure_ms[f[0]]
+        kind[i] = sweep.kind[f[0]]
+        photons[i] = sweep.photons[f[0]]
+        illum[i] = sweep.illumination[f[0]]
     info = {"kind": kind, "photons": photons, "exposure_ms": exposure,
             "illumination": illum.astype(str)}
     rate, unit = relative_light_rate(info, light_rate=light_rate)
@@ -131,12 +135,9 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
         sel = np.flatnonzero(sweep.step == s)
         if sel.size < 2:
             continue
-        frames = sweep.data[sel[:2]].astype(np.float64)
-        ok = (frames < fs).all(axis=0)
-        if ok.mean() < 0.5:
+        n_ok, mean, var = _pair_stats(sweep.data[sel[0]], sweep.data[sel[1]], float(fs))
+        if n_ok < 0.5 * sweep.data[0].size:
             continue
-        mean = frames.mean(axis=0)[ok].mean()
-        var = 0.5 * ((frames[0] - frames[1])[ok] ** 2).mean()
         rows.append((sweep.kind[sel[0]], mean, var))
         if sweep.kind[sel[0]] == "dark":
             dark_means.append(mean)
@@ -158,3 +159,45 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
         read_var = read_var if read_var is not None else float(vars_.min())
     return PhotonTransfer(gain_dn_per_e=gain, read_var_dn2=max(read_var, 1 / 12),
                           n_steps_used=int(light.sum()))
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _step_means(data, sel, nsel, r0, r1, fs, means, clipped):
+    """Per step s, the mean (float32) over its frames ``sel[s, :nsel[s]]`` of rows ``r0:r1`` of
+    ``data`` (N, H, W), and whether any of them is at or above ``fs``; outputs (S, P)."""
+    w = data.shape[2]
+    for rr in prange(r1 - r0):
+        r = r0 + rr
+        for s in range(sel.shape[0]):
+            inv = 1.0 / nsel[s]
+            for c in range(w):
+                acc = 0.0
+                clip = False
+                for j in range(nsel[s]):
+                    v = np.float64(data[sel[s, j], r, c])
+                    acc += v
+                    clip |= v >= fs
+                means[s, rr * w + c] = acc * inv
+                clipped[s, rr * w + c] = clip
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _pair_stats(f0, f1, fs):
+    """(pixels below ``fs`` in both frames, their mean level, half their mean squared
+    frame-to-frame difference) of two frames (H, W): the EMVA 1288 temporal variance."""
+    h, w = f0.shape
+    n = np.zeros(h)
+    sm = np.zeros(h)
+    sv = np.zeros(h)
+    for r in prange(h):
+        for c in range(w):
+            a = np.float64(f0[r, c])
+            b = np.float64(f1[r, c])
+            if a < fs and b < fs:
+                n[r] += 1.0
+                sm[r] += 0.5 * (a + b)
+                sv[r] += (a - b) * (a - b)
+    total = n.sum()
+    if total == 0:
+        return 0.0, np.nan, np.nan
+    return total, sm.sum() / total, 0.5 * sv.sum() / total
