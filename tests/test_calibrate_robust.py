@@ -83,7 +83,7 @@ def test_warm_sensor_dark_current_in_the_well_is_found_and_kept_in_the_well(clea
     and is chosen."""
     sweep0, cal0 = clean
     sweep = (_emva_like(dark_current=1.0) if how == "simulator"
-             else add_effect(sweep0, "dark_current", 1.0, seed=7))
+             else add_effect(sweep0, "dark_current", 1.0, seed=7, in_well=True))
     cal = calibrate(sweep)
     dm = cal.fitted_on["dark_model"]
     assert dm["model"] == "in_well"
