@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["FileLayout", "FIELDS", "PER_FRAME_FIELDS"]
+__all__ = ["FileLayout", "FrameMeta", "FIELDS", "PER_FRAME_FIELDS"]
 
 #: Metadata fields a frame source resolves (see :mod:`hsiffc.io.metadata`).
 FIELDS = ("exposure_ms", "kind", "illumination", "photons", "step", "bit_depth", "mosaic",
@@ -72,3 +72,36 @@ class FileLayout:
         if value is not None:
             self.fields[name] = value
             self.origins[name] = origin
+
+
+@dataclass(frozen=True)
+class FrameMeta:
+    """Metadata of one frame of a :class:`FrameSource`.
+
+    Attributes
+    ----------
+    index : int
+        Position in the source (acquisition order).
+    exposure_ms : float
+        Exposure time in milliseconds.
+    kind : str
+        "light" or "dark".
+    illumination : str
+    photons : float
+        Mean photons per pixel (NaN when unknown).
+    step : int or None
+        Acquisition step, when the file states it.
+    path : str
+        File the frame comes from.
+    page : int
+        Frame index inside that file.
+    """
+
+    index: int
+    exposure_ms: float
+    kind: str
+    illumination: str
+    photons: float
+    step: int | None
+    path: str
+    page: int

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import glob as globmod
 from pathlib import Path
 
 from ..errors import DataFormatError
 from .layout import FileLayout
 from .limits import ReadLimits
 
-__all__ = ["open_layout", "list_folder", "IMAGE_SUFFIXES", "ACCEPTED"]
+__all__ = ["open_layout", "list_folder", "expand_inputs", "IMAGE_SUFFIXES", "ACCEPTED"]
 
 TIFF = (".tif", ".tiff")
 PNG = (".png",)
@@ -61,3 +62,26 @@ def open_layout(path, limits: ReadLimits) -> FileLayout:
         from .emva import open_emva1288
         return open_emva1288(path, limits)
     raise DataFormatError(f"unsupported input {path.name!r}; give {ACCEPTED}", path=path)
+
+
+def expand_inputs(inputs) -> list[Path]:
+    """Files named by ``inputs`` (paths, folders, globs), in order; folders sorted by name.
+
+    A folder that holds an EMVA 1288 descriptor stands for itself (the descriptor is read).
+    """
+    items = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
+    out: list[Path] = []
+    for item in items:
+        text = str(item)
+        if not Path(text).exists() and any(c in text for c in "*?["):
+            matches = sorted(Path(m) for m in globmod.glob(text))
+            if not matches:
+                raise DataFormatError(f"no file matches the pattern {text!r}; check it (quote "
+                                      "it so the shell does not expand it)")
+            out.extend(m for m in matches if m.is_file())
+            continue
+        path = Path(text)
+        if not path.exists():
+            raise DataFormatError(f"not found; check the path (give {ACCEPTED})", path=path)
+        out.extend(list_folder(path) if path.is_dir() else [path])
+    return out

@@ -21,10 +21,8 @@ ENVI (``.hdr`` + data), FITS (with astropy), EMVA 1288 descriptors; see
 
 from __future__ import annotations
 
-import glob as globmod
 import os
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -34,69 +32,13 @@ from ..errors import DataFormatError
 from ..frame import Frame
 from ..sweep import Sweep
 from . import quirks
-from .layout import FileLayout
+from .layout import FileLayout, FrameMeta
 from .limits import ReadLimits, default_limits
 from .metadata import Overrides, missing_field_error, resolve_fields
-from .readers import ACCEPTED, list_folder, open_layout
+from .readers import expand_inputs, open_layout
 from .sidecar import Sidecar, find_sidecar
 
 __all__ = ["open_source", "FrameSource", "FrameMeta", "expand_inputs"]
-
-
-@dataclass(frozen=True)
-class FrameMeta:
-    """Metadata of one frame of a :class:`FrameSource`.
-
-    Attributes
-    ----------
-    index : int
-        Position in the source (acquisition order).
-    exposure_ms : float
-        Exposure time in milliseconds.
-    kind : str
-        "light" or "dark".
-    illumination : str
-    photons : float
-        Mean photons per pixel (NaN when unknown).
-    step : int or None
-        Acquisition step, when the file states it.
-    path : str
-        File the frame comes from.
-    page : int
-        Frame index inside that file.
-    """
-
-    index: int
-    exposure_ms: float
-    kind: str
-    illumination: str
-    photons: float
-    step: int | None
-    path: str
-    page: int
-
-
-def expand_inputs(inputs) -> list[Path]:
-    """Files named by ``inputs`` (paths, folders, globs), in order; folders sorted by name.
-
-    A folder that holds an EMVA 1288 descriptor stands for itself (the descriptor is read).
-    """
-    items = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
-    out: list[Path] = []
-    for item in items:
-        text = str(item)
-        if not Path(text).exists() and any(c in text for c in "*?["):
-            matches = sorted(Path(m) for m in globmod.glob(text))
-            if not matches:
-                raise DataFormatError(f"no file matches the pattern {text!r}; check it (quote "
-                                      "it so the shell does not expand it)")
-            out.extend(m for m in matches if m.is_file())
-            continue
-        path = Path(text)
-        if not path.exists():
-            raise DataFormatError(f"not found; check the path (give {ACCEPTED})", path=path)
-        out.extend(list_folder(path) if path.is_dir() else [path])
-    return out
 
 
 def open_source(inputs, *, limits: ReadLimits | None = None, overrides: Overrides | None = None,
