@@ -17,8 +17,8 @@ With ``z = exp(-b Y)`` the ODE is linear, ``dz/dt = a b - b k z``, so from the l
 
 Both terms are positive for every k >= 0. The compiled kernels
 (:mod:`hsiffc.kernels.leakage`) sum them directly and fall back to ``logaddexp`` of their logs
-where the sum would under- or overflow, so nothing overflows: the form stays finite for b k t up to 1e4 and beyond, for a/k from 0 to 1e3 and more,
-for k = 0 (pure leakage) and for starting levels above the dynamic saturation level. The paper's
+where the sum would under- or overflow, so nothing overflows: the form stays finite for b k t
+up to 1e4 and beyond, for a/k from 0 to 1e3 and more, for k = 0 (pure leakage) and for starting levels above the dynamic saturation level. The paper's
 eq. (3) with its integration constant c is the same curve: ``c_from_dark`` / ``dark_from_c``
 convert between the two.
 """

@@ -5,9 +5,9 @@ being vectorised (the libm call is 5-10 x slower than numpy's SIMD ufuncs on AVX
 versions are straight-line arithmetic (range reduction, a polynomial, an exponent bit
 trick), with selects instead of branches, so a loop that calls them runs 8 pixels per
 instruction. Accuracy (measured against numpy over the whole double range in
-``tests/test_kernels.py``): all four within 1 ulp
-(``expm1`` within 2 ulp). Special values follow IEEE 754 (``exp(-inf) = 0``, ``log(0) = -inf``, ``log(-1) =
-nan``, NaN in gives NaN out).
+``tests/test_kernels.py``): ``exp``, ``log`` and ``log1p`` within 1 ulp, ``expm1`` within 2 ulp.
+Special values follow IEEE 754 (``exp(-inf) = 0``, ``log(0) = -inf``, ``log(-1) = nan``, NaN
+in gives NaN out).
 
 Polynomials: ``exp`` uses the Taylor series of e^r to degree 13 on ``|r| <= ln 2 / 2``
 (truncation below 2e-17 relative); ``log`` the series of ``2 atanh(s)`` in ``s = f / (2 + f)``

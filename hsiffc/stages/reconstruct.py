@@ -128,14 +128,16 @@ class Reconstruct(Stage):
         if mosaic is None:
             raise ValueError("reconstruct needs the frame's mosaic layout (meta['mosaic']); "
                              "this frame has none")
-        if self.resolution == "full":
-            cube, cube_dq = rc.demosaic(frame.data, mosaic, method=self.method, dq=frame.dq)
+        alpha = None
+        if self.resolution == "full":  # the cube's alpha comes from the same kernel pass
+            out = rc.demosaic(frame.data, mosaic, method=self.method, dq=frame.dq,
+                              alpha=frame.alpha)
+            cube, cube_dq = out[:2]
+            alpha = out[2] if frame.alpha is not None else None
         else:
             cube, cube_dq = rc.tile_cube(frame.data, mosaic, dq=frame.dq)
-        alpha = None
-        if frame.alpha is not None:
-            alpha = rc.reconstruct_alpha(frame.alpha, mosaic, method=self.method,
-                                         resolution=self.resolution)
+            if frame.alpha is not None:
+                alpha = rc.reconstruct_alpha(frame.alpha, mosaic, resolution="tile")
         wavelengths = None if mosaic.wavelengths_nm is None else list(mosaic.wavelengths_nm)
         if self.correction is not None:
             matrix = np.asarray(self.matrix_, dtype=np.float64)

@@ -1,0 +1,236 @@
+"""Input handling and shared pieces of reconstruction: the prepared frame, separable filters,
+the pseudo-panchromatic image and band statistics."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from functools import cached_property
+
+import cv2
+import numpy as np
+
+from ..dq import DQ, DQ_DTYPE
+from ..kernels.demosaic import EPS
+from ..mosaic import Mosaic
+
+__all__ = ["EPS", "Prepared", "band_levels", "band_median", "fill_flagged_from_lattice",
+           "pad_periodic", "periodic_index", "ppi_kernel", "prepare", "pseudo_panchromatic",
+           "sep_filter", "tile_starts"]
+
+
+def ppi_kernel(period: int) -> np.ndarray:
+    """1-D averaging kernel of the pseudo-panchromatic image for one axis of the tile.
+
+    Odd period p: a box of p ones / p. Even period p: p + 1 taps ``[1/2, 1, ..., 1, 1/2] / p``,
+    centred, so that every tile position gets the same total weight 1/p (the two end taps
+    see the same band). Separable in rows and columns, as in Mihoubi et al. (2017).
+    """
+    p = int(period)
+    if p % 2:
+        return np.full(p, 1.0 / p, np.float32)
+    k = np.ones(p + 1, np.float64)
+    k[0] = k[-1] = 0.5
+    return (k / p).astype(np.float32)
+
+
+def sep_filter(img: np.ndarray, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
+    """Separable correlation with zero outside the frame (for normalised convolution)."""
+    return cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
+
+
+class Prepared:
+    """A raw frame made ready for interpolation (see :func:`prepare`).
+
+    Attributes
+    ----------
+    raw : (H, W) float32, 0 where the input was not finite
+    dq : (H, W) uint32 or None (None: no sample is flagged); NONFINITE | DO_NOT_USE added
+        where the input was not finite
+    mosaic : Mosaic
+    """
+
+    def __init__(self, raw: np.ndarray, dq: np.ndarray | None, mosaic: Mosaic):
+        self.raw, self.dq, self.mosaic = raw, dq, mosaic
+
+    @property
+    def shape(self):
+        return self.raw.shape
+
+    @property
+    def period(self):
+        return self.mosaic.tile_shape
+
+    @property
+    def any_flags(self) -> bool:
+        return self.dq is not None
+
+    @cached_property
+    def good(self) -> np.ndarray:
+        """(H, W) bool: usable as a source."""
+        return np.ones(self.shape, bool) if self.dq is None else self.dq == 0
+
+    @cached_property
+    def band_map(self) -> np.ndarray:
+        return self.mosaic.band_map(self.shape)
+
+    def lattices(self) -> list[list[tuple[int, int]]]:
+        """Per band, the first sample (row, col) of each of its pattern positions."""
+        ph, pw = self.period
+        oy, ox = self.mosaic.offset
+        out = [[] for _ in range(self.mosaic.n_bands)]
+        for r, c in np.ndindex(ph, pw):
+            out[int(self.mosaic.pattern[r, c])].append(((oy + r) % ph, (ox + c) % pw))
+        return out
+
+    def band_samples(self, b: int) -> np.ndarray:
+        """The usable samples of band ``b`` (1-D float32, any order)."""
+        ph, pw = self.period
+        parts = []
+        for r0, c0 in self.lattices()[b]:
+            v = self.raw[r0::ph, c0::pw]
+            parts.append(v.ravel() if self.dq is None else v[self.dq[r0::ph, c0::pw] == 0])
+        return np.concatenate(parts) if parts else np.zeros(0, np.float32)
+
+
+def prepare(raw, mosaic, dq) -> Prepared:
+    """Check a raw frame and its DQ; non-finite samples become 0 with NONFINITE | DO_NOT_USE.
+
+    The frame is not copied when it is float32 and finite; ``dq`` is None when nothing is
+    flagged (an all-zero plane is dropped)."""
+    if not isinstance(mosaic, Mosaic):
+        raise TypeError(f"mosaic must be a hsiffc.mosaic.Mosaic, got {type(mosaic).__name__}")
+    raw = np.asarray(raw)
+    if raw.ndim != 2:
+        raise ValueError(f"raw must be a 2-D mosaic frame (H, W), got shape {raw.shape}")
+    data = np.ascontiguousarray(raw, dtype=np.float32)
+    flags = None
+    if dq is not None:
+        flags = np.asarray(dq)
+        if flags.shape != data.shape:
+            raise ValueError(f"dq has shape {flags.shape} but raw has {data.shape}")
+        flags = np.ascontiguousarray(flags, dtype=DQ_DTYPE) if flags.any() else None
+    finite = np.isfinite(data)
+    if not finite.all():
+        data = np.where(finite, data, np.float32(0.0))
+        flags = np.zeros(data.shape, DQ_DTYPE) if flags is None else flags.copy()
+        flags[~finite] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
+    return Prepared(data, flags, mosaic)
+
+
+def _median_in_place(vals: np.ndarray) -> float:
+    """``np.median(vals)`` (same value), partitioning ``vals`` itself instead of a copy."""
+    n = vals.size
+    if n == 0:
+        return 0.0
+    k = n // 2
+    if n % 2:
+        vals.partition(k)
+        return float(vals[k])
+    vals.partition([k - 1, k])
+    return float(np.mean(vals[k - 1:k + 1]))
+
+
+def band_median(p: Prepared, b: int) -> float:
+    """Median of the usable samples of band ``b`` (0 if there is none)."""
+    return _median_in_place(p.band_samples(b))
+
+
+def band_levels(p: Prepared) -> np.ndarray:
+    """Relative level of every band (median of its unflagged samples over the mean of those
+    medians), or all ones when a band has no positive median (e.g. dark-subtracted noise).
+    The band medians run on two threads (numpy's partition releases the GIL)."""
+    with ThreadPoolExecutor(2) as pool:
+        med = np.array(list(pool.map(lambda b: band_median(p, b), range(p.mosaic.n_bands))))
+    if not np.all(np.isfinite(med)) or np.any(med <= 0):
+        return np.ones(p.mosaic.n_bands)
+    return med / med.mean()
+
+
+def tile_starts(n: int, period: int, offset: int) -> np.ndarray:
+    """First row (column) of the tile each row (column) belongs to (may be negative)."""
+    i = np.arange(n)
+    return i - (i - offset) % period
+
+
+def periodic_index(n: int, period: int, margin: int) -> np.ndarray:
+    """Indices -margin..n+margin-1 mapped into 0..n-1 by whole periods (same band)."""
+    i = np.arange(-margin, n + margin)
+    low = i < 0
+    i[low] += period * (-(i[low] // period))
+    high = i >= n
+    i[high] -= period * ((i[high] - n) // period + 1)
+    return np.clip(i, 0, n - 1)
+
+
+def pad_periodic(a: np.ndarray, rows: np.ndarray, cols: np.ndarray, my: int, mx: int):
+    """``a[np.ix_(rows, cols)]`` for the :func:`periodic_index` of ``a``'s shape with margins
+    ``my, mx``: the interior copied as one block, only the margins gathered."""
+    H, W = a.shape
+    out = np.empty((H + 2 * my, W + 2 * mx), a.dtype)
+    out[my:my + H, mx:mx + W] = a
+    for i in list(range(my)) + list(range(my + H, 2 * my + H)):
+        out[i, mx:mx + W] = a[rows[i]]
+    for j in list(range(mx)) + list(range(mx + W, 2 * mx + W)):
+        out[:, j] = out[:, mx + cols[j]]
+    return out
+
+
+def fill_flagged_from_lattice(p: Prepared) -> tuple[np.ndarray, np.ndarray]:
+    """Raw values with flagged samples replaced by the tent-weighted mean of their unflagged
+    same-band neighbours one tile away (8 neighbours), and the matching weights (1 for
+    unflagged and filled samples, 0 where no neighbour was usable; None when nothing is
+    flagged, and then the values are ``p.raw`` itself)."""
+    if not p.any_flags:
+        return p.raw, None
+    vals = p.raw.copy()
+    wts = p.good.astype(np.float32)
+    H, W = p.shape
+    ph, pw = p.period
+    fy, fx = np.nonzero(~p.good)
+    acc = np.zeros(fy.size, np.float64)
+    wsum = np.zeros(fy.size, np.float64)
+    for dy in (-ph, 0, ph):
+        for dx in (-pw, 0, pw):
+            if dy == 0 and dx == 0:
+                continue
+            wt = 0.25 if (dy and dx) else 0.5
+            ny, nx = fy + dy, fx + dx
+            ok = (ny >= 0) & (ny < H) & (nx >= 0) & (nx < W)
+            ok[ok] = p.good[ny[ok], nx[ok]]
+            acc[ok] += wt * p.raw[ny[ok], nx[ok]]
+            wsum[ok] += wt
+    done = wsum > 0
+    vals[fy[done], fx[done]] = (acc[done] / wsum[done]).astype(np.float32)
+    wts[fy[done], fx[done]] = 1.0
+    return vals, wts
+
+
+def pseudo_panchromatic(p: Prepared, levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The PPI: the raw frame averaged over a tile-sized neighbourhood (:func:`ppi_kernel`).
+
+    Flagged samples are first replaced by their same-band lattice neighbours (or excluded);
+    the frame is extended beyond its borders by whole tiles (same band), so that every PPI
+    window sees every band and a spatially uniform scene gives a constant PPI. Returns the PPI
+    and where it is defined (None: everywhere)."""
+    H, W = p.shape
+    ph, pw = p.period
+    kx, ky = ppi_kernel(pw), ppi_kernel(ph)
+    my, mx = ky.size // 2, kx.size // 2
+    vals, wts = fill_flagged_from_lattice(p)
+    rows = periodic_index(H, ph, my)
+    cols = periodic_index(W, pw, mx)
+    vp = pad_periodic(vals, rows, cols, my, mx)
+    if np.any(levels != 1.0):  # balance the bands: each divided by its level
+        inv = (1.0 / np.asarray(levels)).astype(np.float32)[p.mosaic.pattern]
+        oy, ox = p.mosaic.offset
+        vp *= inv[((rows - oy) % ph)[:, None], ((cols - ox) % pw)[None, :]]
+    if wts is None:  # nothing flagged: the weights are all 1, their filter a constant
+        num = sep_filter(vp, kx, ky)[my:my + H, mx:mx + W]
+        num *= np.float32(1.0 / (kx.sum(dtype=np.float64) * ky.sum(dtype=np.float64)))
+        return np.ascontiguousarray(num), None
+    wp = pad_periodic(wts, rows, cols, my, mx)
+    num = sep_filter(vp * wp, kx, ky)[my:my + H, mx:mx + W]
+    den = sep_filter(wp, kx, ky)[my:my + H, mx:mx + W]
+    ok = den > EPS
+    ppi = np.divide(num, den, out=np.zeros_like(num), where=ok)
+    return np.ascontiguousarray(ppi), ok

@@ -1,0 +1,163 @@
+"""The compiled interpolation kernel (hsiffc.kernels.demosaic, behind hsiffc.reconstruct)
+against the former evaluation with OpenCV filters, re-derived here as the reference: normalised
+convolution of zero-filled band planes with cv2.sepFilter2D, the wide-tent fallback, the band
+median, the DQ rule by dilation of each flag bit, and the alpha cube by dilation."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hsiffc.dq import DQ, DQ_DTYPE
+from hsiffc.mosaic import Mosaic
+from hsiffc.reconstruct import demosaic, ppi_kernel, reconstruct_alpha
+from hsiffc.reconstruct.prepare import Prepared, band_levels, prepare, pseudo_panchromatic
+
+
+# -- the reference (OpenCV filters on zero-filled planes) --------------------------------------
+
+def _tent(period):
+    d = np.arange(-(period - 1), period, dtype=np.float64)
+    return (1.0 - np.abs(d) / period).astype(np.float32)
+
+
+def _filt(img, kx, ky):
+    return cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
+
+
+def _interp(values, w, ph, pw):
+    num, den = _filt(values * w, _tent(pw), _tent(ph)), _filt(w, _tent(pw), _tent(ph))
+    have1 = den > 1e-6
+    est = np.divide(num, den, out=np.zeros_like(num), where=have1)
+    num2, den2 = _filt(values * w, _tent(2 * pw), _tent(2 * ph)), _filt(w, _tent(2 * pw),
+                                                                         _tent(2 * ph))
+    fill = ~have1 & (den2 > 1e-6)
+    est[fill] = num2[fill] / den2[fill]
+    return est, have1, have1 | fill
+
+
+def reference(raw, mosaic, dq, method, alpha=None):
+    raw = raw.astype(np.float32)
+    dq = np.zeros(raw.shape, DQ_DTYPE) if dq is None else dq
+    good = dq == 0
+    bm = mosaic.band_map(raw.shape)
+    ph, pw = mosaic.tile_shape
+    if method == "ppid":
+        p = Prepared(raw, dq.copy(), mosaic)  # the general (flag-aware) PPI path
+        levels = band_levels(p)
+        ppi, ppi_ok = pseudo_panchromatic(p, levels)
+    cube = np.empty(raw.shape + (mosaic.n_bands,), np.float32)
+    cube_dq = np.zeros(cube.shape, DQ_DTYPE)
+    for b in range(mosaic.n_bands):
+        w = ((bm == b) & good).astype(np.float32)
+        if method == "ppid":
+            diff, have1, have2 = _interp(raw - np.float32(levels[b]) * ppi, w, ph, pw)
+            est = diff + np.float32(levels[b]) * ppi
+            bil, _, bil2 = _interp(raw, w, ph, pw)
+            hole = ~ppi_ok & bil2
+            est[hole] = bil[hole]
+        else:
+            est, have1, have2 = _interp(raw, w, ph, pw)
+        vals = raw[(bm == b) & good]
+        est[~have2] = np.median(vals) if vals.size else 0.0
+        cube[:, :, b] = est
+        own = np.where(bm == b, dq, 0).astype(DQ_DTYPE)
+        out = own.copy()
+        box = np.ones((2 * ph - 1, 2 * pw - 1), np.uint8)
+        for bit in range(32):
+            plane = ((own >> bit) & 1).astype(np.uint8)
+            if plane.any():
+                reach = cv2.dilate(plane, box, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+                out[~have1 & (reach > 0)] |= DQ_DTYPE(1 << bit)
+        out[~have2] |= DQ_DTYPE(DQ.DO_NOT_USE)
+        cube_dq[:, :, b] = out
+    if alpha is None:
+        return cube, cube_dq
+    a = np.where(np.isfinite(alpha), alpha, np.finfo(np.float32).max).astype(np.float32)
+    cube_a = np.empty(cube.shape, np.float32)
+    if method == "ppid":
+        kh, kw = ppi_kernel(ph).size, ppi_kernel(pw).size
+        big = np.ones((2 * ph - 1 + kh - 1, 2 * pw - 1 + kw - 1), np.uint8)
+        common = cv2.dilate(a, big, borderType=cv2.BORDER_REPLICATE)
+    for b in range(mosaic.n_bands):
+        plane = np.where(bm == b, a, np.float32(-np.inf))
+        m = cv2.dilate(plane, np.ones((2 * ph - 1, 2 * pw - 1), np.uint8),
+                       borderType=cv2.BORDER_CONSTANT, borderValue=float(-np.inf))
+        m[~np.isfinite(m)] = 0.0
+        cube_a[:, :, b] = np.maximum(m, common) if method == "ppid" else m
+    return cube, cube_dq, cube_a
+
+
+# -- comparisons --------------------------------------------------------------------------------
+
+MOSAICS = [Mosaic.rectangular(2, 4), Mosaic.square(5), Mosaic.square(4),
+           Mosaic(np.arange(25).reshape(5, 5), offset=(3, 1)), Mosaic(np.array([[0, 1], [1, 2]]))]
+
+
+def _scene(shape, mosaic, seed, flag_fraction):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    level = 100.0 + 40.0 * np.arange(mosaic.n_bands)
+    raw = (level[mosaic.band_map(shape)] * (1 + 0.3 * np.sin(xx / 7.0) * np.cos(yy / 5.0))
+           + rng.normal(0, 2.0, shape)).astype(np.float32)
+    dq = np.zeros(shape, DQ_DTYPE)
+    flagged = rng.random(shape) < flag_fraction
+    dq[flagged] = rng.choice([int(DQ.LEAKAGE), int(DQ.SATURATED), int(DQ.HOT)], flagged.sum())
+    return raw, (dq if flag_fraction else None), rng.uniform(0, 30, shape).astype(np.float32)
+
+
+@pytest.mark.parametrize("method", ["bilinear", "ppid"])
+@pytest.mark.parametrize("mosaic", MOSAICS, ids=lambda m: f"{m.tile_shape}{m.offset}")
+@pytest.mark.parametrize("flag_fraction", [0.0, 0.05, 0.6])
+def test_kernel_equals_the_opencv_filter_evaluation(method, mosaic, flag_fraction):
+    raw, dq, alpha = _scene((61, 83), mosaic, 1, flag_fraction)
+    alpha[3, 4] = np.inf
+    cube, cube_dq, cube_a = demosaic(raw, mosaic, method=method, dq=dq, alpha=alpha)
+    ref, ref_dq, ref_a = reference(raw, mosaic, dq, method, alpha)
+    assert np.allclose(cube, ref, rtol=2e-6, atol=2e-5 * np.abs(ref).max())
+    assert np.array_equal(cube_dq, ref_dq)
+    assert np.array_equal(cube_a, ref_a)
+    assert np.array_equal(reconstruct_alpha(alpha, mosaic, method=method), ref_a)
+
+
+def test_a_band_without_any_usable_sample_takes_the_median_and_do_not_use():
+    mosaic = Mosaic.rectangular(2, 4)
+    raw, _, _ = _scene((20, 24), mosaic, 2, 0.0)
+    dq = np.zeros(raw.shape, DQ_DTYPE)
+    dq[mosaic.band_map(raw.shape) == 3] = DQ.HOT
+    dq[:, :12][mosaic.band_map(raw.shape)[:, :12] == 5] = DQ.LEAKAGE
+    for method in ("bilinear", "ppid"):
+        cube, cube_dq = demosaic(raw, mosaic, method=method, dq=dq)
+        ref, ref_dq = reference(raw, mosaic, dq, method)
+        assert np.allclose(cube, ref, rtol=2e-6, atol=1e-3)
+        assert np.array_equal(cube_dq, ref_dq)
+        assert np.all(cube_dq[:, :, 3] & DQ.DO_NOT_USE) and np.all(cube[:, :, 3] == 0)
+
+
+def test_unflagged_ppi_shortcut_equals_the_weighted_path():
+    mosaic = Mosaic.square(5)
+    raw, _, _ = _scene((50, 65), mosaic, 3, 0.0)
+    p = prepare(raw, mosaic, None)
+    levels = band_levels(p)
+    fast, ok_fast = pseudo_panchromatic(p, levels)
+    slow, ok_slow = pseudo_panchromatic(Prepared(p.raw, np.zeros(raw.shape, DQ_DTYPE), mosaic),
+                                        levels)
+    assert ok_fast is None and ok_slow.all()
+    assert np.allclose(fast, slow, rtol=1e-6)
+
+
+@settings(max_examples=25, deadline=None)
+@given(ph=st.integers(1, 5), pw=st.integers(2, 5), oy=st.integers(0, 4), ox=st.integers(0, 4),
+       h=st.integers(6, 40), w=st.integers(6, 40), frac=st.sampled_from([0.0, 0.1, 0.9]),
+       seed=st.integers(0, 1000))
+def test_random_layouts_match_the_reference(ph, pw, oy, ox, h, w, frac, seed):
+    mosaic = Mosaic(np.arange(ph * pw).reshape(ph, pw), offset=(oy, ox))
+    raw, dq, alpha = _scene((h, w), mosaic, seed, frac)
+    cube, cube_dq, cube_a = demosaic(raw, mosaic, method="bilinear", dq=dq, alpha=alpha)
+    ref, ref_dq, ref_a = reference(raw, mosaic, dq, "bilinear", alpha)
+    assert np.all(np.isfinite(cube))
+    assert np.allclose(cube, ref, rtol=2e-6, atol=2e-5 * np.abs(ref).max())
+    assert np.array_equal(cube_dq, ref_dq) and np.array_equal(cube_a, ref_a)
