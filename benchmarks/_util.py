@@ -32,3 +32,18 @@ def peak_memory_mb(fn) -> float:
 
 def row(name: str, value: float, unit: str, note: str = "") -> str:
     return f"  {name:<52} {value:>12.4g} {unit:<8} {note}"
+
+
+def figure(name: str, value: float, unit: str, *, baseline: float | None = None,
+           baseline_name: str = "", ratio: float | None = None, target: str = "",
+           met: bool | None = None, note: str = "") -> dict:
+    """One measured figure for the results table that ``run.py`` writes.
+
+    ``baseline`` is the same quantity of the baseline measured in the same run (its
+    ``baseline_name`` says what it is) and ``ratio`` how the figure compares with it (as
+    stated in ``note``); ``target`` the figure the issue asks for and ``met`` whether it is.
+    """
+    return {"name": name, "value": float(value), "unit": unit,
+            "baseline": None if baseline is None else float(baseline),
+            "baseline_name": baseline_name, "ratio": None if ratio is None else float(ratio),
+            "target": target, "met": met, "note": note}

@@ -1,4 +1,5 @@
-"""Foundation benchmarks: simulator throughput; closed form and inversion against solve_ivp.
+"""Foundation benchmarks: simulator throughput; the closed form and the inversion (compiled
+kernels) against the previous numpy implementations (:mod:`baselines`, same run) and solve_ivp.
 
 Frames are 2048 x 1088 (a CMV2000 sensor). The solve_ivp baseline is timed on a random sample of
 pixels and extrapolated to the full frame (it is one ODE solve per pixel).
@@ -10,7 +11,8 @@ import time
 
 import numpy as np
 
-from _util import median_time, row
+import baselines
+from _util import figure, median_time, row
 from hsiffc import model
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 
@@ -35,20 +37,52 @@ def main(quick: bool = False) -> dict:
     truth = sensor.capture(20.0, illum, n_frames=1).truth
     k, a, b, d = (truth.k_total_dn_per_ms, truth.a_dn_per_ms, truth.b_per_dn, truth.dark_dn)
     t_ms = 25.0
+    figures = results["figures"] = []
+    model.response(t_ms, k, a, b, d)  # compiled (or loaded from the cache) before timing
     t_closed = median_time(lambda: model.response(t_ms, k, a, b, d), repeat=repeat)
+    t_closed_np = median_time(lambda: baselines.response(t_ms, k, a, b, d), repeat=repeat)
     results["closed_form_mpx_s"] = NPX / t_closed / 1e6
-    print(row("closed form response", results["closed_form_mpx_s"], "Mpx/s",
-              f"{t_closed * 1e3:.0f} ms/frame"))
-
+    results["closed_form_numpy_mpx_s"] = NPX / t_closed_np / 1e6
     y = model.response(t_ms, k, a, b, d)
+    dy = float(np.abs(y - baselines.response(t_ms, k, a, b, d)).max())
+    print(row("closed form response (kernel)", results["closed_form_mpx_s"], "Mpx/s",
+              f"{t_closed * 1e3:.1f} ms/frame; {t_closed_np / t_closed:.1f} x the numpy form "
+              f"({results['closed_form_numpy_mpx_s']:.0f} Mpx/s), max |diff| {dy:.1e} DN"))
+    figures.append(figure("closed-form response", results["closed_form_mpx_s"], "Mpx/s",
+                          baseline=results["closed_form_numpy_mpx_s"],
+                          baseline_name="previous numpy closed form",
+                          ratio=t_closed_np / t_closed, target=">= 200 Mpx/s",
+                          met=results["closed_form_mpx_s"] >= 200,
+                          note=f"max difference to the numpy form {dy:.1e} DN"))
+
     t_inv = median_time(lambda: model.invert_response(y, t_ms, a, b, d, full_scale=1023),
                         repeat=repeat)
+    t_inv_np = median_time(lambda: baselines.invert_response(y, t_ms, a, b, d, full_scale=1023),
+                           repeat=1 if quick else 3)
     inv = model.invert_response(y, t_ms, a, b, d, full_scale=1023)
+    k_np, flags_np, _ = baselines.invert_response(y, t_ms, a, b, d, full_scale=1023)
     ok = inv.flags == 0
     results["inversion_mpx_s"] = NPX / t_inv / 1e6
+    results["inversion_numpy_mpx_s"] = NPX / t_inv_np / 1e6
     results["inversion_max_rel_err"] = float(np.abs(inv.k[ok] / k[ok] - 1).max())
-    print(row("inversion (k from Y)", results["inversion_mpx_s"], "Mpx/s",
-              f"{t_inv * 1e3:.0f} ms/frame, max |dk/k| {results['inversion_max_rel_err']:.1e}"))
+    results["inversion_numpy_max_rel_err"] = float(np.abs(k_np[ok] / k[ok] - 1).max())
+    results["inversion_flags_equal_numpy"] = bool(np.array_equal(inv.flags, flags_np))
+    print(row("inversion (k from Y, kernel)", results["inversion_mpx_s"], "Mpx/s",
+              f"{t_inv * 1e3:.0f} ms/frame, max |dk/k| {results['inversion_max_rel_err']:.1e}; "
+              f"{t_inv_np / t_inv:.0f} x the numpy inversion "
+              f"({results['inversion_numpy_mpx_s']:.1f} Mpx/s, max |dk/k| "
+              f"{results['inversion_numpy_max_rel_err']:.1e}); flags equal: "
+              f"{results['inversion_flags_equal_numpy']}"))
+    figures.append(figure("inversion (k from Y)", results["inversion_mpx_s"], "Mpx/s",
+                          baseline=results["inversion_numpy_mpx_s"],
+                          baseline_name="previous numpy inversion", ratio=t_inv_np / t_inv,
+                          target=">= 50 Mpx/s, same accuracy",
+                          met=(results["inversion_mpx_s"] >= 50
+                               and results["inversion_max_rel_err"]
+                               <= max(results["inversion_numpy_max_rel_err"], 1e-11)),
+                          note=f"max |dk/k| {results['inversion_max_rel_err']:.1e} (numpy "
+                               f"{results['inversion_numpy_max_rel_err']:.1e}); DQ flags equal "
+                               f"to numpy's: {results['inversion_flags_equal_numpy']}"))
 
     rng = np.random.default_rng(1)
     sample = rng.choice(NPX, size=50 if quick else 200, replace=False)

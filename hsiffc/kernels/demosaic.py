@@ -60,87 +60,8 @@ def _wide(raw, dq, ppi, level, use_ppi, y, x, lat_r, lat_c, j0, j1, ph, pw, plai
     return num / den if den > EPS else np.nan
 
 
-@njit(**{**_JIT, "inline": "always"})  # inlined: a call passing arrays costs refcounting
-def _add(j, xs, w, num, nraw, den, orf, amax, vnum, vraw, vden, vor, vmax, x):
-    num[x] += w * vnum[xs]
-    nraw[x] += w * vraw[xs]
-    den[x] += w * vden[xs]
-    orf[x] |= vor[xs]
-    if vmax[xs] > amax[x]:
-        amax[x] = vmax[xs]
-
-
-@njit(**{**_JIT, "inline": "always"})
-def _row_fast(raw, alpha, has_alpha, common, has_common, ppi, use_ppi, level, y, ry0, ry1,
-              wy1, c0, pw, b, vk, mk, cube, cube_alpha):
-    """One band of one output row from a single sample lattice with no flagged sample in
-    its two rows: separable blends (vectorisable), no normalisation needed in the interior."""
-    H, W = raw.shape
-    nk = (W - c0 + pw - 1) // pw
-    use0 = ry0 >= 0
-    use1 = wy1 > 0.0 and ry1 < H
-    w0 = (1.0 - wy1) if use0 else 0.0
-    w1 = wy1 if use1 else 0.0
-    norm = 1.0 / (w0 + w1)
-    w0 *= norm
-    w1 *= norm
-    r0 = ry0 if use0 else ry1
-    r1 = ry1 if use1 else r0
-    for k in range(nk):
-        xs = c0 + k * pw
-        v0 = np.float64(raw[r0, xs])
-        v1 = np.float64(raw[r1, xs])
-        if use_ppi:
-            v0 -= level * ppi[r0, xs]
-            v1 -= level * ppi[r1, xs]
-        vk[k] = w0 * v0 + w1 * v1
-        if has_alpha:
-            mk[k] = max(alpha[r0, xs], alpha[r1, xs])
-    # the value at x: left of the first sample column that column, right of the last one
-    # the last, in between the blend of the two around it (phase p: weights 1 - p/pw, p/pw)
-    for x in range(min(c0, W)):
-        cube[y, x, b] = vk[0]
-    for p in range(pw):
-        wr = p / pw
-        wl = 1.0 - wr
-        n_in = (W - c0 - p + pw - 1) // pw  # columns c0 + k pw + p inside the frame
-        n_in = min(n_in, nk - 1) if p > 0 else n_in
-        x0 = c0 + p
-        if p == 0:
-            for k in range(n_in):
-                cube[y, x0 + k * pw, b] = vk[k]
-        else:
-            for k in range(n_in):
-                cube[y, x0 + k * pw, b] = wl * vk[k] + wr * vk[k + 1]
-            x = c0 + (nk - 1) * pw + p
-            if x < W:
-                cube[y, x, b] = vk[nk - 1]
-    if use_ppi:
-        for x in range(W):
-            cube[y, x, b] += level * ppi[y, x]
-    if has_alpha:
-        for x in range(min(c0, W)):
-            cube_alpha[y, x, b] = mk[0]
-        for p in range(pw):
-            n_in = (W - c0 - p + pw - 1) // pw
-            n_in = min(n_in, nk - 1) if p > 0 else n_in
-            x0 = c0 + p
-            if p == 0:
-                for k in range(n_in):
-                    cube_alpha[y, x0 + k * pw, b] = mk[k]
-            else:
-                for k in range(n_in):
-                    cube_alpha[y, x0 + k * pw, b] = max(mk[k], mk[k + 1])
-                x = c0 + (nk - 1) * pw + p
-                if x < W:
-                    cube_alpha[y, x, b] = mk[nk - 1]
-        if has_common:
-            for x in range(W):
-                cube_alpha[y, x, b] = max(cube_alpha[y, x, b], common[y, x])
-
-
 def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi, ppi_ok,
-                      use_ppi, ppi_row_ok, levels, lat_r, lat_c, lat_start, band_of, ph, pw,
+                      use_ppi, levels, lat_r, lat_c, lat_start, band_of, ph, pw,
                       cube, cube_dq, cube_alpha):
     """Fill ``cube`` (H, W, B) and, where present, ``cube_dq`` and ``cube_alpha``.
 
@@ -148,43 +69,31 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi
     included) of each pattern position; those of band b are ``lat_start[b]:lat_start[b+1]``.
     ``band_of`` is the (ph, pw) band of each (row % ph, col % pw) phase (offset included).
     Returns the number of values left NaN (no usable sample within twice the tile).
+
+    Per output row and band: a vertical pass blends the two sample rows of each lattice at
+    its columns (sums over usable samples only, their weight, the OR of the flagged ones'
+    bits, the max alpha), a horizontal pass per column phase blends two neighbouring columns
+    into per-pixel sums (the inner loops are branch-free and vectorise), a final pass divides
+    and writes the cube, its flags and alpha.
     """
     H, W = raw.shape
     B = lat_start.shape[0] - 1
-    inv_pw = 1.0 / pw
+    nk_max = W // pw + 2
     missing = 0
     for y in prange(H):
-        vnum = np.zeros(W)
-        vraw = np.zeros(W)
-        vden = np.zeros(W)
-        vor = np.zeros(W, np.uint32)
-        vmax = np.full(W, -np.inf, np.float32)
+        vnum = np.empty(nk_max)
+        vraw = np.empty(nk_max)
+        vden = np.empty(nk_max)
+        vor = np.empty(nk_max, np.uint32)
+        vmax = np.empty(nk_max, np.float32)
         num = np.empty(W)
         nraw = np.empty(W)
         den = np.empty(W)
         orf = np.empty(W, np.uint32)
         amax = np.empty(W, np.float32)
-        vk = np.empty(W // pw + 2)
-        mk = np.empty(W // pw + 2, np.float32)
         yph = y % ph
         for b in range(B):
             level = levels[b]
-            if lat_start[b + 1] - lat_start[b] == 1 and (not use_ppi or ppi_row_ok[y]):
-                j = lat_start[b]
-                ry0 = y - ((y - lat_r[j]) % ph)
-                wy1 = (y - ry0) / ph
-                ry1 = ry0 + ph
-                clean = True
-                if has_dq:
-                    for xs in range(lat_c[j], W, pw):
-                        if ((ry0 >= 0 and dq[ry0, xs] != 0)
-                                or (wy1 > 0.0 and ry1 < H and dq[ry1, xs] != 0)):
-                            clean = False
-                            break
-                if clean:
-                    _row_fast(raw, alpha, has_alpha, common, has_common, ppi, use_ppi, level,
-                              y, ry0, ry1, wy1, lat_c[j], pw, b, vk, mk, cube, cube_alpha)
-                    continue
             num[:] = 0.0
             nraw[:] = 0.0
             den[:] = 0.0
@@ -193,95 +102,116 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi
             for j in range(lat_start[b], lat_start[b + 1]):
                 ry0 = y - ((y - lat_r[j]) % ph)  # sample row at or above y
                 wy1 = (y - ry0) / ph
-                wy0 = 1.0 - wy1
                 ry1 = ry0 + ph
-                use0 = ry0 >= 0
-                use1 = wy1 > 0.0 and ry1 < H
+                w0 = (1.0 - wy1) if ry0 >= 0 else 0.0
+                w1 = wy1 if ry1 < H else 0.0
+                r0 = ry0 if ry0 >= 0 else ry1
+                r1 = ry1 if ry1 < H else r0
                 c0 = lat_c[j]
-                # vertical blend of the two sample rows, at the lattice's columns
-                for xs in range(c0, W, pw):
-                    n_ = 0.0
-                    r_ = 0.0
-                    d_ = 0.0
-                    f_ = np.uint32(0)
-                    m_ = np.float32(-np.inf)
-                    if use0:
-                        if has_alpha:
-                            m_ = max(m_, alpha[ry0, xs])
-                        if has_dq and dq[ry0, xs] != 0:
-                            f_ |= dq[ry0, xs]
-                        else:
-                            v = np.float64(raw[ry0, xs])
-                            r_ += wy0 * v
-                            n_ += wy0 * (v - level * ppi[ry0, xs] if use_ppi else v)
-                            d_ += wy0
-                    if use1:
-                        if has_alpha:
-                            m_ = max(m_, alpha[ry1, xs])
-                        if has_dq and dq[ry1, xs] != 0:
-                            f_ |= dq[ry1, xs]
-                        else:
-                            v = np.float64(raw[ry1, xs])
-                            r_ += wy1 * v
-                            n_ += wy1 * (v - level * ppi[ry1, xs] if use_ppi else v)
-                            d_ += wy1
-                    vnum[xs] = n_
-                    vraw[xs] = r_
-                    vden[xs] = d_
-                    vor[xs] = f_
-                    vmax[xs] = m_
-                # horizontal blend of the two sample columns around each x
-                for x in range(min(c0, W)):  # left of the first sample column
-                    _add(j, c0, (x - c0 + pw) * inv_pw, num, nraw, den, orf, amax, vnum,
-                         vraw, vden, vor, vmax, x)
-                for xs in range(c0, W, pw):
-                    has_next = xs + pw < W
-                    for ph_x in range(pw):
-                        x = xs + ph_x
-                        if x >= W:
-                            break
-                        w1 = ph_x * inv_pw
-                        _add(j, xs, 1.0 - w1, num, nraw, den, orf, amax, vnum, vraw, vden,
-                             vor, vmax, x)
-                        if ph_x > 0 and has_next:
-                            _add(j, xs + pw, w1, num, nraw, den, orf, amax, vnum, vraw, vden,
-                                 vor, vmax, x)
+                nk = (W - c0 + pw - 1) // pw
+                # vertical: the lattice's columns c0 + k pw, padded by one on each side
+                for k in range(nk):
+                    xs = c0 + k * pw
+                    v0 = np.float64(raw[r0, xs])
+                    v1 = np.float64(raw[r1, xs])
+                    g0 = w0
+                    g1 = w1
+                    f = np.uint32(0)
+                    if has_dq:
+                        if dq[r0, xs] != 0 and w0 > 0.0:
+                            g0 = 0.0
+                            f |= dq[r0, xs]
+                        if dq[r1, xs] != 0 and w1 > 0.0:
+                            g1 = 0.0
+                            f |= dq[r1, xs]
+                    vraw[k + 1] = g0 * v0 + g1 * v1
+                    if use_ppi:
+                        v0 -= level * ppi[r0, xs]
+                        v1 -= level * ppi[r1, xs]
+                    vnum[k + 1] = g0 * v0 + g1 * v1
+                    vden[k + 1] = g0 + g1
+                    vor[k + 1] = f
+                    if has_alpha:
+                        a0 = alpha[r0, xs] if w0 > 0.0 else np.float32(-np.inf)
+                        a1 = alpha[r1, xs] if w1 > 0.0 else np.float32(-np.inf)
+                        vmax[k + 1] = max(a0, a1)
+                for arr in (vnum, vraw, vden):
+                    arr[0] = 0.0
+                    arr[nk + 1] = 0.0
+                vor[0] = 0
+                vor[nk + 1] = 0
+                vmax[0] = -np.inf
+                vmax[nk + 1] = -np.inf
+                # horizontal: pixel x = c0 + (k - 1) pw + p lies between padded columns k, k+1
+                for p in range(pw):
+                    wr = p / pw
+                    wl = 1.0 - wr
+                    x0 = c0 - pw + p
+                    k_lo = 0 if x0 >= 0 else 1
+                    k_hi = min(nk + 1, (W - 1 - x0) // pw + 1)
+                    for k in range(k_lo, k_hi):
+                        x = x0 + k * pw
+                        num[x] += wl * vnum[k] + wr * vnum[k + 1]
+                        nraw[x] += wl * vraw[k] + wr * vraw[k + 1]
+                        den[x] += wl * vden[k] + wr * vden[k + 1]
+                    if has_dq:
+                        for k in range(k_lo, k_hi):
+                            x = x0 + k * pw
+                            orf[x] |= vor[k] | (vor[k + 1] if p > 0 else np.uint32(0))
+                    if has_alpha:
+                        for k in range(k_lo, k_hi):
+                            x = x0 + k * pw
+                            a = max(vmax[k], vmax[k + 1]) if p > 0 else vmax[k]
+                            amax[x] = max(amax[x], a)
+            # final: divide, fall back where S1 had no usable sample, write
             j0, j1 = lat_start[b], lat_start[b + 1]
-            xph = 0
             for x in range(W):
-                ok_ppi = use_ppi and ppi_ok[y, x]
-                flags = np.uint32(0)
-                if den[x] > EPS:
-                    if ok_ppi:
-                        est = num[x] / den[x] + level * ppi[y, x]
-                    elif use_ppi:
-                        est = nraw[x] / den[x]
-                    else:
-                        est = num[x] / den[x]
-                else:  # no usable sample in S1: its flags, and the wide tent (S2)
-                    flags = orf[x]
-                    if ok_ppi:
-                        est = _wide(raw, dq, ppi, level, True, y, x, lat_r, lat_c, j0, j1,
-                                    ph, pw, False) + level * ppi[y, x]
-                    else:
-                        est = _wide(raw, dq, ppi, level, False, y, x, lat_r, lat_c, j0, j1,
-                                    ph, pw, True)
-                    if est != est:
-                        flags |= _DO_NOT_USE
-                        missing += 1
-                if has_dq and band_of[yph, xph] == b:
-                    flags |= dq[y, x]
+                d = den[x]
+                if use_ppi:
+                    est = num[x] / d + level * ppi[y, x]
+                else:
+                    est = num[x] / d
                 cube[y, x, b] = est
-                if flags:
-                    cube_dq[y, x, b] = flags
-                if has_alpha:
+            if use_ppi and has_dq:  # where the PPI is undefined: plain bilinear
+                for x in range(W):
+                    if not ppi_ok[y, x]:
+                        cube[y, x, b] = nraw[x] / den[x]
+            fix = has_dq
+            if not fix:  # without flags only a frame smaller than a tile leaves S1 empty
+                for x in range(W):
+                    if den[x] <= EPS:
+                        fix = True
+                        break
+            if fix:
+                xph = 0
+                for x in range(W):
+                    flags = np.uint32(0)
+                    if den[x] <= EPS:  # no usable sample in S1: its flags, and S2
+                        flags = orf[x]
+                        ok_ppi = use_ppi and ppi_ok[y, x]
+                        if ok_ppi:
+                            est = _wide(raw, dq, ppi, level, True, y, x, lat_r, lat_c, j0, j1,
+                                        ph, pw, False) + level * ppi[y, x]
+                        else:
+                            est = _wide(raw, dq, ppi, level, False, y, x, lat_r, lat_c, j0,
+                                        j1, ph, pw, True)
+                        if est != est:
+                            flags |= _DO_NOT_USE
+                            missing += 1
+                        cube[y, x, b] = est
+                    if has_dq and band_of[yph, xph] == b:
+                        flags |= dq[y, x]
+                    if flags:
+                        cube_dq[y, x, b] = flags
+                    xph += 1
+                    if xph == pw:
+                        xph = 0
+            if has_alpha:
+                for x in range(W):
                     a = amax[x]
-                    if has_common and common[y, x] > a:
-                        a = common[y, x]
+                    if has_common:
+                        a = max(a, common[y, x])
                     cube_alpha[y, x, b] = a if a > -np.inf else 0.0
-                xph += 1
-                if xph == pw:
-                    xph = 0
     return missing
 
 
@@ -324,7 +254,6 @@ def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, ban
         dummy_f if common is None else common, common is not None,
         np.zeros((H, W), np.float32) if ppi is None else ppi,
         np.zeros((H, W), np.bool_) if ppi_ok is None else ppi_ok, ppi is not None,
-        np.ones(H, np.bool_) if ppi_ok is None else ppi_ok.all(axis=1),
         np.asarray(levels, np.float64), lat_r, lat_c, lat_start,
         np.ascontiguousarray(band_of, np.int64), int(period[0]), int(period[1]),
         cube, cube_dq, np.zeros((1, 1, 1), np.float32) if cube_alpha is None else cube_alpha)

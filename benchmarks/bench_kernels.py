@@ -1,0 +1,76 @@
+"""Compile time of the numba kernels: the first call on a machine (cold: compiled and written
+to the disk cache) and in a later process (warm: loaded from the cache).
+
+Each measurement runs in a fresh Python process with its own ``NUMBA_CACHE_DIR``: the cold
+run starts from an empty folder, the warm run reuses it. Timed are the calls a correction
+makes on a full 2048 x 1088 frame (closed form, inversion, alpha, bilinear and PPID
+demosaicing, each its parallel build) and, separately, the same calls on a 64 x 64 frame
+(their serial builds, what the test suite mostly compiles). Import of hsiffc is timed apart.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+
+from _util import figure, row
+
+_CHILD = r"""
+import json, sys, time
+t0 = time.perf_counter()
+import numpy as np
+from hsiffc import model
+from hsiffc.mosaic import Mosaic
+from hsiffc.reconstruct import demosaic
+t_import = time.perf_counter() - t0
+out = {"import_s": t_import}
+for label, shape in (("frame", (1088, 2048)), ("small", (64, 64))):
+    rng = np.random.default_rng(0)
+    k = rng.uniform(0.5, 20, shape); a = np.full(shape, 2e-4); b = np.full(shape, 0.01)
+    d = np.full(shape, 30.0)
+    t0 = time.perf_counter()
+    y = model.response(25.0, k, a, b, d)
+    model.invert_response(y, 25.0, a, b, d, full_scale=1023.0)
+    alpha = np.empty(shape, np.float32)
+    model.leakage_percentage_paper_into(alpha, y.astype(np.float32), 25.0, a, b, d)
+    m = Mosaic.rectangular(2, 4)
+    for method in ("bilinear", "ppid"):
+        demosaic(y.astype(np.float32), m, method=method, alpha=alpha)
+    out[label + "_s"] = time.perf_counter() - t0
+print(json.dumps(out))
+"""
+
+
+def _run(cache_dir: str) -> dict:
+    env = {**os.environ, "NUMBA_CACHE_DIR": cache_dir,
+           "PYTHONPATH": os.pathsep.join(sys.path)}
+    proc = subprocess.run([sys.executable, "-c", _CHILD], env=env, check=True,
+                          capture_output=True, text=True)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main(quick: bool = False) -> dict:
+    print("Kernel compile time (fresh processes, empty then reused NUMBA_CACHE_DIR)")
+    with tempfile.TemporaryDirectory(prefix="hsiffc-numba-cache-") as cache:
+        cold = _run(cache)
+        warm = _run(cache)
+    results = {"cold": cold, "warm": warm, "figures": []}
+    for key, label in (("frame_s", "full-frame calls (parallel builds)"),
+                       ("small_s", "64 x 64 calls (serial builds)")):
+        print(row(f"first calls, {label}", cold[key], "s",
+                  f"cold (compile + write cache); warm {warm[key]:.2f} s (load from cache)"))
+        results["figures"].append(figure(
+            f"first calls, {label}", cold[key], "s", baseline=warm[key],
+            baseline_name="warm (cache loaded)", ratio=cold[key] / warm[key],
+            note="cold = compiled and cached on first use on a machine; later processes "
+                 "load the cache (the ratio is cold / warm)"))
+    print(row("import hsiffc (model + reconstruct)", warm["import_s"], "s",
+              f"cold run {cold['import_s']:.2f} s"))
+    return results
+
+
+if __name__ == "__main__":
+    main()
