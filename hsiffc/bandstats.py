@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .kernels.bands import band_sums
 from .params import validate_method
 
 STATISTICS = ("mean", "median", "p95")
@@ -45,20 +46,21 @@ def band_reduce(values, band_map=None, good=None, *, statistic: str = "mean",
     [nan]
     """
     validate_method(statistic, STATISTICS, "band statistic")
-    v = np.asarray(values, np.float64)
+    v = np.asarray(values)
     bm = np.zeros(v.shape, np.intp) if band_map is None else np.asarray(band_map)
     if bm.shape != v.shape:
         raise ValueError(f"band_map has shape {bm.shape} but values have {v.shape}; give the "
                          "band map of the same frame")
+    n = int(bm.max()) + 1 if n_bands is None else int(n_bands)
+    if statistic == "mean":  # one compiled pass (hsiffc.kernels.bands)
+        as2d = (lambda a: np.reshape(a, (1, -1) if v.ndim < 2 else (-1, v.shape[-1])))
+        sums, counts = band_sums(as2d(v), as2d(bm), None if good is None else as2d(good), n)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+    v = np.asarray(v, np.float64)
     use = np.isfinite(v)
     if good is not None:
         use &= np.asarray(good, bool)
-    n = int(bm.max()) + 1 if n_bands is None else int(n_bands)
-    if statistic == "mean":
-        sums = np.bincount(bm[use], weights=v[use], minlength=n)[:n]
-        counts = np.bincount(bm[use], minlength=n)[:n]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
     out = np.full(n, np.nan)
     q = 50.0 if statistic == "median" else 95.0
     for band in range(n):

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from functools import lru_cache
+
 import numpy as np
 
 
@@ -88,12 +90,10 @@ class Mosaic:
         return tuple(int(s) for s in self.pattern.shape)
 
     def band_map(self, shape) -> np.ndarray:
-        """Band index of every pixel of a frame of ``shape`` (H, W)."""
-        h, w = int(shape[0]), int(shape[1])
-        ph, pw = self.tile_shape
-        rows = (np.arange(h) - self.offset[0]) % ph
-        cols = (np.arange(w) - self.offset[1]) % pw
-        return self.pattern[rows[:, None], cols[None, :]]
+        """Band index of every pixel of a frame of ``shape`` (H, W) (read-only; the last few
+        maps are cached, a full frame's costs tens of milliseconds to build)."""
+        return _band_map(self.pattern.tobytes(), self.pattern.shape, self.offset,
+                         int(shape[0]), int(shape[1]))
 
     def to_dict(self) -> dict:
         """JSON-safe description (pattern, wavelengths, offset); :meth:`from_dict` inverts it."""
@@ -112,3 +112,13 @@ class Mosaic:
                        tuple(d.get("offset", (0, 0))), name=d.get("name", ""))
         except (KeyError, TypeError) as exc:
             raise ValueError(f"mosaic description {d!r} is missing 'pattern': {exc}") from exc
+
+
+@lru_cache(maxsize=8)
+def _band_map(pattern: bytes, tile: tuple, offset: tuple, h: int, w: int) -> np.ndarray:
+    p = np.frombuffer(pattern, np.int64).reshape(tile)
+    rows = (np.arange(h) - offset[0]) % tile[0]
+    cols = (np.arange(w) - offset[1]) % tile[1]
+    out = p[rows[:, None], cols[None, :]]
+    out.flags.writeable = False
+    return out

@@ -14,6 +14,8 @@ from . import model
 from .bandstats import STATISTICS as BAND_STATISTICS
 from .bandstats import band_reduce
 from .dq import DQ, DQ_DTYPE
+from .kernels import leakage
+from .kernels.operands import flat_operands
 from .params import validate_method
 from .sweep import Sweep
 
@@ -85,27 +87,48 @@ def alpha_model(response, exposure_ms: float, a, b, dark_dn, *, full_scale_dn=No
     return np.where(inversion.flags & int(DQ.BELOW_DARK), NO_ALPHA, alpha).astype(np.float32)
 
 
+def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_scale_dn,
+           in_domain, pixel_flags, dq):
+    """alpha (computed when ``alpha`` is None: paper form) and DQ in one compiled pass."""
+    shape, (y, t, a_, b_, d) = flat_operands(response, exposure_ms, a, b, dark)
+    n = int(np.prod(shape, dtype=np.int64))
+
+    def plane(v):
+        if v is None:
+            return np.zeros(1, DQ_DTYPE), False
+        v = np.asarray(v)
+        if v.shape != tuple(shape):
+            raise ValueError(f"a DQ plane has shape {v.shape} but the frame has {tuple(shape)}")
+        return np.ascontiguousarray(v, DQ_DTYPE).reshape(-1), True
+
+    (pix, has_pix), (dq_in, has_dq) = plane(pixel_flags), plane(dq)
+    with_alpha = alpha is None
+    given = (np.zeros(1, np.float32) if with_alpha
+             else np.ascontiguousarray(np.broadcast_to(alpha, shape), np.float32).reshape(-1))
+    alpha = np.empty(shape if with_alpha else 1, np.float32)
+    out = np.empty(shape, DQ_DTYPE)
+    const = 0 if in_domain else int(DQ.OUT_OF_DOMAIN)
+    leakage.alpha_flags_kernel(y, t, a_, b_, d, float(threshold_percent), float(full_scale_dn),
+                               const, pix, has_pix, dq_in, has_dq, with_alpha, given,
+                               alpha.reshape(-1), out.reshape(-1))
+    return alpha, out
+
+
 def leakage_dq(alpha, response, *, threshold_percent: float, full_scale_dn: float,
-               in_domain: bool = True, pixel_flags=None) -> np.ndarray:
-    """DQ bits of one frame from its alpha map (element-wise).
+               in_domain: bool = True, pixel_flags=None, dq=None) -> np.ndarray:
+    """DQ bits of one frame from its alpha map (element-wise, one compiled pass).
 
     LEAKAGE where alpha is over ``threshold_percent`` or :data:`NO_ALPHA`; SATURATED where the
-    response is at ``full_scale_dn``; OUT_OF_DOMAIN everywhere when not ``in_domain``; and the
-    calibration's own ``pixel_flags``.
+    response is at ``full_scale_dn``; OUT_OF_DOMAIN everywhere when not ``in_domain``; the
+    calibration's own ``pixel_flags``; and the bits already in ``dq`` (the frame's DQ).
 
     Returns
     -------
     (H, W) uint32
     """
-    alpha = np.asarray(alpha)
-    dq = np.zeros(alpha.shape, DQ_DTYPE)
-    dq[~(alpha <= threshold_percent)] |= DQ_DTYPE(DQ.LEAKAGE)
-    dq[np.asarray(response) >= full_scale_dn] |= DQ_DTYPE(DQ.SATURATED)
-    if not in_domain:
-        dq |= DQ_DTYPE(DQ.OUT_OF_DOMAIN)
-    if pixel_flags is not None:
-        dq |= np.asarray(pixel_flags, DQ_DTYPE)
-    return dq
+    return _flags(alpha, response, 1.0, 0.0, 1.0, 0.0, threshold_percent=threshold_percent,
+                  full_scale_dn=full_scale_dn, in_domain=in_domain, pixel_flags=pixel_flags,
+                  dq=dq)[1]
 
 
 def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
@@ -148,7 +171,7 @@ def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
 
 
 def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent: float,
-                   method: str = "paper", dark=None):
+                   method: str = "paper", dark=None, dq=None):
     """alpha map (:func:`alpha_map`) and DQ flags (:func:`leakage_dq`) of one raw frame.
 
     Parameters
@@ -159,20 +182,28 @@ def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent:
     threshold_percent : float
         alpha above this (percent) is flagged LEAKAGE.
     method : "paper" or "model"
-    signal : (H, W) array_like, DN, optional
+    dark : float or (H, W) array_like, DN, optional
         See :func:`alpha_map`.
+    dq : (H, W) uint32, optional
+        The frame's DQ so far; its bits are kept in the returned plane (merged in the same
+        pass).
 
     Returns
     -------
     alpha : (H, W) float32, percent (:data:`NO_ALPHA` where not computable)
     dq : (H, W) uint32
     """
+    cal = calibration
+    opts = {"threshold_percent": threshold_percent, "full_scale_dn": cal.domain["full_scale_dn"],
+            "in_domain": bool(cal.in_domain(exposure_ms)),
+            "pixel_flags": cal.arrays.get("flags"), "dq": dq}
+    if validate_method(method, ALPHA_METHODS, "alpha method") == "paper":  # one pass: alpha, DQ
+        y = np.asarray(frame, np.float32)
+        cal.check_compatible(frame_shape=y.shape, what="the frame")
+        return _flags(None, y, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"),
+                      cal.dark_at(exposure_ms) if dark is None else dark, **opts)
     alpha = alpha_map(frame, exposure_ms, calibration, method=method, dark=dark)
-    dq = leakage_dq(alpha, frame, threshold_percent=threshold_percent,
-                    full_scale_dn=calibration.domain["full_scale_dn"],
-                    in_domain=bool(calibration.in_domain(exposure_ms)),
-                    pixel_flags=calibration.arrays.get("flags"))
-    return alpha, dq
+    return alpha, leakage_dq(alpha, frame, **opts)
 
 
 @dataclass(frozen=True)

@@ -228,3 +228,34 @@ def test_alpha_forms_equal_the_previous_numpy_forms():
     assert np.allclose(out32[fin], ref32[fin], rtol=2e-7)
     with pytest.raises(ValueError, match="out must be"):
         model.leakage_percentage_paper_into(np.empty(3), y, 25.0, a, b, d)
+
+
+# -- validity flags (alpha and DQ in one pass) -------------------------------------------------
+
+def test_alpha_and_flags_in_one_pass_equal_the_numpy_rule():
+    from hsiffc.validity import leakage_dq
+
+    rng = np.random.default_rng(7)
+    n = launch.PARALLEL_MIN + 99
+    y = rng.uniform(0, 1100, n).astype(np.float32)
+    a = (2e-4 * rng.lognormal(0, 0.5, n)).astype(np.float32)
+    b = rng.uniform(0.008, 0.012, n).astype(np.float32)
+    d = rng.uniform(20, 40, n).astype(np.float32)
+    pix = (rng.random(n) < 0.01).astype(np.uint32) * np.uint32(DQ.HOT)
+    dq_in = (rng.random(n) < 0.01).astype(np.uint32) * np.uint32(DQ.NO_FLAT)
+    alpha = np.empty(n, np.float32)
+    dq = np.empty(n, np.uint32)
+    for build in (leakage.alpha_flags_kernel.parallel, leakage.alpha_flags_kernel.serial):
+        build(y, 25.0, a, b, d, 12.0, 1023.0, int(DQ.OUT_OF_DOMAIN), pix, True, dq_in, True,
+              True, np.zeros(1, np.float32), alpha, dq)
+        ref_alpha = numpy_alpha_paper(y, 25.0, a, b, d).astype(np.float32)
+        assert np.allclose(alpha, ref_alpha, rtol=1e-6)
+        ref = np.zeros(n, np.uint32)  # the former numpy rule
+        ref[~(ref_alpha <= 12.0)] |= np.uint32(DQ.LEAKAGE)
+        ref[y >= 1023.0] |= np.uint32(DQ.SATURATED)
+        ref |= np.uint32(DQ.OUT_OF_DOMAIN) | pix | dq_in
+        near = np.isclose(ref_alpha, 12.0, rtol=1e-6)  # float32 rounding at the threshold
+        assert np.array_equal(dq[~near], ref[~near])
+    flags = leakage_dq(alpha, y, threshold_percent=12.0, full_scale_dn=1023.0, in_domain=False,
+                       pixel_flags=pix, dq=dq_in)
+    assert np.array_equal(flags, dq)

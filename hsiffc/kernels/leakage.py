@@ -10,10 +10,10 @@ response keeps ~1e-13 DN (tests: against ``solve_ivp`` and against the previous 
 the inversion converges to ``tol_dn + 8 eps |y|`` in DN like before; alpha is computed in
 float64 and may be stored as float32 (1e-7 relative, far below any threshold's meaning).
 
-Kernels run ``prange`` over blocks of :data:`BLOCK` pixels; inside a block a branch-free pass
-(vectorised by LLVM, 8 doubles per instruction on AVX-512) does the common case and a scalar
-pass repairs the rare pixels it cannot (over/underflow: the log-domain form; inversions that
-did not converge in the vectorised iterations: a bracketed Halley iteration).
+Kernels run a branch-free ``prange`` loop over the pixels (vectorised by LLVM, 8 doubles per
+instruction on AVX-512) for the common case and a second pass repairs the rare pixels it
+cannot (over/underflow: the log-domain form; inversions that did not converge in the
+vectorised iterations: a bracketed Halley iteration).
 """
 
 from __future__ import annotations
@@ -28,9 +28,10 @@ from .launch import JIT_OPTIONS, Kernel
 from .operands import at
 from .vmath import exp, expm1, log, log1p, logaddexp
 
-__all__ = ["BLOCK", "alpha_model_kernel", "alpha_model_point",
+__all__ = ["BLOCK", "alpha_flags_kernel", "alpha_model_kernel", "alpha_model_point",
            "alpha_paper_kernel", "alpha_paper_point", "invert_kernel", "invert_point",
-           "response_fast", "response_kernel", "response_point", "response_robust"]
+           "leakage_bits", "response_fast", "response_kernel", "response_point",
+           "response_robust"]
 
 BLOCK = 4096
 # Only the kernels (entry points, see launch.Kernel) are cached on disk. The per-point
@@ -48,6 +49,7 @@ _SATURATED = int(DQ.SATURATED)
 _BELOW_DARK = int(DQ.BELOW_DARK)
 _UNREACHABLE = int(DQ.UNREACHABLE)
 _NOT_CONVERGED = int(DQ.NOT_CONVERGED)
+_LEAKAGE = int(DQ.LEAKAGE)
 
 
 # -- the response ----------------------------------------------------------------------------
@@ -96,15 +98,12 @@ def response_point(t, k, a, b, d):
 def _response_loop(t, k, a, b, d, out):
     """``out[i] = Y(t, k, a, b, d)[i]``; each input a scalar or a flat array like ``out``."""
     n = out.shape[0]
-    for blk in prange((n + BLOCK - 1) // BLOCK):
-        lo = blk * BLOCK
-        hi = min(n, lo + BLOCK)
-        for i in range(lo, hi):  # vectorised; NaN marks what the fast form cannot do
-            y, ok = response_fast(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
-            out[i] = y if ok else np.nan
-        for i in range(lo, hi):
-            if out[i] != out[i]:
-                out[i] = response_robust(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
+    for i in prange(n):  # vectorised; NaN marks what the fast form cannot do
+        y, ok = response_fast(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
+        out[i] = y if ok else np.nan
+    for i in prange(n):
+        if out[i] != out[i]:
+            out[i] = response_robust(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
 
 
 response_kernel = Kernel(_response_loop, 5)
@@ -247,38 +246,31 @@ def _invert_loop(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter, k_out, flag
     """
     n = k_out.shape[0]
     vector = max_iter >= _VECTOR_STEPS
+    if vector:
+        for i in prange(n):
+            bi, ti = at(b, i), at(t, i)
+            flags, ok, target, beta, lnc, c, h0, x0 = _setup(
+                at(y, i), ti, at(a, i), bi, at(d, i), full_scale, True)
+            x = _halley(x0, beta, c, True)[1]
+            x = _halley(x, beta, c, True)[1]
+            x = _halley(x, beta, c, True)[1]
+            h = _halley(x, beta, c, True)[0]
+            tol = bi * (tol_dn + 8.0 * _EPS * abs(target))
+            done = ok and lnc <= 700.0 and h0 > 0.0 and abs(h) <= tol
+            k = x / (bi * ti)
+            over = k > k_max
+            k_out[i] = k_max if over else k
+            flags_out[i] = flags | (_UNREACHABLE if over else 0) | (0 if done else _PENDING)
     for blk in prange((n + BLOCK - 1) // BLOCK):
-        lo = blk * BLOCK
-        hi = min(n, lo + BLOCK)
-        pending = 0
-        if vector:
-            for i in range(lo, hi):
-                bi, ti = at(b, i), at(t, i)
-                flags, ok, target, beta, lnc, c, h0, x0 = _setup(
-                    at(y, i), ti, at(a, i), bi, at(d, i), full_scale, True)
-                x = _halley(x0, beta, c, True)[1]
-                x = _halley(x, beta, c, True)[1]
-                x = _halley(x, beta, c, True)[1]
-                h = _halley(x, beta, c, True)[0]
-                tol = bi * (tol_dn + 8.0 * _EPS * abs(target))
-                done = ok and lnc <= 700.0 and h0 > 0.0 and abs(h) <= tol
-                k = x / (bi * ti)
-                over = k > k_max
-                k_out[i] = k_max if over else k
-                flags_out[i] = flags | (_UNREACHABLE if over else 0) | (0 if done else _PENDING)
-                pending += 0 if done else 1
-        else:
-            pending = hi - lo
         most = _VECTOR_STEPS if vector else 0
-        if pending:
-            for i in range(lo, hi):
-                if vector and not (flags_out[i] & _PENDING):
-                    continue
-                k, f, it = invert_point(at(y, i), at(t, i), at(a, i), at(b, i), at(d, i),
-                                        full_scale, k_max, tol_dn, max_iter)
-                k_out[i] = k
-                flags_out[i] = f
-                most = max(most, it)
+        for i in range(blk * BLOCK, min(n, blk * BLOCK + BLOCK)):
+            if vector and not (flags_out[i] & _PENDING):
+                continue
+            k, f, it = invert_point(at(y, i), at(t, i), at(a, i), at(b, i), at(d, i),
+                                    full_scale, k_max, tol_dn, max_iter)
+            k_out[i] = k
+            flags_out[i] = f
+            most = max(most, it)
         iterations[blk] = most
 
 
@@ -304,10 +296,8 @@ def alpha_paper_point(y, t, a, b, d):
 
 def _alpha_model_loop(y, k, a, b, out):
     """:func:`alpha_model_point` over flat operands into ``out``."""
-    n = out.shape[0]
-    for blk in prange((n + BLOCK - 1) // BLOCK):
-        for i in range(blk * BLOCK, min(n, blk * BLOCK + BLOCK)):
-            out[i] = alpha_model_point(at(y, i), at(k, i), at(a, i), at(b, i))
+    for i in prange(out.shape[0]):
+        out[i] = alpha_model_point(at(y, i), at(k, i), at(a, i), at(b, i))
 
 
 alpha_model_kernel = Kernel(_alpha_model_loop, 4)
@@ -315,10 +305,39 @@ alpha_model_kernel = Kernel(_alpha_model_loop, 4)
 
 def _alpha_paper_loop(y, t, a, b, d, out):
     """:func:`alpha_paper_point` over flat operands into ``out`` (float32 or float64)."""
-    n = out.shape[0]
-    for blk in prange((n + BLOCK - 1) // BLOCK):
-        for i in range(blk * BLOCK, min(n, blk * BLOCK + BLOCK)):
-            out[i] = alpha_paper_point(at(y, i), at(t, i), at(a, i), at(b, i), at(d, i))
+    for i in prange(out.shape[0]):
+        out[i] = alpha_paper_point(at(y, i), at(t, i), at(a, i), at(b, i), at(d, i))
 
 
 alpha_paper_kernel = Kernel(_alpha_paper_loop, 5)
+
+
+# -- validity flags ---------------------------------------------------------------------------
+
+@njit(**_INL)
+def leakage_bits(alpha, y, threshold, full_scale):
+    """DQ bits of one response from its alpha: LEAKAGE where alpha is over the threshold or
+    not a number, SATURATED where the response is at full scale."""
+    bits = _LEAKAGE if not (alpha <= threshold) else 0
+    return bits | (_SATURATED if y >= full_scale else 0)
+
+
+def _alpha_flags_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, has_pix, dq_in,
+                      has_dq_in, with_alpha, alpha_in, alpha_out, dq_out):
+    """Paper alpha into ``alpha_out`` (if ``with_alpha``; else alpha is read from
+    ``alpha_in``) and the DQ of every pixel: :func:`leakage_bits` | ``const_bits`` | ``pix``
+    | ``dq_in``."""
+    for i in prange(dq_out.shape[0]):
+        yi = at(y, i)
+        alpha = alpha_paper_point(yi, at(t, i), at(a, i), at(b, i), at(d, i))
+        if with_alpha:
+            alpha_out[i] = alpha
+        else:
+            alpha = np.float64(alpha_in[i])
+        bits = leakage_bits(alpha, yi, threshold, full_scale) | const_bits
+        bits |= pix[i] if has_pix else 0
+        bits |= dq_in[i] if has_dq_in else 0
+        dq_out[i] = bits
+
+
+alpha_flags_kernel = Kernel(_alpha_flags_loop, 15)

@@ -40,14 +40,16 @@ def flat_operands(*values):
     return shape, ops
 
 
-def at(x, i):
-    """Element ``i`` of a flat operand (``x`` itself for a scalar) as a float64, so that the
-    arithmetic is double precision whatever the storage. Compiled away in kernels."""
-    return np.float64(x if np.ndim(x) == 0 else x[i])
+def at(x, at_index):
+    """Element ``at_index`` of a flat operand (``x`` itself for a scalar) as a float64, so
+    that the arithmetic is double precision whatever the storage. Compiled away in kernels.
+    (The parameter name is unusual on purpose: inlined into a ``prange`` loop it must not
+    shadow the loop index.)"""
+    return np.float64(x if np.ndim(x) == 0 else x[at_index])
 
 
 @overload(at, inline="always")
-def _at_overload(x, i):
+def _at_overload(x, at_index):
     if isinstance(x, types.Array):
-        return lambda x, i: np.float64(x[i])
-    return lambda x, i: np.float64(x)
+        return lambda x, at_index: np.float64(x[at_index])
+    return lambda x, at_index: np.float64(x)

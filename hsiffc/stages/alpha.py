@@ -57,6 +57,6 @@ class AlphaMask(Stage):
                              what="the frame")
         alpha, dq = validity_flags(frame.raw, frame.exposure_ms, cal,
                                    threshold_percent=float(self.threshold_percent),
-                                   method=self.method, dark=frame.dark_removed)
-        return frame.replace(dq=frame.dq | dq, alpha=alpha,
+                                   method=self.method, dark=frame.dark_removed, dq=frame.dq)
+        return frame.replace(dq=dq, alpha=alpha,
                              meta={"alpha_threshold_percent": float(self.threshold_percent)})

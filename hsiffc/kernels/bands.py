@@ -1,0 +1,65 @@
+"""Compiled per-band sums: the body of :func:`hsiffc.bandstats.band_reduce` for the mean.
+
+One pass over the frame reads the values in their own dtype (no float64 copy), the band map
+and the good mask, and accumulates a sum and a count per band in float64; row blocks run in
+parallel with their own partial sums, added at the end in a fixed order (the result does not
+depend on the thread count).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import prange
+
+from .launch import Kernel
+
+__all__ = ["band_sums"]
+
+_ROWS = 64  # rows per partial sum
+
+
+def _band_sums_loop(values, band_map, good, has_good, sums, counts):
+    """Partial sums and counts per block of ``_ROWS`` rows into ``sums/counts[block, band]``;
+    finite values of good pixels only."""
+    H, W = values.shape
+    nb = sums.shape[1]
+    for blk in prange((H + _ROWS - 1) // _ROWS):
+        for y in range(blk * _ROWS, min(H, blk * _ROWS + _ROWS)):
+            for x in range(W):
+                v = np.float64(values[y, x])
+                if (not has_good or good[y, x]) and abs(v) < np.inf:
+                    band = band_map[y, x]
+                    if 0 <= band < nb:
+                        sums[blk, band] += v
+                        counts[blk, band] += 1
+
+
+_kernel = Kernel(_band_sums_loop, 0)
+
+
+def band_sums(values, band_map, good, n_bands: int):
+    """Sum and count of the finite ``values`` of ``good`` pixels per band.
+
+    Parameters
+    ----------
+    values : (H, W) float32 or float64 array
+    band_map : (H, W) integer array
+    good : (H, W) bool array or None (all pixels)
+    n_bands : int
+
+    Returns
+    -------
+    sums : (n_bands,) float64
+    counts : (n_bands,) int64
+    """
+    v = np.ascontiguousarray(values)
+    if v.dtype not in (np.float32, np.float64):
+        v = v.astype(np.float64)
+    bm = np.ascontiguousarray(band_map, dtype=np.int64)
+    g = np.zeros((1, 1), np.bool_) if good is None else np.ascontiguousarray(good, np.bool_)
+    nblk = (v.shape[0] + _ROWS - 1) // _ROWS
+    sums = np.zeros((max(nblk, 1), n_bands))
+    counts = np.zeros((max(nblk, 1), n_bands), np.int64)
+    if v.size:
+        _kernel(v, bm, g, good is not None, sums, counts)
+    return sums.sum(axis=0), counts.sum(axis=0)
