@@ -16,6 +16,8 @@ import numpy as np
 from .bandstats import band_reduce
 from .dark import subtract_dark
 from .dq import DQ, DQ_DTYPE
+from .kernels.bands import scale_kernel
+from .kernels.operands import flat_operands
 from .params import validate_method
 from .uniformity import (FixedPattern, fixed_pattern_nonuniformity,  # noqa: F401 (re-export)
                          fixed_pattern_variance, uniformity_before_after)
@@ -116,8 +118,9 @@ def two_point_apply(signal, gain, scale=1.0) -> np.ndarray:
         1.0 for the ``"mean_gain"`` normalisation (DN at the flat's mean gain), or
         :func:`paper_scale` for eq. (5) exactly.
     """
-    out = np.multiply(signal, gain, dtype=np.float32)
-    out *= np.asarray(scale, np.float32)
+    shape, ops = flat_operands(signal, gain, scale)
+    out = np.empty(shape, np.float32)
+    scale_kernel(*ops, out.reshape(-1))  # one compiled pass
     return out
 
 

@@ -49,3 +49,19 @@ def test_band_mean_any_layout(h, w, n, seed):
                        bincount_mean(values, bm, good, n), rtol=1e-12, equal_nan=True)
     assert np.allclose(band_reduce(values.ravel(), bm.ravel(), good.ravel(), n_bands=n),
                        bincount_mean(values, bm, good, n), rtol=1e-12, equal_nan=True)
+
+
+@pytest.mark.parametrize("n", [1000, launch.PARALLEL_MIN + 7])
+def test_two_point_apply_equals_the_numpy_product(n):
+    from hsiffc.ffc import two_point_apply
+
+    rng = np.random.default_rng(1)
+    signal = rng.normal(300, 50, n).astype(np.float32)
+    gain = rng.uniform(0.8, 1.2, n).astype(np.float32)
+    scale = rng.uniform(0.9, 1.1, n).astype(np.float32)
+    ref = np.multiply(signal, gain, dtype=np.float32) * scale  # the former two passes
+    for s in (scale, np.float32(1.5), 1.0):
+        out = two_point_apply(signal, gain, s)
+        expect = np.multiply(signal, gain, dtype=np.float32) * np.float32(s)
+        assert out.dtype == np.float32 and np.allclose(out, expect, rtol=3e-7, atol=0)
+    assert np.allclose(two_point_apply(signal, gain, scale), ref, rtol=3e-7, atol=0)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import glob
 import logging
 import os
+import queue
 import threading
 import time
 from pathlib import Path
@@ -147,9 +148,11 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
                 st=None, hasher=None) -> None:
     """Correct every frame of the open input ``src`` into ``job.output`` (atomically).
 
-    The loop is decode (``src`` yields raw frames), correct (``ctx.pipeline.transform``),
-    encode (a :class:`~hsiffc.io.corrected.BackgroundWriter` writes the planes on its own
-    thread while the next frame is corrected). Memory: a few frames.
+    The loop is decode (``src`` yields raw frames, read ahead on a thread by
+    :class:`Prefetch`), correct (``ctx.pipeline.transform`` on this thread, compiled kernels
+    using every core), encode (a :class:`~hsiffc.io.corrected.BackgroundWriter` writes the
+    planes on its own thread while the next frame is corrected): the three overlap, as
+    tifffile and imagecodecs release the GIL. Memory: a few frames.
     """
     out = Path(job.output)
     st = st if st is not None else os.stat(job.input)
@@ -162,8 +165,9 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
             CorrectedWriter(tmp, prov, n_frames=src.n_frames, frame_shape=shape,
                             reserve_per_frame=96 + 20 * stats.n_bands) as writer:
         sink = BackgroundWriter(writer)
+        frames = Prefetch(src)
         try:
-            for raw, meta in src:
+            for raw, meta in frames:
                 frame, bad = _to_frame(raw, meta, src, settings)
                 result = ctx.pipeline.transform(frame)
                 if result.data.shape != shape:
@@ -177,8 +181,10 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
                 if on_frame is not None:
                     on_frame(res["bytes"] / src.n_frames)
         except BaseException:
+            frames.close()
             sink.close(cancel=True)
             raise
+        frames.close()
         sink.close()
         if res["frames"] != src.n_frames:
             raise DataFormatError(f"only {res['frames']} of {src.n_frames} frames could be read",
@@ -266,3 +272,48 @@ class Background:
         if self.error is not None and raise_error:
             raise self.error
         return self.value
+
+
+class Prefetch:
+    """Iterate ``source`` on a thread, ``depth`` items ahead (decoding overlaps the caller's
+    work; at most ``depth`` decoded frames wait). An error in the thread is raised in the
+    caller when it reaches that item; :meth:`close` stops the thread (call it before the
+    source is closed)."""
+
+    _END = object()
+
+    def __init__(self, source, depth: int = 2):
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(source,), daemon=True)
+        self._thread.start()
+
+    def _run(self, source):
+        try:
+            for item in source:
+                if self._stop.is_set():
+                    return
+                self._queue.put((item, None))
+        except BaseException as exc:  # raised again in the caller's thread
+            self._queue.put((None, exc))
+            return
+        self._queue.put((self._END, None))
+
+    def __iter__(self):
+        while True:
+            item, error = self._queue.get()
+            if error is not None:
+                raise error
+            if item is self._END:
+                return
+            yield item
+
+    def close(self) -> None:
+        """Stop reading ahead and wait for the thread (drops frames not yet consumed)."""
+        self._stop.set()
+        while self._thread.is_alive():
+            try:
+                self._queue.get(timeout=0.05)
+            except queue.Empty:
+                pass
+        self._thread.join()

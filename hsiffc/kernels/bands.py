@@ -1,4 +1,5 @@
-"""Compiled per-band sums: the body of :func:`hsiffc.bandstats.band_reduce` for the mean.
+"""Compiled per-band sums (the body of :func:`hsiffc.bandstats.band_reduce` for the mean) and
+the two-point apply product (the body of :func:`hsiffc.ffc.two_point_apply`).
 
 One pass over the frame reads the values in their own dtype (no float64 copy), the band map
 and the good mask, and accumulates a sum and a count per band in float64; row blocks run in
@@ -12,8 +13,9 @@ import numpy as np
 from numba import prange
 
 from .launch import Kernel
+from .operands import at
 
-__all__ = ["band_sums"]
+__all__ = ["band_sums", "scale_kernel"]
 
 _ROWS = 64  # rows per partial sum
 
@@ -63,3 +65,12 @@ def band_sums(values, band_map, good, n_bands: int):
     if v.size:
         _kernel(v, bm, g, good is not None, sums, counts)
     return sums.sum(axis=0), counts.sum(axis=0)
+
+
+def _scale_loop(signal, gain, scale, out):
+    """``out = signal * gain * scale`` (float32 out, float64 arithmetic)."""
+    for i in prange(out.shape[0]):
+        out[i] = at(signal, i) * at(gain, i) * at(scale, i)
+
+
+scale_kernel = Kernel(_scale_loop, 3)
