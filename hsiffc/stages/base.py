@@ -152,6 +152,20 @@ def check_stage(stage: Stage, train_frames, test_frame) -> None:
 
     Frames are given raw (as read from files); when the stage ``requires`` dark-subtracted
     frames, a default dark stage fitted on ``train_frames`` is run on them first.
+
+    Parameters
+    ----------
+    stage : Stage
+        An unfitted instance with the parameters to test.
+    train_frames : list of Frame
+        Training frames (darks and flats, as the stage needs).
+    test_frame : Frame
+        A raw frame to transform.
+
+    Raises
+    ------
+    AssertionError
+        Naming the rule the stage breaks.
     """
     import io
 
