@@ -151,8 +151,6 @@ def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
     method : "paper" or "model"
     subtract_dark : bool
         Paper method only: subtract the calibrated dark before dividing by the exposure.
-    signal : (H, W) array_like, DN, optional
-        Signal above the dark actually removed (overrides ``subtract_dark``).
 
     Returns
     -------
