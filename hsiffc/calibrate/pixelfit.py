@@ -11,9 +11,9 @@ Per pixel, in locals only (no (samples x pixels) temporaries):
    sample (their weighted mean, which lies on that line).
 3. **Linear model** ``Y = d + (g r + dc) t``: closed-form weighted least squares on the same
    samples. It is the fallback and the yardstick (the leakage fit must not fit worse).
-4. **Start values** of the leakage model from the linear one: g from the samples below half the
-   pixel's highest level, b and the saturation margin from the caller (sensor-wide values) or
-   small grids (the best of them by cost).
+4. **Start values** of the leakage model: the dark level from the dark frames (the linear
+   model's without them), g from the samples below half the pixel's highest level, b and the
+   saturation margin from the caller (sensor-wide values) or small grids (the best by cost).
 5. **Levenberg-Marquardt** (:mod:`hsiffc.calibrate.lm`) with bounds on every parameter.
 6. **Fallback**: where the leakage fit does not converge or fits worse than the linear model,
    the linear model is used (a = 0); each pixel gets a status code saying which and why.
@@ -218,15 +218,17 @@ def _fit_pixel(p, yp, wp, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, 
         if not np.isfinite(ph[1]):
             ph[1] = ymax + 30.0 / b0
     else:
-        # g from the samples below half the highest level (leakage bends the upper ones)
+        # the dark level measured by the dark frames (their line at t = 0), else the linear
+        # model's; g from the samples below half the highest level (leakage bends the upper)
+        d0 = md_y - dc * md_t if nd > 0 else d_lin
         su = sz = 0.0
         for i in range(n):
             wi = wp[i]
-            if wi <= 0 or not light[i] or (yp[i] - d_lin) > 0.5 * (ymax - d_lin):
+            if wi <= 0 or not light[i] or (yp[i] - d0) > 0.5 * (ymax - d0):
                 continue
             u = r[i] * t[i]
             su += wi * u * u
-            sz += wi * u * (yp[i] - dc * t[i] - d_lin)
+            sz += wi * u * (yp[i] - dc * t[i] - d0)
         g0 = sz / su if su > 0 and sz > 0 else g_lin
         prior[:] = 0.0
         for bi in range(b_starts.size):
@@ -234,7 +236,7 @@ def _fit_pixel(p, yp, wp, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, 
                 trial[0] = np.log(g0)
                 trial[1] = ymax + margins[mi] / b_starts[bi]
                 trial[2] = np.log(b_starts[bi])
-                trial[3] = d_lin
+                trial[3] = d0
                 cst = np.inf
                 if b_starts.size * margins.size > 1:
                     cst, _, _ = evaluate(trial, yq, wq, tq, rq, dc, additive, ln_rref, prior, h,
