@@ -108,6 +108,30 @@ def test_missing_bit_depth_for_float_frames(tmp_path):
     assert "bit_depth" in str(excinfo.value) and "--bit-depth" in str(excinfo.value)
 
 
+def test_info_lists_missing_fields_and_how_to_give_them(tmp_path, capsys):
+    """``hsiffc info`` describes a file that other commands refuse: each missing field is
+    listed with the ways to give it, the frames are still summarised, exit 0."""
+    from hsiffc.cli import main
+
+    path = plain(tmp_path / "f.tif", np.full((2, 4, 6), 0.25, np.float32))
+    assert main(["info", str(path), "--json", str(tmp_path / "info.json")]) == 0
+    out = capsys.readouterr().out
+    assert "exposure_ms   MISSING" in out and "--exposure-ms 10" in out
+    assert "bit_depth     MISSING" in out and "--bit-depth 12" in out
+    assert "missing: bit_depth, exposure_ms" in out
+    import json
+    doc = json.loads((tmp_path / "info.json").read_text())
+    assert doc["missing"] == ["bit_depth", "exposure_ms"] and doc["n_frames"] == 2
+    assert doc["steps"][0]["n_frames"] == 2  # NaN exposures still form one step
+    # given on the command line: nothing missing, the origin says so
+    assert main(["info", str(path), "--exposure-ms", "3", "--bit-depth", "12"]) == 0
+    out = capsys.readouterr().out
+    assert "MISSING" not in out and "exposure_ms   from --exposure-ms" in out
+    # every other command still refuses the file, naming the field
+    with pytest.raises(DataFormatError, match="exposure_ms"):
+        open_source(path, bit_depth=12)
+
+
 def test_bad_overrides_are_refused():
     for kw, hint in ((dict(exposure_ms=-1), "exposure_ms"), (dict(bit_depth=40), "1..32"),
                      (dict(kind="bright"), "kind"), (dict(bit_shift=20), "0..15")):
@@ -187,3 +211,14 @@ def test_files_that_disagree_are_refused(tmp_path):
     plain(tmp_path / "b.tif", np.zeros((5, 4), np.uint8))
     with pytest.raises(DataFormatError, match="different shapes"):
         open_source(tmp_path, exposure_ms=1, bit_depth=8)
+
+
+def test_cli_prints_each_warning_once_on_one_line(tmp_path, capsys):
+    from hsiffc.cli import main
+
+    path = plain(tmp_path / "u8.tif", np.zeros((2, 4, 6), np.uint8))
+    assert main(["info", str(path), "--exposure-ms", "1"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    warned = [line for line in err if "assuming 8 bits" in line]
+    assert len(warned) == 1 and warned[0].startswith("hsiffc info: warning: ")
+    assert not any("source.py" in line or line.startswith("  ") for line in err), err

@@ -14,7 +14,9 @@ from __future__ import annotations
 import argparse
 import errno
 import logging
+import os
 import sys
+import warnings
 
 from .. import __version__
 from ..atomic import write_policy
@@ -31,6 +33,7 @@ COMMAND_MODULES = [reports, data, pipeline, importer, uniformity]
 EXIT_USAGE = 2
 EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141  # as a shell reports a process ended by SIGPIPE
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -85,8 +88,11 @@ def main(argv=None) -> int:
         return EXIT_USAGE
     prefix = f"hsiffc {args.command}: error:"
     try:
-        with write_policy(overwrite=bool(getattr(args, "overwrite", False)),
+        with warnings.catch_warnings(), write_policy(overwrite=bool(getattr(args, "overwrite", False)),
                           inputs=declared(args, "input_args")):
+            if not args.debug:  # every warning shown once, as one line
+                warnings.simplefilter("always")
+                warnings.showwarning = _warning_printer(args.command)
             check_declared_outputs(args)
             return int(args.func(args) or 0)
     except KeyboardInterrupt:
@@ -99,6 +105,9 @@ def main(argv=None) -> int:
             raise
         print(f"{prefix} {_one_line(str(exc))}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError:  # the reader of stdout went away (e.g. "| head"): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except OSError as exc:
         if args.debug:
             raise
@@ -117,6 +126,19 @@ def main(argv=None) -> int:
               f"{_one_line(str(exc))} (run again with --debug for the traceback and please "
               "report it)", file=sys.stderr)
         return EXIT_INTERNAL
+
+
+def _warning_printer(command: str):
+    """Warnings as one line each on stderr (``hsiffc CMD: warning: ...``), each text once;
+    ``--debug`` keeps Python's format with the source line."""
+    seen: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = _one_line(str(message))
+        if text not in seen:
+            seen.add(text)
+            print(f"hsiffc {command}: warning: {text}", file=sys.stderr)
+    return show
 
 
 def _one_line(text: str) -> str:

@@ -32,9 +32,10 @@ def _add_info(sub):
 def _cmd_info(args) -> int:
     from ..io import open_source
 
-    with open_source(args.sweep, overrides=input_overrides(args)) as src:
+    with open_source(args.sweep, overrides=input_overrides(args), inspect=True) as src:
         print(src.describe())
         steps = _stream_steps(src)
+    missing = sorted(set(src.missing))
     print(f"{'step':>5} {'kind':>5} {'exposure_ms':>12} {'photons':>10} {'frames':>6} "
           f"{'mean_dn':>9} {'max_dn':>7}")
     for s in steps:
@@ -46,8 +47,11 @@ def _cmd_info(args) -> int:
                "n_frames": src.n_frames, "frame_shape": list(src.frame_shape),
                "dtype": str(src.dtype), "bit_depth": src.bit_depth,
                "mosaic": None if src.mosaic is None else src.mosaic.to_dict(),
-               "origins": src.origins, "notes": src.notes, "steps": steps}
+               "origins": src.origins, "notes": src.notes, "missing": missing, "steps": steps}
         write_json(args.json, doc)
+    if missing:
+        print(f"missing: {', '.join(missing)} (the other commands refuse these files until it "
+              "is given; see above how)")
     return 0
 
 
@@ -58,7 +62,7 @@ def _stream_steps(src) -> list:
     steps: list = []
     key_prev, step_id = None, -1
     for raw, m in src:
-        key = (m.exposure_ms, m.kind, m.illumination)
+        key = (None if np.isnan(m.exposure_ms) else m.exposure_ms, m.kind, m.illumination)
         if m.step is not None:
             new, step_id = m.step != step_id, m.step
         else:

@@ -30,7 +30,7 @@ from ..sweep import FRAME_KINDS
 from .layout import FileLayout, PER_FRAME_FIELDS
 
 __all__ = ["Overrides", "ActiveArea", "MetadataConflictWarning", "parse_mosaic",
-           "resolve_fields", "missing_field_error", "HOW_TO_GIVE"]
+           "resolve_fields", "missing_field_error", "missing_origin", "HOW_TO_GIVE"]
 
 #: How to give each field: (sidecar key and example, command-line option and example).
 HOW_TO_GIVE = {
@@ -150,6 +150,13 @@ def missing_field_error(path, name: str, *, sidecar=None) -> DataFormatError:
         path=path)
 
 
+def missing_origin(name: str) -> str:
+    """The origin shown for a field no source gives, with the ways to give it."""
+    side, option = HOW_TO_GIVE[name]
+    return (f"MISSING: give it in the file, in a sidecar hsiffc.toml ({side}) or on the "
+            f"command line ({option})")
+
+
 def _same(a, b) -> bool:
     if isinstance(a, Mosaic) or isinstance(b, Mosaic):
         return a == b
@@ -170,7 +177,8 @@ def _per_frame(layout: FileLayout, name, value, origin):
     return arr
 
 
-def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides) -> tuple[dict, dict]:
+def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
+                   missing: list | None = None) -> tuple[dict, dict]:
     """Fields and their origins for one file (file, then sidecar, then overrides).
 
     Parameters
@@ -178,6 +186,9 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides) -> tuple[d
     layout : FileLayout
     sidecar : Sidecar or None
     overrides : Overrides
+    missing : list, optional
+        When given, a missing exposure time is not an error: it becomes NaN, its origin says
+        "MISSING" and the field's name is appended here (for ``hsiffc info``).
 
     Returns
     -------
@@ -224,8 +235,11 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides) -> tuple[d
                                       f"{list(FRAME_KINDS)}", path=layout.path)
         values[name], origins[name] = value, origin
     if "exposure_ms" not in values:
-        raise missing_field_error(layout.path, "exposure_ms",
-                                  sidecar=None if sidecar is None else sidecar.path)
+        if missing is None:
+            raise missing_field_error(layout.path, "exposure_ms",
+                                      sidecar=None if sidecar is None else sidecar.path)
+        values["exposure_ms"], origins["exposure_ms"] = np.nan, missing_origin("exposure_ms")
+        missing.append("exposure_ms")
     for name, default in (("kind", "light"), ("illumination", "")):
         if name not in values:
             values[name], origins[name] = default, f"default ({default or 'unknown'})"

@@ -98,3 +98,34 @@ def infer_bit_depth(dtype: np.dtype, path) -> int:
                   "give --bit-depth, bit_depth in the sidecar, or --bit-shift",
                   LayoutWarning, stacklevel=3)
     return bits
+
+
+def active_area_crop(area, shape: tuple[int, int], label):
+    """How frames of ``shape`` (H, W) are cropped to a mosaic's active area (an IMEC sensor's
+    filter area, :class:`~hsiffc.io.metadata.ActiveArea`).
+
+    Returns
+    -------
+    area : ActiveArea or None
+        The crop to apply to every frame; None when there is none or the frames are already
+        cropped to it.
+    shape : (int, int)
+        (H, W) of the frames after the crop.
+    note : str
+        What was done, for the source's notes ("" when nothing).
+
+    Raises
+    ------
+    DataFormatError
+        The frames do not contain the area (another sensor's XML).
+    """
+    h, w = shape
+    if area is None or (h, w) == (area.height, area.width):
+        return None, (h, w), ""
+    rows = f"rows {area.row}..{area.row + area.height - 1}"
+    cols = f"columns {area.col}..{area.col + area.width - 1}"
+    if h < area.row + area.height or w < area.col + area.width:
+        raise DataFormatError(f"frames of {h} x {w} px do not contain the mosaic's filter area "
+                              f"({rows}, {cols}); give the matching sensor XML", path=label)
+    return area, (area.height, area.width), (f"frames cropped to the mosaic's active area: "
+                                             f"{rows}, {cols} (IMEC filter area)")

@@ -34,7 +34,7 @@ from ..sweep import Sweep
 from . import quirks
 from .layout import FileLayout, FrameMeta
 from .limits import ReadLimits, default_limits
-from .metadata import Overrides, missing_field_error, resolve_fields
+from .metadata import Overrides, missing_field_error, missing_origin, resolve_fields
 from .readers import expand_inputs, open_layout
 from .sidecar import Sidecar, find_sidecar
 
@@ -42,7 +42,7 @@ __all__ = ["open_source", "FrameSource", "FrameMeta", "expand_inputs"]
 
 
 def open_source(inputs, *, limits: ReadLimits | None = None, overrides: Overrides | None = None,
-                **options) -> "FrameSource":
+                inspect: bool = False, **options) -> "FrameSource":
     """Open files, folders or globs as one stream of frames (nothing decoded yet).
 
     Parameters
@@ -55,6 +55,9 @@ def open_source(inputs, *, limits: ReadLimits | None = None, overrides: Override
     overrides : Overrides, optional
         Metadata from the command line; or give its fields as keywords: ``exposure_ms``,
         ``bit_depth``, ``kind``, ``mosaic``, ``illumination``, ``bit_shift``, ``sidecar``.
+    inspect : bool
+        Describe rather than use (``hsiffc info``): a missing exposure time (NaN) or bit depth
+        of float data (None) is listed in :attr:`FrameSource.missing` instead of raising.
 
     Returns
     -------
@@ -82,7 +85,8 @@ def open_source(inputs, *, limits: ReadLimits | None = None, overrides: Override
             layouts.append(open_layout(f, limits))
         limits.check_frames(path=files[0], n_frames=sum(lay.n_frames for lay in layouts),
                             shape=layouts[0].shape, itemsize=layouts[0].dtype.itemsize)
-        return FrameSource(layouts, overrides, limits, label=_label(inputs, files))
+        return FrameSource(layouts, overrides, limits, label=_label(inputs, files),
+                           inspect=inspect)
     except BaseException:
         for lay in layouts:
             lay.close()
@@ -114,15 +118,19 @@ class FrameSource:
         hsiffc.toml"``, ``"--exposure-ms"``, ...); several origins are joined with " + ".
     notes : list of str
         Layout quirks handled (equal channels, shift, crop).
+    missing : list of str
+        Fields no source gives (only with ``inspect=True``; otherwise missing ones raise).
     files : list of Path
     meta : dict
     """
 
     def __init__(self, layouts: list[FileLayout], overrides: Overrides, limits: ReadLimits,
-                 *, label: str = ""):
+                 *, label: str = "", inspect: bool = False):
         self.layouts, self.limits, self.label = layouts, limits, label
         self.files = [lay.path for lay in layouts]
         self.notes: list[str] = []
+        self.missing: list[str] = []
+        self._inspect = inspect
         self._peeked = None
         #: Frames decoded ahead on worker threads while iterating (0: none).
         self.prefetch = 2 if (os.cpu_count() or 1) > 1 else 0
@@ -135,7 +143,8 @@ class FrameSource:
                 side_path = None if lay.strict else find_sidecar(lay.path.parent)
             if side_path is not None and side_path not in sidecars:
                 sidecars[side_path] = Sidecar(side_path)
-            resolved.append(resolve_fields(lay, sidecars.get(side_path), overrides))
+            resolved.append(resolve_fields(lay, sidecars.get(side_path), overrides,
+                                           missing=self.missing if inspect else None))
         self._starts = np.cumsum([0] + [lay.n_frames for lay in layouts])
         self.n_frames = int(self._starts[-1])
         self._global(layouts, resolved)
@@ -155,7 +164,8 @@ class FrameSource:
             self.step = column("step", np.int64)
         else:
             self.step = None
-        if np.any(~np.isfinite(self.exposure_ms) | (self.exposure_ms < 0)):
+        bad = ~np.isfinite(self.exposure_ms) | (self.exposure_ms < 0)
+        if np.any(bad & ~(np.isnan(self.exposure_ms) & inspect)):
             raise DataFormatError("exposure times must be finite and >= 0 ms", path=self.label)
         self.origins = {}
         for _, origins in resolved:
@@ -225,26 +235,20 @@ class FrameSource:
             bits = 8 * self.dtype.itemsize - self.bit_shift
             self._bits_origin = "--bit-shift"
         if bits is None:
-            if self.dtype.kind == "f":
+            if self.dtype.kind == "f" and self._inspect:
+                self.missing.append("bit_depth")
+                self._bits_origin = missing_origin("bit_depth")
+            elif self.dtype.kind == "f":
                 raise missing_field_error(self.label, "bit_depth")
-            bits = quirks.infer_bit_depth(self.dtype, self.label)
-            self._bits_origin = f"dtype {self.dtype} (assumed; full scale may be wrong)"
-        self.bit_depth = int(bits)
-        h, w = stored[:2]
-        area = self.active_area
-        if area is not None:
-            if (h, w) == (area.height, area.width):
-                self.active_area = None  # already cropped
-            elif h < area.row + area.height or w < area.col + area.width:
-                raise DataFormatError(
-                    f"frames of {h} x {w} px do not contain the mosaic's filter area (rows "
-                    f"{area.row}..{area.row + area.height - 1}, columns {area.col}.."
-                    f"{area.col + area.width - 1}); give the matching sensor XML", path=self.label)
             else:
-                h, w = area.height, area.width
-                self.notes.append(f"frames cropped to the mosaic's active area: rows "
-                                  f"{area.row}..{area.row + h - 1}, columns {area.col}.."
-                                  f"{area.col + w - 1} (IMEC filter area)")
+                bits = quirks.infer_bit_depth(self.dtype, self.label)
+                self._bits_origin = f"dtype {self.dtype} (assumed; full scale may be wrong)"
+        self.bit_depth = None if bits is None else int(bits)
+        h, w = stored[:2]
+        self.active_area, (h, w), note = quirks.active_area_crop(self.active_area, (h, w),
+                                                                 self.label)
+        if note:
+            self.notes.append(note)
         self.frame_shape = (int(h), int(w))
         if self.channels:
             self.notes.append(f"{self.channels}-channel image with equal channels: channel 0 "
@@ -403,12 +407,18 @@ class FrameSource:
     def describe(self) -> str:
         """A few lines: frames, shape, dtype, bit depth, mosaic, each field's origin, notes."""
         mos = "none" if self.mosaic is None else (
-            f"{self.mosaic.tile_shape[0]}x{self.mosaic.tile_shape[1]} {self.mosaic.name}".strip())
+            f"{self.mosaic.tile_shape[0]}x{self.mosaic.tile_shape[1]}"
+            + ("" if self.mosaic.name in ("", f"{self.mosaic.tile_shape[1]}x"
+                                          f"{self.mosaic.tile_shape[0]}") else f" {self.mosaic.name}"))
         lines = [f"{self.label}: {self.n_frames} frames of {self.frame_shape[0]} x "
-                 f"{self.frame_shape[1]} px, {self.dtype}, {self.bit_depth}-bit, mosaic {mos} "
+                 f"{self.frame_shape[1]} px, {self.dtype}, "
+                 f"{'unknown bit depth' if self.bit_depth is None else f'{self.bit_depth}-bit'}, "
+                 f"mosaic {mos} "
                  f"({self.format})"]
         for name in ("exposure_ms", "kind", "illumination", "bit_depth", "mosaic", "bit_shift"):
-            if name in self.origins:
-                lines.append(f"  {name:<13} from {self.origins[name]}")
+            origin = self.origins.get(name)
+            if origin is not None:
+                lines.append(f"  {name:<13} {'' if origin.startswith('MISSING') else 'from '}"
+                             f"{origin}")
         lines.extend(f"  note: {n}" for n in self.notes)
         return "\n".join(lines)
