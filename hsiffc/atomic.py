@@ -36,10 +36,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import errno
-import json
 import os
-import socket
-import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,7 +48,6 @@ __all__ = ["FolderLockedError", "OutputError", "OutputExistsError", "WritePolicy
            "check_output_folder", "current_policy", "folder_lock", "protect_inputs", "write_policy"]
 
 PART_SUFFIX = ".part"
-LOCK_NAME = ".hsiffc.lock"
 
 
 class OutputError(HsiffcError, OSError):
@@ -60,10 +56,6 @@ class OutputError(HsiffcError, OSError):
 
 class OutputExistsError(OutputError, FileExistsError):
     """The output exists and replacing it was not asked for."""
-
-
-class FolderLockedError(OutputError):
-    """Another run holds the lock of an output folder."""
 
 
 # -- the policy -------------------------------------------------------------------------------
@@ -355,66 +347,5 @@ def check_output_folder(folder, *, overwrite: bool | None = None, inputs=()) -> 
     return folder
 
 
-# -- the batch folder lock --------------------------------------------------------------------
-@contextlib.contextmanager
-def folder_lock(folder, *, wait_s: float = 0.0, what: str = "hsiffc"):
-    """Hold an exclusive lock on an output folder while a batch writes into it.
-
-    The lock is ``folder/.hsiffc.lock``, locked with ``fcntl.flock`` (released by the kernel
-    if the process dies) and holding who took it (pid, host, start time, command).
-
-    Parameters
-    ----------
-    folder : path-like
-        Created if missing.
-    wait_s : float
-        Seconds to wait for another run to finish before giving up (0: give up at once).
-
-    Raises
-    ------
-    FolderLockedError
-        Another run holds the lock; the message names its pid, host and start time.
-    """
-    import fcntl
-
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    lock = folder / LOCK_NAME
-    if os.path.islink(lock):
-        raise OutputError(f"{lock}: is a symbolic link; remove it (hsiffc never writes through "
-                          "a link)")
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
-    try:
-        deadline = time.monotonic() + max(0.0, float(wait_s))
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() >= deadline:
-                    raise FolderLockedError(
-                        f"{folder}: another {what} run is writing into this folder "
-                        f"({_holder(fd)}); wait for it to finish, or choose another output "
-                        "folder") from None
-                time.sleep(0.2)
-        me = {"pid": os.getpid(), "host": socket.gethostname(),
-              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "command": what}
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, (json.dumps(me) + "\n").encode(), 0)
-        try:
-            yield me
-        finally:
-            with contextlib.suppress(OSError):
-                os.ftruncate(fd, 0)
-    finally:
-        os.close(fd)  # releases the flock
-
-
-def _holder(fd: int) -> str:
-    try:
-        doc = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
-    except (OSError, ValueError):
-        doc = {}
-    if not doc:
-        return "a run that is just starting"
-    return (f"pid {doc.get('pid')} on host {doc.get('host')}, started {doc.get('started')}")
+# the batch folder lock lives beside the writer (re-exported: one place to import output rules)
+from .folderlock import LOCK_NAME, FolderLockedError, folder_lock  # noqa: E402,F401
