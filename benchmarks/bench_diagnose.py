@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _util import median_time, row
+from _util import figure, median_time, row
 from hsiffc.calibrate import fit_pixels, initial_guess
 from hsiffc.calibrate.samples import collect_samples
 from hsiffc.cli import main as cli
@@ -68,4 +68,10 @@ def main(quick: bool = False) -> dict:
     print(row("diagnose / one base fit", t_lib / t_fit, "x"))
     return {"command_s": t_cli, "read_s": t_read, "diagnose_s": t_lib, "base_fit_s": t_fit,
             "ratio_to_base_fit": t_lib / t_fit, "target_s": TARGET_S,
-            "steps": n_steps, "shape": list(SHAPE)}
+            "steps": n_steps, "shape": list(SHAPE),
+            "figures": [figure("hsiffc diagnose SWEEP (read + diagnose)", t_cli, "s",
+                               baseline=t_fit,
+                               baseline_name="one base-model fit, same 2048 pixels",
+                               ratio=t_lib / t_fit, target=f"< {TARGET_S:g} s",
+                               met=t_cli < TARGET_S,
+                               note="ratio = diagnose() alone / one base-model fit")]}

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from ._json import json_safe
+from .jsonsafe import json_safe
 from .atomic import atomic_path
 from .errors import DataFormatError
 
@@ -35,7 +35,7 @@ def write_product(path, *, format: str, format_version: int, manifest: dict, arr
         Product type and schema version, stored first in the manifest.
     manifest : dict
         Description: plain values, numpy scalars or arrays and paths (converted by
-        :func:`hsiffc._json.json_safe`; non-finite floats become null).
+        :func:`hsiffc.jsonsafe.json_safe`; non-finite floats become null).
     arrays : dict of str to ndarray
         Names must not be ``manifest.json``.
     overwrite : bool

@@ -58,7 +58,7 @@ def _correction(args):
 
 
 def _cmd_uniformity(args) -> int:
-    from .._json import json_safe
+    from ..jsonsafe import json_safe
     from ..frame import Frame
     from ..io import read_sweep
     from ..reports.sweep_uniformity import (plot_uniformity, summarise, sweep_uniformity,

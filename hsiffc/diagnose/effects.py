@@ -205,9 +205,9 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = 
     default): the extra dark charge is collected in the well and leaks with the signal (through
     the model's ODE); False adds it to the response after the leakage.
     """
-    from dataclasses import replace as _replace
+    from dataclasses import replace as replace_fields
 
-    from .. import model as _model_mod
+    from .. import model as leakage_model
 
     truth = sweep.meta.get("truth")
     if truth is None:
@@ -224,11 +224,11 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = 
     a = truth.a_dn_per_ms.reshape(-1, 1)
     b = truth.b_per_dn.reshape(-1, 1)
     d = truth.dark_dn.reshape(-1, 1)
-    expected = _model_mod.response(t[None, :], k, a, b, d)
-    dydt = k - _model_mod.leakage_rate(expected, a, b)
+    expected = leakage_model.response(t[None, :], k, a, b, d)
+    dydt = k - leakage_model.leakage_rate(expected, a, b)
     eps = 1e-4
-    dydlnk = (_model_mod.response(t[None, :], k * (1 + eps), a, b, d)
-              - _model_mod.response(t[None, :], k * (1 - eps), a, b, d)) / (2 * eps)
+    dydlnk = (leakage_model.response(t[None, :], k * (1 + eps), a, b, d)
+              - leakage_model.response(t[None, :], k * (1 - eps), a, b, d)) / (2 * eps)
     signal = expected - truth.dark_dn.reshape(-1, 1)
     order = (np.arange(len(steps)) / max(len(steps) - 1, 1)) * 2 - 1
     prev = np.zeros_like(signal)
@@ -237,7 +237,7 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = 
                    signal=signal, order=order, prev_signal=prev, light=light,
                    full_scale=float(sweep.full_scale_dn), rng=rng, dydt=dydt, dydlnk=dydlnk)
     if name == "dark_current" and in_well:  # collected (and leaking) like the light's charge
-        extra = _model_mod.response(t[None, :], k + extra / np.maximum(t[None, :], 1e-12), a, b,
+        extra = leakage_model.response(t[None, :], k + extra / np.maximum(t[None, :], 1e-12), a, b,
                                     d) - expected
     data = sweep.data.astype(np.float64)
     per_frame = ALIASES.get(name, name) == "frame_light_change"
@@ -251,4 +251,4 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = 
     data = np.clip(np.rint(data), 0, sweep.full_scale_dn).astype(sweep.data.dtype)
     meta = dict(sweep.meta)
     meta["injected_effect"] = {"name": name, "size": size, "seed": seed}
-    return _replace(sweep, data=data, meta=meta)
+    return replace_fields(sweep, data=data, meta=meta)

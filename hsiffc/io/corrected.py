@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from .._json import json_safe
+from ..jsonsafe import json_safe
 from ..errors import DataFormatError
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "PLANES", "SUFFIX", "BackgroundWriter", "Corrected",

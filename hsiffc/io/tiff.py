@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from .._json import json_safe
+from ..jsonsafe import json_safe
 from ..atomic import atomic_path
 from ..errors import DataFormatError
 from ..sweep import Sweep

@@ -234,7 +234,7 @@ def write_ffc_study(emva_dir, outdir, *, calibration=None) -> list:
     import json
     from pathlib import Path
 
-    from .._json import json_safe
+    from ..jsonsafe import json_safe
     from ..atomic import atomic_path, atomic_write_text
     from .sweep_uniformity import plot_uniformity
 

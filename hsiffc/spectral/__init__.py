@@ -10,7 +10,7 @@ radiometry    electron_rate, ColorChecker reflectances
 
 from __future__ import annotations
 
-from ._grid import DEFAULT_GRID
+from .grid import DEFAULT_GRID
 from .bands import (BandSet, fabry_perot_bands, gaussian_responses, imec_4x4_visible,
                     imec_5x5_nir, paper_8band, spectral_correction_matrix)
 from .illumination import (PAPER_LAMPS_K, Illumination, blackbody, cie_illuminant,

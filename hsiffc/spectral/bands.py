@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._grid import DEFAULT_GRID, as_grid, per_band, readonly, trapezoid_weights
+from .grid import DEFAULT_GRID, as_grid, per_band, readonly, trapezoid_weights
 
 
 @dataclass(frozen=True, eq=False)

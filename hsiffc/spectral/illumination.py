@@ -11,7 +11,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ._grid import DEFAULT_GRID, as_grid, readonly, trapezoid_weights, uniform_step
+from .grid import DEFAULT_GRID, as_grid, readonly, trapezoid_weights, uniform_step
 
 #: The paper's lamps: "lamp A" (training) and "lamp B" (test) as blackbody colour temperatures.
 PAPER_LAMPS_K = {"lamp A": 2900.0, "lamp B": 2200.0}

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..errors import DataFormatError
 from ..mosaic import Mosaic
-from ._grid import readonly
+from .grid import readonly
 from .bands import BandSet
 
 #: Pixel pitch of the CMOSIS/ams CMV2000 (its datasheet value); the XML's pixel_pitch is 0.

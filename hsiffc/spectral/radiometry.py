@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import constants
 
-from ._grid import DEFAULT_GRID, as_grid, trapezoid_weights
+from .grid import DEFAULT_GRID, as_grid, trapezoid_weights
 from .bands import BandSet
 from .illumination import Illumination
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..._json import json_safe
+from ...jsonsafe import json_safe
 from ... import __version__, model
 from ...calibrate import Calibration, calibrate, collect_samples, photon_transfer
 from ...errors import CalibrationMismatchError, DataFormatError

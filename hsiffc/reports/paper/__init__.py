@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ... import __version__
-from ..._json import json_safe
+from ...jsonsafe import json_safe
 from ...atomic import atomic_write_text
 from ..figures import save_figure
 from .config import (CANDIDATES_MS, N_TEST_FRAMES, PAPER_VALUES, TEST_MS, THRESHOLD_PERCENT,
