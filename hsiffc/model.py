@@ -112,6 +112,31 @@ def response_from_c(t_ms, k, a, b, c):
 
     Computed as ``(ln k - logaddexp(ln a, -b k (t + c))) / b``, which never overflows.
     ``c`` (ms) is the integration constant; see :func:`c_from_dark`. Needs k > 0.
+
+    Parameters
+    ----------
+    t_ms : array_like, ms
+        Exposure time.
+    k : array_like, DN/ms
+        Light rate (> 0).
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent (> 0).
+    c : array_like, ms
+        Integration constant of eq. (3).
+
+    Returns
+    -------
+    ndarray of float64, DN
+        The response, shape of the broadcast of the arguments.
+
+    Examples
+    --------
+    >>> k, a, b, d = 2.0, 2 * np.exp(-8.0), 0.01, 50.0
+    >>> c = c_from_dark(k, a, b, d)
+    >>> bool(np.isclose(response_from_c(10.0, k, a, b, c), response(10.0, k, a, b, d)))
+    True
     """
     t_ms, k, a, b, c = _f64(t_ms, k, a, b, c)
     _check_positive_b(b)
@@ -121,7 +146,22 @@ def response_from_c(t_ms, k, a, b, c):
 
 
 def linear_response(t_ms, k, dark):
-    """The linear model of eq. (1): ``Y = k t + d`` (DN)."""
+    """The linear model of eq. (1): ``Y = k t + d`` (DN).
+
+    Parameters
+    ----------
+    t_ms : array_like, ms
+        Exposure time.
+    k : array_like, DN/ms
+        Light rate.
+    dark : array_like, DN
+        Dark level (response at t = 0).
+
+    Returns
+    -------
+    ndarray of float64, DN
+        Shape of the broadcast of the arguments.
+    """
     t_ms, k, dark = _f64(t_ms, k, dark)
     return k * t_ms + dark
 
@@ -132,6 +172,22 @@ def c_from_dark(k, a, b, dark):
     ``c = -ln(k e^{-b d} - a) / (b k)``. It exists only while the dark level is below the dynamic
     saturation level (k e^{-bd} > a); elsewhere the result is NaN and the starting-level form
     :func:`response` must be used.
+
+    Parameters
+    ----------
+    k : array_like, DN/ms
+        Light rate.
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent (> 0).
+    dark : array_like, DN
+        Level at t = 0.
+
+    Returns
+    -------
+    ndarray of float64, ms
+        The constant c, NaN where it does not exist; shape of the broadcast.
     """
     k, a, b, dark = _f64(k, a, b, dark)
     _check_positive_b(b)
@@ -144,12 +200,45 @@ def c_from_dark(k, a, b, dark):
 
 
 def dark_from_c(k, a, b, c):
-    """Level at t = 0 (DN) of eq. (3) with constant ``c`` (ms)."""
+    """Level at t = 0 (DN) of eq. (3) with constant ``c`` (ms); inverse of :func:`c_from_dark`.
+
+    Parameters
+    ----------
+    k, a, b : array_like
+        Light rate (DN/ms, > 0), leakage amplitude (DN/ms) and exponent (1/DN, > 0).
+    c : array_like, ms
+        Integration constant of eq. (3).
+
+    Returns
+    -------
+    ndarray of float64, DN
+        Shape of the broadcast of the arguments.
+    """
     return response_from_c(0.0, k, a, b, c)
 
 
 def dynamic_saturation_level(k, a, b):
-    """Level ``ln(k/a)/b`` (DN) where leakage balances the light: the dynamic saturation."""
+    """Level ``ln(k/a)/b`` (DN) where leakage balances the light: the dynamic saturation.
+
+    Parameters
+    ----------
+    k : array_like, DN/ms
+        Light rate.
+    a : array_like, DN/ms
+        Leakage amplitude (0 gives +inf: no saturation).
+    b : array_like, 1/DN
+        Leakage exponent (> 0).
+
+    Returns
+    -------
+    ndarray of float64, DN
+        Shape of the broadcast of the arguments.
+
+    Examples
+    --------
+    >>> round(float(dynamic_saturation_level(2.0, 2 * np.exp(-8.0), 0.01)), 6)
+    800.0
+    """
     k, a, b = _f64(k, a, b)
     _check_positive_b(b)
     with np.errstate(divide="ignore"):
@@ -157,7 +246,22 @@ def dynamic_saturation_level(k, a, b):
 
 
 def leakage_rate(y, a, b):
-    """Leakage ``a e^{bY}`` (DN/ms) at response ``y`` (DN)."""
+    """Leakage ``a e^{bY}`` (DN/ms) at response ``y`` (DN).
+
+    Parameters
+    ----------
+    y : array_like, DN
+        Response.
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent.
+
+    Returns
+    -------
+    ndarray of float64, DN/ms
+        Shape of the broadcast (inf where it overflows).
+    """
     y, a, b = _f64(y, a, b)
     with np.errstate(over="ignore"):
         return np.exp(_log(a) + b * y)
@@ -168,6 +272,28 @@ def leakage_percentage(y, k, a, b):
 
     Along a response that starts below saturation alpha stays below 100 %: it reaches 100 % only
     at the dynamic saturation level.
+
+    Parameters
+    ----------
+    y : array_like, DN
+        Response.
+    k : array_like, DN/ms
+        Light rate (from the calibration or an inversion).
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent.
+
+    Returns
+    -------
+    ndarray of float64, percent
+        Shape of the broadcast of the arguments.
+
+    Examples
+    --------
+    >>> a, b = 2 * np.exp(-8.0), 0.01
+    >>> round(float(leakage_percentage(800.0, 2.0, a, b)), 6)   # at the dynamic saturation
+    100.0
     """
     shape, ops = flat_operands(y, k, a, b)
     out = np.empty(int(np.prod(shape, dtype=np.int64)))
@@ -183,6 +309,24 @@ def leakage_percentage_paper(y, t_ms, a, b, dark=0.0):
     signal rate. Because Y/t underestimates k once leakage bends the curve, this alpha exceeds
     100 % deep in saturation (the paper's 173.5 % example). Where the signal is not positive the
     result is ``inf`` (no light rate can be estimated: treat as invalid).
+
+    Parameters
+    ----------
+    y : array_like, DN
+        Raw response.
+    t_ms : array_like, ms
+        Exposure time (> 0).
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent.
+    dark : array_like, DN
+        Level subtracted before dividing by the exposure (0: the paper's form).
+
+    Returns
+    -------
+    ndarray of float64, percent
+        Shape of the broadcast of the arguments.
     """
     return leakage_percentage_paper_into(None, y, t_ms, a, b, dark)
 
@@ -190,7 +334,20 @@ def leakage_percentage_paper(y, t_ms, a, b, dark=0.0):
 def leakage_percentage_paper_into(out, y, t_ms, a, b, dark=0.0):
     """:func:`leakage_percentage_paper` written into ``out`` (float32 or float64, the shape of
     the broadcast; None allocates float64). float32 is enough for a validity mask: alpha is
-    computed in float64 and rounded once (1e-7 relative)."""
+    computed in float64 and rounded once (1e-7 relative).
+
+    Parameters
+    ----------
+    out : ndarray or None
+        C-contiguous output of the broadcast shape (float32 or float64), or None.
+    y, t_ms, a, b, dark : array_like
+        As in :func:`leakage_percentage_paper`.
+
+    Returns
+    -------
+    ndarray, percent
+        ``out`` (or the new float64 array).
+    """
     shape, ops = flat_operands(y, t_ms, a, b, dark)
     if out is None:
         out = np.empty(shape)
@@ -207,6 +364,31 @@ def exposure_at_leakage_percentage(alpha_percent, k, a, b, dark):
     With ``alpha0`` the model alpha at the dark level, ``t = (logit(alpha) - logit(alpha0)) / (b k)``.
     Returns 0 where the response starts at or above that alpha and ``inf`` where it is never
     reached (alpha >= 100 %, or k = 0).
+
+    Parameters
+    ----------
+    alpha_percent : array_like, percent
+        Leakage percentage to reach (model alpha, :func:`leakage_percentage`).
+    k : array_like, DN/ms
+        Light rate.
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent (> 0).
+    dark : array_like, DN
+        Level at t = 0.
+
+    Returns
+    -------
+    ndarray of float64, ms
+        Shape of the broadcast of the arguments.
+
+    Examples
+    --------
+    >>> k, a, b, d = 2.0, 2 * np.exp(-8.0), 0.01, 50.0
+    >>> t = exposure_at_leakage_percentage(50.0, k, a, b, d)
+    >>> round(float(leakage_percentage(response(t, k, a, b, d), k, a, b)), 6)
+    50.0
     """
     alpha, k, a, b, dark = _f64(alpha_percent, k, a, b, dark)
     _check_positive_b(b)
@@ -234,6 +416,7 @@ class Inversion:
     flags : ndarray of uint32
         :class:`hsiffc.dq.DQ` bits: BELOW_DARK, SATURATED, UNREACHABLE, NONFINITE, NOT_CONVERGED.
     iterations : int
+        Largest number of iterations any pixel needed.
     """
 
     k: np.ndarray
@@ -242,6 +425,7 @@ class Inversion:
 
     @property
     def valid(self) -> np.ndarray:
+        """Boolean array, True where the inversion is good (no DQ flag)."""
         return self.flags == 0
 
 
@@ -260,7 +444,9 @@ def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=
     Parameters
     ----------
     y : array_like, DN
-    t_ms : array_like, ms (> 0)
+        Responses (any shape; broadcast with the other arguments).
+    t_ms : array_like, ms
+        Exposure time (> 0).
     a, b, dark : array_like
         Leakage parameters and level at t = 0, as in :func:`response`.
     full_scale : float, optional, DN
@@ -276,6 +462,7 @@ def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=
     Returns
     -------
     Inversion
+        ``k`` (DN/ms) and ``flags`` of the broadcast shape.
 
     Examples
     --------
@@ -303,7 +490,26 @@ def solve_ode(t_ms, k, a, b, dark, *, rtol=1e-10, atol=1e-10):
     """Reference solution of eq. (2) for one pixel with :func:`scipy.integrate.solve_ivp`.
 
     Slow (one ODE solve per pixel); used by the tests and the benchmark as ground truth.
-    ``t_ms`` is a sorted 1-D array of exposures; returns Y at those exposures (DN).
+
+    Parameters
+    ----------
+    t_ms : array_like, ms
+        Sorted 1-D array of exposures.
+    k, a, b, dark : float
+        Light rate (DN/ms), leakage amplitude (DN/ms), exponent (1/DN) and level at t = 0 (DN)
+        of the one pixel.
+    rtol, atol : float
+        Tolerances of the LSODA solver.
+
+    Returns
+    -------
+    ndarray of float64, DN
+        Y at the exposures, shape ``(len(t_ms),)``.
+
+    Raises
+    ------
+    RuntimeError
+        If the solver fails.
     """
     from scipy.integrate import solve_ivp
 

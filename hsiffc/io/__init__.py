@@ -42,11 +42,28 @@ def read_sweep(path, **options):
         Metadata for files that lack it (``exposure_ms``, ``bit_depth``, ``kind``, ``mosaic``,
         ``illumination``, ``bit_shift``, ``sidecar``) and ``limits``.
 
+    Returns
+    -------
+    Sweep
+        ``data`` (N, H, W) in the file's dtype (DN, never rescaled), ``exposure_ms`` (N,) in
+        ms, per-frame ``kind``, ``illumination``, ``photons`` and ``step``, the bit depth, the
+        mosaic (or None) and where each value came from (``meta["metadata_origins"]``).
+
     Raises
     ------
     DataFormatError
         The path does not exist or is none of the accepted inputs (the message lists them), or
         the file itself is invalid, or metadata are missing.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, tifffile
+    >>> from pathlib import Path
+    >>> path = Path(tempfile.mkdtemp()) / "frames.tif"      # a plain TIFF: 3 frames of 4 x 6 px
+    >>> tifffile.imwrite(path, np.full((3, 4, 6), 100, np.uint16), photometric="minisblack")
+    >>> sweep = read_sweep(path, exposure_ms=10.0, bit_depth=12)   # metadata it lacks
+    >>> sweep.data.shape, sweep.data.dtype.name, sweep.exposure_ms.tolist(), sweep.kind.tolist()
+    ((3, 4, 6), 'uint16', [10.0, 10.0, 10.0], ['light', 'light', 'light'])
     """
     with open_source(path, **options) as src:
         return src.to_sweep()

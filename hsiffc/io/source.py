@@ -62,6 +62,9 @@ def open_source(inputs, *, limits: ReadLimits | None = None, overrides: Override
     Returns
     -------
     FrameSource
+        Iterate over it for ``(raw, FrameMeta)`` pairs (raw: (H, W) array of DN in the file's
+        dtype), or call :meth:`FrameSource.frames` / :meth:`FrameSource.to_sweep`. Use it as a
+        context manager (or call ``close()``) to release the files.
 
     Raises
     ------
@@ -69,6 +72,20 @@ def open_source(inputs, *, limits: ReadLimits | None = None, overrides: Override
         A missing or unreadable input, a header over the limits, a truncated file, missing
         metadata (the message names the file, the field and the three ways to give it), or files
         that disagree on frame shape, bit depth or mosaic.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, tifffile
+    >>> from pathlib import Path
+    >>> path = Path(tempfile.mkdtemp()) / "frames.tif"      # a plain TIFF: 3 frames of 4 x 6 px
+    >>> tifffile.imwrite(path, np.full((3, 4, 6), 100, np.uint16), photometric="minisblack")
+    >>> with open_source(path, exposure_ms=10.0, bit_depth=12) as src:
+    ...     print(len(src), src.frame_shape, src.origins["exposure_ms"])
+    ...     for raw, meta in src:                                 # one frame at a time
+    ...         pass
+    3 (4, 6) --exposure-ms
+    >>> raw.shape, meta.index, meta.exposure_ms, meta.kind
+    ((4, 6), 2, 10.0, 'light')
     """
     if overrides is None:
         overrides = Overrides(**options)
@@ -298,11 +315,33 @@ class FrameSource:
         return raw
 
     def read(self, index: int) -> np.ndarray:
-        """Frame ``index`` as an (H, W) array of DN (decoded now)."""
+        """Frame ``index`` as an (H, W) array of DN (decoded now).
+
+        Parameters
+        ----------
+        index : int
+            Frame number, 0 <= index < ``n_frames`` (over all files, in order).
+
+        Returns
+        -------
+        ndarray, DN
+            Shape ``frame_shape``, dtype ``dtype`` (the file's samples, never rescaled).
+        """
         return self._decode(index)
 
     def frame_meta(self, index: int) -> FrameMeta:
-        """The metadata of frame ``index``."""
+        """The metadata of frame ``index``.
+
+        Parameters
+        ----------
+        index : int
+            Frame number, 0 <= index < ``n_frames``.
+
+        Returns
+        -------
+        FrameMeta
+            Index, exposure (ms), kind, illumination, photons, step, file path and page.
+        """
         lay, k = self._locate(index)
         return FrameMeta(index, float(self.exposure_ms[index]), str(self.kind[index]),
                          str(self.illumination[index]), float(self.photons[index]),
@@ -361,7 +400,14 @@ class FrameSource:
         return self.n_frames
 
     def frames(self) -> Iterator[Frame]:
-        """Every frame as a :class:`~hsiffc.frame.Frame` (float32 DN, DQ plane), streamed."""
+        """Every frame as a :class:`~hsiffc.frame.Frame` (float32 DN, DQ plane), streamed.
+
+        Yields
+        ------
+        Frame
+            (H, W) float32 data in DN with its DQ plane, exposure (ms), kind, mosaic and
+            source, one at a time (the next is decoded ahead on a worker thread).
+        """
         for raw, m in self:
             extra = {} if m.step is None else {"step": m.step}
             yield Frame.from_raw(raw, exposure_ms=m.exposure_ms, bit_depth=self.bit_depth,
@@ -369,7 +415,18 @@ class FrameSource:
                                  source=m.path, **extra)
 
     def to_sweep(self) -> Sweep:
-        """All frames in memory as a :class:`~hsiffc.Sweep` (checked against ``max_bytes``)."""
+        """All frames in memory as a :class:`~hsiffc.Sweep` (checked against ``max_bytes``).
+
+        Returns
+        -------
+        Sweep
+            ``data`` (N, H, W) in the file's dtype and the per-frame metadata.
+
+        Raises
+        ------
+        DataFormatError
+            The frames would exceed the limit on bytes in memory, or their metadata disagree.
+        """
         shape = (self.n_frames,) + self.frame_shape
         self.limits.check_bytes(path=self.label, nbytes=int(np.prod(shape)) * self.dtype.itemsize,
                                 what=f"{self.n_frames} frames of {self.frame_shape}")
@@ -389,6 +446,7 @@ class FrameSource:
             raise DataFormatError(f"inconsistent metadata: {exc}", path=self.label) from exc
 
     def close(self) -> None:
+        """Close the open files (also done at the end of iteration and by ``with``)."""
         for lay in self.layouts:
             lay.close()
 
@@ -405,7 +463,13 @@ class FrameSource:
         self.close()
 
     def describe(self) -> str:
-        """A few lines: frames, shape, dtype, bit depth, mosaic, each field's origin, notes."""
+        """A few lines: frames, shape, dtype, bit depth, mosaic, each field's origin, notes.
+
+        Returns
+        -------
+        str
+            What ``hsiffc inspect`` prints for the input.
+        """
         mos = "none" if self.mosaic is None else (
             f"{self.mosaic.tile_shape[0]}x{self.mosaic.tile_shape[1]}"
             + ("" if self.mosaic.name in ("", f"{self.mosaic.tile_shape[1]}x"
