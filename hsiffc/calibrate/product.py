@@ -95,7 +95,18 @@ class Calibration:
 
     def f32(self, name: str) -> np.ndarray:
         """A float32 copy of one array, made once and kept (the hot path of correction works
-        in single precision). ``"dark_current_dn_per_ms"`` is zeros when absent."""
+        in single precision). ``"dark_current_dn_per_ms"`` is zeros when absent.
+
+        Parameters
+        ----------
+        name : str
+            Array name, e.g. ``"dark_dn"`` or ``"b_per_dn"``.
+
+        Returns
+        -------
+        ndarray of float32
+            (H, W), in the array's unit; shared, do not modify.
+        """
         cache = self.__dict__.setdefault("_f32", {})
         if name not in cache:
             src = self.dark_current if name == "dark_current_dn_per_ms" else self.arrays[name]
@@ -104,7 +115,18 @@ class Calibration:
 
     def dark_at(self, exposure_ms: float) -> np.ndarray:
         """The calibrated dark (DN, float32, (H, W)) at one exposure: dark level plus dark
-        current times the exposure (ms)."""
+        current times the exposure (ms).
+
+        Parameters
+        ----------
+        exposure_ms : float, ms
+            Exposure of the frame to correct.
+
+        Returns
+        -------
+        ndarray of float32, DN
+            (H, W).
+        """
         return dark_at(exposure_ms, self.f32("dark_dn"), self.f32("dark_current_dn_per_ms"))
 
     @property
@@ -141,8 +163,14 @@ class Calibration:
         return self.__dict__.get("_path")
 
     def reference(self) -> dict:
-        """How pipelines and histories name this calibration: ``{"identity", "path"}`` (the
-        path is None for a calibration that exists only in memory)."""
+        """How pipelines and histories name this calibration.
+
+        Returns
+        -------
+        dict
+            ``{"identity": str, "path": str or None}`` (the path is None for a calibration
+            that exists only in memory).
+        """
         return {"identity": self.identity, "path": self.path}
 
     def __deepcopy__(self, memo):
@@ -150,7 +178,23 @@ class Calibration:
 
     @classmethod
     def resolve(cls, value) -> "Calibration | None":
-        """A Calibration from an object, a path (read now) or None."""
+        """A Calibration from an object, a path (read now) or None.
+
+        Parameters
+        ----------
+        value : Calibration, str, Path or None
+            What a stage or pipeline was given as ``calibration``.
+
+        Returns
+        -------
+        Calibration or None
+            ``value`` itself, the file read with :meth:`load`, or None.
+
+        Raises
+        ------
+        ParameterError
+            ``value`` is of another type.
+        """
         if value is None or isinstance(value, cls):
             return value
         if not isinstance(value, (str, Path)):
@@ -159,7 +203,14 @@ class Calibration:
         return cls.load(value)
 
     def manifest(self) -> dict:
-        """The JSON manifest saved with the arrays (format, versions, method, validity domain, training data)."""
+        """The JSON manifest saved with the arrays.
+
+        Returns
+        -------
+        dict
+            Format and versions, creation time, method, validity domain, training data,
+            dtype and shape of every array, identity.
+        """
         return {"format": FORMAT, "format_version": FORMAT_VERSION,
                 "hsiffc_version": self.hsiffc_version, "created": self.created,
                 "method": self.method, "domain": self.domain, "fitted_on": self.fitted_on,
@@ -168,7 +219,13 @@ class Calibration:
                 "identity": self.identity}
 
     def summary(self) -> str:
-        """Percentiles of each parameter, sample counts and flagged pixels, as text."""
+        """Percentiles of each parameter, sample counts and flagged pixels, as text.
+
+        Returns
+        -------
+        str
+            What ``hsiffc calibrate`` prints (several lines).
+        """
         d = self.domain
         h, w = self.frame_shape
         lines = [f"hsiffc calibration ({self.method}) of a {w} x {h} px, {d['bit_depth']}-bit "
@@ -204,7 +261,26 @@ class Calibration:
     def check_compatible(self, data=None, *, frame_shape=None, bit_depth=None, mosaic=None,
                          what: str = "the data") -> None:
         """Raise :class:`CalibrationMismatchError` if ``data`` (a Sweep, or the keyword facts)
-        does not fit this calibration: other frame shape, bit depth or mosaic."""
+        does not fit this calibration: other frame shape, bit depth or mosaic.
+
+        Parameters
+        ----------
+        data : Sweep or Frame, optional
+            Data whose ``frame_shape``, ``bit_depth`` and ``mosaic`` are checked.
+        frame_shape : (int, int), optional
+            (H, W) to check when no ``data`` is given.
+        bit_depth : int, optional
+            ADC bit depth to check.
+        mosaic : Mosaic, optional
+            Filter mosaic to check.
+        what : str
+            How the message names the data (default: its source).
+
+        Raises
+        ------
+        CalibrationMismatchError
+            Naming every mismatch and the calibration's values.
+        """
         if data is not None:
             frame_shape = getattr(data, "frame_shape", frame_shape)
             bit_depth = getattr(data, "bit_depth", bit_depth)
@@ -227,14 +303,43 @@ class Calibration:
                 + ". Calibrate this sensor configuration (hsiffc calibrate) or use its calibration.")
 
     def in_domain(self, exposure_ms) -> np.ndarray:
-        """True where an exposure lies inside the calibrated exposure range."""
+        """True where an exposure lies inside the calibrated exposure range.
+
+        Parameters
+        ----------
+        exposure_ms : array_like, ms
+            Exposures to test.
+
+        Returns
+        -------
+        ndarray of bool
+            Shape of ``exposure_ms``.
+        """
         lo, hi = self.domain["exposure_ms"]
         e = np.asarray(exposure_ms, float)
         return (e >= lo) & (e <= hi)
 
     # -- file I/O ------------------------------------------------------------------------------
     def save(self, path, *, overwrite: bool = False) -> Path:
-        """Write the calibration to ``path`` (.npz) atomically (:mod:`hsiffc.products`)."""
+        """Write the calibration to ``path`` (.npz) atomically (:mod:`hsiffc.products`).
+
+        Parameters
+        ----------
+        path : str or Path
+            Output file (``.npz``).
+        overwrite : bool
+            Replace an existing file (default: refuse).
+
+        Returns
+        -------
+        Path
+            The file written; the calibration's :attr:`path` now points to it.
+
+        Raises
+        ------
+        OutputExistsError
+            ``path`` exists and ``overwrite`` is False.
+        """
         man = {k: v for k, v in self.manifest().items()
                if k not in ("format", "format_version")}
         path = write_product(path, format=FORMAT, format_version=FORMAT_VERSION, manifest=man,
@@ -244,7 +349,22 @@ class Calibration:
 
     @classmethod
     def load(cls, path) -> "Calibration":
-        """Read a calibration file (never unpickles anything)."""
+        """Read a calibration file (never unpickles anything).
+
+        Parameters
+        ----------
+        path : str or Path
+            A file written by :meth:`save` or ``hsiffc calibrate``.
+
+        Returns
+        -------
+        Calibration
+
+        Raises
+        ------
+        DataFormatError
+            Not a calibration file, another format version, or incomplete arrays.
+        """
         man, arrays = read_product(path, format=FORMAT, format_version=FORMAT_VERSION,
                                    remedy="create one with 'hsiffc calibrate SWEEP -o CALIB.npz'")
         try:

@@ -18,7 +18,24 @@ from ..sweep import Sweep
 
 @dataclass(frozen=True, eq=False)
 class Samples:
-    """Step-mean samples of a sweep, pixels flattened: arrays (S, P) unless stated."""
+    """Step-mean samples of a sweep, pixels flattened: arrays (S, P) unless stated.
+
+    Made by :func:`collect_samples`; S steps, P pixels.
+
+    Attributes
+    ----------
+    y : ndarray of float32, (S, P), DN
+        Step means.
+    clipped, full_well : ndarray of bool, (S, P)
+        Some frame of the step at full scale; the mean at or above the full-well level.
+    exposure_ms, rate, n_frames, kind, illumination, step, usable_step : (S,) arrays
+        Exposure (ms), relative light rate (0 for darks; unit ``rate_unit``), frames per step,
+        "light"/"dark", illumination label, step id, and whether the step can be fitted.
+    frame_shape : (int, int)
+        (H, W) of the pixels sampled.
+    full_scale_dn : int
+        ``2**bit_depth - 1``.
+    """
 
     y: np.ndarray  # float32 step means, DN
     clipped: np.ndarray  # bool: some frame at full scale
@@ -36,6 +53,7 @@ class Samples:
 
     @property
     def valid(self) -> np.ndarray:
+        """(S, P) bool: samples a fit may use (not clipped, below full well, usable step)."""
         return (~self.clipped) & (~self.full_well) & self.usable_step[:, None]
 
 
@@ -45,6 +63,25 @@ def relative_light_rate(sweep_steps: dict, *, light_rate=None) -> tuple[np.ndarr
     Priority: ``light_rate`` given by the user (one value per step); photons / exposure where the
     sweep has photon counts (EMVA 1288); otherwise 1 for every light step when all light steps
     share one illumination label. Dark steps get 0.
+
+    Parameters
+    ----------
+    sweep_steps : dict
+        Per-step arrays ``kind``, ``photons``, ``exposure_ms`` (ms) and ``illumination``.
+    light_rate : array_like, optional
+        One relative light rate per step.
+
+    Returns
+    -------
+    rate : ndarray of float64, (S,)
+        Relative light rate per step (0 for darks, NaN where unusable).
+    unit : str
+        ``"user"``, ``"photons/ms"`` or ``"1 = the sweep's illumination"``.
+
+    Raises
+    ------
+    DataFormatError
+        Several illuminations without photon counts or ``light_rate``.
     """
     kind = sweep_steps["kind"]
     dark = kind == "dark"
@@ -73,7 +110,24 @@ def relative_light_rate(sweep_steps: dict, *, light_rate=None) -> tuple[np.ndarr
 
 def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_rate=None,
                     rows: slice | None = None) -> Samples:
-    """Step means and validity of every pixel (optionally of a band of ``rows`` only)."""
+    """Step means and validity of every pixel (optionally of a band of ``rows`` only).
+
+    Parameters
+    ----------
+    sweep : Sweep
+        Raw frames (N, H, W) in DN with their steps.
+    full_well_dn : float, optional, DN
+        Step means at or above this level are not valid samples.
+    light_rate : array_like, optional
+        One relative light rate per step (see :func:`relative_light_rate`).
+    rows : slice, optional
+        Rows of the frame to sample (default: all).
+
+    Returns
+    -------
+    Samples
+        Arrays (S, P) over the S steps and the P pixels of the rows.
+    """
     steps = sweep.steps()
     rows = rows or slice(0, sweep.frame_shape[0])
     r0, r1, _ = rows.indices(sweep.frame_shape[0])
@@ -110,13 +164,25 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
 
 @dataclass(frozen=True)
 class PhotonTransfer:
-    """Temporal noise model of step means: ``var = gain * (mean - dark) + read_var`` (DN^2)."""
+    """Temporal noise model of step means: ``var = gain * (mean - dark) + read_var`` (DN^2).
+
+    Attributes
+    ----------
+    gain_dn_per_e : float, DN/e-
+        System gain K of EMVA 1288.
+    read_var_dn2 : float, DN^2
+        Temporal dark variance, quantisation included.
+    n_steps_used : int
+        Steps the line was fitted on.
+    """
 
     gain_dn_per_e: float  # system gain K of EMVA 1288 (DN per electron)
     read_var_dn2: float  # temporal dark variance incl. quantisation
     n_steps_used: int
 
     def variance(self, signal_dn):
+        """Temporal variance (DN^2) of one frame at ``signal_dn`` (DN above dark, array_like);
+        negative signals count as 0."""
         return self.gain_dn_per_e * np.maximum(signal_dn, 0.0) + self.read_var_dn2
 
 
@@ -126,7 +192,19 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
     Per step, the temporal variance is the mean over pixels of the frame-to-frame variance
     (pixels clipped in any frame of the step are left out). A straight line through variance
     against the mean signal above dark, over unclipped steps below ``max_fraction_of_full_scale``,
-    gives the system gain K and the dark variance. Returns None when no step has two frames.
+    gives the system gain K and the dark variance.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        Raw frames with at least two frames in some steps.
+    max_fraction_of_full_scale : float
+        Light steps whose mean exceeds this fraction of full scale are left out of the line.
+
+    Returns
+    -------
+    PhotonTransfer or None
+        None when no step has two frames.
     """
     fs = sweep.full_scale_dn
     rows = []
