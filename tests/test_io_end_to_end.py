@@ -1,4 +1,4 @@
-"""The everyday workflow without a sweep, in the README's words: a folder of plain 8-bit
+"""The everyday workflow without a sweep, in the words of the camera-data guide: a folder of plain 8-bit
 compressed TIFFs of a 5x5 mosaic camera, a dark and a white reference, metadata from a sidecar,
 ``hsiffc fit`` + ``hsiffc correct``, and a cube with 25 bands and the IMEC wavelengths."""
 

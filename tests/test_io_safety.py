@@ -77,7 +77,7 @@ def test_limits_are_overridable(tmp_path, monkeypatch):
 @pytest.mark.parametrize("keep", [0.3, 0.5, 0.62, 0.75, 0.9, 0.99])
 @pytest.mark.parametrize("compression", [None, "zlib", "lzw"])
 def test_multipage_tiff_cut_short_is_truncated(tmp_path, keep, compression):
-    """The README's tifffile example, cut: never read as fewer frames."""
+    """The tifffile example of the formats reference, cut: never read as fewer frames."""
     data = np.random.default_rng(1).integers(0, 255, (6, 40, 30), dtype=np.uint8)
     full = tmp_path / "full.tif"
     tifffile.imwrite(full, data, compression=compression, photometric="minisblack")

@@ -48,8 +48,8 @@ def is_hsiffc_document(description: str) -> bool:
 def parse_document(description: str, path) -> dict:
     """The hsiffc JSON document in ``description``, checked (format, version, content)."""
     hint = ("add a JSON document to the ImageDescription of the first page, at least "
-            f"{MINIMAL_DOCUMENT} (see the hsiffc TIFF format in the README), or write the file "
-            "with hsiffc.io.write_sweep")
+            f"{MINIMAL_DOCUMENT} (see 'The hsiffc TIFF format' in docs/reference/formats.md), "
+            "or write the file with hsiffc.io.write_sweep")
     text = description.strip()
     if not text.startswith("{"):
         raise DataFormatError(f"plain TIFF without hsiffc metadata; {hint}", path=path)
@@ -91,8 +91,8 @@ def per_frame_field(doc, key, n, path, convert, default=None, *, required=False)
     try:
         return convert(value)
     except (TypeError, ValueError) as exc:
-        raise DataFormatError(f"{key!r} = {value!r} is not valid ({exc}); see the hsiffc TIFF "
-                              "format in the README", path=path) from exc
+        raise DataFormatError(f"{key!r} = {value!r} is not valid ({exc}); see 'The hsiffc TIFF "
+                              "format' in docs/reference/formats.md", path=path) from exc
 
 
 def as_floats(value):
