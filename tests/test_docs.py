@@ -33,6 +33,13 @@ def test_site_builds_in_strict_mode(tmp_path):
     assert "Pipeline" in api and "fit" in api
     cli = (site / "reference" / "cli" / "index.html").read_text(encoding="utf-8")
     assert "hsiffc correct" in cli and "--overwrite" in cli
+    # equations are typeset when the site is built (no raw TeX, nothing loaded from a CDN)
+    physics = (site / "physics" / "index.html").read_text(encoding="utf-8")
+    assert physics.count('class="hsiffc-math"') >= 7 and "\\tag{" not in physics
+    for page in site.rglob("*.html"):
+        text = page.read_text(encoding="utf-8")
+        assert not re.search(r'<script[^>]+src="https?://|<link[^>]+href="https?://', text), \
+            f"{page.relative_to(site)} loads a script, font or style from the network"
 
 
 def test_readme_links_resolve():
