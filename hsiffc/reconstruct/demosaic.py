@@ -137,6 +137,16 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
     cube_dq : (H, W, B) uint32
         DQ of every band value, by the rule in the package docstring.
     cube_alpha : (H, W, B) float32, only when ``alpha`` is given
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from hsiffc.mosaic import Mosaic
+    >>> mosaic = Mosaic.square(2)                       # 2 x 2 tile, 4 bands
+    >>> raw = np.tile(np.array([[10., 20.], [30., 40.]], np.float32), (4, 4))   # (8, 8) DN
+    >>> cube, cube_dq = demosaic(raw, mosaic, method="bilinear")
+    >>> cube.shape, cube[3, 3].tolist(), int(cube_dq.max())     # a flat scene stays flat
+    ((8, 8, 4), [10.0, 20.0, 30.0, 40.0], 0)
     """
     validate_method(method, DEMOSAIC_METHODS, "demosaic method")
     p = prepare(raw, mosaic, dq)
@@ -185,6 +195,22 @@ def reconstruct_alpha(alpha, mosaic: Mosaic, *, method: str = "bilinear",
     Fallback paths for flagged sources are not counted: those values carry DQ flags.
     Non-finite alpha counts as the largest float32. For ``"full"`` this is the alpha part of
     :func:`demosaic` (one kernel computes both); pass ``alpha=`` there to get it with the cube.
+
+    Parameters
+    ----------
+    alpha : (H, W) array, percent
+        Leakage percentage of every raw pixel.
+    mosaic : Mosaic
+        Layout of the raw frame.
+    method : str
+        Demosaicking method the cube was made with (one of :data:`DEMOSAIC_METHODS`).
+    resolution : {"full", "tile"}
+        Full-resolution cube (H, W, B) or one value per complete tile (H', W', B).
+
+    Returns
+    -------
+    ndarray of float32, percent
+        (H, W, B) or (H', W', B).
     """
     a = np.asarray(alpha)
     if a.ndim != 2:

@@ -24,6 +24,21 @@ def ppi_kernel(period: int) -> np.ndarray:
     Odd period p: a box of p ones / p. Even period p: p + 1 taps ``[1/2, 1, ..., 1, 1/2] / p``,
     centred, so that every tile position gets the same total weight 1/p (the two end taps
     see the same band). Separable in rows and columns, as in Mihoubi et al. (2017).
+
+    Parameters
+    ----------
+    period : int
+        Tile size along the axis (pixels, >= 1).
+
+    Returns
+    -------
+    ndarray of float32, (p,) or (p + 1,)
+        Taps summing to 1.
+
+    Examples
+    --------
+    >>> ppi_kernel(2).tolist(), ppi_kernel(3).sum().round(6)
+    ([0.25, 0.5, 0.25], np.float32(1.0))
     """
     p = int(period)
     if p % 2:
@@ -34,7 +49,19 @@ def ppi_kernel(period: int) -> np.ndarray:
 
 
 def sep_filter(img: np.ndarray, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
-    """Separable correlation with zero outside the frame (for normalised convolution)."""
+    """Separable correlation with zero outside the frame (for normalised convolution).
+
+    Parameters
+    ----------
+    img : (H, W) ndarray of float32
+        Plane to filter.
+    kx, ky : 1-D ndarray of float32
+        Kernels along the columns (x) and the rows (y).
+
+    Returns
+    -------
+    ndarray of float32, (H, W)
+    """
     return cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
 
 
@@ -54,14 +81,17 @@ class Prepared:
 
     @property
     def shape(self):
+        """(H, W) of the frame."""
         return self.raw.shape
 
     @property
     def period(self):
+        """Tile shape (ph, pw) of the mosaic."""
         return self.mosaic.tile_shape
 
     @property
     def any_flags(self) -> bool:
+        """True when some sample is flagged (``dq`` is not None)."""
         return self.dq is not None
 
     @cached_property
@@ -71,10 +101,17 @@ class Prepared:
 
     @cached_property
     def band_map(self) -> np.ndarray:
+        """(H, W) band index of every pixel."""
         return self.mosaic.band_map(self.shape)
 
     def lattices(self) -> list[list[tuple[int, int]]]:
-        """Per band, the first sample (row, col) of each of its pattern positions."""
+        """Per band, the first sample (row, col) of each of its pattern positions.
+
+        Returns
+        -------
+        list of list of (int, int)
+            Indexed by band; one (row, col) per occurrence of the band in the tile.
+        """
         ph, pw = self.period
         oy, ox = self.mosaic.offset
         out = [[] for _ in range(self.mosaic.n_bands)]
@@ -83,7 +120,18 @@ class Prepared:
         return out
 
     def band_samples(self, b: int) -> np.ndarray:
-        """The usable samples of band ``b`` (1-D float32, any order)."""
+        """The usable samples of band ``b`` (1-D float32, any order).
+
+        Parameters
+        ----------
+        b : int
+            Band index.
+
+        Returns
+        -------
+        ndarray of float32, (n,)
+            Unflagged samples of the band, in the unit of ``raw``.
+        """
         ph, pw = self.period
         parts = []
         for r0, c0 in self.lattices()[b]:
@@ -96,7 +144,26 @@ def prepare(raw, mosaic, dq) -> Prepared:
     """Check a raw frame and its DQ; non-finite samples become 0 with NONFINITE | DO_NOT_USE.
 
     The frame is not copied when it is float32 and finite; ``dq`` is None when nothing is
-    flagged (an all-zero plane is dropped)."""
+    flagged (an all-zero plane is dropped).
+
+    Parameters
+    ----------
+    raw : (H, W) array_like
+        Mosaic frame (DN or any linear unit).
+    mosaic : Mosaic
+        Its layout.
+    dq : (H, W) uint32 array or None
+        DQ flags of the raw pixels.
+
+    Returns
+    -------
+    Prepared
+
+    Raises
+    ------
+    ValueError
+        ``raw`` is not 2-D, or ``dq`` has another shape.
+    """
     if not isinstance(mosaic, Mosaic):
         raise TypeError(f"mosaic must be a hsiffc.mosaic.Mosaic, got {type(mosaic).__name__}")
     raw = np.asarray(raw)
@@ -131,14 +198,38 @@ def _median_in_place(vals: np.ndarray) -> float:
 
 
 def band_median(p: Prepared, b: int) -> float:
-    """Median of the usable samples of band ``b`` (0 if there is none)."""
+    """Median of the usable samples of band ``b`` (0 if there is none).
+
+    Parameters
+    ----------
+    p : Prepared
+        The frame.
+    b : int
+        Band index.
+
+    Returns
+    -------
+    float
+        In the unit of the frame.
+    """
     return _median_in_place(p.band_samples(b))
 
 
 def band_levels(p: Prepared) -> np.ndarray:
     """Relative level of every band (median of its unflagged samples over the mean of those
     medians), or all ones when a band has no positive median (e.g. dark-subtracted noise).
-    The band medians run on two threads (numpy's partition releases the GIL)."""
+    The band medians run on two threads (numpy's partition releases the GIL).
+
+    Parameters
+    ----------
+    p : Prepared
+        The frame.
+
+    Returns
+    -------
+    ndarray of float64, (B,)
+        Dimensionless levels (mean 1), or ones.
+    """
     with ThreadPoolExecutor(2) as pool:
         med = np.array(list(pool.map(lambda b: band_median(p, b), range(p.mosaic.n_bands))))
     if not np.all(np.isfinite(med)) or np.any(med <= 0):
@@ -147,13 +238,41 @@ def band_levels(p: Prepared) -> np.ndarray:
 
 
 def tile_starts(n: int, period: int, offset: int) -> np.ndarray:
-    """First row (column) of the tile each row (column) belongs to (may be negative)."""
+    """First row (column) of the tile each row (column) belongs to (may be negative).
+
+    Parameters
+    ----------
+    n : int
+        Number of rows (columns).
+    period : int
+        Tile size along the axis.
+    offset : int
+        Mosaic offset along the axis.
+
+    Returns
+    -------
+    ndarray of int, (n,)
+    """
     i = np.arange(n)
     return i - (i - offset) % period
 
 
 def periodic_index(n: int, period: int, margin: int) -> np.ndarray:
-    """Indices -margin..n+margin-1 mapped into 0..n-1 by whole periods (same band)."""
+    """Indices -margin..n+margin-1 mapped into 0..n-1 by whole periods (same band).
+
+    Parameters
+    ----------
+    n : int
+        Length of the axis.
+    period : int
+        Tile size along the axis.
+    margin : int
+        Extension on each side (pixels).
+
+    Returns
+    -------
+    ndarray of int, (n + 2 margin,)
+    """
     i = np.arange(-margin, n + margin)
     low = i < 0
     i[low] += period * (-(i[low] // period))
@@ -164,7 +283,21 @@ def periodic_index(n: int, period: int, margin: int) -> np.ndarray:
 
 def pad_periodic(a: np.ndarray, rows: np.ndarray, cols: np.ndarray, my: int, mx: int):
     """``a[np.ix_(rows, cols)]`` for the :func:`periodic_index` of ``a``'s shape with margins
-    ``my, mx``: the interior copied as one block, only the margins gathered."""
+    ``my, mx``: the interior copied as one block, only the margins gathered.
+
+    Parameters
+    ----------
+    a : (H, W) ndarray
+        Plane to extend.
+    rows, cols : ndarray of int
+        :func:`periodic_index` of H and W with margins ``my`` and ``mx``.
+    my, mx : int
+        Margins (rows, columns).
+
+    Returns
+    -------
+    ndarray, (H + 2 my, W + 2 mx)
+    """
     H, W = a.shape
     out = np.empty((H + 2 * my, W + 2 * mx), a.dtype)
     out[my:my + H, mx:mx + W] = a
@@ -179,7 +312,18 @@ def fill_flagged_from_lattice(p: Prepared) -> tuple[np.ndarray, np.ndarray]:
     """Raw values with flagged samples replaced by the tent-weighted mean of their unflagged
     same-band neighbours one tile away (8 neighbours), and the matching weights (1 for
     unflagged and filled samples, 0 where no neighbour was usable; None when nothing is
-    flagged, and then the values are ``p.raw`` itself)."""
+    flagged, and then the values are ``p.raw`` itself).
+
+    Parameters
+    ----------
+    p : Prepared
+        The frame.
+
+    Returns
+    -------
+    values : ndarray of float32, (H, W)
+    weights : ndarray of float32, (H, W), or None
+    """
     if not p.any_flags:
         return p.raw, None
     vals = p.raw.copy()
@@ -210,8 +354,22 @@ def pseudo_panchromatic(p: Prepared, levels: np.ndarray) -> tuple[np.ndarray, np
 
     Flagged samples are first replaced by their same-band lattice neighbours (or excluded);
     the frame is extended beyond its borders by whole tiles (same band), so that every PPI
-    window sees every band and a spatially uniform scene gives a constant PPI. Returns the PPI
-    and where it is defined (None: everywhere)."""
+    window sees every band and a spatially uniform scene gives a constant PPI.
+
+    Parameters
+    ----------
+    p : Prepared
+        The frame.
+    levels : (B,) ndarray
+        Band levels from :func:`band_levels` (ones: no balancing).
+
+    Returns
+    -------
+    ppi : ndarray of float32, (H, W)
+        In the unit of the frame.
+    defined : ndarray of bool, (H, W), or None
+        Where the PPI window held a usable pixel (None: everywhere).
+    """
     H, W = p.shape
     ph, pw = p.period
     kx, ky = ppi_kernel(pw), ppi_kernel(ph)

@@ -12,7 +12,25 @@ __all__ = ["tile_alpha", "tile_blocks", "tile_cube", "tile_grid", "tile_origin"]
 
 
 def tile_grid(shape, mosaic: Mosaic):
-    """(row, col) of the first complete tile and the number of complete tiles (ny, nx)."""
+    """(row, col) of the first complete tile and the number of complete tiles (ny, nx).
+
+    Parameters
+    ----------
+    shape : (int, int)
+        (H, W) of the frame.
+    mosaic : Mosaic
+        Its layout (tile shape and offset).
+
+    Returns
+    -------
+    y0, x0, ny, nx : int
+        First complete tile's row and column, and the number of complete tiles.
+
+    Raises
+    ------
+    ValueError
+        The frame holds no complete tile.
+    """
     H, W = int(shape[0]), int(shape[1])
     ph, pw = mosaic.tile_shape
     y0, x0 = mosaic.offset[0] % ph, mosaic.offset[1] % pw
@@ -24,14 +42,42 @@ def tile_grid(shape, mosaic: Mosaic):
 
 
 def tile_blocks(plane: np.ndarray, y0, x0, ny, nx, ph, pw) -> np.ndarray:
-    """(ny, nx, ph, pw) view of the complete tiles of a plane."""
+    """(ny, nx, ph, pw) view of the complete tiles of a plane.
+
+    Parameters
+    ----------
+    plane : (H, W) ndarray
+        Any per-pixel plane (raw, DQ, alpha).
+    y0, x0, ny, nx : int
+        From :func:`tile_grid`.
+    ph, pw : int
+        Tile shape.
+
+    Returns
+    -------
+    ndarray, (ny, nx, ph, pw)
+        A view (no copy) when ``plane`` is contiguous.
+    """
     block = plane[y0:y0 + ny * ph, x0:x0 + nx * pw]
     return block.reshape(ny, ph, nx, pw).transpose(0, 2, 1, 3)
 
 
 def tile_origin(shape, mosaic: Mosaic) -> tuple[int, int]:
     """(row, col) of the first complete tile: ``tile_cube`` pixel (i, j) covers raw pixels
-    ``origin + (i ph .. i ph + ph - 1, j pw .. j pw + pw - 1)``."""
+    ``origin + (i ph .. i ph + ph - 1, j pw .. j pw + pw - 1)``.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        (H, W) of the frame.
+    mosaic : Mosaic
+        Its layout.
+
+    Returns
+    -------
+    (int, int)
+        Row and column of the first complete tile.
+    """
     y0, x0, _, _ = tile_grid(shape, mosaic)
     return y0, x0
 
@@ -48,7 +94,29 @@ def tile_cube(raw, mosaic: Mosaic, *, dq=None):
     the band median of unflagged samples with ``DO_NOT_USE``. DQ of a cube value = OR of the
     flags of the band's samples in its tile (plus ``DO_NOT_USE`` where the median was used).
 
-    Returns (cube float32, cube_dq uint32).
+    Parameters
+    ----------
+    raw : (H, W) array_like, DN
+        Raw (or corrected) mosaic frame.
+    mosaic : Mosaic
+        Its layout.
+    dq : (H, W) uint32 array, optional
+        DQ flags of the raw pixels; flagged samples are not used.
+
+    Returns
+    -------
+    cube : ndarray of float32, (H', W', B)
+        One spectrum per complete tile, in the unit of ``raw``.
+    cube_dq : ndarray of uint32, (H', W', B)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from hsiffc.mosaic import Mosaic
+    >>> raw = np.tile(np.array([[10., 20.], [30., 40.]], np.float32), (3, 4))   # (6, 8)
+    >>> cube, cube_dq = tile_cube(raw, Mosaic.square(2))
+    >>> cube.shape, cube[0, 0].tolist()
+    ((3, 4, 4), [10.0, 20.0, 30.0, 40.0])
     """
     p = prepare(raw, mosaic, dq)
     ph, pw = p.period
@@ -87,7 +155,19 @@ def tile_cube(raw, mosaic: Mosaic, *, dq=None):
 
 def tile_alpha(alpha, mosaic: Mosaic) -> np.ndarray:
     """(H', W', B) float32: the max alpha over each band's samples in each complete tile
-    (``reconstruct_alpha(..., resolution="tile")``; ``alpha`` finite float32)."""
+    (``reconstruct_alpha(..., resolution="tile")``; ``alpha`` finite float32).
+
+    Parameters
+    ----------
+    alpha : (H, W) ndarray of float32, percent
+        Leakage percentage of every raw pixel (finite).
+    mosaic : Mosaic
+        Layout of the frame.
+
+    Returns
+    -------
+    ndarray of float32, (H', W', B), percent
+    """
     ph, pw = mosaic.tile_shape
     y0, x0, ny, nx = tile_grid(alpha.shape, mosaic)
     ta = tile_blocks(alpha, y0, x0, ny, nx, ph, pw)
