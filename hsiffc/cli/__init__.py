@@ -37,7 +37,14 @@ EXIT_BROKEN_PIPE = 141  # as a shell reports a process ended by SIGPIPE
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every sub-command registered."""
+    """The argument parser with every sub-command registered.
+
+    Returns
+    -------
+    OneLineParser
+        ``hsiffc`` with the sub-commands of :data:`COMMAND_MODULES` (the command-line
+        reference of the documentation is generated from it).
+    """
     parser = OneLineParser(
         prog="hsiffc",
         description="Leakage-aware calibration and flat-field correction for low-light CMOS "
@@ -67,7 +74,18 @@ _OS_FIXES = {
 
 
 def describe_os_error(exc: OSError) -> str:
-    """One line for an operating-system error: the file, the problem and what to do."""
+    """One line for an operating-system error: the file, the problem and what to do.
+
+    Parameters
+    ----------
+    exc : OSError
+        The error (its ``filename``, ``strerror`` and ``errno`` are used).
+
+    Returns
+    -------
+    str
+        E.g. ``"out.tif: Permission denied; check the folder's permissions"``.
+    """
     where = exc.filename if exc.filename is not None else "a file"
     what = exc.strerror or str(exc)
     fix = _OS_FIXES.get(exc.errno, "check the path and try again")
@@ -75,7 +93,27 @@ def describe_os_error(exc: OSError) -> str:
 
 
 def main(argv=None) -> int:
-    """Run the command line; returns the exit status."""
+    """Run the command line; returns the exit status.
+
+    Every expected error (bad input, output, parameter, environment) is one line on stderr
+    naming the file or parameter, the problem and the fix; ``--debug`` shows the traceback.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments without the program name (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        0 on success, 1 when some files of a batch failed, 2 for a usage or expected error.
+
+    Examples
+    --------
+    >>> main(["--version"])   # doctest: +ELLIPSIS
+    hsiffc ...
+    0
+    """
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -15,13 +15,35 @@ __all__ = ["OneLineParser", "count", "exposure_ms", "percent", "positive", "real
 
 class OneLineParser(argparse.ArgumentParser):
     """An ArgumentParser whose usage errors are one line (and exit status 2), like every other
-    expected error of the command line."""
+    expected error of the command line.
+
+    Parameters
+    ----------
+    *args, **kwargs
+        As for :class:`argparse.ArgumentParser`.
+    """
 
     def error(self, message):
+        """Print ``message`` as one line with a pointer to ``--help`` and exit with status 2.
+
+        Parameters
+        ----------
+        message : str
+            argparse's description of the usage error.
+        """
         text = " ".join(message.split())
         self.exit(2, f"{self.prog}: error: {text} (see {self.prog} --help)\n")
 
     def exit(self, status=0, message=None):
+        """Write ``message`` (if any) to stderr and raise SystemExit(``status``).
+
+        Parameters
+        ----------
+        status : int
+            Exit status.
+        message : str, optional
+            Text to print first.
+        """
         if message:
             sys.stderr.write(message)
         sys.exit(status)

@@ -15,7 +15,20 @@ DEFAULT_SAMPLES = Path("sample_cubes")
 
 def declared(args, kind: str) -> list:
     """The values of the arguments a sub-parser declared as ``kind`` (``input_args``,
-    ``output_args`` or ``output_dirs`` in its defaults), lists flattened, None dropped."""
+    ``output_args`` or ``output_dirs`` in its defaults), lists flattened, None dropped.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed arguments.
+    kind : {"input_args", "output_args", "output_dirs"}
+        Which declaration to read.
+
+    Returns
+    -------
+    list
+        Paths (or path strings) in declaration order.
+    """
     out = []
     for name in getattr(args, kind, ()):
         value = getattr(args, name, None)
@@ -27,7 +40,18 @@ def declared(args, kind: str) -> list:
 
 def check_declared_outputs(args) -> None:
     """Refuse, before any work, outputs that exist (without ``--overwrite``), are inputs, are
-    symbolic links or folders, or name one file twice; and report folders that hold files."""
+    symbolic links or folders, or name one file twice; and report folders that hold files.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed arguments with the ``output_args``/``output_dirs`` declarations.
+
+    Raises
+    ------
+    OutputError
+        One of the outputs cannot be written under the write policy (the message names it).
+    """
     from ..atomic import check_output, check_output_folder
 
     seen = {}
@@ -44,7 +68,27 @@ def check_declared_outputs(args) -> None:
 
 def nonfinite_samples(sweep, path, *, what: str) -> int:
     """How many samples of ``sweep`` are NaN/inf; raises HsiffcError when no light frame holds a
-    finite sample (there is nothing to ``what``)."""
+    finite sample (there is nothing to ``what``).
+
+    Parameters
+    ----------
+    sweep : Sweep
+        Frames read from ``path``.
+    path : str or Path
+        Their file (for the message).
+    what : str
+        What the command would do (e.g. ``"calibrate"``), for the message.
+
+    Returns
+    -------
+    int
+        Number of non-finite samples (0 for integer data).
+
+    Raises
+    ------
+    HsiffcError
+        No light frame holds a finite sample.
+    """
     data = np.asarray(sweep.data)
     if data.dtype.kind != "f":
         return 0
@@ -57,25 +101,69 @@ def nonfinite_samples(sweep, path, *, what: str) -> int:
 
 
 def first_nonfinite(sweep) -> str:
-    """Where the first NaN/inf sample of a float sweep is, as text."""
+    """Where the first NaN/inf sample of a float sweep is, as text.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        Float frames with at least one non-finite sample.
+
+    Returns
+    -------
+    str
+        ``"frame K, pixel (ROW, COL)"``.
+    """
     k, r, c = (int(i) for i in np.argwhere(~np.isfinite(sweep.data))[0])
     return f"frame {k}, pixel ({r}, {c})"
 
 
 def add_overwrite(parser, help: str = "replace an existing output file") -> None:
-    """The ``--overwrite`` option every writing command has (it sets the write policy)."""
+    """The ``--overwrite`` option every writing command has (it sets the write policy).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The sub-command's parser.
+    help : str
+        Help text of the option.
+    """
     parser.add_argument("--overwrite", action="store_true", help=help)
 
 
 def write_json(path: Path, doc) -> None:
-    """Write ``doc`` as indented JSON to ``path`` atomically."""
+    """Write ``doc`` as indented JSON to ``path`` atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file (through the one writer: never over an existing file unless the command's
+        write policy allows it).
+    doc : dict or list
+        JSON-able document (numpy values and paths converted by :func:`json_default`).
+    """
     from ..atomic import atomic_write_text
 
     atomic_write_text(Path(path), json.dumps(doc, indent=2, default=json_default) + "\n")
 
 
 def json_default(obj):
-    """JSON encoder fallback for numpy scalars and arrays and paths."""
+    """JSON encoder fallback for numpy scalars and arrays and paths.
+
+    Parameters
+    ----------
+    obj : object
+        What :mod:`json` could not encode.
+
+    Returns
+    -------
+    object
+        A Python scalar, list or str.
+
+    Raises
+    ------
+    TypeError
+        For any other type.
+    """
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
@@ -87,7 +175,13 @@ def json_default(obj):
 
 def add_input_options(parser) -> None:
     """The metadata options every command that reads frames accepts (lowest priority: values the
-    files or their sidecar give come first; see docs/formats-and-metadata.md)."""
+    files or their sidecar give come first; see docs/formats-and-metadata.md).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The sub-command's parser; gets the group "input metadata".
+    """
     g = parser.add_argument_group(
         "input metadata", "for files that do not carry it (the file, then a sidecar "
         "hsiffc.toml/hsiffc.csv next to it, then these options)")
@@ -115,7 +209,19 @@ def add_input_options(parser) -> None:
 
 def input_overrides(args, **fixed):
     """:class:`hsiffc.io.Overrides` from the options of :func:`add_input_options` (``fixed``
-    replaces some, e.g. ``kind="dark"``)."""
+    replaces some, e.g. ``kind="dark"``).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed arguments.
+    **fixed
+        Metadata fields set by the command itself.
+
+    Returns
+    -------
+    Overrides
+    """
     from ..io import Overrides
 
     values = {name: getattr(args, name, None) for name in

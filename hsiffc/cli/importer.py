@@ -9,7 +9,13 @@ from .common import add_input_options, add_overwrite, input_overrides
 
 
 def register(sub) -> None:
-    """Add ``import`` to the parser's sub-parsers."""
+    """Add ``import`` to the parser's sub-parsers.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        What ``ArgumentParser.add_subparsers()`` returned (see :func:`hsiffc.cli.build_parser`).
+    """
     p = sub.add_parser(
         "import", help="write frames of any supported format as one self-describing hsiffc TIFF",
         description="Read TIFF/PNG/ENVI/FITS files, folders, globs or an EMVA 1288 measurement "

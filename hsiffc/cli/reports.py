@@ -11,7 +11,13 @@ from .common import (DEFAULT_SAMPLES, add_input_options, add_overwrite, first_no
 
 
 def register(sub) -> None:
-    """Add this module's sub-commands to the parser's sub-parsers."""
+    """Add this module's sub-commands to the parser's sub-parsers.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        What ``ArgumentParser.add_subparsers()`` returned (see :func:`hsiffc.cli.build_parser`).
+    """
     _add_demo(sub)
     _add_paper(sub)
     _add_diagnose(sub)

@@ -10,7 +10,13 @@ from .common import add_input_options, add_overwrite, input_overrides, write_jso
 
 
 def register(sub) -> None:
-    """Add this module's sub-commands to the parser's sub-parsers."""
+    """Add this module's sub-commands to the parser's sub-parsers.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        What ``ArgumentParser.add_subparsers()`` returned (see :func:`hsiffc.cli.build_parser`).
+    """
     _add_uniformity(sub)
     _add_study(sub)
 
