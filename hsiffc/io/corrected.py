@@ -73,6 +73,19 @@ class CorrectedWriter:
     does not rename anything. Call :meth:`write` once per frame, then :meth:`finish` with the
     final provenance (it replaces the placeholder description and sets ``"status":
     "complete"``). Memory: one frame at a time (plus one NaN plane when alpha is missing).
+
+    Parameters
+    ----------
+    path : str or Path
+        File to write (normally a temporary file).
+    document : dict
+        Provenance fields written now (the file is marked incomplete until :meth:`finish`).
+    n_frames : int
+        Frames that will be written (>= 1).
+    frame_shape : (int, int)
+        (H, W) of every plane.
+    reserve_per_frame : int
+        Bytes reserved in the description per frame for the final provenance.
     """
 
     def __init__(self, path, document: dict, *, n_frames: int, frame_shape,
@@ -104,7 +117,22 @@ class CorrectedWriter:
                 "pages_per_frame": len(PLANES), **document}
 
     def write(self, data, dq, alpha=None) -> None:
-        """Append frame ``written``: its corrected data, DQ plane and alpha (or None)."""
+        """Append frame ``written``: its corrected data, DQ plane and alpha (or None).
+
+        Parameters
+        ----------
+        data : (H, W) array_like
+            Corrected values (stored as float32, in the unit of the pipeline's output, DN).
+        dq : (H, W) array_like
+            DQ bits (stored as uint32).
+        alpha : (H, W) array_like, optional
+            Leakage percentage (stored as float32; NaN plane when None).
+
+        Raises
+        ------
+        ValueError
+            The writer is finished, all frames are written, or a plane has another shape.
+        """
         if self._closed:
             raise ValueError("the writer is finished")
         if self.written >= self.n_frames:
@@ -147,7 +175,18 @@ class CorrectedWriter:
         self._mark, self._last = self._last, end
 
     def finish(self, document: dict | None = None) -> dict:
-        """Close the file and write the final provenance with ``"status": "complete"``."""
+        """Close the file and write the final provenance with ``"status": "complete"``.
+
+        Parameters
+        ----------
+        document : dict, optional
+            Provenance fields to add or replace (JSON-able).
+
+        Returns
+        -------
+        dict
+            The provenance document written into the file.
+        """
         if self.written != self.n_frames:
             raise ValueError(f"only {self.written} of {self.n_frames} frames were written")
         self.close()
@@ -158,6 +197,7 @@ class CorrectedWriter:
         return final
 
     def close(self) -> None:
+        """Close the file without finishing it (it stays marked incomplete)."""
         if not self._closed:
             self._closed = True
             self._tw.close()
@@ -176,6 +216,15 @@ class BackgroundWriter:
     At most ``depth`` frames wait in the queue (memory stays at a few frames); every
     ``sync_bytes`` written it calls :meth:`CorrectedWriter.sync`. An error in the thread is
     raised in the caller at the next :meth:`write` or at :meth:`close`.
+
+    Parameters
+    ----------
+    writer : CorrectedWriter
+        The writer that writes the frames.
+    depth : int
+        Frames that may wait in the queue.
+    sync_bytes : int
+        Bytes written between two calls of :meth:`CorrectedWriter.sync`.
     """
 
     def __init__(self, writer: CorrectedWriter, depth: int = 1, sync_bytes: int = _SYNC_BYTES):
@@ -201,12 +250,26 @@ class BackgroundWriter:
                     self._error = exc
 
     def write(self, data, dq, alpha=None) -> None:
+        """Queue one frame for :meth:`CorrectedWriter.write` (blocks while ``depth`` frames
+        wait; raises an error of the writing thread).
+
+        Parameters
+        ----------
+        data, dq, alpha : (H, W) arrays
+            As for :meth:`CorrectedWriter.write` (not copied: do not modify them afterwards).
+        """
         if self._error is not None:
             raise self._error
         self._queue.put((data, dq, alpha))
 
     def close(self, *, cancel: bool = False) -> None:
-        """Wait until every queued frame is written (``cancel``: drop them)."""
+        """Wait until every queued frame is written (``cancel``: drop them).
+
+        Parameters
+        ----------
+        cancel : bool
+            Drop the queued frames instead of writing them (after an error).
+        """
         self._cancelled = self._cancelled or cancel
         if self._thread.is_alive():
             self._queue.put(None)
@@ -218,8 +281,19 @@ class BackgroundWriter:
 # -- reading ----------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Corrected:
-    """A corrected cube read back: ``data`` (N, H, W) float32, ``dq`` (N, H, W) uint32,
-    ``alpha`` (N, H, W) float32 and the ``provenance`` JSON (a dict)."""
+    """A corrected cube read back (:func:`read_corrected`).
+
+    Parameters
+    ----------
+    data : ndarray of float32, (N, H, W)
+        Corrected values (DN as the pipeline produced them).
+    dq : ndarray of uint32, (N, H, W)
+        DQ bits.
+    alpha : ndarray of float32, (N, H, W), percent
+        Leakage percentage (NaN where the pipeline computed none).
+    provenance : dict
+        The file's provenance JSON.
+    """
 
     data: np.ndarray
     dq: np.ndarray
@@ -228,10 +302,12 @@ class Corrected:
 
     @property
     def n_frames(self) -> int:
+        """Number of frames read."""
         return int(self.data.shape[0])
 
     @property
     def exposure_ms(self) -> np.ndarray:
+        """(N,) exposure of every frame read, in ms (from the provenance)."""
         return np.asarray(self.provenance.get("exposure", []), np.float64)
 
 
@@ -285,7 +361,17 @@ def _open(path) -> tifffile.TiffFile:
 
 def is_corrected_file(path) -> bool:
     """Whether ``path`` is a TIFF written by ``hsiffc correct`` (complete or not): its first
-    page's description declares ``"format": "hsiffc-corrected"``. Reads the header only."""
+    page's description declares ``"format": "hsiffc-corrected"``. Reads the header only.
+
+    Parameters
+    ----------
+    path : str or Path
+        Any file.
+
+    Returns
+    -------
+    bool
+    """
     try:
         with tifffile.TiffFile(path) as tf:
             text = (tf.pages[0].description or "") if len(tf.pages) else ""
@@ -296,6 +382,16 @@ def is_corrected_file(path) -> bool:
 
 def read_provenance(path) -> dict:
     """The provenance JSON of a corrected file, after checking that it is complete.
+
+    Parameters
+    ----------
+    path : str or Path
+        A file written by ``hsiffc correct``.
+
+    Returns
+    -------
+    dict
+        The provenance document (pipeline, calibration identity, inputs, frames).
 
     Raises
     ------
@@ -308,7 +404,21 @@ def read_provenance(path) -> dict:
 
 
 def iter_corrected(path):
-    """Yield ``(k, data, dq, alpha)`` for every frame, one frame in memory at a time."""
+    """Yield ``(k, data, dq, alpha)`` for every frame, one frame in memory at a time.
+
+    Parameters
+    ----------
+    path : str or Path
+        A complete corrected file.
+
+    Yields
+    ------
+    k : int
+        Frame index.
+    data : ndarray of float32, (H, W)
+    dq : ndarray of uint32, (H, W)
+    alpha : ndarray of float32, (H, W), percent
+    """
     path = Path(path)
     with _open(path) as tf:
         doc = _open_checked(tf, path)

@@ -31,7 +31,33 @@ _KNOWN = {"format", "format_version", "content", "n_frames", "exposure_unit", "e
 
 
 def exposure_to_ms(values, unit: str, *, path=None, what: str = "exposure_unit") -> np.ndarray:
-    """Convert exposure times given in ``unit`` ("s", "ms", "us" or "ns") to milliseconds."""
+    """Convert exposure times given in ``unit`` ("s", "ms", "us" or "ns") to milliseconds.
+
+    Parameters
+    ----------
+    values : array_like
+        Exposure times in ``unit``.
+    unit : {"s", "ms", "us", "ns"}
+        Their unit.
+    path : str or Path, optional
+        File they came from (for the message).
+    what : str
+        Name of the unit field (for the message).
+
+    Returns
+    -------
+    ndarray of float64, ms
+
+    Raises
+    ------
+    DataFormatError
+        Unknown unit.
+
+    Examples
+    --------
+    >>> exposure_to_ms([1500.0, 250.0], "us").tolist()
+    [1.5, 0.25]
+    """
     if unit not in EXPOSURE_UNITS_MS:
         raise DataFormatError(
             f"unknown {what} {unit!r}; use one of {sorted(EXPOSURE_UNITS_MS)} "
@@ -40,13 +66,41 @@ def exposure_to_ms(values, unit: str, *, path=None, what: str = "exposure_unit")
 
 
 def is_hsiffc_document(description: str) -> bool:
-    """True when a TIFF description looks like an hsiffc JSON document (cheap test)."""
+    """True when a TIFF description looks like an hsiffc JSON document (cheap test).
+
+    Parameters
+    ----------
+    description : str
+        ImageDescription of the first page.
+
+    Returns
+    -------
+    bool
+    """
     text = description.lstrip()[:400]
     return text.startswith("{") and '"format"' in text and f'"{FORMAT_NAME}"' in text
 
 
 def parse_document(description: str, path) -> dict:
-    """The hsiffc JSON document in ``description``, checked (format, version, content)."""
+    """The hsiffc JSON document in ``description``, checked (format, version, content).
+
+    Parameters
+    ----------
+    description : str
+        ImageDescription of the first page.
+    path : str or Path
+        The file (for the messages).
+
+    Returns
+    -------
+    dict
+        The parsed document.
+
+    Raises
+    ------
+    DataFormatError
+        Not JSON, another format or version, or invalid content (with the fix).
+    """
     hint = ("add a JSON document to the ImageDescription of the first page, at least "
             f"{MINIMAL_DOCUMENT} (see 'The hsiffc TIFF format' in docs/reference/formats.md), "
             "or write the file with hsiffc.io.write_sweep")
@@ -135,6 +189,15 @@ def _mosaic(doc, path):
 
 def document_fields(doc: dict, n: int, path) -> tuple[dict, dict]:
     """Metadata fields and extra ``meta`` of an hsiffc document for a file of ``n`` pages.
+
+    Parameters
+    ----------
+    doc : dict
+        From :func:`parse_document`.
+    n : int
+        Number of pages (frames) of the file.
+    path : str or Path
+        The file (for the messages).
 
     Returns
     -------

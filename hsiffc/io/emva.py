@@ -45,7 +45,17 @@ _VERSION_LINE = re.compile(r"^\s*v\s+\S", re.MULTILINE)
 
 
 def has_emva_descriptor(folder) -> bool:
-    """True when ``folder`` holds exactly one EMVA 1288 descriptor."""
+    """True when ``folder`` holds exactly one EMVA 1288 descriptor.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Any folder.
+
+    Returns
+    -------
+    bool
+    """
     try:
         find_emva_descriptor(folder)
     except DataFormatError:
@@ -57,6 +67,20 @@ def find_emva_descriptor(folder) -> Path:
     """The descriptor of an EMVA 1288 measurement folder.
 
     ``EMVA1288_Data.txt`` if present, otherwise the only ``*.txt`` file that has a ``v`` line.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The measurement folder.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    DataFormatError
+        No descriptor, or several candidates (the message lists them).
     """
     folder = Path(folder)
     named = folder / DEFAULT_DESCRIPTOR_NAME
@@ -266,7 +290,33 @@ def read_emva1288(path, *, exposure_unit: str = "ns", steps=None,
 def open_emva1288(path, limits: ReadLimits, *, exposure_unit: str = "ns", steps=None,
                   max_frames_per_step: int | None = None) -> FileLayout:
     """The :class:`~hsiffc.io.layout.FileLayout` of an EMVA 1288 measurement (see
-    :func:`read_emva1288`); images are decoded one at a time when read."""
+    :func:`read_emva1288`); images are decoded one at a time when read.
+
+    Parameters
+    ----------
+    path : str or Path
+        The descriptor ``.txt`` or its folder.
+    limits : ReadLimits
+        Size limits.
+    exposure_unit : {"ns", "us", "ms", "s"}
+        Unit of the descriptor's exposure times (EMVA 1288: ns).
+    steps : sequence of int, optional
+        Steps to read (default: all).
+    max_frames_per_step : int, optional
+        Read at most this many images of each step.
+
+    Returns
+    -------
+    FileLayout
+        One frame per image, with exposure (ms), kind, photons and step per frame.
+
+    Raises
+    ------
+    DataFormatError
+        Missing descriptor or images, or an invalid descriptor line.
+    ValueError
+        Unknown ``exposure_unit`` or ``max_frames_per_step`` < 1.
+    """
     import cv2  # opencv-python-headless (core dependency); imported here to keep import light
 
     path = Path(path)

@@ -45,7 +45,23 @@ _ENTRY = re.compile(r"^\s*([^=]+?)\s*=\s*(.*)$")
 
 
 def parse_envi_header(path) -> dict:
-    """``key -> value`` of an ENVI header (keys lower-case; lists as lists of strings)."""
+    """``key -> value`` of an ENVI header (keys lower-case; lists as lists of strings).
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.hdr`` file.
+
+    Returns
+    -------
+    dict
+        Values as strings, ``{...}`` lists as lists of strings.
+
+    Raises
+    ------
+    DataFormatError
+        Unreadable file, or its first line is not ``ENVI``.
+    """
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
@@ -81,7 +97,22 @@ def parse_envi_header(path) -> dict:
 
 
 def envi_paths(path) -> tuple[Path, Path]:
-    """(header, data file) for an ENVI header or data file path."""
+    """(header, data file) for an ENVI header or data file path.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.hdr`` or the data file.
+
+    Returns
+    -------
+    (Path, Path)
+
+    Raises
+    ------
+    DataFormatError
+        Header or data file not found.
+    """
     path = Path(path)
     if path.suffix.lower() == ".hdr":
         header = path
@@ -160,7 +191,26 @@ def _wavelengths_nm(head, header):
 
 
 def open_envi(path, limits: ReadLimits) -> FileLayout:
-    """Parse an ENVI header and return the :class:`FileLayout` of its bands as frames."""
+    """Parse an ENVI header and return the :class:`FileLayout` of its bands as frames.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    limits : ReadLimits
+        Size limits checked against the header before anything is decoded.
+
+    Returns
+    -------
+    FileLayout
+        Frame count, stored shape and dtype, the metadata the file states (with their
+        origins) and a ``read(k)`` that decodes frame k on demand.
+
+    Raises
+    ------
+    DataFormatError
+        Unreadable, truncated or unsupported file, or a header over the limits.
+    """
     header, data = envi_paths(path)
     head = parse_envi_header(header)
     shape, dtype, offset, interleave, (lines, samples, bands) = _geometry(header, head, data,

@@ -111,6 +111,13 @@ def corrected_to_envi(path, *, overwrite: bool | None = None) -> list[Path]:
     ``NAME.dq.hdr``/``.img`` uint32 cube of the DQ bits. Without a mosaic the frame is written
     as a one-band image.
 
+    Parameters
+    ----------
+    path : str or Path
+        A complete corrected file.
+    overwrite : bool, optional
+        Replace existing ENVI files (default: the current write policy, which refuses).
+
     Returns
     -------
     list of Path

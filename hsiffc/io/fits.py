@@ -44,7 +44,26 @@ def _kind(text: str):
 
 
 def open_fits(path, limits: ReadLimits) -> FileLayout:
-    """Parse a FITS header and return its :class:`FileLayout` (no data read)."""
+    """Parse a FITS header and return its :class:`FileLayout` (no data read).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    limits : ReadLimits
+        Size limits checked against the header before anything is decoded.
+
+    Returns
+    -------
+    FileLayout
+        Frame count, stored shape and dtype, the metadata the file states (with their
+        origins) and a ``read(k)`` that decodes frame k on demand.
+
+    Raises
+    ------
+    DataFormatError
+        Unreadable, truncated or unsupported file, or a header over the limits.
+    """
     fits = _fits_module()
     path = Path(path)
     try:

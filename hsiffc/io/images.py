@@ -30,6 +30,15 @@ def png_header(path) -> dict:
     """Facts of a PNG's chunks without decoding it: ``width``, ``height``, ``bit_depth`` (per
     sample), ``colour_type``, ``significant_bits`` (sBIT or None), ``text`` (tEXt chunks).
 
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    dict
+
     Raises
     ------
     DataFormatError
@@ -77,7 +86,26 @@ def png_header(path) -> dict:
 
 
 def open_png(path, limits: ReadLimits) -> FileLayout:
-    """Parse a PNG's header and return its :class:`FileLayout` (one frame, nothing decoded)."""
+    """Parse a PNG's header and return its :class:`FileLayout` (one frame, nothing decoded).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    limits : ReadLimits
+        Size limits checked against the header before anything is decoded.
+
+    Returns
+    -------
+    FileLayout
+        Frame count, stored shape and dtype, the metadata the file states (with their
+        origins) and a ``read(k)`` that decodes frame k on demand.
+
+    Raises
+    ------
+    DataFormatError
+        Unreadable, truncated or unsupported file, or a header over the limits.
+    """
     path = Path(path)
     if path.stat().st_size == 0:
         raise DataFormatError("file is empty (0 bytes); copy or write it again", path=path)

@@ -68,7 +68,17 @@ class FileLayout:
     parallel: bool = True
 
     def give(self, name: str, value, origin: str) -> None:
-        """Record a metadata field found in the file (ignored when ``value`` is None)."""
+        """Record a metadata field found in the file (ignored when ``value`` is None).
+
+        Parameters
+        ----------
+        name : str
+            Field, e.g. ``"exposure_ms"`` (ms), ``"bit_depth"``, ``"kind"``.
+        value : object or None
+            Its value (scalar or one per frame).
+        origin : str
+            Where it was found, e.g. ``"file (EXIF ExposureTime)"``.
+        """
         if value is not None:
             self.fields[name] = value
             self.origins[name] = origin

@@ -55,6 +55,17 @@ class ReadLimits:
     def check_frames(self, *, path, n_frames: int, shape, itemsize: int) -> None:
         """Refuse a header that states more than the limits allow (nothing decoded yet).
 
+        Parameters
+        ----------
+        path : str or Path
+            The file (for the message).
+        n_frames : int
+            Frames the header states.
+        shape : tuple of int
+            Stored shape of one frame.
+        itemsize : int
+            Bytes per sample.
+
         Raises
         ------
         DataFormatError
@@ -80,7 +91,22 @@ class ReadLimits:
         self.check_bytes(path=path, nbytes=pixels * int(itemsize), what="one frame")
 
     def check_bytes(self, *, path, nbytes: int, what: str) -> None:
-        """Refuse to hold ``nbytes`` decoded bytes in memory at once."""
+        """Refuse to hold ``nbytes`` decoded bytes in memory at once.
+
+        Parameters
+        ----------
+        path : str or Path
+            The input (for the message).
+        nbytes : int
+            Bytes that would be held.
+        what : str
+            What they are (for the message).
+
+        Raises
+        ------
+        DataFormatError
+            Over ``max_bytes``; the message says how to stream instead or raise the limit.
+        """
         if nbytes > self.max_bytes:
             raise DataFormatError(
                 f"{what} would take {nbytes / 1024 ** 3:.3g} GiB in memory, more than the limit "
@@ -89,7 +115,17 @@ class ReadLimits:
 
 
 def default_limits() -> ReadLimits:
-    """The limits in force: :class:`ReadLimits` defaults, raised by the environment variables."""
+    """The limits in force: :class:`ReadLimits` defaults, raised by the environment variables.
+
+    Returns
+    -------
+    ReadLimits
+
+    Raises
+    ------
+    DataFormatError
+        An environment variable that is not a number.
+    """
     values = {}
     for name, env in _ENV.items():
         text = os.environ.get(env)

@@ -51,7 +51,15 @@ class MetadataConflictWarning(HsiffcWarning):
 
 @dataclass(frozen=True)
 class ActiveArea:
-    """The part of the sensor covered by the filter mosaic, in pixels (from an IMEC XML)."""
+    """The part of the sensor covered by the filter mosaic, in pixels (from an IMEC XML).
+
+    Parameters
+    ----------
+    row, col : int
+        First row and column of the area.
+    height, width : int
+        Its size.
+    """
 
     row: int
     col: int
@@ -59,7 +67,17 @@ class ActiveArea:
     width: int
 
     def crop(self, frame: np.ndarray) -> np.ndarray:
-        """The active area of a full-sensor frame (a view)."""
+        """The active area of a full-sensor frame (a view).
+
+        Parameters
+        ----------
+        frame : (H, W) ndarray
+            Full-sensor frame.
+
+        Returns
+        -------
+        ndarray, (height, width)
+        """
         return frame[self.row:self.row + self.height, self.col:self.col + self.width]
 
 
@@ -102,7 +120,13 @@ class Overrides:
             raise DataFormatError(f"kind must be one of {list(FRAME_KINDS)}, got {self.kind!r}")
 
     def given(self) -> dict:
-        """The metadata fields given (not None), sidecar excluded."""
+        """The metadata fields given (not None), sidecar excluded.
+
+        Returns
+        -------
+        dict
+            Field name -> value.
+        """
         return {f.name: getattr(self, f.name) for f in dc_fields(self)
                 if f.name != "sidecar" and getattr(self, f.name) is not None}
 
@@ -110,8 +134,26 @@ class Overrides:
 def parse_mosaic(spec, *, base=None, path=None) -> tuple[Mosaic, ActiveArea | None]:
     """A mosaic from ``"4x4"``, ``"5x5"``, ``"WxH"`` (tile width x height) or an IMEC XML path.
 
-    Returns the mosaic and, for an IMEC XML, the active (filter) area to crop frames to; the
-    returned mosaic then has offset (0, 0) because it applies to the cropped frames.
+    Parameters
+    ----------
+    spec : str, Path or Mosaic
+        The mosaic as given (a Mosaic passes through).
+    base : Path, optional
+        Folder a relative XML path is relative to (a sidecar's folder).
+    path : str or Path, optional
+        The data file (for the messages).
+
+    Returns
+    -------
+    mosaic : Mosaic
+        For an IMEC XML with offset (0, 0): it applies to the cropped frames.
+    area : ActiveArea or None
+        The active (filter) area to crop frames to (IMEC XML only).
+
+    Raises
+    ------
+    DataFormatError
+        Not a tile size or a readable IMEC XML.
     """
     if isinstance(spec, Mosaic):
         return spec, None
@@ -140,7 +182,22 @@ def parse_mosaic(spec, *, base=None, path=None) -> tuple[Mosaic, ActiveArea | No
 
 
 def missing_field_error(path, name: str, *, sidecar=None) -> DataFormatError:
-    """The error for a field none of the three sources gives."""
+    """The error for a field none of the three sources gives.
+
+    Parameters
+    ----------
+    path : str or Path
+        The data file.
+    name : str
+        The missing field (a key of ``HOW_TO_GIVE``).
+    sidecar : str or Path, optional
+        The sidecar that was read, if any.
+
+    Returns
+    -------
+    DataFormatError
+        Naming the file, the field and the three ways to give it (not raised here).
+    """
     side, option = HOW_TO_GIVE[name]
     where = f"in {Path(sidecar).name}" if sidecar else "in a sidecar hsiffc.toml next to it"
     return DataFormatError(

@@ -32,7 +32,28 @@ class LayoutWarning(HsiffcWarning):
 
 
 def single_channel(raw: np.ndarray, path, k: int, hint: str = "") -> np.ndarray:
-    """Channel 0 of an (H, W, C) frame whose colour channels are equal; (H, W) unchanged."""
+    """Channel 0 of an (H, W, C) frame whose colour channels are equal; (H, W) unchanged.
+
+    Parameters
+    ----------
+    raw : ndarray, (H, W) or (H, W, C)
+        A decoded frame.
+    path : str or Path
+        Its file (for the message).
+    k : int
+        Its frame index (for the message).
+    hint : str
+        Extra advice appended to the message.
+
+    Returns
+    -------
+    ndarray, (H, W)
+
+    Raises
+    ------
+    DataFormatError
+        Channels that differ (a colour image), or an unsupported shape.
+    """
     if raw.ndim == 2:
         return raw
     if raw.ndim != 3 or raw.shape[2] not in (2, 3, 4):
@@ -61,6 +82,18 @@ def detect_left_aligned(raw: np.ndarray, bit_depth: int | None) -> int:
     scale and are all multiples of ``2**(16 - bit_depth)``. Without it, a frame whose non-zero
     values are all multiples of 4 or more (at least 2 spare low bits, at most 8) is taken as
     left-aligned by that many bits.
+
+    Parameters
+    ----------
+    raw : ndarray
+        One decoded frame (only uint16 can be left-aligned).
+    bit_depth : int or None
+        The stated bit depth, if known.
+
+    Returns
+    -------
+    int
+        Bits to shift right (0: none).
     """
     if raw.dtype != np.uint16 or raw.size == 0:
         return 0
@@ -77,7 +110,28 @@ def detect_left_aligned(raw: np.ndarray, bit_depth: int | None) -> int:
 
 
 def unshift(raw: np.ndarray, shift: int, path, k: int) -> np.ndarray:
-    """``raw >> shift``; an error if any of the dropped low bits is set."""
+    """``raw >> shift``; an error if any of the dropped low bits is set.
+
+    Parameters
+    ----------
+    raw : ndarray of unsigned int
+        A decoded frame.
+    shift : int
+        Bits to shift right.
+    path : str or Path
+        Its file (for the message).
+    k : int
+        Its frame index (for the message).
+
+    Returns
+    -------
+    ndarray, same shape and dtype
+
+    Raises
+    ------
+    DataFormatError
+        A dropped low bit is set (the samples are not left-aligned by ``shift``).
+    """
     if not shift:
         return raw
     low = int(np.bitwise_or.reduce(raw & ((1 << shift) - 1), axis=None))
@@ -90,7 +144,20 @@ def unshift(raw: np.ndarray, shift: int, path, k: int) -> np.ndarray:
 
 
 def infer_bit_depth(dtype: np.dtype, path) -> int:
-    """Bit depth of integer samples assumed from their dtype, with a :class:`LayoutWarning`."""
+    """Bit depth of integer samples assumed from their dtype, with a :class:`LayoutWarning`.
+
+    Parameters
+    ----------
+    dtype : numpy dtype
+        Sample type.
+    path : str or Path
+        The file (for the warning).
+
+    Returns
+    -------
+    int
+        8 times the item size.
+    """
     dtype = np.dtype(dtype)
     bits = 8 * dtype.itemsize
     warnings.warn(f"{path}: no bit depth given; assuming {bits} bits from the dtype {dtype} "

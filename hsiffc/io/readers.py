@@ -23,7 +23,17 @@ ACCEPTED = ("TIFF (.tif/.tiff), PNG, ENVI (.hdr + data), FITS (.fits), an EMVA 1
 
 
 def list_folder(folder: Path) -> list[Path]:
-    """Image files directly in ``folder`` sorted by name; or its EMVA 1288 descriptor."""
+    """Image files directly in ``folder`` sorted by name; or its EMVA 1288 descriptor.
+
+    Parameters
+    ----------
+    folder : Path
+        The folder.
+
+    Returns
+    -------
+    list of Path
+    """
     from .emva import find_emva_descriptor, has_emva_descriptor
 
     if has_emva_descriptor(folder):
@@ -38,7 +48,26 @@ def list_folder(folder: Path) -> list[Path]:
 
 
 def open_layout(path, limits: ReadLimits) -> FileLayout:
-    """Parse the header of one file with the reader its suffix names."""
+    """Parse the header of one file with the reader its suffix names.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    limits : ReadLimits
+        Size limits checked against the header before anything is decoded.
+
+    Returns
+    -------
+    FileLayout
+        Frame count, stored shape and dtype, the metadata the file states (with their
+        origins) and a ``read(k)`` that decodes frame k on demand.
+
+    Raises
+    ------
+    DataFormatError
+        Unreadable, truncated or unsupported file, or a header over the limits.
+    """
     path = Path(path)
     if not path.exists():
         raise DataFormatError("file not found; check the path", path=path)
@@ -68,6 +97,16 @@ def expand_inputs(inputs) -> list[Path]:
     """Files named by ``inputs`` (paths, folders, globs), in order; folders sorted by name.
 
     A folder that holds an EMVA 1288 descriptor stands for itself (the descriptor is read).
+
+    Parameters
+    ----------
+    inputs : str, Path or sequence of them
+        Files, folders or glob patterns.
+
+    Returns
+    -------
+    list of Path
+        Files in order (an empty list when nothing matches).
     """
     items = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
     out: list[Path] = []

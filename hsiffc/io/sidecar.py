@@ -63,7 +63,17 @@ SIDECAR_FIELDS = {"exposure_ms": float, "kind": str, "illumination": str, "bit_d
 
 
 def find_sidecar(folder) -> Path | None:
-    """The sidecar in ``folder`` (``hsiffc.toml``, else ``hsiffc.csv``), or None."""
+    """The sidecar in ``folder`` (``hsiffc.toml``, else ``hsiffc.csv``), or None.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Folder of the data files.
+
+    Returns
+    -------
+    Path or None
+    """
     for name in SIDECAR_NAMES:
         candidate = Path(folder) / name
         if candidate.is_file():
@@ -165,7 +175,18 @@ class Sidecar:
                                          for k, v in cells.items()}))
 
     def fields_for(self, path) -> dict:
-        """The fields that apply to data file ``path`` (later matching rules win)."""
+        """The fields that apply to data file ``path`` (later matching rules win).
+
+        Parameters
+        ----------
+        path : str or Path
+            A data file.
+
+        Returns
+        -------
+        dict
+            Field name -> value (exposure in ms, bit depth, kind, ...).
+        """
         path = Path(path)
         try:
             rel = path.resolve().relative_to(self.path.parent.resolve()).as_posix()
@@ -178,5 +199,16 @@ class Sidecar:
         return out
 
     def describe(self, path) -> str:
-        """Origin label of values taken from this sidecar."""
+        """Origin label of values taken from this sidecar.
+
+        Parameters
+        ----------
+        path : str or Path
+            The data file the values apply to.
+
+        Returns
+        -------
+        str
+            E.g. ``"sidecar hsiffc.toml"``.
+        """
         return f"sidecar {self.path.name}"

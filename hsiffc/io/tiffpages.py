@@ -160,6 +160,17 @@ def _exposure_from_tags(page) -> tuple[float | None, str]:
 def open_tiff(path, limits: ReadLimits) -> FileLayout:
     """Parse a TIFF's header and return its :class:`FileLayout` (no pixel decoded).
 
+    Parameters
+    ----------
+    path : str or Path
+        A ``.tif``/``.tiff`` file (plain or hsiffc).
+    limits : ReadLimits
+        Size limits checked against the header.
+
+    Returns
+    -------
+    FileLayout
+
     Raises
     ------
     DataFormatError
