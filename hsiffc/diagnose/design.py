@@ -23,7 +23,13 @@ MIN_SEPARABLE = 0.02  # smallest fraction of an effect the base must leave separ
 
 @dataclass
 class Design:
-    """Facts of a sweep's design that decide what can be fitted and identified."""
+    """Facts of a sweep's design that decide what can be fitted and identified.
+
+    Made by :func:`describe`; the fields are commented in the class body: frame pairs in
+    every step, how the held-out samples were made, counts of light and dark steps and of
+    distinct exposures (ms) and light rates, whether light rates differ at equal signal (which
+    separates leakage from a compressive readout), and notes.
+    """
 
     pairs: bool  # two or more frames in every step
     held_out: str
@@ -37,11 +43,34 @@ class Design:
     notes: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
+        """The fields as a plain dict (for the JSON result).
+
+        Returns
+        -------
+        dict
+        """
         return {k: v for k, v in self.__dict__.items()}
 
 
 def subset(sweep: Sweep, max_pixels: int, seed: int):
-    """A random subset of pixels as a (N, 1, P) sweep, with their rows, columns and band."""
+    """A random subset of pixels as a (N, 1, P) sweep, with their rows, columns and band.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        Frames (N, H, W).
+    max_pixels : int
+        Pixels to keep (all when the frame has fewer).
+    seed : int
+        Seed of the random choice.
+
+    Returns
+    -------
+    sub : Sweep
+        (N, 1, P), no mosaic.
+    rows, cols, band : ndarray of int, (P,)
+        Where each pixel was and its band (0 without a mosaic).
+    """
     h, w = sweep.frame_shape
     n = h * w
     rng = np.random.default_rng(seed)
@@ -67,8 +96,18 @@ def _pair_split(sweep: Sweep):
 def samples(sub: Sweep, full_well_dn=None):
     """Fit and held-out samples of a (pixel-subset) sweep.
 
-    Returns a dict with y, y_ho (P, S), valid, valid_ho (P, S), t, r, kind, step (S,), n_fit,
-    n_ho (S,) frames per sample, pairs (bool), frame_gap, held_out (description), usable (S,).
+    Parameters
+    ----------
+    sub : Sweep
+        A pixel subset from :func:`subset`, (N, 1, P).
+    full_well_dn : float, optional, DN
+        Step means at or above it are not valid.
+
+    Returns
+    -------
+    dict
+        y, y_ho (P, S) DN, valid, valid_ho (P, S), t (ms), r, kind, step (S,), n_fit, n_ho
+        (S,) frames per sample, pairs (bool), frame_gap, held_out (description), usable (S,).
     """
     counts = np.array([(sub.step == s).sum() for s in sub.steps()])
     pairs = bool(np.all(counts >= 2))
@@ -102,6 +141,17 @@ def samples(sub: Sweep, full_well_dn=None):
 
 
 def describe(smp) -> Design:
+    """The :class:`Design` of the samples from :func:`samples`.
+
+    Parameters
+    ----------
+    smp : dict
+        From :func:`samples`.
+
+    Returns
+    -------
+    Design
+    """
     light = (smp["kind"] == "light") & smp["usable"]
     dark = (smp["kind"] == "dark") & smp["usable"]
     t, r = smp["t"], smp["r"]
@@ -127,7 +177,30 @@ def describe(smp) -> Design:
 def dark_model(y, t, r, valid, w, design: Design):
     """Whether the dark current is part of the base model, and why: only when the dark samples
     of the fit half span two exposures and the pixels as a whole show a dark current above the
-    noise. Returns (bool, description dict)."""
+    noise.
+
+    Parameters
+    ----------
+    y : ndarray, (P, S), DN
+        Fit samples.
+    t : ndarray, (S,), ms
+        Exposures.
+    r : ndarray, (S,)
+        Relative light rates (0 for darks).
+    valid : ndarray of bool, (P, S)
+        Samples to use.
+    w : ndarray, (P, S)
+        Weights.
+    design : Design
+        The sweep's design.
+
+    Returns
+    -------
+    use : bool
+        Whether the dark current is fitted.
+    description : dict
+        ``model`` and ``reason`` (and figures when measured).
+    """
     if design.dark_exposures < 2:
         why = ("no dark frames" if design.n_dark_steps == 0 else
                "dark frames at one exposure only")
@@ -150,7 +223,20 @@ def dark_model(y, t, r, valid, w, design: Design):
 
 
 def describe_dark_current(dc, desc: dict) -> dict:
-    """The dark-current figures of the final model added to the dark model's description."""
+    """The dark-current figures of the final model added to the dark model's description.
+
+    Parameters
+    ----------
+    dc : ndarray, (P,), DN/ms
+        Fitted dark current per pixel.
+    desc : dict
+        From :func:`dark_model`.
+
+    Returns
+    -------
+    dict
+        ``desc`` plus median and robust spread of the dark current (DN/ms) when it is fitted.
+    """
     if "dark current" not in desc["model"]:
         return desc
     med = float(np.median(dc))
@@ -160,7 +246,22 @@ def describe_dark_current(dc, desc: dict) -> dict:
 
 def structural_skip(name, design: Design, dark) -> str | None:
     """Why the design cannot identify effect ``name`` (None when it can, as far as the design
-    alone tells; see also :func:`hsiffc.diagnose.fitting.separable_fraction`)."""
+    alone tells; see also :func:`hsiffc.diagnose.fitting.separable_fraction`).
+
+    Parameters
+    ----------
+    name : str
+        Effect name (a key of :data:`hsiffc.diagnose.EFFECTS`).
+    design : Design
+        The sweep's design.
+    dark : dict
+        The dark model's description (:func:`dark_model`).
+
+    Returns
+    -------
+    str or None
+        The reason, in words.
+    """
     from .effects import EFFECTS
 
     scope = EFFECTS[name].scope
@@ -183,7 +284,19 @@ def structural_skip(name, design: Design, dark) -> str | None:
 
 
 def noise_pairs(smp, valid):
-    """Temporal variance of one frame per step (S,), from the frame pairs, mean over pixels."""
+    """Temporal variance of one frame per step (S,), from the frame pairs, mean over pixels.
+
+    Parameters
+    ----------
+    smp : dict
+        From :func:`samples` (with frame pairs).
+    valid : ndarray of bool, (P, S)
+        Samples valid in both halves.
+
+    Returns
+    -------
+    ndarray, (S,), DN^2
+    """
     y, y_ho = smp["y"], smp["y_ho"]
     pair = (y - y_ho) ** 2 / (1.0 / smp["n_fit"][None, :] + 1.0 / smp["n_ho"][None, :])
     return np.where(valid, pair, 0).sum(0) / np.maximum(valid.sum(0), 1)
@@ -194,7 +307,31 @@ def noise_from_spread(res_ho, valid_ho, signal, pred_var, n_frames):
     robust spread across pixels of the held-out residual (a linear trend in signal removed; a
     common error of the step does not enter), minus the prediction's own variance, then a
     photon-transfer line ``var = K signal + R`` through the steps. Systematic errors that differ
-    from pixel to pixel at equal signal inflate it (conservative)."""
+    from pixel to pixel at equal signal inflate it (conservative).
+
+    Parameters
+    ----------
+    res_ho : ndarray, (P, S), DN
+        Held-out residuals.
+    valid_ho : ndarray of bool, (P, S)
+        Valid held-out samples.
+    signal : ndarray, (P, S), DN
+        Model signal above dark.
+    pred_var : ndarray, (P, S), DN^2
+        Variance of the prediction itself.
+    n_frames : ndarray, (S,)
+        Frames averaged in each held-out sample.
+
+    Returns
+    -------
+    callable
+        ``variance(signal_dn)`` of one frame in DN^2.
+
+    Raises
+    ------
+    DataFormatError
+        No held-out step has 20 valid pixels (the message says how to get more).
+    """
     rows = []
     for s in range(res_ho.shape[1]):
         ok = valid_ho[:, s]
@@ -220,6 +357,19 @@ def noise_from_spread(res_ho, valid_ho, signal, pred_var, n_frames):
 
 def frame_variance(sub, smp):
     """Per-frame variance model (callable on signal above dark) from the photon transfer curve
-    where the design has frame pairs; None otherwise."""
+    where the design has frame pairs; None otherwise.
+
+    Parameters
+    ----------
+    sub : Sweep
+        The pixel subset.
+    smp : dict
+        From :func:`samples`.
+
+    Returns
+    -------
+    callable or None
+        ``variance(signal_dn)`` in DN^2 (:meth:`hsiffc.calibrate.PhotonTransfer.variance`).
+    """
     ptc = photon_transfer(sub) if smp["pairs"] else None
     return None if ptc is None else ptc.variance

@@ -27,7 +27,35 @@ DESIGNS = ("mixed", "exposure", "light")
 
 
 def design_steps(design: str, n_steps: int, seed: int):
-    """Exposures (ms) and relative light levels of the light steps of a design."""
+    """Exposures (ms) and relative light levels of the light steps of a design.
+
+    Parameters
+    ----------
+    design : {"mixed", "exposure", "light"}
+        Shuffled exposures with changing light, an exposure sweep at one light level, or a
+        light sweep at one exposure.
+    n_steps : int
+        Light steps.
+    seed : int
+        Seed of the random choices.
+
+    Returns
+    -------
+    exposure_ms : ndarray, (n_steps,), ms
+    levels : ndarray, (n_steps,)
+        Relative light level of each step (1 = the given irradiance).
+
+    Raises
+    ------
+    ValueError
+        Unknown design.
+
+    Examples
+    --------
+    >>> t, levels = design_steps("exposure", 3, seed=0)
+    >>> t.tolist(), levels.tolist()
+    ([2.0, 20.0, 200.0], [0.25, 0.25, 0.25])
+    """
     rng = np.random.default_rng(seed)
     if design == "mixed":
         t = rng.permutation(np.round(np.geomspace(2, 200, n_steps), 3))
@@ -44,9 +72,30 @@ def simulated_sweep(design: str = "mixed", *, shape=(24, 32), n_steps: int = 40,
                     **params) -> Sweep:
     """A simulated sweep of a design (see the module docstring) on the default 8-band sensor.
 
-    ``params`` override :class:`hsiffc.simulate.SensorParams` fields (default: no dark
-    current, so that the base model's constant dark level is right). ``irradiance`` (W/m^2)
-    defaults to the paper's training level (lamp A).
+    Parameters
+    ----------
+    design : {"mixed", "exposure", "light"}
+        See :func:`design_steps`.
+    shape : (int, int)
+        (H, W) of the simulated frames.
+    n_steps : int
+        Light steps.
+    n_frames : int
+        Frames per step.
+    darks : bool
+        Add a dark step after each light step.
+    seed : int
+        Seed of the sensor, the design and the noise.
+    irradiance : float, optional, W/m^2
+        Default: the paper's training level (lamp A).
+    **params
+        :class:`hsiffc.simulate.SensorParams` fields (default: no dark current, so that the
+        base model's constant dark level is right).
+
+    Returns
+    -------
+    Sweep
+        Raw frames (N, H, W) in DN with ``meta["truth"]``.
     """
     params.setdefault("dark_current_dn_per_ms", 0.0)
     sensor = MosaicSensor(shape, seed=seed, params=SensorParams(**params))
@@ -61,7 +110,21 @@ def write_emva1288(sweep: Sweep, folder, *, overwrite: bool = False) -> Path:
     photons per pixel per step) and one 8- or 16-bit PNG per frame under ``images/``.
 
     Light steps need photon counts (``sweep.photons``); a simulated sweep from
-    ``sweep_varying_light`` has relative ones. Returns the descriptor path.
+    ``sweep_varying_light`` has relative ones.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        Frames with photon counts for the light steps.
+    folder : str or Path
+        Output folder (created).
+    overwrite : bool
+        Replace existing files.
+
+    Returns
+    -------
+    Path
+        The descriptor ``EMVA1288_Data.txt``.
 
     Raises
     ------

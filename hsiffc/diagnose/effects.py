@@ -22,7 +22,29 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Context:
-    """What effect columns are built from; arrays (P, S) unless stated."""
+    """What effect columns are built from; arrays (P, S) unless stated.
+
+    Parameters
+    ----------
+    t : ndarray, ms
+        Exposure.
+    k : ndarray, DN/ms
+        Base-model light rate (0 for darks).
+    signal : ndarray, DN
+        Base-model response above the dark level.
+    order : ndarray, (S,)
+        Acquisition order scaled to [-1, 1].
+    prev_signal : ndarray, DN
+        Base-model signal of the previous step in acquisition order.
+    light : ndarray of bool, (S,)
+        Light steps.
+    full_scale : float, DN
+        ``2**bit_depth - 1``.
+    dydt : ndarray, DN/ms
+        Base-model ``dY/dt = k - a e^{bY}``.
+    dydlnk : ndarray, DN
+        Base-model ``dY / d ln k``.
+    """
 
     t: np.ndarray  # exposure, ms
     k: np.ndarray  # base-model light rate, DN/ms (0 for darks)
@@ -37,7 +59,23 @@ class Context:
 
 @dataclass(frozen=True)
 class Effect:
-    """One candidate effect (see the module docstring)."""
+    """One candidate effect (see the module docstring).
+
+    Parameters
+    ----------
+    name : str
+        Its name (``hsiffc diagnose --list-effects``).
+    summary : str
+        One line describing it.
+    scope : {"global", "pair", "pixel", "step"}
+        What its parameters belong to.
+    param_names : tuple of str
+        Names of its parameters.
+    columns : callable
+        :class:`Context` -> (P, S, m) design columns of the effect.
+    interpret : callable
+        Fitted parameters (dict) -> one sentence.
+    """
 
     name: str
     summary: str  # one line for the README and --list-effects
@@ -47,6 +85,19 @@ class Effect:
     interpret: Callable  # params dict -> one sentence
 
     def n_params(self, n_pixels: int, n_light_steps: int) -> int:
+        """Free parameters the effect adds (for the information criterion).
+
+        Parameters
+        ----------
+        n_pixels : int
+            Pixels analysed.
+        n_light_steps : int
+            Light steps of the fit.
+
+        Returns
+        -------
+        int
+        """
         m = len(self.param_names)
         return {"global": m, "pair": m, "pixel": m * n_pixels, "step": n_light_steps}[self.scope]
 
@@ -169,6 +220,38 @@ def inject(name: str, size: float, *, t, k, signal, order, prev_signal, light, f
     term, negative = compressive; pixel_nonlinearity: the per-pixel spread), DN (offset_drift:
     linear peak; adc_ripple: amplitude), relative (illumination_error: RMS; image_lag: fraction;
     frame_light_change: light change per frame within a step, applied by :func:`add_effect`).
+
+    Parameters
+    ----------
+    name : str
+        Effect name (or alias).
+    size : float
+        Its size in the unit above.
+    t, k, signal : ndarray, (P, S)
+        True exposure (ms), light rate (DN/ms) and signal above dark (DN).
+    order : ndarray, (S,)
+        Acquisition order scaled to [-1, 1].
+    prev_signal : ndarray, (P, S), DN
+        True signal of the previous step.
+    light : ndarray of bool, (S,)
+        Light steps.
+    full_scale : float, DN
+        ADC full scale.
+    rng : numpy.random.Generator
+        Source of the random spreads.
+    dydt, dydlnk : ndarray, (P, S), optional
+        ``dY/dt`` (DN/ms) and ``dY/d ln k`` (DN) of the true model (needed by
+        exposure_offset, frame_light_change and illumination_error).
+
+    Returns
+    -------
+    ndarray, (P, S), DN
+        To add to the true response.
+
+    Raises
+    ------
+    KeyError
+        Unknown effect (the message lists the known ones).
     """
     fs = full_scale
     name = ALIASES.get(name, name)
@@ -204,6 +287,38 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = 
     dark steps none; acquisition order is the frame order. ``in_well`` (dark_current only; the
     default): the extra dark charge is collected in the well and leaks with the signal (through
     the model's ODE); False adds it to the response after the leakage.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        A simulated sweep (``meta["truth"]`` from :mod:`hsiffc.simulate`).
+    name : str
+        Effect name (``hsiffc diagnose --list-effects``).
+    size : float
+        Its size in the effect's unit (see :func:`inject`).
+    seed : int
+        Seed of the effect's random spreads.
+    in_well : bool
+        dark_current only: collected in the well (True) or added after the leakage.
+
+    Returns
+    -------
+    Sweep
+        A copy with the effect in its raw frames (DN, the sweep's dtype) and the effect
+        recorded in ``meta``.
+
+    Raises
+    ------
+    ValueError
+        The sweep has no ``meta["truth"]``.
+
+    Examples
+    --------
+    >>> from hsiffc.diagnose.designs import simulated_sweep
+    >>> sweep = simulated_sweep("exposure", shape=(4, 4), n_steps=6, seed=3)
+    >>> lagged = add_effect(sweep, "image_lag", 0.05)
+    >>> lagged.data.shape == sweep.data.shape, bool((lagged.data != sweep.data).any())
+    (True, True)
     """
     from dataclasses import replace as replace_fields
 
