@@ -35,7 +35,18 @@ MIN_LIGHT_STEPS = 4
 
 def list_effects() -> list[dict]:
     """The effect library: one dict per effect with ``name``, ``scope``, ``params`` and
-    ``summary`` (what ``hsiffc diagnose --list-effects`` prints)."""
+    ``summary`` (what ``hsiffc diagnose --list-effects`` prints).
+
+    Returns
+    -------
+    list of dict
+
+    Examples
+    --------
+    >>> effects = list_effects()
+    >>> "dark_current" in [e["name"] for e in effects], sorted(effects[0])
+    (True, ['name', 'params', 'scope', 'summary'])
+    """
     return [{"name": e.name, "scope": e.scope, "params": list(e.param_names),
              "summary": e.summary} for e in EFFECTS.values()]
 
@@ -85,16 +96,25 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         held out).
     max_pixels : int
         Pixels analysed (a random subset when the sensor has more).
+    seed : int
+        Seed of the pixel subset.
     effects : list of str, optional
-        Candidate effects (default: the whole library).
+        Candidate effects (default: the whole library, :func:`list_effects`).
+    full_well_dn : float, optional, DN
+        Step means at or above it are not used.
 
     Returns
     -------
-    dict with the fields of ``hsiffc diagnose --json`` plus the arrays the report plots (under
-    ``"_arrays"``).
+    dict
+        The fields of ``hsiffc diagnose --json`` (design, base model, noise floor in DN,
+        RMS before and after in DN, selected effects with their sizes, what stays unexplained)
+        plus the arrays the report plots (under ``"_arrays"``). Run time: seconds (measured
+        by ``benchmarks/bench_diagnose.py``).
 
     Raises
     ------
+    ValueError
+        Unknown effect names (the message lists the library).
     DataFormatError
         A design nothing can be learned from (fewer than 4 usable light steps, no valid sample).
     """

@@ -25,7 +25,12 @@ BIG_EFFECT = 2.0  # RMS of a newly added effect, in noise sigmas, that calls for
 
 @dataclass
 class Data:
-    """Everything a fit needs; arrays (P, S) unless stated."""
+    """Everything a fit needs; arrays (P, S) unless stated.
+
+    The fields (commented in the class body) are the fit-half and held-out step means (DN),
+    exposures (ms), relative light rates, validity masks, weights (1/DN^2), acquisition order,
+    previous step, light mask, full scale (DN) and the frame gap between the two halves.
+    """
 
     y: np.ndarray  # fit-half step means, DN
     y_ho: np.ndarray  # held-out step means, DN
@@ -42,7 +47,17 @@ class Data:
 
 
 class State:
-    """Base-model parameters and fitted effects of one model."""
+    """Base-model parameters and fitted effects of one model.
+
+    Parameters
+    ----------
+    base : LinearBase or LeakageBase
+        The base model.
+    theta : ndarray, (P, n)
+        Its parameters per pixel.
+    effects : dict, optional
+        Effect name -> (parameters, prediction (P, S) in DN).
+    """
 
     def __init__(self, base, theta, effects=None):
         self.base = base
@@ -52,6 +67,19 @@ class State:
         self.ho_extra = 0.0  # what within-step ("pair") effects add to the held-out half
 
     def sum_effects(self, shape, skip=None):
+        """Sum of the predictions (DN) of the fitted effects, within-step ones excluded.
+
+        Parameters
+        ----------
+        shape : (int, int)
+            (P, S).
+        skip : str, optional
+            An effect to leave out.
+
+        Returns
+        -------
+        ndarray, (P, S), DN
+        """
         out = np.zeros(shape)
         for n, (_, p) in self.effects.items():
             if n != skip and EFFECTS[n].scope != "pair":
@@ -60,6 +88,24 @@ class State:
 
 
 def context(base, theta, data: Data):
+    """The base model evaluated on the data, and the :class:`Context` effects are built from.
+
+    Parameters
+    ----------
+    base : LinearBase or LeakageBase
+        The base model.
+    theta : ndarray, (P, n)
+        Its parameters.
+    data : Data
+        The samples.
+
+    Returns
+    -------
+    model : ndarray, (P, S), DN
+    jac : ndarray, (P, S, n)
+        Jacobian of the model with respect to ``theta``.
+    ctx : Context
+    """
     m, jac, k, dydt, dydlnk = base.evaluate(theta, data.t, data.r)
     signal = m - base.dark(theta)
     pi = data.prev_index
@@ -71,12 +117,37 @@ def context(base, theta, data: Data):
 
 
 def gram(a, w, b):
-    """Per pixel a^T W b: (P, S, i), (P, S), (P, S, j) -> (P, i, j), as batched matmuls."""
+    """Per pixel a^T W b: (P, S, i), (P, S), (P, S, j) -> (P, i, j), as batched matmuls.
+
+    Parameters
+    ----------
+    a : ndarray, (P, S, i)
+    w : ndarray, (P, S)
+        Weights.
+    b : ndarray, (P, S, j)
+
+    Returns
+    -------
+    ndarray, (P, i, j)
+    """
     return np.matmul((a * w[..., None]).transpose(0, 2, 1), b)
 
 
 def projector(jac, w):
-    """Per pixel, the map v -> v - J (J^T W J)^-1 J^T W v (what the base cannot absorb)."""
+    """Per pixel, the map v -> v - J (J^T W J)^-1 J^T W v (what the base cannot absorb).
+
+    Parameters
+    ----------
+    jac : ndarray, (P, S, n)
+        Base-model Jacobian.
+    w : ndarray, (P, S)
+        Weights.
+
+    Returns
+    -------
+    callable
+        ``project(v)`` for v of shape (P, S) or (P, S, m).
+    """
     normal = gram(jac, w, jac)
     normal += 1e-9 * (np.einsum("pii->p", normal)[:, None, None] + 1e-30) * np.eye(jac.shape[-1])
     inv = np.linalg.pinv(normal)
@@ -93,7 +164,24 @@ def projector(jac, w):
 def separable_fraction(effect, ctx, project, w) -> float:
     """Smallest fraction of the effect's weighted column energy, over directions in its
     parameter space, that the base model's parameters cannot absorb (1: fully separable,
-    0: the design cannot tell the effect from the base)."""
+    0: the design cannot tell the effect from the base).
+
+    Parameters
+    ----------
+    effect : Effect
+        The candidate.
+    ctx : Context
+        Base model on the data.
+    project : callable
+        From :func:`projector`.
+    w : ndarray, (P, S)
+        Weights.
+
+    Returns
+    -------
+    float
+        In [0, 1].
+    """
     if effect.scope in ("step", "pair"):
         return 1.0
     X = effect.columns(ctx)
@@ -117,7 +205,27 @@ def separable_fraction(effect, ctx, project, w) -> float:
 
 
 def fit_effect(effect, ctx, res, w, project=None):
-    """Least-squares parameters of one effect on a residual; returns (params, prediction)."""
+    """Least-squares parameters of one effect on a residual; returns (params, prediction).
+
+    Parameters
+    ----------
+    effect : Effect
+        The effect.
+    ctx : Context
+        Base model on the data.
+    res : ndarray, (P, S), DN
+        Residual to explain.
+    w : ndarray, (P, S)
+        Weights.
+    project : callable, optional
+        From :func:`projector`: fit jointly with the base (what the base cannot absorb).
+
+    Returns
+    -------
+    params : ndarray
+        (m,) for a global effect, (P, m) per pixel, (S,) per step.
+    prediction : ndarray, (P, S), DN
+    """
     X = effect.columns(ctx)  # (P, S, m)
     joint = project is not None and effect.scope in ("global", "pixel")
     Xp = project(X) if joint else X
@@ -146,7 +254,26 @@ def fit_pair_effect(effect, ctx, data: Data, prediction):
     """A within-step effect (the held-out frames differ from the fit frames of the same step),
     fitted on the frame differences by two-fold cross-fitting over pixels: the parameter applied
     to one half of the pixels is estimated on the other half, so the held-out error stays
-    honest. Returns (params (whole-sensor estimate), held-out prediction (P, S))."""
+    honest.
+
+    Parameters
+    ----------
+    effect : Effect
+        A within-step ("pair") effect.
+    ctx : Context
+        Base model on the data.
+    data : Data
+        The samples (fit and held-out halves).
+    prediction : ndarray, (P, S), DN
+        Current model prediction.
+
+    Returns
+    -------
+    params : ndarray, (1,)
+        Whole-sensor estimate.
+    prediction : ndarray, (P, S), DN
+        What the effect adds to the held-out half.
+    """
     x = effect.columns(ctx)[..., 0] * data.frame_gap
     ok = data.valid & data.valid_ho & data.light[None, :]
     d = np.where(ok, data.y_ho - data.y, 0.0)
@@ -163,6 +290,20 @@ def fit_pair_effect(effect, ctx, data: Data, prediction):
 
 
 def cost(state, data: Data) -> float:
+    """Weighted sum of squared fit residuals of a state with a prediction.
+
+    Parameters
+    ----------
+    state : State
+        With ``prediction`` set.
+    data : Data
+        The samples.
+
+    Returns
+    -------
+    float
+        Dimensionless (residuals in DN times weights in 1/DN^2).
+    """
     res = np.where(data.valid, data.y - state.prediction, 0.0)
     return float((data.w * res * res).sum())
 
@@ -175,6 +316,26 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=40
     the first joint step: the base model's response to them is its linearised least-squares
     update (exact to first order), with no nonlinear refit; ``state.theta`` is then that of
     ``state0``. Large effects are always iterated to convergence.
+
+    Parameters
+    ----------
+    names : sequence of str
+        Effects to fit with the base.
+    data : Data
+        The samples.
+    state0 : State
+        Start (the base alone).
+    rounds : int
+        Alternations between effects and base at most.
+    base_iter : int
+        Iterations of each base refit.
+    quick : bool
+        See above.
+
+    Returns
+    -------
+    State
+        With ``prediction`` (P, S) DN and the effects' parameters.
     """
     base = state0.base
     state = State(base, state0.theta.copy())
@@ -225,7 +386,21 @@ def _pair_effects(names, state, ctx, data):
 
 def refit_base(y, data: Data, state0: State) -> State:
     """The base model refitted to ``y`` near ``state0``, linearised (one Gauss-Newton step;
-    used on data simulated from ``state0`` itself, where that step is the fit)."""
+    used on data simulated from ``state0`` itself, where that step is the fit).
+
+    Parameters
+    ----------
+    y : ndarray, (P, S), DN
+        Data to fit.
+    data : Data
+        Masks, weights, exposures and rates.
+    state0 : State
+        Where to linearise.
+
+    Returns
+    -------
+    State
+    """
     m, jac, _ = context(state0.base, state0.theta, data)
     res = np.where(data.valid, y - m, 0.0)
     st = State(state0.base, state0.theta)
@@ -234,6 +409,21 @@ def refit_base(y, data: Data, state0: State) -> State:
 
 
 def describe_params(name, theta):
+    """Figures of an effect's fitted parameters for the report.
+
+    Parameters
+    ----------
+    name : str
+        Effect name.
+    theta : ndarray
+        Its parameters (from :func:`fit_effect`).
+
+    Returns
+    -------
+    dict
+        Global: the parameters by name (plus derived figures in DN); per pixel: median and
+        robust spread; per step: count, RMS, median and largest magnitude.
+    """
     e = EFFECTS[name]
     if e.scope in ("global", "pair"):
         p = {k: float(v) for k, v in zip(e.param_names, theta)}

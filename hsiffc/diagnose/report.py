@@ -13,17 +13,54 @@ from .structure import bin_index
 
 
 def public(result: dict) -> dict:
-    """The JSON-safe part of a :func:`hsiffc.diagnose.diagnose` result."""
+    """The JSON-safe part of a :func:`hsiffc.diagnose.diagnose` result.
+
+    Parameters
+    ----------
+    result : dict
+        From :func:`hsiffc.diagnose.diagnose`.
+
+    Returns
+    -------
+    dict
+        Without the ``_``-prefixed (array) entries.
+    """
     return {k: v for k, v in result.items() if not k.startswith("_")}
 
 
 def write_json(result: dict, path) -> None:
+    """Write the JSON-safe part of a result to ``path`` atomically.
+
+    Parameters
+    ----------
+    result : dict
+        From :func:`hsiffc.diagnose.diagnose`.
+    path : str or Path
+        Output file.
+    """
     atomic_write_text(Path(path), json.dumps(public(result), indent=2, default=float) + "\n")
 
 
 def binned(x, res, mask, bins):
     """Mean and standard error of ``res`` in bins of ``x`` (quantile bins, or one bin per
-    distinct value where the quantiles collapse); returns (centres, means, standard errors)."""
+    distinct value where the quantiles collapse).
+
+    Parameters
+    ----------
+    x : ndarray, broadcastable to ``res``
+        What to bin by (e.g. signal in DN).
+    res : ndarray, (P, S), DN
+        Residuals.
+    mask : ndarray of bool, (P, S)
+        Samples to use.
+    bins : int
+        Number of bins at most.
+
+    Returns
+    -------
+    centres, means, standard_errors : ndarray, (n_bins,)
+        Bin centres in the unit of ``x``; mean residual and its standard error in DN.
+    """
     x = np.broadcast_to(x, res.shape)
     idx = bin_index(x, mask, bins)[mask]
     xv, rv = x[mask], res[mask]
@@ -72,7 +109,20 @@ def _plot(result: dict, path: Path) -> None:
 
 
 def write_report(result: dict, outdir) -> Path:
-    """Write ``report.md``, ``residuals.png`` and ``diagnosis.json`` into ``outdir``."""
+    """Write ``report.md``, ``residuals.png`` and ``diagnosis.json`` into ``outdir``.
+
+    Parameters
+    ----------
+    result : dict
+        From :func:`hsiffc.diagnose.diagnose`.
+    outdir : str or Path
+        Output folder (created).
+
+    Returns
+    -------
+    Path
+        The report (``report.md``).
+    """
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     _plot(result, outdir / "residuals.png")

@@ -23,7 +23,23 @@ RULE = (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} stand
 
 @dataclass
 class Fitted:
-    """A model with its held-out residual and figures."""
+    """A model with its held-out residual and figures.
+
+    Parameters
+    ----------
+    state : State
+        The fitted model.
+    names : list of str
+        Its effects.
+    res : ndarray, (P, S), DN
+        Held-out residual (0 outside the valid held-out samples).
+    mse : float, DN^2
+        Mean squared held-out residual.
+    bic : float
+        Bayesian information criterion of the fit half.
+    n_params : int
+        Free parameters.
+    """
 
     state: State
     names: list
@@ -34,6 +50,25 @@ class Fitted:
 
 
 def evaluate(state: State, names, data: Data, n_pix: int, n_light: int) -> Fitted:
+    """The held-out residual, MSE and BIC of a fitted state.
+
+    Parameters
+    ----------
+    state : State
+        With ``prediction`` set.
+    names : sequence of str
+        Its effects.
+    data : Data
+        The samples.
+    n_pix : int
+        Pixels analysed.
+    n_light : int
+        Light steps.
+
+    Returns
+    -------
+    Fitted
+    """
     vh, vf = data.valid_ho, data.valid
     res = np.where(vh, data.y_ho - state.prediction - state.ho_extra, 0.0)
     res_fit = np.where(vf, data.y - state.prediction, 0.0)
@@ -46,14 +81,50 @@ def evaluate(state: State, names, data: Data, n_pix: int, n_light: int) -> Fitte
 
 
 def paired(a: Fitted, b: Fitted, valid_ho):
-    """Mean and standard error of the held-out squared-error gain of b over a."""
+    """Mean and standard error of the held-out squared-error gain of b over a.
+
+    Parameters
+    ----------
+    a, b : Fitted
+        Two models of the same data.
+    valid_ho : ndarray of bool, (P, S)
+        Held-out samples.
+
+    Returns
+    -------
+    gain, standard_error : float, DN^2
+        Positive when b is better.
+    """
     d = a.res[valid_ho] ** 2 - b.res[valid_ho] ** 2
     return float(d.mean()), float(d.std() / np.sqrt(max(d.size, 1)))
 
 
 def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_light: int,
            candidates: list, label: str) -> Fitted:
-    """Add effects while one beats the current model by more than the noise allows."""
+    """Add effects while one beats the current model by more than the noise allows.
+
+    Parameters
+    ----------
+    start : Fitted
+        The model to grow (the base alone, usually).
+    names : sequence of str
+        Candidate effects.
+    data : Data
+        The samples.
+    noise_floor : float, DN
+        Temporal noise of one held-out sample.
+    n_pix, n_light : int
+        Pixels and light steps.
+    candidates : list
+        Filled with one dict per candidate tried (the report's table).
+    label : str
+        Which selection this is (for the table).
+
+    Returns
+    -------
+    Fitted
+        The selected model.
+    """
     current = start
     for round_ in range(len(names)):
         passed = []
@@ -91,7 +162,21 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
 
 
 def equally_good(a: Fitted, b: Fitted, valid_ho, noise_floor) -> bool:
-    """b's held-out error is not measurably worse than a's."""
+    """b's held-out error is not measurably worse than a's.
+
+    Parameters
+    ----------
+    a, b : Fitted
+        Two models of the same data.
+    valid_ho : ndarray of bool, (P, S)
+        Held-out samples.
+    noise_floor : float, DN
+        Temporal noise of one held-out sample.
+
+    Returns
+    -------
+    bool
+    """
     gain, se = paired(a, b, valid_ho)  # > 0: b better
     return gain > -(TIE_SIGMAS * se + (0.5 * MIN_GAIN_OF_NOISE * noise_floor) ** 2)
 
@@ -100,7 +185,34 @@ def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_f
                   n_light, design, candidates) -> tuple[Fitted, dict]:
     """Is the bending of the response leakage? Compare the leakage model (with its selected
     effects) to a linear response with a readout nonlinearity (signal only) and its own
-    selected effects; keep the simpler one where both are equally good on held-out data."""
+    selected effects; keep the simpler one where both are equally good on held-out data.
+
+    Parameters
+    ----------
+    leak : Fitted
+        The leakage model with its selected effects.
+    linear_start : Fitted
+        The linear base alone.
+    names : sequence of str
+        Candidate effects.
+    data : Data
+        The samples.
+    noise_floor : float, DN
+        Temporal noise of one held-out sample.
+    n_pix, n_light : int
+        Pixels and light steps.
+    design : Design
+        The sweep's design.
+    candidates : list
+        Filled with the candidates tried.
+
+    Returns
+    -------
+    model : Fitted
+        The model kept.
+    check : dict
+        What was compared and why the model was kept.
+    """
     rn = "readout_nonlinearity"
     shape_only = ("every signal level is reached at one light rate in this design, so leakage "
                   "and a readout nonlinearity differ only in the shape of the response")

@@ -12,7 +12,27 @@ SIGNAL_BINS = 50
 
 def bin_index(x, mask, bins):
     """Bin of every element of ``x`` (-1 outside ``mask``): quantile bins, or one bin per
-    distinct value where the quantiles collapse (fewer distinct values than bins)."""
+    distinct value where the quantiles collapse (fewer distinct values than bins).
+
+    Parameters
+    ----------
+    x : ndarray
+        What to bin by.
+    mask : ndarray of bool, shape of ``x``
+        Elements to bin.
+    bins : int
+        Number of bins at most.
+
+    Returns
+    -------
+    ndarray of int, shape of ``x``
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> bin_index(np.array([1.0, 2.0, 2.0, 5.0]), np.array([True, True, True, False]), 4).tolist()
+    [0, 1, 1, -1]
+    """
     xv = x[mask]
     if xv.size == 0:
         return np.full(x.shape, -1)
@@ -26,6 +46,25 @@ def bin_index(x, mask, bins):
 
 
 def groupings(valid, signal, light, rows, cols, band):
+    """The groupings the held-out residual is binned by: step, signal level, row, column and
+    mosaic phase.
+
+    Parameters
+    ----------
+    valid : ndarray of bool, (P, S)
+        Held-out samples.
+    signal : ndarray, (P, S), DN
+        Model signal above dark.
+    light : ndarray of bool, (S,)
+        Light steps.
+    rows, cols, band : ndarray of int, (P,)
+        Position and band of each pixel.
+
+    Returns
+    -------
+    dict
+        Grouping name -> (P, S) bin index (-1: not binned).
+    """
     shape = valid.shape
     g = {"step (exposure, acquisition order)": np.broadcast_to(np.arange(shape[1]), shape)}
     lmask = valid & light[None, :]
@@ -39,7 +78,28 @@ def groupings(valid, signal, light, rows, cols, band):
 
 
 def structure(res, valid, groups, noise, null=None):
-    """Binned held-out residual: is there structure beyond noise? Returns (findings, flag)."""
+    """Binned held-out residual: is there structure beyond noise?
+
+    Parameters
+    ----------
+    res : ndarray, (P, S), DN
+        Held-out residual.
+    valid : ndarray of bool, (P, S)
+        Held-out samples.
+    groups : dict
+        From :func:`groupings`.
+    noise : float, DN
+        Temporal noise of one held-out sample.
+    null : dict, optional
+        Grouping -> structured RMS (DN) of data simulated from the model (a floor).
+
+    Returns
+    -------
+    findings : list of dict
+        Per grouping: bins, chi2, p-value, structured RMS (DN), significance.
+    flag : bool
+        Some grouping shows significant structure.
+    """
     findings, flag = [], False
     for name, g in groups.items():
         ok = valid & (g >= 0)
