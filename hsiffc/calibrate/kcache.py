@@ -17,7 +17,18 @@ log = logging.getLogger(__name__)
 
 
 def source_digest(modules) -> str:
-    """SHA-256 (hex) of the source files of ``modules``."""
+    """SHA-256 (hex) of the source files of ``modules``.
+
+    Parameters
+    ----------
+    modules : iterable of module
+        Python modules with source files.
+
+    Returns
+    -------
+    str
+        64 hex digits.
+    """
     h = hashlib.sha256()
     for m in modules:
         h.update(Path(inspect.getfile(m)).read_bytes())
@@ -27,7 +38,20 @@ def source_digest(modules) -> str:
 def refresh(dispatchers, modules) -> int:
     """Flush the on-disk cache of numba ``dispatchers`` compiled against other versions of
     ``modules``; returns how many were flushed. Failures (no cache, read-only cache
-    directory) are logged and leave the cache alone, as numba itself would."""
+    directory) are logged and leave the cache alone, as numba itself would.
+
+    Parameters
+    ----------
+    dispatchers : iterable
+        numba dispatchers compiled with ``cache=True``.
+    modules : iterable of module
+        The modules whose kernels they compile in.
+
+    Returns
+    -------
+    int
+        Number of dispatchers whose cache was flushed.
+    """
     digest = source_digest(modules)
     flushed = 0
     for d in dispatchers:

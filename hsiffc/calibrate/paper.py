@@ -26,8 +26,32 @@ def calibrate_paper(sweep: Sweep, *, reference: str | None = None, alpha_limit: 
     least squares, vectorised). The dark level at t = 0 (the paper's c) is the mean response at
     the shortest exposure of dark steps if any, else of the shortest light exposure.
 
-    ``reference`` names the illumination whose k is stored as ``k_ref_dn_per_ms`` (default: the
-    first in acquisition order).
+    Parameters
+    ----------
+    sweep : Sweep
+        Exposure sweeps (>= 3 exposures each) into dynamic saturation under at least two
+        illuminations (``sweep.illumination`` labels), ideally with dark steps.
+    reference : str, optional
+        The illumination whose k is stored as ``k_ref_dn_per_ms`` (default: the first in
+        acquisition order).
+    alpha_limit : float, percent
+        Samples with model alpha above it are left out of the slope (second pass).
+    full_well_dn : float, optional, DN
+        Step means at or above it are not used.
+    plateau_tolerance_dn : float, optional, DN
+        Largest difference between the two longest exposures for a saturated level (default:
+        4 noise sigmas from the photon transfer curve).
+
+    Returns
+    -------
+    Calibration
+        ``method="paper"``; per-pixel (H, W) ``dark_dn``, ``a_dn_per_ms``, ``b_per_dn``,
+        ``k_ref_dn_per_ms``, ``saturation_ref_dn`` and flags.
+
+    Raises
+    ------
+    DataFormatError
+        Fewer than two illuminations with an exposure sweep (the message says what to record).
     """
     means = sweep.step_means()
     h, w = sweep.frame_shape

@@ -33,6 +33,13 @@ DO_NOT_USE_STATUS = (pixelfit.TOO_FEW,) + pixelfit.NO_FIT
 def check_design(sweep: Sweep, light_rate=None) -> None:
     """Refuse sweeps that cannot calibrate the model, with a one-line reason and fix.
 
+    Parameters
+    ----------
+    sweep : Sweep
+        The sweep to calibrate.
+    light_rate : array_like, optional
+        One relative light rate per step, if given to the calibration.
+
     Raises
     ------
     DataFormatError
@@ -79,7 +86,21 @@ def _light_doses(sweep: Sweep, light_rate=None) -> np.ndarray:
 
 def kernel_samples(smp: Samples, ptc: PhotonTransfer | None) -> dict:
     """Arguments of :func:`hsiffc.calibrate.joint.run_kernel` for a chunk of samples: (S, P)
-    step means and validity, the per-step arrays and the photon-transfer noise model."""
+    step means and validity, the per-step arrays and the photon-transfer noise model.
+
+    Parameters
+    ----------
+    smp : Samples
+        Step means of a chunk of pixels (:func:`hsiffc.calibrate.collect_samples`).
+    ptc : PhotonTransfer or None
+        Noise model for the weights (None: unit read variance).
+
+    Returns
+    -------
+    dict
+        ``y``, ``valid`` (S, P); ``t`` (ms), ``r``, ``light``, ``dark``, ``n_frames`` (S,);
+        ``noise`` (gain DN/e-, read variance DN^2) or None.
+    """
     usable = smp.usable_step
     t = np.where(usable, smp.exposure_ms, 0.0)
     r = np.where(usable, np.nan_to_num(smp.rate), 0.0)
