@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from _util import figure, median_time, row
+from benchutil import figure, median_time, row
 from hsiffc.batch import correct_batch, default_pipeline
 from hsiffc.calibrate.product import Calibration
 from hsiffc.frame import Frame

@@ -24,7 +24,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.optimize import OptimizeWarning, curve_fit
 
-from _util import figure, row
+from benchutil import figure, row
 from hsiffc import model
 from hsiffc.calibrate import calibrate, collect_samples, photon_transfer
 from hsiffc.calibrate.joint import prepared_samples, run_kernel

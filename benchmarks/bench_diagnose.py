@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _util import figure, median_time, row
+from benchutil import figure, median_time, row
 from hsiffc.calibrate import fit_pixels, initial_guess
 from hsiffc.calibrate.samples import collect_samples
 from hsiffc.cli import main as cli

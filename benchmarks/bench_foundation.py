@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 import baselines
-from _util import figure, median_time, row
+from benchutil import figure, median_time, row
 from hsiffc import model
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 

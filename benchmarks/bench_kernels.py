@@ -16,7 +16,7 @@ import subprocess
 import sys
 import tempfile
 
-from _util import figure, row
+from benchutil import figure, row
 
 _CHILD = r"""
 import json, sys, time

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _util import figure, median_time, row
+from benchutil import figure, median_time, row
 from hsiffc.calibrate import calibrate
 from hsiffc.frame import Frame
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from _util import median_time, row
+from benchutil import median_time, row
 from hsiffc.io import open_source
 
 SHAPE = (1088, 2048)
