@@ -1,7 +1,7 @@
 """The leakage model of a low-light CMOS pixel (Liu et al., section III), vectorised.
 
 A pixel's raw response Y (DN) grows with the light rate k (DN/ms) and loses charge through the
-transfer transistor's sub-threshold leakage, which grows exponentially with the collected signal::
+transfer transistor's sub-threshold leakage, which grows exponentially with the collected signal:
 
     dY/dt = k - a * exp(b * Y)                                   (paper eq. 2)
 
@@ -11,7 +11,7 @@ responses and dark levels in raw DN. Every function broadcasts over arrays of an
 Numerically stable closed form
 ------------------------------
 With ``z = exp(-b Y)`` the ODE is linear, ``dz/dt = a b - b k z``, so from the level ``Y0`` at
-``t = 0`` (the dark level)::
+``t = 0`` (the dark level):
 
     exp(-b Y(t)) = exp(-b Y0 - x) + a b t * phi(x),   x = b k t,   phi(x) = (1 - exp(-x)) / x
 

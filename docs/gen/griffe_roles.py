@@ -3,6 +3,8 @@
 The docstrings are numpydoc and sometimes name other objects with Sphinx roles
 (``:func:`hsiffc.model.response```); mkdocstrings renders Markdown, so without this the roles
 would show literally. ``:role:`~a.b.c``` becomes `` `c` `` and ``:role:`a.b.c``` `` `a.b.c` ``.
+A reStructuredText literal-block marker (a paragraph ending in ``::`` before an indented block)
+becomes a single colon: the indented block is already a code block in Markdown.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import re
 from griffe import Extension
 
 ROLE = re.compile(r":(?:py:)?(?:func|class|meth|mod|attr|data|exc|obj|const):`(~?)([^`]+)`")
+LITERAL = re.compile(r"(\S)::\n(?=\s*\n)")
 
 
 def _code(match: re.Match) -> str:
@@ -24,4 +27,4 @@ class SphinxRolesToCode(Extension):
 
     def on_object(self, *, obj, **kwargs) -> None:  # noqa: ARG002 (griffe hook signature)
         if obj.docstring is not None and ":" in obj.docstring.value:
-            obj.docstring.value = ROLE.sub(_code, obj.docstring.value)
+            obj.docstring.value = LITERAL.sub(r"\1:\n", ROLE.sub(_code, obj.docstring.value))
