@@ -164,3 +164,21 @@ def test_overwrite_replaces_an_earlier_report(tmp_path):
                  "--overwrite"]) == 0
     assert (rep / "report.md").read_text() != "old" and (rep / "diagnosis.json").is_file()
     assert not [p for p in rep.iterdir() if p.name.endswith(".part")]
+
+
+def test_json_outputs_hold_no_nan(tmp_path):
+    """``info --json`` on a plain TIFF without the metadata it needs (exit 0, the missing fields
+    listed): unknown values are null, not the bare word NaN that strict JSON readers refuse."""
+    import json
+
+    import numpy as np
+    import tifffile
+
+    frames = np.random.default_rng(0).integers(300, 900, (4, 8, 16)).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "plain.tif", frames, photometric="minisblack", metadata=None)
+    assert main(["info", str(tmp_path / "plain.tif"), "--json", str(tmp_path / "info.json")]) == 0
+
+    def refuse(name):
+        raise AssertionError(f"{name} in the JSON output")
+
+    json.loads((tmp_path / "info.json").read_text(encoding="utf-8"), parse_constant=refuse)

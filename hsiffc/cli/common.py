@@ -139,11 +139,14 @@ def write_json(path: Path, doc) -> None:
         Output file (through the one writer: never over an existing file unless the command's
         write policy allows it).
     doc : dict or list
-        JSON-able document (numpy values and paths converted by :func:`json_default`).
+        JSON-able document (numpy values and paths converted; NaN and inf written as null).
     """
     from ..atomic import atomic_write_text
+    from ..jsonsafe import json_safe
 
-    atomic_write_text(Path(path), json.dumps(doc, indent=2, default=json_default) + "\n")
+    # non-finite floats become null (JSON has no NaN); allow_nan=False proves none is left
+    text = json.dumps(json_safe(doc), indent=2, default=json_default, allow_nan=False)
+    atomic_write_text(Path(path), text + "\n")
 
 
 def json_default(obj):
