@@ -128,7 +128,7 @@ class Capture:
     def to_frames(self, kind: str | None = None) -> list:
         """The frames as :class:`hsiffc.frame.Frame` objects (kind "light" or "dark": by
         default "dark" when there was no light)."""
-        from .frame import Frame
+        from ..frame import Frame
 
         kind = kind or ("light" if self.illumination else "dark")
         return [Frame.from_raw(f, exposure_ms=self.exposure_ms, bit_depth=self.bit_depth,
