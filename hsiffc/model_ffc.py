@@ -304,7 +304,7 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     if not exposure_ms > 0:  # no light was integrated: nothing to invert, only the offset
         out = (y - d64) * np.asarray(gain, np.float64)
         dq = np.zeros(y.shape, DQ_DTYPE)
-        dq[~np.isfinite(out)] |= DQ_DTYPE(DQ.NONFINITE)
+        dq[~np.isfinite(out)] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
         return (np.where(np.isfinite(out), out, 0.0).astype(np.float32), dq,
                 np.zeros(y.shape, np.float32))
     inv = model.invert_response(y, exposure_ms, a64, b64, d64, full_scale=full_scale_dn)
@@ -325,7 +325,7 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     dq[below & (y < d64 - below_dark_tolerance_dn)] |= DQ_DTYPE(DQ.BELOW_DARK)
     dq[~(alpha <= alpha_limit_percent) & ~below] |= DQ_DTYPE(DQ.LEAKAGE)
     finite = np.isfinite(out)
-    dq[~finite] |= DQ_DTYPE(DQ.NONFINITE)
+    dq[~finite] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
     out = np.where(finite, out, 0.0)
     alpha = np.minimum(np.nan_to_num(alpha, nan=np.inf), np.finfo(np.float32).max)
     return out.astype(np.float32), dq, alpha.astype(np.float32)

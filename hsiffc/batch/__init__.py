@@ -23,8 +23,10 @@ from pathlib import Path
 from ..atomic import folder_lock, protect_inputs
 from ..calibrate.product import Calibration
 from .context import (
+    FFC_CHOICES,
     NAN_POLICIES,
     Settings,
+    check_ffc,
     context_for,
     default_pipeline,
     load_pipeline,
@@ -34,13 +36,14 @@ from .plan import BatchError, Job, discover_inputs, output_name, plan_jobs
 from .summary import BatchSummary
 from .task import correct_file
 
-__all__ = ["BatchError", "BatchSummary", "Job", "Settings", "check_scheduler", "correct_batch",
+__all__ = ["FFC_CHOICES", "BatchError", "BatchSummary", "Job", "Settings", "check_scheduler", "correct_batch",
            "correct_file", "default_pipeline", "discover_inputs", "load_pipeline", "output_name",
            "plan_jobs"]
 
 
 def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_percent: float = 12.0,
-                  linearise: bool = False, workers: int = 1, scheduler: str | None = None,
+                  linearise: bool = False, ffc: str = "model", workers: int = 1,
+                  scheduler: str | None = None,
                   overwrite: bool = False, nan: str = "flag", hash_inputs: bool = True,
                   overrides: dict | None = None, observer=None,
                   wait_s: float = 0.0) -> BatchSummary:
@@ -60,7 +63,10 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
     threshold_percent : float
         Alpha threshold (%) of the default pipeline.
     linearise : bool
-        Add leakage linearisation to the default pipeline.
+        Add leakage linearisation to the default pipeline (only with ``ffc="none"``).
+    ffc : "model" or "none"
+        Flat-field step of the default pipeline: ``model_ffc`` from the calibration alone
+        (default) or none. Ignored with ``pipeline``.
     workers : int
         1: in this process. More: a local Dask cluster of that many single-threaded processes.
     scheduler : str, optional
@@ -100,6 +106,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
     """
     t0 = time.perf_counter()
     workers = _check_options(nan, workers, scheduler, threshold_percent)
+    check_ffc(ffc, bool(linearise) and pipeline is None)
     if calibration is None and pipeline is None:
         raise BatchError("give --calibration (for the default pipeline) or --pipeline (a fitted "
                          "pipeline; a calibration is needed only if its stages use one)")
@@ -109,6 +116,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                         calibration_identity=None if cal is None else cal.identity,
                         pipeline=None if pipeline is None else str(Path(pipeline).resolve()),
                         threshold_percent=float(threshold_percent), linearise=bool(linearise),
+                        ffc=ffc if pipeline is None else "none",
                         overwrite=bool(overwrite), nan=nan, hash_inputs=bool(hash_inputs),
                         overrides=_overrides(overrides))
     if settings.pipeline and not Path(settings.pipeline).is_file():

@@ -15,28 +15,50 @@ from ..calibrate.product import Calibration
 from ..stages import Pipeline, create
 from .plan import BatchError
 
-__all__ = ["Context", "Settings", "context_for", "default_pipeline", "load_pipeline",
-           "sha256_file"]
+__all__ = ["FFC_CHOICES", "Context", "Settings", "check_ffc", "context_for", "default_pipeline",
+           "load_pipeline", "sha256_file"]
 
 NAN_POLICIES = ("flag", "fail")
 
 
+FFC_CHOICES = ("model", "none")
+
+
 def default_pipeline(calibration, *, threshold_percent: float = 12.0,
-                     linearise: bool = False) -> Pipeline:
+                     linearise: bool = False, ffc: str = "model") -> Pipeline:
     """The pipeline ``hsiffc correct`` applies without ``--pipeline``: it needs no training frames.
 
     ``dark`` (the calibration's dark level plus dark current times the exposure), ``mask``
     (``alpha_mask``: alpha per pixel, LEAKAGE above ``threshold_percent``, OUT_OF_DOMAIN and the
-    calibration's pixel flags) and, with ``linearise``, ``linearise`` (leakage inversion).
-    ``calibration`` is a saved Calibration (or its path).
+    calibration's pixel flags), then with ``ffc="model"`` (default) ``ffc``: ``model_ffc`` fitted
+    from the calibration alone (leakage inversion and the calibration's per-pixel responsivity:
+    a uniform scene gives a uniform frame, DN above dark on the band-mean scale). With
+    ``ffc="none"`` there is no flat-field step; ``linearise`` then adds ``linearise`` (the
+    leakage inversion without a flat field). ``model_ffc`` already inverts the leakage, so
+    ``linearise`` with ``ffc="model"`` is refused (BatchError). ``calibration`` is a saved
+    Calibration (or its path).
     """
+    check_ffc(ffc, linearise)
     cal = calibration if isinstance(calibration, Calibration) else Calibration.load(calibration)
     steps = [("dark", create("dark", calibration=cal).fit([])),
              ("mask", create("alpha_mask", calibration=cal,
                              threshold_percent=float(threshold_percent)).fit([]))]
-    if linearise:
+    if ffc == "model":
+        steps.append(("ffc", create("model_ffc", calibration=cal).fit([])))
+    elif linearise:
         steps.append(("linearise", create("linearise", calibration=cal).fit([])))
     return Pipeline(steps)
+
+
+def check_ffc(ffc: str, linearise: bool) -> None:
+    """BatchError unless ``ffc`` is one of :data:`FFC_CHOICES` and not ``"model"`` together
+    with ``linearise``."""
+    if ffc not in FFC_CHOICES:
+        raise BatchError(f"--ffc must be one of {', '.join(FFC_CHOICES)}, got {ffc!r}")
+    if linearise and ffc == "model":
+        raise BatchError("--linearise needs --ffc none: the default --ffc model already inverts "
+                         "the leakage (drop --linearise, or add --ffc none for linearisation "
+                         "without flat field)")
 
 
 def load_pipeline(path, calibration: Calibration | None, notes: list | None = None) -> Pipeline:
@@ -83,6 +105,7 @@ class Settings:
     pipeline: str | None = None
     threshold_percent: float = 12.0
     linearise: bool = False
+    ffc: str = "model"
     overwrite: bool = False
     nan: str = "flag"
     hash_inputs: bool = True
@@ -107,7 +130,7 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
     """The calibration and pipeline of these settings, built once per process (from
     ``calibration`` when it is already loaded)."""
     key = (settings.calibration, settings.calibration_identity, settings.pipeline,
-           settings.threshold_percent, settings.linearise, settings.overrides)
+           settings.threshold_percent, settings.linearise, settings.ffc, settings.overrides)
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         cal = calibration
@@ -124,7 +147,7 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
                     "sha256": sha256_file(settings.pipeline), "notes": notes}
         else:
             pipe = default_pipeline(cal, threshold_percent=settings.threshold_percent,
-                                    linearise=settings.linearise)
+                                    linearise=settings.linearise, ffc=settings.ffc)
             info = {"kind": "default", "path": None, "sha256": None, "notes": []}
         steps = [{"name": s["name"], "stage": s["stage"], "params": s["params"]}
                  for s in pipe.manifest()["steps"]]

@@ -111,11 +111,17 @@ def _add_correct(sub):
     p.add_argument("-o", "--outdir", type=Path, required=True, help="output folder")
     p.add_argument("--pipeline", type=Path, default=None,
                    help="fitted pipeline (.npz from 'hsiffc fit'); default: dark from the "
-                        "calibration + alpha mask (+ --linearise)")
+                        "calibration + alpha mask + model-based flat field (--ffc)")
     p.add_argument("--threshold", type=percent, default=12.0,
                    help="alpha threshold in percent for the default pipeline (default 12)")
+    p.add_argument("--ffc", choices=("model", "none"), default=None,
+                   help="flat-field step of the default pipeline: model (default: model_ffc "
+                        "from the calibration alone: leakage inverted, each pixel divided by "
+                        "its responsivity relative to its band) or none (dark + alpha mask "
+                        "only)")
     p.add_argument("--linearise", action="store_true",
-                   help="add leakage linearisation to the default pipeline")
+                   help="with --ffc none: add leakage linearisation (model_ffc already "
+                        "inverts the leakage)")
     p.add_argument("--workers", type=count, default=1,
                    help="parallel worker processes on this machine (Dask local cluster; "
                         "default 1: in this process)")
@@ -203,11 +209,16 @@ def _envi_outputs(summary, *, overwrite: bool) -> None:
 def _cmd_correct(args) -> int:
     from ..batch import correct_batch
 
+    if args.pipeline is not None and (args.ffc is not None or args.linearise):
+        raise HsiffcError(f"--{'ffc' if args.ffc is not None else 'linearise'} sets up the "
+                          "default pipeline; --pipeline brings its own steps: give one or the "
+                          "other")
     show = not args.quiet and sys.stderr.isatty()
     try:
         summary = correct_batch(args.inputs, args.outdir, args.calibration,
                                 pipeline=args.pipeline, threshold_percent=args.threshold,
-                                linearise=args.linearise, workers=args.workers,
+                                linearise=args.linearise, ffc=args.ffc or "model",
+                                workers=args.workers,
                                 scheduler=args.scheduler, overwrite=args.overwrite, nan=args.nan,
                                 hash_inputs=not args.no_hash, wait_s=args.wait,
                                 overrides=vars(input_overrides(args)),
