@@ -10,7 +10,9 @@ temporal noise does not count. Corrections, all run as shipped pipelines:
 * ``two_point_stack``: the same with the flat = the measurement's 100-frame flat stack (the
   EMVA 1288 spatial set, ``meta["spatial_steps"]`` of the reader);
 * ``model_ffc``: the model-based correction from the calibration, trained on all training
-  frames (the even steps, the darks and the flat stack).
+  frames (the even steps, the darks and the flat stack);
+* ``model_ffc_calibration``: the same from the calibration alone (no training frames, the
+  calibration's dark): what ``hsiffc correct`` applies by default.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ __all__ = ["FFCStudy", "run_ffc_study", "render_markdown", "to_dict", "write_ffc
 
 log = logging.getLogger(__name__)
 
-METHODS = ("two_point_2frame", "two_point_stack", "model_ffc")
+METHODS = ("two_point_2frame", "two_point_stack", "model_ffc", "model_ffc_calibration")
 FLAT_LEVEL_DN = 125.0
 GOAL_PERCENT = 0.3  # model_ffc from 30 DN to the top of the valid range
 
@@ -98,8 +100,9 @@ def run_ffc_study(emva_dir, *, calibration=None) -> FFCStudy:
 
     model = Pipeline([("ffc", create("model_ffc", calibration=calibration))]).fit(
         [f for s in even + [flat_step] for f in by_step[s]] + dark_frames)
+    alone = Pipeline([("ffc", create("model_ffc", calibration=calibration).fit([]))])
     corrections = {"two_point_2frame": two_point(flat2), "two_point_stack": two_point(flat_step),
-                   "model_ffc": model}
+                   "model_ffc": model, "model_ffc_calibration": alone}
     test_frames = [f for s in odd for f in by_step[s]]
     steps = sweep_uniformity(test_frames, corrections, dark_for=dark_for)
     summary = summarise(steps, METHODS)
@@ -148,7 +151,9 @@ def render_markdown(res: FFCStudy) -> str:
              f"{res.flat_2frame['signal_dn']:.0f} DN",
              "two_point_stack": f"two-point, flat = the {res.flat_stack['n_frames']}-frame "
              f"stack at {res.flat_stack['signal_dn']:.0f} DN",
-             "model_ffc": "model_ffc (calibration + flat stack)"}
+             "model_ffc": "model_ffc (calibration + flat stack)",
+             "model_ffc_calibration": "model_ffc (calibration alone: `hsiffc correct`'s "
+             "default)"}
     cols = ("raw", *METHODS)
     lines = ["# Flat-field correction on the real EMVA 1288 CMOS sweep (held out)", "",
              f"Data: `{res.source}`. Calibration ({res.calibration['identity']}) on the "

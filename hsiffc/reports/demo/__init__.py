@@ -2,10 +2,12 @@
 
 The demo reads the 2900 K exposure sweep, fits the leakage model to each band's mean response
 and shows that every band levels off *below* full scale at a level that depends on its light
-(dynamic saturation), with the leakage percentage alpha of every exposure. Then it runs the
-shipped correction pipeline (dark, alpha mask, two-point FFC trained at the exposure alpha
-selects, PPID reconstruction) on the 2200 K test frames and measures uniformity before and
-after.
+(dynamic saturation), with the leakage percentage alpha of every exposure. Then it corrects
+the 2200 K test frames with the paper's pipeline (dark, alpha mask, two-point FFC trained at
+the exposure alpha selects, PPID reconstruction) and with the model-based flat field that
+``hsiffc correct`` applies by default (dark, alpha mask, ``model_ffc`` from the calibration
+alone), and measures uniformity before and after: eq. (6) and the fixed-pattern
+non-uniformity (EMVA 1288, temporal noise taken out).
 
 As every report: :func:`compute_demo` returns a :class:`DemoResult`, :func:`render_text` and
 :func:`demo_figure` present it, :func:`run_demo` writes the files. The library prints nothing.

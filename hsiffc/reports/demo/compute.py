@@ -17,7 +17,7 @@ from ...ffc import uniformity_per_band
 from ...frame import Frame
 from ...io import read_sweep
 from ...stages import Pipeline, create
-from ...uniformity import uniformity_before_after
+from ...uniformity import fixed_pattern_nonuniformity
 
 __all__ = ["SWEEP_NAME", "THRESHOLD_PERCENT", "DemoResult", "compute_demo", "demo_pipeline",
            "fit_curve"]
@@ -139,8 +139,8 @@ def fit_curve(t_ms, y_dn, dark_dn) -> dict:
 
 
 def demo_pipeline(calibration, threshold_percent: float = THRESHOLD_PERCENT) -> Pipeline:
-    """The demo's (and ``hsiffc correct``'s default) pipeline: dark, alpha mask, two-point FFC
-    trained at the exposure alpha selects, PPID reconstruction."""
+    """The demo's two-point pipeline (the paper's): dark, alpha mask, two-point FFC trained at
+    the exposure alpha selects, PPID reconstruction."""
     return Pipeline([("dark", create("dark")),
                      ("mask", create("alpha_mask", calibration=calibration,
                                      threshold_percent=threshold_percent)),
@@ -193,9 +193,12 @@ def compute_demo(samples) -> DemoResult:
 
 
 def _run_correction(result: DemoResult, samples: Path) -> None:
-    """Calibrate, fit the default pipeline on the training flats and darks, correct the test
-    frames, and measure uniformity before and after: eq. (6) on one frame and the fixed-pattern
-    non-uniformity of each test step (EMVA 1288: temporal noise taken out)."""
+    """Calibrate, fit the two-point pipeline on the training flats and darks, build the
+    model-based pipeline ``hsiffc correct`` applies by default (from the calibration alone),
+    correct the test frames, and measure uniformity before and after: eq. (6) on one frame and
+    the fixed-pattern non-uniformity of each test step (EMVA 1288: temporal noise taken out)."""
+    from ...batch import default_pipeline
+
     log.info("calibrating the sample sweep and fitting the correction pipeline")
     cal = calibrate(result.sweep)
     train = (Frame.list_from_sweep(read_sweep(samples / TRAINING_NAME))
@@ -204,29 +207,48 @@ def _run_correction(result: DemoResult, samples: Path) -> None:
     pipe = demo_pipeline(cal).fit(train)
     ffc = pipe.named_steps["ffc"]
     flat_field = Pipeline(pipe.steps[:3])  # before reconstruction: the mosaic, pixel by pixel
+    model = default_pipeline(cal, threshold_percent=THRESHOLD_PERCENT)
     test = tests[0]
     band_map = test.band_map()
     before = uniformity_per_band(test.data, band_map)
     flat_only = flat_field.transform(test)
     after = uniformity_per_band(flat_only.data, band_map, dq=flat_only.dq)
+    by_model = model.transform(test)
     steps = []
     for step in sorted({f.meta.get("step") for f in tests}):
         frames = [f for f in tests if f.meta.get("step") == step]
-        if len(frames) < 2:
-            continue
-        fp = uniformity_before_after(frames, flat_field)
-        steps.append({"step": int(step), "exposure_ms": frames[0].exposure_ms,
-                      "n_frames": len(frames), "before": fp["before"].to_dict(),
-                      "after": fp["after"].to_dict(),
-                      "improvement_percent_points": fp["improvement_percent_points"],
-                      "n_pixels": fp["n_pixels"]})
+        if len(frames) >= 2:
+            steps.append(_fixed_pattern_step(int(step), frames, flat_field, model))
     cube = pipe.transform(test)
     result.calibration, result.pipeline = cal, pipe
     result.correction = {
         "training_ms": list(ffc.selected_ms_), "alpha_table": ffc.alpha_table_,
         "test_exposure_ms": test.exposure_ms, "test_illumination": test.meta.get("illumination"),
         "uniformity_raw": before.tolist(), "uniformity_corrected": after.tolist(),
+        "uniformity_model_ffc": uniformity_per_band(by_model.data, band_map,
+                                                    dq=by_model.dq).tolist(),
         "fixed_pattern": steps,
         "flagged_fraction": float((flat_only.dq != 0).mean()),
         "cube_shape": list(cube.data.shape),
         "cube_wavelengths_nm": [float(w) for w in cube.meta.get("wavelengths_nm", ())]}
+
+
+def _fixed_pattern_step(step: int, frames, two_point, model) -> dict:
+    """Fixed-pattern non-uniformity of one test step: raw (less the dark the two-point
+    pipeline removed), after the two-point pipeline and after model_ffc, on the same pixels
+    (no DQ bit in any frame, raw or corrected by either)."""
+    tp = [two_point.transform(f) for f in frames]
+    mf = [model.transform(f) for f in frames]
+    good = np.all([f.dq == 0 for f in frames + tp + mf], axis=0)
+    band_map = frames[0].band_map()
+    raw = np.stack([f.data for f in frames]).astype(np.float64)
+    before = fixed_pattern_nonuniformity(raw, band_map, dark=tp[0].dark_removed, mask=good)
+    after = fixed_pattern_nonuniformity(np.stack([c.data for c in tp]), band_map, mask=good)
+    by_model = fixed_pattern_nonuniformity(np.stack([c.data for c in mf]), band_map, mask=good)
+    return {"step": step, "exposure_ms": frames[0].exposure_ms, "n_frames": len(frames),
+            "before": before.to_dict(), "after": after.to_dict(),
+            "model_ffc": by_model.to_dict(),
+            "improvement_percent_points": before.pooled_fpn_percent - after.pooled_fpn_percent,
+            "model_improvement_percent_points": (before.pooled_fpn_percent
+                                                 - by_model.pooled_fpn_percent),
+            "n_pixels": int(good.sum())}

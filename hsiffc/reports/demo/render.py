@@ -40,29 +40,43 @@ def render_text(res) -> str:
           "test would call all of their samples valid; alpha flags the leaking ones."]
     c = res.correction
     if c:
-        L += ["", "== Correction pipeline: calibrate, select by alpha, dark + mask + two-point "
-              "FFC + reconstruction ==",
-              "training exposure per band (longest with median alpha under 12 %): "
+        L += ["", "== Correction: calibrate, then (1) the paper's pipeline: select by alpha, dark + "
+              "mask + two-point FFC + reconstruction; (2) model_ffc from the calibration alone "
+              "(what 'hsiffc correct' applies by default) ==",
+              "two-point training exposure per band (longest with median alpha under 12 %): "
               + ", ".join(f"{v:g} ms" for v in c["training_ms"]),
               f"test frame {c['test_exposure_ms']:g} ms under {c['test_illumination']}: "
-              "non-uniformity (eq. 6, %) per band",
-              f"{'band':>6} {'raw':>8} {'corrected':>10}"]
-        for i, (u0, u1) in enumerate(zip(c["uniformity_raw"], c["uniformity_corrected"])):
-            L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f}")
+              "non-uniformity (eq. 6 on one frame, temporal noise included, %) per band",
+              f"{'band':>6} {'raw':>8} {'two-point':>10} {'model_ffc':>10}"]
+        model_u = c.get("uniformity_model_ffc") or [float("nan")] * len(c["uniformity_raw"])
+        for i, (u0, u1, u2) in enumerate(zip(c["uniformity_raw"], c["uniformity_corrected"],
+                                             model_u)):
+            L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f} {u2:>10.3f}")
         for s in c.get("fixed_pattern", ()):
-            b, a = s["before"], s["after"]
-            L += ["", f"fixed-pattern non-uniformity (EMVA 1288, temporal noise taken out; %) of "
-                  f"the {s['n_frames']} test frames at {s['exposure_ms']:g} ms, per band",
-                  f"{'band':>6} {'raw':>8} {'corrected':>10} {'signal DN':>10}"]
-            for i, (u0, u1) in enumerate(zip(b["fpn_percent"], a["fpn_percent"])):
-                L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f} {b['mean_dn'][i]:>10.1f}")
-            L.append(f"{'all':>6} {b['pooled_fpn_percent']:>8.3f} {a['pooled_fpn_percent']:>10.3f}"
-                     f"   (RMS over bands; eq. 6 on single frames: "
-                     f"{b['pooled_eq6_percent']:.3f} -> {a['pooled_eq6_percent']:.3f})")
+            L += _fixed_pattern_table(s)
         L.append(f"cube {tuple(c['cube_shape'])} (H, W, bands) with wavelengths "
                  f"{[round(w) for w in c['cube_wavelengths_nm']]} nm; "
                  f"{100 * c['flagged_fraction']:.2f} % of pixels flagged (kept, not deleted)")
     return "\n".join(L)
+
+
+def _fixed_pattern_table(s) -> list:
+    """Lines of one test step's fixed-pattern table: raw, two-point, model_ffc per band."""
+    b, a = s["before"], s["after"]
+    m = s.get("model_ffc")
+    L = ["", f"fixed-pattern non-uniformity (EMVA 1288, temporal noise taken out; %) of the "
+         f"{s['n_frames']} test frames at {s['exposure_ms']:g} ms, per band ({s['n_pixels']} "
+         "pixels unflagged in every frame and correction)",
+         f"{'band':>6} {'raw':>8} {'two-point':>10} {'model_ffc':>10} {'signal DN':>10}"]
+    mp = m["fpn_percent"] if m else [float("nan")] * len(b["fpn_percent"])
+    for i, (u0, u1, u2) in enumerate(zip(b["fpn_percent"], a["fpn_percent"], mp)):
+        L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f} {u2:>10.3f} {b['mean_dn'][i]:>10.1f}")
+    pm = m["pooled_fpn_percent"] if m else float("nan")
+    L.append(f"{'all':>6} {b['pooled_fpn_percent']:>8.3f} {a['pooled_fpn_percent']:>10.3f} "
+             f"{pm:>10.3f}   (RMS over bands; eq. 6 on single frames: "
+             f"{b['pooled_eq6_percent']:.3f} -> {a['pooled_eq6_percent']:.3f} / "
+             f"{m['pooled_eq6_percent'] if m else float('nan'):.3f})")
+    return L
 
 
 def demo_figure(res):
