@@ -96,21 +96,26 @@ def report_csvs(sim, em) -> dict:
         rows = [[r["step"], r["exposure_ms"], r["photons"], r["signal_dn"], r["clipped_fraction"],
                  r["alpha_median_percent"], r["alpha_p95_percent"], r["alpha_invalid_fraction"],
                  r["mean_nonuniformity_percent"], r["median_nonuniformity_percent"],
+                 r["mean_fpn_percent"], r["median_fpn_percent"],
                  i == em["best_index"], i == em["selected_index"]]
                 for i, r in enumerate(em["candidates"])]
         out["emva_ffc_levels.csv"] = csv_text(
             ["flat_step", "exposure_ms", "photons", "flat_signal_dn", "clipped_fraction",
              "alpha_median_percent", "alpha_p95_percent", "fraction_alpha_over_threshold",
-             "mean_nonuniformity_percent", "median_nonuniformity_percent", "best",
+             "mean_nonuniformity_percent", "median_nonuniformity_percent",
+             "mean_fixed_pattern_percent", "median_fixed_pattern_percent", "best",
              "selected_by_alpha"], rows)
         rows = []
         for ti, step in enumerate(em["test_steps"]):
             rows.append([step, em["test_signal_dn"][ti], em["raw_nonuniformity_percent"][ti],
                          em["noise_floor_percent"][ti],
-                         *em["nonuniformity_percent"][:, ti]])
+                         *em["nonuniformity_percent"][:, ti], em["raw_fpn_percent"][ti],
+                         *em["fpn_percent"][:, ti]])
         out["emva_ffc_matrix.csv"] = csv_text(
             ["test_step", "test_signal_dn", "no_ffc_percent", "noise_floor_percent"]
-            + [f"flat_step{r['step']}_percent" for r in em["candidates"]], rows)
+            + [f"flat_step{r['step']}_percent" for r in em["candidates"]]
+            + ["no_ffc_fixed_pattern_percent"]
+            + [f"flat_step{r['step']}_fixed_pattern_percent" for r in em["candidates"]], rows)
     return out
 
 

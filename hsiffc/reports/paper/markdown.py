@@ -171,13 +171,15 @@ def render_markdown(result) -> str:
               f"{100 * EMVA_MAX_CLIPPED:g} % clipped pixels; alpha from a joint calibration of the "
               f"sweep.", "",
               "| flat step | signal (DN) | clipped (%) | median alpha (%) | p95 alpha (%) "
-              "| mean residual non-uniformity (%) |", "|---|---|---|---|---|---|"]
+              "| mean residual non-uniformity, eq. (6) (%) | mean fixed-pattern "
+              "non-uniformity (%) |", "|---|---|---|---|---|---|---|"]
         for i, r in enumerate(em["candidates"]):
             tag = (" **best**" if i == em["best_index"] else "") + \
                   (" [alpha]" if i == em["selected_index"] else "")
             L.append(f"| {r['step']}{tag} | {r['signal_dn']:.1f} | "
                      f"{100 * r['clipped_fraction']:.2f} | {r['alpha_median_percent']:.3g} | "
-                     f"{r['alpha_p95_percent']:.3g} | {r['mean_nonuniformity_percent']:.3f} |")
+                     f"{r['alpha_p95_percent']:.3g} | {r['mean_nonuniformity_percent']:.3f} | "
+                     f"{r['mean_fpn_percent']:.3f} |")
         b, s = em["best_index"], em["selected_index"]
         rb = em["candidates"][b]
         txt = (f"Without FFC the mean non-uniformity is "
@@ -193,6 +195,16 @@ def render_markdown(result) -> str:
                     f"{rs['mean_nonuniformity_percent']:.3f} %"
                     f", {rs['mean_nonuniformity_percent'] - rb['mean_nonuniformity_percent']:+.3f} "
                     "pp from the best).")
+        rf = em["candidates"][em["best_fpn_index"]]
+        txt += (" Eq. (6) on the 2-frame test means is dominated by their temporal noise (the "
+                "dotted line of the figure). The fixed-pattern non-uniformity (EMVA 1288: "
+                "covariance of the two test frames, each corrected alone; temporal noise taken "
+                f"out) is {em['raw_mean_fpn_percent']:.3f} % without FFC and "
+                f"{rf['mean_fpn_percent']:.3f} % after the best two-point flat (step "
+                f"{rf['step']}, {rf['signal_dn']:.0f} DN), mean over the test levels: a flat "
+                "from one 2-frame step prints its own temporal noise into every corrected "
+                "frame. For a 100-frame flat and the model-based correction (`model_ffc`) on "
+                "held-out steps see `hsiffc study-ffc`.")
         L += ["", txt, "", "![EMVA](emva_ffc_levels.png)", ""]
     L += ["## Run time", "", "| part | seconds |", "|---|---|"]
     for k, v in timing.items():

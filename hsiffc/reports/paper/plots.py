@@ -222,14 +222,18 @@ def plot_emva(em):
     ax = axes[1]
     sig = [r["signal_dn"] for r in rows]
     ax.plot(sig, [r["mean_nonuniformity_percent"] for r in rows], "o-", color="tab:blue",
-            label="mean over test levels")
+            label="eq. (6), mean over test levels")
+    ax.plot(sig, [r["mean_fpn_percent"] for r in rows], "^-", color="tab:purple",
+            label="fixed pattern (EMVA 1288), mean")
+    ax.axhline(em["raw_mean_fpn_percent"], color="tab:purple", lw=0.8, ls="--",
+               label="fixed pattern, no FFC")
     ax.plot(sig[em["best_index"]], rows[em["best_index"]]["mean_nonuniformity_percent"], "s",
             ms=11, mfc="none", color="tab:green", label="best")
     if em["selected_index"] is not None:
         ax.plot(sig[em["selected_index"]],
                 rows[em["selected_index"]]["mean_nonuniformity_percent"], "*", ms=12,
                 color="tab:red", label=f"alpha < {em['threshold_percent']:g} % (median)")
-    ax.axhline(em["raw_mean_nonuniformity_percent"], color="0.5", lw=0.8, label="no FFC")
+    ax.axhline(em["raw_mean_nonuniformity_percent"], color="0.5", lw=0.8, label="eq. (6), no FFC")
     ax.set_xlabel("flat level: mean signal above dark (DN)")
     ax.set_ylabel("mean residual non-uniformity (%)")
     ax3 = ax.twinx()
