@@ -20,6 +20,19 @@ noise. They are combined per pixel with inverse-variance weights in ln g. The sp
 difference between the two estimates beyond their stated noise is a per-band model
 inconsistency; it is added to the sweep's variance, so a flat stack is never outweighed by a
 model that does not match it at its own level.
+
+What limits it. Where the response is linear (model alpha up to ``flat_alpha_percent``) the
+error of the combined factor and of the dark (:func:`correction_uncertainty`): on the simulated
+sensor of the tests model_ffc reaches 0.81-1.03 times it. Where leakage bends the response the
+correction rests on the sweep's fitted a and b, whose errors are strongly correlated with each
+other (about -0.998) and with g; the calibration stores per-parameter sigmas only, so that part
+of the floor cannot be computed from the calibration. :mod:`hsiffc.ffc_floor` computes it from
+the sweep's design (the fit's Cramer-Rao bound with the full covariance): model_ffc is at
+0.95-1.11 times it at alpha 5.5-50 % (0.15-0.34 %, rising with alpha). Lowering it needs more
+information on a and b (more frames or light levels in the bent part of the sweep), not another
+estimator: shrinking each pixel's a and b towards its band's (tried) halves their errors but
+moves the model away from the samples, raising the fixed pattern in most bands above alpha
+10 % (up to 2.7 times).
 """
 
 from __future__ import annotations
@@ -341,7 +354,8 @@ def correction_uncertainty(response, exposure_ms: float, a, b, dark, sigma_ln_ga
     uniform scene at this level: the dark term dominates at low signal, the factor's error in
     the linear range. Where leakage bends the response the errors of the fitted a and b add;
     they are not included (the calibration stores their sigmas but not their strong mutual
-    correlation, and without it the propagated error is far too large).
+    correlation, and without it the propagated error is far too large): for that floor use
+    :func:`hsiffc.ffc_floor.sweep_floor` with the sweep's design.
 
     Parameters
     ----------
