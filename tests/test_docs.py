@@ -20,7 +20,8 @@ def test_site_builds_in_strict_mode(tmp_path):
     pytest.importorskip("mkdocstrings", reason="mkdocstrings is not installed: "
                                                "pip install -e '.[docs]'")
     site = tmp_path / "site"
-    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-q",
+    # no -q: mkdocs -q hides the warnings that --strict turns into a failure
+    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict",
                            "-f", str(ROOT / "mkdocs.yml"), "-d", str(site)],
                           cwd=ROOT, capture_output=True, text=True, timeout=300,
                           env={**__import__("os").environ, "NO_MKDOCS_2_WARNING": "1"})
