@@ -261,7 +261,9 @@ def _rows_paper():
 FFC_COLUMNS = (("raw", "raw"),
                ("two_point_2frame", "two-point FFC, flat = one 2-frame step"),
                ("two_point_stack", "two-point FFC, flat = the 100-frame stack"),
-               ("model_ffc", "`model_ffc` (calibration + flat stack)"))
+               ("model_ffc", "`model_ffc` (calibration + flat stack)"),
+               ("model_ffc_calibration", "`model_ffc` (calibration alone: `hsiffc correct`'s "
+                                         "default)"))
 
 
 def _ffc_study_table() -> list[str]:
