@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import model
-from . import pixelfit
+from . import pixelfit, pixelsamples
 
 PRIOR_SIGMA = 3.0  # e-folds, on ln a and ln b
 PARAMS = ("ln_g", "ln_a", "ln_b", "dark")
@@ -192,7 +192,7 @@ def prepared_samples(y, valid, t, r, light, dark, *, w=None, n_frames=None, nois
     out_y = np.empty((p_count, s_count))
     out_w = np.empty((p_count, s_count))
     out_d = np.empty((p_count, 4))
-    pixelfit.pixel_samples(
+    pixelsamples.pixel_samples(
         np.ascontiguousarray(y, np.float64), np.ascontiguousarray(valid, np.bool_),
         np.ascontiguousarray(w, np.float64), np.ascontiguousarray(nfr, np.float64),
         float(gain), float(read_var), np.ascontiguousarray(t, np.float64),

@@ -21,11 +21,18 @@ from numba import njit
 
 from ..kernels.gradient import response_gradient_fast, response_gradient_point
 
+#: Options of the numba functions that run once or more per pixel on arrays their caller owns
+#: (they allocate nothing): compiled without numba's reference counting (``_nrt=False``), so
+#: that a call does not increment and decrement the count of every array argument with atomic
+#: instructions (with ~200 such pairs per pixel they took a quarter of the fit's time, and
+#: more when the threads share the arrays). Allocating, or returning an array, fails to
+#: compile here: keep those in the calling kernel.
+LOCALS_ONLY = {"cache": True, "error_model": "numpy", "_nrt": False}
 B_MIN, B_MAX = 1e-6, 1.0  # bounds of b, 1/DN
 CONVERGED_CHI2 = 1e-3  # chi-square gain below which a pixel is converged (~0.03 sigma)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(**LOCALS_ONLY, inline="always")
 def _internal(y, dlnk, dlna, dlnb, dd, t, kg, k, dc, additive, s, b):
     """Response and Jacobian in (ln g, s, ln b, d) from the model's point derivatives."""
     share = kg / (k if k > 0.0 else 1.0) if k > 0.0 else 0.0
@@ -33,7 +40,7 @@ def _internal(y, dlnk, dlna, dlnb, dd, t, kg, k, dc, additive, s, b):
     return y_out, dlnk * share + dlna, -b * dlna, dlnb - b * s * dlna, dd
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(**LOCALS_ONLY, inline="always")
 def sample(t, r, g, ln_a, dc, additive, s, b, d):
     """Model value and Jacobian with respect to (ln g, s, ln b, d) at one sample, any input.
 
@@ -45,7 +52,7 @@ def sample(t, r, g, ln_a, dc, additive, s, b, d):
     return _internal(y, dlnk, dlna, dlnb, dd, t, kg, k, dc, additive, s, b)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(**LOCALS_ONLY)
 def evaluate(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, h, gv, buf):
     """Weighted cost (data chi-square + priors) at ``ph``, the normal matrix ``h`` (4 x 4) and
     the half gradient ``gv``. Returns (cost, chi2, unweighted SS).
@@ -124,7 +131,7 @@ def evaluate(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, h, gv, buf):
     return chi2 + prior[2] * ds * ds + prior[3] * db * db, chi2, ss
 
 
-@njit(cache=True, error_model="numpy")
+@njit(**LOCALS_ONLY)
 def solve4(a, rhs, out, m):
     """Solve the 4 x 4 system ``a x = rhs`` into ``out`` (Gauss elimination with partial
     pivoting; ``m`` is a (4, 5) scratch array). Returns False if singular."""
@@ -157,7 +164,7 @@ def solve4(a, rhs, out, m):
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(**LOCALS_ONLY)
 def levenberg_marquardt(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, lo, hi, s_step_min,
                         max_iter, tol, h, gv, hn, step, trial, scratch, buf):
     """Iterate from ``ph`` (updated in place) to the minimum of :func:`evaluate`.
@@ -235,7 +242,7 @@ def levenberg_marquardt(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, lo, hi
     return conv and np.isfinite(cost), it, cost, chi2, ss
 
 
-@njit(cache=True, error_model="numpy")
+@njit(**LOCALS_ONLY)
 def external_sigma(h, ph, chi2, dof, out, col, cov, scratch):
     """Standard errors of (ln g, ln a, ln b, d) into ``out`` (4,) from the normal matrix ``h``
     in (ln g, s, ln b, d) (``ln a = ln g + ln r_ref - b s``), inflated by the reduced

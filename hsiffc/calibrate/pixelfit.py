@@ -3,9 +3,9 @@ values, Levenberg-Marquardt, fallback.
 
 Per pixel, in locals only (no (samples x pixels) temporaries):
 
-1. **Samples and weights**: the pixel's step means are gathered; weights are given, or come
-   from the photon-transfer noise model ``var = gain * (signal above the dark line) + read_var``
-   divided by the frames per step.
+1. **Samples and weights** (:mod:`hsiffc.calibrate.pixelsamples`): the pixel's step means
+   are gathered; weights are given, or come from the photon-transfer noise model
+   ``var = gain * (signal above the dark line) + read_var`` divided by the frames per step.
 2. **Dark model** from the dark samples (rate 0): weighted line ``d + dc t`` through them
    (``dc`` estimated when asked, else given); with ``merge`` they enter the light fit as one
    sample (their weighted mean, which lies on that line).
@@ -24,7 +24,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .lm import B_MAX, B_MIN, evaluate, external_sigma, levenberg_marquardt, sample
+from .lm import (
+    B_MAX,
+    B_MIN,
+    LOCALS_ONLY,
+    evaluate,
+    external_sigma,
+    levenberg_marquardt,
+    sample,
+)
+from .pixelsamples import BLOCK, dark_line, gather
 
 # fit status codes (one uint8 per pixel)
 LEAKAGE = 0
@@ -46,99 +55,18 @@ STATUS_REASONS = {
                   "is undetermined",
 }
 MIN_LEAK_SAMPLES = 5
-BLOCK = 128  # pixels per parallel task
 # columns of the float output (P, 12) and the integer output (P, 3)
 F_THETA, F_SIGMA, F_DC, F_CHI2, F_CHI2_LIN, F_RMS = 0, 4, 8, 9, 10, 11
 I_N, I_STATUS, I_ITER = 0, 1, 2
 
 
-@njit(cache=True, error_model="numpy")
-def _gather(p0, p1, y, valid, w, nfr, read_var, light, dark, ty, tw):
-    """Samples of pixels ``p0:p1`` into the rows of ``ty``; their weights into ``tw`` (0: left
-    out; without given weights the darks' ``nfr / read_var``, the light ones set later). Reads
-    ``y`` (S, P) row by row, so memory is streamed."""
-    given = w.shape[0] > 0
-    for i in range(light.size):
-        use = light[i] or dark[i]
-        for p in range(p0, p1):
-            yi = y[i, p]
-            ty[p - p0, i] = yi
-            ok = use and valid[i, p] and np.isfinite(yi)
-            if given:
-                wi = w[i, p]
-                tw[p - p0, i] = wi if ok and wi > 0 and np.isfinite(wi) else 0.0
-            else:
-                tw[p - p0, i] = nfr[i] / read_var if ok else 0.0
-
-
-@njit(cache=True, error_model="numpy")
-def _light_weights(yp, wp, t, light, nfr, gain, read_var, d_line, dc_line, has_dark):
-    """Noise-model weights of the light samples: signal above the dark line (or above the
-    lowest light sample without darks)."""
-    n = t.size
-    floor = np.inf
-    if not has_dark:
-        for i in range(n):
-            if wp[i] > 0 and light[i]:
-                floor = min(floor, yp[i])
-    for i in range(n):
-        if wp[i] > 0 and light[i]:
-            dark_level = d_line + dc_line * t[i] if has_dark else floor
-            wp[i] = nfr[i] / (gain * max(yp[i] - dark_level, 0.0) + read_var)
-
-
-@njit(cache=True, error_model="numpy")
-def _samples(yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr, gain,
-             read_var):
-    """Dark line of one pixel and its light weights (set in ``wp`` unless given).
-
-    Returns (dark samples, light samples, summed dark weight, weighted mean dark exposure and
-    level, dark current, unweighted dark sums t, y, tt, ty, yy, longest dark exposure)."""
-    n = t.size
-    sw = swt = swy = swtt = swty = 0.0
-    ut = uy = utt = uty = uyy = 0.0
-    t_dark_max = 0.0
-    nd = nl = 0
-    for i in range(n):
-        wi = wp[i]
-        if wi <= 0:
-            continue
-        if dark[i]:
-            ti, yi = t[i], yp[i]
-            nd += 1
-            sw += wi
-            swt += wi * ti
-            swy += wi * yi
-            swtt += wi * ti * ti
-            swty += wi * ti * yi
-            ut += ti
-            uy += yi
-            utt += ti * ti
-            uty += ti * yi
-            uyy += yi * yi
-            t_dark_max = max(t_dark_max, ti)
-        elif light[i]:
-            nl += 1
-    dc = dc_given
-    md_t = swt / sw if sw > 0 else 0.0
-    md_y = swy / sw if sw > 0 else 0.0
-    if estimate_dc:
-        dc = 0.0
-        den = sw * swtt - swt * swt
-        if nd >= 2 and den > 1e-12 * sw * swtt:
-            dc = max((sw * swty - swt * swy) / den, 0.0)
-    if not weights_given:
-        _light_weights(yp, wp, t, light, nfr, gain, read_var, md_y - dc * md_t, dc, nd > 0)
-    return nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max
-
-
-@njit(cache=True, error_model="numpy")
+@njit(**LOCALS_ONLY)
 def _fit_pixel(p, yp, wp, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, estimate_dc, dc_given, additive,
                b_starts, margins, theta0, prior_sigma, max_iter, tol, fallback, weights_given,
                nfr, gain, read_var, out_f, out_i, h, gv, hn, step, ph, trial, prior, cov,
                scratch, lo, hi):
     n = t.size
-    (nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max) = _samples(
+    (nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max) = dark_line(
         yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr, gain, read_var)
     md_w = sw if merge else 0.0
     for i in range(n):  # the fit's samples: the light ones (and unmerged darks), merged dark
@@ -243,7 +171,8 @@ def _fit_pixel(p, yp, wp, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, 
                                          gv, buf)
                 if cst <= best:
                     best = cst
-                    ph[:] = trial
+                    for a in range(4):
+                        ph[a] = trial[a]
     if max_iter <= 0:  # start values only
         b = np.exp(ph[2])
         out_f[p, 0] = ph[0]
@@ -324,7 +253,21 @@ def _fit_pixel(p, yp, wp, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, 
                     ss += (yi - yp[i]) ** 2
     out_f[p, F_RMS] = np.sqrt(ss / max(nl + nd, 1))
     external_sigma(h, ph, chi2, nfit - 4, step, trial, cov, scratch)
-    out_f[p, F_SIGMA:F_SIGMA + 4] = step
+    for a in range(4):
+        out_f[p, F_SIGMA + a] = step[a]
+
+
+@njit(**LOCALS_ONLY)
+def _fit_range(p0, p1, ty, tw, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge,
+               estimate_dc, dc_in, additive, b_starts, margins, theta0, prior_sigma, max_iter,
+               tol, fallback, weights_given, nfr, gain, read_var, out_f, out_i, h, gv, hn, step,
+               ph, trial, prior, cov, scratch, lo, hi):
+    """Pixels ``p0:p1`` one after the other (their samples in the rows of ``ty``, ``tw``)."""
+    for p in range(p0, p1):
+        _fit_pixel(p, ty[p - p0], tw[p - p0], yq, wq, tq, rq, buf, t, r, light, dark, infit,
+                   merge, estimate_dc, dc_in[p], additive, b_starts, margins, theta0,
+                   prior_sigma, max_iter, tol, fallback, weights_given, nfr, gain, read_var,
+                   out_f, out_i, h, gv, hn, step, ph, trial, prior, cov, scratch, lo, hi)
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -354,7 +297,7 @@ def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estima
         p1 = min(npx, p0 + BLOCK)
         ty = np.empty((BLOCK, n))
         tw = np.empty((BLOCK, n))
-        _gather(p0, p1, y, valid, w, nfr, read_var, light, dark, ty, tw)
+        gather(p0, p1, y, valid, w, nfr, read_var, light, dark, ty, tw)
         yq = np.empty(n + 1)
         wq = np.empty(n + 1)
         tq = np.empty(n + 1)
@@ -371,40 +314,19 @@ def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estima
         prior = np.empty(4)
         lo = np.empty(4)
         hi = np.empty(4)
-        for p in range(p0, p1):
-            _fit_pixel(p, ty[p - p0], tw[p - p0], yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, estimate_dc, dc_in[p],
-                       additive, b_starts, margins, theta0, prior_sigma, max_iter, tol,
-                       fallback, weights_given, nfr, gain, read_var, out_f, out_i, h, gv, hn,
-                       step, ph, trial, prior, cov, scratch, lo, hi)
+        _fit_range(p0, p1, ty, tw, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge,
+                   estimate_dc, dc_in, additive, b_starts, margins, theta0, prior_sigma,
+                   max_iter, tol, fallback, weights_given, nfr, gain, read_var, out_f, out_i, h,
+                   gv, hn, step, ph, trial, prior, cov, scratch, lo, hi)
 
 
-
-@njit(parallel=True, cache=True, error_model="numpy")
-def pixel_samples(y, valid, w, nfr, gain, read_var, t, light, dark, estimate_dc, dc_in, out_y,
-                  out_w, out_dark):
-    """The samples each pixel's fit sees, as :func:`fit_block` prepares them: step means
-    ``out_y`` and weights ``out_w`` (P, S; weight 0 = left out) and ``out_dark`` (P, 4): summed
-    dark weight, weighted mean dark exposure (ms) and level (DN), dark current (DN/ms)."""
-    npx = y.shape[1]
-    weights_given = w.shape[0] > 0
-    for blk in prange((npx + BLOCK - 1) // BLOCK):
-        p0 = blk * BLOCK
-        p1 = min(npx, p0 + BLOCK)
-        _gather(p0, p1, y, valid, w, nfr, read_var, light, dark, out_y[p0:p1], out_w[p0:p1])
-        for p in range(p0, p1):
-            res = _samples(out_y[p], out_w[p], t, light, dark, estimate_dc, dc_in[p],
-                           weights_given, nfr, gain, read_var)
-            out_dark[p, 0] = res[2]
-            out_dark[p, 1] = res[3]
-            out_dark[p, 2] = res[4]
-            out_dark[p, 3] = res[5]
 
 def _refresh_cache():
     from ..kernels import gradient, launch, vmath
-    from . import kcache, lm
+    from . import kcache, lm, pixelsamples
 
-    kcache.refresh([_gather, _light_weights, _samples, _fit_pixel, fit_block, pixel_samples],
-                   [gradient, vmath, launch, lm])
+    kcache.refresh([_fit_pixel, _fit_range, fit_block],
+                   [gradient, vmath, launch, lm, pixelsamples])
 
 
 _refresh_cache()
