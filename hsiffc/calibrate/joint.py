@@ -55,6 +55,7 @@ class JointFit:
     dark_current: np.ndarray  # DN/ms used for each pixel
     chi2: np.ndarray  # weighted residual sum of squares of the model used
     chi2_linear: np.ndarray  # ... of the plain linear model on the same samples
+    r_ref: np.ndarray  # highest relative light rate among the fitted light samples (0: none)
 
     @property
     def theta(self) -> np.ndarray:
@@ -164,7 +165,7 @@ def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None
            else np.ascontiguousarray(np.asarray(theta0, np.float64).reshape(p_count, 4)))
     b_starts = np.atleast_1d(np.asarray(B_GRID if b_start is None else b_start, np.float64))
     w, nfr, gain, read_var = _weight_args(w, n_frames, noise, s_count)
-    out_f = np.empty((p_count, 12))
+    out_f = np.empty((p_count, 13))
     out_i = np.empty((p_count, 3), np.int32)
     pixelfit.fit_block(
         np.ascontiguousarray(y, np.float64), np.ascontiguousarray(valid, np.bool_),
@@ -216,7 +217,7 @@ def _to_fit(out_f, out_i) -> JointFit:
                         leak_constrained=sigma[:, 2] < 0.5,
                         iterations=int(out_i[:, 2].max(initial=0)), status=status,
                         dark_current=out_f[:, 8], chi2=out_f[:, 9],
-                        chi2_linear=out_f[:, 10])
+                        chi2_linear=out_f[:, 10], r_ref=out_f[:, 12])
 
 
 def fit_pixels(y, t_ms, r, valid, weight, theta0=None, *, dark_current=None,

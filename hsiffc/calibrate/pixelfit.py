@@ -55,8 +55,8 @@ STATUS_REASONS = {
                   "is undetermined",
 }
 MIN_LEAK_SAMPLES = 5
-# columns of the float output (P, 12) and the integer output (P, 3)
-F_THETA, F_SIGMA, F_DC, F_CHI2, F_CHI2_LIN, F_RMS = 0, 4, 8, 9, 10, 11
+# columns of the float output (P, 13) and the integer output (P, 3)
+F_THETA, F_SIGMA, F_DC, F_CHI2, F_CHI2_LIN, F_RMS, F_RREF = 0, 4, 8, 9, 10, 11, 12
 I_N, I_STATUS, I_ITER = 0, 1, 2
 
 
@@ -103,13 +103,14 @@ def _fit_pixel(p, yp, wp, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, 
         s2 += wi * u * u
         z0 += wi * z
         z1 += wi * u * z
+    out_f[p, F_RREF] = rref
     den = s0 * s2 - s1 * s1
     nfit = nl + ((1 if md_w > 0 else 0) if merge else nd)
     if nl == 0 or not (den > 1e-12 * s0 * s2) or rref <= 0:
         out_i[p, I_STATUS] = NO_LIGHT if nl == 0 else UNDETERMINED
         out_f[p, :F_DC] = np.nan
         out_f[p, F_SIGMA:F_SIGMA + 4] = np.inf
-        out_f[p, F_CHI2:] = np.nan
+        out_f[p, F_CHI2:F_RREF] = np.nan
         return
     g_lin = (s0 * z1 - s1 * z0) / den
     d_lin = (z0 - g_lin * s1) / s0
@@ -284,8 +285,9 @@ def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estima
     unless ``estimate_dc``; ``additive`` adds it after the leakage instead of to the light rate.
     ``b_starts``, ``margins``: start values of b (1/DN) and of the saturation margin above the
     highest sample (in 1/b); ``theta0`` (P, 4) start values instead, or (0, 4). Outputs are
-    filled in place: ``out_f`` (P, 12) float64 (theta 4, sigma 4, dc, chi2, chi2 of the linear
-    model, RMS) and ``out_i`` (P, 3) int32 (valid samples, status, iterations).
+    filled in place: ``out_f`` (P, 13) float64 (theta 4, sigma 4, dc, chi2, chi2 of the linear
+    model, RMS, highest light rate of the fitted samples) and ``out_i`` (P, 3) int32 (valid
+    samples, status, iterations).
     """
     npx = y.shape[1]
     n = t.size

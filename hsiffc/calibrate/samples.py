@@ -37,7 +37,7 @@ class Samples:
         ``2**bit_depth - 1``.
     """
 
-    y: np.ndarray  # float32 step means, DN
+    y: np.ndarray  # step means, DN (float32 unless asked otherwise)
     clipped: np.ndarray  # bool: some frame at full scale
     full_well: np.ndarray  # bool: at or above the full-well level
     exposure_ms: np.ndarray  # (S,)
@@ -54,7 +54,9 @@ class Samples:
     @property
     def valid(self) -> np.ndarray:
         """(S, P) bool: samples a fit may use (not clipped, below full well, usable step)."""
-        return (~self.clipped) & (~self.full_well) & self.usable_step[:, None]
+        ok = ~(self.clipped | self.full_well)
+        ok &= self.usable_step[:, None]
+        return ok
 
 
 def relative_light_rate(sweep_steps: dict, *, light_rate=None) -> tuple[np.ndarray, str]:
@@ -109,7 +111,7 @@ def relative_light_rate(sweep_steps: dict, *, light_rate=None) -> tuple[np.ndarr
 
 
 def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_rate=None,
-                    rows: slice | None = None) -> Samples:
+                    rows: slice | None = None, dtype=np.float32) -> Samples:
     """Step means and validity of every pixel (optionally of a band of ``rows`` only).
 
     Parameters
@@ -122,6 +124,8 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         One relative light rate per step (see :func:`relative_light_rate`).
     rows : slice, optional
         Rows of the frame to sample (default: all).
+    dtype : numpy dtype
+        Of the step means: float32, or float64 for a fit that computes in float64.
 
     Returns
     -------
@@ -133,7 +137,7 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     r0, r1, _ = rows.indices(sweep.frame_shape[0])
     shape = (r1 - r0, sweep.frame_shape[1])
     fs = sweep.full_scale_dn
-    means = np.empty((len(steps), shape[0] * shape[1]), np.float32)
+    means = np.empty((len(steps), shape[0] * shape[1]), dtype)
     clipped = np.empty(means.shape, bool)
     exposure = np.empty(len(steps))
     n_frames = np.empty(len(steps), np.int64)
@@ -241,7 +245,7 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def _step_means(data, sel, nsel, r0, r1, fs, means, clipped):
-    """Per step s, the mean (float32) over its frames ``sel[s, :nsel[s]]`` of rows ``r0:r1`` of
+    """Per step s, the mean (in the dtype of ``means``) over its frames ``sel[s, :nsel[s]]`` of rows ``r0:r1`` of
     ``data`` (N, H, W), and whether any of them is at or above ``fs``; outputs (S, P)."""
     w = data.shape[2]
     for rr in prange(r1 - r0):

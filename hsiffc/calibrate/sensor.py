@@ -224,17 +224,17 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     info = None
     for r0 in range(0, h, rows_per_chunk):
         rows = slice(r0, min(h, r0 + rows_per_chunk))
-        smp = collect_samples(sweep, full_well_dn=full_well_dn, light_rate=light_rate, rows=rows)
+        smp = collect_samples(sweep, full_well_dn=full_well_dn, light_rate=light_rate, rows=rows,
+                              dtype=np.float64)  # the kernel's precision: no conversion pass
         info = info or smp
         ks = kernel_samples(smp, ptc)
         fit = run_kernel(**ks, dark_current="estimate" if use_dc else None, dark_model=dmodel,
                          b_start=starts[0] if starts else B_GRID,
                          margins=(starts[1],) if starts else MARGIN_GRID)
         shape = (rows.stop - rows.start, w)
-        rmax = np.where(ks["valid"] & ks["light"][:, None], ks["r"][:, None], 0.0).max(axis=0)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             sat = np.where(fit.a > 0, model.dynamic_saturation_level(
-                np.maximum(fit.g * rmax, 1e-300), np.maximum(fit.a, 1e-300), fit.b), np.inf)
+                np.maximum(fit.g * fit.r_ref, 1e-300), np.maximum(fit.a, 1e-300), fit.b), np.inf)
         for name, v in (("responsivity", fit.g), ("a_dn_per_ms", fit.a), ("b_per_dn", fit.b),
                         ("dark_dn", fit.dark), ("dark_current_dn_per_ms", fit.dark_current),
                         ("sigma_ln_g", fit.sigma[:, 0]), ("sigma_ln_a", fit.sigma[:, 1]),
@@ -242,11 +242,12 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                         ("rms_dn", fit.rms_dn), ("chi2_red", fit.chi2_red),
                         ("saturation_ref_dn", sat)):
             out[name][rows] = v.reshape(shape)
-        usable = smp.usable_step[:, None]
+        usable = smp.usable_step
         counts["n_valid"][rows] = fit.n_valid.reshape(shape)
-        counts["n_clipped"][rows] = (smp.clipped & usable).sum(axis=0).reshape(shape)
-        counts["n_full_well"][rows] = (smp.full_well & ~smp.clipped & usable).sum(
-            axis=0).reshape(shape)
+        counts["n_clipped"][rows] = smp.clipped[usable].sum(axis=0, dtype=np.int32).reshape(shape)
+        if full_well_dn is not None:  # else no sample is at full well
+            counts["n_full_well"][rows] = (smp.full_well & ~smp.clipped)[usable].sum(
+                axis=0, dtype=np.int32).reshape(shape)
         status[rows] = fit.status.reshape(shape)
         if progress:
             progress(rows.stop, h)
