@@ -165,22 +165,15 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
     cube_dq = np.zeros((H, W, B), DQ_DTYPE)
     cube_alpha = None if a is None else np.empty((H, W, B), np.float32)
     missing = interpolate_bands(p.raw, p.dq, a, common, ppi, ppi_ok, levels, p.lattices(),
-                      _band_of_phase(mosaic), mosaic.tile_shape, cube, cube_dq, cube_alpha)
-    if missing:  # values with no usable sample within twice the tile: the band median
-        nan = np.isnan(cube)
-        for b in np.flatnonzero(nan.any(axis=(0, 1))):
-            cube[:, :, b][nan[:, :, b]] = band_median(p, int(b))
+                                mosaic.tile_shape, cube, cube_dq, cube_alpha)
+    for b in np.flatnonzero(missing.any(axis=0)):  # no usable sample within twice the tile
+        med = np.float32(band_median(p, int(b)))
+        for y in np.flatnonzero(missing[:, b]):
+            row = cube[y, :, b]
+            row[np.isnan(row)] = med
     if method == "nearest":
         _nearest(p, cube)
     return (cube, cube_dq) if a is None else (cube, cube_dq, cube_alpha)
-
-
-def _band_of_phase(mosaic: Mosaic) -> np.ndarray:
-    """(ph, pw): band of each (row % ph, col % pw), the offset included."""
-    ph, pw = mosaic.tile_shape
-    oy, ox = mosaic.offset
-    rows, cols = (np.arange(ph) - oy) % ph, (np.arange(pw) - ox) % pw
-    return mosaic.pattern[rows[:, None], cols[None, :]]
 
 
 def reconstruct_alpha(alpha, mosaic: Mosaic, *, method: str = "bilinear",

@@ -11,11 +11,11 @@ import numpy as np
 
 from ..dq import DQ, DQ_DTYPE
 from ..kernels.demosaic import EPS
+from ..kernels.ppi import ppi_image
 from ..mosaic import Mosaic
 
-__all__ = ["EPS", "Prepared", "band_levels", "band_median", "fill_flagged_from_lattice",
-           "pad_periodic", "periodic_index", "ppi_kernel", "prepare", "pseudo_panchromatic",
-           "sep_filter", "tile_starts"]
+__all__ = ["EPS", "Prepared", "band_levels", "band_median", "periodic_index", "ppi_kernel",
+           "prepare", "pseudo_panchromatic", "sep_filter", "tile_starts"]
 
 
 def ppi_kernel(period: int) -> np.ndarray:
@@ -281,80 +281,14 @@ def periodic_index(n: int, period: int, margin: int) -> np.ndarray:
     return np.clip(i, 0, n - 1)
 
 
-def pad_periodic(a: np.ndarray, rows: np.ndarray, cols: np.ndarray, my: int, mx: int):
-    """``a[np.ix_(rows, cols)]`` for the :func:`periodic_index` of ``a``'s shape with margins
-    ``my, mx``: the interior copied as one block, only the margins gathered.
-
-    Parameters
-    ----------
-    a : (H, W) ndarray
-        Plane to extend.
-    rows, cols : ndarray of int
-        :func:`periodic_index` of H and W with margins ``my`` and ``mx``.
-    my, mx : int
-        Margins (rows, columns).
-
-    Returns
-    -------
-    ndarray, (H + 2 my, W + 2 mx)
-    """
-    H, W = a.shape
-    out = np.empty((H + 2 * my, W + 2 * mx), a.dtype)
-    out[my:my + H, mx:mx + W] = a
-    for i in list(range(my)) + list(range(my + H, 2 * my + H)):
-        out[i, mx:mx + W] = a[rows[i]]
-    for j in list(range(mx)) + list(range(mx + W, 2 * mx + W)):
-        out[:, j] = out[:, mx + cols[j]]
-    return out
-
-
-def fill_flagged_from_lattice(p: Prepared) -> tuple[np.ndarray, np.ndarray]:
-    """Raw values with flagged samples replaced by the tent-weighted mean of their unflagged
-    same-band neighbours one tile away (8 neighbours), and the matching weights (1 for
-    unflagged and filled samples, 0 where no neighbour was usable; None when nothing is
-    flagged, and then the values are ``p.raw`` itself).
-
-    Parameters
-    ----------
-    p : Prepared
-        The frame.
-
-    Returns
-    -------
-    values : ndarray of float32, (H, W)
-    weights : ndarray of float32, (H, W), or None
-    """
-    if not p.any_flags:
-        return p.raw, None
-    vals = p.raw.copy()
-    wts = p.good.astype(np.float32)
-    H, W = p.shape
-    ph, pw = p.period
-    fy, fx = np.nonzero(~p.good)
-    acc = np.zeros(fy.size, np.float64)
-    wsum = np.zeros(fy.size, np.float64)
-    for dy in (-ph, 0, ph):
-        for dx in (-pw, 0, pw):
-            if dy == 0 and dx == 0:
-                continue
-            wt = 0.25 if (dy and dx) else 0.5
-            ny, nx = fy + dy, fx + dx
-            ok = (ny >= 0) & (ny < H) & (nx >= 0) & (nx < W)
-            ok[ok] = p.good[ny[ok], nx[ok]]
-            acc[ok] += wt * p.raw[ny[ok], nx[ok]]
-            wsum[ok] += wt
-    done = wsum > 0
-    vals[fy[done], fx[done]] = (acc[done] / wsum[done]).astype(np.float32)
-    wts[fy[done], fx[done]] = 1.0
-    return vals, wts
-
-
 def pseudo_panchromatic(p: Prepared, levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The PPI: the raw frame averaged over a tile-sized neighbourhood (:func:`ppi_kernel`).
 
-    Flagged samples are first replaced by their same-band lattice neighbours (or excluded);
-    the frame is extended beyond its borders by whole tiles (same band), so that every PPI
-    window sees every band and a spatially uniform scene gives a constant PPI.
+    Flagged samples are first replaced by the tent-weighted mean of their unflagged same-band
+    neighbours one tile away (8 neighbours; excluded when none is usable); each band is
+    divided by its level; the frame is extended beyond its borders by whole tiles (same band),
+    so that every PPI window sees every band and a spatially uniform scene gives a constant
+    PPI. Evaluated by the compiled kernel :mod:`hsiffc.kernels.ppi`.
 
     Parameters
     ----------
@@ -373,22 +307,8 @@ def pseudo_panchromatic(p: Prepared, levels: np.ndarray) -> tuple[np.ndarray, np
     H, W = p.shape
     ph, pw = p.period
     kx, ky = ppi_kernel(pw), ppi_kernel(ph)
-    my, mx = ky.size // 2, kx.size // 2
-    vals, wts = fill_flagged_from_lattice(p)
-    rows = periodic_index(H, ph, my)
-    cols = periodic_index(W, pw, mx)
-    vp = pad_periodic(vals, rows, cols, my, mx)
-    if np.any(levels != 1.0):  # balance the bands: each divided by its level
-        inv = (1.0 / np.asarray(levels)).astype(np.float32)[p.mosaic.pattern]
-        oy, ox = p.mosaic.offset
-        vp *= inv[((rows - oy) % ph)[:, None], ((cols - ox) % pw)[None, :]]
-    if wts is None:  # nothing flagged: the weights are all 1, their filter a constant
-        num = sep_filter(vp, kx, ky)[my:my + H, mx:mx + W]
-        num *= np.float32(1.0 / (kx.sum(dtype=np.float64) * ky.sum(dtype=np.float64)))
-        return np.ascontiguousarray(num), None
-    wp = pad_periodic(wts, rows, cols, my, mx)
-    num = sep_filter(vp * wp, kx, ky)[my:my + H, mx:mx + W]
-    den = sep_filter(wp, kx, ky)[my:my + H, mx:mx + W]
-    ok = den > EPS
-    ppi = np.divide(num, den, out=np.zeros_like(num), where=ok)
-    return np.ascontiguousarray(ppi), ok
+    rows = periodic_index(H, ph, ky.size // 2)
+    cols = periodic_index(W, pw, kx.size // 2)
+    inv = (1.0 / np.asarray(levels, np.float64)).astype(np.float32)
+    ppi, ok = ppi_image(p.raw, p.dq, p.mosaic.band_map((ph, pw)), inv, rows, cols, kx, ky)
+    return ppi, (None if p.dq is None else ok)
