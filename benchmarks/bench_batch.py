@@ -2,7 +2,7 @@
 
 A batch of 2048 x 1088 cubes of 16 uint16 frames (one simulated cube written with
 ``write_sweep`` and copied under many names). The calibration is the simulator's own fixed
-pattern (a, b, dark level, dark current) so no 90 s calibration fit is needed.
+pattern (responsivity, a, b, dark level, dark current) so no 90 s calibration fit is needed.
 
 * **I/O bound** (baseline, same run): for every input, ``tifffile`` reads each page and writes
   the same output volume as ``hsiffc correct`` (per frame a float32 plane, a uint32 plane and a
@@ -10,7 +10,7 @@ pattern (a, b, dark level, dark current) so no 90 s calibration fit is needed.
   atomic write is). Median of runs interleaved with the engine's.
 * **engine, one worker**: :func:`hsiffc.batch.correct_batch` in this process, inputs hashed
   (sha256 in the provenance), with the default pipeline (dark from the calibration + alpha
-  mask at 12 %) and with a dark-only pipeline (``--pipeline``: the engine's own cost: reading,
+  mask at 12 % + model_ffc) and with a dark-only pipeline (``--pipeline``: the engine's own cost: reading,
   frames, provenance, statistics, atomic writes).
 * **engine, two workers**: the default pipeline on a local Dask cluster (2 processes).
 * **where the time goes**: the default and dark-only pipelines alone on one frame.
@@ -79,8 +79,12 @@ def _make_inputs(folder: Path, cfg: dict, n_cubes: int) -> tuple[list[Path], Pat
     for i in range(1, n_cubes):
         files.append(folder / f"cube_{i:03d}.tif")
         shutil.copyfile(first, files[-1])
+    # responsivity: the light rate (DN/ms) at relative rate 1 = the benchmark's own light, which
+    # model_ffc (the default pipeline's flat field) needs
+    k = sensor.light_rate("lamp A", irradiance_w_m2=PAPER_LIGHT_W_M2["training"] * 0.8)
     arrays = {"a_dn_per_ms": sensor.a_dn_per_ms, "b_per_dn": sensor.b_per_dn,
-              "dark_dn": sensor.dark_dn, "dark_current_dn_per_ms": sensor.dark_current}
+              "dark_dn": sensor.dark_dn, "dark_current_dn_per_ms": sensor.dark_current,
+              "responsivity": k}
     cal = Calibration(arrays={k: np.asarray(v, np.float32) for k, v in arrays.items()},
                       domain={"exposure_ms": [1.0, 40.0], "light_rate": [0.0, 1.0],
                               "light_rate_unit": "relative", "bit_depth": 10,

@@ -19,13 +19,18 @@ from pathlib import Path
 
 from numba import njit
 
-__all__ = ["JIT_OPTIONS", "Kernel", "PARALLEL_MIN", "SOURCE_DIGEST"]
+__all__ = ["JIT_OPTIONS", "Kernel", "PARALLEL_MIN", "PARALLEL_OPTIONS", "SOURCE_DIGEST"]
 
 #: Below this many elements a kernel runs serially on the calling thread.
 PARALLEL_MIN = 65536
 #: Options of every cached kernel: IEEE arithmetic (no fastmath), numpy's error model (0/0 is
 #: NaN, not an exception: that lets LLVM vectorise the loops), machine code cached on disk.
 JIT_OPTIONS = {"cache": True, "fastmath": False, "error_model": "numpy"}
+#: Parallel options of the parallel builds: no loop fusion. numba fuses adjacent ``prange``
+#: loops of the same length, which merges a kernel's branch-free vector pass with its scalar
+#: repair pass, and the fused loop (with a call in it) is no longer vectorised: the closed-form
+#: response ran 4 x slower fused (measured on an AVX2 machine).
+PARALLEL_OPTIONS = {"fusion": False}
 
 
 def _source_digest() -> str:
@@ -61,7 +66,7 @@ class Kernel:
     """
 
     def __init__(self, fn, size_arg: int):
-        self.parallel = njit(parallel=True, **JIT_OPTIONS)(_renamed(fn, "_" + SOURCE_DIGEST))
+        self.parallel = njit(parallel=PARALLEL_OPTIONS, **JIT_OPTIONS)(_renamed(fn, "_" + SOURCE_DIGEST))
         self.serial = njit(**JIT_OPTIONS)(_renamed(fn, "_serial_" + SOURCE_DIGEST))
         self.size_arg = size_arg
         self.__doc__ = fn.__doc__

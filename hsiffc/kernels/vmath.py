@@ -96,7 +96,7 @@ def exp(x):
     return res if x == x else x
 
 
-@njit(**_JIT)
+@njit(**_JIT, inline="always")
 def expm1(x):
     """e^x - 1, accurate for small |x| (2 ulp)."""
     near = x + _exp_poly(min(max(x, -0.35), 0.35))
