@@ -44,6 +44,8 @@ import numpy as np
 from . import model
 from .bandstats import band_reduce
 from .dq import DQ, DQ_DTYPE
+from .kernels.modelffc import model_ffc_kernel
+from .kernels.operands import flat_operands
 
 __all__ = ["FlatStack", "ModelFlat", "relative_responsivity", "flat_responsivity",
            "model_flat_fit", "model_ffc_apply", "correction_uncertainty"]
@@ -311,37 +313,24 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     dq : (H, W) uint32
     alpha : (H, W) float32, percent (model alpha; float32 max where undefined)
     """
-    y = np.asarray(response, np.float64)
-    a64, b64 = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    d64 = np.asarray(dark, np.float64)
     if not exposure_ms > 0:  # no light was integrated: nothing to invert, only the offset
-        out = (y - d64) * np.asarray(gain, np.float64)
-        dq = np.zeros(y.shape, DQ_DTYPE)
+        out = (np.asarray(response, np.float64) - np.asarray(dark, np.float64)) * np.asarray(
+            gain, np.float64)
+        dq = np.zeros(out.shape, DQ_DTYPE)
         dq[~np.isfinite(out)] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
         return (np.where(np.isfinite(out), out, 0.0).astype(np.float32), dq,
-                np.zeros(y.shape, np.float32))
-    inv = model.invert_response(y, exposure_ms, a64, b64, d64, full_scale=full_scale_dn)
-    k_light = inv.k - np.asarray(dark_current, np.float64)
-    below = (inv.flags & DQ_DTYPE(DQ.BELOW_DARK)) != 0
-    # at and below the zero-light level the response is read noise around the dark: keep it
-    # linear (no clipping at zero, which would bias dark regions upwards)
-    signal = np.where(below | (inv.k <= 0), y - d64, k_light * exposure_ms)
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        alpha = model.leakage_percentage(y, np.maximum(inv.k, 1e-300), a64, b64)
-    factor = np.asarray(gain, np.float64)
-    if gain_sweep is not None:
-        w = np.clip(1.0 - np.nan_to_num(alpha, nan=np.inf) / float(flat_alpha_percent), 0.0, 1.0)
-        ln_s = np.log(np.asarray(gain_sweep, np.float64))
-        factor = np.exp(ln_s + w * (np.log(factor) - ln_s))
-    out = signal * factor
-    dq = (inv.flags & ~DQ_DTYPE(DQ.BELOW_DARK)).astype(DQ_DTYPE)
-    dq[below & (y < d64 - below_dark_tolerance_dn)] |= DQ_DTYPE(DQ.BELOW_DARK)
-    dq[~(alpha <= alpha_limit_percent) & ~below] |= DQ_DTYPE(DQ.LEAKAGE)
-    finite = np.isfinite(out)
-    dq[~finite] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
-    out = np.where(finite, out, 0.0)
-    alpha = np.minimum(np.nan_to_num(alpha, nan=np.inf), np.finfo(np.float32).max)
-    return out.astype(np.float32), dq, alpha.astype(np.float32)
+                np.zeros(out.shape, np.float32))
+    has_sweep = gain_sweep is not None
+    shape, ops = flat_operands(response, exposure_ms, a, b, dark, gain,
+                               gain if gain_sweep is None else gain_sweep, dark_current)
+    out = np.empty(shape, np.float32)
+    dq = np.empty(shape, DQ_DTYPE)
+    alpha = np.empty(shape, np.float32)
+    model_ffc_kernel(*ops, has_sweep, np.inf if full_scale_dn is None else float(full_scale_dn),
+                     float(flat_alpha_percent), float(alpha_limit_percent),
+                     float(below_dark_tolerance_dn), 1e-9, 60, out.reshape(-1), dq.reshape(-1),
+                     alpha.reshape(-1))
+    return out, dq, alpha
 
 
 def correction_uncertainty(response, exposure_ms: float, a, b, dark, sigma_ln_gain, *,

@@ -28,8 +28,9 @@ from .launch import JIT_OPTIONS, Kernel
 from .operands import at
 from .vmath import exp, expm1, log, log1p, logaddexp
 
-__all__ = ["BLOCK", "alpha_flags_kernel", "alpha_model_kernel", "alpha_model_point",
-           "alpha_paper_kernel", "alpha_paper_point", "invert_kernel", "invert_point",
+__all__ = ["BLOCK", "PENDING", "VECTOR_STEPS", "alpha_flags_kernel", "alpha_model_kernel",
+           "alpha_model_point", "alpha_paper_kernel", "alpha_paper_point", "invert_kernel", "invert_point",
+           "invert_vector",
            "leakage_bits", "response_fast", "response_kernel", "response_point",
            "response_robust"]
 
@@ -230,41 +231,53 @@ def invert_point(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter):
     return k, flags, it
 
 
-_VECTOR_STEPS = 3
-_PENDING = 1 << 31  # scratch flag inside invert_kernel: left to the scalar pass
+VECTOR_STEPS = 3
+PENDING = 1 << 31  # scratch flag inside invert_kernel: left to the scalar pass
+
+
+@njit(**_INL)
+def invert_vector(y, t, a, b, d, full_scale, k_max, tol_dn):
+    """(k, flags, done, alpha): three branch-free Halley steps from the lower bounds
+    (vectorisable).
+
+    ``done`` is False where the result is not trusted (non-finite input, zero light, extreme
+    parameters, slow convergence): solve those pixels again with :func:`invert_point`.
+    ``alpha`` is the model leakage percentage at the target response, ``100 a e^{bY} / k``,
+    which the iteration has at hand: ``100 C / x`` (``C = a b t e^{bY}``, ``x = b k t``).
+    """
+    flags, ok, target, beta, lnc, c, h0, x0 = _setup(y, t, a, b, d, full_scale, True)
+    x = _halley(x0, beta, c, True)[1]
+    x = _halley(x, beta, c, True)[1]
+    x = _halley(x, beta, c, True)[1]
+    h = _halley(x, beta, c, True)[0]
+    tol = b * (tol_dn + 8.0 * _EPS * abs(target))
+    done = ok and lnc <= 700.0 and h0 > 0.0 and abs(h) <= tol
+    k = x / (b * t)
+    over = k > k_max
+    return (k_max if over else k), flags | (_UNREACHABLE if over else 0), done, 100.0 * c / x
 
 
 def _invert_loop(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter, k_out, flags_out,
-                iterations):
+                 iterations):
     """:func:`invert_point` over flat operands; ``iterations[block]`` gets each block's max
     (``ceil(n / BLOCK)`` entries).
 
-    A branch-free pass runs three Halley steps from the lower bounds for every pixel of a
-    block (vectorised) and accepts those that then match the response within the tolerance;
-    the others (non-finite input, zero light, extreme parameters, slow convergence) are
-    solved again by :func:`invert_point`.
+    A branch-free pass (:func:`invert_vector`) runs three Halley steps from the lower bounds
+    for every pixel (vectorised) and accepts those that then match the response within the
+    tolerance; the others are solved again by :func:`invert_point`.
     """
     n = k_out.shape[0]
-    vector = max_iter >= _VECTOR_STEPS
+    vector = max_iter >= VECTOR_STEPS
     if vector:
         for i in prange(n):
-            bi, ti = at(b, i), at(t, i)
-            flags, ok, target, beta, lnc, c, h0, x0 = _setup(
-                at(y, i), ti, at(a, i), bi, at(d, i), full_scale, True)
-            x = _halley(x0, beta, c, True)[1]
-            x = _halley(x, beta, c, True)[1]
-            x = _halley(x, beta, c, True)[1]
-            h = _halley(x, beta, c, True)[0]
-            tol = bi * (tol_dn + 8.0 * _EPS * abs(target))
-            done = ok and lnc <= 700.0 and h0 > 0.0 and abs(h) <= tol
-            k = x / (bi * ti)
-            over = k > k_max
-            k_out[i] = k_max if over else k
-            flags_out[i] = flags | (_UNREACHABLE if over else 0) | (0 if done else _PENDING)
+            k, flags, done, _ = invert_vector(at(y, i), at(t, i), at(a, i), at(b, i),
+                                              at(d, i), full_scale, k_max, tol_dn)
+            k_out[i] = k
+            flags_out[i] = flags | (0 if done else PENDING)
     for blk in prange((n + BLOCK - 1) // BLOCK):
-        most = _VECTOR_STEPS if vector else 0
+        most = VECTOR_STEPS if vector else 0
         for i in range(blk * BLOCK, min(n, blk * BLOCK + BLOCK)):
-            if vector and not (flags_out[i] & _PENDING):
+            if vector and not (flags_out[i] & PENDING):
                 continue
             k, f, it = invert_point(at(y, i), at(t, i), at(a, i), at(b, i), at(d, i),
                                     full_scale, k_max, tol_dn, max_iter)

@@ -1,0 +1,104 @@
+"""Compiled kernel of the model-based flat-field correction (:func:`hsiffc.model_ffc.model_ffc_apply`).
+
+One pass per pixel: invert the leakage model (:func:`~hsiffc.kernels.leakage.invert_vector`,
+three vectorised Halley steps), the model alpha, the blend of the two responsivity factors
+by alpha, the corrected value and its DQ bits; a second pass solves the pixels the vector
+steps left (non-finite input, zero light, extreme parameters) with the bracketed scalar
+iteration :func:`~hsiffc.kernels.leakage.invert_point` and corrects them with the same
+:func:`correct_point`. Everything in float64; outputs stored as float32 (DN, percent).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from ..dq import DQ
+from .launch import JIT_OPTIONS, Kernel
+from .leakage import BLOCK, PENDING, alpha_model_point, invert_point, invert_vector
+from .operands import at
+from .vmath import exp, log
+
+__all__ = ["correct_point", "model_ffc_kernel"]
+
+_INL = {**JIT_OPTIONS, "cache": False, "inline": "always"}
+_F32_MAX = float(np.finfo(np.float32).max)
+_BELOW_DARK = int(DQ.BELOW_DARK)
+_LEAKAGE = int(DQ.LEAKAGE)
+_BAD = int(DQ.NONFINITE | DQ.DO_NOT_USE)
+
+
+@njit(**_INL)
+def correct_point(k, flags, alpha, y, t, d, g_flat, g_sweep, has_sweep, dc, flat_alpha,
+                  alpha_limit, below_tol):
+    """(corrected DN, DQ bits, alpha percent) of one pixel from its inverted rate ``k``, the
+    inversion's DQ ``flags`` and its model alpha (percent, ``100 a e^{bY} / k``).
+
+    The signal is ``(k - dc) t`` (``dc`` the dark current; ``y - d`` at and below the
+    zero-light level, read noise kept linear); the factor moves from ``g_flat`` to ``g_sweep``
+    as the model alpha grows, ``ln f = ln g_sweep + w (ln g_flat - ln g_sweep)``,
+    ``w = max(0, 1 - alpha / flat_alpha)``.
+    """
+    below = (flags & _BELOW_DARK) != 0
+    signal = (y - d) if (below or not k > 0.0) else (k - dc) * t
+    alpha = np.inf if alpha != alpha else alpha
+    factor = g_flat
+    if has_sweep:
+        w = min(max(1.0 - alpha / flat_alpha, 0.0), 1.0)
+        factor = g_sweep * exp(w * log(g_flat / g_sweep))
+    out = signal * factor
+    dq = flags & ~_BELOW_DARK
+    dq |= _BELOW_DARK if (below and y < d - below_tol) else 0
+    dq |= _LEAKAGE if (not alpha <= alpha_limit and not below) else 0
+    finite = abs(out) < np.inf
+    dq |= 0 if finite else _BAD
+    return (out if finite else 0.0), dq, min(alpha, _F32_MAX)
+
+
+def _model_ffc_loop(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_scale,
+                    flat_alpha, alpha_limit, below_tol, tol_dn, max_iter, out, dq_out,
+                    alpha_out):
+    """:func:`correct_point` of every pixel into ``out`` (float32 DN), ``dq_out`` (uint32) and
+    ``alpha_out`` (float32 percent); operands flat arrays or scalars (see ``at``)."""
+    n = out.shape[0]
+    for i in prange(n):  # vectorised: invert, correct, mark what the vector steps left
+        yi = at(y, i)
+        ti = at(t, i)
+        ai = at(a, i)
+        bi = at(b, i)
+        di = at(d, i)
+        gi = at(gain, i)
+        si = at(sweep, i)
+        ci = at(dark_current, i)
+        # every operand is read before the inlined inversion: numba's parfor pass fails
+        # ("overwrite of parallel loop index") when an inlined ``at`` follows it
+        k, flags, done, alpha = invert_vector(yi, ti, ai, bi, di, full_scale, np.inf, tol_dn)
+        o, q, al = correct_point(k, flags, alpha, yi, ti, di, gi, si, has_sweep, ci,
+                                 flat_alpha, alpha_limit, below_tol)
+        out[i] = o
+        alpha_out[i] = al
+        # above full scale the inversion's alpha is at full scale, not at the response
+        dq_out[i] = q | (0 if (done and not yi > full_scale) else PENDING)
+    for blk in prange((n + BLOCK - 1) // BLOCK):  # the rest, scalar and bracketed
+        for j in range(blk * BLOCK, min(n, blk * BLOCK + BLOCK)):
+            if not (dq_out[j] & PENDING):
+                continue
+            yj = at(y, j)
+            tj = at(t, j)
+            aj = at(a, j)
+            bj = at(b, j)
+            dj = at(d, j)
+            gj = at(gain, j)
+            sj = at(sweep, j)
+            cj = at(dark_current, j)
+            k, flags, _ = invert_point(yj, tj, aj, bj, dj, full_scale, np.inf, tol_dn,
+                                       max_iter)
+            alpha = alpha_model_point(yj, max(k, 1e-300), aj, bj)
+            o, q, al = correct_point(k, flags, alpha, yj, tj, dj, gj, sj, has_sweep, cj,
+                                     flat_alpha, alpha_limit, below_tol)
+            out[j] = o
+            alpha_out[j] = al
+            dq_out[j] = q
+
+
+model_ffc_kernel = Kernel(_model_ffc_loop, 15)
