@@ -21,6 +21,11 @@ where the sum would under- or overflow, so nothing overflows: the form stays fin
 up to 1e4 and beyond, for a/k from 0 to 1e3 and more, for k = 0 (pure leakage) and for starting levels above the dynamic saturation level. The paper's
 eq. (3) with its integration constant c is the same curve: ``c_from_dark`` / ``dark_from_c``
 convert between the two.
+
+This module holds the response (closed form, the paper's eq. 3 and the linear eq. 1), its
+inversion, its gradient and the reference ODE solution. The quantities derived from the
+parameters (dynamic saturation level, leakage rate and percentage, exposure at a given
+percentage) are in :mod:`hsiffc.model_derived` and importable from here as well.
 """
 
 from __future__ import annotations
@@ -32,37 +37,23 @@ import numpy as np
 from .dq import DQ_DTYPE
 from .kernels import gradient, leakage
 from .kernels.operands import flat_operands
+from .model_derived import (
+    dynamic_saturation_level,
+    exposure_at_leakage_percentage,
+    leakage_percentage,
+    leakage_percentage_paper,
+    leakage_percentage_paper_into,
+    leakage_rate,
+)
+from .model_numerics import as_float64, check_positive_b, log1mexp, log_or_neg_inf
 
 __all__ = [
     "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
     "dynamic_saturation_level", "leakage_rate", "leakage_percentage",
-    "leakage_percentage_paper", "exposure_at_leakage_percentage", "invert_response",
+    "leakage_percentage_paper", "leakage_percentage_paper_into", "exposure_at_leakage_percentage",
+    "invert_response",
     "Inversion", "solve_ode", "response_and_gradient",
 ]
-
-
-def _f64(*arrays):
-    return [np.asarray(a, dtype=np.float64) for a in arrays]
-
-
-def _log(x):
-    """log that maps 0 to -inf without a warning."""
-    with np.errstate(divide="ignore"):
-        return np.log(x)
-
-
-def _log1mexp(x):
-    """log(1 - exp(-x)) for x >= 0, accurate everywhere (Maechler 2012)."""
-    x = np.asarray(x, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        small = x < np.log(2.0)
-        return np.where(small, np.log(-np.expm1(-np.where(small, x, 1.0))),
-                        np.log1p(-np.exp(-np.where(small, 1.0, x))))
-
-
-def _check_positive_b(b):
-    if np.any(np.asarray(b) <= 0):
-        raise ValueError("b (1/DN) must be > 0: the leakage grows with the collected signal")
 
 
 def _response(t_ms, k, a, b, dark):
@@ -101,7 +92,7 @@ def response(t_ms, k, a, b, dark):
     >>> round(float(y), 3), round(float(dynamic_saturation_level(2.0, 2 * np.exp(-8.0), 0.01)), 3)
     (800.0, 800.0)
     """
-    _check_positive_b(b)
+    check_positive_b(b)
     if np.any(np.asarray(t_ms) < 0) or np.any(np.asarray(k) < 0) or np.any(np.asarray(a) < 0):
         raise ValueError("t_ms, k and a must be >= 0")
     return _response(t_ms, k, a, b, dark)
@@ -138,11 +129,11 @@ def response_from_c(t_ms, k, a, b, c):
     >>> bool(np.isclose(response_from_c(10.0, k, a, b, c), response(10.0, k, a, b, d)))
     True
     """
-    t_ms, k, a, b, c = _f64(t_ms, k, a, b, c)
-    _check_positive_b(b)
+    t_ms, k, a, b, c = as_float64(t_ms, k, a, b, c)
+    check_positive_b(b)
     if np.any(k <= 0):
         raise ValueError("k must be > 0 in the paper's form (use response() for k = 0)")
-    return (np.log(k) - np.logaddexp(_log(a), -b * k * (t_ms + c))) / b
+    return (np.log(k) - np.logaddexp(log_or_neg_inf(a), -b * k * (t_ms + c))) / b
 
 
 def linear_response(t_ms, k, dark):
@@ -162,7 +153,7 @@ def linear_response(t_ms, k, dark):
     ndarray of float64, DN
         Shape of the broadcast of the arguments.
     """
-    t_ms, k, dark = _f64(t_ms, k, dark)
+    t_ms, k, dark = as_float64(t_ms, k, dark)
     return k * t_ms + dark
 
 
@@ -189,12 +180,12 @@ def c_from_dark(k, a, b, dark):
     ndarray of float64, ms
         The constant c, NaN where it does not exist; shape of the broadcast.
     """
-    k, a, b, dark = _f64(k, a, b, dark)
-    _check_positive_b(b)
+    k, a, b, dark = as_float64(k, a, b, dark)
+    check_positive_b(b)
     with np.errstate(divide="ignore", invalid="ignore"):
         # ln(k e^{-bd} - a) = ln k - b d + log(1 - (a/k) e^{bd})
-        log_ratio = _log(a) - np.log(k) + b * dark
-        inner = np.log(k) - b * dark + _log1mexp(-log_ratio)
+        log_ratio = log_or_neg_inf(a) - np.log(k) + b * dark
+        inner = np.log(k) - b * dark + log1mexp(-log_ratio)
         c = -inner / (b * k)
     return np.where((log_ratio < 0) & (k > 0), c, np.nan)
 
@@ -215,192 +206,6 @@ def dark_from_c(k, a, b, c):
         Shape of the broadcast of the arguments.
     """
     return response_from_c(0.0, k, a, b, c)
-
-
-def dynamic_saturation_level(k, a, b):
-    """Level ``ln(k/a)/b`` (DN) where leakage balances the light: the dynamic saturation.
-
-    Parameters
-    ----------
-    k : array_like, DN/ms
-        Light rate.
-    a : array_like, DN/ms
-        Leakage amplitude (0 gives +inf: no saturation).
-    b : array_like, 1/DN
-        Leakage exponent (> 0).
-
-    Returns
-    -------
-    ndarray of float64, DN
-        Shape of the broadcast of the arguments.
-
-    Examples
-    --------
-    >>> round(float(dynamic_saturation_level(2.0, 2 * np.exp(-8.0), 0.01)), 6)
-    800.0
-    """
-    k, a, b = _f64(k, a, b)
-    _check_positive_b(b)
-    with np.errstate(divide="ignore"):
-        return (_log(k) - _log(a)) / b
-
-
-def leakage_rate(y, a, b):
-    """Leakage ``a e^{bY}`` (DN/ms) at response ``y`` (DN).
-
-    Parameters
-    ----------
-    y : array_like, DN
-        Response.
-    a : array_like, DN/ms
-        Leakage amplitude.
-    b : array_like, 1/DN
-        Leakage exponent.
-
-    Returns
-    -------
-    ndarray of float64, DN/ms
-        Shape of the broadcast (inf where it overflows).
-    """
-    y, a, b = _f64(y, a, b)
-    with np.errstate(over="ignore"):
-        return np.exp(_log(a) + b * y)
-
-
-def leakage_percentage(y, k, a, b):
-    """Leakage percentage alpha of eq. (4) with k from the model: ``100 a e^{bY} / k`` (percent).
-
-    Along a response that starts below saturation alpha stays below 100 %: it reaches 100 % only
-    at the dynamic saturation level.
-
-    Parameters
-    ----------
-    y : array_like, DN
-        Response.
-    k : array_like, DN/ms
-        Light rate (from the calibration or an inversion).
-    a : array_like, DN/ms
-        Leakage amplitude.
-    b : array_like, 1/DN
-        Leakage exponent.
-
-    Returns
-    -------
-    ndarray of float64, percent
-        Shape of the broadcast of the arguments.
-
-    Examples
-    --------
-    >>> a, b = 2 * np.exp(-8.0), 0.01
-    >>> round(float(leakage_percentage(800.0, 2.0, a, b)), 6)   # at the dynamic saturation
-    100.0
-    """
-    shape, ops = flat_operands(y, k, a, b)
-    out = np.empty(int(np.prod(shape, dtype=np.int64)))
-    leakage.alpha_model_kernel(*ops, out)
-    return out.reshape(shape)
-
-
-def leakage_percentage_paper(y, t_ms, a, b, dark=0.0):
-    """Alpha as the paper computes it, with k approximated by the signal over the exposure.
-
-    ``alpha = 100 a e^{bY} / ((Y - dark) / t)`` in percent. The paper divides the raw response
-    by the exposure (``dark=0``, the default, reproduces that); passing the dark level gives the
-    signal rate. Because Y/t underestimates k once leakage bends the curve, this alpha exceeds
-    100 % deep in saturation (the paper's 173.5 % example). Where the signal is not positive the
-    result is ``inf`` (no light rate can be estimated: treat as invalid).
-
-    Parameters
-    ----------
-    y : array_like, DN
-        Raw response.
-    t_ms : array_like, ms
-        Exposure time (> 0).
-    a : array_like, DN/ms
-        Leakage amplitude.
-    b : array_like, 1/DN
-        Leakage exponent.
-    dark : array_like, DN
-        Level subtracted before dividing by the exposure (0: the paper's form).
-
-    Returns
-    -------
-    ndarray of float64, percent
-        Shape of the broadcast of the arguments.
-    """
-    return leakage_percentage_paper_into(None, y, t_ms, a, b, dark)
-
-
-def leakage_percentage_paper_into(out, y, t_ms, a, b, dark=0.0):
-    """:func:`leakage_percentage_paper` written into ``out`` (float32 or float64, the shape of
-    the broadcast; None allocates float64). float32 is enough for a validity mask: alpha is
-    computed in float64 and rounded once (1e-7 relative).
-
-    Parameters
-    ----------
-    out : ndarray or None
-        C-contiguous output of the broadcast shape (float32 or float64), or None.
-    y, t_ms, a, b, dark : array_like
-        As in :func:`leakage_percentage_paper`.
-
-    Returns
-    -------
-    ndarray, percent
-        ``out`` (or the new float64 array).
-    """
-    shape, ops = flat_operands(y, t_ms, a, b, dark)
-    if out is None:
-        out = np.empty(shape)
-    if out.shape != tuple(shape) or not out.flags.c_contiguous:
-        raise ValueError(f"out must be a C-contiguous array of shape {tuple(shape)}, got "
-                         f"{out.shape}")
-    leakage.alpha_paper_kernel(*ops, out.reshape(-1))
-    return out
-
-
-def exposure_at_leakage_percentage(alpha_percent, k, a, b, dark):
-    """Exposure (ms) at which the model response reaches a leakage percentage.
-
-    With ``alpha0`` the model alpha at the dark level, ``t = (logit(alpha) - logit(alpha0)) / (b k)``.
-    Returns 0 where the response starts at or above that alpha and ``inf`` where it is never
-    reached (alpha >= 100 %, or k = 0).
-
-    Parameters
-    ----------
-    alpha_percent : array_like, percent
-        Leakage percentage to reach (model alpha, :func:`leakage_percentage`).
-    k : array_like, DN/ms
-        Light rate.
-    a : array_like, DN/ms
-        Leakage amplitude.
-    b : array_like, 1/DN
-        Leakage exponent (> 0).
-    dark : array_like, DN
-        Level at t = 0.
-
-    Returns
-    -------
-    ndarray of float64, ms
-        Shape of the broadcast of the arguments.
-
-    Examples
-    --------
-    >>> k, a, b, d = 2.0, 2 * np.exp(-8.0), 0.01, 50.0
-    >>> t = exposure_at_leakage_percentage(50.0, k, a, b, d)
-    >>> round(float(leakage_percentage(response(t, k, a, b, d), k, a, b)), 6)
-    50.0
-    """
-    alpha, k, a, b, dark = _f64(alpha_percent, k, a, b, dark)
-    _check_positive_b(b)
-    p = alpha / 100.0
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        log_p0 = _log(a) + b * dark - _log(k)  # log of alpha0 as a fraction
-        logit_p = np.log(p) - _log1mexp(-np.log(p))
-        logit_p0 = log_p0 - _log1mexp(-log_p0)
-        t = (logit_p - logit_p0) / (b * k)
-    t = np.where(p >= 1.0, np.inf, t)
-    t = np.where((p < 1.0) & (log_p0 >= np.log(np.minimum(p, 1.0))), 0.0, t)
-    return np.where(k > 0, np.maximum(t, 0.0), np.inf)
 
 
 @dataclass(frozen=True)
@@ -472,7 +277,7 @@ def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=
     >>> np.round(inv.k, 9).tolist(), inv.flags.tolist()
     ([2.0, 2.0], [0, 0])
     """
-    _check_positive_b(b)
+    check_positive_b(b)
     if np.any(np.asarray(t_ms) <= 0):
         raise ValueError("t_ms must be > 0 to invert a response (at t = 0 no light is measured)")
     shape, ops = flat_operands(y, t_ms, a, b, dark)
@@ -550,7 +355,7 @@ def response_and_gradient(t_ms, k, a, b, dark):
     70.0
     """
     shape, ops = flat_operands(t_ms, k, a, b, dark)
-    _check_positive_b(b)
+    check_positive_b(b)
     if np.any(np.asarray(t_ms) < 0) or np.any(np.asarray(k) < 0) or np.any(np.asarray(a) < 0):
         raise ValueError("t_ms, k and a must be >= 0")
     out = np.empty((5, int(np.prod(shape))))
