@@ -4,7 +4,8 @@ A frame source is opened from a file, a folder, a glob or a list of them. It par
 header once, checks the size limits and the file structure, resolves the metadata of every
 frame (file, then sidecar, then options: :mod:`hsiffc.io.metadata`) and then knows, before any
 pixel is decoded, the number of frames, their shape, dtype, exposure, kind, bit depth and
-mosaic. Frames are decoded one at a time::
+mosaic (resolved over all files by :mod:`hsiffc.io.sourcefacts`). Frames are decoded one at a
+time::
 
     from hsiffc.io import open_source
 
@@ -22,7 +23,6 @@ ENVI (``.hdr`` + data), FITS (with astropy), EMVA 1288 descriptors; see
 from __future__ import annotations
 
 import os
-import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -34,9 +34,10 @@ from ..sweep import Sweep
 from . import quirks
 from .layout import FileLayout, FrameMeta
 from .limits import ReadLimits, default_limits
-from .metadata import Overrides, missing_field_error, missing_origin, resolve_fields
+from .metadata import Overrides, resolve_fields
 from .readers import expand_inputs, open_layout
 from .sidecar import Sidecar, find_sidecar
+from .sourcefacts import frame_columns, merge_origins, read_stored, resolve_facts
 
 __all__ = ["open_source", "FrameSource", "FrameMeta", "expand_inputs"]
 
@@ -164,125 +165,26 @@ class FrameSource:
                                            missing=self.missing if inspect else None))
         self._starts = np.cumsum([0] + [lay.n_frames for lay in layouts])
         self.n_frames = int(self._starts[-1])
-        self._global(layouts, resolved)
-
-        def column(name, dtype):
-            parts = [np.broadcast_to(np.asarray(values[name], dtype=dtype), (lay.n_frames,))
-                     for lay, (values, _) in zip(layouts, resolved)]
-            return np.concatenate(parts) if parts else np.empty(0, dtype)
-
-        self.exposure_ms = column("exposure_ms", np.float64)
-        self.kind = column("kind", object).astype(str)
-        self.illumination = column("illumination", object).astype(str)
-        self.photons = np.concatenate([np.broadcast_to(np.asarray(
-            v.get("photons", np.nan), np.float64), (lay.n_frames,))
-            for lay, (v, _) in zip(layouts, resolved)])
-        if all("step" in v for v, _ in resolved):
-            self.step = column("step", np.int64)
-        else:
-            self.step = None
-        bad = ~np.isfinite(self.exposure_ms) | (self.exposure_ms < 0)
-        if np.any(bad & ~(np.isnan(self.exposure_ms) & inspect)):
-            raise DataFormatError("exposure times must be finite and >= 0 ms", path=self.label)
-        self.origins = {}
-        for _, origins in resolved:
-            for name, origin in origins.items():
-                known = self.origins.setdefault(name, [])
-                if origin not in known:
-                    known.append(origin)
-        self.origins = {k: " + ".join(v) for k, v in self.origins.items()}
+        facts = resolve_facts(layouts, resolved, label=self.label, inspect=inspect,
+                              n_frames=self.n_frames,
+                              first_frame=lambda: self._decode(0, peek=True),
+                              notes=self.notes, missing=self.missing)
+        self.dtype, self.mosaic, self.active_area = facts.dtype, facts.mosaic, facts.active_area
+        self.channels, self.bit_shift, self.bit_depth = (facts.channels, facts.bit_shift,
+                                                         facts.bit_depth)
+        self.frame_shape = facts.frame_shape
+        self._bits_origin = facts.bits_origin
+        self._peeked = facts.peeked  # frame 0, decoded once: reused by the first read
+        columns = frame_columns(layouts, resolved, label=self.label, inspect=inspect)
+        self.exposure_ms, self.kind = columns["exposure_ms"], columns["kind"]
+        self.illumination, self.photons = columns["illumination"], columns["photons"]
+        self.step = columns["step"]
+        self.origins = merge_origins(resolved)
         self.origins.setdefault("bit_depth", self._bits_origin)
         self.format = "+".join(sorted({lay.format for lay in layouts}))
         self.strict = all(lay.strict for lay in layouts)
         self.meta = dict(layouts[0].meta) if len(layouts) == 1 else {
             "files": [str(p) for p in self.files]}
-
-    # -- resolution of the per-source facts -----------------------------------------------------
-    def _agree(self, name, values, layouts):
-        """The one value of a per-source field over all files (None if none gives it)."""
-        found = [(v[name], lay.path) for (v, _), lay in zip(values, layouts) if name in v]
-        if not found:
-            return None
-        first, where = found[0]
-        for value, path in found[1:]:
-            same = first == value if not isinstance(first, np.ndarray) else np.array_equal(
-                first, value)
-            if not same:
-                raise DataFormatError(f"{name} differs between {where} ({first!r}) and this file "
-                                      f"({value!r}); read them separately", path=path)
-        return first
-
-    def _global(self, layouts, resolved):
-        shapes = {lay.shape for lay in layouts}
-        dtypes = {lay.dtype for lay in layouts}
-        if len(shapes) != 1 or len(dtypes) != 1:
-            raise DataFormatError(f"the files hold frames of different shapes or dtypes "
-                                  f"({sorted(map(str, shapes))}, {sorted(map(str, dtypes))}); "
-                                  "read them separately", path=self.label)
-        stored = layouts[0].shape
-        self.dtype = layouts[0].dtype
-        self.mosaic = self._agree("mosaic", resolved, layouts)
-        self._attach_wavelengths(layouts, resolved)
-        self.active_area = self._agree("active_area", resolved, layouts)
-        bits = self._agree("bit_depth", resolved, layouts)
-        shift = self._agree("bit_shift", resolved, layouts)
-        self._bits_origin = resolved[0][1].get("bit_depth", "")
-        self.channels = stored[2] if len(stored) == 3 else 0
-        if len(stored) not in (2, 3):
-            raise DataFormatError(f"frames of shape {stored} are not images", path=self.label)
-        needs_peek = self.channels or (bits is None and shift is None and self.dtype.kind in "ui")
-        needs_peek = needs_peek or (shift is None and self.dtype == np.uint16 and bits
-                                    and bits < 16)
-        strict = any(lay.strict for lay in layouts)
-        first = self._decode(0, peek=True) if needs_peek and self.n_frames else None
-        self._peeked = first  # frame 0, decoded once: reused by the first read
-        if shift is None and first is not None and self.dtype == np.uint16 and not strict:
-            shift = quirks.detect_left_aligned(first, bits)
-            if shift:
-                self.notes.append(f"samples left-aligned in 16-bit words: shifted right by "
-                                  f"{shift} bits (detected from the values; --bit-shift 0 "
-                                  "turns this off)")
-                if bits is None:
-                    bits = 16 - shift
-                    self._bits_origin = f"detected (left-aligned by {shift} bits)"
-                    warnings.warn(f"{self.label}: {self.notes[-1]}; bit depth {bits}",
-                                  quirks.LayoutWarning, stacklevel=4)
-        self.bit_shift = int(shift or 0)
-        if bits is None and self.bit_shift:
-            bits = 8 * self.dtype.itemsize - self.bit_shift
-            self._bits_origin = "--bit-shift"
-        if bits is None:
-            if self.dtype.kind == "f" and self._inspect:
-                self.missing.append("bit_depth")
-                self._bits_origin = missing_origin("bit_depth")
-            elif self.dtype.kind == "f":
-                raise missing_field_error(self.label, "bit_depth")
-            else:
-                bits = quirks.infer_bit_depth(self.dtype, self.label)
-                self._bits_origin = f"dtype {self.dtype} (assumed; full scale may be wrong)"
-        self.bit_depth = None if bits is None else int(bits)
-        h, w = stored[:2]
-        self.active_area, (h, w), note = quirks.active_area_crop(self.active_area, (h, w),
-                                                                 self.label)
-        if note:
-            self.notes.append(note)
-        self.frame_shape = (int(h), int(w))
-        if self.channels:
-            self.notes.append(f"{self.channels}-channel image with equal channels: channel 0 "
-                              "used")
-
-    def _attach_wavelengths(self, layouts, resolved):
-        """Band centres a file states apart from its mosaic (ENVI ``wavelength``, hsiffc JSON
-        ``wavelengths_nm``) join a mosaic that has none, when the band counts agree."""
-        from ..mosaic import Mosaic
-
-        wl = layouts[0].meta.get("wavelengths_nm")
-        m = self.mosaic
-        if m is None or m.wavelengths_nm is not None or wl is None or len(wl) != m.n_bands:
-            return
-        self.mosaic = Mosaic(m.pattern, tuple(wl), m.offset, name=m.name)
-        for _, origins in resolved:
-            origins["wavelengths_nm"] = f"file ({layouts[0].format} wavelengths)"
 
     # -- decoding -------------------------------------------------------------------------------
     def _locate(self, index: int) -> tuple[FileLayout, int]:
@@ -296,11 +198,7 @@ class FrameSource:
         if index == 0 and self._peeked is not None:
             raw, self._peeked = self._peeked, None
             return raw if peek else self._finish(raw, lay, k)
-        raw = lay.read(k)
-        if raw.shape != lay.shape:
-            raise DataFormatError(f"frame {k} decodes to shape {raw.shape} but the header says "
-                                  f"{lay.shape}; the file is damaged", path=lay.path)
-        raw = quirks.single_channel(raw, lay.path, k, lay.meta.get("channel_hint", ""))
+        raw = read_stored(lay, k)
         return raw if peek else self._finish(raw, lay, k)
 
     def _finish(self, raw, lay, k):
