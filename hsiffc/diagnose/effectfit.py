@@ -1,0 +1,194 @@
+"""Least-squares pieces the joint fit of :mod:`hsiffc.diagnose.fitting` is built from.
+
+Per pixel, the weighted Gram products ``a^T W b`` (:func:`gram`) and the projection off the
+base model's Jacobian (:func:`projector`: what the base parameters cannot absorb); the fraction
+of a candidate effect that stays separable from the base on a design
+(:func:`separable_fraction`); the least-squares fit of one effect on a residual, jointly with
+the base or not (:func:`fit_effect`), and of a within-step effect on the frame differences
+(:func:`fit_pair_effect`). All are re-exported by :mod:`hsiffc.diagnose.fitting`.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy import linalg
+
+if TYPE_CHECKING:
+    from .fitting import Data
+
+__all__ = ["fit_effect", "fit_pair_effect", "gram", "projector", "separable_fraction"]
+
+
+def gram(a, w, b):
+    """Per pixel a^T W b: (P, S, i), (P, S), (P, S, j) -> (P, i, j), as batched matmuls.
+
+    Parameters
+    ----------
+    a : ndarray, (P, S, i)
+    w : ndarray, (P, S)
+        Weights.
+    b : ndarray, (P, S, j)
+
+    Returns
+    -------
+    ndarray, (P, i, j)
+    """
+    return np.matmul((a * w[..., None]).transpose(0, 2, 1), b)
+
+
+def projector(jac, w):
+    """Per pixel, the map v -> v - J (J^T W J)^-1 J^T W v (what the base cannot absorb).
+
+    Parameters
+    ----------
+    jac : ndarray, (P, S, n)
+        Base-model Jacobian.
+    w : ndarray, (P, S)
+        Weights.
+
+    Returns
+    -------
+    callable
+        ``project(v)`` for v of shape (P, S) or (P, S, m).
+    """
+    normal = gram(jac, w, jac)
+    normal += 1e-9 * (np.einsum("pii->p", normal)[:, None, None] + 1e-30) * np.eye(jac.shape[-1])
+    inv = np.linalg.pinv(normal)
+    jw_t = (jac * w[..., None]).transpose(0, 2, 1)  # (P, n, S)
+
+    def project(v):  # v: (P, S) or (P, S, m)
+        squeeze = v.ndim == 2
+        vv = v[..., None] if squeeze else v
+        out = vv - np.matmul(jac, np.matmul(inv, np.matmul(jw_t, vv)))
+        return out[..., 0] if squeeze else out
+    return project
+
+
+def separable_fraction(effect, ctx, project, w) -> float:
+    """Smallest fraction of the effect's weighted column energy, over directions in its
+    parameter space, that the base model's parameters cannot absorb (1: fully separable,
+    0: the design cannot tell the effect from the base).
+
+    Parameters
+    ----------
+    effect : Effect
+        The candidate.
+    ctx : Context
+        Base model on the data.
+    project : callable
+        From :func:`projector`.
+    w : ndarray, (P, S)
+        Weights.
+
+    Returns
+    -------
+    float
+        In [0, 1].
+    """
+    if effect.scope in ("step", "pair"):
+        return 1.0
+    X = effect.columns(ctx)
+    Xp = project(X)
+    if effect.scope == "global":
+        g = gram(X, w, X).sum(axis=0)
+        gp = gram(Xp, w, Xp).sum(axis=0)
+        if not np.all(np.isfinite(g)) or np.trace(g) <= 0:
+            return 0.0
+        scale = np.sqrt(np.clip(np.diag(g), 1e-300, None))
+        g, gp = g / np.outer(scale, scale), gp / np.outer(scale, scale)
+        try:
+            ev = linalg.eigh(gp, g + 1e-12 * np.eye(len(g)), eigvals_only=True)
+        except (linalg.LinAlgError, ValueError):
+            return 0.0
+        return float(max(ev.min(), 0.0))
+    num = (Xp * Xp * w[..., None]).sum(axis=(1, 2))
+    den = (X * X * w[..., None]).sum(axis=(1, 2))
+    ok = den > 0
+    return float(np.median(num[ok] / den[ok])) if ok.any() else 0.0
+
+
+def fit_effect(effect, ctx, res, w, project=None):
+    """Least-squares parameters of one effect on a residual; returns (params, prediction).
+
+    Parameters
+    ----------
+    effect : Effect
+        The effect.
+    ctx : Context
+        Base model on the data.
+    res : ndarray, (P, S), DN
+        Residual to explain.
+    w : ndarray, (P, S)
+        Weights.
+    project : callable, optional
+        From :func:`projector`: fit jointly with the base (what the base cannot absorb).
+
+    Returns
+    -------
+    params : ndarray
+        (m,) for a global effect, (P, m) per pixel, (S,) per step.
+    prediction : ndarray, (P, S), DN
+    """
+    X = effect.columns(ctx)  # (P, S, m)
+    joint = project is not None and effect.scope in ("global", "pixel")
+    Xp = project(X) if joint else X
+    rp = project(res) if joint else res
+    if effect.scope == "global":
+        a = gram(Xp, w, Xp).sum(axis=0)
+        b = gram(Xp, w, rp[..., None]).sum(axis=0)[:, 0]
+        theta = np.linalg.lstsq(a + 1e-12 * np.trace(a) * np.eye(a.shape[0]), b, rcond=None)[0]
+        return theta, X @ theta
+    if effect.scope == "pixel":
+        a = gram(Xp, w, Xp)
+        b = gram(Xp, w, rp[..., None])
+        a = a + 1e-9 * (np.einsum("pii->p", a)[:, None, None] + 1e-30) * np.eye(a.shape[1])
+        theta = np.linalg.solve(a, b)[..., 0]
+        return theta, np.matmul(X, theta[..., None])[..., 0]
+    # step: one factor per light step, shared by the pixels
+    x = X[..., 0]
+    num = (w * x * res).sum(axis=0)
+    den = (w * x * x).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        theta = np.where((den > 0) & ctx.light, num / den, 0.0)
+    return theta, x * theta[None, :]
+
+
+def fit_pair_effect(effect, ctx, data: Data, prediction):
+    """A within-step effect (the held-out frames differ from the fit frames of the same step),
+    fitted on the frame differences by two-fold cross-fitting over pixels: the parameter applied
+    to one half of the pixels is estimated on the other half, so the held-out error stays
+    honest.
+
+    Parameters
+    ----------
+    effect : Effect
+        A within-step ("pair") effect.
+    ctx : Context
+        Base model on the data.
+    data : Data
+        The samples (fit and held-out halves).
+    prediction : ndarray, (P, S), DN
+        Current model prediction.
+
+    Returns
+    -------
+    params : ndarray, (1,)
+        Whole-sensor estimate.
+    prediction : ndarray, (P, S), DN
+        What the effect adds to the held-out half.
+    """
+    x = effect.columns(ctx)[..., 0] * data.frame_gap
+    ok = data.valid & data.valid_ho & data.light[None, :]
+    d = np.where(ok, data.y_ho - data.y, 0.0)
+    wx = np.where(ok, data.w, 0.0)
+    half = (np.arange(x.shape[0]) % 2).astype(bool)
+    coef = np.zeros(x.shape[0])
+
+    def estimate(sel):
+        den = (wx[sel] * x[sel] ** 2).sum()
+        return float((wx[sel] * x[sel] * d[sel]).sum() / den) if den > 0 else 0.0
+    coef[half] = estimate(~half)
+    coef[~half] = estimate(half)
+    return np.array([estimate(np.ones_like(half))]), coef[:, None] * x
