@@ -177,8 +177,11 @@ def paper_light_levels() -> dict:
         rate = np.asarray(electron_rate(illum, bands, pixel_pitch_um=p.pixel_pitch_um))
         per_w[key] = float(rate[0] * p.conversion_gain_dn_per_e)  # DN/ms per W/m^2, band 1
         per_w[key + " max"] = float(rate.max() * p.conversion_gain_dn_per_e)
-    return {"fig5": 2.0 / per_w["lamp B"], "training": 30.0 / per_w["lamp A"],
-            "test": 25.0 / per_w["lamp B max"]}
+    levels = {"fig5": 2.0 / per_w["lamp B"], "training": 30.0 / per_w["lamp A"],
+              "test": 25.0 / per_w["lamp B max"]}
+    # 12 significant digits: the spectral integrals' last bit depends on the CPU's SIMD width,
+    # and files written with these levels (the sample cubes) must be identical on every machine
+    return {key: float(f"{value:.12g}") for key, value in levels.items()}
 
 
 PAPER_LIGHT_W_M2 = LazyLevels(paper_light_levels)
