@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from benchutil import median_time, row
+from benchutil import figure, median_time, row
 from hsiffc.io import open_source
 
 SHAPE = (1088, 2048)
@@ -43,6 +43,7 @@ def main(quick: bool = False) -> dict:
     n = 4 if quick else 10
     repeat = 3 if quick else 5
     results = {}
+    figures = []
     print(f"Reading benchmark: {n} LZW frames of {SHAPE[1]} x {SHAPE[0]}, median of {repeat} "
           "runs")
     with tempfile.TemporaryDirectory() as tmp:
@@ -81,6 +82,16 @@ def main(quick: bool = False) -> dict:
                       f"x{t_pages / t_stream:.2f} of tifffile pages"))
             print(row(f"{key}: hsiffc open_source().to_sweep()", mb / t_whole, "MB/s",
                       f"x{t_imread / t_whole:.2f} of tifffile imread"))
+            figures += [
+                figure(f"read a {key} LZW stack, streaming", mb / t_stream, "MB/s",
+                       baseline=mb / t_pages, baseline_name="tifffile pages, streaming",
+                       ratio=t_pages / t_stream, target=">= 0.9 x tifffile",
+                       met=t_pages / t_stream >= 0.9, note="ratio = throughput hsiffc / tifffile"),
+                figure(f"read a {key} LZW stack, whole", mb / t_whole, "MB/s",
+                       baseline=mb / t_imread, baseline_name="tifffile.imread",
+                       ratio=t_imread / t_whole, target=">= 0.9 x tifffile",
+                       met=t_imread / t_whole >= 0.9, note="ratio = throughput hsiffc / tifffile")]
+    results["figures"] = figures
     return results
 
 
