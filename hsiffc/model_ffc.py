@@ -44,8 +44,12 @@ import numpy as np
 from . import model
 from .bandstats import band_reduce
 from .dq import DQ, DQ_DTYPE
-from .kernels.modelffc import model_ffc_kernel
+from .kernels.leakage import PENDING
+from .kernels.modelffc import model_ffc_finish, model_ffc_kernel
 from .kernels.operands import flat_operands
+
+#: convergence tolerance (DN) of the leakage inversion inside the correction
+_TOL_DN = 1e-9
 
 __all__ = ["FlatStack", "ModelFlat", "relative_responsivity", "flat_responsivity",
            "model_flat_fit", "model_ffc_apply", "correction_uncertainty"]
@@ -323,13 +327,20 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     has_sweep = gain_sweep is not None
     shape, ops = flat_operands(response, exposure_ms, a, b, dark, gain,
                                gain if gain_sweep is None else gain_sweep, dark_current)
+    full_scale = np.inf if full_scale_dn is None else float(full_scale_dn)
+    limits = (float(flat_alpha_percent), float(alpha_limit_percent),
+              float(below_dark_tolerance_dn))
     out = np.empty(shape, np.float32)
     dq = np.empty(shape, DQ_DTYPE)
     alpha = np.empty(shape, np.float32)
-    model_ffc_kernel(*ops, has_sweep, np.inf if full_scale_dn is None else float(full_scale_dn),
-                     float(flat_alpha_percent), float(alpha_limit_percent),
-                     float(below_dark_tolerance_dn), 1e-9, 60, out.reshape(-1), dq.reshape(-1),
-                     alpha.reshape(-1))
+    flat = (out.reshape(-1), dq.reshape(-1), alpha.reshape(-1))
+    model_ffc_kernel(*ops, has_sweep, full_scale, *limits, _TOL_DN, *flat)
+    idx = np.flatnonzero(flat[1] & DQ_DTYPE(PENDING))
+    if idx.size:  # what the vector steps left: the bracketed inversion, then the same step
+        y, t, a_, b_, d = (v if isinstance(v, float) else v[idx] for v in ops[:5])
+        inv = model.invert_response(y, t, a_, b_, d, full_scale=full_scale_dn, tol_dn=_TOL_DN)
+        model_ffc_finish(idx, np.atleast_1d(inv.k), np.atleast_1d(inv.flags), *ops,
+                         has_sweep, *limits, *flat)
     return out, dq, alpha
 
 

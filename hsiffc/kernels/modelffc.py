@@ -2,10 +2,12 @@
 
 One pass per pixel: invert the leakage model (:func:`~hsiffc.kernels.leakage.invert_vector`,
 three vectorised Halley steps), the model alpha, the blend of the two responsivity factors
-by alpha, the corrected value and its DQ bits; a second pass solves the pixels the vector
-steps left (non-finite input, zero light, extreme parameters) with the bracketed scalar
-iteration :func:`~hsiffc.kernels.leakage.invert_point` and corrects them with the same
-:func:`correct_point`. Everything in float64; outputs stored as float32 (DN, percent).
+by alpha, the corrected value and its DQ bits. The pixels the vector steps leave (non-finite
+input, zero light, extreme parameters) are inverted again by the compiled inversion
+(:func:`hsiffc.model.invert_response`, bracketed scalar iteration) and corrected by
+:func:`model_ffc_finish` with the same :func:`correct_point`: the scalar iteration is not
+compiled a second time into this kernel (it would double its compile time). Everything in
+float64; outputs stored as float32 (DN, percent).
 """
 
 from __future__ import annotations
@@ -15,11 +17,11 @@ from numba import njit, prange
 
 from ..dq import DQ
 from .launch import JIT_OPTIONS, Kernel
-from .leakage import BLOCK, PENDING, alpha_model_point, invert_point, invert_vector
+from .leakage import PENDING, alpha_model_point, invert_vector
 from .operands import at
 from .vmath import exp, log
 
-__all__ = ["correct_point", "model_ffc_kernel"]
+__all__ = ["correct_point", "model_ffc_finish", "model_ffc_kernel"]
 
 _INL = {**JIT_OPTIONS, "cache": False, "inline": "always"}
 _F32_MAX = float(np.finfo(np.float32).max)
@@ -56,12 +58,12 @@ def correct_point(k, flags, alpha, y, t, d, g_flat, g_sweep, has_sweep, dc, flat
 
 
 def _model_ffc_loop(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_scale,
-                    flat_alpha, alpha_limit, below_tol, tol_dn, max_iter, out, dq_out,
-                    alpha_out):
+                    flat_alpha, alpha_limit, below_tol, tol_dn, out, dq_out, alpha_out):
     """:func:`correct_point` of every pixel into ``out`` (float32 DN), ``dq_out`` (uint32) and
-    ``alpha_out`` (float32 percent); operands flat arrays or scalars (see ``at``)."""
-    n = out.shape[0]
-    for i in prange(n):  # vectorised: invert, correct, mark what the vector steps left
+    ``alpha_out`` (float32 percent); operands flat arrays or scalars (see ``at``). Pixels the
+    vector steps of the inversion did not settle are marked :data:`PENDING` in ``dq_out``
+    for :func:`model_ffc_finish`."""
+    for i in prange(out.shape[0]):  # vectorised: invert, correct, mark what is left
         yi = at(y, i)
         ti = at(t, i)
         ai = at(a, i)
@@ -79,26 +81,27 @@ def _model_ffc_loop(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_sc
         alpha_out[i] = al
         # above full scale the inversion's alpha is at full scale, not at the response
         dq_out[i] = q | (0 if (done and not yi > full_scale) else PENDING)
-    for blk in prange((n + BLOCK - 1) // BLOCK):  # the rest, scalar and bracketed
-        for j in range(blk * BLOCK, min(n, blk * BLOCK + BLOCK)):
-            if not (dq_out[j] & PENDING):
-                continue
-            yj = at(y, j)
-            tj = at(t, j)
-            aj = at(a, j)
-            bj = at(b, j)
-            dj = at(d, j)
-            gj = at(gain, j)
-            sj = at(sweep, j)
-            cj = at(dark_current, j)
-            k, flags, _ = invert_point(yj, tj, aj, bj, dj, full_scale, np.inf, tol_dn,
-                                       max_iter)
-            alpha = alpha_model_point(yj, max(k, 1e-300), aj, bj)
-            o, q, al = correct_point(k, flags, alpha, yj, tj, dj, gj, sj, has_sweep, cj,
-                                     flat_alpha, alpha_limit, below_tol)
-            out[j] = o
-            alpha_out[j] = al
-            dq_out[j] = q
 
 
-model_ffc_kernel = Kernel(_model_ffc_loop, 15)
+model_ffc_kernel = Kernel(_model_ffc_loop, 14)
+
+
+@njit(**{**JIT_OPTIONS, "cache": True})
+def model_ffc_finish(idx, k, flags, y, t, a, b, d, gain, sweep, dark_current, has_sweep,
+                     flat_alpha, alpha_limit, below_tol, out, dq_out, alpha_out):
+    """Correct the pixels ``idx`` (those :data:`PENDING` after :data:`model_ffc_kernel`)
+    from their rates ``k`` and flags found by the bracketed scalar inversion
+    (:func:`hsiffc.model.invert_response` on those pixels): serial, they are few. Operands
+    as in the kernel (flat arrays of every pixel, or scalars)."""
+    for m in range(idx.shape[0]):
+        j = idx[m]
+        yj = at(y, j)
+        aj = at(a, j)
+        bj = at(b, j)
+        alpha = alpha_model_point(yj, max(k[m], 1e-300), aj, bj)
+        o, q, al = correct_point(k[m], flags[m], alpha, yj, at(t, j), at(d, j), at(gain, j),
+                                 at(sweep, j), has_sweep, at(dark_current, j), flat_alpha,
+                                 alpha_limit, below_tol)
+        out[j] = o
+        alpha_out[j] = al
+        dq_out[j] = q
