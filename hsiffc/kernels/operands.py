@@ -8,6 +8,8 @@ import numpy as np
 from numba import types
 from numba.extending import overload
 
+from .launch import PARALLEL_MIN
+
 __all__ = ["at", "flat_operands", "float_array"]
 
 
@@ -22,16 +24,24 @@ def float_array(x) -> np.ndarray:
 def flat_operands(*values):
     """Broadcast ``values`` and return ``(shape, operands)``.
 
-    Each operand is a Python float (the value had one element) or a C-contiguous 1-D float32 /
-    float64 array of ``prod(shape)`` elements: a view when the value already has the full
-    size, else a broadcast copy. Kernels index operands with :func:`at`.
+    For a result of :data:`~hsiffc.kernels.launch.PARALLEL_MIN` elements or more (what the
+    parallel build runs on) each operand is a Python float (the value had one element) or a
+    C-contiguous 1-D float32 / float64 array of ``prod(shape)`` elements: a view when the value
+    already has the full size, else a broadcast copy. Smaller results (the serial build) get
+    every operand as a float64 array of the full size: copies that cost nothing at that size,
+    and one compiled specialisation per kernel instead of one per mix of scalars, float32 and
+    float64 (numba compiles each mix anew, 5-30 s apiece for the leakage kernels). Kernels
+    index operands with :func:`at`.
     """
     arrays = [float_array(v) for v in values]
     shape = np.broadcast_shapes(*(a.shape for a in arrays))
     size = int(np.prod(shape, dtype=np.int64))
+    if size < PARALLEL_MIN:
+        return shape, [np.ascontiguousarray(np.broadcast_to(a, shape), np.float64).reshape(-1)
+                       for a in arrays]
     ops = []
     for a in arrays:
-        if a.size == 1 and size != 0:
+        if a.size == 1:
             ops.append(float(a.reshape(-1)[0]))
         elif a.size == size:
             ops.append(np.ascontiguousarray(a).reshape(-1))
