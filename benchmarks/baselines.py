@@ -22,15 +22,6 @@ def log_(x):
         return np.log(x)
 
 
-def log1mexp(x):
-    """log(1 - exp(-x)) for x >= 0, accurate everywhere (Maechler 2012)."""
-    x = np.asarray(x, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        small = x < np.log(2.0)
-        return np.where(small, np.log(-np.expm1(-np.where(small, x, 1.0))),
-                        np.log1p(-np.exp(-np.where(small, 1.0, x))))
-
-
 def log_phi(x):
     """log((1 - exp(-x)) / x) for x >= 0, with the limit 0 at x = 0.
 
