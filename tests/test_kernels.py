@@ -174,6 +174,7 @@ def test_inversion_equals_bisection_of_the_numpy_form():
         assert np.allclose(inv.k, k, rtol=1e-9)
 
 
+@pytest.mark.slow  # compiles the parallel build (~30 s); bench_foundation checks it on a frame
 def test_inversion_parallel_and_serial_builds_agree_and_flag_alike():
     k, a, b, d = _frame(n=launch.PARALLEL_MIN + 123, seed=5)
     y = model.response(25.0, k, a, b, d)

@@ -53,7 +53,9 @@ def _case(n, seed):
     return y, t, a, b, d, gain, sweep
 
 
-@pytest.mark.parametrize("n", [5000, 300_000])  # the serial and the parallel build
+# the serial build; the parallel one (compile ~45 s on a clean machine) with -m slow and in
+# bench_pipeline, which checks it against the serial build on a full frame
+@pytest.mark.parametrize("n", [5000, pytest.param(300_000, marks=pytest.mark.slow)])
 def test_kernel_equals_the_numpy_statement(n):
     y, t, a, b, d, gain, sweep = _case(n, n)
     out, dq, alpha = model_ffc_apply(y, t, a, b, d, gain, gain_sweep=sweep, full_scale_dn=1023)
