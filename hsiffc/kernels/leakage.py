@@ -26,7 +26,7 @@ from numba import njit, prange
 from ..dq import DQ
 from .launch import JIT_OPTIONS, Kernel
 from .operands import at
-from .vmath import exp, expm1, log, log1p, logaddexp
+from .vmath import exp, expm1, log, logaddexp
 
 __all__ = ["BLOCK", "PENDING", "VECTOR_STEPS", "alpha_flags_kernel", "alpha_model_kernel",
            "alpha_model_point", "alpha_paper_kernel", "alpha_paper_point", "invert_kernel", "invert_point",

@@ -25,7 +25,6 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
     ``kx`` (2 mx + 1), ``ky`` (2 my + 1): the window's taps."""
     H, W = raw.shape
     ph, pw = band_of.shape
-    my, mx = ky.size // 2, kx.size // 2
     vals = np.empty((H, W), np.float32)
     wts = np.empty((H, W), np.float32)
     for y in prange(H):  # samples: scaled to a common level, flagged ones filled from the lattice
