@@ -10,8 +10,8 @@ pattern (responsivity, a, b, dark level, dark current) so no 90 s calibration fi
   atomic write is). Median of runs interleaved with the engine's.
 * **engine, one worker**: :func:`hsiffc.batch.correct_batch` in this process, inputs hashed
   (sha256 in the provenance), with the default pipeline (dark from the calibration + alpha
-  mask at 12 % + model_ffc) and with a dark-only pipeline (``--pipeline``: the engine's own cost: reading,
-  frames, provenance, statistics, atomic writes).
+  mask at 12 % + model_ffc) and with a dark-only pipeline (``--pipeline``: the engine's own
+  cost: reading, frames, provenance, statistics, atomic writes).
 * **engine, two workers**: the default pipeline on a local Dask cluster (2 processes).
 * **where the time goes**: the default and dark-only pipelines alone on one frame.
 * **peak memory**: the engine with the default pipeline in a fresh subprocess per batch size

@@ -66,7 +66,8 @@ class Kernel:
     """
 
     def __init__(self, fn, size_arg: int):
-        self.parallel = njit(parallel=PARALLEL_OPTIONS, **JIT_OPTIONS)(_renamed(fn, "_" + SOURCE_DIGEST))
+        self.parallel = njit(parallel=PARALLEL_OPTIONS, **JIT_OPTIONS)(
+            _renamed(fn, "_" + SOURCE_DIGEST))
         self.serial = njit(**JIT_OPTIONS)(_renamed(fn, "_serial_" + SOURCE_DIGEST))
         self.size_arg = size_arg
         self.__doc__ = fn.__doc__

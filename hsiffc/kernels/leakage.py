@@ -29,10 +29,9 @@ from .operands import at
 from .vmath import exp, expm1, log, logaddexp
 
 __all__ = ["BLOCK", "PENDING", "VECTOR_STEPS", "alpha_flags_kernel", "alpha_model_kernel",
-           "alpha_model_point", "alpha_paper_kernel", "alpha_paper_point", "invert_kernel", "invert_point",
-           "invert_vector",
-           "leakage_bits", "response_fast", "response_kernel", "response_point",
-           "response_robust"]
+           "alpha_model_point", "alpha_paper_kernel", "alpha_paper_point", "invert_kernel",
+           "invert_point", "invert_vector", "leakage_bits", "response_fast", "response_kernel",
+           "response_point", "response_robust"]
 
 BLOCK = 4096
 # Only the kernels (entry points, see launch.Kernel) are cached on disk. The per-point

@@ -1,4 +1,5 @@
-"""Compiled kernel of the model-based flat-field correction (:func:`hsiffc.model_ffc.model_ffc_apply`).
+"""Compiled kernel of the model-based flat-field correction
+(:func:`hsiffc.model_ffc.model_ffc_apply`).
 
 One pass per pixel: invert the leakage model (:func:`~hsiffc.kernels.leakage.invert_vector`,
 three vectorised Halley steps), the model alpha, the blend of the two responsivity factors
