@@ -91,8 +91,6 @@ def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_
            in_domain, pixel_flags, dq):
     """alpha (computed when ``alpha`` is None: paper form) and DQ in one compiled pass."""
     shape, (y, t, a_, b_, d) = flat_operands(response, exposure_ms, a, b, dark)
-    n = int(np.prod(shape, dtype=np.int64))
-
     def plane(v):
         if v is None:
             return np.zeros(1, DQ_DTYPE), False

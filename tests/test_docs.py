@@ -5,7 +5,6 @@ are the output of the commands that measure them."""
 from __future__ import annotations
 
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path

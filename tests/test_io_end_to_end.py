@@ -5,7 +5,6 @@ compressed TIFFs of a 5x5 mosaic camera, a dark and a white reference, metadata 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import tifffile
 
 from hsiffc.cli import main

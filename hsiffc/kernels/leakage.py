@@ -26,7 +26,7 @@ from numba import njit, prange
 from ..dq import DQ
 from .launch import JIT_OPTIONS, Kernel
 from .operands import at
-from .vmath import exp, expm1, log, logaddexp
+from .vmath import exp, exp_expm1, expm1, log, log_corrected, logaddexp
 
 __all__ = ["BLOCK", "PENDING", "VECTOR_STEPS", "alpha_flags_kernel", "alpha_model_kernel",
            "alpha_model_point", "alpha_paper_kernel", "alpha_paper_point", "invert_kernel",
@@ -72,9 +72,9 @@ def response_fast(t, k, a, b, d):
     z = e0 + leak
     lin = q <= 1.0
     w = 1.0 + q if lin else z
-    lw = log(w)
-    y_lin = d + k * t - (lw - ((w - 1.0) - q) / w) / b
-    y = y_lin if lin else -lw / b
+    # log1p(q) in the linear domain (the rounding error of 1 + q folded in), log(z) beyond
+    lw = log_corrected(w, (q - (w - 1.0)) if lin else 0.0)
+    y = ((d + k * t) if lin else 0.0) - lw / b
     ok = (z >= 1e-290) and (z <= 1e290)
     return y, ok
 
@@ -125,51 +125,57 @@ def _exp(x, vec):
 
 
 @njit(**_INL)
-def _expm1(x, vec):
-    return expm1(x) if vec else math.expm1(x)
-
-
-@njit(**_INL)
 def _log(x, vec):
     return log(x) if vec else (math.log(x) if x > 0.0 else (-np.inf if x == 0.0 else np.nan))
 
 
 @njit(**_INL)
 def _phi_derivs(x, vec):
-    """(phi, phi', phi'') at x >= 0 (series below 0.05, where the closed forms cancel)."""
-    em = -_expm1(-x, vec)
-    ex = 1.0 - em
-    xs = max(x, 0.05)
-    phi = em / x if x > 0.0 else 1.0
-    d1 = -(em - x * ex) / (xs * xs)
-    d2 = (2.0 * em - x * ex * (x + 2.0)) / (xs * xs * xs)
+    """(e^{-x}, phi, phi', phi'') at x >= 0 (series below 0.05, where the closed forms
+    cancel). One reciprocal: divisions are the slowest vector operation."""
+    if vec:
+        ex, em = exp_expm1(-x)
+        em = -em
+    else:
+        em = -math.expm1(-x)
+        ex = 1.0 - em
+    ix = 1.0 / x
+    phi = em * ix if x > 0.0 else 1.0
+    d1 = -(em - x * ex) * (ix * ix)
+    d2 = (2.0 * em - x * ex * (x + 2.0)) * (ix * ix * ix)
     d1s = -0.5 + x * (1.0 / 3.0 - x * (0.125 - x * (1.0 / 30.0 - x / 144.0)))
     d2s = 1.0 / 3.0 - x * (0.25 - x * (0.1 - x * (1.0 / 36.0 - x / 168.0)))
     small = x < 0.05
-    return phi, (d1s if small else d1), (d2s if small else d2)
+    return ex, phi, (d1s if small else d1), (d2s if small else d2)
 
 
 @njit(**_INL)
-def _halley(x, beta, c, vec):
-    """H(x) and the next iterate (Halley, Newton when Halley's denominator is not positive)."""
-    e = _exp(beta - x, vec)
-    phi, p1, p2 = _phi_derivs(x, vec)
+def _halley(x, beta, eb, c, vec):
+    """H(x) and the next iterate (Halley, Newton when Halley's denominator is not positive).
+
+    ``eb`` is ``e^beta``: the vector form takes ``e^{beta - x} = e^beta e^{-x}`` with
+    ``e^{-x}`` from the reduction that gives phi (callers keep beta <= 700 there); scalar code
+    takes ``e^{beta - x}`` directly (libm).
+    """
+    ex, phi, p1, p2 = _phi_derivs(x, vec)
+    e = eb * ex if vec else math.exp(beta - x)
     h = e + c * phi - 1.0
     h1 = -e + c * p1
     h2 = e + c * p2
     den = 2.0 * h1 * h1 - h * h2
-    newton = x - h / h1
-    step = x - 2.0 * h * h1 / den if den > 0.0 else newton
+    halley = den > 0.0
+    step = x - (2.0 * h * h1 if halley else h) / (den if halley else h1)
     step = step if step >= 0.0 else 0.5 * x
     return h, step
 
 
 @njit(**_INL)
 def _setup(y, t, a, b, d, full_scale, vec):
-    """Flags known before iterating, target Y, beta, ln C, C, H(0) and the start x.
+    """Flags known before iterating, target Y, beta, ln C, C, e^beta, H(0) and the start x.
 
     ``ln C = ln(a b t) + b Y``; where ``a b t`` is not a normal number the vectorised pass
-    leaves the pixel to the scalar one (``ok`` False), which takes the logs one by one.
+    leaves the pixel to the scalar one (``ok`` False), which takes the logs one by one; so
+    it does where beta > 700 (e^beta would overflow).
     """
     flags = 0
     finite = (abs(y) < np.inf) and (abs(a) < np.inf) and (abs(b) < np.inf) and (abs(d) < np.inf)
@@ -181,9 +187,10 @@ def _setup(y, t, a, b, d, full_scale, vec):
     ok = finite and abt >= 1e-300 and abt < 1e300
     lnc = (_log(abt, vec) if vec else _log(a, vec) + _log(b, vec) + _log(t, vec)) + b * target
     c = _exp(min(lnc, 700.0), vec)
-    h0 = _exp(min(beta, 700.0), vec) + c - 1.0  # H at zero light
+    eb = _exp(min(beta, 700.0), vec)
+    h0 = eb + c - 1.0  # H at zero light
     x0 = max(beta, c) if target > d else 0.0
-    return flags, ok, target, beta, lnc, c, h0, x0
+    return flags, ok and beta <= 700.0, target, beta, lnc, c, eb, h0, x0
 
 
 @njit(**_JIT)
@@ -192,7 +199,7 @@ def invert_point(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter):
 
     Semantics as :func:`hsiffc.model.invert_response`; a bracketed Halley iteration.
     """
-    flags, _, target, beta, lnc, c, h0, x0 = _setup(y, t, a, b, d, full_scale, False)
+    flags, _, target, beta, lnc, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, False)
     if flags & _NONFINITE:
         return 0.0, flags, 0
     if h0 <= 0.0:  # at or below what zero light gives
@@ -207,7 +214,7 @@ def invert_point(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter):
     it = 0
     converged = False
     while True:
-        h, nxt = _halley(xi, beta, c, False)
+        h, nxt = _halley(xi, beta, eb, c, False)
         if abs(h) <= tol:
             converged = True
             break
@@ -244,11 +251,11 @@ def invert_vector(y, t, a, b, d, full_scale, k_max, tol_dn):
     ``alpha`` is the model leakage percentage at the target response, ``100 a e^{bY} / k``,
     which the iteration has at hand: ``100 C / x`` (``C = a b t e^{bY}``, ``x = b k t``).
     """
-    flags, ok, target, beta, lnc, c, h0, x0 = _setup(y, t, a, b, d, full_scale, True)
-    x = _halley(x0, beta, c, True)[1]
-    x = _halley(x, beta, c, True)[1]
-    x = _halley(x, beta, c, True)[1]
-    h = _halley(x, beta, c, True)[0]
+    flags, ok, target, beta, lnc, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, True)
+    x = _halley(x0, beta, eb, c, True)[1]
+    x = _halley(x, beta, eb, c, True)[1]
+    x = _halley(x, beta, eb, c, True)[1]
+    h = _halley(x, beta, eb, c, True)[0]
     tol = b * (tol_dn + 8.0 * _EPS * abs(target))
     done = ok and lnc <= 700.0 and h0 > 0.0 and abs(h) <= tol
     k = x / (b * t)

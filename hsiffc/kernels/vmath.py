@@ -4,14 +4,17 @@ numba lowers ``math.exp`` and friends to scalar libm calls, which keep a per-pix
 being vectorised (the libm call is 5-10 x slower than numpy's SIMD ufuncs on AVX-512). These
 versions are straight-line arithmetic (range reduction, a polynomial, an exponent bit
 trick), with selects instead of branches, so a loop that calls them runs 8 pixels per
-instruction. Accuracy (measured against numpy over the whole double range in
+instruction (4 on AVX2). Accuracy (measured against numpy over the whole double range in
 ``tests/test_kernels.py``): ``exp``, ``log`` and ``log1p`` within 1 ulp, ``expm1`` within 2 ulp.
 Special values follow IEEE 754 (``exp(-inf) = 0``, ``log(0) = -inf``, ``log(-1) = nan``, NaN
 in gives NaN out).
 
-Polynomials: ``exp`` uses the Taylor series of e^r to degree 13 on ``|r| <= ln 2 / 2``
-(truncation below 2e-17 relative); ``log`` the series of ``2 atanh(s)`` in ``s = f / (2 + f)``
-on ``sqrt(1/2) <= 1 + f < sqrt(2)`` (``|s| < 0.1716``, truncation below 1e-18).
+Polynomials are evaluated by Horner's rule with fused multiply-adds (:func:`fma`, LLVM's
+``llvm.fma``: one rounding per step, so the result is the same on every machine, and on one
+with FMA units, e.g. any AVX2 x86, a step is one instruction instead of two; measured 1.7 x
+faster ``exp`` in a vectorised loop on an AVX2 machine). ``exp`` uses the Taylor series of
+e^r to degree 13 on ``|r| <= ln 2 / 2`` (truncation below 2e-17 relative); ``log`` the
+series of ``2 atanh(s)`` in ``s = f / (2 + f)`` on ``sqrt(1/2) <= 1 + f < sqrt(2)`` (``|s| < 0.1716``, truncation below 1e-18).
 """
 
 from __future__ import annotations
@@ -23,11 +26,13 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-__all__ = ["as_float64", "as_int64", "exp", "expm1", "log", "log1p", "logaddexp"]
+__all__ = ["as_float64", "as_int64", "exp", "exp_expm1", "expm1", "fma", "log", "log1p",
+           "log_corrected", "logaddexp"]
 
 # Not cached on purpose: a cached function is stored as machine code, which LLVM cannot inline
 # into (and vectorise with) a caller compiled later. The kernels that call these are cached.
 _JIT = {"cache": False, "fastmath": False, "error_model": "numpy"}
+_INL = {**_JIT, "inline": "always"}
 
 
 @intrinsic
@@ -54,6 +59,21 @@ def as_float64(typingctx, x):
     return types.float64(types.int64), codegen
 
 
+@intrinsic
+def fma(typingctx, x, y, z):
+    """``x * y + z`` with one rounding (IEEE 754 fusedMultiplyAdd) for float64 operands."""
+    if not (x == y == z == types.float64):
+        return None
+
+    def codegen(context, builder, signature, args):
+        dbl = ir.DoubleType()
+        fn = builder.module.declare_intrinsic("llvm.fma", [dbl],
+                                              ir.FunctionType(dbl, [dbl, dbl, dbl]))
+        return builder.call(fn, args)
+
+    return types.float64(types.float64, types.float64, types.float64), codegen
+
+
 _INV_LN2 = 1.4426950408889634
 _LN2_HI = 6.93147180369123816490e-01  # ln 2 split so that n * _LN2_HI is exact for |n| < 2^11
 _LN2_LO = 1.90821492927058770002e-10
@@ -66,59 +86,71 @@ _L = [2.0 / (2 * i + 1) for i in range(1, 11)]  # 2 atanh(s) = 2 s + s * sum_i 2
 _L1, _L2, _L3, _L4, _L5, _L6, _L7, _L8, _L9, _L10 = _L
 
 
-@njit(**_JIT)
+@njit(**_INL)
 def _exp_poly(r):
     """e^r - 1 - r for |r| <= 0.35 (Taylor, degree 13), as r^2 * q(r)."""
-    q = _E13 * r + _E12
-    q = q * r + _E11
-    q = q * r + _E10
-    q = q * r + _E9
-    q = q * r + _E8
-    q = q * r + _E7
-    q = q * r + _E6
-    q = q * r + _E5
-    q = q * r + _E4
-    q = q * r + _E3
-    q = q * r + _E2
+    q = fma(_E13, r, _E12)
+    q = fma(q, r, _E11)
+    q = fma(q, r, _E10)
+    q = fma(q, r, _E9)
+    q = fma(q, r, _E8)
+    q = fma(q, r, _E7)
+    q = fma(q, r, _E6)
+    q = fma(q, r, _E5)
+    q = fma(q, r, _E4)
+    q = fma(q, r, _E3)
+    q = fma(q, r, _E2)
     return r * r * q
 
 
-@njit(**_JIT)
-def exp(x):
-    """e^x for a float64 (1 ulp)."""
+@njit(**_INL)
+def _reduced(x):
+    """(w, s1, s2) with ``e^x = (1 + w) s1 s2``: ``x = n ln 2 + r``, ``w = e^r - 1`` by the
+    polynomial, ``2^n = s1 s2`` as two factors (2^n alone may be subnormal or overflow)."""
     xc = min(max(x, -1100.0), 1100.0)
-    n = (xc * _INV_LN2 + _SHIFT) - _SHIFT
-    r = (xc - n * _LN2_HI) - n * _LN2_LO
-    p = 1.0 + (r + _exp_poly(r))
-    ni = np.int64(n)
-    h = ni >> 1  # two scale factors: 2^n may be subnormal or overflow on its own
-    res = p * as_float64((h + 1023) << 52) * as_float64((ni - h + 1023) << 52)
-    return res if x == x else x
-
-
-@njit(**_JIT, inline="always")
-def expm1(x):
-    """e^x - 1, accurate for small |x| (2 ulp)."""
-    near = x + _exp_poly(min(max(x, -0.35), 0.35))
-    # far from 0: e^x - 1 = (2^n - 1) + 2^n w with w = e^r - 1, 2^n - 1 exact for n >= -53
-    xc = min(max(x, -60.0), 1100.0)
     n = (xc * _INV_LN2 + _SHIFT) - _SHIFT
     r = (xc - n * _LN2_HI) - n * _LN2_LO
     w = r + _exp_poly(r)
     ni = np.int64(n)
     h = ni >> 1
-    s1 = as_float64((h + 1023) << 52)
-    s2 = as_float64((ni - h + 1023) << 52)
+    return w, as_float64((h + 1023) << 52), as_float64((ni - h + 1023) << 52)
+
+
+@njit(**_INL)
+def exp_expm1(x):
+    """``(e^x, e^x - 1)`` from one range reduction and one polynomial (1 and 2 ulp): for code
+    that needs both, e.g. ``e^{-x}`` and ``1 - e^{-x}``.
+
+    ``e^x - 1 = (2^n - 1) + 2^n w``, ``2^n - 1`` exact for n >= -53 (below, it rounds to -1,
+    the right answer). For ``|x| < ln 2 / 2``, n = 0 and r = x, so the same expression is
+    ``w`` itself: one polynomial serves every x. Above 40 the -1 is below the last bit.
+    """
+    w, s1, s2 = _reduced(x)
+    ex = ((1.0 + w) * s1) * s2
     mid = (s1 * s2 - 1.0) + s1 * (s2 * w)
-    big = ((1.0 + w) * s1) * s2  # above 40 the -1 is below the last bit; no early overflow
-    far = big if x > 40.0 else mid
-    res = near if abs(x) < 0.3465 else far
-    return res if x == x else x
+    em = ex if x > 40.0 else mid
+    nan = x != x
+    return (x if nan else ex), (x if nan else em)
 
 
 @njit(**_JIT)
-def log(x):
-    """Natural log of a float64 (1 ulp); -inf at 0, NaN below 0."""
+def exp(x):
+    """e^x for a float64 (1 ulp)."""
+    return exp_expm1(x)[0]
+
+
+@njit(**_JIT, inline="always")
+def expm1(x):
+    """e^x - 1, accurate for small |x| (2 ulp)."""
+    return exp_expm1(x)[1]
+
+
+@njit(**_JIT)
+def log_corrected(x, c):
+    """``log(x + c)`` for a correction ``c`` of at most a few ulp of ``x`` (0 for a plain log):
+    the rounding error of the sum that gave ``x``, folded into the mantissa before the
+    polynomial, so that ``log1p`` costs one division like ``log``. 1 ulp; ``-inf`` at 0, NaN
+    below 0 (``c`` is ignored for non-finite, zero and negative ``x``)."""
     sub = x < _TINY
     xs = x * 18014398509481984.0 if sub else x  # 2^54 lifts subnormals
     ix = as_int64(xs)
@@ -126,19 +158,21 @@ def log(x):
     m = as_float64((ix & 0x000FFFFFFFFFFFFF) | 0x3FF0000000000000)
     big = m > _SQRT2
     m = m * 0.5 if big else m
-    ef = np.float64(e + (1 if big else 0))
-    f = m - 1.0
+    ie = e + (1 if big else 0)
+    ef = np.float64(ie)
+    # c / 2^ie, with the scale kept finite (c is 0 wherever ie is out of this range)
+    f = (m - 1.0) + c * as_float64((1023 - min(max(ie, -1000), 1000)) << 52)
     s = f / (2.0 + f)
     z = s * s
-    rr = _L10 * z + _L9
-    rr = rr * z + _L8
-    rr = rr * z + _L7
-    rr = rr * z + _L6
-    rr = rr * z + _L5
-    rr = rr * z + _L4
-    rr = rr * z + _L3
-    rr = rr * z + _L2
-    rr = rr * z + _L1
+    rr = fma(_L10, z, _L9)
+    rr = fma(rr, z, _L8)
+    rr = fma(rr, z, _L7)
+    rr = fma(rr, z, _L6)
+    rr = fma(rr, z, _L5)
+    rr = fma(rr, z, _L4)
+    rr = fma(rr, z, _L3)
+    rr = fma(rr, z, _L2)
+    rr = fma(rr, z, _L1)
     rr = rr * z
     hfsq = 0.5 * f * f
     res = ef * _LN2_HI + (f - (hfsq - (s * (hfsq + rr) + ef * _LN2_LO)))
@@ -148,11 +182,18 @@ def log(x):
 
 
 @njit(**_JIT)
+def log(x):
+    """Natural log of a float64 (1 ulp); -inf at 0, NaN below 0."""
+    return log_corrected(x, 0.0)
+
+
+@njit(**_JIT)
 def log1p(x):
     """log(1 + x), accurate for small |x| (1 ulp)."""
     u = 1.0 + x
-    corr = ((u - 1.0) - x) / u if (u > 0.0 and u < np.inf) else 0.0
-    res = log(u) - corr
+    # the rounding error of 1 + x, exact while u < 2^53 (beyond it, below the last bit)
+    c = x - (u - 1.0) if (u > 0.0 and u < 9007199254740992.0) else 0.0
+    res = log_corrected(u, c)
     return x if u == 1.0 else res
 
 
