@@ -63,18 +63,22 @@ def response_fast(t, k, a, b, d):
     (exact in the linear regime); beyond it ``Y = -log(sum) / b``. ``ok`` is False where the
     sum under/overflows (then use :func:`response_robust`).
     """
+    # Reciprocals and exponentials depend on the inputs only, so they run side by side; the
+    # dependent chain (expm1, log) is what bounds the speed of this loop, not its length.
     x = b * k * t
+    ix = 1.0 / x
+    ib = 1.0 / b
     em = -expm1(-x)
-    phi = em / x if x > 0.0 else 1.0
+    phi = em * ix if x > 0.0 else 1.0
     leak = a * b * t * phi
     e0 = exp(-b * d - x)
-    q = leak / e0
+    q = leak * exp(b * d + x)  # leak / e0, without a division on the chain
     z = e0 + leak
     lin = q <= 1.0
     w = 1.0 + q if lin else z
     # log1p(q) in the linear domain (the rounding error of 1 + q folded in), log(z) beyond
     lw = log_corrected(w, (q - (w - 1.0)) if lin else 0.0)
-    y = ((d + k * t) if lin else 0.0) - lw / b
+    y = ((d + k * t) if lin else 0.0) - lw * ib
     ok = (z >= 1e-290) and (z <= 1e290)
     return y, ok
 
@@ -307,9 +311,15 @@ def alpha_model_point(y, k, a, b):
 @njit(**_INL)
 def alpha_paper_point(y, t, a, b, d):
     """Paper alpha ``100 a e^{bY} / ((Y - d) / t)`` (percent); inf where the signal or t is
-    not positive (no light rate can be estimated)."""
+    not positive (no light rate can be estimated).
+
+    One exponential and one division (the slow vector operations): ``e^{bY}`` as the square of
+    ``E = e^{bY / 2}``, applied as ``((100 a t / s) E) E`` so that no factor overflows before
+    the result does (``E`` is finite for ``bY`` up to 1418).
+    """
     s = y - d
-    alpha = 100.0 * exp(log(a) + b * y - log(s / t))
+    e = exp(0.5 * b * y)
+    alpha = ((100.0 * a * t / s) * e) * e
     return alpha if (s > 0.0 and t > 0.0) else np.inf
 
 

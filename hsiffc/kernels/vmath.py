@@ -9,7 +9,7 @@ instruction (4 on AVX2). Accuracy (measured against numpy over the whole double 
 Special values follow IEEE 754 (``exp(-inf) = 0``, ``log(0) = -inf``, ``log(-1) = nan``, NaN
 in gives NaN out).
 
-Polynomials are evaluated by Horner's rule with fused multiply-adds (:func:`fma`, LLVM's
+Polynomials are evaluated by Estrin's scheme with fused multiply-adds (:func:`fma`, LLVM's
 ``llvm.fma``: one rounding per step, so the result is the same on every machine, and on one
 with FMA units, e.g. any AVX2 x86, a step is one instruction instead of two; measured 1.7 x
 faster ``exp`` in a vectorised loop on an AVX2 machine). ``exp`` uses the Taylor series of
@@ -78,6 +78,7 @@ _INV_LN2 = 1.4426950408889634
 _LN2_HI = 6.93147180369123816490e-01  # ln 2 split so that n * _LN2_HI is exact for |n| < 2^11
 _LN2_LO = 1.90821492927058770002e-10
 _SHIFT = 6755399441055744.0  # 1.5 * 2^52: adding it rounds to an integer
+_SHIFT_BITS = 0x4338000000000000  # the bits of _SHIFT; (bits of n + _SHIFT) - these = n
 _F = [1.0 / math.factorial(i) for i in range(14)]
 _E2, _E3, _E4, _E5, _E6, _E7, _E8, _E9, _E10, _E11, _E12, _E13 = _F[2:]
 _SQRT2 = 1.4142135623730951
@@ -88,19 +89,16 @@ _L1, _L2, _L3, _L4, _L5, _L6, _L7, _L8, _L9, _L10 = _L
 
 @njit(**_INL)
 def _exp_poly(r):
-    """e^r - 1 - r for |r| <= 0.35 (Taylor, degree 13), as r^2 * q(r)."""
-    q = fma(_E13, r, _E12)
-    q = fma(q, r, _E11)
-    q = fma(q, r, _E10)
-    q = fma(q, r, _E9)
-    q = fma(q, r, _E8)
-    q = fma(q, r, _E7)
-    q = fma(q, r, _E6)
-    q = fma(q, r, _E5)
-    q = fma(q, r, _E4)
-    q = fma(q, r, _E3)
-    q = fma(q, r, _E2)
-    return r * r * q
+    """e^r - 1 - r for |r| <= 0.35 (Taylor, degree 13), as r^2 * q(r); q by Estrin's scheme
+    (pairs, then powers r^2, r^4, r^8: 4 dependent steps instead of Horner's 11, which in these
+    long kernels is what bounds the speed: a latency chain, not the instruction count)."""
+    r2 = r * r
+    q0 = fma(fma(_E5, r, _E4), r2, fma(_E3, r, _E2))
+    q1 = fma(fma(_E9, r, _E8), r2, fma(_E7, r, _E6))
+    q2 = fma(fma(_E13, r, _E12), r2, fma(_E11, r, _E10))
+    r4 = r2 * r2
+    q = fma(q2, r4 * r4, fma(q1, r4, q0))
+    return r2 * q
 
 
 @njit(**_INL)
@@ -108,10 +106,13 @@ def _reduced(x):
     """(w, s1, s2) with ``e^x = (1 + w) s1 s2``: ``x = n ln 2 + r``, ``w = e^r - 1`` by the
     polynomial, ``2^n = s1 s2`` as two factors (2^n alone may be subnormal or overflow)."""
     xc = min(max(x, -1100.0), 1100.0)
-    n = (xc * _INV_LN2 + _SHIFT) - _SHIFT
+    shifted = xc * _INV_LN2 + _SHIFT
+    n = shifted - _SHIFT
     r = (xc - n * _LN2_HI) - n * _LN2_LO
     w = r + _exp_poly(r)
-    ni = np.int64(n)
+    # n as an integer from the low bits of the shifted sum (a vector integer subtraction;
+    # a float-to-int64 conversion has no AVX2 instruction and runs lane by lane)
+    ni = as_int64(shifted) - _SHIFT_BITS
     h = ni >> 1
     return w, as_float64((h + 1023) << 52), as_float64((ni - h + 1023) << 52)
 
@@ -164,16 +165,11 @@ def log_corrected(x, c):
     f = (m - 1.0) + c * as_float64((1023 - min(max(ie, -1000), 1000)) << 52)
     s = f / (2.0 + f)
     z = s * s
-    rr = fma(_L10, z, _L9)
-    rr = fma(rr, z, _L8)
-    rr = fma(rr, z, _L7)
-    rr = fma(rr, z, _L6)
-    rr = fma(rr, z, _L5)
-    rr = fma(rr, z, _L4)
-    rr = fma(rr, z, _L3)
-    rr = fma(rr, z, _L2)
-    rr = fma(rr, z, _L1)
-    rr = rr * z
+    z2 = z * z  # Estrin's scheme, as in _exp_poly
+    q0 = fma(fma(_L4, z, _L3), z2, fma(_L2, z, _L1))
+    q1 = fma(fma(_L8, z, _L7), z2, fma(_L6, z, _L5))
+    z4 = z2 * z2
+    rr = fma(fma(_L10, z, _L9), z4 * z4, fma(q1, z4, q0)) * z
     hfsq = 0.5 * f * f
     res = ef * _LN2_HI + (f - (hfsq - (s * (hfsq + rr) + ef * _LN2_LO)))
     res = res if x < np.inf else x
