@@ -150,7 +150,10 @@ class Frame:
             merged = dict(self.meta)
             merged.update(changes["meta"])
             changes["meta"] = merged
-        return replace(self, **changes)
+        out = replace(self, **changes)
+        if "_raw" in self.__dict__ and not {"data", "dark_removed"} & changes.keys():
+            object.__setattr__(out, "_raw", self.__dict__["_raw"])  # same data, same dark
+        return out
 
     @property
     def exposure_ms(self) -> float:
@@ -207,7 +210,8 @@ class Frame:
     @property
     def raw(self) -> np.ndarray:
         """The sensor's raw response (DN, float32): ``data`` plus the dark that was actually
-        removed. Raises ValueError for a cube or once a stage changed the data otherwise
+        removed (computed once per frame and read-only; frames made by :meth:`replace` with
+        the same data and dark share it). Raises ValueError for a cube or once a stage changed the data otherwise
         (``corrected_by``)."""
         if self.corrected_by is not None:
             raise ValueError(f"the data were changed by {self.corrected_by!r}: the raw response "
@@ -217,7 +221,12 @@ class Frame:
                              "reconstruction")
         if self.dark_removed is None:
             return self.data
-        return self.data + self.dark_removed
+        cached = self.__dict__.get("_raw")
+        if cached is None:  # computed once per frame (the mask and FFC stages both read it)
+            cached = self.data + self.dark_removed
+            cached.flags.writeable = False
+            object.__setattr__(self, "_raw", cached)
+        return cached
 
     def state(self) -> frozenset[str]:
         """What this frame offers the next stage, in the words stages declare (see

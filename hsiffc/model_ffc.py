@@ -334,9 +334,9 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     dq = np.empty(shape, DQ_DTYPE)
     alpha = np.empty(shape, np.float32)
     flat = (out.reshape(-1), dq.reshape(-1), alpha.reshape(-1))
-    model_ffc_kernel(*ops, has_sweep, full_scale, *limits, _TOL_DN, *flat)
-    idx = np.flatnonzero(flat[1] & DQ_DTYPE(PENDING))
-    if idx.size:  # what the vector steps left: the bracketed inversion, then the same step
+    if model_ffc_kernel(*ops, has_sweep, full_scale, *limits, _TOL_DN, *flat):
+        # what the vector steps left: the bracketed inversion, then the same step
+        idx = np.flatnonzero(flat[1] & DQ_DTYPE(PENDING))
         y, t, a_, b_, d = (v if isinstance(v, float) else v[idx] for v in ops[:5])
         inv = model.invert_response(y, t, a_, b_, d, full_scale=full_scale_dn, tol_dn=_TOL_DN)
         model_ffc_finish(idx, np.atleast_1d(inv.k), np.atleast_1d(inv.flags), *ops,

@@ -63,7 +63,9 @@ def _model_ffc_loop(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_sc
     """:func:`correct_point` of every pixel into ``out`` (float32 DN), ``dq_out`` (uint32) and
     ``alpha_out`` (float32 percent); operands flat arrays or scalars (see ``at``). Pixels the
     vector steps of the inversion did not settle are marked :data:`PENDING` in ``dq_out``
-    for :func:`model_ffc_finish`."""
+    for :func:`model_ffc_finish`; returns how many (so that a frame with none is not scanned
+    for them)."""
+    pending = 0
     for i in prange(out.shape[0]):  # vectorised: invert, correct, mark what is left
         yi = at(y, i)
         ti = at(t, i)
@@ -81,7 +83,10 @@ def _model_ffc_loop(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_sc
         out[i] = o
         alpha_out[i] = al
         # above full scale the inversion's alpha is at full scale, not at the response
-        dq_out[i] = q | (0 if (done and not yi > full_scale) else PENDING)
+        left = not (done and not yi > full_scale)
+        dq_out[i] = q | (PENDING if left else 0)
+        pending += 1 if left else 0
+    return pending
 
 
 model_ffc_kernel = Kernel(_model_ffc_loop, 14)
