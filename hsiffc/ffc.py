@@ -16,7 +16,7 @@ import numpy as np
 from .bandstats import band_reduce
 from .dark import subtract_dark
 from .dq import DQ, DQ_DTYPE
-from .kernels.bands import scale_kernel
+from .kernels.bands import band_scale_kernel, scale_kernel
 from .kernels.operands import flat_operands
 from .params import validate_method
 from .uniformity import (FixedPattern, fixed_pattern_nonuniformity,  # noqa: F401 (re-export)
@@ -80,8 +80,8 @@ def two_point_fit(flat_signal, *, band_map=None, flat_dq=None) -> FlatField:
     return FlatField(gain.astype(np.float32), flat_mean, dq)
 
 
-def paper_scale(raw, flat_mean, *, band_map=None, good=None) -> np.ndarray:
-    """The factor ``Avg(L3) / mean(R(L2) - R(L1))`` of eq. (5) per pixel.
+def paper_ratio(raw, flat_mean, *, band_map=None, good=None) -> np.ndarray:
+    """The factor ``Avg(L3) / mean(R(L2) - R(L1))`` of eq. (5) per band.
 
     Parameters
     ----------
@@ -94,18 +94,22 @@ def paper_scale(raw, flat_mean, *, band_map=None, good=None) -> np.ndarray:
 
     Returns
     -------
-    (H, W) float32
+    (n_bands,) float32
         1.0 (neutral) in a band where either mean is undefined.
     """
     avg = band_reduce(raw, band_map, good, n_bands=len(flat_mean))
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = avg / np.asarray(flat_mean, np.float64)
-    ratio = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0).astype(np.float32)
+    return np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0).astype(np.float32)
+
+
+def paper_scale(raw, flat_mean, *, band_map=None, good=None) -> np.ndarray:
+    """:func:`paper_ratio` per pixel: an (H, W) float32 map (each pixel its band's factor)."""
     bm = np.zeros(np.shape(raw), np.intp) if band_map is None else band_map
-    return ratio[bm]
+    return paper_ratio(raw, flat_mean, band_map=band_map, good=good)[bm]
 
 
-def two_point_apply(signal, gain, scale=1.0) -> np.ndarray:
+def two_point_apply(signal, gain, scale=1.0, *, band_map=None) -> np.ndarray:
     """Apply a two-point gain: ``signal * gain * scale`` element-wise (float32 DN).
 
     Parameters
@@ -114,10 +118,26 @@ def two_point_apply(signal, gain, scale=1.0) -> np.ndarray:
         The test image less its dark, R(L3) - R(L1).
     gain : (H, W) array_like
         :attr:`FlatField.gain`.
-    scale : float or (H, W) array_like
-        1.0 for the ``"mean_gain"`` normalisation (DN at the flat's mean gain), or
-        :func:`paper_scale` for eq. (5) exactly.
+    scale : float, (H, W) array_like, or (n_bands,) array_like with ``band_map``
+        1.0 for the ``"mean_gain"`` normalisation (DN at the flat's mean gain), or eq. (5)
+        exactly: :func:`paper_scale` per pixel, or :func:`paper_ratio` per band with
+        ``band_map`` (the same product, without building the per-pixel map).
+    band_map : (H, W) int array, optional
+        Band of each pixel, when ``scale`` is given per band.
     """
+    if band_map is not None:
+        sig = np.asarray(signal)
+        bm = np.asarray(band_map)
+        ratio = np.asarray(scale, np.float32).reshape(-1)
+        if bm.shape != sig.shape or np.shape(gain) != sig.shape:
+            raise ValueError(f"signal {sig.shape}, gain {np.shape(gain)} and band_map "
+                             f"{bm.shape} must have the same shape")
+        if bm.size and not 0 <= int(bm.min()) <= int(bm.max()) < ratio.size:
+            raise ValueError(f"band_map has bands outside the {ratio.size} of scale")
+        out = np.empty(sig.shape, np.float32)
+        flat = (lambda a, dt=None: np.ascontiguousarray(a, dt).reshape(-1))
+        band_scale_kernel(flat(sig), flat(gain), ratio, flat(bm, np.int64), out.reshape(-1))
+        return out
     shape, ops = flat_operands(signal, gain, scale)
     out = np.empty(shape, np.float32)
     scale_kernel(*ops, out.reshape(-1))  # one compiled pass

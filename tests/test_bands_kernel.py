@@ -65,3 +65,30 @@ def test_two_point_apply_equals_the_numpy_product(n):
         expect = np.multiply(signal, gain, dtype=np.float32) * np.float32(s)
         assert out.dtype == np.float32 and np.allclose(out, expect, rtol=3e-7, atol=0)
     assert np.allclose(two_point_apply(signal, gain, scale), ref, rtol=3e-7, atol=0)
+
+
+@pytest.mark.parametrize("shape", [(30, 40), (272, 256)])
+def test_per_band_scale_equals_the_per_pixel_map(shape):
+    """The stage's path (a factor per band, looked up in the kernel) gives the same array as
+    the per-pixel map of paper_scale, bit for bit; bad band maps are refused."""
+    from hsiffc.ffc import paper_ratio, paper_scale, two_point_apply
+    from hsiffc.mosaic import Mosaic
+
+    rng = np.random.default_rng(2)
+    bm = Mosaic.rectangular(2, 4).band_map(shape)
+    raw = rng.normal(400, 60, shape).astype(np.float32)
+    signal = (raw - 30).astype(np.float32)
+    gain = rng.uniform(0.8, 1.2, shape).astype(np.float32)
+    good = rng.random(shape) > 0.05
+    flat_mean = rng.uniform(200, 300, 8)
+    flat_mean[3] = np.nan  # an undefined band keeps the neutral factor 1
+    ratio = paper_ratio(raw, flat_mean, band_map=bm, good=good)
+    per_pixel = paper_scale(raw, flat_mean, band_map=bm, good=good)
+    assert ratio.shape == (8,) and ratio[3] == 1.0
+    assert np.array_equal(per_pixel, ratio[bm])
+    out = two_point_apply(signal, gain, ratio, band_map=bm)
+    assert np.array_equal(out, two_point_apply(signal, gain, per_pixel))
+    with pytest.raises(ValueError, match="outside"):
+        two_point_apply(signal, gain, ratio[:4], band_map=bm)
+    with pytest.raises(ValueError, match="same shape"):
+        two_point_apply(signal, gain, ratio, band_map=bm[:, :-1])

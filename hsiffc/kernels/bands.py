@@ -15,7 +15,7 @@ from numba import prange
 from .launch import Kernel
 from .operands import at
 
-__all__ = ["band_sums", "scale_kernel"]
+__all__ = ["band_scale_kernel", "band_sums", "scale_kernel"]
 
 _ROWS = 64  # rows per partial sum
 
@@ -74,3 +74,13 @@ def _scale_loop(signal, gain, scale, out):
 
 
 scale_kernel = Kernel(_scale_loop, 3)
+
+
+def _band_scale_loop(signal, gain, ratio, band_map, out):
+    """``out = signal * gain * ratio[band_map]``: the product of :func:`_scale_loop` with a
+    per-band factor, looked up per pixel instead of read from a per-pixel map."""
+    for i in prange(out.shape[0]):
+        out[i] = np.float64(signal[i]) * np.float64(gain[i]) * np.float64(ratio[band_map[i]])
+
+
+band_scale_kernel = Kernel(_band_scale_loop, 4)

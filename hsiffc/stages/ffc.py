@@ -14,7 +14,7 @@ import numpy as np
 from ..bandstats import band_reduce
 from ..dq import DQ_DTYPE
 from ..errors import HsiffcWarning, ParameterError
-from ..ffc import NORMALISATIONS, paper_scale, two_point_apply, two_point_fit
+from ..ffc import NORMALISATIONS, paper_ratio, two_point_apply, two_point_fit
 from ..frame import stack_mean
 from ..params import Param
 from ..polyffc import PolynomialFlat, polynomial_apply, polynomial_fit
@@ -127,14 +127,15 @@ class TwoPointFFC(Stage):
             raise ValueError(f"frame shape {frame.data.shape} differs from the flat's "
                              f"{self.gain_.shape}")
         dq = frame.dq | self.dq_
-        scale = 1.0
+        scale, band_map = 1.0, None
         if self.normalisation == "paper":
             band_map = frame.band_map()
             flat_mean = np.asarray(self.flat_mean_)
             if flat_mean.ndim == 2:  # pipeline files of format 1 kept it per pixel
                 flat_mean = band_reduce(flat_mean, band_map)
-            scale = paper_scale(frame.raw, flat_mean, band_map=band_map, good=dq == 0)
-        return frame.replace(data=two_point_apply(frame.signal, self.gain_, scale), dq=dq,
+            scale = paper_ratio(frame.raw, flat_mean, band_map=band_map, good=dq == 0)
+        out = two_point_apply(frame.signal, self.gain_, scale, band_map=band_map)
+        return frame.replace(data=out, dq=dq,
                              corrected_by=self.name,
                              meta={"ffc": "two_point", "ffc_training_ms": self.selected_ms_})
 
