@@ -129,14 +129,16 @@ def two_point_apply(signal, gain, scale=1.0, *, band_map=None) -> np.ndarray:
         sig = np.asarray(signal)
         bm = np.asarray(band_map)
         ratio = np.asarray(scale, np.float32).reshape(-1)
+        if ratio.size == 0:
+            raise ValueError("scale has no per-band factor; give one per band of band_map")
         if bm.shape != sig.shape or np.shape(gain) != sig.shape:
             raise ValueError(f"signal {sig.shape}, gain {np.shape(gain)} and band_map "
                              f"{bm.shape} must have the same shape")
-        if bm.size and not 0 <= int(bm.min()) <= int(bm.max()) < ratio.size:
-            raise ValueError(f"band_map has bands outside the {ratio.size} of scale")
         out = np.empty(sig.shape, np.float32)
         flat = (lambda a, dt=None: np.ascontiguousarray(a, dt).reshape(-1))
-        band_scale_kernel(flat(sig), flat(gain), ratio, flat(bm, np.int64), out.reshape(-1))
+        if band_scale_kernel(flat(sig), flat(gain), ratio, flat(bm, np.int64), out.reshape(-1)):
+            raise ValueError(f"band_map has bands outside the {ratio.size} of scale; give "
+                             "the per-band factors of every band of the map")
         return out
     shape, ops = flat_operands(signal, gain, scale)
     out = np.empty(shape, np.float32)

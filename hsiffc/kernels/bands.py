@@ -78,9 +78,17 @@ scale_kernel = Kernel(_scale_loop, 3)
 
 def _band_scale_loop(signal, gain, ratio, band_map, out):
     """``out = signal * gain * ratio[band_map]``: the product of :func:`_scale_loop` with a
-    per-band factor, looked up per pixel instead of read from a per-pixel map."""
+    per-band factor, looked up per pixel instead of read from a per-pixel map. Returns how
+    many pixels have a band outside ``ratio`` (their output is NaN)."""
+    n = ratio.shape[0]
+    outside = 0
     for i in prange(out.shape[0]):
-        out[i] = np.float64(signal[i]) * np.float64(gain[i]) * np.float64(ratio[band_map[i]])
+        band = band_map[i]
+        ok = band >= 0 and band < n
+        r = np.float64(ratio[band if ok else 0]) if ok else np.nan
+        out[i] = np.float64(signal[i]) * np.float64(gain[i]) * r
+        outside += 0 if ok else 1
+    return outside
 
 
 band_scale_kernel = Kernel(_band_scale_loop, 4)
