@@ -45,7 +45,7 @@ from .model_derived import (
     leakage_percentage_paper_into,
     leakage_rate,
 )
-from .model_numerics import as_float64, check_positive_b, log1mexp, log_or_neg_inf
+from .model_numerics import as_float64, check_positive_b, log1mexp, log_or_neg_inf, smallest
 
 __all__ = [
     "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
@@ -93,7 +93,7 @@ def response(t_ms, k, a, b, dark):
     (800.0, 800.0)
     """
     check_positive_b(b)
-    if np.any(np.asarray(t_ms) < 0) or np.any(np.asarray(k) < 0) or np.any(np.asarray(a) < 0):
+    if smallest(t_ms) < 0 or smallest(k) < 0 or smallest(a) < 0:
         raise ValueError("t_ms, k and a must be >= 0")
     return _response(t_ms, k, a, b, dark)
 
@@ -356,7 +356,7 @@ def response_and_gradient(t_ms, k, a, b, dark):
     """
     shape, ops = flat_operands(t_ms, k, a, b, dark)
     check_positive_b(b)
-    if np.any(np.asarray(t_ms) < 0) or np.any(np.asarray(k) < 0) or np.any(np.asarray(a) < 0):
+    if smallest(t_ms) < 0 or smallest(k) < 0 or smallest(a) < 0:
         raise ValueError("t_ms, k and a must be >= 0")
     out = np.empty((5, int(np.prod(shape))))
     gradient.response_gradient_kernel(*ops, out)

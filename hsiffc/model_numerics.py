@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["as_float64", "check_positive_b", "log1mexp", "log_or_neg_inf"]
+__all__ = ["as_float64", "check_positive_b", "log1mexp", "log_or_neg_inf", "smallest"]
 
 
 def as_float64(*arrays):
@@ -66,6 +66,14 @@ def log1mexp(x):
                         np.log1p(-np.exp(-np.where(small, 1.0, x))))
 
 
+def smallest(x) -> float:
+    """The smallest value of ``x`` that is not NaN (NaN when there is none): one pass, no
+    temporary array (``np.any(x < 0)`` builds a boolean array of the frame first), and
+    ``smallest(x) < 0`` means exactly ``np.any(x < 0)``."""
+    a = np.asarray(x)
+    return float(np.fmin.reduce(a, axis=None)) if a.size else np.nan
+
+
 def check_positive_b(b):
     """Refuse a leakage exponent that is not > 0.
 
@@ -83,5 +91,5 @@ def check_positive_b(b):
     ValueError
         If any ``b`` is <= 0.
     """
-    if np.any(np.asarray(b) <= 0):
+    if smallest(b) <= 0:
         raise ValueError("b (1/DN) must be > 0: the leakage grows with the collected signal")

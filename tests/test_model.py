@@ -196,3 +196,15 @@ def test_bad_arguments_are_named():
         model.response(1.0, 1.0, 1.0, -0.1, 0.0)
     with pytest.raises(ValueError, match="t_ms"):
         model.invert_response(10.0, 0.0, A, B, D)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.just(np.nan)),
+                max_size=20))
+def test_smallest_below_zero_means_any_below_zero(values):
+    """The input checks use smallest(x) < 0 (one pass, no temporary) for np.any(x < 0)."""
+    from hsiffc.model_numerics import smallest
+
+    x = np.array(values, np.float64)
+    assert (smallest(x) < 0) == bool(np.any(x < 0))
+    assert (smallest(x) <= 0) == bool(np.any(x <= 0))
