@@ -217,3 +217,24 @@ def test_saved_pipeline_with_unknown_stage_name_is_refused(sample_frames, tmp_pa
     np.savez(tmp_path / "evil.npz", **contents)
     with pytest.raises(DataFormatError, match="no stage named 'os:system'"):
         Pipeline.load(tmp_path / "evil.npz")
+
+
+def test_raw_is_computed_once_and_follows_data_and_dark():
+    """frame.raw is cached (read-only) and shared by frames made by replace() that keep the
+    data and the dark; a frame with other data or another dark computes its own."""
+    from hsiffc.frame import Frame
+
+    rng = np.random.default_rng(3)
+    dark = rng.uniform(20, 40, (8, 12)).astype(np.float32)
+    raw = rng.integers(30, 900, (8, 12)).astype(np.uint16)
+    f = Frame.from_raw(raw, exposure_ms=10.0, bit_depth=10)
+    f = f.replace(data=np.subtract(f.data, dark, dtype=np.float32), dark_removed=dark)
+    r = f.raw
+    assert r is f.raw and not r.flags.writeable
+    assert np.array_equal(r, f.data + dark)
+    kept = f.replace(dq=f.dq | 1, meta={"note": "x"})
+    assert kept.raw is r
+    other = f.replace(data=f.data * 2)
+    assert other.raw is not r and np.array_equal(other.raw, f.data * 2 + dark)
+    moved = f.replace(dark_removed=dark + 1)
+    assert np.array_equal(moved.raw, f.data + dark + 1)
