@@ -37,10 +37,12 @@ DEMOSAIC_METHODS = {
 
 
 def _alpha_plane(alpha, shape):
-    a = np.asarray(alpha, dtype=np.float32)
+    a = np.ascontiguousarray(alpha, dtype=np.float32)
     if a.shape != tuple(shape):
         raise ValueError(f"alpha has shape {a.shape} but the frame has {tuple(shape)}; give "
                          "the alpha plane of this frame")
+    if a.size == 0 or (np.isfinite(a.min()) and np.isfinite(a.max())):  # NaN, inf show there
+        return a
     return np.where(np.isfinite(a), a, np.finfo(np.float32).max).astype(np.float32)
 
 
