@@ -4,7 +4,10 @@ This is the implementation behind :func:`hsiffc.reconstruct.prepare.pseudo_panch
 flagged samples replaced by the tent-weighted mean of their usable same-band neighbours one
 tile away, every sample divided by its band's level, then a separable weighted average over a
 tile-sized window with the frame extended by whole tiles (index maps ``rows``/``cols``). Two
-passes parallel over rows (horizontal, then vertical); sums in float64.
+passes parallel over rows: the samples, then the window sums (horizontal, then vertical) of a
+block of rows at a time, so that the float64 horizontal sums stay in a block-sized buffer
+instead of two frame-sized ones; sums in float64, in the same order as a frame-wide
+horizontal pass followed by a vertical one.
 """
 
 from __future__ import annotations
@@ -15,6 +18,8 @@ from numba import prange
 from .launch import Kernel
 
 __all__ = ["ppi_image"]
+
+_ROWS = 16  # output rows per parallel task of the window pass
 
 
 def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
@@ -29,14 +34,17 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
     wts = np.empty((H, W), np.float32)
     for y in prange(H):  # samples: scaled to a common level, flagged ones filled from the lattice
         yph = y % ph
-        xph = 0
-        for x in range(W):
+        for xph in range(pw):
             inv = inv_level[band_of[yph, xph]]
-            xph = xph + 1 if xph + 1 < pw else 0
-            if not has_dq or dq[y, x] == 0:
+            for x in range(xph, W, pw):
                 vals[y, x] = raw[y, x] * inv
                 wts[y, x] = 1.0
+        if not has_dq:
+            continue
+        for x in range(W):
+            if dq[y, x] == 0:
                 continue
+            inv = inv_level[band_of[yph, x % pw]]
             acc = 0.0
             wsum = 0.0
             for dy in (-ph, 0, ph):
@@ -54,30 +62,56 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
             else:
                 vals[y, x] = 0.0
                 wts[y, x] = 0.0
-    hnum = np.empty((H, W))
-    hden = np.empty((H, W))
-    for y in prange(H):  # horizontal window sums
-        for x in range(W):
-            n = 0.0
-            d = 0.0
-            for t in range(kx.size):
-                c = cols[x + t]
-                w = kx[t] * np.float64(wts[y, c])
-                n += w * vals[y, c]
-                d += w
-            hnum[y, x] = n
-            hden[y, x] = d
-    for y in prange(H):  # vertical window sums and the ratio
-        for x in range(W):
-            n = 0.0
-            d = 0.0
-            for t in range(ky.size):
-                r = rows[y + t]
-                n += ky[t] * hnum[r, x]
-                d += ky[t] * hden[r, x]
-            good = d > 1e-6
-            ppi[y, x] = n / d if good else 0.0
-            ok[y, x] = good
+    my = ky.size // 2
+    mx = kx.size // 2
+    for blk in prange((H + _ROWS - 1) // _ROWS):  # window sums, a block of rows at a time
+        y0 = blk * _ROWS
+        y1 = min(H, y0 + _ROWS)
+        n_in = y1 - y0 + 2 * my
+        hnum = np.empty((n_in, W))
+        hden = np.empty((n_in, W))
+        for i in range(n_in):  # horizontal sums of the input rows the block's windows reach
+            r = rows[y0 + i]
+            for x in range(min(mx, W)):  # left border: columns through the index map
+                n = 0.0
+                d = 0.0
+                for t in range(kx.size):
+                    c = cols[x + t]
+                    w = kx[t] * np.float64(wts[r, c])
+                    n += w * vals[r, c]
+                    d += w
+                hnum[i, x] = n
+                hden[i, x] = d
+            for x in range(mx, W - mx):  # interior: cols[x + t] = x + t - mx
+                n = 0.0
+                d = 0.0
+                for t in range(kx.size):
+                    c = x + t - mx
+                    w = kx[t] * np.float64(wts[r, c])
+                    n += w * vals[r, c]
+                    d += w
+                hnum[i, x] = n
+                hden[i, x] = d
+            for x in range(max(W - mx, mx), W):  # right border
+                n = 0.0
+                d = 0.0
+                for t in range(kx.size):
+                    c = cols[x + t]
+                    w = kx[t] * np.float64(wts[r, c])
+                    n += w * vals[r, c]
+                    d += w
+                hnum[i, x] = n
+                hden[i, x] = d
+        for y in range(y0, y1):  # vertical sums and the ratio
+            for x in range(W):
+                n = 0.0
+                d = 0.0
+                for t in range(ky.size):
+                    n += ky[t] * hnum[y - y0 + t, x]
+                    d += ky[t] * hden[y - y0 + t, x]
+                good = d > 1e-6
+                ppi[y, x] = n / d if good else 0.0
+                ok[y, x] = good
 
 
 _ppi = Kernel(_ppi_rows, 0)
