@@ -12,6 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hsiffc.dq import DQ, DQ_DTYPE
+from hsiffc.kernels import launch
+from hsiffc.kernels.demosaic import interpolate_bands
 from hsiffc.mosaic import Mosaic
 from hsiffc.reconstruct import demosaic, ppi_kernel, reconstruct_alpha
 from hsiffc.reconstruct.prepare import Prepared, band_levels, prepare, pseudo_panchromatic
@@ -161,3 +163,68 @@ def test_random_layouts_match_the_reference(ph, pw, oy, ox, h, w, frac, seed):
     assert np.all(np.isfinite(cube))
     assert np.allclose(cube, ref, rtol=2e-6, atol=2e-5 * np.abs(ref).max())
     assert np.array_equal(cube_dq, ref_dq) and np.array_equal(cube_a, ref_a)
+
+
+@pytest.mark.parametrize("method", ["bilinear", "ppid"])
+@pytest.mark.parametrize("mosaic", [MOSAICS[0], MOSAICS[3]], ids=["2x4", "5x5 offset"])
+def test_flagged_blocks_take_the_wide_tent_the_bilinear_value_and_the_median(method, mosaic):
+    """A flagged block wider than the PPI window and than S2: inside it the PPI is undefined
+    (the bilinear value is used), near its edge S1 is empty (S2), in its middle S2 is empty
+    too (band median, DO_NOT_USE); plus flagged rows and columns."""
+    raw, dq, alpha = _scene((70, 90), mosaic, 4, 0.25)
+    dq[20:45, 30:62] = DQ.HOT
+    dq[5, :] |= DQ_DTYPE(DQ.SATURATED)
+    dq[:, 11] |= DQ_DTYPE(DQ.LEAKAGE)
+    cube, cube_dq, cube_a = demosaic(raw, mosaic, method=method, dq=dq, alpha=alpha)
+    ref, ref_dq, ref_a = reference(raw, mosaic, dq, method, alpha)
+    assert np.all(cube_dq[32, 46] & DQ.DO_NOT_USE)
+    assert np.allclose(cube, ref, rtol=2e-6, atol=2e-5 * np.abs(ref).max())
+    assert np.array_equal(cube_dq, ref_dq)
+    assert np.array_equal(cube_a, ref_a)
+
+
+@pytest.mark.slow  # compiles the parallel builds of the interpolation and PPI kernels
+@pytest.mark.parametrize("method", ["bilinear", "ppid"])
+def test_parallel_build_on_a_frame_equals_the_reference(method):
+    """Frames of PARALLEL_MIN pixels or more run the parallel builds (the rest of this module
+    runs the serial ones): the same values, DQ and alpha as the reference, with many flags."""
+    mosaic = Mosaic.rectangular(2, 4)
+    raw, dq, alpha = _scene((256, 384), mosaic, 5, 0.22)
+    dq[100:130, 200:260] = DQ.HOT
+    alpha[7, 9] = np.nan
+    assert raw.size >= launch.PARALLEL_MIN
+    cube, cube_dq, cube_a = demosaic(raw, mosaic, method=method, dq=dq, alpha=alpha)
+    ref, ref_dq, ref_a = reference(raw, mosaic, dq, method, alpha)
+    assert np.allclose(cube, ref, rtol=2e-6, atol=2e-5 * np.abs(ref).max())
+    assert np.array_equal(cube_dq, ref_dq)
+    assert np.array_equal(cube_a, ref_a)
+
+
+def test_where_the_ppi_is_undefined_ppid_takes_the_bilinear_value():
+    """The kernel's path for PPID values whose PPI window held no usable pixel but whose S1
+    holds a usable sample (rare in frames; driven here through a made-up definition mask)."""
+    mosaic = Mosaic.rectangular(2, 4)
+    raw, dq, _ = _scene((40, 56), mosaic, 6, 0.3)
+    p = prepare(raw, mosaic, dq)
+    levels = band_levels(p)
+    ppi, _ = pseudo_panchromatic(p, levels)
+    undefined = np.random.default_rng(7).random(raw.shape) < 0.1
+    shape = raw.shape + (mosaic.n_bands,)
+    cubes = []
+    for ok in (None, ~undefined):
+        cube, cube_dq = np.empty(shape, np.float32), np.zeros(shape, DQ_DTYPE)
+        missing = interpolate_bands(p.raw, p.dq, None, None, ppi, ok, levels, p.lattices(),
+                                    mosaic.tile_shape, cube, cube_dq, None)
+        assert not missing.any()
+        cubes.append((cube, cube_dq))
+    bil, bil_dq = reference(raw, mosaic, dq, "bilinear")
+    bm = mosaic.band_map(raw.shape)
+    for b in range(mosaic.n_bands):
+        w = ((bm == b) & (dq == 0)).astype(np.float32)
+        have1 = _interp(raw, w, *mosaic.tile_shape)[1]
+        use_bil = undefined & have1
+        assert use_bil.sum() > 20
+        got, full = cubes[1][0][:, :, b], cubes[0][0][:, :, b]
+        assert np.allclose(got[use_bil], bil[:, :, b][use_bil], rtol=2e-6, atol=1e-3)
+        assert np.array_equal(got[~undefined], full[~undefined])
+    assert np.array_equal(cubes[0][1], cubes[1][1]) and np.array_equal(cubes[1][1], bil_dq)

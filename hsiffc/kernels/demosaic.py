@@ -105,6 +105,7 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi
         den = np.empty(W)
         amax = np.empty(W, np.float32)
         todo = np.empty(W, np.int64)
+        cand = np.empty(nk_max, np.int64)
         bad_x = np.empty(W, np.int64)
         wnum = np.empty((n_lat, nk_max))
         wraw = np.empty((n_lat, nk_max))
@@ -211,17 +212,19 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi
                 # the values whose S1 has no usable sample: their column at or left of them
                 # has none in the last lattice's vertical pass (vden), or there is no column
                 c_last = lat_c[j1 - 1]
+                n_cand = 0
+                for k in range((W - c_last + pw - 1) // pw):  # branch-free lists
+                    cand[n_cand] = k
+                    n_cand += vden[k + 1] <= EPS
                 n_todo = 0
                 for x in range(min(c_last, W)):
-                    if den[x] <= EPS:
+                    todo[n_todo] = x
+                    n_todo += den[x] <= EPS
+                for i in range(n_cand):
+                    x0 = c_last + cand[i] * pw
+                    for x in range(x0, min(x0 + pw, W)):
                         todo[n_todo] = x
-                        n_todo += 1
-                for k in range((W - c_last + pw - 1) // pw):
-                    if vden[k + 1] <= EPS:
-                        for x in range(c_last + k * pw, min(c_last + k * pw + pw, W)):
-                            if den[x] <= EPS:
-                                todo[n_todo] = x
-                                n_todo += 1
+                        n_todo += den[x] <= EPS
                 if n_todo == 0:
                     continue
                 key = y * B + b

@@ -74,10 +74,13 @@ class Prepared:
     dq : (H, W) uint32 or None (None: no sample is flagged); NONFINITE | DO_NOT_USE added
         where the input was not finite
     mosaic : Mosaic
+    medians : dict of int -> float
+        The band medians computed so far (:func:`band_median` fills it).
     """
 
     def __init__(self, raw: np.ndarray, dq: np.ndarray | None, mosaic: Mosaic):
         self.raw, self.dq, self.mosaic = raw, dq, mosaic
+        self.medians: dict[int, float] = {}  # band -> median of its usable samples, once known
 
     @property
     def shape(self):
@@ -212,7 +215,9 @@ def band_median(p: Prepared, b: int) -> float:
     float
         In the unit of the frame.
     """
-    return _median_in_place(p.band_samples(b))
+    if b not in p.medians:  # PPID's band levels and the no-source fill share them
+        p.medians[b] = _median_in_place(p.band_samples(b))
+    return p.medians[b]
 
 
 def band_levels(p: Prepared) -> np.ndarray:
