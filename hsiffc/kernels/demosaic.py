@@ -8,14 +8,17 @@ two sample columns of a lattice, so a row of output is a vertical blend of two s
 followed by a horizontal blend of two sample columns (separable, exact, no zero-filled planes).
 
 One pass over the output rows (parallel over blocks of rows) writes every band of the cube
-and its alpha (the max over the same samples). The hot loops are branch-free and carry only what every value needs: the weighted
-sums, the weight and the alpha max. Everything that concerns flagged samples is done per
-value, only where it is needed: the DQ cube gets the samples' own flags at their sites (it
-is zero-initialised by the caller, so a frame without flags never touches it); a value whose
-support S1 holds no usable sample takes the flags of S1 and the estimate of the twice-wide
-tent (S2), evaluated directly from its (at most 16) samples per lattice; where S2 holds none
-either the value is left NaN for the caller's band-median fill. Arithmetic in float64 (results
-within float32 rounding of the former ``cv2.sepFilter2D`` evaluation).
+and its alpha (the max over the same samples). The hot loops carry only what every value
+needs: the weighted sums, the weight and the alpha max. Everything that concerns flagged
+samples is done per value, only where it is needed: the DQ cube gets the samples' own flags
+at their sites (it is zero-initialised by the caller, so a frame without flags never touches
+it); the values whose support S1 holds no usable sample are found from the vertical pass
+(their sample column at the left has no usable sample) and take the flags of S1 and the
+estimate of the twice-wide tent (S2), whose column sums are computed once per row and band
+when a value first needs them; where S2 holds none either the value is left NaN for the
+caller's band-median fill. PPID values whose PPI is undefined (listed once per row) take the
+plain bilinear value. Arithmetic in float64 (results within float32 rounding of the former
+``cv2.sepFilter2D`` evaluation; on the benchmark frame bit-identical to the former kernel).
 """
 
 from __future__ import annotations
@@ -87,8 +90,10 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi
     Per output row and band: a vertical pass blends the two sample rows of each lattice at
     its columns (sum over usable samples, their weight, the max alpha), a horizontal pass per
     column phase blends two neighbouring columns into per-pixel sums, and a final pass
-    divides and writes the band's values and alpha, listing the values whose S1 has no usable
-    sample (and, for PPID, those where the PPI is undefined); :func:`_tent_sums` settles them.
+    divides and writes the band's values and alpha. Then, with flags only: the samples' own
+    flags, the PPI-undefined values of the row (:func:`_tent_sums` with S1), and the values
+    whose S1 holds no usable sample (``col_left[j, x]``: the sample column of lattice ``j``
+    at or left of ``x``, may be -1).
     """
     H, W = raw.shape
     B = lat_start.shape[0] - 1
