@@ -125,9 +125,18 @@ class Calibration:
         Returns
         -------
         ndarray of float32, DN
-            (H, W).
+            (H, W), read-only: the darks of the last few exposures are kept, since a batch
+            asks for the same exposure frame after frame.
         """
-        return dark_at(exposure_ms, self.f32("dark_dn"), self.f32("dark_current_dn_per_ms"))
+        cache = self.__dict__.setdefault("_dark_at", {})
+        key = float(exposure_ms)
+        if key not in cache:
+            if len(cache) >= 4:
+                cache.pop(next(iter(cache)))
+            dark = dark_at(key, self.f32("dark_dn"), self.f32("dark_current_dn_per_ms"))
+            dark.flags.writeable = False
+            cache[key] = dark
+        return cache[key]
 
     @property
     def frame_shape(self) -> tuple[int, int]:
