@@ -110,6 +110,8 @@ class ModelFFC(Stage):
             gain_sweep=self.gain_sweep_, flat_alpha_percent=float(self.flat_alpha_percent),
             full_scale_dn=2 ** frame.bit_depth - 1,
             alpha_limit_percent=float(self.alpha_limit_percent))
-        return frame.replace(data=out, dq=frame.dq | dq | self.dq_.astype(DQ_DTYPE),
+        dq |= frame.dq  # dq is this call's own array: merged in place, no temporaries
+        dq |= self.dq_.astype(DQ_DTYPE, copy=False)
+        return frame.replace(data=out, dq=dq,
                              dark_removed=np.asarray(dark, np.float32), corrected_by=self.name,
                              meta={"ffc": "model"})
