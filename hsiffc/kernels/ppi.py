@@ -72,7 +72,10 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
         hden = np.empty((n_in, W))
         for i in range(n_in):  # horizontal sums of the input rows the block's windows reach
             r = rows[y0 + i]
-            for x in range(min(mx, W)):  # left border: columns through the index map
+            n_left = min(mx, W)
+            right = max(W - mx, mx)
+            for j in range(n_left + W - right):  # border columns, through the index map
+                x = j if j < n_left else right + j - n_left
                 n = 0.0
                 d = 0.0
                 for t in range(kx.size):
@@ -87,16 +90,6 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
                 d = 0.0
                 for t in range(kx.size):
                     c = x + t - mx
-                    w = kx[t] * np.float64(wts[r, c])
-                    n += w * vals[r, c]
-                    d += w
-                hnum[i, x] = n
-                hden[i, x] = d
-            for x in range(max(W - mx, mx), W):  # right border
-                n = 0.0
-                d = 0.0
-                for t in range(kx.size):
-                    c = cols[x + t]
                     w = kx[t] * np.float64(wts[r, c])
                     n += w * vals[r, c]
                     d += w
