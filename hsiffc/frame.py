@@ -211,8 +211,8 @@ class Frame:
     def raw(self) -> np.ndarray:
         """The sensor's raw response (DN, float32): ``data`` plus the dark that was actually
         removed (computed once per frame and read-only; frames made by :meth:`replace` with
-        the same data and dark share it). Raises ValueError for a cube or once a stage changed the data otherwise
-        (``corrected_by``)."""
+        the same data and dark share it). Raises ValueError for a cube or once a stage changed
+        the data otherwise (``corrected_by``)."""
         if self.corrected_by is not None:
             raise ValueError(f"the data were changed by {self.corrected_by!r}: the raw response "
                              "is no longer available; run stages that need it before it")

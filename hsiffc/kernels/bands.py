@@ -85,6 +85,7 @@ def _band_scale_loop(signal, gain, ratio, band_map, out):
     for i in prange(out.shape[0]):
         band = band_map[i]
         ok = band >= 0 and band < n
+        # the index stays in bounds also where the vector code loads before it selects
         r = np.float64(ratio[band if ok else 0]) if ok else np.nan
         out[i] = np.float64(signal[i]) * np.float64(gain[i]) * r
         outside += 0 if ok else 1

@@ -315,9 +315,10 @@ def alpha_paper_point(y, t, a, b, d):
     """Paper alpha ``100 a e^{bY} / ((Y - d) / t)`` (percent); inf where the signal or t is
     not positive (no light rate can be estimated).
 
-    One exponential and one division (the slow vector operations): ``e^{bY}`` as the square of
-    ``E = e^{bY / 2}``, applied as ``((100 a t / s) E) E`` so that no factor overflows before
-    the result does (``E`` is finite for ``bY`` up to 1418).
+    One exponential and one division (the log-domain form took two logs more on the pixel's
+    chain of dependent operations): ``e^{bY}`` as the square of ``E = e^{bY / 2}``, applied
+    as ``((100 a t / s) E) E`` so that no factor overflows before the result does (``E`` is
+    finite for ``bY`` up to 1418).
     """
     s = y - d
     e = exp(0.5 * b * y)
