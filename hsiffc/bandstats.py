@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .kernels.bands import band_sums
+from .mosaic import row_period
 from .params import validate_method
 
 STATISTICS = ("mean", "median", "p95")
@@ -51,10 +52,14 @@ def band_reduce(values, band_map=None, good=None, *, statistic: str = "mean",
     if bm.shape != v.shape:
         raise ValueError(f"band_map has shape {bm.shape} but values have {v.shape}; give the "
                          "band map of the same frame")
-    n = int(bm.max()) + 1 if n_bands is None else int(n_bands)
+    period = row_period(bm) if v.ndim == 2 else 0  # a mosaic's map: its first rows say all
+    if n_bands is None:
+        n_bands = (bm[:period] if period else bm).max() + 1
+    n = int(n_bands)
     if statistic == "mean":  # one compiled pass (hsiffc.kernels.bands)
         as2d = (lambda a: np.reshape(a, (1, -1) if v.ndim < 2 else (-1, v.shape[-1])))
-        sums, counts = band_sums(as2d(v), as2d(bm), None if good is None else as2d(good), n)
+        sums, counts = band_sums(as2d(v), as2d(bm), None if good is None else as2d(good), n,
+                                 period)
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
     v = np.asarray(v, np.float64)

@@ -68,3 +68,19 @@ def dark_at(exposure_ms: float, d0, slope) -> np.ndarray:
     slope : (H, W) array_like, DN/ms
     """
     return np.asarray(d0, np.float32) + np.asarray(slope, np.float32) * np.float32(exposure_ms)
+
+
+def dark_at_cached(cache: dict, exposure_ms: float, d0, slope, keep: int = 4) -> np.ndarray:
+    """:func:`dark_at`, kept in ``cache`` for the last ``keep`` exposures (a batch asks for
+    the same exposure frame after frame). The result is read-only; an entry is used only
+    while ``d0`` and ``slope`` are the very arrays it was computed from."""
+    key = float(exposure_ms)
+    hit = cache.get(key)
+    if hit is not None and hit[0] is d0 and hit[1] is slope:
+        return hit[2]
+    if key not in cache and len(cache) >= keep:
+        cache.pop(next(iter(cache)))
+    dark = dark_at(key, d0, slope)
+    dark.flags.writeable = False
+    cache[key] = (d0, slope, dark)
+    return dark

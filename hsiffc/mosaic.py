@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
-
 from functools import lru_cache
 
 import numpy as np
@@ -121,4 +121,21 @@ def _band_map(pattern: bytes, tile: tuple, offset: tuple, h: int, w: int) -> np.
     cols = (np.arange(w) - offset[1]) % tile[1]
     out = p[rows[:, None], cols[None, :]]
     out.flags.writeable = False
+    key = id(out)
+    _ROW_PERIODS[key] = (weakref.ref(out, lambda _ref: _ROW_PERIODS.pop(key, None)), tile[0])
     return out
+
+
+# band maps built by _band_map (read-only, owning their data) -> their row period
+_ROW_PERIODS: dict[int, tuple[weakref.ref, int]] = {}
+
+
+def row_period(band_map) -> int:
+    """Rows ``y`` and ``y + p`` of ``band_map`` hold the same bands: ``p`` for a band map
+    built by :meth:`Mosaic.band_map` (its tile's rows), 0 for any other array (unknown).
+
+    Band statistics use it to sum a frame by row phase (vectorised, no per-pixel scatter) and
+    fold the few phase rows into bands at the end.
+    """
+    entry = _ROW_PERIODS.get(id(band_map))
+    return entry[1] if entry is not None and entry[0]() is band_map else 0

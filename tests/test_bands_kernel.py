@@ -92,3 +92,28 @@ def test_per_band_scale_equals_the_per_pixel_map(shape):
         two_point_apply(signal, gain, ratio[:4], band_map=bm)
     with pytest.raises(ValueError, match="same shape"):
         two_point_apply(signal, gain, ratio, band_map=bm[:, :-1])
+
+
+@settings(max_examples=25, deadline=None)
+@given(h=st.integers(1, 200), w=st.integers(1, 70), rows=st.integers(1, 6),
+       cols=st.integers(1, 6), off=st.tuples(st.integers(0, 7), st.integers(0, 7)),
+       masked=st.booleans(), seed=st.integers(0, 99))
+def test_mosaic_band_mean_by_row_phase(h, w, rows, cols, off, masked, seed):
+    """A mosaic's band map is summed by row phase (hsiffc.mosaic.row_period); the result is
+    the same as bincount's over the usable pixels, for any tile, offset and frame height
+    (blocks of 64 rows that do not start on a tile row included)."""
+    from hsiffc.mosaic import Mosaic, row_period
+
+    rng = np.random.default_rng(seed)
+    pattern = rng.permutation(rows * cols).reshape(rows, cols)
+    bm = Mosaic(pattern, offset=off).band_map((h, w))
+    assert row_period(bm) == rows and row_period(np.array(bm)) == 0
+    values = rng.normal(100, 10, (h, w)).astype(np.float32)
+    values.flat[rng.integers(0, h * w, 3)] = [np.nan, np.inf, -np.inf]
+    good = rng.random((h, w)) > 0.3 if masked else None
+    n = rows * cols + 1  # one band more than the map holds: NaN
+    got = band_reduce(values, bm, good, n_bands=n)
+    assert np.allclose(got, bincount_mean(values, bm, good, n), rtol=1e-12, equal_nan=True)
+    assert np.isnan(got[-1])
+    m = int(np.array(bm).max()) + 1  # the default length: from the map's first rows
+    assert np.allclose(band_reduce(values, bm, good), got[:m], rtol=0, equal_nan=True)

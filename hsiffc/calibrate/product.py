@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..dark import dark_at
+from ..dark import dark_at_cached
 from ..errors import CalibrationMismatchError, DataFormatError, ParameterError
 from ..mosaic import Mosaic
 from ..products import read_product, write_product
@@ -128,15 +128,8 @@ class Calibration:
             (H, W), read-only: the darks of the last few exposures are kept, since a batch
             asks for the same exposure frame after frame.
         """
-        cache = self.__dict__.setdefault("_dark_at", {})
-        key = float(exposure_ms)
-        if key not in cache:
-            if len(cache) >= 4:
-                cache.pop(next(iter(cache)))
-            dark = dark_at(key, self.f32("dark_dn"), self.f32("dark_current_dn_per_ms"))
-            dark.flags.writeable = False
-            cache[key] = dark
-        return cache[key]
+        return dark_at_cached(self.__dict__.setdefault("_dark_at", {}), exposure_ms,
+                              self.f32("dark_dn"), self.f32("dark_current_dn_per_ms"))
 
     @property
     def frame_shape(self) -> tuple[int, int]:

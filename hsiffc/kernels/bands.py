@@ -20,13 +20,49 @@ __all__ = ["band_scale_kernel", "band_sums", "scale_kernel"]
 _ROWS = 64  # rows per partial sum
 
 
-def _band_sums_loop(values, band_map, good, has_good, sums, counts):
+def _band_sums_loop(values, band_map, good, has_good, period, sums, counts):
     """Partial sums and counts per block of ``_ROWS`` rows into ``sums/counts[block, band]``;
-    finite values of good pixels only."""
+    finite values of good pixels only.
+
+    ``period`` > 0 says rows ``y`` and ``y + period`` of ``band_map`` hold the same bands (a
+    mosaic's band map): a block then adds its rows into ``period`` column-sum rows, one per
+    row phase (a vectorised stream, no per-pixel scatter), and folds those into bands through
+    the block's first ``period`` band-map rows. Otherwise every pixel is added to its band.
+    """
     H, W = values.shape
     nb = sums.shape[1]
     for blk in prange((H + _ROWS - 1) // _ROWS):
-        for y in range(blk * _ROWS, min(H, blk * _ROWS + _ROWS)):
+        y0 = blk * _ROWS
+        y1 = min(H, y0 + _ROWS)
+        if period > 0:
+            col_sum = np.zeros((period, W))
+            col_count = np.zeros((period, W), np.int32)
+            for y in range(y0, y1):
+                phase = (y - y0) % period
+                acc = col_sum[phase]
+                cnt = col_count[phase]
+                row = values[y]
+                if has_good:  # integer tests, not ``and``: a short-circuit stops vectorisation
+                    use_row = good[y]
+                    for x in range(W):
+                        v = np.float64(row[x])
+                        use = np.int32(abs(v) < np.inf) & np.int32(use_row[x] != 0)
+                        acc[x] += v if use != 0 else 0.0
+                        cnt[x] += use
+                else:
+                    for x in range(W):
+                        v = np.float64(row[x])
+                        use = np.int32(abs(v) < np.inf)
+                        acc[x] += v if use != 0 else 0.0
+                        cnt[x] += use
+            for phase in range(min(period, y1 - y0)):
+                for x in range(W):
+                    band = band_map[y0 + phase, x]
+                    if 0 <= band < nb:
+                        sums[blk, band] += col_sum[phase, x]
+                        counts[blk, band] += col_count[phase, x]
+            continue
+        for y in range(y0, y1):
             for x in range(W):
                 v = np.float64(values[y, x])
                 if (not has_good or good[y, x]) and abs(v) < np.inf:
@@ -39,7 +75,7 @@ def _band_sums_loop(values, band_map, good, has_good, sums, counts):
 _kernel = Kernel(_band_sums_loop, 0)
 
 
-def band_sums(values, band_map, good, n_bands: int):
+def band_sums(values, band_map, good, n_bands: int, row_period: int = 0):
     """Sum and count of the finite ``values`` of ``good`` pixels per band.
 
     Parameters
@@ -48,6 +84,9 @@ def band_sums(values, band_map, good, n_bands: int):
     band_map : (H, W) integer array
     good : (H, W) bool array or None (all pixels)
     n_bands : int
+    row_period : int
+        ``p`` > 0 if rows ``y`` and ``y + p`` of ``band_map`` hold the same bands (see
+        :func:`hsiffc.mosaic.row_period`): the faster phase-row sum; 0 if unknown.
 
     Returns
     -------
@@ -58,12 +97,13 @@ def band_sums(values, band_map, good, n_bands: int):
     if v.dtype not in (np.float32, np.float64):
         v = v.astype(np.float64)
     bm = np.ascontiguousarray(band_map, dtype=np.int64)
-    g = np.zeros((1, 1), np.bool_) if good is None else np.ascontiguousarray(good, np.bool_)
+    g = np.zeros((1, 1), np.uint8) if good is None else np.ascontiguousarray(good, np.bool_)
+    g = g.view(np.uint8)  # compiled code tests bytes (a bool load branches)
     nblk = (v.shape[0] + _ROWS - 1) // _ROWS
     sums = np.zeros((max(nblk, 1), n_bands))
     counts = np.zeros((max(nblk, 1), n_bands), np.int64)
     if v.size:
-        _kernel(v, bm, g, good is not None, sums, counts)
+        _kernel(v, bm, g, good is not None, int(row_period), sums, counts)
     return sums.sum(axis=0), counts.sum(axis=0)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..dark import dark_at, fit_dark_line, subtract_dark
+from ..dark import dark_at_cached, fit_dark_line, subtract_dark
 from ..errors import ParameterError
 from ..frame import stack_mean
 from ..params import Param
@@ -68,7 +68,8 @@ class DarkSubtract(Stage):
         if e is not None:
             return self.masters_[self.exposures_ms_.index(e)], f"master at {e:g} ms"
         if hasattr(self, "dark0_"):
-            return dark_at(exposure_ms, self.dark0_, self.dark_slope_), "scaled (d0 + slope t)"
+            return (dark_at_cached(self.__dict__.setdefault("_dark_cache", {}), exposure_ms,
+                                   self.dark0_, self.dark_slope_), "scaled (d0 + slope t)")
         cal = self.calibration_product()
         if cal is not None:
             cal.check_compatible(frame_shape=shape, what="the frame")
