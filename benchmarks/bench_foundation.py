@@ -113,8 +113,10 @@ def main(quick: bool = False) -> dict:
                                f"{results['inversion_numpy_max_rel_err']:.1e}); DQ flags equal "
                                f"to numpy's: {results['inversion_flags_equal_numpy']}; where the "
                                f"time goes: {_ns_per_px_core(t_inv):.1f} ns per pixel per core "
-                               "(float64: set-up, 3 Halley steps and a check, each an "
-                               "exponential and 2 divisions)"))
+                               "(float64: set-up, 2 Halley steps and a check; blocks with "
+                               "pixels left take rounds of 1 step and a check; each step an "
+                               f"exponential and 2 divisions; this frame: up to {inv.iterations} "
+                               "steps)"))
 
     rng = np.random.default_rng(1)
     sample = rng.choice(NPX, size=50 if quick else 200, replace=False)

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .dq import DQ_DTYPE
-from .kernels import gradient, leakage
+from .kernels import gradient, inversion, leakage
 from .kernels.operands import flat_operands
 from .model_derived import (
     dynamic_saturation_level,
@@ -241,10 +241,11 @@ def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=
     The model response increases monotonically with k, from the zero-light level (pure leakage
     from ``dark``) towards infinity, so a unique k exists for every response above the zero-light
     level. It is found per pixel by a compiled kernel
-    (:func:`hsiffc.kernels.leakage.invert_point`): with ``x = b k t`` the model scaled by
+    (:func:`hsiffc.kernels.inversion.invert_point`): with ``x = b k t`` the model scaled by
     ``e^{bY}`` is convex and decreasing in x, so Halley's iteration from the lower bounds
-    ``x >= b (Y - d)`` and ``x >= a b t e^{bY}`` converges fast (three vectorised steps, then
-    bracketed steps until the response matches within ``tol_dn + 8 eps |y|``).
+    ``x >= b (Y - d)`` and ``x >= a b t e^{bY}`` converges fast (vectorised rounds of two, then
+    one step, each checked, then bracketed steps for what is left, until the response matches
+    within ``tol_dn + 8 eps |y|``; see :mod:`hsiffc.kernels.inversion`).
 
     Parameters
     ----------
@@ -285,7 +286,7 @@ def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=
     k = np.empty(n)
     flags = np.empty(n, DQ_DTYPE)
     iterations = np.zeros(max(1, -(-n // leakage.BLOCK)), np.int64)
-    leakage.invert_kernel(*ops, np.inf if full_scale is None else float(full_scale),
+    inversion.invert_kernel(*ops, np.inf if full_scale is None else float(full_scale),
                           np.inf if k_max is None else float(k_max), float(tol_dn),
                           int(max_iter), k, flags, iterations)
     return Inversion(k.reshape(shape), flags.reshape(shape), int(iterations.max()))

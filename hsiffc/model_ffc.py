@@ -44,7 +44,8 @@ import numpy as np
 from . import model
 from .bandstats import band_reduce
 from .dq import DQ, DQ_DTYPE
-from .kernels.leakage import PENDING
+from .kernels.inversion import PENDING
+from .kernels.leakage import BLOCK
 from .kernels.modelffc import model_ffc_finish, model_ffc_kernel
 from .kernels.operands import flat_operands
 
@@ -334,9 +335,12 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     dq = np.empty(shape, DQ_DTYPE)
     alpha = np.empty(shape, np.float32)
     flat = (out.reshape(-1), dq.reshape(-1), alpha.reshape(-1))
-    if model_ffc_kernel(*ops, has_sweep, full_scale, *limits, _TOL_DN, *flat):
-        # what the vector steps left: the bracketed inversion, then the same step
-        idx = np.flatnonzero(flat[1] & DQ_DTYPE(PENDING))
+    left = np.zeros(max(1, -(-out.size // BLOCK)), np.int64)
+    if model_ffc_kernel(*ops, has_sweep, full_scale, *limits, _TOL_DN, *flat, left):
+        # what the vector steps left (scanned in the blocks that have some): the bracketed
+        # inversion, then the same step
+        idx = np.concatenate([np.flatnonzero(flat[1][s:s + BLOCK] & DQ_DTYPE(PENDING)) + s
+                              for s in np.flatnonzero(left) * BLOCK])
         y, t, a_, b_, d = (v if isinstance(v, float) else v[idx] for v in ops[:5])
         inv = model.invert_response(y, t, a_, b_, d, full_scale=full_scale_dn, tol_dn=_TOL_DN)
         model_ffc_finish(idx, np.atleast_1d(inv.k), np.atleast_1d(inv.flags), *ops,

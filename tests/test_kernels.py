@@ -11,7 +11,7 @@ from numba import njit
 
 from hsiffc import model
 from hsiffc.dq import DQ
-from hsiffc.kernels import launch, leakage, vmath
+from hsiffc.kernels import inversion, launch, leakage, vmath
 
 
 # -- the previous numpy implementation (reference values; not used by the package) ------------
@@ -182,7 +182,7 @@ def test_inversion_parallel_and_serial_builds_agree_and_flag_alike():
     y[1009::1009] = np.nan
     y[1013::1013] = 5000.0  # clipped at full scale
     outs = []
-    for build in (leakage.invert_kernel.parallel, leakage.invert_kernel.serial):
+    for build in (inversion.invert_kernel.parallel, inversion.invert_kernel.serial):
         kk, fl = np.empty(k.size), np.empty(k.size, np.uint32)
         it = np.zeros(-(-k.size // leakage.BLOCK), np.int64)
         build(y, 25.0, a, b, d, 4000.0, np.inf, 1e-9, 60, kk, fl, it)
@@ -206,6 +206,27 @@ def test_inversion_with_fewer_iterations_than_the_vector_pass():
     full = model.invert_response(np.full(10, y), 25.0, 2 * np.exp(-8.0), 0.01, 30.0)
     assert np.allclose(full.k, 2.0, rtol=1e-12)
 
+
+
+def test_inversion_rounds_do_not_depend_on_block_mates():
+    """The vectorised rounds run for a whole block while any pixel of it needs them; a
+    pixel's k and flags are the same whether its block mates need more rounds or not, and
+    agree with bisection on every path (one round, more rounds, the scalar iteration)."""
+    n = leakage.BLOCK
+    k, a, b, d = _frame(n=n, seed=8)
+    k = np.maximum(k, 0.05)
+    easy = np.arange(n) % 2 == 0  # short exposures (near linear) beside long ones (leaking)
+    t = np.where(easy, 2.0, 400.0)
+    y = numpy_response(t, k, a, b, d)
+    full = model.invert_response(y, t, a, b, d)
+    alone = model.invert_response(y[easy], t[easy], a[easy], b[easy], d[easy])
+    assert alone.iterations == inversion.VECTOR_STEPS < full.iterations
+    assert np.array_equal(full.k[easy], alone.k)
+    assert np.array_equal(full.flags[easy], alone.flags)
+    hard = model.invert_response(y[~easy], t[~easy], a[~easy], b[~easy], d[~easy])
+    assert np.array_equal(full.k[~easy], hard.k)
+    assert np.all(full.flags == 0)
+    assert np.allclose(full.k, bisect_k(y, t, a, b, d), rtol=1e-10)
 
 # -- alpha ------------------------------------------------------------------------------------
 

@@ -1,8 +1,8 @@
 """Compiled kernel of the model-based flat-field correction
 (:func:`hsiffc.model_ffc.model_ffc_apply`).
 
-One pass per pixel: invert the leakage model (:func:`~hsiffc.kernels.leakage.invert_vector`,
-three vectorised Halley steps), the model alpha, the blend of the two responsivity factors
+One pass per pixel: invert the leakage model (:func:`~hsiffc.kernels.inversion.invert_vector`,
+vectorised rounds of Halley steps), the model alpha, the blend of the two responsivity factors
 by alpha, the corrected value and its DQ bits. The pixels the vector steps leave (non-finite
 input, zero light, extreme parameters) are inverted again by the compiled inversion
 (:func:`hsiffc.model.invert_response`, bracketed scalar iteration) and corrected by
@@ -18,8 +18,9 @@ from numba import njit, prange
 
 from ..dq import DQ
 from .launch import JIT_OPTIONS, Kernel
-from .leakage import PENDING, alpha_model_point, invert_vector
-from .operands import at
+from .inversion import PENDING, ROUNDS, invert_rounds
+from .leakage import BLOCK, alpha_model_point
+from .operands import at, part
 from .vmath import exp, log
 
 __all__ = ["correct_point", "model_ffc_finish", "model_ffc_kernel"]
@@ -58,34 +59,52 @@ def correct_point(k, flags, alpha, y, t, d, g_flat, g_sweep, has_sweep, dc, flat
     return (out if finite else 0.0), dq, min(alpha, _F32_MAX)
 
 
-def _model_ffc_loop(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_scale,
-                    flat_alpha, alpha_limit, below_tol, tol_dn, out, dq_out, alpha_out):
-    """:func:`correct_point` of every pixel into ``out`` (float32 DN), ``dq_out`` (uint32) and
-    ``alpha_out`` (float32 percent); operands flat arrays or scalars (see ``at``). Pixels the
-    vector steps of the inversion did not settle are marked :data:`PENDING` in ``dq_out``
-    for :func:`model_ffc_finish`; returns how many (so that a frame with none is not scanned
-    for them)."""
-    pending = 0
-    for i in prange(out.shape[0]):  # vectorised: invert, correct, mark what is left
-        yi = at(y, i)
-        ti = at(t, i)
-        ai = at(a, i)
-        bi = at(b, i)
-        di = at(d, i)
-        gi = at(gain, i)
-        si = at(sweep, i)
-        ci = at(dark_current, i)
-        # every operand is read before the inlined inversion: numba's parfor pass fails
-        # ("overwrite of parallel loop index") when an inlined ``at`` follows it
-        k, flags, done, alpha = invert_vector(yi, ti, ai, bi, di, full_scale, np.inf, tol_dn)
-        o, q, al = correct_point(k, flags, alpha, yi, ti, di, gi, si, has_sweep, ci,
+@njit(**{**JIT_OPTIONS, "cache": False})
+def _model_ffc_block(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_scale,
+                     flat_alpha, alpha_limit, below_tol, tol_dn, out, dq_out, alpha_out):
+    """:func:`correct_point` for one block (operands as :func:`~.operands.part` gives them)
+    from the vectorised rounds of the inversion (:func:`~.inversion.invert_rounds`); pixels
+    they leave are marked :data:`PENDING`. Returns how many."""
+    m = out.shape[0]
+    k = np.empty(m)
+    alpha = np.empty(m)
+    invert_rounds(y, t, a, b, d, full_scale, np.inf, tol_dn, ROUNDS, k, dq_out, alpha)
+    left = 0
+    for j in range(m):
+        yi = at(y, j)
+        flags = dq_out[j]
+        o, q, al = correct_point(k[j], flags & ~PENDING, alpha[j], yi, at(t, j), at(d, j),
+                                 at(gain, j), at(sweep, j), has_sweep, at(dark_current, j),
                                  flat_alpha, alpha_limit, below_tol)
-        out[i] = o
-        alpha_out[i] = al
         # above full scale the inversion's alpha is at full scale, not at the response
-        left = not (done and not yi > full_scale)
-        dq_out[i] = q | (PENDING if left else 0)
-        pending += 1 if left else 0
+        unsettled = (flags & PENDING) != 0 or yi > full_scale
+        out[j] = o
+        alpha_out[j] = al
+        dq_out[j] = q | (PENDING if unsettled else 0)
+        left += 1 if unsettled else 0
+    return left
+
+
+def _model_ffc_loop(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_scale,
+                    flat_alpha, alpha_limit, below_tol, tol_dn, out, dq_out, alpha_out,
+                    block_left):
+    """:func:`correct_point` of every pixel into ``out`` (float32 DN), ``dq_out`` (uint32) and
+    ``alpha_out`` (float32 percent); operands flat arrays or scalars (see ``at``), per block
+    of :data:`~hsiffc.kernels.leakage.BLOCK` pixels. Pixels the vectorised rounds leave are
+    marked :data:`PENDING` in ``dq_out`` for :func:`model_ffc_finish`; returns how many, and
+    ``block_left[block]`` says how many in each block (only those blocks are scanned)."""
+    n = out.shape[0]
+    pending = 0
+    for blk in prange((n + BLOCK - 1) // BLOCK):
+        i0 = blk * BLOCK
+        i1 = min(n, i0 + BLOCK)
+        left = _model_ffc_block(
+            part(y, i0, i1), part(t, i0, i1), part(a, i0, i1), part(b, i0, i1),
+            part(d, i0, i1), part(gain, i0, i1), part(sweep, i0, i1), part(dark_current, i0, i1),
+            has_sweep, full_scale, flat_alpha, alpha_limit, below_tol, tol_dn, out[i0:i1],
+            dq_out[i0:i1], alpha_out[i0:i1])
+        block_left[blk] = left
+        pending += left
     return pending
 
 

@@ -10,7 +10,7 @@ from numba.extending import overload
 
 from .launch import PARALLEL_MIN
 
-__all__ = ["at", "flat_operands", "float_array"]
+__all__ = ["at", "flat_operands", "float_array", "part"]
 
 
 def float_array(x) -> np.ndarray:
@@ -63,3 +63,17 @@ def _at_overload(x, at_index):
     if isinstance(x, types.Array):
         return lambda x, at_index: np.float64(x[at_index])
     return lambda x, at_index: np.float64(x)
+
+
+def part(x, start, stop):
+    """Elements ``start:stop`` of a flat operand (``x`` itself for a scalar): a kernel's
+    ``prange`` body hands each block of its operands to a compiled block function, whose loop
+    from 0 LLVM vectorises (the same loop written inside the ``prange`` body it does not)."""
+    return x if np.ndim(x) == 0 else x[start:stop]
+
+
+@overload(part, inline="always")
+def _part_overload(x, start, stop):
+    if isinstance(x, types.Array):
+        return lambda x, start, stop: x[start:stop]
+    return lambda x, start, stop: x

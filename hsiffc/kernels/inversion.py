@@ -1,0 +1,338 @@
+"""Compiled inversion of the leakage model: the light rate k that explains a response Y.
+
+Scaled by e^{bY} at the target Y, the model reads H(x) = e^{beta - x} + C phi(x) - 1 = 0 with
+beta = b (Y - d), C = a b t e^{bY}, x = b k t. H is convex and decreasing in x (phi is
+completely monotone), and H(x) = e^{b (Y - Y(x))} - 1, so |H| <= b tol means |Y(x) - Y| <=
+tol (to first order). Y <= d + k t gives x >= beta; above the dark level Y <= ln(k/a)/b
+gives x >= C: from x0 = max(beta, C) Newton climbs monotonically to the root, Halley's
+correction makes it cubic.
+
+The kernels work per block of :data:`~hsiffc.kernels.leakage.BLOCK` pixels. A branch-free
+round of two Halley steps and a check of H at the result (vectorised by LLVM) settles most
+pixels: in the linear regime the start is within a step of the root. Where a block has
+pixels left, up to two more rounds of one step each continue them from where they stopped,
+with the values they carry (no second setup), computed for the whole block and kept where
+needed. Pixels still
+unsettled, and those the vector form cannot take (non-finite input, zero light, extreme
+parameters), get the bracketed scalar iteration :func:`invert_point`. Everything in float64;
+the result converges to ``tol_dn + 8 eps |y|`` in DN (tests: against bisection and the
+former numpy results).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+from numba.extending import overload
+
+from ..dq import DQ
+from .launch import JIT_OPTIONS, Kernel
+from .leakage import BLOCK
+from .operands import at, part
+from .vmath import exp, exp_expm1, log
+
+__all__ = ["PENDING", "ROUNDS", "STATE_ROWS", "VECTOR_STEPS", "carried", "invert_again",
+           "invert_kernel", "invert_point", "invert_rounds", "invert_vector", "keep"]
+
+# per-point functions are compiled into each kernel that uses them (see leakage.py)
+_JIT = {**JIT_OPTIONS, "cache": False}
+_INL = {**_JIT, "inline": "always"}
+_EPS = 2.220446049250313e-16
+_BIG = 1.7976931348623157e308
+_NONFINITE = int(DQ.NONFINITE)
+_SATURATED = int(DQ.SATURATED)
+_BELOW_DARK = int(DQ.BELOW_DARK)
+_UNREACHABLE = int(DQ.UNREACHABLE)
+_NOT_CONVERGED = int(DQ.NOT_CONVERGED)
+
+
+@njit(**_INL)
+def _exp(x, vec):
+    """e^x: the vectorisable form in vector loops, libm in scalar code (3 x lower latency).
+    ``vec`` is a constant at every call site, so the other branch is compiled away."""
+    return exp(x) if vec else math.exp(x)
+
+
+@njit(**_INL)
+def _log(x, vec):
+    return log(x) if vec else (math.log(x) if x > 0.0 else (-np.inf if x == 0.0 else np.nan))
+
+
+@njit(**_INL)
+def _phi_derivs(x, vec):
+    """(e^{-x}, phi, phi', phi'') at x >= 0 (series below 0.05, where the closed forms
+    cancel). One reduction gives e^{-x} and 1 - e^{-x}, and one reciprocal, computed beside
+    it rather than after it, serves the three quotients: the iteration's speed is bound by
+    its chain of dependent operations."""
+    if vec:
+        ex, em = exp_expm1(-x)
+        em = -em
+    else:
+        em = -math.expm1(-x)
+        ex = 1.0 - em
+    ix = 1.0 / x
+    phi = em * ix if x > 0.0 else 1.0
+    d1 = -(em - x * ex) * (ix * ix)
+    d2 = (2.0 * em - x * ex * (x + 2.0)) * (ix * ix * ix)
+    d1s = -0.5 + x * (1.0 / 3.0 - x * (0.125 - x * (1.0 / 30.0 - x / 144.0)))
+    d2s = 1.0 / 3.0 - x * (0.25 - x * (0.1 - x * (1.0 / 36.0 - x / 168.0)))
+    small = x < 0.05
+    return ex, phi, (d1s if small else d1), (d2s if small else d2)
+
+
+@njit(**_INL)
+def _halley(x, beta, eb, c, vec):
+    """H(x) and the next iterate (Halley, Newton when Halley's denominator is not positive).
+
+    ``eb`` is ``e^beta``: the vector form takes ``e^{beta - x} = e^beta e^{-x}`` with
+    ``e^{-x}`` from the reduction that gives phi (callers keep beta <= 700 there); scalar code
+    takes ``e^{beta - x}`` directly (libm).
+    """
+    ex, phi, p1, p2 = _phi_derivs(x, vec)
+    e = eb * ex if vec else math.exp(beta - x)
+    h = e + c * phi - 1.0
+    h1 = -e + c * p1
+    h2 = e + c * p2
+    den = 2.0 * h1 * h1 - h * h2
+    halley = den > 0.0
+    step = x - (2.0 * h * h1 if halley else h) / (den if halley else h1)
+    step = step if step >= 0.0 else 0.5 * x
+    return h, step
+
+
+@njit(**_INL)
+def _setup(y, t, a, b, d, full_scale, vec):
+    """Flags known before iterating, target Y, beta, ln C, C, e^beta, H(0) and the start x.
+
+    ``ln C = ln(a b t) + b Y``; where ``a b t`` is not a normal number the vectorised pass
+    leaves the pixel to the scalar one (``ok`` False), which takes the logs one by one; so
+    it does where beta > 700 (e^beta would overflow).
+    """
+    flags = 0
+    finite = (abs(y) < np.inf) and (abs(a) < np.inf) and (abs(b) < np.inf) and (abs(d) < np.inf)
+    sat = finite and y >= full_scale
+    target = full_scale if sat else y
+    flags = (_SATURATED if sat else 0) | (0 if finite else _NONFINITE)
+    beta = b * (target - d)
+    abt = a * b * t
+    ok = finite and abt >= 1e-300 and abt < 1e300
+    lnc = (_log(abt, vec) if vec else _log(a, vec) + _log(b, vec) + _log(t, vec)) + b * target
+    c = _exp(min(lnc, 700.0), vec)
+    eb = _exp(min(beta, 700.0), vec)
+    h0 = eb + c - 1.0  # H at zero light
+    x0 = max(beta, c) if target > d else 0.0
+    return flags, ok and beta <= 700.0, target, beta, lnc, c, eb, h0, x0
+
+
+@njit(**_JIT)
+def invert_point(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter):
+    """Light rate k (DN/ms), DQ flags and iterations for one pixel (scalar code).
+
+    Semantics as :func:`hsiffc.model.invert_response`; a bracketed Halley iteration.
+    """
+    flags, _, target, beta, lnc, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, False)
+    if flags & _NONFINITE:
+        return 0.0, flags, 0
+    if h0 <= 0.0:  # at or below what zero light gives
+        if h0 < 0.0:
+            flags |= _BELOW_DARK
+        return 0.0, flags | (_UNREACHABLE if k_max < 0.0 else 0), 0
+    if lnc > 700.0:  # needs more light than a double can hold
+        return min(k_max, _BIG), flags | _NOT_CONVERGED | (_UNREACHABLE if k_max < _BIG else 0), 0
+    tol = b * (tol_dn + 8.0 * _EPS * abs(target))
+    lo, hi = x0, np.inf  # H(lo) >= 0 >= H(hi)
+    xi = x0
+    it = 0
+    converged = False
+    while True:
+        h, nxt = _halley(xi, beta, eb, c, False)
+        if abs(h) <= tol:
+            converged = True
+            break
+        if it >= max_iter:
+            break
+        if h > 0.0:
+            lo = max(lo, xi)
+        else:
+            hi = min(hi, xi)
+        if not (nxt > lo and nxt < hi):
+            nxt = 0.5 * (lo + hi) if hi < np.inf else max(2.0 * lo, lo + 1.0)
+        xi = nxt
+        it += 1
+    k = xi / (b * t)
+    if not converged:
+        flags |= _NOT_CONVERGED
+    if k > k_max:
+        k = k_max
+        flags |= _UNREACHABLE
+    return k, flags, it
+
+
+VECTOR_STEPS = 2  # Halley steps of the first vectorised round; later rounds take one each
+ROUNDS = 3  # vectorised rounds per block before the scalar iteration takes what is left
+PENDING = 1 << 31  # scratch flag inside the kernels: left to the scalar iteration
+#: values a pixel carries from one round to the next (x, beta, e^beta, C, tolerance, flags)
+STATE_ROWS = 6
+
+
+@njit(**_INL)
+def _rate(x, c, b, t, k_max, flags):
+    """(k, flags, alpha) at ``x``: alpha is the model leakage percentage at the target
+    response, ``100 a e^{bY} / k = 100 C / x``."""
+    k = x / (b * t)
+    over = k > k_max
+    return (k_max if over else k), flags | (_UNREACHABLE if over else 0), 100.0 * c / x
+
+
+@njit(**_INL)
+def _residual(x, beta, eb, c):
+    """H(x) alone, vector form (what :func:`_halley` computes first; the derivative terms
+    it does not use are compiled away)."""
+    ex, phi, _, _ = _phi_derivs(x, True)
+    return eb * ex + c * phi - 1.0
+
+
+@njit(**_INL)
+def invert_vector(y, t, a, b, d, full_scale, k_max, tol_dn):
+    """First round for one pixel, two branch-free Halley steps from the lower bound
+    (vectorisable): (k, flags, done, alpha, retry) and the values it carries on (``x``,
+    beta, e^beta, C, the tolerance, the flags of the setup).
+
+    ``done`` where H at the result is within the tolerance. ``retry`` where the input is
+    solvable but the round did not get there: :func:`invert_again` continues from the
+    carried values (store them with :func:`keep`). Neither: solve again with
+    :func:`invert_point`.
+    """
+    flags, ok, target, beta, lnc, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, True)
+    tol = b * (tol_dn + 8.0 * _EPS * abs(target))
+    x = _halley(x0, beta, eb, c, True)[1]
+    x = _halley(x, beta, eb, c, True)[1]
+    near = abs(_residual(x, beta, eb, c)) <= tol
+    solvable = ok and lnc <= 700.0 and h0 > 0.0
+    k, fl, alpha = _rate(x, c, b, t, k_max, flags)
+    return k, fl, solvable and near, alpha, solvable and not near, x, beta, eb, c, tol, flags
+
+
+@njit(**_INL)
+def invert_again(x, beta, eb, c, tol, flags, b, t, k_max):
+    """One more Halley step for a pixel a round left with ``retry``, from the values it
+    carries (vectorisable): (k, flags, done, alpha, x); ``done`` where H at the new ``x``
+    is within the tolerance."""
+    x = _halley(x, beta, eb, c, True)[1]
+    k, fl, alpha = _rate(x, c, b, t, k_max, flags)
+    return k, fl, abs(_residual(x, beta, eb, c)) <= tol, alpha, x
+
+
+def keep(state, j, x, beta, eb, c, tol, flags):
+    """Store pixel ``j``'s carried values in ``state`` (flat, :data:`STATE_ROWS` per pixel,
+    interleaved); ``x`` -1 says there is nothing to continue. Compiled code inlines it at numba's
+    IR level (an overload, like ``at``): an array handed to an inlined *function* is
+    reference-counted in the loop, which stops LLVM from vectorising it."""
+    s = STATE_ROWS * j
+    state[s:s + STATE_ROWS] = x, beta, eb, c, tol, flags
+
+
+def carried(state, j):
+    """Pixel ``j``'s carry as :func:`keep` stored it (``x`` -1: nothing to continue)."""
+    s = STATE_ROWS * j
+    return (state[s], state[s + 1], state[s + 2], state[s + 3], state[s + 4],
+            np.int64(state[s + 5]))
+
+
+@overload(keep, inline="always")
+def _keep_overload(state, j, x, beta, eb, c, tol, flags):
+    def impl(state, j, x, beta, eb, c, tol, flags):
+        s = STATE_ROWS * j
+        state[s] = x
+        state[s + 1] = beta
+        state[s + 2] = eb
+        state[s + 3] = c
+        state[s + 4] = tol
+        state[s + 5] = flags
+    return impl
+
+
+@overload(carried, inline="always")
+def _carried_overload(state, j):
+    return carried
+
+
+@njit(**_JIT)
+def invert_rounds(y, t, a, b, d, full_scale, k_max, tol_dn, rounds, k_out, flags_out,
+                  alpha_out):
+    """The vectorised rounds (see the module) for one block, operands as
+    :func:`~.operands.part` gives them: k, flags (:data:`PENDING` where left to
+    :func:`invert_point`) and model alpha per pixel. Returns the Halley steps taken."""
+    m = k_out.shape[0]
+    if rounds <= 0:
+        return 0
+    state = np.empty(STATE_ROWS * m)
+    again = 0
+    go_on_ok = rounds > 1
+    for j in range(m):
+        k, f, done, alpha, retry, x, beta, eb, c, tol, f0 = invert_vector(
+            at(y, j), at(t, j), at(a, j), at(b, j), at(d, j), full_scale, k_max, tol_dn)
+        go_on = retry and go_on_ok
+        keep(state, j, x if go_on else -1.0, beta, eb, c, tol, f0)
+        k_out[j] = k
+        alpha_out[j] = alpha
+        flags_out[j] = f | (0 if done or go_on else PENDING)
+        again += 1 if go_on else 0
+    steps = VECTOR_STEPS
+    for r in range(1, rounds):
+        if again == 0:
+            break
+        steps += 1
+        go_further = r + 1 < rounds
+        again = 0
+        for j in range(m):  # every pixel computed, kept where it is continued
+            x, beta, eb, c, tol, f0 = carried(state, j)
+            redo = x >= 0.0
+            k, f, done, alpha, x = invert_again(x, beta, eb, c, tol, f0, at(b, j), at(t, j),
+                                                k_max)
+            go_on = redo and not done and go_further
+            keep(state, j, x if go_on else -1.0, beta, eb, c, tol, f0)
+            k_out[j] = k if redo else k_out[j]
+            alpha_out[j] = alpha if redo else alpha_out[j]
+            f_new = f | (0 if done or go_on else PENDING)
+            flags_out[j] = f_new if redo else flags_out[j]
+            again += 1 if go_on else 0
+    return steps
+
+
+@njit(**_JIT)
+def _invert_block(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter, k_out, flags_out):
+    """:func:`invert_point` for one block: :func:`invert_rounds`, then the scalar iteration
+    for what they leave. Returns the most iterations a pixel took."""
+    m = k_out.shape[0]
+    rounds = min(ROUNDS, max_iter - VECTOR_STEPS + 1) if max_iter >= VECTOR_STEPS else 0
+    most = invert_rounds(y, t, a, b, d, full_scale, k_max, tol_dn, rounds, k_out, flags_out,
+                         np.empty(m))
+    for j in range(m):
+        if rounds > 0 and not (flags_out[j] & PENDING):
+            continue
+        k, f, it = invert_point(at(y, j), at(t, j), at(a, j), at(b, j), at(d, j), full_scale,
+                                k_max, tol_dn, max_iter)
+        k_out[j] = k
+        flags_out[j] = f
+        most = max(most, it)
+    return most
+
+
+def _invert_loop(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter, k_out, flags_out,
+                 iterations):
+    """:func:`invert_point` over flat operands, per block of :data:`BLOCK` pixels;
+    ``iterations[block]`` gets each block's max (``ceil(n / BLOCK)`` entries)."""
+    n = k_out.shape[0]
+    for blk in prange((n + BLOCK - 1) // BLOCK):
+        i0 = blk * BLOCK
+        i1 = min(n, i0 + BLOCK)
+        iterations[blk] = _invert_block(
+            part(y, i0, i1), part(t, i0, i1), part(a, i0, i1), part(b, i0, i1),
+            part(d, i0, i1), full_scale, k_max, tol_dn, max_iter, k_out[i0:i1],
+            flags_out[i0:i1])
+
+
+invert_kernel = Kernel(_invert_loop, 9)
