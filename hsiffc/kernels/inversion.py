@@ -9,10 +9,10 @@ correction makes it cubic.
 
 The kernels work per block of :data:`~hsiffc.kernels.leakage.BLOCK` pixels. A branch-free
 round of two Halley steps and a check of H at the result (vectorised by LLVM) settles most
-pixels: in the linear regime the start is within a step of the root. Where a block has
-pixels left, up to two more rounds of one step each continue them from where they stopped,
-with the values they carry (no second setup), computed for the whole block and kept where
-needed. Pixels still
+pixels: in the linear regime the start is within a step of the root. The evaluation that
+checks also gives the next step, so where a block has pixels left, up to two more rounds of
+one evaluation each continue them, packed together with the values they carry (no second
+setup), still vectorised. Pixels still
 unsettled, and those the vector form cannot take (non-finite input, zero light, extreme
 parameters), get the bracketed scalar iteration :func:`invert_point`. Everything in float64;
 the result converges to ``tol_dn + 8 eps |y|`` in DN (tests: against bisection and the
@@ -173,84 +173,82 @@ def invert_point(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter):
 VECTOR_STEPS = 2  # Halley steps of the first vectorised round; later rounds take one each
 ROUNDS = 3  # vectorised rounds per block before the scalar iteration takes what is left
 PENDING = 1 << 31  # scratch flag inside the kernels: left to the scalar iteration
-#: values a pixel carries from one round to the next (x, beta, e^beta, C, tolerance, flags)
-STATE_ROWS = 6
+#: values a pixel carries from one round to the next (x, beta, e^beta, C, tolerance, b t,
+#: flags)
+STATE_ROWS = 7
 
 
 @njit(**_INL)
-def _rate(x, c, b, t, k_max, flags):
-    """(k, flags, alpha) at ``x``: alpha is the model leakage percentage at the target
-    response, ``100 a e^{bY} / k = 100 C / x``."""
-    k = x / (b * t)
+def _rate(x, c, bt, k_max, flags):
+    """(k, flags, alpha) at ``x`` (``bt = b t``): alpha is the model leakage percentage at
+    the target response, ``100 a e^{bY} / k = 100 C / x``."""
+    k = x / bt
     over = k > k_max
     return (k_max if over else k), flags | (_UNREACHABLE if over else 0), 100.0 * c / x
 
 
 @njit(**_INL)
-def _residual(x, beta, eb, c):
-    """H(x) alone, vector form (what :func:`_halley` computes first; the derivative terms
-    it does not use are compiled away)."""
-    ex, phi, _, _ = _phi_derivs(x, True)
-    return eb * ex + c * phi - 1.0
-
-
-@njit(**_INL)
 def invert_vector(y, t, a, b, d, full_scale, k_max, tol_dn):
-    """First round for one pixel, two branch-free Halley steps from the lower bound
-    (vectorisable): (k, flags, done, alpha, retry) and the values it carries on (``x``,
-    beta, e^beta, C, the tolerance, the flags of the setup).
+    """First round for one pixel, branch-free (vectorisable): (k, flags, done, alpha, retry)
+    and the values it carries on (``x``, beta, e^beta, C, the tolerance, b t, the flags of
+    the setup).
 
-    ``done`` where H at the result is within the tolerance. ``retry`` where the input is
-    solvable but the round did not get there: :func:`invert_again` continues from the
-    carried values (store them with :func:`keep`). Neither: solve again with
+    Two Halley steps from the lower bound, then H at the result: ``done`` where it is within
+    the tolerance. The evaluation that gives H also gives the next step: ``retry`` where the
+    input is solvable but the round did not get there, and :func:`invert_again` continues from
+    that step (store the carried values with :func:`keep`). Neither: solve again with
     :func:`invert_point`.
     """
     flags, ok, target, beta, lnc, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, True)
     tol = b * (tol_dn + 8.0 * _EPS * abs(target))
     x = _halley(x0, beta, eb, c, True)[1]
     x = _halley(x, beta, eb, c, True)[1]
-    near = abs(_residual(x, beta, eb, c)) <= tol
+    h, nxt = _halley(x, beta, eb, c, True)
+    near = abs(h) <= tol
     solvable = ok and lnc <= 700.0 and h0 > 0.0
-    k, fl, alpha = _rate(x, c, b, t, k_max, flags)
-    return k, fl, solvable and near, alpha, solvable and not near, x, beta, eb, c, tol, flags
+    bt = b * t
+    k, fl, alpha = _rate(x, c, bt, k_max, flags)
+    return (k, fl, solvable and near, alpha, solvable and not near, nxt, beta, eb, c, tol, bt,
+            flags)
 
 
 @njit(**_INL)
-def invert_again(x, beta, eb, c, tol, flags, b, t, k_max):
-    """One more Halley step for a pixel a round left with ``retry``, from the values it
-    carries (vectorisable): (k, flags, done, alpha, x); ``done`` where H at the new ``x``
-    is within the tolerance."""
-    x = _halley(x, beta, eb, c, True)[1]
-    k, fl, alpha = _rate(x, c, b, t, k_max, flags)
-    return k, fl, abs(_residual(x, beta, eb, c)) <= tol, alpha, x
+def invert_again(x, beta, eb, c, tol, bt, flags, k_max):
+    """The next round for a pixel a round left with ``retry``, from the values it carries
+    (vectorisable): (k, flags, done, alpha, x_next); ``done`` where H at the carried ``x``
+    is within the tolerance (the result is at ``x``), else carry on from ``x_next``."""
+    h, nxt = _halley(x, beta, eb, c, True)
+    k, fl, alpha = _rate(x, c, bt, k_max, flags)
+    return k, fl, abs(h) <= tol, alpha, nxt
 
 
-def keep(state, j, x, beta, eb, c, tol, flags):
+def keep(state, j, x, beta, eb, c, tol, bt, flags):
     """Store pixel ``j``'s carried values in ``state`` (flat, :data:`STATE_ROWS` per pixel,
-    interleaved); ``x`` -1 says there is nothing to continue. Compiled code inlines it at numba's
-    IR level (an overload, like ``at``): an array handed to an inlined *function* is
+    interleaved); ``x`` -1 says there is nothing to continue. Compiled code inlines it at
+    numba's IR level (an overload, like ``at``): an array handed to an inlined *function* is
     reference-counted in the loop, which stops LLVM from vectorising it."""
     s = STATE_ROWS * j
-    state[s:s + STATE_ROWS] = x, beta, eb, c, tol, flags
+    state[s:s + STATE_ROWS] = x, beta, eb, c, tol, bt, flags
 
 
 def carried(state, j):
     """Pixel ``j``'s carry as :func:`keep` stored it (``x`` -1: nothing to continue)."""
     s = STATE_ROWS * j
-    return (state[s], state[s + 1], state[s + 2], state[s + 3], state[s + 4],
-            np.int64(state[s + 5]))
+    return (state[s], state[s + 1], state[s + 2], state[s + 3], state[s + 4], state[s + 5],
+            np.int64(state[s + 6]))
 
 
 @overload(keep, inline="always")
-def _keep_overload(state, j, x, beta, eb, c, tol, flags):
-    def impl(state, j, x, beta, eb, c, tol, flags):
+def _keep_overload(state, j, x, beta, eb, c, tol, bt, flags):
+    def impl(state, j, x, beta, eb, c, tol, bt, flags):
         s = STATE_ROWS * j
         state[s] = x
         state[s + 1] = beta
         state[s + 2] = eb
         state[s + 3] = c
         state[s + 4] = tol
-        state[s + 5] = flags
+        state[s + 5] = bt
+        state[s + 6] = flags
     return impl
 
 
@@ -264,7 +262,11 @@ def invert_rounds(y, t, a, b, d, full_scale, k_max, tol_dn, rounds, k_out, flags
                   alpha_out):
     """The vectorised rounds (see the module) for one block, operands as
     :func:`~.operands.part` gives them: k, flags (:data:`PENDING` where left to
-    :func:`invert_point`) and model alpha per pixel. Returns the Halley steps taken."""
+    :func:`invert_point`) and model alpha per pixel. Returns the Halley steps taken.
+
+    The pixels the first round leaves are packed (their carried values side by side), so
+    that the later rounds compute only them, still vectorised, and their results are put
+    back at the end."""
     m = k_out.shape[0]
     if rounds <= 0:
         return 0
@@ -272,14 +274,28 @@ def invert_rounds(y, t, a, b, d, full_scale, k_max, tol_dn, rounds, k_out, flags
     again = 0
     go_on_ok = rounds > 1
     for j in range(m):
-        k, f, done, alpha, retry, x, beta, eb, c, tol, f0 = invert_vector(
+        k, f, done, alpha, retry, x, beta, eb, c, tol, bt, f0 = invert_vector(
             at(y, j), at(t, j), at(a, j), at(b, j), at(d, j), full_scale, k_max, tol_dn)
         go_on = retry and go_on_ok
-        keep(state, j, x if go_on else -1.0, beta, eb, c, tol, f0)
+        keep(state, j, x if go_on else -1.0, beta, eb, c, tol, bt, f0)
         k_out[j] = k
         alpha_out[j] = alpha
         flags_out[j] = f | (0 if done or go_on else PENDING)
         again += 1 if go_on else 0
+    if again == 0:
+        return VECTOR_STEPS
+    todo = np.empty(again, np.int64)  # pack the pixels left
+    packed = np.empty(STATE_ROWS * again)
+    n = 0
+    for j in range(m):
+        if state[STATE_ROWS * j] >= 0.0:
+            todo[n] = j
+            for r in range(STATE_ROWS):
+                packed[STATE_ROWS * n + r] = state[STATE_ROWS * j + r]
+            n += 1
+    k2 = np.empty(n)
+    alpha2 = np.empty(n)
+    f2 = np.empty(n, np.int64)
     steps = VECTOR_STEPS
     for r in range(1, rounds):
         if again == 0:
@@ -287,18 +303,21 @@ def invert_rounds(y, t, a, b, d, full_scale, k_max, tol_dn, rounds, k_out, flags
         steps += 1
         go_further = r + 1 < rounds
         again = 0
-        for j in range(m):  # every pixel computed, kept where it is continued
-            x, beta, eb, c, tol, f0 = carried(state, j)
+        for q in range(n):  # every packed pixel computed, kept where it is continued
+            x, beta, eb, c, tol, bt, f0 = carried(packed, q)
             redo = x >= 0.0
-            k, f, done, alpha, x = invert_again(x, beta, eb, c, tol, f0, at(b, j), at(t, j),
-                                                k_max)
+            k, f, done, alpha, x = invert_again(x, beta, eb, c, tol, bt, f0, k_max)
             go_on = redo and not done and go_further
-            keep(state, j, x if go_on else -1.0, beta, eb, c, tol, f0)
-            k_out[j] = k if redo else k_out[j]
-            alpha_out[j] = alpha if redo else alpha_out[j]
+            keep(packed, q, x if go_on else -1.0, beta, eb, c, tol, bt, f0)
+            k2[q] = k if redo else k2[q]
+            alpha2[q] = alpha if redo else alpha2[q]
             f_new = f | (0 if done or go_on else PENDING)
-            flags_out[j] = f_new if redo else flags_out[j]
+            f2[q] = f_new if redo else f2[q]
             again += 1 if go_on else 0
+    for q in range(n):
+        k_out[todo[q]] = k2[q]
+        alpha_out[todo[q]] = alpha2[q]
+        flags_out[todo[q]] = f2[q]
     return steps
 
 
