@@ -37,24 +37,18 @@ def _band_sums_loop(values, band_map, good, has_good, period, sums, counts):
         if period > 0:
             col_sum = np.zeros((period, W))
             col_count = np.zeros((period, W), np.int32)
+            everywhere = np.ones(W, np.uint8)
             for y in range(y0, y1):
                 phase = (y - y0) % period
                 acc = col_sum[phase]
                 cnt = col_count[phase]
                 row = values[y]
-                if has_good:  # integer tests, not ``and``: a short-circuit stops vectorisation
-                    use_row = good[y]
-                    for x in range(W):
-                        v = np.float64(row[x])
-                        use = np.int32(abs(v) < np.inf) & np.int32(use_row[x] != 0)
-                        acc[x] += v if use != 0 else 0.0
-                        cnt[x] += use
-                else:
-                    for x in range(W):
-                        v = np.float64(row[x])
-                        use = np.int32(abs(v) < np.inf)
-                        acc[x] += v if use != 0 else 0.0
-                        cnt[x] += use
+                use_row = good[y] if has_good else everywhere
+                for x in range(W):  # integer tests: a short-circuit ``and`` stops vectorising
+                    v = np.float64(row[x])
+                    use = np.int32(abs(v) < np.inf) & np.int32(use_row[x] != 0)
+                    acc[x] += v if use != 0 else 0.0
+                    cnt[x] += use
             for phase in range(min(period, y1 - y0)):
                 for x in range(W):
                     band = band_map[y0 + phase, x]

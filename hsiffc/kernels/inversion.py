@@ -228,7 +228,13 @@ def keep(state, j, x, beta, eb, c, tol, bt, flags):
     numba's IR level (an overload, like ``at``): an array handed to an inlined *function* is
     reference-counted in the loop, which stops LLVM from vectorising it."""
     s = STATE_ROWS * j
-    state[s:s + STATE_ROWS] = x, beta, eb, c, tol, bt, flags
+    state[s] = x
+    state[s + 1] = beta
+    state[s + 2] = eb
+    state[s + 3] = c
+    state[s + 4] = tol
+    state[s + 5] = bt
+    state[s + 6] = flags
 
 
 def carried(state, j):
@@ -240,16 +246,7 @@ def carried(state, j):
 
 @overload(keep, inline="always")
 def _keep_overload(state, j, x, beta, eb, c, tol, bt, flags):
-    def impl(state, j, x, beta, eb, c, tol, bt, flags):
-        s = STATE_ROWS * j
-        state[s] = x
-        state[s + 1] = beta
-        state[s + 2] = eb
-        state[s + 3] = c
-        state[s + 4] = tol
-        state[s + 5] = bt
-        state[s + 6] = flags
-    return impl
+    return keep
 
 
 @overload(carried, inline="always")
