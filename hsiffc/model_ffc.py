@@ -53,7 +53,7 @@ from .kernels.operands import flat_operands
 _TOL_DN = 1e-9
 
 __all__ = ["FlatStack", "ModelFlat", "relative_responsivity", "flat_responsivity",
-           "model_flat_fit", "model_ffc_apply", "correction_uncertainty"]
+           "model_flat_fit", "model_ffc_apply", "log_gain_ratio", "correction_uncertainty"]
 
 #: calibration flags that make a pixel's responsivity unusable (gain 1 and NO_FLAT)
 UNUSABLE = DQ.DO_NOT_USE | DQ.NOT_CONVERGED
@@ -269,11 +269,19 @@ def _summary(bm, n_bands, usable, sigma, s_sweep, s_sweep_eff, excess, flat_est)
             "flat_frames": [int(f.n_frames) for f, _, _ in flat_est]}
 
 
+def log_gain_ratio(gain, gain_sweep) -> np.ndarray:
+    """``ln(gain / gain_sweep)`` as :func:`model_ffc_apply` blends the two factors with it
+    (float32: the ratio is near 1, so its error, below 1e-8 of the factor, is under the
+    float32 output's resolution). A caller correcting many frames keeps it."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.log(np.asarray(gain, np.float64) / np.asarray(gain_sweep, np.float64)).astype(
+            np.float32)
+
+
 def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_sweep=None,
                     flat_alpha_percent: float = 5.0, dark_current=0.0, full_scale_dn=None,
-                    alpha_limit_percent: float = 50.0,
-                    below_dark_tolerance_dn: float = 1.0) -> tuple[np.ndarray, np.ndarray,
-                                                                     np.ndarray]:
+                    alpha_limit_percent: float = 50.0, below_dark_tolerance_dn: float = 1.0,
+                    log_ratio=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Correct one frame: ``k t * gain`` in DN above dark on the band-mean scale.
 
     Where the response is bent by leakage the correction rests on the fitted a and b, whose
@@ -311,6 +319,9 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     below_dark_tolerance_dn : float
         Responses further than this below the zero-light level are flagged BELOW_DARK; closer
         ones are read noise and keep their (negative) linear value.
+    log_ratio : (H, W) array_like, optional
+        :func:`log_gain_ratio` of ``gain`` and ``gain_sweep``, if the caller keeps it (saves a
+        logarithm per pixel and frame); computed here when not given.
 
     Returns
     -------
@@ -326,8 +337,11 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
         return (np.where(np.isfinite(out), out, 0.0).astype(np.float32), dq,
                 np.zeros(out.shape, np.float32))
     has_sweep = gain_sweep is not None
-    shape, ops = flat_operands(response, exposure_ms, a, b, dark, gain,
-                               gain if gain_sweep is None else gain_sweep, dark_current)
+    if has_sweep and log_ratio is None:
+        log_ratio = log_gain_ratio(gain, gain_sweep)
+    shape, ops = flat_operands(response, exposure_ms, a, b, dark,
+                               gain_sweep if has_sweep else gain,
+                               log_ratio if has_sweep else 0.0, dark_current)
     full_scale = np.inf if full_scale_dn is None else float(full_scale_dn)
     limits = (float(flat_alpha_percent), float(alpha_limit_percent),
               float(below_dark_tolerance_dn))

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from hsiffc import model
 from hsiffc.dq import DQ, DQ_DTYPE
-from hsiffc.model_ffc import model_ffc_apply
+from hsiffc.model_ffc import log_gain_ratio, model_ffc_apply
 
 
 def _reference(y, t, a, b, d, gain, gain_sweep, flat_alpha, full_scale, alpha_limit=50.0,
@@ -75,6 +75,22 @@ def test_without_a_sweep_factor_the_gain_is_used_at_every_level():
     assert np.array_equal(dq, ref_dq)
     np.testing.assert_allclose(out, ref_out, rtol=2e-7, atol=1e-6)
 
+
+
+def test_a_kept_log_ratio_gives_the_same_frame():
+    """A caller that keeps ln(gain / gain_sweep) (the model_ffc stage does, per fit) gets the
+    very frame the function computes without it; the blend reads it per pixel."""
+    y, t, a, b, d, gain, sweep = _case(3000, 11)
+    plain = model_ffc_apply(y, t, a, b, d, gain, gain_sweep=sweep, full_scale_dn=1023)
+    ratio = log_gain_ratio(gain, sweep)
+    assert ratio.dtype == np.float32
+    kept = model_ffc_apply(y, t, a, b, d, gain, gain_sweep=sweep, full_scale_dn=1023,
+                           log_ratio=ratio)
+    for p, k in zip(plain, kept):
+        assert np.array_equal(p, k)
+    flat_only = model_ffc_apply(y, t, a, b, d, gain, gain_sweep=sweep, full_scale_dn=1023,
+                                log_ratio=np.zeros_like(ratio))  # zeros: the sweep factor alone
+    assert not np.array_equal(flat_only[0], plain[0])
 
 @settings(max_examples=60, deadline=None)
 @given(k=st.floats(0.0, 200.0), a=st.floats(1e-6, 1.0), b=st.floats(1e-3, 0.05),

@@ -9,10 +9,9 @@ correction makes it cubic.
 
 The kernels work per block of :data:`~hsiffc.kernels.leakage.BLOCK` pixels. A branch-free
 round of two Halley steps and a check of H at the result (vectorised by LLVM) settles most
-pixels: in the linear regime the start is within a step of the root. The evaluation that
-checks also gives the next step, so where a block has pixels left, up to two more rounds of
-one evaluation each continue them, packed together with the values they carry (no second
-setup), still vectorised. Pixels still
+pixels: in the linear regime the start is within a step of the root. Where a block has
+pixels left, up to two more rounds of one step and a check continue them, packed together
+with the values they carry (no second setup), still vectorised. Pixels still
 unsettled, and those the vector form cannot take (non-finite input, zero light, extreme
 parameters), get the bracketed scalar iteration :func:`invert_point`. Everything in float64;
 the result converges to ``tol_dn + 8 eps |y|`` in DN (tests: against bisection and the
@@ -188,38 +187,43 @@ def _rate(x, c, bt, k_max, flags):
 
 
 @njit(**_INL)
+def _residual(x, beta, eb, c):
+    """H(x) alone, vector form: what :func:`_halley` computes first (the derivative terms it
+    does not use are compiled away)."""
+    ex, phi, _, _ = _phi_derivs(x, True)
+    return eb * ex + c * phi - 1.0
+
+
+@njit(**_INL)
 def invert_vector(y, t, a, b, d, full_scale, k_max, tol_dn):
     """First round for one pixel, branch-free (vectorisable): (k, flags, done, alpha, retry)
     and the values it carries on (``x``, beta, e^beta, C, the tolerance, b t, the flags of
     the setup).
 
     Two Halley steps from the lower bound, then H at the result: ``done`` where it is within
-    the tolerance. The evaluation that gives H also gives the next step: ``retry`` where the
-    input is solvable but the round did not get there, and :func:`invert_again` continues from
-    that step (store the carried values with :func:`keep`). Neither: solve again with
-    :func:`invert_point`.
+    the tolerance. ``retry`` where the input is solvable but the round did not get there:
+    :func:`invert_again` continues from the carried values (store them with :func:`keep`).
+    Neither: solve again with :func:`invert_point`.
     """
     flags, ok, target, beta, lnc, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, True)
     tol = b * (tol_dn + 8.0 * _EPS * abs(target))
     x = _halley(x0, beta, eb, c, True)[1]
     x = _halley(x, beta, eb, c, True)[1]
-    h, nxt = _halley(x, beta, eb, c, True)
-    near = abs(h) <= tol
+    near = abs(_residual(x, beta, eb, c)) <= tol
     solvable = ok and lnc <= 700.0 and h0 > 0.0
     bt = b * t
     k, fl, alpha = _rate(x, c, bt, k_max, flags)
-    return (k, fl, solvable and near, alpha, solvable and not near, nxt, beta, eb, c, tol, bt,
+    return (k, fl, solvable and near, alpha, solvable and not near, x, beta, eb, c, tol, bt,
             flags)
 
 
 @njit(**_INL)
 def invert_again(x, beta, eb, c, tol, bt, flags, k_max):
     """The next round for a pixel a round left with ``retry``, from the values it carries
-    (vectorisable): (k, flags, done, alpha, x_next); ``done`` where H at the carried ``x``
-    is within the tolerance (the result is at ``x``), else carry on from ``x_next``."""
-    h, nxt = _halley(x, beta, eb, c, True)
+    (vectorisable): one Halley step and H at its result: (k, flags, done, alpha, x)."""
+    x = _halley(x, beta, eb, c, True)[1]
     k, fl, alpha = _rate(x, c, bt, k_max, flags)
-    return k, fl, abs(h) <= tol, alpha, nxt
+    return k, fl, abs(_residual(x, beta, eb, c)) <= tol, alpha, x
 
 
 def keep(state, j, x, beta, eb, c, tol, bt, flags):

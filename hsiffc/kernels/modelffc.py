@@ -21,7 +21,7 @@ from .launch import JIT_OPTIONS, Kernel
 from .inversion import PENDING, ROUNDS, invert_rounds
 from .leakage import BLOCK, alpha_model_point
 from .operands import at, part
-from .vmath import exp, log
+from .vmath import exp
 
 __all__ = ["correct_point", "model_ffc_finish", "model_ffc_kernel"]
 
@@ -33,23 +33,24 @@ _BAD = int(DQ.NONFINITE | DQ.DO_NOT_USE)
 
 
 @njit(**_INL)
-def correct_point(k, flags, alpha, y, t, d, g_flat, g_sweep, has_sweep, dc, flat_alpha,
+def correct_point(k, flags, alpha, y, t, d, base, log_ratio, has_sweep, dc, flat_alpha,
                   alpha_limit, below_tol):
     """(corrected DN, DQ bits, alpha percent) of one pixel from its inverted rate ``k``, the
     inversion's DQ ``flags`` and its model alpha (percent, ``100 a e^{bY} / k``).
 
     The signal is ``(k - dc) t`` (``dc`` the dark current; ``y - d`` at and below the
-    zero-light level, read noise kept linear); the factor moves from ``g_flat`` to ``g_sweep``
-    as the model alpha grows, ``ln f = ln g_sweep + w (ln g_flat - ln g_sweep)``,
-    ``w = max(0, 1 - alpha / flat_alpha)``.
+    zero-light level, read noise kept linear); the factor moves from the flat's ``g_flat`` to
+    the sweep's ``g_sweep`` as the model alpha grows, ``ln f = ln g_sweep + w (ln g_flat -
+    ln g_sweep)``, ``w = max(0, 1 - alpha / flat_alpha)``: ``base`` is ``g_sweep`` and
+    ``log_ratio`` ``ln(g_flat / g_sweep)`` (with ``has_sweep`` False, ``base`` is the factor).
     """
     below = (flags & _BELOW_DARK) != 0
     signal = (y - d) if (below or not k > 0.0) else (k - dc) * t
     alpha = np.inf if alpha != alpha else alpha
-    factor = g_flat
+    factor = base
     if has_sweep:
         w = min(max(1.0 - alpha / flat_alpha, 0.0), 1.0)
-        factor = g_sweep * exp(w * log(g_flat / g_sweep))
+        factor = base * exp(w * log_ratio)
     out = signal * factor
     dq = flags & ~_BELOW_DARK
     dq |= _BELOW_DARK if (below and y < d - below_tol) else 0
@@ -60,7 +61,7 @@ def correct_point(k, flags, alpha, y, t, d, g_flat, g_sweep, has_sweep, dc, flat
 
 
 @njit(**{**JIT_OPTIONS, "cache": False})
-def _model_ffc_block(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_scale,
+def _model_ffc_block(y, t, a, b, d, base, log_ratio, dark_current, has_sweep, full_scale,
                      flat_alpha, alpha_limit, below_tol, tol_dn, out, dq_out, alpha_out):
     """:func:`correct_point` for one block (operands as :func:`~.operands.part` gives them)
     from the vectorised rounds of the inversion (:func:`~.inversion.invert_rounds`); pixels
@@ -74,7 +75,7 @@ def _model_ffc_block(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_s
         yi = at(y, j)
         flags = dq_out[j]
         o, q, al = correct_point(k[j], flags & ~PENDING, alpha[j], yi, at(t, j), at(d, j),
-                                 at(gain, j), at(sweep, j), has_sweep, at(dark_current, j),
+                                 at(base, j), at(log_ratio, j), has_sweep, at(dark_current, j),
                                  flat_alpha, alpha_limit, below_tol)
         # above full scale the inversion's alpha is at full scale, not at the response
         unsettled = (flags & PENDING) != 0 or yi > full_scale
@@ -85,7 +86,7 @@ def _model_ffc_block(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_s
     return left
 
 
-def _model_ffc_loop(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_scale,
+def _model_ffc_loop(y, t, a, b, d, base, log_ratio, dark_current, has_sweep, full_scale,
                     flat_alpha, alpha_limit, below_tol, tol_dn, out, dq_out, alpha_out,
                     block_left):
     """:func:`correct_point` of every pixel into ``out`` (float32 DN), ``dq_out`` (uint32) and
@@ -100,9 +101,9 @@ def _model_ffc_loop(y, t, a, b, d, gain, sweep, dark_current, has_sweep, full_sc
         i1 = min(n, i0 + BLOCK)
         left = _model_ffc_block(
             part(y, i0, i1), part(t, i0, i1), part(a, i0, i1), part(b, i0, i1),
-            part(d, i0, i1), part(gain, i0, i1), part(sweep, i0, i1), part(dark_current, i0, i1),
-            has_sweep, full_scale, flat_alpha, alpha_limit, below_tol, tol_dn, out[i0:i1],
-            dq_out[i0:i1], alpha_out[i0:i1])
+            part(d, i0, i1), part(base, i0, i1), part(log_ratio, i0, i1),
+            part(dark_current, i0, i1), has_sweep, full_scale, flat_alpha, alpha_limit,
+            below_tol, tol_dn, out[i0:i1], dq_out[i0:i1], alpha_out[i0:i1])
         block_left[blk] = left
         pending += left
     return pending
@@ -112,7 +113,7 @@ model_ffc_kernel = Kernel(_model_ffc_loop, 14)
 
 
 @njit(**{**JIT_OPTIONS, "cache": True})
-def model_ffc_finish(idx, k, flags, y, t, a, b, d, gain, sweep, dark_current, has_sweep,
+def model_ffc_finish(idx, k, flags, y, t, a, b, d, base, log_ratio, dark_current, has_sweep,
                      flat_alpha, alpha_limit, below_tol, out, dq_out, alpha_out):
     """Correct the pixels ``idx`` (those :data:`PENDING` after :data:`model_ffc_kernel`)
     from their rates ``k`` and flags found by the bracketed scalar inversion
@@ -124,8 +125,8 @@ def model_ffc_finish(idx, k, flags, y, t, a, b, d, gain, sweep, dark_current, ha
         aj = at(a, j)
         bj = at(b, j)
         alpha = alpha_model_point(yj, max(k[m], 1e-300), aj, bj)
-        o, q, al = correct_point(k[m], flags[m], alpha, yj, at(t, j), at(d, j), at(gain, j),
-                                 at(sweep, j), has_sweep, at(dark_current, j), flat_alpha,
+        o, q, al = correct_point(k[m], flags[m], alpha, yj, at(t, j), at(d, j), at(base, j),
+                                 at(log_ratio, j), has_sweep, at(dark_current, j), flat_alpha,
                                  alpha_limit, below_tol)
         out[j] = o
         alpha_out[j] = al

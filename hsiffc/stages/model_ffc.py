@@ -6,7 +6,7 @@ import numpy as np
 
 from ..dq import DQ_DTYPE
 from ..errors import ParameterError
-from ..model_ffc import FlatStack, model_ffc_apply, model_flat_fit
+from ..model_ffc import FlatStack, log_gain_ratio, model_ffc_apply, model_flat_fit
 from ..params import Param
 from .common import CALIBRATION, THRESHOLD
 from .base import Stage
@@ -101,6 +101,17 @@ class ModelFFC(Stage):
         self.fitted_ = True
         return self
 
+    def _log_ratio(self):
+        """:func:`~hsiffc.model_ffc.log_gain_ratio` of the fitted factors, computed once (kept
+        while they are the same arrays)."""
+        if self.gain_sweep_ is None:
+            return None
+        kept = self.__dict__.get("_log_ratio_of")
+        if kept is None or kept[0] is not self.gain_ or kept[1] is not self.gain_sweep_:
+            kept = (self.gain_, self.gain_sweep_, log_gain_ratio(self.gain_, self.gain_sweep_))
+            self.__dict__["_log_ratio_of"] = kept
+        return kept[2]
+
     def transform(self, frame):
         self.check_is_fitted()
         cal = self._cal_for(frame)
@@ -109,7 +120,7 @@ class ModelFFC(Stage):
             frame.raw, frame.exposure_ms, cal.a, cal.b, dark, self.gain_,
             gain_sweep=self.gain_sweep_, flat_alpha_percent=float(self.flat_alpha_percent),
             full_scale_dn=2 ** frame.bit_depth - 1,
-            alpha_limit_percent=float(self.alpha_limit_percent))
+            alpha_limit_percent=float(self.alpha_limit_percent), log_ratio=self._log_ratio())
         dq |= frame.dq  # dq is this call's own array: merged in place, no temporaries
         dq |= self.dq_.astype(DQ_DTYPE, copy=False)
         return frame.replace(data=out, dq=dq,
