@@ -40,6 +40,7 @@ _JIT = {**JIT_OPTIONS, "cache": False}
 _INL = {**_JIT, "inline": "always"}
 _EPS = 2.220446049250313e-16
 _BIG = 1.7976931348623157e308
+_E700 = math.exp(700.0)
 _NONFINITE = int(DQ.NONFINITE)
 _SATURATED = int(DQ.SATURATED)
 _BELOW_DARK = int(DQ.BELOW_DARK)
@@ -103,11 +104,12 @@ def _halley(x, beta, eb, c, vec):
 
 @njit(**_INL)
 def _setup(y, t, a, b, d, full_scale, vec):
-    """Flags known before iterating, target Y, beta, ln C, C, e^beta, H(0) and the start x.
+    """Flags known before iterating, target Y, beta, whether ``ln C <= 700``, C, e^beta, H(0)
+    and the start x.
 
-    ``ln C = ln(a b t) + b Y``; where ``a b t`` is not a normal number the vectorised pass
-    leaves the pixel to the scalar one (``ok`` False), which takes the logs one by one; so
-    it does where beta > 700 (e^beta would overflow).
+    ``C = a b t e^{bY}``: the vector form multiplies (one exponential); where ``a b t`` is
+    not a normal number, or beta or bY exceeds 700 (an exponential would overflow), it
+    leaves the pixel to the scalar form (``ok`` False), which sums the logs one by one.
     """
     flags = 0
     finite = (abs(y) < np.inf) and (abs(a) < np.inf) and (abs(b) < np.inf) and (abs(d) < np.inf)
@@ -117,12 +119,18 @@ def _setup(y, t, a, b, d, full_scale, vec):
     beta = b * (target - d)
     abt = a * b * t
     ok = finite and abt >= 1e-300 and abt < 1e300
-    lnc = (_log(abt, vec) if vec else _log(a, vec) + _log(b, vec) + _log(t, vec)) + b * target
-    c = _exp(min(lnc, 700.0), vec)
+    if vec:
+        by = b * target
+        c = abt * exp(min(by, 700.0))
+        c_ok = by <= 700.0 and c <= _E700
+    else:
+        lnc = _log(a, vec) + _log(b, vec) + _log(t, vec) + b * target
+        c = _exp(min(lnc, 700.0), vec)
+        c_ok = lnc <= 700.0
     eb = _exp(min(beta, 700.0), vec)
     h0 = eb + c - 1.0  # H at zero light
     x0 = max(beta, c) if target > d else 0.0
-    return flags, ok and beta <= 700.0, target, beta, lnc, c, eb, h0, x0
+    return flags, ok and beta <= 700.0, target, beta, c_ok, c, eb, h0, x0
 
 
 @njit(**_JIT)
@@ -131,14 +139,14 @@ def invert_point(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter):
 
     Semantics as :func:`hsiffc.model.invert_response`; a bracketed Halley iteration.
     """
-    flags, _, target, beta, lnc, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, False)
+    flags, _, target, beta, c_ok, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, False)
     if flags & _NONFINITE:
         return 0.0, flags, 0
     if h0 <= 0.0:  # at or below what zero light gives
         if h0 < 0.0:
             flags |= _BELOW_DARK
         return 0.0, flags | (_UNREACHABLE if k_max < 0.0 else 0), 0
-    if lnc > 700.0:  # needs more light than a double can hold
+    if not c_ok:  # needs more light than a double can hold
         return min(k_max, _BIG), flags | _NOT_CONVERGED | (_UNREACHABLE if k_max < _BIG else 0), 0
     tol = b * (tol_dn + 8.0 * _EPS * abs(target))
     lo, hi = x0, np.inf  # H(lo) >= 0 >= H(hi)
@@ -205,12 +213,12 @@ def invert_vector(y, t, a, b, d, full_scale, k_max, tol_dn):
     :func:`invert_again` continues from the carried values (store them with :func:`keep`).
     Neither: solve again with :func:`invert_point`.
     """
-    flags, ok, target, beta, lnc, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, True)
+    flags, ok, target, beta, c_ok, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, True)
     tol = b * (tol_dn + 8.0 * _EPS * abs(target))
     x = _halley(x0, beta, eb, c, True)[1]
     x = _halley(x, beta, eb, c, True)[1]
     near = abs(_residual(x, beta, eb, c)) <= tol
-    solvable = ok and lnc <= 700.0 and h0 > 0.0
+    solvable = ok and c_ok and h0 > 0.0
     bt = b * t
     k, fl, alpha = _rate(x, c, bt, k_max, flags)
     return (k, fl, solvable and near, alpha, solvable and not near, x, beta, eb, c, tol, bt,
