@@ -80,7 +80,7 @@ def main(quick: bool = False) -> dict:
                           met=results["closed_form_mpx_s"] >= 200,
                           note=f"max difference to the numpy form {dy:.1e} DN; where the "
                                f"time goes: {_ns_per_px_core(t_closed):.1f} ns per pixel per "
-                               f"core (float64: expm1, exp x 2, log1p, 2 divisions), of which "
+                               f"core (float64: expm1, exp, log1p, 3 divisions), of which "
                                f"memory {_ns_per_px_core(t_floor):.1f} ns (floor "
                                f"{results['memory_floor_mpx_s']:.0f} Mpx/s)"))
 
