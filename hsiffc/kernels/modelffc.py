@@ -1,14 +1,15 @@
 """Compiled kernel of the model-based flat-field correction
 (:func:`hsiffc.model_ffc.model_ffc_apply`).
 
-One pass per pixel: invert the leakage model (:func:`~hsiffc.kernels.inversion.invert_vector`,
-vectorised rounds of Halley steps), the model alpha, the blend of the two responsivity factors
-by alpha, the corrected value and its DQ bits. The pixels the vector steps leave (non-finite
-input, zero light, extreme parameters) are inverted again by the compiled inversion
-(:func:`hsiffc.model.invert_response`, bracketed scalar iteration) and corrected by
-:func:`model_ffc_finish` with the same :func:`correct_point`: the scalar iteration is not
-compiled a second time into this kernel (it would double its compile time). Everything in
-float64; outputs stored as float32 (DN, percent).
+Per block of pixels: the vectorised rounds of the inversion
+(:func:`~hsiffc.kernels.inversion.invert_rounds`, which give k and the model alpha), then one
+pass for the blend of the two responsivity factors by alpha, the corrected value and its DQ
+bits. The pixels the rounds leave (non-finite input, zero light, extreme parameters) are
+inverted again by the compiled inversion (:func:`hsiffc.model.invert_response`, bracketed
+scalar iteration) and corrected by :func:`model_ffc_finish` with the same
+:func:`correct_point`: the scalar iteration is not compiled a second time into this kernel (it
+would double its compile time). Everything in float64; outputs stored as float32 (DN,
+percent).
 """
 
 from __future__ import annotations
