@@ -16,8 +16,10 @@ import numpy as np
 from .bandstats import band_reduce
 from .dark import subtract_dark
 from .dq import DQ, DQ_DTYPE
-from .kernels.bands import band_scale_kernel, scale_kernel
+from .kernels.bands import band_scale_kernel, phase_scale_kernel, scale_kernel
+from .kernels.launch import PARALLEL_MIN
 from .kernels.operands import flat_operands
+from .mosaic import row_period
 from .params import validate_method
 from .uniformity import (FixedPattern, fixed_pattern_nonuniformity,  # noqa: F401 (re-export)
                          fixed_pattern_variance, uniformity_before_after)
@@ -135,6 +137,15 @@ def two_point_apply(signal, gain, scale=1.0, *, band_map=None) -> np.ndarray:
             raise ValueError(f"signal {sig.shape}, gain {np.shape(gain)} and band_map "
                              f"{bm.shape} must have the same shape")
         out = np.empty(sig.shape, np.float32)
+        period = row_period(bm) if sig.ndim == 2 and sig.size >= PARALLEL_MIN else 0
+        if period:  # a mosaic's map: each column's factor per row phase, no per-pixel lookup
+            phase_bands = bm[:period]
+            if phase_bands.min() < 0 or phase_bands.max() >= ratio.size:
+                raise ValueError(f"band_map has bands outside the {ratio.size} of scale; give "
+                                 "the per-band factors of every band of the map")
+            phase_scale_kernel(np.ascontiguousarray(sig), np.ascontiguousarray(gain),
+                               ratio[phase_bands], out)
+            return out
         flat = (lambda a, dt=None: np.ascontiguousarray(a, dt).reshape(-1))
         if band_scale_kernel(flat(sig), flat(gain), ratio, flat(bm, np.int64), out.reshape(-1)):
             raise ValueError(f"band_map has bands outside the {ratio.size} of scale; give "

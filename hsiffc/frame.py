@@ -7,6 +7,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from .dark import subtract_dark
 from .dq import DQ, DQ_DTYPE
 from .mosaic import Mosaic
 from .sweep import Sweep
@@ -153,6 +154,21 @@ class Frame:
         out = replace(self, **changes)
         if "_raw" in self.__dict__ and not {"data", "dark_removed"} & changes.keys():
             object.__setattr__(out, "_raw", self.__dict__["_raw"])  # same data, same dark
+        return out
+
+    def dark_subtracted(self, dark, **meta) -> "Frame":
+        """This frame less ``dark`` (DN, :func:`hsiffc.dark.subtract_dark`: float32, nothing
+        clipped), with ``dark_removed`` set and ``meta`` merged. Its :attr:`raw` is this
+        frame's data itself: exact (no ``(raw - dark) + dark`` rounding) and not recomputed.
+        Raises ValueError when a dark was removed already."""
+        if self.dark_removed is not None:
+            raise ValueError("this frame is already dark-subtracted; a pipeline should have one "
+                             "dark stage")
+        out = self.replace(data=subtract_dark(self.data, dark), dark_removed=dark, meta=meta)
+        if not out.is_cube and self.corrected_by is None:
+            raw = self.data.view()
+            raw.flags.writeable = False
+            object.__setattr__(out, "_raw", raw)
         return out
 
     @property

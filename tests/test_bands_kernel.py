@@ -69,7 +69,8 @@ def test_two_point_apply_equals_the_numpy_product(n):
 
 @pytest.mark.parametrize("shape", [(30, 40), (272, 256)])
 def test_per_band_scale_equals_the_per_pixel_map(shape):
-    """The stage's path (a factor per band, looked up in the kernel) gives the same array as
+    """The stage's path (a factor per band, looked up in the kernel; on the larger frame, a
+    mosaic map, by row phase: each column's factor per phase row) gives the same array as
     the per-pixel map of paper_scale, bit for bit; bad band maps are refused."""
     from hsiffc.ffc import paper_ratio, paper_scale, two_point_apply
     from hsiffc.mosaic import Mosaic

@@ -238,3 +238,13 @@ def test_raw_is_computed_once_and_follows_data_and_dark():
     assert other.raw is not r and np.array_equal(other.raw, f.data * 2 + dark)
     moved = f.replace(dark_removed=dark + 1)
     assert np.array_equal(moved.raw, f.data + dark + 1)
+    # dark_subtracted (what the dark stage runs) keeps the input itself as the raw response:
+    # exact, where data + dark can be an ulp off the input
+    g = Frame.from_raw(raw + np.float32(0.3), exposure_ms=10.0, bit_depth=10)
+    sub = g.dark_subtracted(dark, dark_source="test")
+    assert sub.raw is not g.data and np.array_equal(sub.raw, g.data)
+    assert not sub.raw.flags.writeable and g.data.flags.writeable
+    assert np.array_equal(sub.data, np.subtract(g.data, dark, dtype=np.float32))
+    assert sub.dark_removed is dark and sub.meta["dark_source"] == "test"
+    with pytest.raises(ValueError, match="already dark-subtracted"):
+        sub.dark_subtracted(dark)

@@ -10,12 +10,12 @@ depend on the thread count).
 from __future__ import annotations
 
 import numpy as np
-from numba import prange
+from numba import njit, prange
 
-from .launch import Kernel
+from .launch import JIT_OPTIONS, Kernel
 from .operands import at
 
-__all__ = ["band_scale_kernel", "band_sums", "scale_kernel"]
+__all__ = ["band_scale_kernel", "band_sums", "phase_scale_kernel", "scale_kernel"]
 
 _ROWS = 64  # rows per partial sum
 
@@ -127,3 +127,31 @@ def _band_scale_loop(signal, gain, ratio, band_map, out):
 
 
 band_scale_kernel = Kernel(_band_scale_loop, 4)
+
+
+@njit(**{**JIT_OPTIONS, "cache": False})
+def _phase_scale_rows(signal, gain, table, phase0, out):
+    """Rows of :func:`_phase_scale_loop`; row ``y`` takes factor row ``(phase0 + y) % P``."""
+    period = table.shape[0]
+    for y in range(out.shape[0]):
+        factor = table[(phase0 + y) % period]
+        sig = signal[y]
+        g = gain[y]
+        row = out[y]
+        for x in range(row.shape[0]):
+            row[x] = np.float64(sig[x]) * np.float64(g[x]) * np.float64(factor[x])
+
+
+def _phase_scale_loop(signal, gain, table, out):
+    """``out = signal * gain * table[y % P]`` for 2-D frames whose per-band factor repeats
+    every ``P`` rows (a mosaic's): ``table`` holds each column's factor for the ``P`` row
+    phases, so a pixel reads two values and writes one (no band map, no gather). Blocks of
+    ``_ROWS`` rows run in parallel, each a compiled row loop (vectorised)."""
+    H = out.shape[0]
+    for blk in prange((H + _ROWS - 1) // _ROWS):
+        y0 = blk * _ROWS
+        y1 = min(H, y0 + _ROWS)
+        _phase_scale_rows(signal[y0:y1], gain[y0:y1], table, y0, out[y0:y1])
+
+
+phase_scale_kernel = Kernel(_phase_scale_loop, 3)

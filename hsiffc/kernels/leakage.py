@@ -11,9 +11,12 @@ response keeps ~1e-13 DN (tests: against ``solve_ivp`` and against the previous 
 alpha is computed in float64 and may be stored as float32 (1e-7 relative, far below any
 threshold's meaning).
 
-Kernels run a branch-free ``prange`` loop over the pixels (vectorised by LLVM, 8 doubles per
-instruction on AVX-512) for the common case and a second pass repairs the rare pixels it
-cannot (over/underflow: the log-domain form).
+Kernels run a ``prange`` loop over blocks of :data:`BLOCK` pixels, each a compiled block
+function: a branch-free loop (vectorised by LLVM, 4 doubles per instruction on AVX2) for the
+common case, then a second loop repairs the rare pixels it cannot (over/underflow: the
+log-domain form) while the block is in cache. (LLVM does not vectorise the same loop written
+directly in the ``prange`` body: the alpha and DQ kernel ran 5.5 ms there against 3.6 ms
+blocked on a 2048 x 1088 frame, 2 threads.)
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from numba import njit, prange
 
 from ..dq import DQ
 from .launch import JIT_OPTIONS, Kernel
-from .operands import at
+from .operands import at, part
 from .vmath import exp, expm1, log, log_corrected, logaddexp
 
 __all__ = ["BLOCK", "alpha_flags_kernel", "alpha_model_kernel", "alpha_model_point",
@@ -92,15 +95,26 @@ def response_point(t, k, a, b, d):
     return y if ok else response_robust(t, k, a, b, d)
 
 
+@njit(**_JIT)
+def _response_block(t, k, a, b, d, out):
+    """:func:`response_point` over one block: the vectorised fast form, then the log-domain
+    form where it failed (NaN marks those), while the block is still in cache."""
+    for i in range(out.shape[0]):
+        y, ok = response_fast(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
+        out[i] = y if ok else np.nan
+    for i in range(out.shape[0]):
+        if out[i] != out[i]:
+            out[i] = response_robust(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
+
+
 def _response_loop(t, k, a, b, d, out):
     """``out[i] = Y(t, k, a, b, d)[i]``; each input a scalar or a flat array like ``out``."""
     n = out.shape[0]
-    for i in prange(n):  # vectorised; NaN marks what the fast form cannot do
-        y, ok = response_fast(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
-        out[i] = y if ok else np.nan
-    for i in prange(n):
-        if out[i] != out[i]:
-            out[i] = response_robust(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
+    for blk in prange((n + BLOCK - 1) // BLOCK):
+        i0 = blk * BLOCK
+        i1 = min(n, i0 + BLOCK)
+        _response_block(part(t, i0, i1), part(k, i0, i1), part(a, i0, i1), part(b, i0, i1),
+                        part(d, i0, i1), out[i0:i1])
 
 
 response_kernel = Kernel(_response_loop, 5)
@@ -130,19 +144,42 @@ def alpha_paper_point(y, t, a, b, d):
     return alpha if (s > 0.0 and t > 0.0) else np.inf
 
 
-def _alpha_model_loop(y, k, a, b, out):
-    """:func:`alpha_model_point` over flat operands into ``out``."""
-    for i in prange(out.shape[0]):
+@njit(**_JIT)
+def _alpha_model_block(y, k, a, b, out):
+    for i in range(out.shape[0]):
         out[i] = alpha_model_point(at(y, i), at(k, i), at(a, i), at(b, i))
+
+
+def _alpha_model_loop(y, k, a, b, out):
+    """:func:`alpha_model_point` over flat operands into ``out``, per block of
+    :data:`BLOCK` (the loop of a block vectorises; the same loop in a ``prange`` body does
+    not)."""
+    n = out.shape[0]
+    for blk in prange((n + BLOCK - 1) // BLOCK):
+        i0 = blk * BLOCK
+        i1 = min(n, i0 + BLOCK)
+        _alpha_model_block(part(y, i0, i1), part(k, i0, i1), part(a, i0, i1), part(b, i0, i1),
+                           out[i0:i1])
 
 
 alpha_model_kernel = Kernel(_alpha_model_loop, 4)
 
 
-def _alpha_paper_loop(y, t, a, b, d, out):
-    """:func:`alpha_paper_point` over flat operands into ``out`` (float32 or float64)."""
-    for i in prange(out.shape[0]):
+@njit(**_JIT)
+def _alpha_paper_block(y, t, a, b, d, out):
+    for i in range(out.shape[0]):
         out[i] = alpha_paper_point(at(y, i), at(t, i), at(a, i), at(b, i), at(d, i))
+
+
+def _alpha_paper_loop(y, t, a, b, d, out):
+    """:func:`alpha_paper_point` over flat operands into ``out`` (float32 or float64), per
+    block of :data:`BLOCK`."""
+    n = out.shape[0]
+    for blk in prange((n + BLOCK - 1) // BLOCK):
+        i0 = blk * BLOCK
+        i1 = min(n, i0 + BLOCK)
+        _alpha_paper_block(part(y, i0, i1), part(t, i0, i1), part(a, i0, i1), part(b, i0, i1),
+                           part(d, i0, i1), out[i0:i1])
 
 
 alpha_paper_kernel = Kernel(_alpha_paper_loop, 5)
@@ -158,15 +195,13 @@ def leakage_bits(alpha, y, threshold, full_scale):
     return bits | (_SATURATED if y >= full_scale else 0)
 
 
-def _alpha_flags_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, has_pix, dq_in,
-                      has_dq_in, with_alpha, alpha_in, alpha_out, dq_out):
-    """Paper alpha into ``alpha_out`` (if ``with_alpha``; else alpha is read from
-    ``alpha_in``) and the DQ of every pixel: :func:`leakage_bits` | ``const_bits`` | ``pix``
-    | ``dq_in``."""
-    for i in prange(dq_out.shape[0]):
+@njit(**_JIT)
+def _alpha_flags_block(y, t, a, b, d, threshold, full_scale, const_bits, pix, has_pix, dq_in,
+                       has_dq_in, with_alpha, alpha_in, alpha_out, dq_out):
+    for i in range(dq_out.shape[0]):
         yi = at(y, i)
-        alpha = alpha_paper_point(yi, at(t, i), at(a, i), at(b, i), at(d, i))
         if with_alpha:
+            alpha = alpha_paper_point(yi, at(t, i), at(a, i), at(b, i), at(d, i))
             alpha_out[i] = alpha
         else:
             alpha = np.float64(alpha_in[i])
@@ -174,6 +209,22 @@ def _alpha_flags_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, has
         bits |= pix[i] if has_pix else 0
         bits |= dq_in[i] if has_dq_in else 0
         dq_out[i] = bits
+
+
+def _alpha_flags_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, has_pix, dq_in,
+                      has_dq_in, with_alpha, alpha_in, alpha_out, dq_out):
+    """Paper alpha into ``alpha_out`` (if ``with_alpha``; else alpha is read from
+    ``alpha_in``) and the DQ of every pixel: :func:`leakage_bits` | ``const_bits`` | ``pix``
+    | ``dq_in``; per block of :data:`BLOCK` (size-1 placeholders of the unused planes are
+    sliced to at most one element and never read)."""
+    n = dq_out.shape[0]
+    for blk in prange((n + BLOCK - 1) // BLOCK):
+        i0 = blk * BLOCK
+        i1 = min(n, i0 + BLOCK)
+        _alpha_flags_block(part(y, i0, i1), part(t, i0, i1), part(a, i0, i1), part(b, i0, i1),
+                           part(d, i0, i1), threshold, full_scale, const_bits, pix[i0:i1],
+                           has_pix, dq_in[i0:i1], has_dq_in, with_alpha, alpha_in[i0:i1],
+                           alpha_out[i0:i1], dq_out[i0:i1])
 
 
 alpha_flags_kernel = Kernel(_alpha_flags_loop, 15)

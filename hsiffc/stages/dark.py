@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..dark import dark_at_cached, fit_dark_line, subtract_dark
+from ..dark import dark_at_cached, fit_dark_line
 from ..errors import ParameterError
 from ..frame import stack_mean
 from ..params import Param
@@ -80,11 +80,8 @@ class DarkSubtract(Stage):
                          "calibration=")
 
     def transform(self, frame):
-        """The frame less the dark matched to its exposure (DN in, DN out; ``dark_removed`` set)."""
+        """The frame less the dark matched to its exposure (DN in, DN out; ``dark_removed``
+        set; :meth:`hsiffc.frame.Frame.dark_subtracted`)."""
         self.check_is_fitted()
-        if frame.dark_removed is not None:
-            raise ValueError("this frame is already dark-subtracted; a pipeline should have one "
-                             "dark stage")
         dark, how = self.dark_for(frame.exposure_ms, frame.data.shape)
-        return frame.replace(data=subtract_dark(frame.data, dark), dark_removed=dark,
-                             meta={"dark_source": how})
+        return frame.dark_subtracted(dark, dark_source=how)
