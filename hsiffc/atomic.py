@@ -45,7 +45,8 @@ from .errors import HsiffcError
 
 __all__ = ["FolderLockedError", "OutputError", "OutputExistsError", "WritePolicy",
            "atomic_path", "atomic_write_bytes", "atomic_write_text", "check_output",
-           "check_output_folder", "current_policy", "folder_lock", "protect_inputs", "write_policy"]
+           "check_output_folder", "current_policy", "folder_lock", "protect_inputs",
+           "write_policy"]
 
 PART_SUFFIX = ".part"
 
@@ -213,7 +214,7 @@ def _named(exc: OSError, path: Path, tmp: Path) -> OSError:
 
 # -- writing ----------------------------------------------------------------------------------
 @contextlib.contextmanager
-def atomic_path(path, *, overwrite: bool | None = None, inputs=()):
+def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None):
     """Yield a hidden temporary path beside ``path``; on success move it onto ``path``.
 
     The caller writes the temporary file (by name or by reopening it). Afterwards it is
@@ -230,6 +231,10 @@ def atomic_path(path, *, overwrite: bool | None = None, inputs=()):
         policy in force says (:func:`write_policy`; by default no).
     inputs : iterable of path-like
         Files that must not be written besides the policy's inputs.
+    defer : :class:`hsiffc.batch.commits.DeferredCommits`, optional
+        Hand the fsync and rename (``defer.submit(path, fn, *args)``) to a committer's thread
+        instead of waiting for them here; ``defer.wait(path)`` then says whether they
+        succeeded.
 
     Raises
     ------
@@ -250,6 +255,26 @@ def atomic_path(path, *, overwrite: bool | None = None, inputs=()):
                      0o666)
         os.close(fd)
         yield tmp
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        named = _named(exc, path, tmp)
+        if named is exc:
+            raise
+        raise named from exc
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    if defer is not None:  # the same steps, in this context, on the committer's thread
+        defer.submit(path, contextvars.copy_context().run, _commit, tmp, path, overwrite,
+                     inputs, allowed, policy)
+    else:
+        _commit(tmp, path, overwrite, inputs, allowed, policy)
+
+
+def _commit(tmp: Path, path: Path, overwrite, inputs, allowed: bool, policy) -> None:
+    """The end of :func:`atomic_path`: fsync the written temporary file, check ``path`` again
+    (it may have changed), rename, fsync the folder; on error remove the temporary file."""
+    try:
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         check_output(path, overwrite=overwrite, inputs=inputs)  # again: it may have changed

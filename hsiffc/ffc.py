@@ -16,7 +16,7 @@ import numpy as np
 from .bandstats import band_reduce
 from .dark import subtract_dark
 from .dq import DQ, DQ_DTYPE
-from .kernels.bands import band_scale_kernel, phase_scale_kernel, scale_kernel
+from .kernels.bands import band_scale_kernel, band_sums, phase_scale_kernel, scale_kernel
 from .kernels.launch import PARALLEL_MIN
 from .kernels.operands import flat_operands
 from .mosaic import row_period
@@ -273,9 +273,25 @@ def uniformity_per_band(image, band_map, *, dq=None) -> np.ndarray:
     >>> uniformity_per_band(np.array([[9., 20], [11, 20]]), np.array([[0, 1], [0, 1]])).tolist()
     [10.0, 0.0]
     """
+    v = np.asarray(image)
+    if v.dtype not in (np.float32, np.float64):
+        v = v.astype(np.float64)
     bm = np.asarray(band_map)
-    good = np.ones(bm.shape, bool) if dq is None else (np.asarray(dq) == 0)
-    return np.array([uniformity(image, (bm == b) & good) for b in range(int(bm.max()) + 1)])
+    if bm.shape != v.shape:
+        raise ValueError(f"band_map has shape {bm.shape} but the image has {v.shape}; give the "
+                         "band map of the same frame")
+    as2d = (lambda a: np.reshape(a, (1, -1) if a.ndim < 2 else (-1, a.shape[-1])))
+    good = None if dq is None else as2d(np.asarray(dq) == 0)
+    period = row_period(bm) if v.ndim == 2 else 0
+    n = int((bm[:period] if period else bm).max()) + 1
+    # two compiled passes over the good, finite pixels: the mean per band, then the mean
+    # squared deviation from it (stable, unlike E[v^2] - mean^2); population std as np.std
+    sums, counts = band_sums(as2d(v), as2d(bm), good, n, period)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = sums / counts
+        dev = np.square(v - mean[bm])
+        var = band_sums(as2d(dev), as2d(bm), good, n, period)[0] / counts
+        return np.where(counts >= 2, 100.0 * np.sqrt(var) / mean, np.nan)
 
 
 def uniformity_improvement(before, after, band_map, *, dq=None) -> dict:

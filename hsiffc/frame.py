@@ -114,12 +114,16 @@ class Frame:
         """
         raw = np.asarray(raw)
         data = raw.astype(np.float32)
-        dq = np.zeros(raw.shape, DQ_DTYPE)
-        finite = np.isfinite(data)
-        if not finite.all():
-            dq[~finite] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
-            data = np.where(finite, data, 0.0).astype(np.float32)
-        dq[data >= 2 ** int(bit_depth) - 1] |= DQ_DTYPE(DQ.SATURATED)
+        bad = None
+        if raw.dtype.kind not in "biu":  # integer counts are finite: no test needed
+            finite = np.isfinite(data)
+            if not finite.all():
+                bad = ~finite
+                data = np.where(finite, data, 0.0).astype(np.float32)
+        # one pass for SATURATED: the comparison's bytes times the bit, as uint32
+        dq = np.multiply(data >= 2 ** int(bit_depth) - 1, DQ_DTYPE(DQ.SATURATED), dtype=DQ_DTYPE)
+        if bad is not None:
+            dq[bad] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
         return cls(data, dq, {"exposure_ms": float(exposure_ms), "bit_depth": int(bit_depth),
                               "mosaic": mosaic, "kind": kind, **meta})
 

@@ -212,3 +212,44 @@ def test_protected_inputs_last_for_the_command_not_for_the_process(tmp_path):
         with pytest.raises(OutputError, match="input"):  # still the same command
             atomic_write_text(raw, "x")
     assert raw.read_text() == "library use: free again"
+
+
+def test_deferred_commit_puts_the_file_in_place_only_when_done(tmp_path):
+    """With defer=, the fsync and rename run on the committer's thread: the file appears once
+    its commit ran; the write policy in force at the write is the one the commit checks; a
+    commit that fails (the name appeared meanwhile) leaves the other file, removes the
+    temporary one and says so through wait() and, in a batch, settle()."""
+    import threading
+
+    from hsiffc.batch.commits import DeferredCommits
+    from hsiffc.batch.task import settle
+
+    gate = threading.Event()
+    out, other = tmp_path / "out.txt", tmp_path / "other.txt"
+    other.write_text("old")
+    with DeferredCommits() as commits:
+        commits.submit("gate", gate.wait)  # holds the committer until the test lets it go
+        with atomic_path(out, defer=commits) as tmp:
+            tmp.write_text("new")
+        with write_policy(overwrite=True):
+            with atomic_path(other, defer=commits) as tmp:
+                tmp.write_text("replaced")
+        assert not out.exists() and commits.pending(out)
+        assert other.read_text() == "old"  # not before its commit
+        gate.set()
+        commits.wait(out)
+        commits.wait(other)
+        assert out.read_text() == "new" and other.read_text() == "replaced"
+        assert _leftovers(tmp_path) == []
+
+        late = tmp_path / "late.txt"
+        gate.clear()
+        commits.submit("gate2", gate.wait)
+        with atomic_path(late, defer=commits) as tmp:
+            tmp.write_text("mine")
+        late.write_text("someone else's")  # appears before the commit runs
+        gate.set()
+        res = {"status": "done", "output": str(late), "input": "in.tif", "frames": 3}
+        settle(res, commits)
+        assert res["status"] == "failed" and "late.txt" in res["reason"]
+        assert late.read_text() == "someone else's" and _leftovers(tmp_path) == []

@@ -14,7 +14,8 @@ import time
 from urllib.parse import urlparse
 
 from .plan import BatchError
-from .task import correct_file, empty_result
+from .commits import DeferredCommits
+from .task import correct_file, empty_result, settle
 
 __all__ = ["check_scheduler", "local_cluster", "run_dask", "run_jobs", "run_local"]
 
@@ -31,13 +32,27 @@ def run_jobs(jobs, settings, *, workers: int = 1, scheduler: str | None = None,
 
 
 def run_local(jobs, settings, *, observer=None) -> dict:
-    """One job after the other in this process."""
+    """One job after the other in this process. Each output's fsync and rename run on a
+    committer thread while the next file is corrected
+    (:class:`~hsiffc.batch.commits.DeferredCommits`); a file's result is reported once its
+    output is in place."""
     results = {}
-    for i, job in enumerate(jobs):
-        results[i] = correct_file(job, settings,
-                                  on_frame=observer.frame if observer is not None else None)
+    on_frame = observer.frame if observer is not None else None
+    last = None
+
+    def report(i):
+        settle(results[i], commits)
         if observer is not None:
             observer.file(results[i], counted_frames=True)
+
+    with DeferredCommits() as commits:
+        for i, job in enumerate(jobs):
+            results[i] = correct_file(job, settings, on_frame=on_frame, commits=commits)
+            if last is not None:
+                report(last)
+            last = i
+        if last is not None:
+            report(last)
     return results
 
 

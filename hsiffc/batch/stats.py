@@ -56,6 +56,10 @@ class FrameStats:
         self.rows = stats_rows(shape, mosaic)
         full = mosaic.band_map(shape) if mosaic is not None else np.zeros(shape, np.int64)
         self.band = full[self.rows]
+        if mosaic is not None:  # whole tile rows: the map of a frame that high, which band
+            rows_map = mosaic.band_map((len(self.rows), shape[1]))  # statistics sum by phase
+            if np.array_equal(rows_map, self.band):
+                self.band = rows_map
         self.n_bands = int(self.band.max()) + 1
         self.all_rows = len(self.rows) == shape[0]
         self.nonfinite, self.flagged, self.before, self.after = [], [], [], []

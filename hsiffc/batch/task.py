@@ -33,7 +33,7 @@ from .plan import BatchError, Job
 from .source import open_input
 from .stats import FrameStats
 
-__all__ = ["correct_file", "empty_result", "stale_reason", "stream_file"]
+__all__ = ["correct_file", "empty_result", "settle", "stale_reason", "stream_file"]
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ def empty_result(job: Job, **fields) -> dict:
             "uniformity_before": None, "uniformity_after": None, "light_frames": 0, **fields}
 
 
-def correct_file(job: Job, settings: Settings, on_frame=None) -> dict:
+def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> dict:
     """Correct one input file; never raises for a bad input (the result says why it failed).
 
     Parameters
@@ -54,6 +54,9 @@ def correct_file(job: Job, settings: Settings, on_frame=None) -> dict:
     settings : Settings
     on_frame : callable, optional
         ``on_frame(nbytes)`` after each frame (``nbytes``: the input bytes per frame).
+    commits : :class:`~hsiffc.batch.commits.DeferredCommits`, optional
+        Leave the output's fsync and rename to this committer's thread (the caller's next
+        file then overlaps the disk); the result is final only after :func:`settle`.
 
     Returns
     -------
@@ -74,7 +77,7 @@ def correct_file(job: Job, settings: Settings, on_frame=None) -> dict:
             return res
         if why is not None:
             res["warnings"].append(f"existing output redone: it {why}")
-        _correct(job, settings, ctx, res, on_frame)
+        _correct(job, settings, ctx, res, on_frame, commits)
         res["status"] = "done"
     except Exception as exc:  # one bad input must not stop the batch
         res.update(status="failed", reason=_reason(exc, job.input), frames=0)
@@ -128,7 +131,19 @@ def _reason(exc: BaseException, path: str) -> str:
     return f"{type(exc).__name__}: {text}"
 
 
-def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame) -> None:
+def settle(res: dict, commits) -> dict:
+    """Wait for the deferred commit of a done result's output (see :func:`correct_file`);
+    a commit that failed turns the result into a failure that says why. Returns ``res``."""
+    if res["status"] == "done" and commits.pending(res["output"]):
+        try:
+            commits.wait(res["output"])
+        except Exception as exc:
+            res.update(status="failed", reason=_reason(exc, res["input"]), frames=0)
+    return res
+
+
+def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame,
+             commits=None) -> None:
     path = Path(job.input)
     st = os.stat(path)
     hasher = Background(sha256_file, path) if settings.hash_inputs else None
@@ -138,14 +153,15 @@ def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame) ->
                 ctx.calibration.check_compatible(frame_shape=src.frame_shape,
                                                  bit_depth=src.bit_depth, mosaic=src.mosaic,
                                                  what=path.name)
-            stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st, hasher=hasher)
+            stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st, hasher=hasher,
+                        commits=commits)
     finally:
         if hasher is not None:
             hasher.wait(raise_error=False)
 
 
 def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, on_frame=None,
-                st=None, hasher=None) -> None:
+                st=None, hasher=None, commits=None) -> None:
     """Correct every frame of the open input ``src`` into ``job.output`` (atomically).
 
     The loop is decode (``src`` yields raw frames, read ahead on a thread by
@@ -161,7 +177,7 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
     prov = _provenance(job, settings, ctx, src, st)
     t0 = time.perf_counter()
     _remove_leftovers(out)  # of an interrupted earlier run (the folder lock is held)
-    with atomic_path(out, overwrite=True) as tmp, \
+    with atomic_path(out, overwrite=True, defer=commits) as tmp, \
             CorrectedWriter(tmp, prov, n_frames=src.n_frames, frame_shape=shape,
                             reserve_per_frame=96 + 20 * stats.n_bands) as writer:
         sink = BackgroundWriter(writer)
