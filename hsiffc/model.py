@@ -45,7 +45,8 @@ from .model_derived import (
     leakage_percentage_paper_into,
     leakage_rate,
 )
-from .model_numerics import as_float64, check_positive_b, log1mexp, log_or_neg_inf, smallest
+from .model_numerics import (B_MESSAGE, as_float64, check_positive_b, log1mexp, log_or_neg_inf,
+                             smallest)
 
 __all__ = [
     "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
@@ -56,11 +57,16 @@ __all__ = [
 ]
 
 
-def _response(t_ms, k, a, b, dark):
-    """Model response without argument checks (float64 out, shape of the broadcast)."""
+def _response(t_ms, k, a, b, dark, check: bool = False):
+    """Model response (float64 out, shape of the broadcast); ``check``: refuse inputs outside
+    the model's domain, counted by the kernel in its own pass."""
     shape, ops = flat_operands(t_ms, k, a, b, dark)
     out = np.empty(int(np.prod(shape, dtype=np.int64)))
-    leakage.response_kernel(*ops, out)
+    negative, b_bad = leakage.response_kernel(*ops, out)
+    if check and b_bad:
+        raise ValueError(B_MESSAGE)
+    if check and negative:
+        raise ValueError("t_ms, k and a must be >= 0")
     return out.reshape(shape)
 
 
@@ -92,10 +98,7 @@ def response(t_ms, k, a, b, dark):
     >>> round(float(y), 3), round(float(dynamic_saturation_level(2.0, 2 * np.exp(-8.0), 0.01)), 3)
     (800.0, 800.0)
     """
-    check_positive_b(b)
-    if smallest(t_ms) < 0 or smallest(k) < 0 or smallest(a) < 0:
-        raise ValueError("t_ms, k and a must be >= 0")
-    return _response(t_ms, k, a, b, dark)
+    return _response(t_ms, k, a, b, dark, check=True)
 
 
 def response_from_c(t_ms, k, a, b, c):

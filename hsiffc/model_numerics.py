@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["as_float64", "check_positive_b", "log1mexp", "log_or_neg_inf", "smallest"]
+__all__ = ["B_MESSAGE", "as_float64", "check_positive_b", "log1mexp", "log_or_neg_inf", "smallest"]
 
 
 def as_float64(*arrays):
@@ -74,6 +74,9 @@ def smallest(x) -> float:
     return float(np.fmin.reduce(a, axis=None)) if a.size else np.nan
 
 
+B_MESSAGE = "b (1/DN) must be > 0: the leakage grows with the collected signal"
+
+
 def check_positive_b(b):
     """Refuse a leakage exponent that is not > 0.
 
@@ -92,4 +95,4 @@ def check_positive_b(b):
         If any ``b`` is <= 0.
     """
     if smallest(b) <= 0:
-        raise ValueError("b (1/DN) must be > 0: the leakage grows with the collected signal")
+        raise ValueError(B_MESSAGE)

@@ -208,3 +208,31 @@ def test_smallest_below_zero_means_any_below_zero(values):
     x = np.array(values, np.float64)
     assert (smallest(x) < 0) == bool(np.any(x < 0))
     assert (smallest(x) <= 0) == bool(np.any(x <= 0))
+
+
+@pytest.mark.parametrize("n", [7, 70000])  # the serial and the parallel build of the kernel
+def test_response_refuses_inputs_outside_the_domain_wherever_they_are(n):
+    """The kernel counts the inputs outside the model's domain in its own pass (no separate
+    numpy passes): one bad value anywhere is refused with the message that names it; NaN is
+    not a domain error (it gives NaN)."""
+    rng = np.random.default_rng(5)
+    k = rng.uniform(0.5, 20.0, n)
+    a = np.full(n, 2e-4)
+    b = np.full(n, 0.01)
+    d = np.full(n, 40.0)
+    y = model.response(25.0, k, a, b, d)
+    assert np.all(np.isfinite(y))
+    for name, arr, value, match in [("k", k, -1e-9, "k and a must be >= 0"),
+                                    ("a", a, -1.0, "k and a must be >= 0"),
+                                    ("b", b, 0.0, "b \\(1/DN\\) must be > 0")]:
+        bad = arr.copy()
+        bad[n - 2] = value
+        args = {"k": k, "a": a, "b": b} | {name: bad}
+        with pytest.raises(ValueError, match=match):
+            model.response(25.0, args["k"], args["a"], args["b"], d)
+    with pytest.raises(ValueError, match="t_ms"):
+        model.response(np.where(np.arange(n) == 3, -1.0, 25.0), k, a, b, d)
+    nan_b = b.copy()
+    nan_b[1] = np.nan
+    out = model.response(25.0, k, a, nan_b, d)
+    assert np.isnan(out[1]) and np.array_equal(out[2:], y[2:])
