@@ -214,6 +214,23 @@ def _named(exc: OSError, path: Path, tmp: Path) -> OSError:
 
 # -- writing ----------------------------------------------------------------------------------
 @contextlib.contextmanager
+def _removed_on_error(tmp: Path, path: Path):
+    """On any error remove the temporary file ``tmp``; an OSError is raised again naming the
+    final file ``path`` (never the hidden temporary one)."""
+    try:
+        yield
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        named = _named(exc, path, tmp)
+        if named is exc:
+            raise
+        raise named from exc
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+@contextlib.contextmanager
 def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None):
     """Yield a hidden temporary path beside ``path``; on success move it onto ``path``.
 
@@ -249,21 +266,12 @@ def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None):
     policy = current_policy()
     allowed = _allowed(path, overwrite, policy)
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}{PART_SUFFIX}")
-    try:
+    with _removed_on_error(tmp, path):
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
                      0o666)
         os.close(fd)
         yield tmp
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        named = _named(exc, path, tmp)
-        if named is exc:
-            raise
-        raise named from exc
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     if defer is not None:  # the same steps, in this context, on the committer's thread
         defer.submit(path, contextvars.copy_context().run, _commit, tmp, path, overwrite,
                      inputs, allowed, policy)
@@ -274,7 +282,7 @@ def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None):
 def _commit(tmp: Path, path: Path, overwrite, inputs, allowed: bool, policy) -> None:
     """The end of :func:`atomic_path`: fsync the written temporary file, check ``path`` again
     (it may have changed), rename, fsync the folder; on error remove the temporary file."""
-    try:
+    with _removed_on_error(tmp, path):
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         check_output(path, overwrite=overwrite, inputs=inputs)  # again: it may have changed
@@ -282,15 +290,6 @@ def _commit(tmp: Path, path: Path, overwrite, inputs, allowed: bool, policy) -> 
             os.replace(tmp, path)  # replaces a link itself, never its target
         else:
             _rename_no_replace(tmp, path)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        named = _named(exc, path, tmp)
-        if named is exc:
-            raise
-        raise named from exc
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     policy.written.add(os.path.abspath(path))
     _fsync_folder(path.parent)
 
