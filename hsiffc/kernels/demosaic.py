@@ -9,16 +9,16 @@ followed by a horizontal blend of two sample columns (separable, exact, no zero-
 
 One pass over the output rows (parallel over blocks of rows, each a compiled block function)
 writes every band of the cube and its alpha (the max over the same samples). Each band's pass
-writes the row into a band-major row buffer; the finished row then goes into the (W, B)
-cube row contiguously (writing each band straight into the cube was a store every B values:
-single thread 105 -> 90 ms for the bilinear cube of a 2048 x 1088 frame). The hot loops carry only what every value
-needs: the weighted sums, the weight and the alpha max. Everything that concerns flagged
-samples is done per value, only where it is needed: the DQ cube gets the samples' own flags
-at their sites (it is zero-initialised by the caller, so a frame without flags never touches
-it); the values whose support S1 holds no usable sample are found from the vertical pass
-(their sample column at the left has no usable sample) and take the flags of S1 and the
-estimate of the twice-wide tent (S2), whose column sums are computed once per row and band
-when a value first needs them; where S2 holds none either the value is left NaN for the
+writes the row into a band-major row buffer; the finished row then goes into the (W, B) cube
+row contiguously (writing each band straight into the cube was a store every B values: single
+thread 105 -> 90 ms for the bilinear cube of a 2048 x 1088 frame). The hot loops carry only
+what every value needs: the weighted sums, the weight and the alpha max. Everything that
+concerns flagged samples is done per value, only where it is needed: the DQ cube gets the
+samples' own flags at their sites (it is zero-initialised by the caller, so a frame without
+flags never touches it); the values whose support S1 holds no usable sample are found from the
+vertical pass (their sample column at the left has no usable sample) and take the flags of S1
+and the estimate of the twice-wide tent (S2), whose column sums are computed once per row and
+band when a value first needs them; where S2 holds none either the value is left NaN for the
 caller's band-median fill. PPID values whose PPI is undefined (listed once per row) take the
 plain bilinear value. Arithmetic in float64 (results within float32 rounding of the former
 ``cv2.sepFilter2D`` evaluation; on the benchmark frame bit-identical to the former kernel).
