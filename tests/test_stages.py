@@ -248,3 +248,30 @@ def test_raw_is_computed_once_and_follows_data_and_dark():
     assert sub.dark_removed is dark and sub.meta["dark_source"] == "test"
     with pytest.raises(ValueError, match="already dark-subtracted"):
         sub.dark_subtracted(dark)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.float32, np.float64])
+def test_from_raw_flags_full_scale_and_non_finite_counts_for_every_dtype(dtype):
+    """Frame.from_raw: float32 data equal to the counts, SATURATED exactly where the count is
+    at full scale; NaN/inf (float input only) become 0 DN with NONFINITE | DO_NOT_USE."""
+    from hsiffc.dq import DQ
+    from hsiffc.frame import Frame
+
+    bits = 8 if dtype == np.uint8 else 12
+    full = 2 ** bits - 1
+    rng = np.random.default_rng(4)
+    raw = rng.integers(0, full + 1, (9, 11)).astype(dtype)
+    raw[0, :3] = full
+    bad = np.zeros(raw.shape, bool)
+    if np.issubdtype(dtype, np.floating):
+        raw[1, 1], raw[2, 2], raw[3, 3] = np.nan, np.inf, -np.inf
+        bad[1, 1] = bad[2, 2] = bad[3, 3] = True
+    f = Frame.from_raw(raw, exposure_ms=5.0, bit_depth=bits)
+    assert f.data.dtype == np.float32 and f.dq.dtype == np.uint32
+    assert np.array_equal(f.data[~bad], raw[~bad].astype(np.float32))
+    assert np.all(f.data[bad] == 0)
+    sat = (f.dq & np.uint32(DQ.SATURATED)) != 0
+    assert np.array_equal(sat, ~bad & (raw.astype(np.float64) >= full))
+    nonfinite = (f.dq & np.uint32(DQ.NONFINITE | DQ.DO_NOT_USE)) == (DQ.NONFINITE | DQ.DO_NOT_USE)
+    assert np.array_equal(nonfinite, bad)
+    assert np.all(f.dq[~bad & ~sat] == 0)

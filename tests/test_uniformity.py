@@ -95,3 +95,38 @@ def test_standard_error_matches_the_spread_over_repeats():
     pct = np.array([r.fpn_percent[0] for r in results])
     se = np.median([r.fpn_se_percent[0] for r in results])
     assert pct.std() == pytest.approx(se, rel=0.3)
+
+
+@pytest.mark.parametrize("shape", [(6, 8), (272, 256)])  # serial and parallel band sums
+def test_uniformity_per_band_equals_the_per_band_numpy_definition(shape):
+    """uniformity_per_band (two compiled band-sum passes) gives eq. (6) of each band as
+    100 np.std / np.mean over its good, finite pixels: NaN and inf left out, flagged pixels
+    left out, NaN for a band with fewer than two usable pixels; on a mosaic map (summed by
+    row phase) and on a plain array."""
+    from hsiffc.ffc import uniformity_per_band
+    from hsiffc.mosaic import Mosaic
+
+    rng = np.random.default_rng(11)
+    img = rng.normal(300.0, 25.0, shape).astype(np.float32)
+    img[1, 2] = np.nan
+    img[2, 3] = np.inf
+    dq = (rng.random(shape) < 0.1).astype(np.uint32)
+    mosaic_map = Mosaic.rectangular(2, 4).band_map(shape)
+    plain_map = np.array(mosaic_map)  # same values, not registered as a mosaic map
+    plain_map[plain_map == 5] = 9  # bands 5-8 empty, band 9 holds band 5's pixels
+    for bm in (mosaic_map, plain_map):
+        for flags in (None, dq):
+            got = uniformity_per_band(img, bm, dq=flags)
+            assert got.shape == (int(bm.max()) + 1,)
+            for band in range(got.size):
+                use = (bm == band) & np.isfinite(img)
+                if flags is not None:
+                    use &= flags == 0
+                v = img[use].astype(np.float64)
+                if v.size < 2:
+                    assert np.isnan(got[band])
+                else:
+                    assert got[band] == pytest.approx(100.0 * v.std() / v.mean(), rel=1e-12)
+    one = np.zeros(shape, np.int64)
+    one[0, 0] = 1  # band 1 has a single pixel: no spread to speak of
+    assert np.isnan(uniformity_per_band(img, one)[1])
