@@ -63,16 +63,22 @@ class Kernel:
         The loop (``prange`` over blocks or elements).
     size_arg : int
         Index of the argument whose ``.size`` decides (usually the output array).
+    parallel_min : int
+        Size from which the parallel build runs (default :data:`PARALLEL_MIN`). A kernel that
+        does little per element may ask for more: a parallel region waits for its slowest
+        thread, and on a busy machine (a batch's reader and writer threads) a thread that
+        lost its core can hold a 0.05 ms job for a whole time slice.
     """
 
-    def __init__(self, fn, size_arg: int):
+    def __init__(self, fn, size_arg: int, parallel_min: int = PARALLEL_MIN):
         self.parallel = njit(parallel=PARALLEL_OPTIONS, **JIT_OPTIONS)(
             _renamed(fn, "_" + SOURCE_DIGEST))
         self.serial = njit(**JIT_OPTIONS)(_renamed(fn, "_serial_" + SOURCE_DIGEST))
         self.size_arg = size_arg
+        self.parallel_min = int(parallel_min)
         self.__doc__ = fn.__doc__
         self.__name__ = fn.__name__
 
     def __call__(self, *args):
-        big = args[self.size_arg].size >= PARALLEL_MIN
+        big = args[self.size_arg].size >= self.parallel_min
         return (self.parallel if big else self.serial)(*args)
