@@ -45,8 +45,8 @@ from .model_derived import (
     leakage_percentage_paper_into,
     leakage_rate,
 )
-from .model_numerics import (B_MESSAGE, as_float64, check_positive_b, log1mexp, log_or_neg_inf,
-                             smallest)
+from .model_numerics import (B_MESSAGE, NEGATIVE_MESSAGE, as_float64, check_positive_b,
+                             log1mexp, log_or_neg_inf, smallest)
 
 __all__ = [
     "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
@@ -66,7 +66,7 @@ def _response(t_ms, k, a, b, dark, check: bool = False):
     if check and b_bad:
         raise ValueError(B_MESSAGE)
     if check and negative:
-        raise ValueError("t_ms, k and a must be >= 0")
+        raise ValueError(NEGATIVE_MESSAGE)
     return out.reshape(shape)
 
 
@@ -361,7 +361,7 @@ def response_and_gradient(t_ms, k, a, b, dark):
     shape, ops = flat_operands(t_ms, k, a, b, dark)
     check_positive_b(b)
     if smallest(t_ms) < 0 or smallest(k) < 0 or smallest(a) < 0:
-        raise ValueError("t_ms, k and a must be >= 0")
+        raise ValueError(NEGATIVE_MESSAGE)
     out = np.empty((5, int(np.prod(shape))))
     gradient.response_gradient_kernel(*ops, out)
     return tuple(o.reshape(shape) for o in out)

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["B_MESSAGE", "as_float64", "check_positive_b", "log1mexp", "log_or_neg_inf", "smallest"]
+__all__ = ["B_MESSAGE", "NEGATIVE_MESSAGE", "as_float64", "check_positive_b", "log1mexp",
+           "log_or_neg_inf", "smallest"]
 
 
 def as_float64(*arrays):
@@ -75,6 +76,7 @@ def smallest(x) -> float:
 
 
 B_MESSAGE = "b (1/DN) must be > 0: the leakage grows with the collected signal"
+NEGATIVE_MESSAGE = "t_ms, k and a must be >= 0"
 
 
 def check_positive_b(b):
