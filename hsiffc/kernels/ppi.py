@@ -7,19 +7,23 @@ tile-sized window with the frame extended by whole tiles (index maps ``rows``/``
 passes parallel over rows: the samples, then the window sums (horizontal, then vertical) of a
 block of rows at a time, so that the float64 horizontal sums stay in a block-sized buffer
 instead of two frame-sized ones; sums in float64, in the same order as a frame-wide
-horizontal pass followed by a vertical one.
+horizontal pass followed by a vertical one. The window sums loop over the taps outside and the
+pixels of a row inside (contiguous, vectorised), in a compiled block function; the flagged
+pixels of a row are listed branch-free before they are filled (single thread on a 2048 x 1088
+frame with 23 % of its pixels flagged: 44 -> 33 ms, unflagged 26 -> 18 ms; same bits).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import prange
+from numba import njit, prange
 
-from .launch import Kernel
+from .launch import JIT_OPTIONS, Kernel
 
 __all__ = ["ppi_image"]
 
 _ROWS = 16  # output rows per parallel task of the window pass
+_JIT = {**JIT_OPTIONS, "cache": False}  # compiled into the cached kernel
 
 
 def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
@@ -32,19 +36,25 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
     ph, pw = band_of.shape
     vals = np.empty((H, W), np.float32)
     wts = np.empty((H, W), np.float32)
+    inv_row = np.empty((ph, W), np.float32)  # 1 / level of the band of every (row phase, x)
+    for yph in range(ph):
+        for x in range(W):
+            inv_row[yph, x] = inv_level[band_of[yph, x % pw]]
     for y in prange(H):  # samples: scaled to a common level, flagged ones filled from the lattice
         yph = y % ph
-        for xph in range(pw):
-            inv = inv_level[band_of[yph, xph]]
-            for x in range(xph, W, pw):
-                vals[y, x] = raw[y, x] * inv
-                wts[y, x] = 1.0
+        fl_x = np.empty(W, np.int64)
+        for x in range(W):
+            vals[y, x] = raw[y, x] * inv_row[yph, x]
+            wts[y, x] = 1.0
         if not has_dq:
             continue
-        for x in range(W):
-            if dq[y, x] == 0:
-                continue
-            inv = inv_level[band_of[yph, x % pw]]
+        n_fl = 0
+        for x in range(W):  # the flagged pixels of the row, listed branch-free
+            fl_x[n_fl] = x
+            n_fl += dq[y, x] != 0
+        for i in range(n_fl):
+            x = fl_x[i]
+            inv = inv_row[yph, x]
             acc = 0.0
             wsum = 0.0
             for dy in (-ph, 0, ph):
@@ -65,46 +75,57 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
     my = ky.size // 2
     mx = kx.size // 2
     for blk in prange((H + _ROWS - 1) // _ROWS):  # window sums, a block of rows at a time
-        y0 = blk * _ROWS
-        y1 = min(H, y0 + _ROWS)
-        n_in = y1 - y0 + 2 * my
-        hnum = np.empty((n_in, W))
-        hden = np.empty((n_in, W))
-        for i in range(n_in):  # horizontal sums of the input rows the block's windows reach
-            r = rows[y0 + i]
-            n_left = min(mx, W)
-            right = max(W - mx, mx)
-            for j in range(n_left + W - right):  # border columns, through the index map
-                x = j if j < n_left else right + j - n_left
-                n = 0.0
-                d = 0.0
-                for t in range(kx.size):
-                    c = cols[x + t]
-                    w = kx[t] * np.float64(wts[r, c])
-                    n += w * vals[r, c]
-                    d += w
-                hnum[i, x] = n
-                hden[i, x] = d
-            for x in range(mx, W - mx):  # interior: cols[x + t] = x + t - mx
-                n = 0.0
-                d = 0.0
-                for t in range(kx.size):
-                    c = x + t - mx
-                    w = kx[t] * np.float64(wts[r, c])
-                    n += w * vals[r, c]
-                    d += w
-                hnum[i, x] = n
-                hden[i, x] = d
-        for y in range(y0, y1):  # vertical sums and the ratio
+        _window_block(blk, vals, wts, rows, cols, kx, ky, my, mx, ppi, ok)
+
+
+@njit(**_JIT)
+def _window_block(blk, vals, wts, rows, cols, kx, ky, my, mx, ppi, ok):
+    """The window sums of output rows ``blk * _ROWS`` on: horizontal sums of the input rows
+    they reach, then vertical sums and the ratio. Each tap is a loop over the row (tap outer,
+    pixel inner: contiguous, vectorised), accumulating in the order of a tap-inner loop.
+    ``w v`` with ``w = kx wts`` equals ``kx v`` (``wts`` is 0 or 1 and ``v`` is 0 where it is
+    0), so the numerator takes ``kx v`` and the denominator ``kx wts``."""
+    H, W = vals.shape
+    y0 = blk * _ROWS
+    y1 = min(H, y0 + _ROWS)
+    n_in = y1 - y0 + 2 * my
+    hnum = np.zeros((n_in, W))
+    hden = np.zeros((n_in, W))
+    n_left = min(mx, W)
+    right = max(W - mx, mx)
+    for i in range(n_in):  # horizontal sums of the input rows the block's windows reach
+        r = rows[y0 + i]
+        hn = hnum[i]
+        hd = hden[i]
+        for j in range(n_left + W - right):  # border columns, through the index map
+            x = j if j < n_left else right + j - n_left
+            for t in range(kx.size):
+                c = cols[x + t]
+                hn[x] += kx[t] * np.float64(vals[r, c])
+                hd[x] += kx[t] * np.float64(wts[r, c])
+        for t in range(kx.size):  # interior: cols[x + t] = x + t - mx
+            w = kx[t]
+            vr = vals[r, t:]
+            wr = wts[r, t:]
+            for x in range(mx, W - mx):
+                hn[x] += w * np.float64(vr[x - mx])
+                hd[x] += w * np.float64(wr[x - mx])
+    n = np.empty(W)
+    d = np.empty(W)
+    for y in range(y0, y1):  # vertical sums and the ratio
+        n[:] = 0.0
+        d[:] = 0.0
+        for t in range(ky.size):
+            w = ky[t]
+            hn = hnum[y - y0 + t]
+            hd = hden[y - y0 + t]
             for x in range(W):
-                n = 0.0
-                d = 0.0
-                for t in range(ky.size):
-                    n += ky[t] * hnum[y - y0 + t, x]
-                    d += ky[t] * hden[y - y0 + t, x]
-                good = d > 1e-6
-                ppi[y, x] = n / d if good else 0.0
-                ok[y, x] = good
+                n[x] += w * hn[x]
+                d[x] += w * hd[x]
+        for x in range(W):
+            good = d[x] > 1e-6
+            ppi[y, x] = n[x] / d[x] if good else 0.0
+            ok[y, x] = good
 
 
 _ppi = Kernel(_ppi_rows, 0)

@@ -11,7 +11,7 @@ from ..dq import DQ_DTYPE
 from ..kernels.demosaic import interpolate_bands
 from ..mosaic import Mosaic
 from ..params import validate_method
-from .prepare import (Prepared, band_levels, band_median, ppi_kernel, prepare,
+from .prepare import (Prepared, band_levels, band_medians, ppi_kernel, prepare,
                       pseudo_panchromatic, tile_starts)
 from .tiles import tile_alpha
 
@@ -168,8 +168,9 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
     cube_alpha = None if a is None else np.empty((H, W, B), np.float32)
     missing = interpolate_bands(p.raw, p.dq, a, common, ppi, ppi_ok, levels, p.lattices(),
                                 mosaic.tile_shape, cube, cube_dq, cube_alpha)
-    for b in np.flatnonzero(missing.any(axis=0)):  # no usable sample within twice the tile
-        med = np.float32(band_median(p, int(b)))
+    fill = np.flatnonzero(missing.any(axis=0))  # bands with values whose wide support
+    for b, med in zip(fill, band_medians(p, fill), strict=True):  # has no usable sample
+        med = np.float32(med)
         for y in np.flatnonzero(missing[:, b]):
             row = cube[y, :, b]
             row[np.isnan(row)] = med

@@ -14,8 +14,8 @@ from ..kernels.demosaic import EPS
 from ..kernels.ppi import ppi_image
 from ..mosaic import Mosaic
 
-__all__ = ["EPS", "Prepared", "band_levels", "band_median", "periodic_index", "ppi_kernel",
-           "prepare", "pseudo_panchromatic", "sep_filter", "tile_starts"]
+__all__ = ["EPS", "Prepared", "band_levels", "band_median", "band_medians", "periodic_index",
+           "ppi_kernel", "prepare", "pseudo_panchromatic", "sep_filter", "tile_starts"]
 
 
 def ppi_kernel(period: int) -> np.ndarray:
@@ -139,7 +139,9 @@ class Prepared:
         parts = []
         for r0, c0 in self.lattices()[b]:
             v = self.raw[r0::ph, c0::pw]
-            parts.append(v.ravel() if self.dq is None else v[self.dq[r0::ph, c0::pw] == 0])
+            # np.compress on the flat mask: 0.7 ms against 1.4 for v[mask] (280k samples)
+            parts.append(v.ravel() if self.dq is None
+                         else np.compress((self.dq[r0::ph, c0::pw] == 0).ravel(), v))
         return np.concatenate(parts) if parts else np.zeros(0, np.float32)
 
 
@@ -220,10 +222,32 @@ def band_median(p: Prepared, b: int) -> float:
     return p.medians[b]
 
 
+def band_medians(p: Prepared, bands) -> np.ndarray:
+    """:func:`band_median` of each band in ``bands``, on two threads when there are several
+    (numpy's gather and partition release the GIL).
+
+    Parameters
+    ----------
+    p : Prepared
+        The frame.
+    bands : iterable of int
+        Band indices.
+
+    Returns
+    -------
+    ndarray of float64, (len(bands),)
+    """
+    bands = [int(b) for b in bands]
+    if len(bands) < 2:
+        return np.array([band_median(p, b) for b in bands], np.float64)
+    with ThreadPoolExecutor(2) as pool:
+        return np.array(list(pool.map(lambda b: band_median(p, b), bands)), np.float64)
+
+
 def band_levels(p: Prepared) -> np.ndarray:
     """Relative level of every band (median of its unflagged samples over the mean of those
     medians), or all ones when a band has no positive median (e.g. dark-subtracted noise).
-    The band medians run on two threads (numpy's partition releases the GIL).
+    The band medians run on two threads (:func:`band_medians`).
 
     Parameters
     ----------
@@ -235,8 +259,7 @@ def band_levels(p: Prepared) -> np.ndarray:
     ndarray of float64, (B,)
         Dimensionless levels (mean 1), or ones.
     """
-    with ThreadPoolExecutor(2) as pool:
-        med = np.array(list(pool.map(lambda b: band_median(p, b), range(p.mosaic.n_bands))))
+    med = band_medians(p, range(p.mosaic.n_bands))
     if not np.all(np.isfinite(med)) or np.any(med <= 0):
         return np.ones(p.mosaic.n_bands)
     return med / med.mean()
