@@ -535,16 +535,33 @@ def test_dask_scheduler_runs_the_same_batch(world, bad_folder, tmp_path, clean_r
     assert "truncated" in bad.results[0]["reason"] and bad.exit_status == 1
 
 
-def test_recorded_uniformity_is_eq6_per_band_of_the_input(world, clean_run):
+def test_recorded_uniformity_is_eq6_like_for_like(world, clean_run, tmp_path):
+    """Before: the input less the dark the pipeline removed; after: the corrected frame; both
+    eq. (6) per band over the pixels without a DQ bit in the input nor in the output. With no
+    flat field the two are equal."""
     from hsiffc.ffc import uniformity_per_band
 
     out, _ = clean_run
     prov = read_provenance(out / "cube_0.corrected.tif")
     frames = Frame.list_from_sweep(read_sweep(world["good"][0]))
     band = world["sensor"].band_map
+    pipe = batch.default_pipeline(world["cal"], threshold_percent=12.0)
+    recorded = {key: [[np.nan if v is None else v for v in row] for row in prov["frames"][key]]
+                for key in ("uniformity_before", "uniformity_after")}  # None: no good pixel
     for k, frame in enumerate(frames):
-        ref = uniformity_per_band(frame.data, band, dq=frame.dq)
-        np.testing.assert_allclose(prov["frames"]["uniformity_before"][k], ref, rtol=1e-3)
+        res = pipe.transform(frame)
+        dq = frame.dq | res.dq
+        before = uniformity_per_band(frame.data - res.dark_removed, band, dq=dq)
+        after = uniformity_per_band(res.data, band, dq=dq)
+        np.testing.assert_allclose(recorded["uniformity_before"][k], before, rtol=1e-3)
+        np.testing.assert_allclose(recorded["uniformity_after"][k], after, rtol=1e-3)
+        # not the raw frame with its dark (pedestal and pattern) in it
+        raw = uniformity_per_band(frame.data, band, dq=dq)
+        assert not np.allclose(recorded["uniformity_before"][k], raw, rtol=1e-3,
+                               equal_nan=True)
+    none = batch.correct_batch([world["good"][0]], tmp_path, world["cal"], ffc="none")
+    res = none.results[0]
+    assert res["uniformity_before"] == res["uniformity_after"]
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the overflow this test provokes

@@ -1,7 +1,11 @@
 """Per-frame statistics a batch records: eq. (6) non-uniformity per band before and after.
 
-On large frames the statistic is taken on whole tile rows, evenly spaced, totalling about
-``STATS_PIXELS`` pixels, so it costs little next to the correction itself.
+Like for like, as the demo's fixed-pattern table: "before" is the input less the dark the
+pipeline removed (a dark pedestal would inflate eq. 6's mean and make the input look more
+uniform than its signal is), "after" the corrected data, both over the same pixels (no DQ bit
+in the input nor in the output). On large frames the statistic is taken on whole tile rows,
+evenly spaced, totalling about ``STATS_PIXELS`` pixels, so it costs little next to the
+correction itself.
 """
 
 from __future__ import annotations
@@ -67,16 +71,23 @@ class FrameStats:
 
     def add(self, frame, result, nonfinite: int, nonfinite_out: int = 0) -> None:
         """Record input ``frame`` and its corrected ``result`` (Frames) with its counts of
-        NaN/inf pixels in the input and in the corrected data."""
+        NaN/inf pixels in the input and in the corrected data. Eq. (6) before: the input less
+        ``result.dark_removed``; after: ``result.data``; both over the pixels without a DQ bit
+        in either."""
         r = self.rows
         self.nonfinite.append(int(nonfinite))
         self.nonfinite_out.append(int(nonfinite_out))
         self.flagged.append(round(np.count_nonzero(result.dq) / result.dq.size, 6))
-        light = frame.kind == "light"
-        self.before.append(band_uniformity(frame.data[r], self.band, frame.dq[r])
-                           if light else None)
-        self.after.append(band_uniformity(result.data[r], self.band, result.dq[r])
-                          if light else None)
+        if frame.kind != "light":
+            self.before.append(None)
+            self.after.append(None)
+            return
+        dq = frame.dq[r] | result.dq[r]  # the same pixels before and after
+        before = frame.data[r]
+        if result.dark_removed is not None:
+            before = before - result.dark_removed[r]
+        self.before.append(band_uniformity(before, self.band, dq))
+        self.after.append(band_uniformity(result.data[r], self.band, dq))
 
     def to_dict(self) -> dict:
         """The per-frame lists, as the provenance records them."""

@@ -88,8 +88,8 @@ class BatchSummary:
                          "hsiffc correct)")
         u = self.uniformity()
         if u is not None:
-            lines.append("non-uniformity per band (eq. 6, %, good pixels, mean over light "
-                         "frames): before -> after")
+            lines.append("non-uniformity per band (eq. 6, %, mean over light frames, pixels "
+                         "good in input and output): input less the pipeline's dark -> corrected")
             lines += [f"  band {i + 1}: {_pct(b)} -> {_pct(a)}" for i, (b, a) in enumerate(zip(*u))]
         warned = [r for r in self.results if r["warnings"]]
         if warned:
