@@ -228,3 +228,26 @@ def test_where_the_ppi_is_undefined_ppid_takes_the_bilinear_value():
         assert np.allclose(got[use_bil], bil[:, :, b][use_bil], rtol=2e-6, atol=1e-3)
         assert np.array_equal(got[~undefined], full[~undefined])
     assert np.array_equal(cubes[0][1], cubes[1][1]) and np.array_equal(cubes[1][1], bil_dq)
+
+
+@pytest.mark.parametrize("pattern, offset", [([[0, 1, 2, 3], [4, 5, 6, 7]], (0, 0)),
+                                             ([[0, 1], [1, 2]], (1, 0))])
+def test_band_medians_are_numpy_medians_of_the_usable_samples(pattern, offset):
+    """band_medians (two threads, shared by PPID's levels and the no-source fill) equals
+    np.median over each band's unflagged samples, 0 for a band with none, in the order asked;
+    the strided gather (np.compress) takes every occurrence of a band in the tile."""
+    from hsiffc.reconstruct.prepare import band_medians
+
+    mosaic = Mosaic(np.array(pattern), offset=offset)
+    rng = np.random.default_rng(7)
+    raw = rng.normal(100, 20, (37, 50)).astype(np.float32)
+    bm = mosaic.band_map(raw.shape)
+    raw += 10.0 * bm  # distinct levels per band
+    dq = np.where(rng.random(raw.shape) < 0.3, DQ.LEAKAGE, 0).astype(DQ_DTYPE)
+    dq[bm == 2] = DQ.DO_NOT_USE  # band 2 has no usable sample
+    p = prepare(raw, mosaic, dq)
+    bands = list(range(mosaic.n_bands))[::-1]
+    got = band_medians(p, bands)
+    want = [np.median(raw[(bm == b) & (dq == 0)]) if b != 2 else 0.0 for b in bands]
+    np.testing.assert_array_equal(got, np.array(want, np.float64))
+    assert band_medians(p, [1]).tolist() == [want[bands.index(1)]]  # one band: no threads
