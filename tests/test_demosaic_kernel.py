@@ -251,3 +251,17 @@ def test_band_medians_are_numpy_medians_of_the_usable_samples(pattern, offset):
     want = [np.median(raw[(bm == b) & (dq == 0)]) if b != 2 else 0.0 for b in bands]
     np.testing.assert_array_equal(got, np.array(want, np.float64))
     assert band_medians(p, [1]).tolist() == [want[bands.index(1)]]  # one band: no threads
+
+
+def test_band_median_is_numpy_median_for_odd_and_even_counts():
+    """The band median (one partition, the lower middle value as the max below it for an even
+    count) equals np.median for odd and even counts, ties and constant values."""
+    from hsiffc.reconstruct.prepare import band_medians
+
+    rng = np.random.default_rng(3)
+    one_band = Mosaic(np.array([[0]]))
+    for shape in ((1, 1), (1, 2), (3, 1), (2, 2), (11, 1), (25, 40), (25, 41), (100, 200)):
+        for values in (rng.normal(size=shape), rng.integers(0, 5, shape), np.full(shape, 7.0)):
+            raw = values.astype(np.float32)
+            got = band_medians(prepare(raw, one_band, None), [0])
+            assert got.tolist() == [float(np.median(raw))], shape
