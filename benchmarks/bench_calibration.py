@@ -10,7 +10,10 @@ Baseline: the same model fitted pixel by pixel with ``scipy.optimize.curve_fit``
 samples and weights each pixel's fit sees in ``calibrate`` (light step means, the merged dark
 sample, the same fixed dark current; weights passed as ``sigma``; the same start values). It is
 timed on a random sample of pixels and extrapolated per pixel to the sensor; only the curve_fit
-calls are timed (building samples and start values is left out, which favours the baseline).
+calls are timed (building samples and start values is left out, which favours the baseline), as
+the CPU time of the thread that runs them: on this shared machine their wall time read 2.2 to
+15 ms per pixel in different runs (other load takes the core), their thread time does not
+count waiting, so the ratio is the smallest the baseline allows. The wall time is printed too.
 Accuracy of both is measured against the simulator's ground truth (medians).
 """
 
@@ -69,7 +72,8 @@ def _pixel_inputs(sweep, ptc, flat_idx, cal):
 
 
 def _curve_fit_pixels(ks, ps, theta0):
-    """curve_fit on every pixel in turn; returns (theta, nfev, failed, seconds)."""
+    """curve_fit on every pixel in turn; returns (theta, nfev, failed, thread CPU seconds,
+    wall seconds)."""
     p = ps["y"].shape[0]
     theta = np.full((p, 4), np.nan)
     nfev = np.zeros(p, np.int64)
@@ -81,6 +85,7 @@ def _curve_fit_pixels(ks, ps, theta0):
         return model.response(t, np.exp(ln_g) * r + dc, np.exp(ln_a), np.exp(ln_b), d)
 
     t0 = time.perf_counter()
+    c0 = time.thread_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OptimizeWarning)
         for i in range(p):
@@ -96,7 +101,7 @@ def _curve_fit_pixels(ks, ps, theta0):
                 theta[i], nfev[i] = popt, info["nfev"]
             except (RuntimeError, ValueError):
                 failed[i] = True
-    return theta, nfev, failed, time.perf_counter() - t0
+    return theta, nfev, failed, time.thread_time() - c0, time.perf_counter() - t0
 
 
 def _errors(theta, truth, idx):
@@ -181,12 +186,13 @@ def main(quick: bool = False) -> dict:
     ks, ps, theta0, dmodel, dc, kw = _pixel_inputs(sweep, ptc, idx, cal)
     truth = sweep.meta["truth"]
     del sweep
-    theta_cf, nfev, failed, t_cf = _curve_fit_pixels(ks, ps, theta0)
+    theta_cf, nfev, failed, t_cf, t_cf_wall = _curve_fit_pixels(ks, ps, theta0)
     fit = run_kernel(**ks, dark_current=dc, dark_model=dmodel, **kw)
     theta_k = fit.theta
     per_px = t_cf / n_sample
     results["curve_fit_sample_px"] = n_sample
     results["curve_fit_ms_per_px"] = per_px * 1e3
+    results["curve_fit_wall_ms_per_px"] = t_cf_wall / n_sample * 1e3
     results["curve_fit_sensor_s_extrapolated"] = per_px * npx
     results["curve_fit_median_nfev"] = float(np.median(nfev[~failed])) if (~failed).any() else 0
     results["curve_fit_failed"] = int(failed.sum())
@@ -194,6 +200,7 @@ def main(quick: bool = False) -> dict:
     same = np.abs(fit.g / arr["responsivity"].ravel()[idx] - 1).max()
     results["sample_vs_calibrate_max_rel_diff_k"] = float(same)
     print(row(f"curve_fit per pixel ({n_sample} random px)", per_px * 1e3, "ms/px",
+              f"CPU time of its thread (wall {results['curve_fit_wall_ms_per_px']:.3g} ms/px); "
               f"median {results['curve_fit_median_nfev']:.0f} model calls/px, "
               f"{results['curve_fit_failed']} failed"))
     print(row("curve_fit extrapolated to the sensor (fits only)", per_px * npx, "s",
@@ -236,8 +243,8 @@ def main(quick: bool = False) -> dict:
                baseline_name=f"scipy curve_fit per pixel, extrapolated from {n_sample} px",
                ratio=results["speedup_vs_curve_fit"], target=">= 500 x faster than curve_fit",
                met=results["speedup_vs_curve_fit"] >= 500,
-               note=f"ratio = curve_fit time / calibrate time; equal accuracy: "
-                    f"{'yes' if equal else 'NO'}")]
+               note="ratio = curve_fit CPU time (its thread) / calibrate wall time; equal "
+                    f"accuracy: {'yes' if equal else 'NO'}")]
     print(f"  equal accuracy (every kernel median within 10 % of curve_fit's or better): "
           f"{'yes' if equal else 'NO'}; the sample fit reproduces calibrate's k to "
           f"{same:.1e} (float32 storage)")
