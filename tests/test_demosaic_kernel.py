@@ -165,6 +165,38 @@ def test_random_layouts_match_the_reference(ph, pw, oy, ox, h, w, frac, seed):
     assert np.array_equal(cube_dq, ref_dq) and np.array_equal(cube_a, ref_a)
 
 
+@settings(max_examples=25, deadline=None)
+@given(ph=st.integers(1, 4), pw=st.integers(2, 5), oy=st.integers(0, 3), ox=st.integers(0, 4),
+       h=st.integers(2, 14), w=st.integers(2, 14), frac=st.sampled_from([0.0, 0.3, 0.9]),
+       seed=st.integers(0, 1000))
+def test_ppid_on_small_and_narrow_frames_matches_the_reference(ph, pw, oy, ox, h, w, frac,
+                                                              seed):
+    """Frames down to narrower and lower than the tile, where a flagged sample's neighbours one
+    tile away fall outside the frame (the PPI kernel's row-wide neighbour sums)."""
+    mosaic = Mosaic(np.arange(ph * pw).reshape(ph, pw), offset=(oy, ox))
+    raw, dq, alpha = _scene((h, w), mosaic, seed, frac)
+    cube, cube_dq, cube_a = demosaic(raw, mosaic, method="ppid", dq=dq, alpha=alpha)
+    ref, ref_dq, ref_a = reference(raw, mosaic, dq, "ppid", alpha)
+    assert np.all(np.isfinite(cube))
+    assert np.allclose(cube, ref, rtol=2e-6, atol=2e-5 * np.abs(ref).max())
+    assert np.array_equal(cube_dq, ref_dq) and np.array_equal(cube_a, ref_a)
+
+
+@pytest.mark.parametrize("method", ["nearest", "bilinear", "ppid"])
+def test_a_band_with_no_sample_in_the_frame_is_zero_and_do_not_use(method):
+    """A frame narrower than the tile holds no sample of some bands: those values follow the
+    rule for no usable sample (the band median, 0 when there is none, and DO_NOT_USE), never
+    NaN with DQ 0 (as they were), and the other bands are untouched."""
+    raw = np.array([[10.0, 20.0], [30.0, 40.0]], np.float32)
+    cube, cube_dq, alpha = demosaic(raw, Mosaic(np.arange(3).reshape(1, 3)), method=method,
+                                    alpha=np.ones((2, 2), np.float32))
+    assert np.all(np.isfinite(cube)) and np.all(cube[:, :, 2] == 0.0)
+    assert np.all(cube_dq[:, :, 2] == DQ.DO_NOT_USE) and not cube_dq[:, :, :2].any()
+    assert np.array_equal(cube[:, :, 0], [[10, 10], [30, 30]])
+    assert np.array_equal(cube[:, :, 1], [[20, 20], [40, 40]])
+    assert np.all(np.isfinite(alpha))
+
+
 @pytest.mark.parametrize("method", ["bilinear", "ppid"])
 @pytest.mark.parametrize("mosaic", [MOSAICS[0], MOSAICS[3]], ids=["2x4", "5x5 offset"])
 def test_flagged_blocks_take_the_wide_tent_the_bilinear_value_and_the_median(method, mosaic):
