@@ -9,8 +9,9 @@ block of rows at a time, so that the float64 horizontal sums stay in a block-siz
 instead of two frame-sized ones; sums in float64, in the same order as a frame-wide
 horizontal pass followed by a vertical one. The window sums loop over the taps outside and the
 pixels of a row inside (contiguous, vectorised), in a compiled block function; the flagged
-pixels of a row are listed branch-free before they are filled (single thread on a 2048 x 1088
-frame with 23 % of its pixels flagged: 44 -> 33 ms, unflagged 26 -> 18 ms; same bits).
+pixels of a row are listed branch-free, and the neighbour sums that fill them are taken for the
+whole row, one vectorised loop per neighbour (single thread on a 2048 x 1088 frame with 23 % of
+its pixels flagged: 44 -> 27 ms, unflagged 26 -> 18 ms; same bits).
 """
 
 from __future__ import annotations
@@ -52,22 +53,15 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
         for x in range(W):  # the flagged pixels of the row, listed branch-free
             fl_x[n_fl] = x
             n_fl += dq[y, x] != 0
+        if n_fl == 0:
+            continue
+        acc = np.empty(W)
+        wsum = np.empty(W)
+        _neighbour_sums(raw, dq, y, ph, pw, acc, wsum)
         for i in range(n_fl):
             x = fl_x[i]
-            inv = inv_row[yph, x]
-            acc = 0.0
-            wsum = 0.0
-            for dy in (-ph, 0, ph):
-                for dx in (-pw, 0, pw):
-                    ny, nx = y + dy, x + dx
-                    if (dy == 0 and dx == 0) or ny < 0 or ny >= H or nx < 0 or nx >= W:
-                        continue
-                    if dq[ny, nx] == 0:
-                        wt = 0.25 if (dy != 0 and dx != 0) else 0.5
-                        acc += wt * raw[ny, nx]
-                        wsum += wt
-            if wsum > 0.0:
-                vals[y, x] = np.float32(acc / wsum) * inv
+            if wsum[x] > 0.0:
+                vals[y, x] = np.float32(acc[x] / wsum[x]) * inv_row[yph, x]
                 wts[y, x] = 1.0
             else:
                 vals[y, x] = 0.0
@@ -76,6 +70,44 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
     mx = kx.size // 2
     for blk in prange((H + _ROWS - 1) // _ROWS):  # window sums, a block of rows at a time
         _window_block(blk, vals, wts, rows, cols, kx, ky, my, mx, ppi, ok)
+
+
+@njit(**_JIT)
+def _neighbour_sums(raw, dq, y, ph, pw, acc, wsum):
+    """For every pixel of row ``y``: the tent-weighted sum of its usable same-band neighbours
+    one tile away (8 of them, 1/4 diagonal, 1/2 straight) and their weight. One contiguous
+    (vectorised) loop per neighbour, every pixel of the row, in the order of a per-pixel loop
+    over the neighbours; a flagged or outside neighbour adds exactly 0."""
+    H, W = raw.shape
+    acc[:] = 0.0
+    wsum[:] = 0.0
+    for ty in range(3):
+        dy = (ty - 1) * ph
+        ny = y + dy
+        if ny < 0 or ny >= H:
+            continue
+        for tx in range(3):
+            dx = (tx - 1) * pw
+            if dy == 0 and dx == 0:
+                continue
+            wt = 0.25 if (dy != 0 and dx != 0) else 0.5
+            x_lo = max(0, -dx)
+            x_hi = min(W, W - dx)
+            if x_hi <= x_lo:  # a frame narrower than the tile: no such neighbour
+                continue
+            _add_neighbour(acc[x_lo:x_hi], wsum[x_lo:x_hi], raw[ny, x_lo + dx:x_hi + dx],
+                           dq[ny, x_lo + dx:x_hi + dx], wt)
+
+
+@njit(**_JIT)
+def _add_neighbour(acc, wsum, r, f, wt):
+    """``acc += g r`` and ``wsum += g`` with ``g = wt`` where ``f == 0``, else 0 (a function of
+    its own: the same loop inline was not vectorised and ran 3 x slower than the per-pixel
+    branches it replaces)."""
+    for i in range(acc.shape[0]):
+        g = wt * np.float64(f[i] == 0)
+        acc[i] += g * r[i]
+        wsum[i] += g
 
 
 @njit(**_JIT)
