@@ -366,7 +366,8 @@ def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, per
     cube_alpha : (H, W, B) float32 out, or None
 
     Returns ``(H, B)`` bool: the rows and bands holding values whose wide support has no usable
-    sample; those values are NaN (fill them with the band median).
+    sample, including every value of a band with no sample in the frame (a frame smaller than
+    the tile), those with DO_NOT_USE; those values are NaN (fill them with the band median).
     """
     H, W = raw.shape
     dummy_f = np.zeros((1, 1), np.float32)
@@ -386,4 +387,9 @@ def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, per
         (np.arange(W)[None, :] - lat_c[:, None]) // int(period[1]), int(period[0]), int(period[1]),
         cube, cube_dq, np.zeros((1, 1, 1), np.float32) if cube_alpha is None else cube_alpha,
         missing_rows)
+    for b, lattice in enumerate(lattices):  # a frame smaller than the tile may hold no sample
+        if not any(r < H and c < W for r, c in lattice):  # of a band at all (the kernel
+            cube[:, :, b] = np.nan  # marks missing values only where a sample is flagged)
+            cube_dq[:, :, b] |= _DO_NOT_USE
+            missing_rows[:, b] = True
     return missing_rows

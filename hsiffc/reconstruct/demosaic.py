@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..dq import DQ, DQ_DTYPE
+from ..dq import DQ_DTYPE
 from ..kernels.demosaic import interpolate_bands
 from ..mosaic import Mosaic
 from ..params import validate_method
@@ -168,11 +168,6 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
     cube_alpha = None if a is None else np.empty((H, W, B), np.float32)
     missing = interpolate_bands(p.raw, p.dq, a, common, ppi, ppi_ok, levels, p.lattices(),
                                 mosaic.tile_shape, cube, cube_dq, cube_alpha)
-    for b, lattice in enumerate(p.lattices()):  # a frame smaller than the tile may hold no
-        if not any(r < H and c < W for r, c in lattice):  # sample of a band at all
-            cube[:, :, b] = np.nan  # no usable sample: the rule's median (0) and DO_NOT_USE
-            cube_dq[:, :, b] |= DQ_DTYPE(DQ.DO_NOT_USE)
-            missing[:, b] = True
     fill = np.flatnonzero(missing.any(axis=0))  # bands with values whose wide support
     for b, med in zip(fill, band_medians(p, fill), strict=True):  # has no usable sample
         med = np.float32(med)
