@@ -43,12 +43,12 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
             inv_row[yph, x] = inv_level[band_of[yph, x % pw]]
     for y in prange(H):  # samples: scaled to a common level, flagged ones filled from the lattice
         yph = y % ph
-        fl_x = np.empty(W, np.int64)
         for x in range(W):
             vals[y, x] = raw[y, x] * inv_row[yph, x]
             wts[y, x] = 1.0
         if not has_dq:
             continue
+        fl_x = np.empty(W, np.int64)
         n_fl = 0
         for x in range(W):  # the flagged pixels of the row, listed branch-free
             fl_x[n_fl] = x
