@@ -210,10 +210,14 @@ def _run_correction(result: DemoResult, samples: Path) -> None:
     model = default_pipeline(cal, threshold_percent=THRESHOLD_PERCENT)
     test = tests[0]
     band_map = test.band_map()
-    before = uniformity_per_band(test.data, band_map)
     flat_only = flat_field.transform(test)
-    after = uniformity_per_band(flat_only.data, band_map, dq=flat_only.dq)
     by_model = model.transform(test)
+    # like for like: the raw frame less the dark the two-point pipeline removed (a dark
+    # pedestal in eq. 6's mean would make the raw frame look more uniform than its signal),
+    # and every column over the same pixels (no DQ bit in the raw frame or either correction)
+    same = test.dq | flat_only.dq | by_model.dq
+    before = uniformity_per_band(test.data - flat_only.dark_removed, band_map, dq=same)
+    after = uniformity_per_band(flat_only.data, band_map, dq=same)
     steps = []
     for step in sorted({f.meta.get("step") for f in tests}):
         frames = [f for f in tests if f.meta.get("step") == step]
@@ -224,9 +228,9 @@ def _run_correction(result: DemoResult, samples: Path) -> None:
     result.correction = {
         "training_ms": list(ffc.selected_ms_), "alpha_table": ffc.alpha_table_,
         "test_exposure_ms": test.exposure_ms, "test_illumination": test.meta.get("illumination"),
-        "uniformity_raw": before.tolist(), "uniformity_corrected": after.tolist(),
-        "uniformity_model_ffc": uniformity_per_band(by_model.data, band_map,
-                                                    dq=by_model.dq).tolist(),
+        "uniformity_raw_less_dark": before.tolist(), "uniformity_corrected": after.tolist(),
+        "uniformity_model_ffc": uniformity_per_band(by_model.data, band_map, dq=same).tolist(),
+        "uniformity_pixels": int(np.count_nonzero(same == 0)),
         "fixed_pattern": steps,
         "flagged_fraction": float((flat_only.dq != 0).mean()),
         "cube_shape": list(cube.data.shape),

@@ -46,11 +46,13 @@ def render_text(res) -> str:
               "two-point training exposure per band (longest with median alpha under 12 %): "
               + ", ".join(f"{v:g} ms" for v in c["training_ms"]),
               f"test frame {c['test_exposure_ms']:g} ms under {c['test_illumination']}: "
-              "non-uniformity (eq. 6 on one frame, temporal noise included, %) per band",
-              f"{'band':>6} {'raw':>8} {'two-point':>10} {'model_ffc':>10}"]
-        model_u = c.get("uniformity_model_ffc") or [float("nan")] * len(c["uniformity_raw"])
-        for i, (u0, u1, u2) in enumerate(zip(c["uniformity_raw"], c["uniformity_corrected"],
-                                             model_u)):
+              "non-uniformity (eq. 6 on one frame, temporal noise included, %) per band, "
+              f"raw less the two-point pipeline's dark and corrected, on the same "
+              f"{c['uniformity_pixels']} pixels",
+              f"{'band':>6} {'raw-dark':>8} {'two-point':>10} {'model_ffc':>10}"]
+        for i, (u0, u1, u2) in enumerate(zip(c["uniformity_raw_less_dark"],
+                                             c["uniformity_corrected"],
+                                             c["uniformity_model_ffc"])):
             L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f} {u2:>10.3f}")
         for s in c.get("fixed_pattern", ()):
             L += _fixed_pattern_table(s)
