@@ -137,19 +137,19 @@ def two_point_apply(signal, gain, scale=1.0, *, band_map=None) -> np.ndarray:
             raise ValueError(f"signal {sig.shape}, gain {np.shape(gain)} and band_map "
                              f"{bm.shape} must have the same shape")
         out = np.empty(sig.shape, np.float32)
+        outside = (f"band_map has bands outside the {ratio.size} of scale; give the per-band "
+                   "factors of every band of the map")
         period = row_period(bm) if sig.ndim == 2 and sig.size >= PARALLEL_MIN else 0
         if period:  # a mosaic's map: each column's factor per row phase, no per-pixel lookup
             phase_bands = bm[:period]
             if phase_bands.min() < 0 or phase_bands.max() >= ratio.size:
-                raise ValueError(f"band_map has bands outside the {ratio.size} of scale; give "
-                                 "the per-band factors of every band of the map")
+                raise ValueError(outside)
             phase_scale_kernel(np.ascontiguousarray(sig), np.ascontiguousarray(gain),
                                ratio[phase_bands], out)
             return out
         flat = (lambda a, dt=None: np.ascontiguousarray(a, dt).reshape(-1))
         if band_scale_kernel(flat(sig), flat(gain), ratio, flat(bm, np.int64), out.reshape(-1)):
-            raise ValueError(f"band_map has bands outside the {ratio.size} of scale; give "
-                             "the per-band factors of every band of the map")
+            raise ValueError(outside)
         return out
     shape, ops = flat_operands(signal, gain, scale)
     out = np.empty(shape, np.float32)
