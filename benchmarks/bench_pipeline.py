@@ -72,7 +72,8 @@ def _floors(raw32, dark, gain, n_bands: int, repeat: int) -> dict:
 
 def _ppid_parts(frame, repeat: int) -> dict:
     """Where the PPID cube's time goes, each part alone on the frame the cube stage receives:
-    the band levels (medians), the PPI image, and the interpolation kernel (cube, DQ, alpha)."""
+    checking the frame (prepare) with the band levels (medians: cached per prepared frame, so
+    timed with a fresh one), the PPI image, and the interpolation kernel (cube, DQ, alpha)."""
     mosaic = frame.mosaic
     p = prepare(frame.data, mosaic, frame.dq)
     shape = (*p.shape, mosaic.n_bands)
@@ -88,7 +89,7 @@ def _ppid_parts(frame, repeat: int) -> dict:
                           mosaic.tile_shape, np.empty(shape, np.float32),
                           np.zeros(shape, np.uint32), np.empty(shape, np.float32))
 
-    return {"band_levels": median_time(levels, repeat=repeat) * 1e3,
+    return {"prepare_and_band_levels": median_time(levels, repeat=repeat) * 1e3,
             "ppi_image": median_time(lambda: pseudo_panchromatic(p, lv), repeat=repeat) * 1e3,
             "interpolation": median_time(kernel, repeat=repeat) * 1e3}
 
