@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from hsiffc.dq import DQ, DQ_DTYPE
 from hsiffc.kernels import launch
 from hsiffc.kernels.demosaic import interpolate_bands
+from hsiffc.kernels.lattice import split_lattices
 from hsiffc.mosaic import Mosaic
 from hsiffc.reconstruct import demosaic, ppi_kernel, reconstruct_alpha
 from hsiffc.reconstruct.prepare import Prepared, band_levels, prepare, pseudo_panchromatic
@@ -284,3 +285,27 @@ def test_band_median_is_numpy_median_for_odd_and_even_counts():
             raw = values.astype(np.float32)
             got = band_medians(prepare(raw, one_band, None), [0])
             assert got.tolist() == [float(np.median(raw))], shape
+
+
+@pytest.mark.parametrize("shape", [(7, 11), (2, 3), (300, 260)])
+def test_lattice_planes_hold_each_lattice_contiguously_and_zeros_beyond_the_frame(shape):
+    """split_lattices (the frame as one plane per lattice, which the kernel reads with flags):
+    every sample of the frame at its lattice place, zeros where a lattice runs past the frame
+    (serial build for the small frames, parallel for the large one)."""
+    rng = np.random.default_rng(5)
+    raw = rng.normal(50, 9, shape).astype(np.float32)
+    dq = rng.integers(0, 3, shape).astype(DQ_DTYPE)
+    ppi = rng.normal(40, 5, shape).astype(np.float32)
+    ph, pw = 3, 4
+    lat_r = np.array([r for r in range(ph) for _ in range(pw)], np.int64)
+    lat_c = np.array([c for _ in range(ph) for c in range(pw)], np.int64)
+    size = (ph * pw, -(-shape[0] // ph), -(-shape[1] // pw))
+    planes = [np.zeros(size, np.float32), np.zeros(size, DQ_DTYPE), np.zeros(size, np.float32)]
+    split_lattices(raw, dq, ppi, True, lat_r, lat_c, ph, pw, *planes)
+    for j, (r, c) in enumerate(zip(lat_r, lat_c)):
+        for plane, src in zip(planes, (raw, dq, ppi)):
+            inside = src[r::ph, c::pw]
+            assert np.array_equal(plane[j][:inside.shape[0], :inside.shape[1]], inside)
+            rest = plane[j].copy()
+            rest[:inside.shape[0], :inside.shape[1]] = 0
+            assert not rest.any()
