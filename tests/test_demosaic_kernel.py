@@ -309,3 +309,21 @@ def test_lattice_planes_hold_each_lattice_contiguously_and_zeros_beyond_the_fram
             rest = plane[j].copy()
             rest[:inside.shape[0], :inside.shape[1]] = 0
             assert not rest.any()
+
+
+def test_samples_of_several_bands_equal_the_strided_lattice_samples():
+    """Prepared.samples_of (one compiled pass, parallel over bands) returns, per band, the
+    unflagged samples of its lattices: those of numpy's strided views, in the same order."""
+    rng = np.random.default_rng(11)
+    mosaic = Mosaic(np.array([[0, 1, 2], [2, 3, 0]]), offset=(1, 2))
+    raw = rng.normal(20, 4, (300, 301)).astype(np.float32)
+    dq = (rng.random(raw.shape) < 0.3).astype(DQ_DTYPE) * DQ.HOT
+    for flags in (dq, None):
+        p = prepare(raw, mosaic, flags)
+        got = p.samples_of([3, 0, 2])
+        for b, v in zip([3, 0, 2], got):
+            ph, pw = mosaic.tile_shape
+            want = [raw[r::ph, c::pw][(flags[r::ph, c::pw] == 0) if flags is not None
+                                      else np.ones_like(raw[r::ph, c::pw], bool)]
+                    for r, c in p.lattices()[b]]
+            assert np.array_equal(v, np.concatenate(want))

@@ -22,7 +22,7 @@ from numba import njit, prange
 
 from .launch import JIT_OPTIONS, Kernel
 
-__all__ = ["split_lattices", "tent_sums", "wide_column_sums"]
+__all__ = ["band_samples", "split_lattices", "tent_sums", "wide_column_sums"]
 
 _JIT = {**JIT_OPTIONS, "cache": False}
 _ALL = np.uint32(0xFFFFFFFF)
@@ -50,6 +50,25 @@ def _split_loop(raw, dq, ppi, use_ppi, lat_r, lat_c, ph, pw, lr, lf, lp):
 
 
 split_lattices = Kernel(_split_loop, 8)
+
+
+def _samples_loop(raw, dq, has_dq, lat_r, lat_c, lat_start, bands, ph, pw, out, counts):
+    """The usable samples of band ``bands[i]`` (every sample of its lattices whose DQ is 0,
+    or every sample without ``dq``) into ``out[i, :counts[i]]``, lattice by lattice in row
+    order; parallel over the bands (one strided pass each, listed branch-free)."""
+    H, W = raw.shape
+    for i in prange(bands.shape[0]):
+        b = bands[i]
+        n = 0
+        for j in range(lat_start[b], lat_start[b + 1]):
+            for y in range(lat_r[j], H, ph):
+                for x in range(lat_c[j], W, pw):
+                    out[i, n] = raw[y, x]
+                    n += (dq[y, x] == 0) if has_dq else 1
+        counts[i] = n
+
+
+band_samples = Kernel(_samples_loop, 9)
 
 
 @njit(**_JIT)
