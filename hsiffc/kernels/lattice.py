@@ -25,6 +25,7 @@ from .launch import JIT_OPTIONS, Kernel
 __all__ = ["band_samples", "split_lattices", "tent_sums", "wide_column_sums"]
 
 _JIT = {**JIT_OPTIONS, "cache": False}
+_INL = {**_JIT, "inline": "always"}
 _ALL = np.uint32(0xFFFFFFFF)
 
 
@@ -108,6 +109,13 @@ def tent_sums(raw, dq, has_dq, ppi, level, use_ppi, y, x, lat_r, lat_c, j0, j1, 
     return n, r, d, flags
 
 
+@njit(**_INL)
+def _usable(wa, wb, wc, wd, fa, fb, fc, fd):
+    """The weights of four samples, each 0 where its flags are not (branch-free)."""
+    return (wa * np.float64(fa == 0), wb * np.float64(fb == 0), wc * np.float64(fc == 0),
+            wd * np.float64(fd == 0))
+
+
 @njit(**_JIT)
 def wide_column_sums(lr, lf, lp, use_ppi, level, j, y, H, W, lat_r, lat_c, ph, pw, rows, wts,
                      wnum, wraw, wden, cfl):
@@ -133,10 +141,7 @@ def wide_column_sums(lr, lf, lp, use_ppi, level, j, y, H, W, lat_r, lat_c, ph, p
     fa, fb, fc, fd = lf[j, rows[0]], lf[j, rows[1]], lf[j, rows[2]], lf[j, rows[3]]
     ra, rb, rc, rd = lr[j, rows[0]], lr[j, rows[1]], lr[j, rows[2]], lr[j, rows[3]]
     for k in range(nk):
-        ga = wa * np.float64(fa[k] == 0)
-        gb = wb * np.float64(fb[k] == 0)
-        gc = wc * np.float64(fc[k] == 0)
-        gd = wd * np.float64(fd[k] == 0)
+        ga, gb, gc, gd = _usable(wa, wb, wc, wd, fa[k], fb[k], fc[k], fd[k])
         wraw[k + 2] = (ga * np.float64(ra[k]) + gb * np.float64(rb[k])
                        + gc * np.float64(rc[k]) + gd * np.float64(rd[k]))
         wden[k + 2] = ga + gb + gc + gd
@@ -144,10 +149,7 @@ def wide_column_sums(lr, lf, lp, use_ppi, level, j, y, H, W, lat_r, lat_c, ph, p
     if use_ppi:
         pa, pb, pc, pd = lp[j, rows[0]], lp[j, rows[1]], lp[j, rows[2]], lp[j, rows[3]]
         for k in range(nk):
-            ga = wa * np.float64(fa[k] == 0)
-            gb = wb * np.float64(fb[k] == 0)
-            gc = wc * np.float64(fc[k] == 0)
-            gd = wd * np.float64(fd[k] == 0)
+            ga, gb, gc, gd = _usable(wa, wb, wc, wd, fa[k], fb[k], fc[k], fd[k])
             wnum[k + 2] = (ga * (np.float64(ra[k]) - level * pa[k])
                            + gb * (np.float64(rb[k]) - level * pb[k])
                            + gc * (np.float64(rc[k]) - level * pc[k])
