@@ -73,7 +73,9 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
     amaxA = np.empty((pw, nK), np.float32)
     todo = np.empty(W, np.int64)
     cand = np.empty(nk_max, np.int64)
-    bad_x = np.empty(W, np.int64)
+    bad_x = np.empty(W, np.int64)  # PPI undefined: column, its phase and block
+    bad_q = np.empty(W, np.int64)
+    bad_k = np.empty(W, np.int64)
     # S2's column sums and the OR of the flags of S1's rows per lattice column, padded by
     # two columns of zeros on each side (index k + 2 holds column k)
     wnum = np.zeros((n_lat, nk_max + 4))
@@ -97,6 +99,8 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
             for x in range(W):
                 if not ppi_ok[y, x]:
                     bad_x[n_bad] = x
+                    bad_q[n_bad] = x % pw
+                    bad_k[n_bad] = x // pw
                     n_bad += 1
         for b in range(B):
             level = levels[b]
@@ -214,7 +218,7 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
                         cube_dq[y, xs, b] = dq[y, xs]
             for i in range(n_bad):  # PPI undefined, S1 not empty: the plain bilinear value
                 x = bad_x[i]
-                if denA[x % pw, x // pw] > EPS:
+                if denA[bad_q[i], bad_k[i]] > EPS:
                     _, r1s, d1, _ = tent_sums(raw, dq, has_dq, ppi, level, False, y, x,
                                                lat_r, lat_c, j0, j1, ph, pw, 1)
                     row_v[b, x] = r1s / d1
