@@ -40,7 +40,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..dq import DQ
-from .lattice import split_lattices, tent_sums, wide_column_sums
+from .lattice import lattice_arrays, split_lattices, tent_sums, wide_column_sums
 from .launch import JIT_OPTIONS, Kernel
 
 __all__ = ["EPS", "interpolate_bands"]
@@ -353,9 +353,7 @@ def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, per
     """
     H, W = raw.shape
     dummy_f = np.zeros((1, 1), np.float32)
-    lat_r = np.array([r for lat in lattices for r, _ in lat], np.int64)
-    lat_c = np.array([c for lat in lattices for _, c in lat], np.int64)
-    lat_start = np.cumsum([0] + [len(lat) for lat in lattices]).astype(np.int64)
+    lat_r, lat_c, lat_start = lattice_arrays(lattices)
     missing_rows = np.zeros((H, len(lattices)), np.bool_)
     if ppi is not None and ppi_ok is None:
         ppi_ok = np.ones((H, W), np.bool_)

@@ -22,11 +22,22 @@ from numba import njit, prange
 
 from .launch import JIT_OPTIONS, Kernel
 
-__all__ = ["band_samples", "split_lattices", "tent_sums", "wide_column_sums"]
+__all__ = ["band_samples", "lattice_arrays", "split_lattices", "tent_sums",
+           "wide_column_sums"]
 
 _JIT = {**JIT_OPTIONS, "cache": False}
 _INL = {**_JIT, "inline": "always"}
 _ALL = np.uint32(0xFFFFFFFF)
+
+
+def lattice_arrays(lattices):
+    """``(lat_r, lat_c, lat_start)`` (int64) of per-band lattice lists (``lattices[b]``: the
+    first sample (row, col) of each position of band ``b`` in the tile): the lattices of band
+    ``b`` are ``lat_start[b]:lat_start[b + 1]``, as the kernels take them."""
+    lat_r = np.array([r for lat in lattices for r, _ in lat], np.int64)
+    lat_c = np.array([c for lat in lattices for _, c in lat], np.int64)
+    lat_start = np.cumsum([0] + [len(lat) for lat in lattices]).astype(np.int64)
+    return lat_r, lat_c, lat_start
 
 
 def _split_loop(raw, dq, ppi, use_ppi, lat_r, lat_c, ph, pw, lr, lf, lp):

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..dq import DQ, DQ_DTYPE
 from ..kernels.demosaic import EPS
-from ..kernels.lattice import band_samples
+from ..kernels.lattice import band_samples, lattice_arrays
 from ..kernels.ppi import ppi_image
 from ..mosaic import Mosaic
 
@@ -158,11 +158,8 @@ class Prepared:
                 for b in bands]
         out = np.empty((len(bands), max(size, default=0)), np.float32)
         counts = np.zeros(len(bands), np.int64)
-        lat_start = np.cumsum([0] + [len(lat) for lat in lats])
         band_samples(self.raw, np.zeros((1, 1), DQ_DTYPE) if self.dq is None else self.dq,
-                     self.dq is not None, np.array([r for lat in lats for r, _ in lat], np.int64),
-                     np.array([c for lat in lats for _, c in lat], np.int64),
-                     lat_start.astype(np.int64), bands, ph, pw, out, counts)
+                     self.dq is not None, *lattice_arrays(lats), bands, ph, pw, out, counts)
         return [out[i, :n] for i, n in enumerate(counts)]
 
 
