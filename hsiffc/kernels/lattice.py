@@ -9,7 +9,7 @@ contiguous vector, which LLVM vectorises, where the frame holds it every ``pw``-
 
 On the benchmark frame (2048 x 1088, a 2 x 4 mosaic, 23 % of its pixels flagged) this made
 the sums of the twice-wide tent (S2) over every column of a row cheaper than the former
-per-value sums over the strided frame (one thread, bilinear: about 44 -> 8 ms). The split
+per-value sums over the strided frame (one thread, bilinear: about 44 -> 8-13 ms). The split
 itself takes 3.4 ms on two threads into planes already in memory, 5.4 ms into fresh ones
 (median wall time). Only frames with flagged samples are split: without flags S2 is never
 needed.
