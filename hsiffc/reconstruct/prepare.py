@@ -75,7 +75,7 @@ class Prepared:
         where the input was not finite
     mosaic : Mosaic
     medians : dict of int -> float
-        The band medians computed so far (:func:`band_median` fills it).
+        The band medians computed so far (:func:`band_medians` fills it).
     """
 
     def __init__(self, raw: np.ndarray, dq: np.ndarray | None, mosaic: Mosaic):
@@ -238,14 +238,14 @@ def band_median(p: Prepared, b: int) -> float:
     float
         In the unit of the frame.
     """
-    if b not in p.medians:  # PPID's band levels and the no-source fill share them
-        p.medians[b] = _median_in_place(p.band_samples(b))
-    return p.medians[b]
+    return float(band_medians(p, [b])[0])
 
 
 def band_medians(p: Prepared, bands) -> np.ndarray:
-    """:func:`band_median` of each band in ``bands``: the samples of the bands not cached yet
-    gathered in one compiled pass (:meth:`Prepared.samples_of`), then their medians.
+    """The median of the usable samples of each band in ``bands`` (0 for a band with none),
+    cached in ``p.medians`` (PPID's band levels and the no-source fill share them). The
+    samples of the bands not cached yet are gathered in one compiled pass
+    (:meth:`Prepared.samples_of`), then their medians taken one after another.
 
     Parameters
     ----------
