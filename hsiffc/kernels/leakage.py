@@ -128,13 +128,16 @@ def _response_block(t, k, a, b, d, out):
         out[i] = y if ok else np.nan
     negative = 0
     b_bad = 0
+    failed = 0  # counted beside the domain, so that a block with none skips the repair scan
     for i in range(out.shape[0]):
         negative += (np.int64(at(t, i) < 0.0) | np.int64(at(k, i) < 0.0)
                      | np.int64(at(a, i) < 0.0))
         b_bad += np.int64(at(b, i) <= 0.0)
-    for i in range(out.shape[0]):
-        if out[i] != out[i]:
-            out[i] = response_robust(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
+        failed += np.int64(out[i] != out[i])
+    if failed:
+        for i in range(out.shape[0]):
+            if out[i] != out[i]:
+                out[i] = response_robust(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
     return negative, b_bad
 
 
