@@ -119,6 +119,20 @@ def test_response_parallel_and_serial_builds_agree_exactly():
     assert np.array_equal(out_p, out_s)
 
 
+def test_response_kernel_equals_the_per_point_function_bit_for_bit():
+    # the kernel runs the fast form's two halves in separate loops; other compiled code calls
+    # response_point, which must give the same bits (promised in hsiffc.kernels.leakage)
+    k, a, b, d = _frame(n=3000, seed=7)
+    extreme = np.array([[0.0, 1e-300, 0.5, 1.5e3], [1e3, 0.0, 0.05, 10.0],
+                        [2.0, 1e-3, 1.0, -800.0], [50.0, 1e-12, 0.05, 5e3]])
+    k, a, b, d = (np.concatenate([v, extreme[:, i]]) for i, v in enumerate((k, a, b, d)))
+    for t in (0.5, 25.0, 2000.0):
+        out = np.empty(k.size)
+        leakage.response_kernel.serial(t, k, a, b, d, out)
+        point = np.array([leakage.response_point(t, *v) for v in zip(k, a, b, d)])
+        assert np.array_equal(out, point)
+
+
 @pytest.mark.parametrize("case,repaired", [
     (dict(t=1e4, k=0.0, a=1e-300, b=0.5, d=1.5e3), True),  # both terms below 1e-290
     (dict(t=1e6, k=1e3, a=0.0, b=0.05, d=10.0), True),  # a = 0 with b k t far beyond 745
