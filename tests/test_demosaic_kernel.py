@@ -17,7 +17,8 @@ from hsiffc.kernels.demosaic import interpolate_bands
 from hsiffc.kernels.lattice import split_lattices
 from hsiffc.mosaic import Mosaic
 from hsiffc.reconstruct import demosaic, ppi_kernel, reconstruct_alpha
-from hsiffc.reconstruct.prepare import Prepared, band_levels, prepare, pseudo_panchromatic
+from hsiffc.reconstruct.prepare import (Prepared, band_levels, periodic_index, prepare,
+                                        pseudo_panchromatic)
 
 
 # -- the reference (OpenCV filters on zero-filled planes) --------------------------------------
@@ -138,6 +139,36 @@ def test_a_band_without_any_usable_sample_takes_the_median_and_do_not_use():
         assert np.allclose(cube, ref, rtol=2e-6, atol=1e-3)
         assert np.array_equal(cube_dq, ref_dq)
         assert np.all(cube_dq[:, :, 3] & DQ.DO_NOT_USE) and np.all(cube[:, :, 3] == 0)
+
+
+@pytest.mark.parametrize("ph,pw", [(1, 1), (2, 4), (3, 3), (5, 5), (4, 2), (6, 7), (2, 8)])
+@pytest.mark.parametrize("shape", [(37, 53), (3, 5)])
+def test_ppi_equals_separable_sums_in_numpy_bit_for_bit(ph, pw, shape):
+    # the kernel writes the 3- and 5-tap window sums out and loops over the taps for other
+    # sizes (1, 7, 9 taps here); each must give the sums of a frame-wide float64 horizontal
+    # pass then a vertical one, taps in order, on the frame extended by whole tiles
+    mosaic = Mosaic(np.arange(ph * pw).reshape(ph, pw), offset=(1 % ph, 2 % pw))
+    raw = np.random.default_rng(ph * 10 + pw).uniform(-20.0, 900.0, shape).astype(np.float32)
+    p = prepare(raw, mosaic, None)
+    levels = band_levels(p)
+    ppi, ok = pseudo_panchromatic(p, levels)
+    inv = (1.0 / np.asarray(levels, np.float64)).astype(np.float32)
+    vals = (raw * inv[mosaic.band_map(shape)]).astype(np.float64)  # float32 product, as kernel
+    kx, ky = ppi_kernel(pw).astype(np.float64), ppi_kernel(ph).astype(np.float64)
+    rows = periodic_index(shape[0], ph, ky.size // 2)
+    cols = periodic_index(shape[1], pw, kx.size // 2)
+    hn = np.zeros((rows.size, shape[1]))
+    hd = np.zeros((rows.size, shape[1]))
+    for t in range(kx.size):
+        hn = hn + kx[t] * vals[rows][:, cols[t:t + shape[1]]]
+        hd = hd + kx[t] * 1.0
+    n = np.zeros(shape)
+    d = np.zeros(shape)
+    for t in range(ky.size):
+        n = n + ky[t] * hn[t:t + shape[0]]
+        d = d + ky[t] * hd[t:t + shape[0]]
+    assert ok is None
+    assert np.array_equal(ppi.view(np.uint32), (n / d).astype(np.float32).view(np.uint32))
 
 
 def test_unflagged_ppi_shortcut_equals_the_weighted_path():
