@@ -137,7 +137,9 @@ def _window_block(blk, vals, wts, rows, cols, kx, ky, my, mx, ppi, ok):
     Windows of 3 and 5 taps (periods 2 to 5: the usual mosaics) are written out, one value
     per iteration with its taps in registers (vectorised): 16.6 -> 5.2 ms of one thread for
     the window sums of a 2048 x 1088 frame with a 2 x 4 tile, same bits. Other sizes take a
-    loop per tap that adds into the row (tap outer, pixel inner)."""
+    loop per tap that adds into the row (tap outer, pixel inner), indexed from the first
+    interior pixel (an index below zero would keep numba's wraparound in the loop: 9 taps,
+    one thread, 8 x 8 tile, the whole PPI 42.5 -> 20.0 ms)."""
     H, W = vals.shape
     y0 = blk * _ROWS
     y1 = min(H, y0 + _ROWS)
@@ -180,15 +182,17 @@ def _window_block(blk, vals, wts, rows, cols, kx, ky, my, mx, ppi, ok):
                 hd[x] = _dot3(k0, k1, k2, np.float64(wr[x - 1]), np.float64(wr[x]),
                               np.float64(wr[x + 1]))
         else:
-            hn[mx:W - mx] = 0.0
-            hd[mx:W - mx] = 0.0
+            hn_i = hn[mx:W - mx]  # x = mx + i: no index below zero to wrap around
+            hd_i = hd[mx:W - mx]
+            hn_i[:] = 0.0
+            hd_i[:] = 0.0
             for t in range(nx):
                 w = kx[t]
                 vt = vals[r, t:]
                 wt = wts[r, t:]
-                for x in range(mx, W - mx):
-                    hn[x] += w * np.float64(vt[x - mx])
-                    hd[x] += w * np.float64(wt[x - mx])
+                for i in range(hn_i.size):
+                    hn_i[i] += w * np.float64(vt[i])
+                    hd_i[i] += w * np.float64(wt[i])
     ny = ky.size
     g0, g1, g2, g3, g4 = (ky[0], ky[1], ky[2], ky[3], ky[4]) if ny == 5 else (
         (ky[0], ky[1], ky[2], 0.0, 0.0) if ny == 3 else (0.0, 0.0, 0.0, 0.0, 0.0))
