@@ -52,13 +52,20 @@ def _split_loop(raw, dq, ppi, use_ppi, lat_r, lat_c, ph, pw, lr, lf, lp):
                 continue
             i = (ys - lat_r[j]) // ph
             c0 = lat_c[j]
-            for k in range((W - c0 + pw - 1) // pw):
-                lr[j, i, k] = raw[ys, c0 + k * pw]
-            for k in range((W - c0 + pw - 1) // pw):
-                lf[j, i, k] = dq[ys, c0 + k * pw]
+            # strided views indexed from 0: no index numba must check for wraparound
+            src = raw[ys, c0::pw]
+            dst = lr[j, i]
+            for k in range(src.size):
+                dst[k] = src[k]
+            fsrc = dq[ys, c0::pw]
+            fdst = lf[j, i]
+            for k in range(fsrc.size):
+                fdst[k] = fsrc[k]
             if use_ppi:
-                for k in range((W - c0 + pw - 1) // pw):
-                    lp[j, i, k] = ppi[ys, c0 + k * pw]
+                psrc = ppi[ys, c0::pw]
+                pdst = lp[j, i]
+                for k in range(psrc.size):
+                    pdst[k] = psrc[k]
 
 
 split_lattices = Kernel(_split_loop, 8)
