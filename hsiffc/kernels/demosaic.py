@@ -134,21 +134,24 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
                             g1 = w1 if F1[k] == 0 else 0.0
                             vnum[k + 1] = g0 * np.float64(R0[k]) + g1 * np.float64(R1[k])
                             vden[k + 1] = g0 + g1
-                else:
+                elif nk > 0:  # strided views indexed from 0 (no wraparound check)
+                    V0, V1 = raw[r0, c0::pw], raw[r1, c0::pw]
+                    if use_ppi:
+                        P0, P1 = ppi[r0, c0::pw], ppi[r1, c0::pw]
+                        for k in range(nk):
+                            v0 = np.float64(V0[k]) - level * P0[k]
+                            v1 = np.float64(V1[k]) - level * P1[k]
+                            vnum[k + 1] = w0 * v0 + w1 * v1
+                            vden[k + 1] = w0 + w1
+                    else:
+                        for k in range(nk):
+                            vnum[k + 1] = w0 * np.float64(V0[k]) + w1 * np.float64(V1[k])
+                            vden[k + 1] = w0 + w1
+                if has_alpha and nk > 0:
+                    A0, A1 = alpha[r0, c0::pw], alpha[r1, c0::pw]
                     for k in range(nk):
-                        xs = c0 + k * pw
-                        v0 = np.float64(raw[r0, xs])
-                        v1 = np.float64(raw[r1, xs])
-                        if use_ppi:
-                            v0 -= level * ppi[r0, xs]
-                            v1 -= level * ppi[r1, xs]
-                        vnum[k + 1] = w0 * v0 + w1 * v1
-                        vden[k + 1] = w0 + w1
-                if has_alpha:
-                    for k in range(nk):
-                        xs = c0 + k * pw
-                        a0 = alpha[r0, xs] if w0 > 0.0 else _NEG
-                        a1 = alpha[r1, xs] if w1 > 0.0 else _NEG
+                        a0 = A0[k] if w0 > 0.0 else _NEG
+                        a1 = A1[k] if w1 > 0.0 else _NEG
                         vmax[k + 1] = max(a0, a1)
                 vnum[0] = 0.0
                 vden[0] = 0.0
@@ -195,21 +198,28 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
                 na = numA[qa]
                 for K in range(nKq):
                     na[K] = na[K] / denA[qa, K]
-                for K in range(nKq):
-                    x = K * pw + qa
-                    est = na[K]
-                    if use_ppi:
-                        est += level * ppi[y, x]
-                    row_v[b, x] = est
+                out_v = row_v[b, qa::pw]  # strided views indexed from 0, as above
+                if use_ppi:
+                    ppi_q = ppi[y, qa::pw]
+                    for K in range(nKq):
+                        out_v[K] = na[K] + level * ppi_q[K]
+                else:
+                    for K in range(nKq):
+                        out_v[K] = na[K]
             if has_alpha:
                 for qa in range(pw):
                     nKq = (W - qa + pw - 1) // pw
-                    for K in range(nKq):
-                        x = K * pw + qa
-                        a = amaxA[qa, K]
-                        if has_common:
-                            a = max(a, common[y, x])
-                        row_a[b, x] = a if a > _NEG else 0.0
+                    ma = amaxA[qa]
+                    out_a = row_a[b, qa::pw]
+                    if has_common:
+                        common_q = common[y, qa::pw]
+                        for K in range(nKq):
+                            a = max(ma[K], common_q[K])
+                            out_a[K] = a if a > _NEG else 0.0
+                    else:
+                        for K in range(nKq):
+                            a = ma[K]
+                            out_a[K] = a if a > _NEG else 0.0
             if not has_dq:  # then every S1 holds a usable sample and the PPI is defined
                 continue
             for j in range(j0, j1):  # the samples' own flags at their sites
