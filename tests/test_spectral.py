@@ -456,7 +456,11 @@ def test_minimal_xml_parses_in_position_order(tmp_path):
     ("short", _xml(n_samples=10), "10 samples"),
     ("wrong_root", _xml(root="camera"), "sensor_calibration"),
     ("bad_number", _xml().replace("<width>64</width>", "<width>wide</width>"), "sensor_info/width"),
-], ids=["not_xml", "no_pattern", "short", "wrong_root", "bad_number"])
+    # "²" passes str.isdigit but not int(): the reader must still say which element is bad
+    ("superscript_index", _xml().replace('pattern_position_index="2"',
+                                         'pattern_position_index="\u00b2"'),
+     "pattern_position_index"),
+], ids=["not_xml", "no_pattern", "short", "wrong_root", "bad_number", "superscript_index"])
 def test_bad_xml_raises_data_format_error(tmp_path, case, content, needle):
     p = tmp_path / f"{case}.xml"
     p.write_text(content)
@@ -464,6 +468,16 @@ def test_bad_xml_raises_data_format_error(tmp_path, case, content, needle):
         read_imec_xml(p)
     assert str(p) in str(exc.value) and needle in str(exc.value)
     assert exc.value.path == str(p)
+
+
+def test_non_numeric_element_count_is_ignored_not_a_crash(tmp_path):
+    # nr_elements is only cross-checked when it is a number; "²" passes str.isdigit but not
+    # int(), and used to escape as a bare ValueError
+    odd, plain = tmp_path / "count.xml", tmp_path / "plain.xml"
+    odd.write_text(_xml().replace('nr_elements="4"', 'nr_elements="\u00b2"'))
+    plain.write_text(_xml())
+    assert (read_imec_xml(odd).mosaic().pattern.tolist()
+            == read_imec_xml(plain).mosaic().pattern.tolist())
 
 
 def test_missing_xml_file(tmp_path):

@@ -178,7 +178,7 @@ class _Reader:
         except ValueError:
             self.fail(f"<{where}/data> is not a comma-separated list of numbers")
         declared = elem.get("nr_elements")
-        if declared is not None and declared.strip().isdigit() and int(declared) != v.size:
+        if declared is not None and declared.strip().isdecimal() and int(declared) != v.size:
             self.fail(f"<{where}> has {v.size} samples but declares nr_elements={declared}")
         if n_expected is not None and v.size != n_expected:
             self.fail(f"<{where}> has {v.size} samples, expected {n_expected}")
@@ -287,7 +287,7 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
     by_pos: dict[int, ET.Element] = {}
     for i, b in enumerate(band_elems):
         s = b.get("pattern_position_index")
-        if s is None or not s.strip().isdigit():
+        if s is None or not s.strip().isdecimal():
             rd.fail(f"<bands/band> #{i} lacks a valid pattern_position_index attribute")
         pos = int(s)
         if pos >= n_bands or pos in by_pos:
