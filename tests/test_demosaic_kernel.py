@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from hsiffc.dq import DQ, DQ_DTYPE
 from hsiffc.kernels import launch
+from hsiffc.kernels import ppi as ppi_kernels
 from hsiffc.kernels.demosaic import interpolate_bands
 from hsiffc.kernels.lattice import split_lattices
 from hsiffc.mosaic import Mosaic
@@ -169,6 +170,21 @@ def test_ppi_equals_separable_sums_in_numpy_bit_for_bit(ph, pw, shape):
         d = d + ky[t] * hd[t:t + shape[0]]
     assert ok is None
     assert np.array_equal(ppi.view(np.uint32), (n / d).astype(np.float32).view(np.uint32))
+
+
+@pytest.mark.parametrize("ph,pw,shape", [(2, 4, (9, 21)), (5, 5, (12, 13)), (3, 2, (4, 3))])
+def test_ppi_neighbour_sums_pixel_by_pixel_equal_the_row_form(ph, pw, shape):
+    # rows with few flagged pixels take their neighbour sums pixel by pixel, others the whole
+    # row: both must give the same bits at every pixel, frame edges included
+    rng = np.random.default_rng(ph + pw)
+    raw = rng.uniform(-5.0, 900.0, shape).astype(np.float32)
+    dq = (rng.random(shape) < 0.4).astype(DQ_DTYPE) * DQ_DTYPE(DQ.LEAKAGE)
+    for y in range(shape[0]):
+        acc, wsum = np.empty(shape[1]), np.empty(shape[1])
+        ppi_kernels._neighbour_sums(raw, dq, y, ph, pw, acc, wsum)
+        one = np.array([ppi_kernels._pixel_neighbour_sums(raw, dq, y, x, ph, pw)
+                        for x in range(shape[1])])
+        assert np.array_equal(one[:, 0], acc) and np.array_equal(one[:, 1], wsum)
 
 
 def test_unflagged_ppi_shortcut_equals_the_weighted_path():
