@@ -22,7 +22,7 @@ from numba import njit, prange
 
 from .launch import JIT_OPTIONS, Kernel
 
-__all__ = ["band_samples", "lattice_arrays", "split_lattices", "tent_sums",
+__all__ = ["band_samples", "lattice_arrays", "split_lattices", "tent_sums", "usable_weight",
            "wide_column_sums"]
 
 _JIT = {**JIT_OPTIONS, "cache": False}
@@ -128,10 +128,16 @@ def tent_sums(raw, dq, has_dq, ppi, level, use_ppi, y, x, lat_r, lat_c, j0, j1, 
 
 
 @njit(**_INL)
+def usable_weight(w, f):
+    """A sample's weight ``w`` where its flags ``f`` are 0, else 0 (branch-free)."""
+    return w * np.float64(f == 0)
+
+
+@njit(**_INL)
 def _usable(wa, wb, wc, wd, fa, fb, fc, fd):
     """The weights of four samples, each 0 where its flags are not (branch-free)."""
-    return (wa * np.float64(fa == 0), wb * np.float64(fb == 0), wc * np.float64(fc == 0),
-            wd * np.float64(fd == 0))
+    return (usable_weight(wa, fa), usable_weight(wb, fb), usable_weight(wc, fc),
+            usable_weight(wd, fd))
 
 
 @njit(**_JIT)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from .lattice import usable_weight
 from .launch import JIT_OPTIONS, Kernel
 
 __all__ = ["ppi_image"]
@@ -99,7 +100,7 @@ def _neighbour_sums(raw, dq, y, ph, pw, acc, wsum):
             dx = (tx - 1) * pw
             if dy == 0 and dx == 0:
                 continue
-            wt = 0.25 if (dy != 0 and dx != 0) else 0.5
+            wt = _neighbour_weight(dy, dx)
             x_lo = max(0, -dx)
             x_hi = min(W, W - dx)
             if x_hi <= x_lo:  # a frame narrower than the tile: no such neighbour
@@ -117,17 +118,25 @@ def _pixel_neighbour_sums(raw, dq, y, x, ph, pw):
     acc = 0.0
     wsum = 0.0
     for ty in range(3):
-        ny = y + (ty - 1) * ph
+        dy = (ty - 1) * ph
+        ny = y + dy
         if ny < 0 or ny >= H:
             continue
         for tx in range(3):
-            nx = x + (tx - 1) * pw
-            if (ty == 1 and tx == 1) or nx < 0 or nx >= W:
+            dx = (tx - 1) * pw
+            nx = x + dx
+            if (dy == 0 and dx == 0) or nx < 0 or nx >= W:
                 continue
-            g = (0.25 if (ty != 1 and tx != 1) else 0.5) * np.float64(dq[ny, nx] == 0)
+            g = usable_weight(_neighbour_weight(dy, dx), dq[ny, nx])
             acc += g * raw[ny, nx]
             wsum += g
     return acc, wsum
+
+
+@njit(**_INL)
+def _neighbour_weight(dy, dx):
+    """The tent weight of a same-band neighbour one tile away: 1/4 diagonal, 1/2 straight."""
+    return 0.25 if (dy != 0 and dx != 0) else 0.5
 
 
 @njit(**_JIT)
@@ -136,7 +145,7 @@ def _add_neighbour(acc, wsum, r, f, wt):
     its own: the same loop inline was not vectorised and ran 3 x slower than the per-pixel
     branches it replaces)."""
     for i in range(acc.shape[0]):
-        g = wt * np.float64(f[i] == 0)
+        g = usable_weight(wt, f[i])
         acc[i] += g * r[i]
         wsum[i] += g
 
@@ -152,6 +161,15 @@ def _dot3(k0, k1, k2, v0, v1, v2):
 def _dot5(k0, k1, k2, k3, k4, v0, v1, v2, v3, v4):
     """The five-tap window sum, in the same order as :func:`_dot3`."""
     return (_dot3(k0, k1, k2, v0, v1, v2) + k3 * v3) + k4 * v4
+
+
+@njit(**_INL)
+def _taps(k):
+    """The taps of a 3- or 5-tap window as five scalars for :func:`_dot3` / :func:`_dot5`
+    (zeros past the end, all zeros for other sizes, which do not use them)."""
+    n = k.size
+    return ((k[0], k[1], k[2], k[3], k[4]) if n == 5 else
+            ((k[0], k[1], k[2], 0.0, 0.0) if n == 3 else (0.0, 0.0, 0.0, 0.0, 0.0)))
 
 
 @njit(**_JIT)
@@ -174,8 +192,7 @@ def _window_block(blk, vals, wts, rows, cols, kx, ky, my, mx, ppi, ok):
     hnum = np.empty((n_in, W))
     hden = np.empty((n_in, W))
     nx = kx.size
-    k0, k1, k2, k3, k4 = (kx[0], kx[1], kx[2], kx[3], kx[4]) if nx == 5 else (
-        (kx[0], kx[1], kx[2], 0.0, 0.0) if nx == 3 else (0.0, 0.0, 0.0, 0.0, 0.0))
+    k0, k1, k2, k3, k4 = _taps(kx)
     n_left = min(mx, W)
     right = max(W - mx, mx)
     for i in range(n_in):  # horizontal sums of the input rows the block's windows reach
@@ -221,8 +238,7 @@ def _window_block(blk, vals, wts, rows, cols, kx, ky, my, mx, ppi, ok):
                     hn_i[i] += w * np.float64(vt[i])
                     hd_i[i] += w * np.float64(wt[i])
     ny = ky.size
-    g0, g1, g2, g3, g4 = (ky[0], ky[1], ky[2], ky[3], ky[4]) if ny == 5 else (
-        (ky[0], ky[1], ky[2], 0.0, 0.0) if ny == 3 else (0.0, 0.0, 0.0, 0.0, 0.0))
+    g0, g1, g2, g3, g4 = _taps(ky)
     n = np.empty(W)
     d = np.empty(W)
     for y in range(y0, y1):  # vertical sums and the ratio
