@@ -179,10 +179,11 @@ def test_ppi_neighbour_sums_pixel_by_pixel_equal_the_row_form(ph, pw, shape):
     rng = np.random.default_rng(ph + pw)
     raw = rng.uniform(-5.0, 900.0, shape).astype(np.float32)
     dq = (rng.random(shape) < 0.4).astype(DQ_DTYPE) * DQ_DTYPE(DQ.LEAKAGE)
+    offs = ppi_kernels.neighbour_offsets(ph, pw)
     for y in range(shape[0]):
         acc, wsum = np.empty(shape[1]), np.empty(shape[1])
-        ppi_kernels._neighbour_sums(raw, dq, y, ph, pw, acc, wsum)
-        one = np.array([ppi_kernels._pixel_neighbour_sums(raw, dq, y, x, ph, pw)
+        ppi_kernels._neighbour_sums(raw, dq, y, offs, acc, wsum)
+        one = np.array([ppi_kernels._pixel_neighbour_sums(raw, dq, y, x, offs)
                         for x in range(shape[1])])
         assert np.array_equal(one[:, 0], acc) and np.array_equal(one[:, 1], wsum)
 

@@ -26,7 +26,7 @@ from numba import njit, prange
 from .lattice import usable_weight
 from .launch import JIT_OPTIONS, Kernel
 
-__all__ = ["ppi_image"]
+__all__ = ["neighbour_offsets", "ppi_image"]
 
 _ROWS = 16  # output rows per parallel task of the window pass
 _JIT = {**JIT_OPTIONS, "cache": False}  # compiled into the cached kernel
@@ -43,6 +43,7 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
     ph, pw = band_of.shape
     vals = np.empty((H, W), np.float32)
     wts = np.empty((H, W), np.float32)
+    offs = neighbour_offsets(ph, pw)
     inv_row = np.empty((ph, W), np.float32)  # 1 / level of the band of every (row phase, x)
     for yph in range(ph):
         for x in range(W):
@@ -65,9 +66,9 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
         wsum = np.empty(W)
         if 8 * n_fl < W:  # a few flagged pixels: their own sums (same terms, same order)
             for i in range(n_fl):
-                acc[fl_x[i]], wsum[fl_x[i]] = _pixel_neighbour_sums(raw, dq, y, fl_x[i], ph, pw)
+                acc[fl_x[i]], wsum[fl_x[i]] = _pixel_neighbour_sums(raw, dq, y, fl_x[i], offs)
         else:  # many: the whole row, vectorised
-            _neighbour_sums(raw, dq, y, ph, pw, acc, wsum)
+            _neighbour_sums(raw, dq, y, offs, acc, wsum)
         for i in range(n_fl):
             x = fl_x[i]
             if wsum[x] > 0.0:
@@ -83,53 +84,57 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
 
 
 @njit(**_JIT)
-def _neighbour_sums(raw, dq, y, ph, pw, acc, wsum):
-    """For every pixel of row ``y``: the tent-weighted sum of its usable same-band neighbours
-    one tile away (8 of them, 1/4 diagonal, 1/2 straight) and their weight. One contiguous
-    (vectorised) loop per neighbour, every pixel of the row, in the order of a per-pixel loop
-    over the neighbours; a flagged or outside neighbour adds exactly 0."""
-    H, W = raw.shape
-    acc[:] = 0.0
-    wsum[:] = 0.0
+def neighbour_offsets(ph, pw):
+    """(8, 2) int64: the (dy, dx) of a pixel's same-band neighbours one tile away, in the
+    order their terms are summed (row above, own row, row below; left to right)."""
+    offs = np.empty((8, 2), np.int64)
+    n = 0
     for ty in range(3):
-        dy = (ty - 1) * ph
-        ny = y + dy
-        if ny < 0 or ny >= H:
-            continue
         for tx in range(3):
-            dx = (tx - 1) * pw
-            if dy == 0 and dx == 0:
-                continue
-            wt = _neighbour_weight(dy, dx)
-            x_lo = max(0, -dx)
-            x_hi = min(W, W - dx)
-            if x_hi <= x_lo:  # a frame narrower than the tile: no such neighbour
-                continue
-            _add_neighbour(acc[x_lo:x_hi], wsum[x_lo:x_hi], raw[ny, x_lo + dx:x_hi + dx],
-                           dq[ny, x_lo + dx:x_hi + dx], wt)
+            if ty != 1 or tx != 1:
+                offs[n, 0] = (ty - 1) * ph
+                offs[n, 1] = (tx - 1) * pw
+                n += 1
+    return offs
 
 
 @njit(**_JIT)
-def _pixel_neighbour_sums(raw, dq, y, x, ph, pw):
+def _neighbour_sums(raw, dq, y, offs, acc, wsum):
+    """For every pixel of row ``y``: the tent-weighted sum of its usable same-band neighbours
+    ``offs`` (:func:`neighbour_offsets`; 1/4 diagonal, 1/2 straight) and their weight. One
+    contiguous (vectorised) loop per neighbour, every pixel of the row, in the order of a
+    per-pixel loop over the neighbours; a flagged or outside neighbour adds exactly 0."""
+    H, W = raw.shape
+    acc[:] = 0.0
+    wsum[:] = 0.0
+    for n in range(offs.shape[0]):
+        dy, dx = offs[n, 0], offs[n, 1]
+        ny = y + dy
+        x_lo = max(0, -dx)
+        x_hi = min(W, W - dx)
+        # outside the frame, or a frame narrower than the tile: no such neighbour
+        if ny < 0 or ny >= H or x_hi <= x_lo:
+            continue
+        _add_neighbour(acc[x_lo:x_hi], wsum[x_lo:x_hi], raw[ny, x_lo + dx:x_hi + dx],
+                       dq[ny, x_lo + dx:x_hi + dx], _neighbour_weight(dy, dx))
+
+
+@njit(**_JIT)
+def _pixel_neighbour_sums(raw, dq, y, x, offs):
     """:func:`_neighbour_sums` at one pixel ``(y, x)``: (sum, weight), the same terms added
     in the same order. For rows with few flagged pixels (under one in eight): one thread,
     2048 x 1088 frame with 1 % of its pixels flagged, the whole PPI 13.4 -> 9.3 ms."""
     H, W = raw.shape
     acc = 0.0
     wsum = 0.0
-    for ty in range(3):
-        dy = (ty - 1) * ph
-        ny = y + dy
-        if ny < 0 or ny >= H:
+    for n in range(offs.shape[0]):
+        dy, dx = offs[n, 0], offs[n, 1]
+        ny, nx = y + dy, x + dx
+        if ny < 0 or ny >= H or nx < 0 or nx >= W:
             continue
-        for tx in range(3):
-            dx = (tx - 1) * pw
-            nx = x + dx
-            if (dy == 0 and dx == 0) or nx < 0 or nx >= W:
-                continue
-            g = usable_weight(_neighbour_weight(dy, dx), dq[ny, nx])
-            acc += g * raw[ny, nx]
-            wsum += g
+        g = usable_weight(_neighbour_weight(dy, dx), dq[ny, nx])
+        acc += g * raw[ny, nx]
+        wsum += g
     return acc, wsum
 
 
