@@ -110,6 +110,14 @@ def test_readme_speed_table_follows_the_benchmark_json(tmp_path, monkeypatch):
     block = gen.readme_block()
     assert "| foundation | closed-form response | 250 Mpx/s |" in block
     assert "not measured yet" not in block
+    # a target not met points to the page's section whose notes say where the time goes
+    assert "time goes for each target not met" in block
+    assert "[foundation](docs/results/benchmarks.md#foundation)" in block
+    fig["met"] = True
+    (tmp_path / "benchmarks" / "benchmarks.json").write_text(__import__("json").dumps(
+        {"machine": {"cores": 2, "machine": "x86_64"},
+         "runs": {"bench_foundation": {"figures": [fig]}}}), encoding="utf-8")
+    assert "target not met" not in gen.readme_block()
 
 
 def test_readme_results_table_is_generated():

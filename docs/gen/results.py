@@ -344,6 +344,11 @@ def readme_block() -> str:
                   "| benchmark | figure | value | baseline (same run) | ratio | target | status |",
                   "|---|---|---|---|---|---|---|"]
         lines += ["| " + " | ".join(r) + " |" for r in speed]
+        missed = sorted({r[0] for r in speed if r[6] == "**not met**"})
+        if missed:  # the page's note of each figure says where its time goes
+            links = ", ".join(f"[{b}](docs/results/benchmarks.md#{b})" for b in missed)
+            lines += ["", f"Where the time goes for each target not met: the note of its figure "
+                      f"on the benchmarks page ({links})."]
     else:
         lines += ["Speed and memory: not measured yet for this version "
                   "([the benchmarks page](docs/results/benchmarks.md) says how to measure)."]
