@@ -143,11 +143,13 @@ def test_a_band_without_any_usable_sample_takes_the_median_and_do_not_use():
 
 
 @pytest.mark.parametrize("ph,pw", [(1, 1), (2, 4), (3, 3), (5, 5), (4, 2), (6, 7), (2, 8)])
-@pytest.mark.parametrize("shape", [(37, 53), (3, 5)])
+@pytest.mark.parametrize("shape", [(37, 53), (3, 5), (6, 1), (5, 3), (1, 6)])
 def test_ppi_equals_separable_sums_in_numpy_bit_for_bit(ph, pw, shape):
     # the kernel writes the 3- and 5-tap window sums out and loops over the taps for other
     # sizes (1, 7, 9 taps here); each must give the sums of a frame-wide float64 horizontal
-    # pass then a vertical one, taps in order, on the frame extended by whole tiles
+    # pass then a vertical one, taps in order, on the frame extended by whole tiles; frames
+    # narrower than half the window (1 and 3 columns) are all border columns, and a single
+    # row reaches every window row through the index map
     mosaic = Mosaic(np.arange(ph * pw).reshape(ph, pw), offset=(1 % ph, 2 % pw))
     raw = np.random.default_rng(ph * 10 + pw).uniform(-20.0, 900.0, shape).astype(np.float32)
     p = prepare(raw, mosaic, None)

@@ -198,8 +198,8 @@ def _window_block(blk, vals, wts, rows, cols, kx, ky, my, mx, ppi, ok):
     hden = np.empty((n_in, W))
     nx = kx.size
     k0, k1, k2, k3, k4 = _taps(kx)
-    n_left = min(mx, W)
-    right = max(W - mx, mx)
+    n_left = min(mx, W)  # border columns: [0, n_left) and [right, W)
+    right = max(W - mx, n_left)  # (a frame narrower than mx is all left border)
     for i in range(n_in):  # horizontal sums of the input rows the block's windows reach
         r = rows[y0 + i]
         hn = hnum[i]
