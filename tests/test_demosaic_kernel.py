@@ -184,8 +184,8 @@ def test_ppi_neighbour_sums_pixel_by_pixel_equal_the_row_form(ph, pw, shape):
     offs = ppi_kernels.neighbour_offsets(ph, pw)
     for y in range(shape[0]):
         acc, wsum = np.empty(shape[1]), np.empty(shape[1])
-        ppi_kernels._neighbour_sums(raw, dq, y, offs, acc, wsum)
-        one = np.array([ppi_kernels._pixel_neighbour_sums(raw, dq, y, x, offs)
+        ppi_kernels.row_neighbour_sums(raw, dq, y, offs, acc, wsum)
+        one = np.array([ppi_kernels.pixel_neighbour_sums(raw, dq, y, x, offs)
                         for x in range(shape[1])])
         assert np.array_equal(one[:, 0], acc) and np.array_equal(one[:, 1], wsum)
 
