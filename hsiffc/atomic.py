@@ -173,7 +173,8 @@ def check_output(path, *, overwrite: bool | None = None, inputs=()) -> Path:
     Raises
     ------
     OutputError
-        ``path`` is an input, a folder, or a symbolic link (without ``overwrite``).
+        ``path`` is an input, a folder, a device, pipe or socket, or a symbolic link (without
+        ``overwrite``).
     OutputExistsError
         ``path`` exists and ``overwrite`` is false.
     """
@@ -195,6 +196,12 @@ def check_output(path, *, overwrite: bool | None = None, inputs=()) -> Path:
     if path.is_dir():
         raise OutputError(f"{path}: is a folder; give a file name (the folder was left as it "
                           "was)")
+    if os.path.lexists(path) and not path.is_file():
+        # a FIFO, socket or device node: renaming a file onto it would replace the node itself
+        # (as root, /dev/full or /dev/stdout for every process), never write into it
+        raise OutputError(f"{path}: is not a regular file (a device, pipe or socket); hsiffc "
+                          "writes outputs as new files and never replaces such a node, even "
+                          "with --overwrite: give a file name")
     if os.path.lexists(path) and not allowed:
         raise OutputExistsError(f"{path}: already exists; pass --overwrite (in Python: "
                                 "overwrite=True) to replace it, or choose another name (the "

@@ -17,6 +17,56 @@ from .params import validate_method
 STATISTICS = ("mean", "median", "p95")
 
 
+def band_layout(values, band_map, mask=None, mask_name: str = "good", *,
+                what: str = "the image"):
+    """Check a frame's band map (and a per-pixel mask) against its values; the band
+    statistics' common start.
+
+    Parameters
+    ----------
+    values : (H, W) ndarray
+    band_map : (H, W) int array or None (the whole frame is band 0)
+    mask : (H, W) array, optional
+        A per-pixel plane that must have the values' shape (``good``, ``dq``).
+    mask_name : str
+        Its name in the error message.
+    what : str
+        The values' name in the error messages.
+
+    Returns
+    -------
+    band_map : ndarray
+    period : int
+        :func:`hsiffc.mosaic.row_period` of the map (0 if unknown).
+    n_bands : int
+        ``band_map.max() + 1``.
+
+    Raises
+    ------
+    ValueError
+        A shape differs, the frame is empty or a band index is negative.
+    """
+    v = np.asarray(values)
+    bm = np.zeros(v.shape, np.intp) if band_map is None else np.asarray(band_map)
+    if bm.shape != v.shape:
+        raise ValueError(f"band_map has shape {bm.shape} but {what} has {v.shape}; give the "
+                         "band map of the same frame")
+    if mask is not None and np.shape(mask) != v.shape:
+        raise ValueError(f"{mask_name} has shape {np.shape(mask)} but {what} has {v.shape}; "
+                         f"give the {mask_name} plane of the same frame")
+    if v.size == 0:
+        raise ValueError(f"{what} is empty (shape {v.shape}); band statistics need at least "
+                         "one pixel")
+    period = row_period(bm) if v.ndim == 2 else 0  # a mosaic's map: its first rows say all
+    rows = bm[:period] if period else bm
+    if not np.issubdtype(rows.dtype, np.integer):
+        raise ValueError(f"band_map must hold integer band indices, not {rows.dtype}")
+    if rows.min() < 0:
+        raise ValueError(f"band_map has a negative band index ({rows.min()}); bands are "
+                         "numbered from 0")
+    return bm, period, int(rows.max()) + 1
+
+
 def band_reduce(values, band_map=None, good=None, *, statistic: str = "mean",
                 n_bands: int | None = None) -> np.ndarray:
     """One statistic of ``values`` per band, over the good, finite pixels.
@@ -48,14 +98,9 @@ def band_reduce(values, band_map=None, good=None, *, statistic: str = "mean",
     """
     validate_method(statistic, STATISTICS, "band statistic")
     v = np.asarray(values)
-    bm = np.zeros(v.shape, np.intp) if band_map is None else np.asarray(band_map)
-    if bm.shape != v.shape:
-        raise ValueError(f"band_map has shape {bm.shape} but values have {v.shape}; give the "
-                         "band map of the same frame")
-    period = row_period(bm) if v.ndim == 2 else 0  # a mosaic's map: its first rows say all
-    if n_bands is None:
-        n_bands = (bm[:period] if period else bm).max() + 1
-    n = int(n_bands)
+    bm, period, n = band_layout(v, band_map, good, "good", what="values")
+    if n_bands is not None:
+        n = int(n_bands)
     if statistic == "mean":  # one compiled pass (hsiffc.kernels.bands)
         as2d = (lambda a: np.reshape(a, (1, -1) if v.ndim < 2 else (-1, v.shape[-1])))
         sums, counts = band_sums(as2d(v), as2d(bm), None if good is None else as2d(good), n,

@@ -35,6 +35,30 @@ def empty_dq(shape) -> np.ndarray:
     return np.zeros(shape, dtype=DQ_DTYPE)
 
 
+def as_dq(plane, name: str = "dq") -> np.ndarray:
+    """``plane`` as a uint32 DQ array (no copy when it is one), refusing what is not a set of
+    bits: floats (0.5 would become 0), negative integers (-1 would become every bit), complex.
+
+    Examples
+    --------
+    >>> as_dq(np.array([0, 6], np.int16)).tolist()
+    [0, 6]
+    """
+    a = np.asarray(plane)
+    if a.dtype == DQ_DTYPE:
+        return a
+    if a.dtype.kind not in "biu":
+        raise ValueError(f"{name} must hold integer DQ bits (uint32), got dtype {a.dtype}; "
+                         f"build it with hsiffc.dq.empty_dq or from DQ flags")
+    if a.dtype.kind == "i" and a.size and a.min() < 0:
+        raise ValueError(f"{name} holds negative values (min {a.min()}); DQ bits are unsigned: "
+                         "build it with hsiffc.dq.empty_dq or from DQ flags")
+    if a.size and a.dtype.itemsize > 4 and a.max() > np.iinfo(DQ_DTYPE).max:
+        raise ValueError(f"{name} holds values beyond 32 bits (max {a.max()}); DQ planes are "
+                         "uint32")
+    return a.astype(DQ_DTYPE)
+
+
 def describe(value: int) -> list[str]:
     """Names of the bits set in ``value``.
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bandstats import band_reduce
+from .bandstats import band_layout, band_reduce
 from .dark import subtract_dark
 from .dq import DQ, DQ_DTYPE
 from .kernels.bands import band_scale_kernel, band_sums, phase_scale_kernel, scale_kernel
@@ -67,6 +67,9 @@ def two_point_fit(flat_signal, *, band_map=None, flat_dq=None) -> FlatField:
         NO_FLAT (flag, never delete).
     """
     signal = np.asarray(flat_signal, np.float64)
+    if signal.size == 0:
+        raise ValueError(f"flat_signal is empty (shape {signal.shape}); give the flat of the "
+                         "sensor region to correct")
     bad = ~np.isfinite(signal) | ~(signal > 0)
     dq = np.zeros(signal.shape, DQ_DTYPE)
     if flat_dq is not None:
@@ -111,7 +114,7 @@ def paper_scale(raw, flat_mean, *, band_map=None, good=None) -> np.ndarray:
     return paper_ratio(raw, flat_mean, band_map=band_map, good=good)[bm]
 
 
-def two_point_apply(signal, gain, scale=1.0, *, band_map=None) -> np.ndarray:
+def two_point_apply(signal, gain, scale=1.0, *, band_map=None, dq=None) -> np.ndarray:
     """Apply a two-point gain: ``signal * gain * scale`` element-wise (float32 DN).
 
     Parameters
@@ -126,6 +129,11 @@ def two_point_apply(signal, gain, scale=1.0, *, band_map=None) -> np.ndarray:
         ``band_map`` (the same product, without building the per-pixel map).
     band_map : (H, W) int array, optional
         Band of each pixel, when ``scale`` is given per band.
+    dq : (H, W) uint32 ndarray, optional
+        The result's DQ, updated in place: where the product is not finite in float32 (NaN
+        in, or beyond the float32 range) the value is set to 0 DN and flagged NONFINITE |
+        DO_NOT_USE, as :meth:`hsiffc.frame.Frame.from_raw` does. Without it such values stay
+        as they are.
     """
     if band_map is not None:
         sig = np.asarray(signal)
@@ -144,16 +152,24 @@ def two_point_apply(signal, gain, scale=1.0, *, band_map=None) -> np.ndarray:
             phase_bands = bm[:period]
             if phase_bands.min() < 0 or phase_bands.max() >= ratio.size:
                 raise ValueError(outside)
-            phase_scale_kernel(np.ascontiguousarray(sig), np.ascontiguousarray(gain),
-                               ratio[phase_bands], out)
-            return out
-        flat = (lambda a, dt=None: np.ascontiguousarray(a, dt).reshape(-1))
-        if band_scale_kernel(flat(sig), flat(gain), ratio, flat(bm, np.int64), out.reshape(-1)):
-            raise ValueError(outside)
-        return out
-    shape, ops = flat_operands(signal, gain, scale)
-    out = np.empty(shape, np.float32)
-    scale_kernel(*ops, out.reshape(-1))  # one compiled pass
+            bad = phase_scale_kernel(np.ascontiguousarray(sig), np.ascontiguousarray(gain),
+                                     ratio[phase_bands], out)
+        else:
+            flat = (lambda a, dt=None: np.ascontiguousarray(a, dt).reshape(-1))
+            n_outside, bad = band_scale_kernel(flat(sig), flat(gain), ratio, flat(bm, np.int64),
+                                               out.reshape(-1))
+            if n_outside:
+                raise ValueError(outside)
+    else:
+        shape, ops = flat_operands(signal, gain, scale, names=("signal", "gain", "scale"))
+        out = np.empty(shape, np.float32)
+        bad = scale_kernel(*ops, out.reshape(-1))  # one compiled pass
+    if bad and dq is not None:  # rare: the pass counted them, so no test of every pixel
+        if np.shape(dq) != out.shape:
+            raise ValueError(f"dq has shape {np.shape(dq)} but the result has {out.shape}")
+        nonfinite = ~np.isfinite(out)
+        dq[nonfinite] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
+        out[nonfinite] = 0.0
     return out
 
 
@@ -221,7 +237,7 @@ def two_point_correct(test, dark, flat, *, normalisation: str = "paper", band_ma
     scale = 1.0
     if normalisation == "paper":
         scale = paper_scale(test, ff.flat_mean, band_map=band_map, good=out_dq == 0)
-    return two_point_apply(subtract_dark(test, dark), ff.gain, scale), out_dq
+    return two_point_apply(subtract_dark(test, dark), ff.gain, scale, dq=out_dq), out_dq
 
 
 def uniformity(image, mask=None) -> float:
@@ -276,14 +292,9 @@ def uniformity_per_band(image, band_map, *, dq=None) -> np.ndarray:
     v = np.asarray(image)
     if v.dtype not in (np.float32, np.float64):
         v = v.astype(np.float64)
-    bm = np.asarray(band_map)
-    if bm.shape != v.shape:
-        raise ValueError(f"band_map has shape {bm.shape} but the image has {v.shape}; give the "
-                         "band map of the same frame")
+    bm, period, n = band_layout(v, band_map, dq, "dq")
     as2d = (lambda a: np.reshape(a, (1, -1) if a.ndim < 2 else (-1, a.shape[-1])))
     good = None if dq is None else as2d(np.asarray(dq) == 0)
-    period = row_period(bm) if v.ndim == 2 else 0
-    n = int((bm[:period] if period else bm).max()) + 1
     # two compiled passes over the good, finite pixels: the mean per band, then the mean
     # squared deviation from it (stable, unlike E[v^2] - mean^2); population std as np.std
     sums, counts = band_sums(as2d(v), as2d(bm), good, n, period)

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 
 import numpy as np
 
 from .dark import subtract_dark
-from .dq import DQ, DQ_DTYPE
+from .dq import DQ, DQ_DTYPE, as_dq
 from .mosaic import Mosaic
 from .sweep import Sweep
 
@@ -20,6 +22,30 @@ from .sweep import Sweep
 STATES = ("mosaic", "cube", "raw", "dark_subtracted", "response", "alpha")
 #: What a frame read from a file offers.
 INPUT_STATE = frozenset({"mosaic", "raw", "response"})
+
+
+def _check_acquisition(meta: dict) -> None:
+    """The exposure and bit depth a frame carries are what the stages compute with: refuse
+    values no camera produces (a NaN or infinite exposure matched any master dark, a bit
+    depth of 0 flagged every pixel SATURATED)."""
+    e = meta.get("exposure_ms")
+    if e is not None:
+        try:
+            ok = math.isfinite(float(e)) and float(e) >= 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"exposure_ms must be a finite time >= 0 in ms, got {e!r}; give "
+                             "the frame's exposure time in milliseconds")
+    depth = meta.get("bit_depth")
+    if depth is not None:
+        try:
+            ok = float(depth) == int(depth) and 1 <= int(depth) <= 32
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"bit_depth must be a whole number 1..32, got {depth!r}; give the "
+                             "ADC's bit depth (full scale 2**bit_depth - 1 DN)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,9 +86,11 @@ class Frame:
 
     def __post_init__(self):
         data = np.asarray(self.data)
+        if data.dtype.kind not in "biuf":
+            raise ValueError(f"data must hold real numbers, got dtype {data.dtype}")
         if data.dtype != np.float32:
             data = data.astype(np.float32)
-        dq = np.asarray(self.dq, dtype=DQ_DTYPE)
+        dq = as_dq(self.dq)
         if dq.shape != data.shape:
             raise ValueError(f"dq has shape {dq.shape} but data has {data.shape}; they must match")
         if data.ndim not in (2, 3):
@@ -74,6 +102,7 @@ class Frame:
                                  f"{data.shape}; they must match")
             object.__setattr__(self, "dark_removed", dark)
         meta = dict(self.meta)
+        _check_acquisition(meta)
         meta.setdefault("history", ())
         meta["history"] = tuple(meta["history"])
         object.__setattr__(self, "data", data)
@@ -112,7 +141,10 @@ class Frame:
         >>> f.data.dtype.name, f.exposure_ms, bool(f.dq[0, 1] & DQ.SATURATED)
         ('float32', 16.125, True)
         """
+        _check_acquisition({"exposure_ms": exposure_ms, "bit_depth": bit_depth})
         raw = np.asarray(raw)
+        if raw.dtype.kind not in "biuf":
+            raise ValueError(f"raw must hold real counts (DN), got dtype {raw.dtype}")
         data = raw.astype(np.float32)
         bad = None
         if raw.dtype.kind not in "biu":  # integer counts are finite: no test needed

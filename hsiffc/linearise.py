@@ -57,6 +57,10 @@ def linearise(response, exposure_ms: float, a, b, dark_dn, dark_current, *,
     Linearised
         ``light_rate * exposure_ms`` is the response without leakage above the dark.
     """
+    if not (np.isfinite(exposure_ms) and exposure_ms > 0):
+        raise ValueError(f"exposure_ms must be a finite time > 0 ms to linearise, got "
+                         f"{exposure_ms!r}: at 0 ms no light is integrated, so there is no "
+                         "light rate to recover; leave such frames (bias frames) out")
     y = np.asarray(response, np.float64)
     a64, b64 = np.asarray(a, np.float64), np.asarray(b, np.float64)
     inv = model.invert_response(y, exposure_ms, a64, b64, np.asarray(dark_dn, np.float64),

@@ -18,9 +18,10 @@ With ``z = exp(-b Y)`` the ODE is linear, ``dz/dt = a b - b k z``, so from the l
 Both terms are positive for every k >= 0. The compiled kernels
 (:mod:`hsiffc.kernels.leakage`) sum them directly and fall back to ``logaddexp`` of their logs
 where the sum would under- or overflow, so nothing overflows: the form stays finite for b k t
-up to 1e4 and beyond, for a/k from 0 to 1e3 and more, for k = 0 (pure leakage) and for starting levels above the dynamic saturation level. The paper's
-eq. (3) with its integration constant c is the same curve: ``c_from_dark`` / ``dark_from_c``
-convert between the two.
+up to 1e4 and beyond, for a/k from 0 to 1e3 and more, for k = 0 (pure leakage) and for
+starting levels above the dynamic saturation level. The paper's eq. (3) with its
+integration constant c is the same curve: ``c_from_dark`` / ``dark_from_c`` convert between
+the two.
 
 This module holds the response (closed form, the paper's eq. 3 and the linear eq. 1), its
 inversion, its gradient and the reference ODE solution. The quantities derived from the
@@ -60,7 +61,8 @@ __all__ = [
 def _response(t_ms, k, a, b, dark, check: bool = False):
     """Model response (float64 out, shape of the broadcast); ``check``: refuse inputs outside
     the model's domain, counted by the kernel in its own pass."""
-    shape, ops = flat_operands(t_ms, k, a, b, dark)
+    shape, ops = flat_operands(t_ms, k, a, b, dark,
+                               names=("t_ms", "k", "a", "b", "dark"))
     out = np.empty(int(np.prod(shape, dtype=np.int64)))
     negative, b_bad = leakage.response_kernel(*ops, out)
     if check and b_bad:
@@ -284,7 +286,8 @@ def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=
     check_positive_b(b)
     if np.any(np.asarray(t_ms) <= 0):
         raise ValueError("t_ms must be > 0 to invert a response (at t = 0 no light is measured)")
-    shape, ops = flat_operands(y, t_ms, a, b, dark)
+    shape, ops = flat_operands(y, t_ms, a, b, dark,
+                               names=("y", "t_ms", "a", "b", "dark"))
     n = int(np.prod(shape, dtype=np.int64))
     k = np.empty(n)
     flags = np.empty(n, DQ_DTYPE)
@@ -358,7 +361,8 @@ def response_and_gradient(t_ms, k, a, b, dark):
     >>> round(float(y), 6)
     70.0
     """
-    shape, ops = flat_operands(t_ms, k, a, b, dark)
+    shape, ops = flat_operands(t_ms, k, a, b, dark,
+                               names=("t_ms", "k", "a", "b", "dark"))
     check_positive_b(b)
     if smallest(t_ms) < 0 or smallest(k) < 0 or smallest(a) < 0:
         raise ValueError(NEGATIVE_MESSAGE)

@@ -104,7 +104,7 @@ def leakage_percentage(y, k, a, b):
     >>> round(float(leakage_percentage(800.0, 2.0, a, b)), 6)   # at the dynamic saturation
     100.0
     """
-    shape, ops = flat_operands(y, k, a, b)
+    shape, ops = flat_operands(y, k, a, b, names=("y", "k", "a", "b"))
     out = np.empty(int(np.prod(shape, dtype=np.int64)))
     leakage.alpha_model_kernel(*ops, out)
     return out.reshape(shape)
@@ -157,7 +157,8 @@ def leakage_percentage_paper_into(out, y, t_ms, a, b, dark=0.0):
     ndarray, percent
         ``out`` (or the new float64 array).
     """
-    shape, ops = flat_operands(y, t_ms, a, b, dark)
+    shape, ops = flat_operands(y, t_ms, a, b, dark,
+                               names=("y", "t_ms", "a", "b", "dark"))
     if out is None:
         out = np.empty(shape)
     if out.shape != tuple(shape) or not out.flags.c_contiguous:
@@ -170,7 +171,8 @@ def leakage_percentage_paper_into(out, y, t_ms, a, b, dark=0.0):
 def exposure_at_leakage_percentage(alpha_percent, k, a, b, dark):
     """Exposure (ms) at which the model response reaches a leakage percentage.
 
-    With ``alpha0`` the model alpha at the dark level, ``t = (logit(alpha) - logit(alpha0)) / (b k)``.
+    With ``alpha0`` the model alpha at the dark level,
+    ``t = (logit(alpha) - logit(alpha0)) / (b k)``.
     Returns 0 where the response starts at or above that alpha and ``inf`` where it is never
     reached (alpha >= 100 %, or k = 0).
 

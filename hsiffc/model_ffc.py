@@ -329,19 +329,26 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     dq : (H, W) uint32
     alpha : (H, W) float32, percent (model alpha; float32 max where undefined)
     """
-    if not exposure_ms > 0:  # no light was integrated: nothing to invert, only the offset
-        out = (np.asarray(response, np.float64) - np.asarray(dark, np.float64)) * np.asarray(
-            gain, np.float64)
+    if not (np.isfinite(exposure_ms) and exposure_ms >= 0):
+        raise ValueError(f"exposure_ms must be a finite time >= 0 in ms, got {exposure_ms!r}; "
+                         "give the frame's exposure time in milliseconds")
+    if exposure_ms == 0:  # no light was integrated: nothing to invert, only the offset
+        with np.errstate(over="ignore"):  # beyond float32: flagged below
+            out = ((np.asarray(response, np.float64) - np.asarray(dark, np.float64))
+                   * np.asarray(gain, np.float64)).astype(np.float32)
+        finite = np.isfinite(out)
         dq = np.zeros(out.shape, DQ_DTYPE)
-        dq[~np.isfinite(out)] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
-        return (np.where(np.isfinite(out), out, 0.0).astype(np.float32), dq,
-                np.zeros(out.shape, np.float32))
+        dq[~finite] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
+        return np.where(finite, out, np.float32(0.0)), dq, np.zeros(out.shape, np.float32)
     has_sweep = gain_sweep is not None
     if has_sweep and log_ratio is None:
         log_ratio = log_gain_ratio(gain, gain_sweep)
     shape, ops = flat_operands(response, exposure_ms, a, b, dark,
                                gain_sweep if has_sweep else gain,
-                               log_ratio if has_sweep else 0.0, dark_current)
+                               log_ratio if has_sweep else 0.0, dark_current,
+                               names=("response", "exposure_ms", "a", "b", "dark",
+                                      "gain_sweep" if has_sweep else "gain", "log_ratio",
+                                      "dark_current"))
     full_scale = np.inf if full_scale_dn is None else float(full_scale_dn)
     limits = (float(flat_alpha_percent), float(alpha_limit_percent),
               float(below_dark_tolerance_dn))

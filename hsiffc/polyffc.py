@@ -57,6 +57,9 @@ def polynomial_fit(levels, *, order: int, band_map=None, level_dq=None) -> Polyn
     -------
     PolynomialFlat
     """
+    if isinstance(order, bool) or not float(order) == int(order) or int(order) < 1:
+        raise ValueError(f"order must be a whole number >= 1 (1: linear), got {order!r}")
+    order = int(order)
     x = np.asarray(levels, np.float64)
     if x.ndim != 3 or x.shape[0] < order + 1:
         raise ValueError(f"a polynomial of order {order} needs at least {order + 1} flat "
@@ -107,8 +110,9 @@ def polynomial_apply(signal, flat: PolynomialFlat, *, margin: float = 0.05):
 
     Returns
     -------
-    corrected : (H, W) float32, DN (always finite)
-    dq : (H, W) uint32 (``flat.dq`` plus OUT_OF_DOMAIN)
+    corrected : (H, W) float32, DN (always finite: 0 where the input is not finite or the
+        result is beyond the float32 range, flagged NONFINITE | DO_NOT_USE)
+    dq : (H, W) uint32 (``flat.dq`` plus OUT_OF_DOMAIN, NONFINITE, DO_NOT_USE)
     """
     x = np.asarray(signal, np.float64)
     span = flat.x_max - flat.x_min
@@ -123,4 +127,8 @@ def polynomial_apply(signal, flat: PolynomialFlat, *, margin: float = 0.05):
     out = np.where(no_flat, x, out)
     dq = flat.dq.copy()
     dq[outside] |= DQ_DTYPE(DQ.OUT_OF_DOMAIN)
-    return np.where(np.isfinite(out), out, 0.0).astype(np.float32), dq
+    with np.errstate(over="ignore"):  # beyond the float32 range: flagged below
+        out = out.astype(np.float32)
+    finite = np.isfinite(out)
+    dq[~finite] |= DQ_DTYPE(DQ.NONFINITE | DQ.DO_NOT_USE)
+    return np.where(finite, out, np.float32(0.0)), dq

@@ -90,7 +90,8 @@ def alpha_model(response, exposure_ms: float, a, b, dark_dn, *, full_scale_dn=No
 def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_scale_dn,
            in_domain, pixel_flags, dq):
     """alpha (computed when ``alpha`` is None: paper form) and DQ in one compiled pass."""
-    shape, (y, t, a_, b_, d) = flat_operands(response, exposure_ms, a, b, dark)
+    shape, (y, t, a_, b_, d) = flat_operands(
+        response, exposure_ms, a, b, dark, names=("response", "exposure_ms", "a", "b", "dark"))
     def plane(v):
         if v is None:
             return np.zeros(1, DQ_DTYPE), False
@@ -135,8 +136,9 @@ def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
 
     ``method="paper"``: :func:`alpha_paper` with ``dark`` when given (e.g. the master dark a
     stage removed), else the calibrated dark level and dark current at this exposure
-    (``subtract_dark=False`` divides the raw response, literally as the paper writes it). ``method="model"``: :func:`alpha_model`. :data:`NO_ALPHA` where no light
-    rate can be estimated.
+    (``subtract_dark=False`` divides the raw response, literally as the paper writes it).
+    ``method="model"``: :func:`alpha_model`. :data:`NO_ALPHA` where no light rate can be
+    estimated.
 
     Parameters
     ----------

@@ -111,3 +111,21 @@ def test_fit_a_pipeline_from_toml(sample_cubes, tmp_path, capsys):
     from hsiffc.stages import Pipeline
 
     assert [n for n, _ in Pipeline.load(out).steps] == ["dark", "ffc"]
+
+
+def test_uniformity_summary_ranges_follow_the_bit_depth(tmp_path, capsys):
+    """The summary's signal ranges are fractions of full scale: a 10-bit sweep whose steps end
+    near 100 DN still lands in the first range (the 8-bit ranges in DN left most steps of such a
+    sweep in none)."""
+    import json
+
+    sweep, cal, out = tmp_path / "u.tif", tmp_path / "c.npz", tmp_path / "u.json"
+    assert main(["simulate", str(sweep), "--exposures-ms", "4", "8", "12", "16", "24", "32",
+                 "--frames", "2", "--shape", "32", "32", "--irradiance-w-m2", "0.05"]) == 0
+    assert main(["calibrate", str(sweep), "-o", str(cal)]) == 0
+    capsys.readouterr()
+    assert main(["uniformity", str(sweep), "--calibration", str(cal), "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())["summary"]
+    assert [r["signal_range_dn"] for r in summary] == [[20, 120], [120, 401], [401, 802],
+                                                       [802, 1023]]
+    assert summary[0]["n_steps"] >= 2 and "20-120" in capsys.readouterr().out

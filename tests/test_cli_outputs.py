@@ -112,6 +112,40 @@ def test_the_commands_own_input_is_never_written(files, tmp_path, capsys):
     assert sweep.read_bytes() == files["sweep"].read_bytes()
 
 
+@pytest.mark.parametrize("given", ["folder", "glob"])
+def test_files_found_in_a_folder_or_glob_input_are_never_written(files, tmp_path, capsys, given):
+    # the input typed is a folder or a glob: the files it stands for are inputs as well
+    sweep = tmp_path / "d" / "s.tif"
+    sweep.parent.mkdir()
+    sweep.write_bytes(files["sweep"].read_bytes())
+    arg = str(sweep.parent) if given == "folder" else str(sweep.parent / "*.tif")
+    assert main(["info", arg, "--json", str(sweep), "--overwrite"]) == 2
+    assert "input of this command" in _one_line(capsys.readouterr().err)
+    assert sweep.read_bytes() == files["sweep"].read_bytes()
+
+
+def test_the_data_file_beside_an_envi_header_input_is_never_written(files, tmp_path, capsys):
+    import numpy as np
+
+    from hsiffc.io.envi_write import write_envi
+
+    header, data = write_envi(tmp_path / "cube.hdr", np.ones((6, 5, 4), np.uint16))
+    assert data != header and data.stem == header.stem
+    before = data.read_bytes()
+    assert main(["info", str(header), "--json", str(data), "--overwrite"]) == 2
+    assert "input of this command" in _one_line(capsys.readouterr().err)
+    assert data.read_bytes() == before
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes on this system")
+def test_a_pipe_or_device_is_never_replaced_even_with_overwrite(files, tmp_path, capsys):
+    fifo = tmp_path / "pipe.json"
+    os.mkfifo(fifo)
+    assert main(["info", str(files["sweep"]), "--json", str(fifo), "--overwrite"]) == 2
+    assert "not a regular file" in _one_line(capsys.readouterr().err)
+    assert fifo.is_fifo()
+
+
 def test_one_file_for_two_outputs_is_refused(files, tmp_path, capsys):
     out = tmp_path / "x.npz"
     assert main(["calibrate", str(files["sweep"]), "-o", str(out), "--json", str(out)]) == 2

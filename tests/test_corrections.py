@@ -275,3 +275,18 @@ def test_any_parameter_value_is_accepted_or_refused_in_one_line(value, pick):
         assert param.accepts(value)
         if param.kind in ("number", "integer") and value is not None:
             assert np.isfinite(value) and (param.low is None or value >= param.low)
+
+
+def test_the_training_exposure_guide_shows_what_select_prints(cal, sample_cubes):
+    """docs/guide/training-exposure.md quotes `hsiffc select` on the sample cubes: its rows are
+    the table this calibration gives today (it went stale once, by 0.04 points)."""
+    from pathlib import Path
+
+    from hsiffc.validity import alpha_table
+
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "guide"
+             / "training-exposure.md").read_text()
+    block = guide.split("leakage percentage alpha (%)", 1)[1].split("```", 1)[0]
+    quoted = [ln for ln in block.splitlines()[2:] if ln.strip() and ln.strip() != "..."]
+    text = alpha_table(read_sweep(sample_cubes / "training_2900K.tif"), cal).select(12).to_text()
+    assert len(quoted) >= 3 and all(ln in text.splitlines() for ln in quoted), (quoted, text)

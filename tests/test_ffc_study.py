@@ -83,7 +83,27 @@ def test_uniformity_command_on_sample_cubes(sample_cubes, tmp_path, capsys):
     corrected = np.nanmedian(values(lambda s: s["corrected"]["model_ffc"]["fpn_percent"]))
     assert raw > 0.7 and corrected < 0.5 * raw
     assert (tmp_path / "u.png").stat().st_size > 10_000
-    assert "fixed-pattern non-uniformity" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "fixed-pattern non-uniformity" in printed
+    # the sample sweep is 10-bit: its top range (802-1023 DN) holds only dynamically saturated
+    # steps, every pixel flagged; the range is listed as n/a instead of failing the command
+    top = doc["summary"][-1]
+    assert top["signal_range_dn"] == [802.0, 1023.0] and top["n_steps"] > 0
+    assert top["methods"]["raw"]["worst_step"] is None and "n/a" in printed
+
+
+def test_summarise_range_without_any_figure():
+    from hsiffc.reports.sweep_uniformity import StepUniformity, summarise
+    from hsiffc.uniformity import FixedPattern
+
+    fields = FixedPattern.__dataclass_fields__
+    nan_pattern = FixedPattern(**{k: np.array([np.nan]) for k in fields})
+    step = StepUniformity(step=3, exposure_ms=1.0, signal_dn=50.0, clipped_fraction=0.0,
+                          flagged_fraction=1.0, raw=nan_pattern)
+    row = summarise([step], (), ranges=((5.0, 100.0),))[0]
+    assert row["n_steps"] == 1
+    assert np.isnan(row["methods"]["raw"]["fpn_percent_median"])
+    assert row["methods"]["raw"]["worst_step"] is None
 
 
 def test_uniformity_command_without_multi_frame_steps(tmp_path, capsys):

@@ -23,7 +23,7 @@ from ..atomic import write_policy
 from ..errors import HsiffcError
 from . import data, importer, pipeline, reports, uniformity
 from .args import OneLineParser
-from .common import check_declared_outputs, declared
+from .common import check_declared_outputs, declared, input_files
 
 log = logging.getLogger("hsiffc")
 
@@ -126,8 +126,11 @@ def main(argv=None) -> int:
         return EXIT_USAGE
     prefix = f"hsiffc {args.command}: error:"
     try:
-        with warnings.catch_warnings(), write_policy(overwrite=bool(getattr(args, "overwrite", False)),
-                          inputs=declared(args, "input_args")):
+        inputs = declared(args, "input_args")
+        if args.command != "correct":  # correct discovers and protects its own inputs
+            inputs = inputs + input_files(inputs)
+        with warnings.catch_warnings(), write_policy(
+                overwrite=bool(getattr(args, "overwrite", False)), inputs=inputs):
             if not args.debug:  # every warning shown once, as one line
                 warnings.simplefilter("always")
                 warnings.showwarning = _warning_printer(args.command)

@@ -38,6 +38,48 @@ def declared(args, kind: str) -> list:
     return out
 
 
+def input_files(values) -> list:
+    """Every existing file a command's input arguments stand for, so that the write policy
+    protects them all, not only the names typed: the image files of a folder or a glob (and
+    the data files beside an ENVI header: same name, another suffix), and every file of an
+    EMVA 1288 measurement (its descriptor's folder). Arguments that name nothing are skipped
+    (the command reports them); only folder listings are read, never a file.
+
+    Parameters
+    ----------
+    values : list of path-like
+        The declared input arguments (:func:`declared` ``"input_args"``).
+
+    Returns
+    -------
+    list of Path
+    """
+    from ..errors import DataFormatError
+    from ..io.emva import has_emva_descriptor
+    from ..io.readers import expand_inputs
+
+    out: list[Path] = []
+    for value in values:
+        path = Path(value)
+        folder = path if path.is_dir() else path.parent
+        if path.suffix.lower() == ".txt" or (path.is_dir() and has_emva_descriptor(path)):
+            out += [q for q in folder.rglob("*") if q.is_file()]  # an EMVA 1288 measurement
+            continue
+        try:
+            files = expand_inputs(value)
+        except (DataFormatError, OSError):
+            continue
+        out += files
+        stems: dict[Path, set] = {}
+        for f in files:
+            if f.suffix.lower() == ".hdr":  # an ENVI header: its data file shares the stem
+                stems.setdefault(f.parent, set()).add(f.stem)
+        for parent, names in stems.items():
+            out += [q for q in parent.iterdir()
+                    if (q.stem in names or q.name in names) and q.is_file()]
+    return out
+
+
 def check_declared_outputs(args) -> None:
     """Refuse, before any work, outputs that exist (without ``--overwrite``), are inputs, are
     symbolic links or folders, or name one file twice; and report folders that hold files.

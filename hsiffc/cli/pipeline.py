@@ -97,10 +97,11 @@ def _cmd_fit(args) -> int:
 def _add_correct(sub):
     p = sub.add_parser(
         "correct", help="correct a batch of TIFF frames or cubes with a calibration",
-        description="Correct every input (hsiffc TIFF files, folders searched recursively, or "
-                    "globs) frame by frame and write one <name>.corrected.tif per input under "
-                    "OUTDIR (pages per frame: data float32, dq uint32, alpha float32; "
-                    "provenance JSON). Outputs appear atomically; a rerun skips the outputs that "
+        description="Correct every input (image files: TIFF, PNG, ENVI .hdr, FITS; folders "
+                    "searched recursively, or globs) frame by frame and write one "
+                    "<name>.corrected.tif per input under OUTDIR (pages per frame: data "
+                    "float32, dq uint32, alpha float32; provenance JSON). Outputs appear "
+                    "atomically; a rerun skips the outputs that "
                     "are complete and up to date. Exit status 0: every file done or skipped; "
                     "1: some file failed (listed with its reason); 2: usage error.")
     p.add_argument("inputs", nargs="+",

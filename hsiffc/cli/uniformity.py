@@ -67,8 +67,8 @@ def _cmd_uniformity(args) -> int:
     from ..jsonsafe import json_safe
     from ..frame import Frame
     from ..io import read_sweep
-    from ..reports.sweep_uniformity import (plot_uniformity, summarise, sweep_uniformity,
-                                            to_json)
+    from ..reports.sweep_uniformity import (plot_uniformity, signal_ranges_dn, summarise,
+                                            sweep_uniformity, to_json)
 
     corrections = _correction(args)
     sweep = read_sweep(args.sweep, overrides=input_overrides(args))
@@ -85,23 +85,36 @@ def _cmd_uniformity(args) -> int:
         raise HsiffcError(f"{args.sweep}: no light step with two or more frames; the fixed "
                           "pattern cannot be told from temporal noise with one frame per step")
     methods = tuple(corrections)
-    summary = summarise(steps, methods)
+    ranges = signal_ranges_dn(sweep.bit_depth)  # the same fractions of full scale at any depth
+    summary = summarise(steps, methods, ranges=ranges)
     write_json(args.json, json_safe(to_json(steps, methods, summary)))
     if args.plot:
         from ..atomic import atomic_path
 
-        fig = plot_uniformity(steps, methods, title=str(args.sweep))
+        fig = plot_uniformity(steps, methods, title=str(args.sweep), ranges=ranges)
         with atomic_path(args.plot) as tmp:
             fig.savefig(tmp, dpi=120, format="png")
     print(f"{'signal (DN)':<12} {'steps':>5}  " + "  ".join(f"{m:>18}" for m in ("raw", *methods)))
     for row in summary:
         lo, hi = row["signal_range_dn"]
-        cells = [f"{row['methods'][m]['fpn_percent_median']:>17.2f}%" if m in row["methods"]
-                 else f"{'-':>18}" for m in ("raw", *methods)]
+        cells = [_cell(row["methods"].get(m)) for m in ("raw", *methods)]
         print(f"{f'{lo:g}-{hi:g}':<12} {row['n_steps']:>5}  " + "  ".join(cells))
     print(f"fixed-pattern non-uniformity (EMVA 1288, temporal noise removed), median per range; "
           f"{len(steps)} steps written to {args.json}")
+    if any(value["worst_step"] is None for row in summary for value in row["methods"].values()):
+        print("n/a: no step of the range has a figure: every pixel flagged (e.g. dynamically "
+              "saturated) or none left after the correction's flags")
     return 0
+
+
+def _cell(figures) -> str:
+    """A summary table cell: the median percent, '-' for no step in the range, 'n/a' where no
+    step of the range has a figure (e.g. every pixel flagged, as in dynamically saturated
+    steps)."""
+    if figures is None:
+        return f"{'-':>18}"
+    value = figures["fpn_percent_median"]
+    return f"{value:>17.2f}%" if value == value else f"{'n/a':>18}"
 
 
 def _add_study(sub):

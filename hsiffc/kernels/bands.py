@@ -94,6 +94,10 @@ def band_sums(values, band_map, good, n_bands: int, row_period: int = 0):
         v = v.astype(np.float64)
     bm = np.ascontiguousarray(band_map, dtype=np.int64)
     g = np.zeros((1, 1), np.uint8) if good is None else np.ascontiguousarray(good, np.bool_)
+    # the compiled loop indexes every plane by the values' rows and columns, unchecked
+    if v.ndim != 2 or bm.shape != v.shape or (good is not None and g.shape != v.shape):
+        raise ValueError(f"band_sums: values {v.shape}, band_map {bm.shape} and good "
+                         f"{None if good is None else g.shape} must be 2-D of one shape")
     g = g.view(np.uint8)  # compiled code tests bytes (a bool load branches)
     nblk = (v.shape[0] + _ROWS - 1) // _ROWS
     sums = np.zeros((max(nblk, 1), n_bands))
@@ -104,9 +108,14 @@ def band_sums(values, band_map, good, n_bands: int, row_period: int = 0):
 
 
 def _scale_loop(signal, gain, scale, out):
-    """``out = signal * gain * scale`` (float32 out, float64 arithmetic)."""
+    """``out = signal * gain * scale`` (float32 out, float64 arithmetic). Returns how many
+    stored values are not finite (NaN in, or a product beyond the float32 range)."""
+    bad = 0
     for i in prange(out.shape[0]):
-        out[i] = at(signal, i) * at(gain, i) * at(scale, i)
+        o = np.float32(at(signal, i) * at(gain, i) * at(scale, i))
+        out[i] = o
+        bad += 0 if abs(o) < np.inf else 1
+    return bad
 
 
 scale_kernel = Kernel(_scale_loop, 3)
@@ -115,17 +124,21 @@ scale_kernel = Kernel(_scale_loop, 3)
 def _band_scale_loop(signal, gain, ratio, band_map, out):
     """``out = signal * gain * ratio[band_map]``: the product of :func:`_scale_loop` with a
     per-band factor, looked up per pixel instead of read from a per-pixel map. Returns how
-    many pixels have a band outside ``ratio`` (their output is NaN)."""
+    many pixels have a band outside ``ratio`` (their output is NaN) and how many stored
+    values are not finite (those included)."""
     n = ratio.shape[0]
     outside = 0
+    bad = 0
     for i in prange(out.shape[0]):
         band = band_map[i]
         ok = band >= 0 and band < n
         # the index stays in bounds also where the vector code loads before it selects
         r = np.float64(ratio[band if ok else 0]) if ok else np.nan
-        out[i] = np.float64(signal[i]) * np.float64(gain[i]) * r
+        o = np.float32(np.float64(signal[i]) * np.float64(gain[i]) * r)
+        out[i] = o
         outside += 0 if ok else 1
-    return outside
+        bad += 0 if abs(o) < np.inf else 1
+    return outside, bad
 
 
 band_scale_kernel = Kernel(_band_scale_loop, 4)
@@ -133,27 +146,35 @@ band_scale_kernel = Kernel(_band_scale_loop, 4)
 
 @njit(**{**JIT_OPTIONS, "cache": False})
 def _phase_scale_rows(signal, gain, table, phase0, out):
-    """Rows of :func:`_phase_scale_loop`; row ``y`` takes factor row ``(phase0 + y) % P``."""
+    """Rows of :func:`_phase_scale_loop`; row ``y`` takes factor row ``(phase0 + y) % P``.
+    Returns how many stored values are not finite."""
     period = table.shape[0]
+    bad = 0
     for y in range(out.shape[0]):
         factor = table[(phase0 + y) % period]
         sig = signal[y]
         g = gain[y]
         row = out[y]
         for x in range(row.shape[0]):
-            row[x] = np.float64(sig[x]) * np.float64(g[x]) * np.float64(factor[x])
+            o = np.float32(np.float64(sig[x]) * np.float64(g[x]) * np.float64(factor[x]))
+            row[x] = o
+            bad += 0 if abs(o) < np.inf else 1
+    return bad
 
 
 def _phase_scale_loop(signal, gain, table, out):
     """``out = signal * gain * table[y % P]`` for 2-D frames whose per-band factor repeats
     every ``P`` rows (a mosaic's): ``table`` holds each column's factor for the ``P`` row
     phases, so a pixel reads two values and writes one (no band map, no gather). Blocks of
-    ``_ROWS`` rows run in parallel, each a compiled row loop (vectorised)."""
+    ``_ROWS`` rows run in parallel, each a compiled row loop (vectorised). Returns how many
+    stored values are not finite."""
     H = out.shape[0]
+    bad = 0
     for blk in prange((H + _ROWS - 1) // _ROWS):
         y0 = blk * _ROWS
         y1 = min(H, y0 + _ROWS)
-        _phase_scale_rows(signal[y0:y1], gain[y0:y1], table, y0, out[y0:y1])
+        bad += _phase_scale_rows(signal[y0:y1], gain[y0:y1], table, y0, out[y0:y1])
+    return bad
 
 
 phase_scale_kernel = Kernel(_phase_scale_loop, 3)

@@ -28,6 +28,9 @@ __all__ = ["correct_point", "model_ffc_finish", "model_ffc_kernel"]
 
 _INL = {**JIT_OPTIONS, "cache": False, "inline": "always"}
 _F32_MAX = float(np.finfo(np.float32).max)
+#: float64 values at or beyond it round to an infinite float32 (the midpoint between float32's
+#: largest value and 2^128 rounds to even, away from the odd largest value)
+_F32_OVERFLOW = 2.0 ** 128 - 2.0 ** 103
 _BELOW_DARK = int(DQ.BELOW_DARK)
 _LEAKAGE = int(DQ.LEAKAGE)
 _BAD = int(DQ.NONFINITE | DQ.DO_NOT_USE)
@@ -56,7 +59,7 @@ def correct_point(k, flags, alpha, y, t, d, base, log_ratio, has_sweep, dc, flat
     dq = flags & ~_BELOW_DARK
     dq |= _BELOW_DARK if (below and y < d - below_tol) else 0
     dq |= _LEAKAGE if (not alpha <= alpha_limit and not below) else 0
-    finite = abs(out) < np.inf
+    finite = abs(out) < _F32_OVERFLOW  # finite once stored as float32
     dq |= 0 if finite else _BAD
     return (out if finite else 0.0), dq, min(alpha, _F32_MAX)
 

@@ -21,8 +21,11 @@ def float_array(x) -> np.ndarray:
     return a.astype(np.float64)
 
 
-def flat_operands(*values):
+def flat_operands(*values, names=None):
     """Broadcast ``values`` and return ``(shape, operands)``.
+
+    ``names`` (the caller's parameter names, in order) go into the error raised when the
+    values do not broadcast to one shape.
 
     For a result of :data:`~hsiffc.kernels.launch.PARALLEL_MIN` elements or more (what the
     parallel build runs on) each operand is a Python float (the value had one element) or a
@@ -34,7 +37,13 @@ def flat_operands(*values):
     index operands with :func:`at`.
     """
     arrays = [float_array(v) for v in values]
-    shape = np.broadcast_shapes(*(a.shape for a in arrays))
+    try:
+        shape = np.broadcast_shapes(*(a.shape for a in arrays))
+    except ValueError:
+        labels = names or [f"operand {i}" for i in range(len(arrays))]
+        listed = ", ".join(f"{n} {a.shape}" for n, a in zip(labels, arrays) if a.size != 1)
+        raise ValueError(f"{listed}: these shapes do not broadcast together; give scalars or "
+                         "arrays of the frame's shape") from None
     size = int(np.prod(shape, dtype=np.int64))
     if size < PARALLEL_MIN:
         return shape, [np.ascontiguousarray(np.broadcast_to(a, shape), np.float64).reshape(-1)

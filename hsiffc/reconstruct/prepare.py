@@ -8,7 +8,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from ..dq import DQ, DQ_DTYPE
+from ..dq import DQ, DQ_DTYPE, as_dq
 from ..kernels.demosaic import EPS
 from ..kernels.lattice import band_samples, lattice_arrays
 from ..kernels.ppi import ppi_image
@@ -192,10 +192,12 @@ def prepare(raw, mosaic, dq) -> Prepared:
     raw = np.asarray(raw)
     if raw.ndim != 2:
         raise ValueError(f"raw must be a 2-D mosaic frame (H, W), got shape {raw.shape}")
+    if raw.dtype.kind not in "biuf":
+        raise ValueError(f"raw must hold real numbers (DN), got dtype {raw.dtype}")
     data = np.ascontiguousarray(raw, dtype=np.float32)
     flags = None
     if dq is not None:
-        flags = np.asarray(dq)
+        flags = as_dq(dq)
         if flags.shape != data.shape:
             raise ValueError(f"dq has shape {flags.shape} but raw has {data.shape}")
         flags = np.ascontiguousarray(flags, dtype=DQ_DTYPE) if flags.any() else None

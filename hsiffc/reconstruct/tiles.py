@@ -91,8 +91,9 @@ def tile_cube(raw, mosaic: Mosaic, *, dq=None):
 
     Flagged samples: a tile whose band samples are all flagged takes the tent-weighted mean of
     the band in the 8 neighbouring tiles (unflagged ones; weights 1/2 side, 1/4 corner), else
-    the band median of unflagged samples with ``DO_NOT_USE``. DQ of a cube value = OR of the
-    flags of the band's samples in its tile (plus ``DO_NOT_USE`` where the median was used).
+    the median of the band's values in the tiles that have an unflagged sample (0 if no tile
+    has one), with ``DO_NOT_USE``. DQ of a cube value = OR of the flags of the band's samples
+    in its tile (plus ``DO_NOT_USE`` where the median was used).
 
     Parameters
     ----------

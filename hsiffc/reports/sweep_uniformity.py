@@ -17,13 +17,32 @@ import numpy as np
 from ..dq import DQ
 from ..uniformity import FixedPattern, fixed_pattern_nonuniformity
 
-__all__ = ["SIGNAL_RANGES_DN", "StepUniformity", "step_uniformity", "sweep_uniformity",
-           "summarise", "to_json", "plot_uniformity"]
+__all__ = ["SIGNAL_RANGES_DN", "signal_ranges_dn", "StepUniformity", "step_uniformity",
+           "sweep_uniformity", "summarise", "to_json", "plot_uniformity"]
 
 log = logging.getLogger(__name__)
 
-#: signal ranges (DN above dark) of the summary: low light, linear range, upper range, top
+#: signal ranges (DN above dark) of the summary for an 8-bit sensor (full scale 255 DN): low
+#: light, linear range, upper range, top. Other bit depths scale them to their full scale
+#: (:func:`signal_ranges_dn`).
 SIGNAL_RANGES_DN = ((5.0, 30.0), (30.0, 100.0), (100.0, 200.0), (200.0, 255.0))
+
+
+def signal_ranges_dn(bit_depth: int = 8) -> tuple:
+    """The summary's signal ranges (DN above dark) for a sensor of ``bit_depth`` bits: the same
+    fractions of full scale (``2**bit_depth - 1`` DN) as :data:`SIGNAL_RANGES_DN` of 255 DN,
+    rounded to whole DN (a 10-bit sensor: 20-120, 120-401, 401-802, 802-1023 DN).
+
+    Examples
+    --------
+    >>> signal_ranges_dn(8) == SIGNAL_RANGES_DN
+    True
+    >>> signal_ranges_dn(10)[0]
+    (20.0, 120.0)
+    """
+    scale = (2 ** int(bit_depth) - 1) / 255.0
+    return tuple((float(round(lo * scale)), float(round(hi * scale)))
+                 for lo, hi in SIGNAL_RANGES_DN)
 #: steps with more clipped pixels than this are listed but left out of the summary
 MAX_CLIPPED_FRACTION = 0.01
 
@@ -130,16 +149,27 @@ def summarise(steps, methods, *, ranges=SIGNAL_RANGES_DN,
                              for s in sel])
             eq6 = np.array([s.figures(None if name == "raw" else name)["eq6_percent"]
                             for s in sel])
-            if vals.size:
+            if np.isfinite(vals).any():
                 worst = int(np.nanargmax(vals))
                 row["methods"][name] = {
                     "fpn_percent_median": float(np.nanmedian(vals)),
                     "fpn_percent_max": float(vals[worst]),
                     "worst_step": sel[worst].step,
                     "worst_signal_dn": sel[worst].signal_dn,
-                    "eq6_percent_median": float(np.nanmedian(eq6))}
+                    "eq6_percent_median": _nanmedian_or_nan(eq6)}
+            elif vals.size:  # steps in range, none with a measurable figure for this method
+                row["methods"][name] = {
+                    "fpn_percent_median": float("nan"), "fpn_percent_max": float("nan"),
+                    "worst_step": None, "worst_signal_dn": None,
+                    "eq6_percent_median": _nanmedian_or_nan(eq6)}
         rows.append(row)
     return rows
+
+
+def _nanmedian_or_nan(values) -> float:
+    values = np.asarray(values, dtype=float)
+    return float(np.median(values[np.isfinite(values)])) if np.isfinite(values).any() \
+        else float("nan")
 
 
 def to_json(steps, methods, summary) -> dict:
@@ -154,10 +184,10 @@ def to_json(steps, methods, summary) -> dict:
     return {"steps": out, "summary": summary}
 
 
-def plot_uniformity(steps, methods, *, title: str = ""):
+def plot_uniformity(steps, methods, *, title: str = "", ranges=SIGNAL_RANGES_DN):
     """Fixed-pattern non-uniformity (percent) against signal level, one line per method
-    (steps from 5 DN; a step whose fixed pattern is below what its frames can measure, 0 %, is
-    left as a gap).
+    (steps from the lower end of ``ranges``, 5 DN for 8 bits; a step whose fixed pattern is
+    below what its frames can measure, 0 %, is left as a gap).
 
     Returns a new :class:`matplotlib.figure.Figure` (object API; no backend is switched).
     """
@@ -165,7 +195,7 @@ def plot_uniformity(steps, methods, *, title: str = ""):
 
     fig = Figure(figsize=(7.0, 4.2), layout="constrained")
     ax = fig.add_subplot()
-    steps = [s for s in steps if s.signal_dn >= SIGNAL_RANGES_DN[0][0]]
+    steps = [s for s in steps if s.signal_dn >= ranges[0][0]]
     sig = np.array([s.signal_dn for s in steps])
     for name in ("raw", *methods):
         fpn = np.array([s.figures(None if name == "raw" else name)["fpn_percent"]
@@ -176,7 +206,7 @@ def plot_uniformity(steps, methods, *, title: str = ""):
     if clipped:
         ax.axvspan(min(clipped), max(sig), color="0.9", zorder=0,
                    label=f"> {100 * MAX_CLIPPED_FRACTION:g} % pixels clipped")
-    ax.set_xlabel(f"signal level: mean DN above dark (steps from {SIGNAL_RANGES_DN[0][0]:g} DN)")
+    ax.set_xlabel(f"signal level: mean DN above dark (steps from {ranges[0][0]:g} DN)")
     ax.set_ylabel("fixed-pattern non-uniformity (%)\n(temporal noise removed, EMVA 1288)")
     ax.set_yscale("log")
     ax.grid(True, which="both", alpha=0.3)

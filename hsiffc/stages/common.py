@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from ..frame import Frame
 from ..params import Param
 
@@ -21,7 +23,10 @@ def group_by_exposure(frames, kind: str) -> dict[float, list[Frame]]:
 
 
 def find_exposure(exposures, t_ms: float, rtol: float = 1e-6):
-    """The entry of ``exposures`` equal to ``t_ms`` within ``rtol`` (or None)."""
+    """The entry of ``exposures`` equal to ``t_ms`` within ``rtol`` (or None; never for a
+    NaN or infinite ``t_ms``, which the tolerance test would match to any entry)."""
+    if not math.isfinite(t_ms):
+        return None
     for e in exposures:
         if abs(e - t_ms) <= rtol * max(abs(t_ms), 1e-12):
             return e

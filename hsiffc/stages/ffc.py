@@ -134,7 +134,7 @@ class TwoPointFFC(Stage):
             if flat_mean.ndim == 2:  # pipeline files of format 1 kept it per pixel
                 flat_mean = band_reduce(flat_mean, band_map)
             scale = paper_ratio(frame.raw, flat_mean, band_map=band_map, good=dq == 0)
-        out = two_point_apply(frame.signal, self.gain_, scale, band_map=band_map)
+        out = two_point_apply(frame.signal, self.gain_, scale, band_map=band_map, dq=dq)
         return frame.replace(data=out, dq=dq,
                              corrected_by=self.name,
                              meta={"ffc": "two_point", "ffc_training_ms": self.selected_ms_})
