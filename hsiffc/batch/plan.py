@@ -16,7 +16,7 @@ from ..errors import HsiffcError
 from ..io.corrected import SUFFIX
 from ..io.readers import IMAGE_SUFFIXES
 
-__all__ = ["BatchError", "Job", "discover_inputs", "output_name", "plan_jobs"]
+__all__ = ["BatchError", "Job", "discover_inputs", "is_batch_output", "output_name", "plan_jobs"]
 
 _MAGIC = re.compile(r"[*?[]")
 
@@ -31,9 +31,22 @@ def _is_tiff(path) -> bool:
     return PurePath(path).suffix.lower() in IMAGE_SUFFIXES
 
 
-def _is_output(path) -> bool:
+#: the ENVI cubes ``hsiffc correct --format envi`` writes beside a corrected file
+_ENVI_OUTPUT = re.compile(re.escape(SUFFIX[:-len(".tif")]) + r"(_f\d{4})?(\.dq)?\.(hdr|img)$")
+
+
+def is_batch_output(path) -> bool:
+    """Whether ``path`` is named like an output of ``hsiffc correct``: a corrected file
+    (``*.corrected.tif``) or one of its ENVI cubes (``*.corrected.hdr``,
+    ``*.corrected_f0001.dq.img``, ...).
+
+    >>> is_batch_output("a.corrected.tif"), is_batch_output("a.corrected_f0002.dq.hdr")
+    (True, True)
+    >>> is_batch_output("a.tif")
+    False
+    """
     name = PurePath(path).name.lower()
-    return name.endswith(SUFFIX) or name.endswith(SUFFIX + "f")
+    return name.endswith(SUFFIX) or name.endswith(SUFFIX + "f") or bool(_ENVI_OUTPUT.search(name))
 
 
 def _hidden(rel: PurePath) -> bool:
@@ -46,8 +59,9 @@ def discover_inputs(args) -> tuple[list[tuple[Path, PurePath]], list[Path]]:
     Folders are searched recursively for ``*.tif``/``*.tiff`` (hidden entries skipped) and
     globs (``*``, ``?``, ``[...]``, ``**``) are expanded; their relative name is the path below
     the folder or below the glob's fixed leading part. A file named directly keeps its name.
-    Files named ``*.corrected.tif`` found by a folder or a glob are outputs of this command
-    and are ignored (returned as the second list). Duplicates are dropped.
+    Files named like outputs of this command (``*.corrected.tif`` and their ENVI cubes, see
+    :func:`is_batch_output`) found by a folder or a glob are ignored (returned as the second
+    list). Duplicates are dropped.
 
     Raises
     ------
@@ -76,7 +90,7 @@ def discover_inputs(args) -> tuple[list[tuple[Path, PurePath]], list[Path]]:
                 rel = PurePath(os.path.relpath(f, root)) if root else PurePath(f)
                 if rel.parts and rel.parts[0] == "..":
                     rel = PurePath(f.name)
-                if _is_output(f):
+                if is_batch_output(f):
                     ignored.append(f)
                 else:
                     add(f, rel)
@@ -89,7 +103,7 @@ def discover_inputs(args) -> tuple[list[tuple[Path, PurePath]], list[Path]]:
                 raise BatchError(f"{path}: the folder holds no TIFF or other image file "
                                  "(.tif/.tiff, .png, .hdr, .fits)")
             for f in files:
-                if _is_output(f):
+                if is_batch_output(f):
                     ignored.append(f)
                 else:
                     add(f, f.relative_to(path))

@@ -47,10 +47,15 @@ class BatchSummary:
         return 1 if self.failed else 0
 
     def uniformity(self):
-        """Per band (before, after) non-uniformity, mean over the light frames of done files."""
+        """Per band (before, after) non-uniformity, mean over the light frames of done files.
+
+        None when no done file has figures, or when the files have different numbers of bands
+        (mosaics of different sizes cannot be pooled band by band; each file's figures stay in
+        its result).
+        """
         rows = [r for r in self.done if r["uniformity_before"] is not None
                 and r["uniformity_after"] is not None]
-        if not rows:
+        if not rows or len(self._band_counts(rows)) > 1:
             return None
         w = np.array([r["light_frames"] for r in rows], float)[:, None]
         out = []
@@ -61,6 +66,10 @@ class BatchSummary:
             weight = (ok * w).sum(0)
             out.append(np.where(weight > 0, total / np.maximum(weight, 1e-300), np.nan))
         return out[0], out[1]
+
+    @staticmethod
+    def _band_counts(rows) -> set:
+        return {len(r[key]) for r in rows for key in ("uniformity_before", "uniformity_after")}
 
     def to_dict(self) -> dict:
         """JSON-safe summary with one result per file (``--json``)."""
@@ -84,9 +93,15 @@ class BatchSummary:
                  f"({frames / t:.2f} frames/s, {mb / t:.1f} MB/s of input)"]
         lines += [f"note: {n}" for n in self.pipeline.get("notes", [])]
         if self.ignored:
-            lines.append(f"ignored {len(self.ignored)} files named *{SUFFIX} (outputs of "
-                         "hsiffc correct)")
+            lines.append(f"ignored {len(self.ignored)} files named like outputs of hsiffc "
+                         f"correct (*{SUFFIX} and their ENVI cubes)")
         u = self.uniformity()
+        counts = self._band_counts([r for r in self.done if r["uniformity_before"] is not None
+                                    and r["uniformity_after"] is not None])
+        if len(counts) > 1:
+            lines.append("non-uniformity per band: not pooled, the files have "
+                         f"{' and '.join(str(n) for n in sorted(counts))} bands (each file's "
+                         "figures are in the --json results)")
         if u is not None:
             lines.append("non-uniformity per band (eq. 6, %, mean over light frames, pixels "
                          "good in input and output): input less the pipeline's dark -> corrected")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -195,25 +196,52 @@ class Progress:
         self._p.stop()
 
 
-def _envi_outputs(summary, *, overwrite: bool) -> None:
-    """ENVI cubes of the outputs this run wrote (and of skipped ones that have none yet)."""
-    from ..io.envi_write import corrected_to_envi
+def _envi_outputs(summary, *, overwrite: bool) -> int:
+    """ENVI cubes of the outputs this run wrote, and of skipped ones whose cubes are missing or
+    older than the corrected file. An existing ENVI file is replaced only when hsiffc wrote it
+    from the same corrected file (its header says so) or with ``--overwrite``; any other file
+    at one of the names is reported and that output's cubes are left unwritten.
 
+    Returns the number of corrected files whose cubes could not be written (0: all done).
+    """
+    from ..io.corrected import read_provenance
+    from ..io.envi_write import corrected_envi_files, corrected_to_envi, written_from
+
+    failed = 0
     for r in summary.done + summary.skipped:
         out = Path(r["output"])
-        if r["status"] == "skipped" and out.with_suffix(".hdr").exists() and not overwrite:
+        try:
+            files = corrected_envi_files(out, int(read_provenance(out)["n_frames"]))
+            present = [p for p in files if os.path.lexists(p)]
+            if (r["status"] == "skipped" and not overwrite and len(present) == len(files)
+                    and all(p.stat().st_mtime >= out.stat().st_mtime for p in present)):
+                continue  # complete and up to date
+            foreign = [p for p in present if not written_from(p, out)]
+            if foreign and not overwrite:
+                raise HsiffcError(f"{foreign[0]}: already exists and is not an ENVI cube hsiffc "
+                                  f"wrote from {out.name}; pass --overwrite to replace it, or "
+                                  "move it")
+            corrected_to_envi(out, overwrite=True)
+        except (HsiffcError, OSError) as exc:
+            failed += 1
+            print(f"hsiffc correct: ENVI cubes of {out.name} not written: {exc}", file=sys.stderr)
             continue
-        corrected_to_envi(out, overwrite=True)
         print(f"wrote ENVI cubes for {out.name}")
+    return failed
 
 
 def _cmd_correct(args) -> int:
     from ..batch import correct_batch
+    from ..batch.plan import is_batch_output
 
     if args.pipeline is not None and (args.ffc is not None or args.linearise):
         raise HsiffcError(f"--{'ffc' if args.ffc is not None else 'linearise'} sets up the "
                           "default pipeline; --pipeline brings its own steps: give one or the "
                           "other")
+    if args.json is not None and is_batch_output(args.json):
+        raise HsiffcError(f"--json {args.json}: is named like an output of hsiffc correct "
+                          "(*.corrected.tif or its ENVI cubes); give the summary another name, "
+                          "e.g. summary.json")
     show = not args.quiet and sys.stderr.isatty()
     try:
         summary = correct_batch(args.inputs, args.outdir, args.calibration,
@@ -229,9 +257,9 @@ def _cmd_correct(args) -> int:
               "under a final name): run the same command again to resume", file=sys.stderr)
         return 130
     print(summary.to_text())
-    if args.format == "envi":
-        _envi_outputs(summary, overwrite=args.overwrite)
+    envi_failed = _envi_outputs(summary, overwrite=args.overwrite) if args.format == "envi" \
+        else 0
     if args.json:
         write_json(args.json, summary.to_dict())
-    return summary.exit_status
+    return max(summary.exit_status, 1 if envi_failed else 0)
 

@@ -18,7 +18,8 @@ from ..atomic import atomic_path
 from ..errors import DataFormatError
 from .envi import ENVI_DTYPES
 
-__all__ = ["write_envi", "corrected_to_envi"]
+__all__ = ["write_envi", "corrected_to_envi", "corrected_envi_names", "corrected_envi_files",
+           "written_from"]
 
 _CODES = {np.dtype(v).newbyteorder("<"): k for k, v in ENVI_DTYPES.items()}
 
@@ -101,6 +102,27 @@ def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description:
     return header, data
 
 
+def corrected_envi_names(path, n_frames: int) -> list[Path]:
+    """The ENVI names :func:`corrected_to_envi` gives the frames of the corrected file ``path``
+    (without suffix): ``NAME`` for one frame, ``NAME_f0000``, ``NAME_f0001``, ... for several;
+    each frame's files are ``NAME.hdr``, ``NAME.img``, ``NAME.dq.hdr`` and ``NAME.dq.img``.
+
+    >>> [p.name for p in corrected_envi_names("a.corrected.tif", 2)]
+    ['a.corrected_f0000', 'a.corrected_f0001']
+    """
+    base = Path(path).with_suffix("")
+    if n_frames == 1:
+        return [base]
+    return [base.with_name(f"{base.name}_f{k:04d}") for k in range(n_frames)]
+
+
+def corrected_envi_files(path, n_frames: int) -> list[Path]:
+    """Every file :func:`corrected_to_envi` writes for ``path`` (headers and data, DQ
+    included)."""
+    return [name.with_name(name.name + tail) for name in corrected_envi_names(path, n_frames)
+            for tail in (".hdr", ".img", ".dq.hdr", ".dq.img")]
+
+
 def corrected_to_envi(path, *, overwrite: bool | None = None) -> list[Path]:
     """Write a corrected file (an output of ``hsiffc correct``) as ENVI cubes beside it.
 
@@ -131,14 +153,14 @@ def corrected_to_envi(path, *, overwrite: bool | None = None) -> list[Path]:
     prov = read_provenance(path)
     mosaic = None if prov.get("mosaic") is None else Mosaic.from_dict(prov["mosaic"])
     n = int(prov["n_frames"])
-    base = path.with_suffix("")
+    names = corrected_envi_names(path, n)
     exposure = prov.get("exposure") or [None] * n
     kinds = prov.get("kind") or [""] * n
     written = []
     for k, data, dq, _ in iter_corrected(path):
         cube, cube_dq = (tile_cube(data, mosaic, dq=dq) if mosaic is not None
                          else (data[:, :, None], dq[:, :, None]))
-        name = base if n == 1 else base.with_name(f"{base.name}_f{k:04d}")
+        name = names[k]
         wl = None if mosaic is None else mosaic.wavelengths_nm
         extra = {"exposure time": exposure[k], "exposure time units": "ms", "frame kind": kinds[k],
                  "source": path.name} if exposure[k] is not None else {"source": path.name}
@@ -147,6 +169,26 @@ def corrected_to_envi(path, *, overwrite: bool | None = None) -> list[Path]:
                             extra=extra, overwrite=overwrite)
         dq_hdr, _ = write_envi(name.with_name(name.name + ".dq"), cube_dq.astype(np.uint32),
                                wavelengths_nm=wl, description=f"hsiffc DQ bits of frame {k}",
-                               overwrite=overwrite)
+                               extra={"source": path.name}, overwrite=overwrite)
         written += [hdr, dq_hdr]
     return written
+
+
+def written_from(envi_file, corrected) -> bool:
+    """Whether the ENVI file ``envi_file`` (a header or its data file) is one
+    :func:`corrected_to_envi` wrote from the corrected file ``corrected``: its header exists,
+    says hsiffc wrote it, and names that file as its ``source``. A file that is not such a
+    pair (the user's own, another program's) is never replaced without ``--overwrite``."""
+    from .envi import parse_envi_header
+
+    header = Path(envi_file).with_suffix(".hdr")
+    try:
+        head = parse_envi_header(header)
+    except (OSError, ValueError, DataFormatError):
+        return False
+
+    def text(key):
+        value = head.get(key, "")
+        return (", ".join(value) if isinstance(value, list) else str(value)).strip()
+
+    return text("description").startswith("hsiffc ") and text("source") == Path(corrected).name
