@@ -37,6 +37,7 @@ import contextlib
 import contextvars
 import errno
 import os
+import re
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -213,10 +214,20 @@ def _named(exc: OSError, path: Path, tmp: Path) -> OSError:
     """``exc`` naming the final file (never the hidden temporary one, never no file)."""
     if exc.filename is not None and os.fspath(exc.filename) != os.fspath(tmp):
         return exc
-    if isinstance(exc, HsiffcError) or exc.errno is None:
+    if isinstance(exc, HsiffcError):
         return exc
+    if exc.errno is None:  # e.g. numpy's "N requested and M written": a short write
+        if _SHORT_WRITE.search(str(exc)):
+            return OSError(errno.ENOSPC, f"the write stopped short ({exc}): the disk or the "
+                           "quota is most likely full", str(path))
+        new = OSError(str(exc))
+        new.filename = str(path)
+        return new
     new = type(exc)(exc.errno, exc.strerror or os.strerror(exc.errno), str(path))
     return new
+
+
+_SHORT_WRITE = re.compile(r"\d+ requested and \d+ written")
 
 
 # -- writing ----------------------------------------------------------------------------------

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import re
 import weakref
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
+
+_TILE_NAME = re.compile(r"\d+\s*x\s*\d+")
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,9 +77,10 @@ class Mosaic:
 
     @classmethod
     def rectangular(cls, rows: int, cols: int, wavelengths_nm=None, name: str = "") -> "Mosaic":
-        """A rows x cols tile with one band per position, row-major."""
+        """A tile of ``rows`` x ``cols`` pixels with one band per position, row-major; named
+        ``"{cols}x{rows}"``, width x height as ``--mosaic`` takes it."""
         return cls(np.arange(rows * cols).reshape(rows, cols), wavelengths_nm,
-                   name=name or f"{rows}x{cols}")
+                   name=name or f"{cols}x{rows}")
 
     # -- properties ----------------------------------------------------------------------------
     @property
@@ -88,6 +92,22 @@ class Mosaic:
     def tile_shape(self) -> tuple[int, int]:
         """(rows, columns) of one mosaic tile."""
         return tuple(int(s) for s in self.pattern.shape)
+
+    def describe(self) -> str:
+        """The tile as the command line writes it, width x height (``--mosaic``, sidecars):
+        ``"4x2 (W x H)"`` for 2 rows of 4 columns; an IMEC or other descriptive name follows.
+        Stored names that look like a tile size are not repeated: before 2026-11 the simulator
+        named its 2 x 4 tile "2x4" (rows x columns) while ``--mosaic 2x4`` meant 2 wide, 4
+        high, so a name alone was ambiguous.
+
+        >>> Mosaic.rectangular(2, 4).describe()
+        '4x2 (W x H)'
+        """
+        rows, cols = self.tile_shape
+        text = f"{cols}x{rows} (W x H)"
+        if self.name and not _TILE_NAME.fullmatch(self.name):
+            text += f" {self.name}"
+        return text
 
     def band_map(self, shape) -> np.ndarray:
         """Band index of every pixel of a frame of ``shape`` (H, W) (read-only; the last few

@@ -188,7 +188,7 @@ class Sweep:
         """A short human-readable description."""
         light, dark = int(self.is_light.sum()), int(self.is_dark.sum())
         t = self.exposure_ms
-        mos = f", mosaic {self.mosaic.tile_shape[0]}x{self.mosaic.tile_shape[1]}" if self.mosaic else ""
+        mos = f", mosaic {self.mosaic.describe()}" if self.mosaic else ""
         return (f"{self.n_frames} frames ({light} light, {dark} dark) of "
                 f"{self.frame_shape[0]} x {self.frame_shape[1]} px, {self.bit_depth}-bit{mos}, "
                 f"{len(self.steps())} steps, exposure {t.min():.4g}-{t.max():.4g} ms"

@@ -128,6 +128,20 @@ def test_disk_full_names_the_final_file(tmp_path, monkeypatch):
     assert not p.exists() and not _leftovers(tmp_path)
 
 
+def test_a_short_write_without_errno_is_named_as_a_full_disk(tmp_path):
+    # numpy's tofile on a full disk raises OSError("N requested and M written"): no errno,
+    # no file name; it reached the user as "a file: 524288 requested and 44216 written"
+    p = tmp_path / "cube.tif"
+    with pytest.raises(OSError) as info, atomic.atomic_path(p):
+        raise OSError("524288 requested and 44216 written")
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(p)
+    assert "44216 written" in info.value.strerror and "full" in info.value.strerror
+    assert not p.exists() and not _leftovers(tmp_path)
+    with pytest.raises(OSError) as info, atomic.atomic_path(p):
+        raise OSError("something else went wrong")
+    assert info.value.filename == str(p) and info.value.errno is None
+
+
 def test_permission_error_names_the_final_file_not_the_temporary(tmp_path, monkeypatch):
     real_open = os.open
 

@@ -123,3 +123,17 @@ def test_summary_of_files_with_different_band_counts():
     same = BatchSummary([result("a", 16), result("b", 16)], 1.0, "out", {}, {})
     before, after = same.uniformity()
     assert before.shape == (16,) and np.allclose(after, 0.5)
+
+
+def test_local_workers_keep_dask_chatter_off_stderr(world, tmp_path):
+    # distributed sets its loggers to INFO when imported: --workers 2 printed ~30
+    # "INFO distributed.scheduler ..." lines on every run
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "hsiffc", "correct", str(world["raw"]),
+                          "--calibration", str(world["cal"]), "-o", str(tmp_path / "o"),
+                          "--workers", "2", "-q"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "2 files: 2 done" in run.stdout
+    assert "INFO" not in run.stderr and "distributed" not in run.stderr, run.stderr

@@ -120,3 +120,27 @@ def test_uniformity_command_without_multi_frame_steps(tmp_path, capsys):
 def test_study_command_names_a_missing_folder(tmp_path, capsys):
     assert main(["study-ffc", str(tmp_path / "out"), "--emva", str(tmp_path / "nope")]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_uniformity_with_darks_at_one_exposure(sample_cubes, tmp_path, capsys):
+    # the dark stage fitted with match="scale" needs darks at two exposures: with one it
+    # raised a plain ValueError ("internal error", exit 3)
+    from hsiffc.io.tiff import write_sweep
+
+    sweep = read_sweep(sample_cubes / "sweep_2900K.tif")
+    darks = np.flatnonzero(sweep.is_dark)
+    one = sweep.exposure_ms[darks[0]]
+    keep = sweep.is_light | (sweep.is_dark & (sweep.exposure_ms == one))
+    assert (sweep.is_dark & ~keep).any()  # the sample has darks at several exposures
+    path = tmp_path / "one_dark.tif"
+    write_sweep(path, sweep.select(keep))
+    out = tmp_path / "u.json"
+    assert main(["uniformity", str(path), "--json", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert f"dark frames at one exposure only ({one:g} ms)" in err
+    assert json.loads(out.read_text())["steps"]
+    cal = tmp_path / "cal.npz"
+    calibrate(sweep).save(cal)  # with a calibration: its dark at every exposure, no warning
+    assert main(["uniformity", str(path), "--calibration", str(cal), "--json",
+                 str(tmp_path / "u2.json")]) == 0
+    assert "one exposure only" not in capsys.readouterr().err

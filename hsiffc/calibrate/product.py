@@ -296,8 +296,11 @@ class Calibration:
             problems.append(f"bit depth {bit_depth} but the calibration is for {self.bit_depth}")
         mine = self.mosaic
         if mosaic is not None and mine is not None and mosaic != mine:
-            problems.append(f"mosaic {mosaic.tile_shape} {mosaic.name!r} differs from the "
-                            f"calibration's {mine.tile_shape} {mine.name!r}")
+            problems.append(f"mosaic {mosaic.describe()} differs from the calibration's "
+                            f"{mine.describe()}" + (" (same tile size: other band order, "
+                                                     "wavelengths or offset)"
+                                                     if mosaic.tile_shape == mine.tile_shape
+                                                     else ""))
         if problems:
             raise CalibrationMismatchError(
                 f"{what} does not fit calibration {self.identity} "

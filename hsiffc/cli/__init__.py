@@ -121,6 +121,10 @@ def main(argv=None) -> int:
         return exc.code if isinstance(exc.code, int) else EXIT_USAGE
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    for handler in logging.getLogger().handlers:  # one filter per handler, for this run
+        for old in [f for f in handler.filters if isinstance(f, _LibraryChatter)]:
+            handler.removeFilter(old)
+        handler.addFilter(_LibraryChatter(args.verbose))
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
@@ -167,6 +171,21 @@ def main(argv=None) -> int:
               f"{_one_line(str(exc))} (run again with --debug for the traceback and please "
               "report it)", file=sys.stderr)
         return EXIT_INTERNAL
+
+
+class _LibraryChatter(logging.Filter):
+    """Keep other libraries' INFO and DEBUG records off stderr unless ``-vv``: Dask's
+    distributed sets its own loggers to INFO when it is imported, so ``--workers 2`` printed
+    some 30 scheduler and nanny lines per run. Their warnings and errors still show, and
+    hsiffc's own records follow ``-v``."""
+
+    def __init__(self, verbose: int):
+        super().__init__()
+        self.verbose = int(verbose)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return (record.levelno >= logging.WARNING or self.verbose >= 2
+                or record.name == "hsiffc" or record.name.startswith("hsiffc."))
 
 
 def _warning_printer(command: str):

@@ -67,6 +67,9 @@ def _cmd_fit(args) -> int:
     from ..io import read_sweep
     from ..stages import Pipeline
 
+    if args.output.suffix != ".npz":  # before any input is read
+        raise HsiffcError(f"-o {args.output}: a fitted pipeline file ends in .npz; rename it "
+                          f"(e.g. {args.output.with_suffix('.npz').name})")
     pipe = Pipeline.from_toml(args.description)
     frames, first = [], None
     inputs = ([(p, {}) for p in args.training] + [(p, {"kind": "dark"}) for p in args.dark]
@@ -78,11 +81,15 @@ def _cmd_fit(args) -> int:
         print(sweep.summary())
         shape = tuple(sweep.frame_shape)
         if first is None:
-            first = (path, shape)
+            first = (path, shape, sweep.mosaic)
         elif shape != first[1]:
             raise HsiffcError(f"{path}: frames of {shape[0]} x {shape[1]} px, but {first[0]} has "
                               f"{first[1][0]} x {first[1][1]} px; train a pipeline on frames of "
                               "one sensor size (fit each size separately)")
+        elif first[2] is not None and sweep.mosaic is not None and sweep.mosaic != first[2]:
+            raise HsiffcError(f"{path}: mosaic {sweep.mosaic.describe()}, but {first[0]} has "
+                              f"{first[2].describe()}; train a pipeline on frames of one sensor "
+                              "(give the right --mosaic or fit each sensor separately)")
         frames += Frame.list_from_sweep(sweep)
     pipe.fit(frames)
     pipe.save(args.output, overwrite=args.overwrite)

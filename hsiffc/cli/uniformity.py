@@ -3,9 +3,10 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
-from ..errors import HsiffcError
+from ..errors import HsiffcError, HsiffcWarning
 from .common import add_input_options, add_overwrite, input_overrides, write_json
 
 
@@ -45,6 +46,7 @@ def _add_uniformity(sub):
 
 
 def _correction(args):
+    """The corrections to measure (name -> fitted pipeline or stage) and the calibration."""
     from ..calibrate import Calibration
     from ..stages import Pipeline, create
 
@@ -57,10 +59,10 @@ def _correction(args):
         if any(s.name == "reconstruct" for _, s in pipe.steps):
             raise HsiffcError(f"{args.pipeline}: the pipeline reconstructs cubes; measure a "
                               "pipeline that keeps mosaic frames (H, W)")
-        return {"pipeline": pipe}
+        return {"pipeline": pipe}, cal
     if cal is not None:
-        return {"model_ffc": create("model_ffc", calibration=cal).fit([])}
-    return {}
+        return {"model_ffc": create("model_ffc", calibration=cal).fit([])}, cal
+    return {}, cal
 
 
 def _cmd_uniformity(args) -> int:
@@ -70,16 +72,26 @@ def _cmd_uniformity(args) -> int:
     from ..reports.sweep_uniformity import (plot_uniformity, signal_ranges_dn, summarise,
                                             sweep_uniformity, to_json)
 
-    corrections = _correction(args)
+    corrections, cal = _correction(args)
     sweep = read_sweep(args.sweep, overrides=input_overrides(args))
+    if cal is not None:
+        cal.check_compatible(sweep)  # frame shape, bit depth and mosaic, naming the file
     frames = Frame.list_from_sweep(sweep)
     dark_frames = [f for f in frames if f.kind == "dark"]
     dark_for = None
     if dark_frames:  # raw figures: per-pixel line through all dark masters (low noise)
         from ..stages import create
 
-        stage = create("dark", match="scale", average="mean").fit(dark_frames)
+        stage = create("dark", match="scale", average="mean",
+                       calibration=cal).fit(dark_frames)
         dark_for = (lambda t: stage.dark_for(t, sweep.frame_shape)[0])
+        if len(stage.exposures_ms_) == 1 and cal is None:
+            only = stage.exposures_ms_[0]
+            warnings.warn(f"{args.sweep}: dark frames at one exposure only ({only:g} ms): "
+                          "their master is subtracted at every exposure, the dark current "
+                          "not scaled; record darks at two exposures or give --calibration "
+                          "for the dark at each exposure", HsiffcWarning, stacklevel=2)
+            dark_for = (lambda t, master=stage.masters_[0]: master)
     steps = sweep_uniformity(frames, corrections, dark_for=dark_for)
     if not steps:
         raise HsiffcError(f"{args.sweep}: no light step with two or more frames; the fixed "

@@ -368,10 +368,7 @@ class FrameSource:
         str
             What ``hsiffc inspect`` prints for the input.
         """
-        mos = "none" if self.mosaic is None else (
-            f"{self.mosaic.tile_shape[0]}x{self.mosaic.tile_shape[1]}"
-            + ("" if self.mosaic.name in ("", f"{self.mosaic.tile_shape[1]}x"
-                                          f"{self.mosaic.tile_shape[0]}") else f" {self.mosaic.name}"))
+        mos = "none" if self.mosaic is None else self.mosaic.describe()
         lines = [f"{self.label}: {self.n_frames} frames of {self.frame_shape[0]} x "
                  f"{self.frame_shape[1]} px, {self.dtype}, "
                  f"{'unknown bit depth' if self.bit_depth is None else f'{self.bit_depth}-bit'}, "

@@ -160,7 +160,7 @@ def default_mosaic(bands: BandSet) -> Mosaic:
         rows -= 1
     cols = n // rows
     return Mosaic(np.arange(n).reshape(rows, cols), wavelengths_nm=tuple(bands.centres_nm),
-                  name=f"{rows}x{cols}")
+                  name=f"{cols}x{rows}")  # width x height, as --mosaic
 
 
 def paper_light_levels() -> dict:

@@ -45,7 +45,7 @@ class AlphaMask(Stage):
         for f in frames:
             if not f.is_cube:
                 cal.check_compatible(frame_shape=f.data.shape, bit_depth=f.bit_depth,
-                                     what="a training frame")
+                                     mosaic=f.mosaic, what="a training frame")
                 break
         self.fitted_ = True
         return self
@@ -54,7 +54,7 @@ class AlphaMask(Stage):
         """The frame with its alpha plane (percent) and LEAKAGE / OUT_OF_DOMAIN flags added."""
         cal = self.require_calibration()
         cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
-                             what="the frame")
+                             mosaic=frame.mosaic, what="the frame")
         alpha, dq = validity_flags(frame.raw, frame.exposure_ms, cal,
                                    threshold_percent=float(self.threshold_percent),
                                    method=self.method, dark=frame.dark_removed, dq=frame.dq)

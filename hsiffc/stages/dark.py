@@ -75,7 +75,7 @@ class DarkSubtract(Stage):
             cal.check_compatible(frame_shape=shape, what="the frame")
             return cal.dark_at(exposure_ms), "calibration"
         only = f" (only at {self.exposures_ms_[0]:g} ms)" if self.exposures_ms_ else ""
-        raise ValueError(f"no master dark at {exposure_ms:g} ms{only} and nothing to scale "
+        raise ParameterError(f"no master dark at {exposure_ms:g} ms{only} and nothing to scale "
                          "with: record darks at this exposure or at two exposures, or give "
                          "calibration=")
 

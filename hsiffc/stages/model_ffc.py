@@ -70,7 +70,7 @@ class ModelFFC(Stage):
     def _cal_for(self, frame):
         cal = self.require_calibration()
         cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
-                             what="the frame")
+                             mosaic=frame.mosaic, what="the frame")
         return cal
 
     def _dark(self, frame, cal):
