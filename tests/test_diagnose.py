@@ -171,6 +171,18 @@ def test_a_design_with_nothing_to_learn_is_refused():
         diagnose(sw)
 
 
+def test_a_sweep_whose_light_steps_are_all_clipped_is_refused():
+    # the darks alone passed the "enough valid samples" check, and diagnose fitted and
+    # reported a response on a sweep without one usable light sample
+    from dataclasses import replace
+
+    sw = simulated_sweep("mixed", seed=0)
+    data = sw.data.copy()
+    data[sw.is_light] = sw.full_scale_dn
+    with pytest.raises(DataFormatError, match="light samples below full scale"):
+        diagnose(replace(sw, data=data))
+
+
 def test_effect_library():
     assert len(EFFECTS) >= 8
     assert {"readout_nonlinearity", "frame_light_change"} <= set(EFFECTS)

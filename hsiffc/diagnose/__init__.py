@@ -147,6 +147,11 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     if valid.sum(axis=1).max(initial=0) < 3 or not valid_ho.any():
         _refuse("no pixel has enough valid samples (clipped, at full scale or unusable); check "
                 "the exposure and light levels of the sweep", sweep)
+    n_light = int((valid & light[None, :]).sum(axis=1).max(initial=0))
+    if n_light < MIN_LIGHT_STEPS:  # darks alone would be fitted as a flat "response"
+        _refuse(f"no pixel has {MIN_LIGHT_STEPS} light samples below full scale (at most "
+                f"{n_light}): the light steps are clipped or within the noise of full scale "
+                f"({fs:g} DN); record the sweep with less light or shorter exposures", sweep)
     w = np.where(valid, n_fit[None, :] / var_frame, 0.0)
     use_dc, dark_desc = ds.dark_model(y, t, r, valid, w, des)
     n_fit_samples = float(np.median(valid.sum(axis=1)))
