@@ -102,11 +102,15 @@ def test_envi_outputs_in_the_input_folder_are_not_read_back(world, tmp_path, cap
     assert all(is_batch_output(p) for p in ignored) and len(ignored) == 2 + 10
 
 
-@pytest.mark.parametrize("name", ["single.corrected.tif", "multi.corrected_f0000.dq.hdr"])
+@pytest.mark.parametrize("name", ["single.corrected.tif", "multi.corrected_f0000.dq.hdr",
+                                  ".hsiffc.lock"])
 def test_json_may_not_take_the_name_of_an_output(world, tmp_path, capsys, name):
+    # the summary is written last: it replaced the corrected file the run had just written,
+    # or was refused at the end, after the whole batch, on the folder's lock file
     out = tmp_path / "out"
     assert _correct(world, [world["raw"]], out, "--json", str(out / name)) == 2
-    assert "named like an output of hsiffc correct" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "give the summary another name" in err and str(out / name) in err
     assert not out.exists()
 
 

@@ -239,12 +239,17 @@ def _envi_outputs(summary, *, overwrite: bool) -> int:
 
 def _cmd_correct(args) -> int:
     from ..batch import correct_batch
+    from ..atomic import LOCK_NAME
     from ..batch.plan import is_batch_output
 
     if args.pipeline is not None and (args.ffc is not None or args.linearise):
         raise HsiffcError(f"--{'ffc' if args.ffc is not None else 'linearise'} sets up the "
                           "default pipeline; --pipeline brings its own steps: give one or the "
                           "other")
+    if args.json is not None and args.json.name == LOCK_NAME:
+        raise HsiffcError(f"--json {args.json}: {LOCK_NAME} is the name of the lock hsiffc "
+                          "correct keeps in an output folder; give the summary another name, "
+                          "e.g. summary.json")
     if args.json is not None and is_batch_output(args.json):
         raise HsiffcError(f"--json {args.json}: is named like an output of hsiffc correct "
                           "(*.corrected.tif or its ENVI cubes); give the summary another name, "
