@@ -221,7 +221,7 @@ def _named(exc: OSError, path: Path, tmp: Path) -> OSError:
             return OSError(errno.ENOSPC, f"the write stopped short ({exc}): the disk or the "
                            "quota is most likely full", str(path))
         new = OSError(str(exc))
-        new.filename = str(path)
+        new.strerror, new.filename = str(exc), str(path)
         return new
     new = type(exc)(exc.errno, exc.strerror or os.strerror(exc.errno), str(path))
     return new

@@ -140,6 +140,7 @@ def test_a_short_write_without_errno_is_named_as_a_full_disk(tmp_path):
     with pytest.raises(OSError) as info, atomic.atomic_path(p):
         raise OSError("something else went wrong")
     assert info.value.filename == str(p) and info.value.errno is None
+    assert info.value.strerror == "something else went wrong"
 
 
 def test_permission_error_names_the_final_file_not_the_temporary(tmp_path, monkeypatch):

@@ -10,7 +10,7 @@ import argparse
 import math
 import sys
 
-__all__ = ["OneLineParser", "count", "exposure_ms", "percent", "positive", "real"]
+__all__ = ["OneLineParser", "count", "exposure_ms", "percent", "positive", "real", "seed"]
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -79,3 +79,4 @@ exposure_ms = _checked(float, "an exposure time in ms (a finite number >= 0)", 0
 percent = _checked(float, "a percentage (a finite number > 0)", 0.0, strict=True,
                    doc="A threshold in percent: finite and > 0.")
 count = _checked(int, "a whole number >= 1", 1, doc="A whole number >= 1.")
+seed = _checked(int, "a whole number >= 0", 0, doc="A random seed: a whole number >= 0.")

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import HsiffcError
-from .args import count, exposure_ms, percent, positive, real
+from ..errors import HsiffcError, ParameterError
+from .args import count, exposure_ms, percent, positive, real, seed
 from .common import add_input_options, add_overwrite, input_overrides, write_json
 
 
@@ -102,10 +103,40 @@ def _add_simulate(sub):
     p.add_argument("--no-darks", action="store_true", help="do not add dark frames")
     p.add_argument("--shape", type=count, nargs=2, default=(64, 64), metavar=("H", "W"))
     p.add_argument("--mosaic", default="paper8", help="paper8, 4x4 or 5x5")
-    p.add_argument("--vignetting", type=real, default=0.0)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--vignetting", type=_vignetting, default=0.0,
+                   help="fraction of the light lost at the corners, 0 <= v < 1 (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed, a whole number >= 0")
     add_overwrite(p)
     p.set_defaults(func=_cmd_simulate, output_args=("output",))
+
+
+def _vignetting(text: str) -> float:
+    """Relative light fall-off at the corners: a finite number 0 <= v < 1."""
+    value = real(text)
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(
+            f"expected the fraction of light lost at the corners, 0 <= v < 1, got {text!r}")
+    return value
+
+
+def _simulated_lamp(sensor, spec: str, irradiance_w_m2: float, vignetting: float):
+    """The lamp ``--lamp`` names on the sensor's wavelength grid, or a one-line ParameterError.
+
+    A colour temperature too low to emit on the sensor's grid (e.g. '1K') overflows Planck's
+    law on the way to "no power"; that overflow is expected and not reported as a warning.
+    """
+    try:
+        with np.errstate(over="ignore", under="ignore"):
+            illum = sensor.illumination(spec, irradiance_w_m2, vignetting=vignetting)
+    except ValueError as exc:
+        raise ParameterError(f"--lamp {spec!r} cannot be simulated: {exc}; give e.g. "
+                             "--lamp 'lamp A', --lamp 2900K or --lamp D65") from None
+    with np.errstate(over="ignore", invalid="ignore"):
+        rate = sensor.light_rate(illum)
+    if not np.all(np.isfinite(rate)):
+        raise ParameterError(f"--irradiance-w-m2 {irradiance_w_m2:g} is too large: the light "
+                             "rate of some pixels overflows; give a smaller irradiance")
+    return illum
 
 
 def _cmd_simulate(args) -> int:
@@ -124,8 +155,9 @@ def _cmd_simulate(args) -> int:
                               mosaic=Mosaic.square(n, wavelengths_nm=bands.centres_nm))
     else:
         raise HsiffcError(f"--mosaic must be paper8, 4x4 or 5x5, got {args.mosaic!r}")
-    sweep = sensor.sweep(args.exposures_ms, args.lamp, irradiance_w_m2=irr, n_frames=args.frames,
-                         darks=not args.no_darks, vignetting=args.vignetting)
+    illum = _simulated_lamp(sensor, args.lamp, irr, args.vignetting)
+    sweep = sensor.sweep(args.exposures_ms, illum, irradiance_w_m2=irr, n_frames=args.frames,
+                         darks=not args.no_darks)
     meta = {k: v for k, v in sweep.meta.items() if k != "truth"}
     meta["irradiance_w_m2"] = irr
     from dataclasses import replace

@@ -31,10 +31,17 @@ def register(sub) -> None:
 
 
 def _cmd_import(args) -> int:
+    from ..errors import DataFormatError
     from ..io import open_source, write_sweep
+    from ..io.tiff import WRITABLE_DTYPES
 
     with open_source(args.inputs, overrides=input_overrides(args)) as src:
         print(src.describe())
+        if src.dtype.type not in WRITABLE_DTYPES:  # before reading every frame
+            raise DataFormatError(
+                f"frames of dtype {src.dtype} cannot be stored in an hsiffc TIFF ((u)int8/16/32 "
+                "or float32/64) without changing their values, which import never does; "
+                "convert the files to one of those types first", path=src.label)
         sweep = src.to_sweep()
     meta = dict(sweep.meta)
     meta["imported_from"] = [str(f) for f in src.files]

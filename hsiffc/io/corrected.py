@@ -48,6 +48,7 @@ import tifffile
 from ..errors import DataFormatError
 from .corrected_format import FORMAT, FORMAT_VERSION, PLANE_DTYPES, PLANES, SUFFIX
 from .corrected_writer import BackgroundWriter, CorrectedWriter
+from .tiffpages import TiffLog
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "PLANES", "SUFFIX", "BackgroundWriter", "Corrected",
            "CorrectedWriter", "is_corrected_file", "iter_corrected", "read_corrected",
@@ -147,8 +148,8 @@ def is_corrected_file(path) -> bool:
     -------
     bool
     """
-    try:
-        with tifffile.TiffFile(path) as tf:
+    try:  # tifffile logs what it finds wrong with a file; a probe keeps that quiet
+        with TiffLog(), tifffile.TiffFile(path) as tf:
             text = (tf.pages[0].description or "") if len(tf.pages) else ""
     except Exception:  # not a TIFF at all, or unreadable
         return False

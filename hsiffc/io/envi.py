@@ -7,7 +7,8 @@ braces ``{...}`` is a list and may span lines; ``;`` starts a comment line. Keys
 * ``data type``: 1 uint8, 2 int16, 3 int32, 4 float32, 5 float64, 12 uint16, 13 uint32,
   14 int64, 15 uint64 (complex types are refused);
 * ``interleave``: ``bsq`` (band after band), ``bil`` (bands interleaved by line) or ``bip``
-  (by pixel); ``byte order``: 0 little-endian, 1 big-endian;
+  (by pixel); ``byte order``: 0 little-endian, 1 big-endian (any other value is refused);
+  ``samples``, ``lines`` and ``bands`` must be >= 1 and ``header offset`` >= 0;
 * ``wavelength`` (with ``wavelength units``: nm, um/micrometers) -> mosaic band centres;
 * not in the core spec but written by camera software, read when present: exposure as
   ``exposure time``, ``integration time``, ``tint``, ``shutter`` or ``exposure_ms`` (milliseconds,
@@ -156,16 +157,27 @@ def _geometry(header: Path, head: dict, data: Path, limits: ReadLimits):
             raise DataFormatError(f"the header has no {key!r}; it is not a complete ENVI header",
                                   path=header)
     samples, lines, bands = (_int(head, k, header) for k in ("samples", "lines", "bands"))
+    for key, value in (("samples", samples), ("lines", lines), ("bands", bands)):
+        if value < 1:
+            raise DataFormatError(f"{key} = {value} in the header: an ENVI raster needs at least "
+                                  f"1; the header is damaged, fix {key!r}", path=header)
     code = _int(head, "data type", header)
     if code not in ENVI_DTYPES:
         raise DataFormatError(f"data type {code} is not supported (complex or unknown); hsiffc "
                               f"reads {sorted(ENVI_DTYPES)}", path=header)
     order = _int(head, "byte order", header, 0)
+    if order not in (0, 1):
+        raise DataFormatError(f"byte order = {order} in the header is neither 0 (little-endian) "
+                              "nor 1 (big-endian); fix 'byte order'", path=header)
     dtype = np.dtype(ENVI_DTYPES[code]).newbyteorder(">" if order == 1 else "<")
     interleave = str(head.get("interleave", "bsq")).lower()
     if interleave not in ("bsq", "bil", "bip"):
         raise DataFormatError(f"interleave {interleave!r} is not bsq, bil or bip", path=header)
     offset = _int(head, "header offset", header, 0)
+    if offset < 0:
+        raise DataFormatError(f"header offset = {offset} in the header is negative; it is the "
+                              "number of bytes before the data (0 or more): fix "
+                              "'header offset'", path=header)
     limits.check_frames(path=header, n_frames=bands, shape=(lines, samples),
                         itemsize=dtype.itemsize)
     need = offset + samples * lines * bands * dtype.itemsize

@@ -75,7 +75,10 @@ class ReadLimits:
         for s in shape:
             pixels *= int(s)
         dims = " x ".join(str(int(s)) for s in shape)
-        if any(int(s) <= 0 for s in shape) or n_frames < 0:
+        if n_frames <= 0 and all(int(s) > 0 for s in shape):
+            raise DataFormatError(f"the header states no frames ({n_frames} frames of {dims}); "
+                                  "the file is empty or damaged", path=path)
+        if any(int(s) <= 0 for s in shape):
             raise DataFormatError(f"the header states an empty or negative size ({n_frames} "
                                   f"frames of {dims}); the file is damaged", path=path)
         if pixels > self.max_frame_pixels:

@@ -285,6 +285,7 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
                               MetadataConflictWarning, stacklevel=3)
         if name in PER_FRAME_FIELDS:
             value = _per_frame(layout, name, value, origin)
+        _check_range(layout, name, value, origin)
         if name == "kind":
             bad = sorted(set(np.atleast_1d(value).tolist()) - set(FRAME_KINDS))
             if bad:
@@ -303,9 +304,34 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
     return values, origins
 
 
+def _check_range(layout: FileLayout, name: str, value, origin: str) -> None:
+    """Refuse an exposure time that is not finite and >= 0 ms, or a bit shift outside 0..31,
+    whichever source gave it (a file header, a sidecar or an option)."""
+    if name == "exposure_ms":
+        try:
+            ms = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise DataFormatError(f"exposure_ms from {origin} is not a number "
+                                  f"({_short(value)}); correct it there",
+                                  path=layout.path) from None
+        bad = ~np.isfinite(ms) | (ms < 0)
+        if np.any(bad):
+            first = float(ms[bad].flat[0]) if ms.ndim else float(ms)
+            raise DataFormatError(f"exposure_ms {first!r} from {origin} is not a finite time "
+                                  ">= 0 ms; correct it there", path=layout.path)
+    elif name == "bit_shift":
+        try:
+            ok = not isinstance(value, bool) and float(value).is_integer()
+        except (TypeError, ValueError):
+            ok = False
+        if not ok or not 0 <= float(value) <= 31:
+            raise DataFormatError(f"bit_shift {value!r} from {origin} is not a whole number "
+                                  "0..31; correct it there", path=layout.path)
+
+
 def _short(value) -> str:
     if isinstance(value, Mosaic):
-        return f"{value.tile_shape[0]}x{value.tile_shape[1]} {value.name!r}"
+        return value.describe()
     arr = np.asarray(value, dtype=object)
     first = arr.item() if arr.ndim == 0 else arr.flat[0]
     first = first.item() if isinstance(first, np.generic) else first

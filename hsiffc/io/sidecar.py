@@ -43,13 +43,17 @@ given")::
     white_*.tif,light,20,8
 
 Every entry whose pattern matches a file applies, in the order written ([defaults] first), a
-later entry overriding an earlier one. Unknown fields are an error naming the sidecar.
+later entry overriding an earlier one. Unknown fields are an error naming the sidecar, and so are
+values out of range: an exposure time that is negative, infinite or NaN, a photon count that is
+negative or infinite (NaN means unknown), a ``bit_depth`` outside 1..32 or a ``bit_shift``
+outside 0..31.
 """
 
 from __future__ import annotations
 
 import csv
 import fnmatch
+import math
 import tomllib
 from pathlib import Path
 
@@ -98,12 +102,30 @@ def _convert(path, where, key, value):
         return kind(number)
 
     values = value if isinstance(value, list) and key in ("exposure_ms", "photons") else [value]
+    what = {str: "text", int: "whole number", float: "number"}[kind]
     try:
         out = [one(v) for v in values]
     except (TypeError, ValueError, OverflowError):
-        raise DataFormatError(f"{where}: {key} = {value!r} is not a valid "
-                              f"{'number' if kind is not str else 'text'}", path=path) from None
+        raise DataFormatError(f"{where}: {key} = {value!r} is not a valid {what}",
+                              path=path) from None
+    valid, expected = _RANGES.get(key, (None, ""))
+    for v in out:
+        if valid is not None and not valid(v):
+            raise DataFormatError(f"{where}: {key} = {v!r} is out of range; give {expected}",
+                                  path=path)
     return out if isinstance(value, list) else out[0]
+
+
+#: Field -> (test of one value, what a valid value is); values outside are refused on reading.
+_RANGES = {
+    "exposure_ms": (lambda v: math.isfinite(v) and v >= 0,
+                    "a finite exposure time >= 0 in milliseconds"),
+    "photons": (lambda v: math.isnan(v) or (math.isfinite(v) and v >= 0),
+                "a finite number of photons >= 0 (or leave it out when unknown)"),
+    "bit_depth": (lambda v: 1 <= v <= 32, "a whole number of ADC bits 1..32"),
+    "bit_shift": (lambda v: 0 <= v <= 31,
+                  "a whole number 0..31 (the bits every sample is shifted right by)"),
+}
 
 
 class Sidecar:

@@ -200,6 +200,12 @@ def resolve_facts(layouts, resolved, *, label: str, inspect: bool, n_frames: int
                 warnings.warn(f"{label}: {notes[-1]}; bit depth {bits}",
                               quirks.LayoutWarning, stacklevel=4)
     bit_shift = int(shift or 0)
+    if bit_shift and (dtype.kind not in "ui" or bit_shift >= 8 * dtype.itemsize):
+        origin = resolved[0][1].get("bit_shift", "the bit shift")
+        raise DataFormatError(f"bit_shift {bit_shift} from {origin} cannot apply to {dtype} "
+                              f"samples (only integers, by fewer bits than the "
+                              f"{8 * dtype.itemsize}-bit words); remove it or give the right "
+                              "one", path=label)
     if bits is None and bit_shift:
         bits = 8 * dtype.itemsize - bit_shift
         bits_origin = "--bit-shift"

@@ -4,7 +4,9 @@ File layout
 -----------
 * Page ``k`` holds frame ``k`` of the sweep as a single-channel (H, W) image, in acquisition
   order, in the frames' own dtype (``uint8`` / ``uint16`` raw DN, or ``float32`` for averaged or
-  processed frames). Values are never rescaled, neither on writing nor on reading.
+  processed frames; ``uint32``, signed ``int8``/``int16``/``int32`` and ``float64`` are also
+  written as they are, e.g. by ``hsiffc import`` of a signed camera file). Values are never
+  rescaled, clipped or wrapped, neither on writing nor on reading.
 * The ImageDescription tag of the first page holds one JSON object (the *document*)::
 
       {"format": "hsiffc", "format_version": 1, "content": "frames", "n_frames": 200,
@@ -59,9 +61,11 @@ from .limits import default_limits
 from .tiffpages import TIFF_SUFFIXES, open_tiff
 
 __all__ = ["write_sweep", "read_sweep_tiff", "FORMAT_NAME", "FORMAT_VERSION", "EXPOSURE_UNITS_MS",
-           "exposure_to_ms", "TIFF_SUFFIXES"]
+           "exposure_to_ms", "TIFF_SUFFIXES", "WRITABLE_DTYPES"]
 
-_WRITABLE_DTYPES = (np.uint8, np.uint16, np.uint32, np.float32, np.float64)
+#: the frame dtypes an hsiffc TIFF stores as they are
+WRITABLE_DTYPES = (np.uint8, np.uint16, np.uint32, np.int8, np.int16, np.int32, np.float32,
+                    np.float64)
 
 
 # -- writing --------------------------------------------------------------------------------------
@@ -94,11 +98,13 @@ def write_sweep(path, sweep: Sweep, *, overwrite: bool = False, compression=None
     Parameters
     ----------
     path : str or Path
-        Output file; must end in ``.tif`` or ``.tiff``. Its folder must exist.
+        Output file; must end in ``.tif`` or ``.tiff``. A missing folder is created, as every
+        hsiffc writer does.
     sweep : Sweep
-        Frames (``uint8``, ``uint16``, ``uint32``, ``float32`` or ``float64``; kept as they
-        are) and metadata. Exposure times are written in milliseconds. ``sweep.meta`` must be
-        JSON-serialisable; NaN/inf inside it are written as ``null``.
+        Frames (``uint8``, ``uint16``, ``uint32``, ``int8``, ``int16``, ``int32``, ``float32``
+        or ``float64``; kept as they are, negative values included) and metadata. Exposure
+        times are written in milliseconds. ``sweep.meta`` must be JSON-serialisable; NaN/inf
+        inside it are written as ``null``.
     overwrite : bool
         Replace an existing file. Without it an existing ``path`` is left untouched and
         ``FileExistsError`` is raised.
@@ -122,18 +128,18 @@ def write_sweep(path, sweep: Sweep, *, overwrite: bool = False, compression=None
     if path.suffix.lower() not in TIFF_SUFFIXES:
         raise DataFormatError(f"hsiffc TIFF files must end in .tif or .tiff, got {path.suffix!r}; "
                               "rename the output", path=path)
-    if not path.parent.is_dir():
-        raise FileNotFoundError(f"{path}: folder {path.parent} does not exist; create it first")
     if path.is_dir():
         raise IsADirectoryError(f"{path} is a folder; give a file name ending in .tif")
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} already exists; pass overwrite=True (CLI: --overwrite) to replace it "
                               "(the existing file was left unchanged)")
     data = np.ascontiguousarray(sweep.data)
-    if data.dtype.type not in _WRITABLE_DTYPES:
+    if data.dtype.type not in WRITABLE_DTYPES:
         raise DataFormatError(
-            f"cannot write frames of dtype {data.dtype}; use uint8/uint16 for raw DN or float32 "
-            "for processed frames (e.g. sweep.data.astype(np.float32))", path=path)
+            f"cannot write frames of dtype {data.dtype}: an hsiffc TIFF stores (u)int8/16/32 or "
+            "float32/64 frames and hsiffc does not change values to fit; convert the frames "
+            "first if their values fit one of those (e.g. sweep.data.astype(np.float64))",
+            path=path)
     if np.issubdtype(data.dtype, np.integer) and data.size and int(data.max()) > sweep.full_scale_dn:
         raise DataFormatError(
             f"data exceed the stated bit depth: maximum {int(data.max())} DN > "

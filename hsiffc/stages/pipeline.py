@@ -244,6 +244,11 @@ class Pipeline:
                                   "name = ... and stage = ...", path=path)
         steps = []
         for i, spec in enumerate(specs):
+            if not isinstance(spec, dict):
+                raise DataFormatError(
+                    f"step {i + 1} is {spec!r}, not a table; write each step as a [[step]] "
+                    "table with name = \"...\" and stage = \"...\" (not step = [...])",
+                    path=path)
             spec = dict(spec)
             stage_name = spec.pop("stage", None)
             if not isinstance(stage_name, str):
