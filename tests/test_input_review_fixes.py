@@ -146,6 +146,29 @@ def test_fits_uint32_is_read_exactly(tmp_path):
     assert sweep.data[0].tolist() == values.tolist()
 
 
+def test_fits_image_extension_takes_the_primary_headers_keywords(tmp_path):
+    # the common camera layout: metadata in an empty primary HDU, the image in extension 1;
+    # the exposure was reported missing
+    fits = pytest.importorskip("astropy.io.fits")
+    primary = fits.PrimaryHDU()
+    primary.header["EXPTIME"] = 0.025
+    primary.header["IMAGETYP"] = "Dark Frame"
+    primary.header["GAIN"] = 2.5
+    image = fits.ImageHDU(np.arange(64, dtype=np.uint16).reshape(8, 8))
+    image.header["BITDEPTH"] = 12
+    fits.HDUList([primary, image]).writeto(tmp_path / "ext.fits")
+    with open_source(tmp_path / "ext.fits") as src:
+        assert src.bit_depth == 12 and src.meta.get("gain") == 2.5
+        origins = src.describe()
+    sweep = read_sweep(tmp_path / "ext.fits")
+    assert sweep.exposure_ms.tolist() == [25.0] and sweep.kind.tolist() == ["dark"]
+    assert "primary header" in origins
+    image.header["INHERIT"] = False  # the extension declines the primary's keywords
+    fits.HDUList([primary, image]).writeto(tmp_path / "own.fits")
+    with pytest.raises(DataFormatError, match="exposure"):
+        read_sweep(tmp_path / "own.fits")
+
+
 # -- 4. sidecar bit_shift, exposures that are not finite times ------------------------------------
 def _tiff_with_sidecar(tmp_path, toml: str, data=None):
     data = np.arange(64, dtype=np.uint16).reshape(8, 8) * 16 if data is None else data

@@ -9,7 +9,9 @@ other scaled integers come back as their physical values ``BSCALE * stored + BZE
 ``float32`` (8/16-bit) or ``float64`` (32/64-bit). Metadata from the header: ``EXPTIME`` or
 ``EXPOSURE`` (seconds, the FITS convention) -> ``exposure_ms``; ``IMAGETYP``/``FRAMETYP``
 containing "dark"/"bias" -> kind "dark", "light"/"flat"/"object" -> "light";
-``BITDEPTH`` -> bit depth; ``GAIN`` kept in ``meta``. A value of these keywords that is not a
+``BITDEPTH`` -> bit depth; ``GAIN`` kept in ``meta``. An image in an extension behind an
+empty primary HDU also takes the keywords only the primary header holds (unless the extension
+says ``INHERIT = F``). A value of these keywords that is not a
 number (or, for ``EXPTIME``/``EXPOSURE``, not a finite time >= 0; for ``BITDEPTH``, not a whole
 number 1..32) is an error naming the file and the keyword. A damaged file is an error naming
 the file; astropy's warnings about it are folded into that message, never printed.
@@ -171,7 +173,15 @@ def open_fits(path, limits: ReadLimits) -> FileLayout:
                 raise DataFormatError(f"file is truncated: the header needs {need} bytes but "
                                       f"the file has {size}; copy it again", path=path)
             fields = _header_fields(head, path)
-            gain = _number(head, "GAIN", path)
+            gain = _number(head, "GAIN", path) if "GAIN" in head else None
+            primary = hdul[0].header
+            if index > 0 and _inherits(head, primary):
+                # an image extension behind an empty primary HDU (the common camera layout):
+                # the keywords only the primary header holds apply to it (FITS INHERIT)
+                for name, (value, origin) in _header_fields(primary, path).items():
+                    fields.setdefault(name, (value, origin + ", primary header"))
+                if gain is None and "GAIN" in primary:
+                    gain = _number(primary, "GAIN", path)
         except BaseException:
             hdul.close()
             raise
@@ -198,9 +208,15 @@ def open_fits(path, limits: ReadLimits) -> FileLayout:
                         read=read, close=close, parallel=False)
     for name, (value, origin) in fields.items():
         layout.give(name, value, origin)
-    if "GAIN" in head:
+    if gain is not None:
         layout.meta["gain"] = gain
     return layout
+
+
+def _inherits(head, primary) -> bool:
+    """Whether an image extension takes the primary header's keywords: its primary HDU holds
+    no data (``NAXIS = 0``) and the extension does not say ``INHERIT = F``."""
+    return int(primary.get("NAXIS", 0) or 0) == 0 and head.get("INHERIT", True) is not False
 
 
 def _header_fields(head, path) -> dict:
