@@ -238,14 +238,21 @@ def _removed_on_error(tmp: Path, path: Path):
     try:
         yield
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
+        _remove(tmp)
         named = _named(exc, path, tmp)
         if named is exc:
             raise
         raise named from exc
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        _remove(tmp)
         raise
+
+
+def _remove(tmp: Path) -> None:
+    """Remove a temporary file if it is there; an error doing so (its folder is a file, or
+    was never made) never hides the error that is being reported."""
+    with contextlib.suppress(OSError):
+        tmp.unlink(missing_ok=True)
 
 
 @contextlib.contextmanager
@@ -285,7 +292,11 @@ def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None):
     allowed = _allowed(path, overwrite, policy)
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}{PART_SUFFIX}")
     with _removed_on_error(tmp, path):
-        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except FileExistsError as exc:  # a file where the folder should be
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR),
+                                     exc.filename or str(path.parent)) from None
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
                      0o666)
         os.close(fd)

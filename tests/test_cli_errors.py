@@ -22,12 +22,25 @@ def test_missing_input_is_one_line(tmp_path, capsys):
     assert line.startswith("hsiffc info: error:") and "nope.tif" in line
 
 
-def test_output_in_a_missing_folder_is_one_line(tmp_path, capsys):
+def test_output_in_a_missing_folder_is_created(tmp_path, capsys):
+    # as by every writer (calibrate -o, correct -o, --json); simulate alone used to refuse
     out = tmp_path / "no" / "such" / "dir" / "sim.tif"
+    assert main(["simulate", str(out), "--exposures-ms", "5", "--shape", "8", "8"]) == 0
+    assert out.is_file()
+
+
+def test_output_folder_that_cannot_be_made_is_one_line(tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" / "dir" / "sim.tif"  # a file where a folder would have to be
     code = main(["simulate", str(out), "--exposures-ms", "5", "--shape", "8", "8"])
     assert code == 2
     line = _one_error_line(capsys.readouterr().err)
-    assert "hsiffc simulate: error:" in line
+    assert "hsiffc simulate: error:" in line and "afile" in line and ".part" not in line
+    assert "a part of the path is a file" in line
+    out = tmp_path / "afile" / "list.json"  # the file is the output's folder itself
+    assert main(["stages", "--json", str(out)]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "a part of the path is a file" in line and "File exists" not in line
 
 
 @pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0,
