@@ -137,6 +137,23 @@ def test_the_data_file_beside_an_envi_header_input_is_never_written(files, tmp_p
     assert data.read_bytes() == before
 
 
+@pytest.mark.parametrize("given", ["folder", "descriptor"])
+def test_the_images_of_an_emva_measurement_input_are_never_written(tmp_path, capsys, given):
+    from hsiffc.diagnose.designs import simulated_sweep, write_emva1288
+    from hsiffc.io.emva import emva_files
+
+    folder = tmp_path / "emva"
+    descriptor = write_emva1288(simulated_sweep("mixed", seed=0, n_steps=4), folder)
+    images = emva_files(folder)[1:]
+    assert images and all(p.is_file() and p.suffix == ".png" for p in images)
+    (folder / "notes.md").write_text("not part of the measurement")  # not listed, not read
+    before = images[-1].read_bytes()
+    arg = folder if given == "folder" else descriptor
+    assert main(["info", str(arg), "--json", str(images[-1]), "--overwrite"]) == 2
+    assert "input of this command" in _one_line(capsys.readouterr().err)
+    assert images[-1].read_bytes() == before
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes on this system")
 def test_a_pipe_or_device_is_never_replaced_even_with_overwrite(files, tmp_path, capsys):
     fifo = tmp_path / "pipe.json"

@@ -41,9 +41,9 @@ def declared(args, kind: str) -> list:
 def input_files(values) -> list:
     """Every existing file a command's input arguments stand for, so that the write policy
     protects them all, not only the names typed: the image files of a folder or a glob (and
-    the data files beside an ENVI header: same name, another suffix), and every file of an
-    EMVA 1288 measurement (its descriptor's folder). Arguments that name nothing are skipped
-    (the command reports them); only folder listings are read, never a file.
+    the data files beside an ENVI header: same name, another suffix), and the descriptor and
+    images of an EMVA 1288 measurement. Arguments that name nothing are skipped (the command
+    reports them); only folder listings and EMVA descriptors are read, never an image.
 
     Parameters
     ----------
@@ -55,15 +55,17 @@ def input_files(values) -> list:
     list of Path
     """
     from ..errors import DataFormatError
-    from ..io.emva import has_emva_descriptor
+    from ..io.emva import emva_files, has_emva_descriptor
     from ..io.readers import expand_inputs
 
     out: list[Path] = []
     for value in values:
         path = Path(value)
-        folder = path if path.is_dir() else path.parent
         if path.suffix.lower() == ".txt" or (path.is_dir() and has_emva_descriptor(path)):
-            out += [q for q in folder.rglob("*") if q.is_file()]  # an EMVA 1288 measurement
+            try:  # an EMVA 1288 measurement: its descriptor and the images it names
+                out += emva_files(path)
+            except (DataFormatError, OSError):
+                pass  # the command reports what is wrong with it
             continue
         try:
             files = expand_inputs(value)

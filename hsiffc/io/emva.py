@@ -37,7 +37,7 @@ from .layout import FileLayout
 from .limits import ReadLimits, default_limits
 
 __all__ = ["read_emva1288", "open_emva1288", "find_emva_descriptor", "has_emva_descriptor",
-           "DEFAULT_DESCRIPTOR_NAME"]
+           "emva_files", "DEFAULT_DESCRIPTOR_NAME"]
 
 DEFAULT_DESCRIPTOR_NAME = "EMVA1288_Data.txt"
 SPATIAL_FACTOR = 2.0  # a step with more than this x the median images per step is "spatial"
@@ -126,6 +126,33 @@ def _numbers(parts, count, descriptor, lineno, line, usage):
         raise DataFormatError(f"line {lineno}: {line!r} holds a negative or non-finite value; "
                               f"expected {usage!r}", path=descriptor)
     return values
+
+
+def emva_files(path) -> list[Path]:
+    """The files of an EMVA 1288 measurement: its descriptor and every image its ``i`` lines
+    name (whether or not they exist), as :func:`open_emva1288` would read them; the command
+    line protects them all from being written.
+
+    Parameters
+    ----------
+    path : str or Path
+        The descriptor ``.txt`` or its folder.
+
+    Raises
+    ------
+    DataFormatError
+        No descriptor, or an invalid descriptor line.
+    """
+    path = Path(path)
+    descriptor = find_emva_descriptor(path) if path.is_dir() else path
+    _, steps = _parse_descriptor(descriptor)
+    return [descriptor] + [descriptor.parent / _image_path(name) for s in steps
+                           for name, _ in s.images]
+
+
+def _image_path(name: str) -> str:
+    """An ``i`` line's image path, relative to the descriptor's folder (``\\`` as ``/``)."""
+    return name.replace("\\", "/")
 
 
 def _parse_descriptor(descriptor: Path):
@@ -354,7 +381,7 @@ def open_emva1288(path, limits: ReadLimits, *, exposure_unit: str = "ns", steps=
 
     def read(k: int) -> np.ndarray:
         _, _, name, lineno = plan[k]
-        image = root / name.replace("\\", "/")
+        image = root / _image_path(name)
         with _quiet_opencv(cv2):
             array = _load_image(cv2, image, descriptor, lineno)
         if array.shape != (height, width):
