@@ -83,6 +83,17 @@ class FixedPattern:
         return float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
 
     @property
+    def pooled_fpn_se_percent(self) -> float:
+        """Standard error of :attr:`pooled_fpn_percent`, conservatively the root mean square of
+        the per-band errors (pooling bands averages some of it away). Where the fixed pattern
+        is below what the frames can measure, the percentage is 0 and this is the resolution:
+        the true value is below about twice it."""
+        if self.fpn_se_percent is None:
+            return float("nan")
+        v = np.asarray(self.fpn_se_percent)[np.isfinite(self.fpn_se_percent)]
+        return float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
+
+    @property
     def pooled_eq6_percent(self) -> float:
         """Eq. (6) of all bands, pooled as :attr:`pooled_fpn_percent`."""
         v = self.eq6_percent[np.isfinite(self.eq6_percent)]

@@ -70,7 +70,7 @@ def test_uniformity_command_on_sample_cubes(sample_cubes, tmp_path, capsys):
     step = doc["steps"][0]
     assert {"step", "exposure_ms", "signal_dn", "clipped_fraction", "flagged_fraction", "raw",
             "corrected"} <= set(step)
-    assert set(step["raw"]) == {"eq6_percent", "fpn_percent"}
+    assert set(step["raw"]) == {"eq6_percent", "fpn_percent", "fpn_se_percent"}
     assert set(step["corrected"]) == {"model_ffc"}
     unclipped = [s for s in doc["steps"] if s["clipped_fraction"] < 0.01
                  and (s["signal_dn"] or 0) > 30]
@@ -90,6 +90,25 @@ def test_uniformity_command_on_sample_cubes(sample_cubes, tmp_path, capsys):
     top = doc["summary"][-1]
     assert top["signal_range_dn"] == [802.0, 1023.0] and top["n_steps"] > 0
     assert top["methods"]["raw"]["worst_step"] is None and "n/a" in printed
+
+
+def test_a_pattern_below_the_resolution_is_printed_as_a_bound(sample_cubes, tmp_path, capsys):
+    # on the calibration's own sweep model_ffc leaves less fixed pattern than two frames of
+    # 12 288 pixels can measure: the median is 0 %, which the table printed as "0.00%"
+    sweep = sample_cubes / "sweep_2900K.tif"
+    cal = tmp_path / "cal.npz"
+    calibrate(read_sweep(sweep)).save(cal)
+    assert main(["uniformity", str(sweep), "--calibration", str(cal), "--json",
+                 str(tmp_path / "u.json")]) == 0
+    printed = capsys.readouterr().out
+    doc = json.loads((tmp_path / "u.json").read_text())
+    bounded = [r["methods"]["model_ffc"] for r in doc["summary"] if "model_ffc" in r["methods"]
+               and r["methods"]["model_ffc"]["fpn_percent_median"] == 0.0]
+    assert bounded and all(m["fpn_se_percent_median"] > 0 for m in bounded)
+    assert f"< {2 * bounded[0]['fpn_se_percent_median']:.2f}%" in printed
+    assert "0.00%" not in printed and "below what the frames can resolve" in printed
+    raw = doc["steps"][0]["raw"]
+    assert 0 < raw["fpn_se_percent"] < raw["fpn_percent"]  # the raw 1 % pattern is resolved
 
 
 def test_summarise_range_without_any_figure():

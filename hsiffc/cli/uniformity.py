@@ -113,6 +113,10 @@ def _cmd_uniformity(args) -> int:
         print(f"{f'{lo:g}-{hi:g}':<12} {row['n_steps']:>5}  " + "  ".join(cells))
     print(f"fixed-pattern non-uniformity (EMVA 1288, temporal noise removed), median per range; "
           f"{len(steps)} steps written to {args.json}")
+    if any(v["fpn_percent_median"] < v["fpn_se_percent_median"]
+           for row in summary for v in row["methods"].values()):
+        print("< x: the fixed pattern left is below what the frames can resolve (x is twice the "
+              "standard error of the figure, from the pixel and frame counts)")
     if any(value["worst_step"] is None for row in summary for value in row["methods"].values()):
         print("n/a: no step of the range has a figure: every pixel flagged (e.g. dynamically "
               "saturated) or none left after the correction's flags")
@@ -120,13 +124,18 @@ def _cmd_uniformity(args) -> int:
 
 
 def _cell(figures) -> str:
-    """A summary table cell: the median percent, '-' for no step in the range, 'n/a' where no
-    step of the range has a figure (e.g. every pixel flagged, as in dynamically saturated
-    steps)."""
+    """A summary table cell: the median percent; '< x' where it is below its standard error
+    (x twice that error: the frames cannot tell the pattern left from none, so "0.00 %" would
+    claim too much); '-' for no step in the range; 'n/a' where no step of the range has a
+    figure (e.g. every pixel flagged, as in dynamically saturated steps)."""
     if figures is None:
         return f"{'-':>18}"
-    value = figures["fpn_percent_median"]
-    return f"{value:>17.2f}%" if value == value else f"{'n/a':>18}"
+    value, se = figures["fpn_percent_median"], figures.get("fpn_se_percent_median", 0.0)
+    if value != value:
+        return f"{'n/a':>18}"
+    if value < se:  # below what the frames resolve: a bound, not "0.00 %"
+        return f"{'< ' + format(2 * se, '.2f'):>17}%"
+    return f"{value:>17.2f}%"
 
 
 def _add_study(sub):

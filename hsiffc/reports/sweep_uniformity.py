@@ -60,9 +60,12 @@ class StepUniformity:
     corrected: dict = field(default_factory=dict)  # name -> FixedPattern
 
     def figures(self, name: str | None = None) -> dict:
-        """``{"eq6_percent", "fpn_percent"}`` of the raw frames (name None) or a correction."""
+        """``{"eq6_percent", "fpn_percent", "fpn_se_percent"}`` of the raw frames (name None)
+        or a correction (pooled over bands; ``fpn_se_percent`` is the standard error of
+        ``fpn_percent``)."""
         fp = self.raw if name is None else self.corrected[name]
-        return {"eq6_percent": fp.pooled_eq6_percent, "fpn_percent": fp.pooled_fpn_percent}
+        return {"eq6_percent": fp.pooled_eq6_percent, "fpn_percent": fp.pooled_fpn_percent,
+                "fpn_se_percent": fp.pooled_fpn_se_percent}
 
 
 def step_uniformity(frames, corrections: dict, *, dark=None) -> StepUniformity:
@@ -149,6 +152,8 @@ def summarise(steps, methods, *, ranges=SIGNAL_RANGES_DN,
                              for s in sel])
             eq6 = np.array([s.figures(None if name == "raw" else name)["eq6_percent"]
                             for s in sel])
+            se = np.array([s.figures(None if name == "raw" else name)["fpn_se_percent"]
+                           for s in sel])
             if np.isfinite(vals).any():
                 worst = int(np.nanargmax(vals))
                 row["methods"][name] = {
@@ -156,11 +161,13 @@ def summarise(steps, methods, *, ranges=SIGNAL_RANGES_DN,
                     "fpn_percent_max": float(vals[worst]),
                     "worst_step": sel[worst].step,
                     "worst_signal_dn": sel[worst].signal_dn,
+                    "fpn_se_percent_median": _nanmedian_or_nan(se),
                     "eq6_percent_median": _nanmedian_or_nan(eq6)}
             elif vals.size:  # steps in range, none with a measurable figure for this method
                 row["methods"][name] = {
                     "fpn_percent_median": float("nan"), "fpn_percent_max": float("nan"),
                     "worst_step": None, "worst_signal_dn": None,
+                    "fpn_se_percent_median": _nanmedian_or_nan(se),
                     "eq6_percent_median": _nanmedian_or_nan(eq6)}
         rows.append(row)
     return rows
