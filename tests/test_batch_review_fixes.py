@@ -114,6 +114,17 @@ def test_json_may_not_take_the_name_of_an_output(world, tmp_path, capsys, name):
     assert not out.exists()
 
 
+def test_json_onto_an_input_found_in_a_folder_is_refused_before_the_batch(world, tmp_path,
+                                                                          capsys):
+    # it was refused only when the summary was written, after the whole batch had run
+    target = world["raw"] / "single.tif"
+    before = target.read_bytes()
+    out = tmp_path / "out"
+    assert _correct(world, [world["raw"]], out, "--json", str(target), "--overwrite") == 2
+    assert "input of this command" in capsys.readouterr().err
+    assert not out.exists() and target.read_bytes() == before
+
+
 def test_summary_of_files_with_different_band_counts():
     def result(name, bands):
         return {"status": "done", "rel": name, "output": name, "frames": 1, "bytes": 10,

@@ -239,8 +239,8 @@ def _envi_outputs(summary, *, overwrite: bool) -> int:
 
 def _cmd_correct(args) -> int:
     from ..batch import correct_batch
-    from ..atomic import LOCK_NAME
-    from ..batch.plan import is_batch_output
+    from ..atomic import LOCK_NAME, check_output
+    from ..batch.plan import discover_inputs, is_batch_output
 
     if args.pipeline is not None and (args.ffc is not None or args.linearise):
         raise HsiffcError(f"--{'ffc' if args.ffc is not None else 'linearise'} sets up the "
@@ -254,6 +254,9 @@ def _cmd_correct(args) -> int:
         raise HsiffcError(f"--json {args.json}: is named like an output of hsiffc correct "
                           "(*.corrected.tif or its ENVI cubes); give the summary another name, "
                           "e.g. summary.json")
+    if args.json is not None:  # an input found in a folder or glob: refused now, not at the end
+        check_output(args.json, overwrite=args.overwrite,
+                     inputs=[path for path, _ in discover_inputs(args.inputs)[0]])
     show = not args.quiet and sys.stderr.isatty()
     try:
         summary = correct_batch(args.inputs, args.outdir, args.calibration,
