@@ -53,8 +53,7 @@ class BatchSummary:
         (mosaics of different sizes cannot be pooled band by band; each file's figures stay in
         its result).
         """
-        rows = [r for r in self.done if r["uniformity_before"] is not None
-                and r["uniformity_after"] is not None]
+        rows = self._measured()
         if not rows or len(self._band_counts(rows)) > 1:
             return None
         w = np.array([r["light_frames"] for r in rows], float)[:, None]
@@ -66,6 +65,11 @@ class BatchSummary:
             weight = (ok * w).sum(0)
             out.append(np.where(weight > 0, total / np.maximum(weight, 1e-300), np.nan))
         return out[0], out[1]
+
+    def _measured(self) -> list:
+        """Results of done files with non-uniformity figures before and after."""
+        return [r for r in self.done if r["uniformity_before"] is not None
+                and r["uniformity_after"] is not None]
 
     @staticmethod
     def _band_counts(rows) -> set:
@@ -96,8 +100,7 @@ class BatchSummary:
             lines.append(f"ignored {len(self.ignored)} files named like outputs of hsiffc "
                          f"correct (*{SUFFIX} and their ENVI cubes)")
         u = self.uniformity()
-        counts = self._band_counts([r for r in self.done if r["uniformity_before"] is not None
-                                    and r["uniformity_after"] is not None])
+        counts = self._band_counts(self._measured())
         if len(counts) > 1:
             lines.append("non-uniformity per band: not pooled, the files have "
                          f"{' and '.join(str(n) for n in sorted(counts))} bands (each file's "

@@ -220,8 +220,9 @@ def _envi_outputs(summary, *, overwrite: bool) -> int:
         try:
             files = corrected_envi_files(out, int(read_provenance(out)["n_frames"]))
             present = [p for p in files if os.path.lexists(p)]
+            made = out.stat().st_mtime
             if (r["status"] == "skipped" and not overwrite and len(present) == len(files)
-                    and all(p.stat().st_mtime >= out.stat().st_mtime for p in present)):
+                    and all(p.stat().st_mtime >= made for p in present)):
                 continue  # complete and up to date
             foreign = [p for p in present if not written_from(p, out)]
             if foreign and not overwrite:
@@ -246,15 +247,16 @@ def _cmd_correct(args) -> int:
         raise HsiffcError(f"--{'ffc' if args.ffc is not None else 'linearise'} sets up the "
                           "default pipeline; --pipeline brings its own steps: give one or the "
                           "other")
-    if args.json is not None and args.json.name == LOCK_NAME:
-        raise HsiffcError(f"--json {args.json}: {LOCK_NAME} is the name of the lock hsiffc "
-                          "correct keeps in an output folder; give the summary another name, "
-                          "e.g. summary.json")
-    if args.json is not None and is_batch_output(args.json):
-        raise HsiffcError(f"--json {args.json}: is named like an output of hsiffc correct "
-                          "(*.corrected.tif or its ENVI cubes); give the summary another name, "
-                          "e.g. summary.json")
-    if args.json is not None:  # an input found in a folder or glob: refused now, not at the end
+    if args.json is not None:  # checked now: the summary is written after the whole batch
+        if args.json.name == LOCK_NAME:
+            raise HsiffcError(f"--json {args.json}: {LOCK_NAME} is the name of the lock hsiffc "
+                              "correct keeps in an output folder; give the summary another "
+                              "name, e.g. summary.json")
+        if is_batch_output(args.json):
+            raise HsiffcError(f"--json {args.json}: is named like an output of hsiffc correct "
+                              "(*.corrected.tif or its ENVI cubes); give the summary another "
+                              "name, e.g. summary.json")
+        # an input found in a folder or glob
         check_output(args.json, overwrite=args.overwrite,
                      inputs=[path for path, _ in discover_inputs(args.inputs)[0]])
     show = not args.quiet and sys.stderr.isatty()

@@ -147,28 +147,19 @@ def summarise(steps, methods, *, ranges=SIGNAL_RANGES_DN,
         sel = [s for s in steps if lo <= s.signal_dn < hi
                and s.clipped_fraction <= max_clipped_fraction]
         row = {"signal_range_dn": [lo, hi], "n_steps": len(sel), "methods": {}}
-        for name in ("raw", *methods):
-            vals = np.array([s.figures(None if name == "raw" else name)["fpn_percent"]
-                             for s in sel])
-            eq6 = np.array([s.figures(None if name == "raw" else name)["eq6_percent"]
-                            for s in sel])
-            se = np.array([s.figures(None if name == "raw" else name)["fpn_se_percent"]
-                           for s in sel])
-            if np.isfinite(vals).any():
-                worst = int(np.nanargmax(vals))
-                row["methods"][name] = {
-                    "fpn_percent_median": float(np.nanmedian(vals)),
-                    "fpn_percent_max": float(vals[worst]),
-                    "worst_step": sel[worst].step,
-                    "worst_signal_dn": sel[worst].signal_dn,
-                    "fpn_se_percent_median": _nanmedian_or_nan(se),
-                    "eq6_percent_median": _nanmedian_or_nan(eq6)}
-            elif vals.size:  # steps in range, none with a measurable figure for this method
-                row["methods"][name] = {
-                    "fpn_percent_median": float("nan"), "fpn_percent_max": float("nan"),
-                    "worst_step": None, "worst_signal_dn": None,
-                    "fpn_se_percent_median": _nanmedian_or_nan(se),
-                    "eq6_percent_median": _nanmedian_or_nan(eq6)}
+        for name in ("raw", *methods) if sel else ():
+            figs = [s.figures(None if name == "raw" else name) for s in sel]
+            vals, eq6, se = (np.array([f[k] for f in figs], float)
+                             for k in ("fpn_percent", "eq6_percent", "fpn_se_percent"))
+            # no finite figure (every pixel of the range's steps flagged): no worst step
+            worst = int(np.nanargmax(vals)) if np.isfinite(vals).any() else None
+            row["methods"][name] = {
+                "fpn_percent_median": _nanmedian_or_nan(vals),
+                "fpn_percent_max": float("nan") if worst is None else float(vals[worst]),
+                "worst_step": None if worst is None else sel[worst].step,
+                "worst_signal_dn": None if worst is None else sel[worst].signal_dn,
+                "fpn_se_percent_median": _nanmedian_or_nan(se),
+                "eq6_percent_median": _nanmedian_or_nan(eq6)}
         rows.append(row)
     return rows
 
