@@ -192,15 +192,18 @@ class Frame:
             object.__setattr__(out, "_raw", self.__dict__["_raw"])  # same data, same dark
         return out
 
-    def dark_subtracted(self, dark, **meta) -> "Frame":
+    def dark_subtracted(self, dark, *, signal=None, **meta) -> "Frame":
         """This frame less ``dark`` (DN, :func:`hsiffc.dark.subtract_dark`: float32, nothing
         clipped), with ``dark_removed`` set and ``meta`` merged. Its :attr:`raw` is this
         frame's data itself: exact (no ``(raw - dark) + dark`` rounding) and not recomputed.
-        Raises ValueError when a dark was removed already."""
+        ``signal`` is that difference when a fused pass already computed it
+        (:func:`hsiffc.validity.subtract_dark_and_flag`). Raises ValueError when a dark was
+        removed already."""
         if self.dark_removed is not None:
             raise ValueError("this frame is already dark-subtracted; a pipeline should have one "
                              "dark stage")
-        out = self.replace(data=subtract_dark(self.data, dark), dark_removed=dark, meta=meta)
+        data = subtract_dark(self.data, dark) if signal is None else signal
+        out = self.replace(data=data, dark_removed=dark, meta=meta)
         if not out.is_cube and self.corrected_by is None:
             raw = self.data.view()
             raw.flags.writeable = False

@@ -8,8 +8,11 @@ arithmetic.
 
 Precision: everything is computed in float64 (inputs may be float32 or float64). The
 response keeps ~1e-13 DN (tests: against ``solve_ivp`` and against the previous numpy form);
-alpha is computed in float64 and may be stored as float32 (1e-7 relative, far below any
-threshold's meaning).
+alpha is computed in float64 with an exponential good to 1e-11 relative
+(:func:`~hsiffc.kernels.vmath.exp_single`) and stored as float32: within 1 float32 ulp (6e-8)
+of the exact value, and its LEAKAGE bit differs from the exact rule only for an alpha within
+1e-11 of the threshold, far below any threshold's meaning (a calibrated a and b carry
+percent-level errors).
 
 Kernels run a ``prange`` loop over blocks of :data:`BLOCK` pixels, each a compiled block
 function: a branch-free loop (vectorised by LLVM, 4 doubles per instruction on AVX2) for the
@@ -27,7 +30,7 @@ from numba import njit, prange
 from ..dq import DQ
 from .launch import JIT_OPTIONS, Kernel
 from .operands import at, part
-from .vmath import exp, expm1, log, log_corrected, logaddexp
+from .vmath import exp, exp_single, expm1, log, log_corrected, logaddexp
 
 __all__ = ["BLOCK", "alpha_flags_kernel", "alpha_model_kernel", "alpha_model_point",
            "alpha_paper_kernel", "alpha_paper_point", "leakage_bits", "response_fast",
@@ -178,10 +181,11 @@ def alpha_paper_point(y, t, a, b, d):
     One exponential and one division (the log-domain form took two logs more on the pixel's
     chain of dependent operations): ``e^{bY}`` as the square of ``E = e^{bY / 2}``, applied
     as ``((100 a t / s) E) E`` so that no factor overflows before the result does (``E`` is
-    finite for ``bY`` up to 1418).
+    finite for ``bY`` up to 1416). ``E`` comes from :func:`~hsiffc.kernels.vmath.exp_single`
+    (1e-11 relative): alpha is stored as float32.
     """
     s = y - d
-    e = exp(0.5 * b * y)
+    e = exp_single(0.5 * b * y)
     alpha = ((100.0 * a * t / s) * e) * e
     return alpha if (s > 0.0 and t > 0.0) else np.inf
 
@@ -239,9 +243,12 @@ def leakage_bits(alpha, y, threshold, full_scale):
 
 @njit(**_JIT)
 def _alpha_flags_block(y, t, a, b, d, threshold, full_scale, const_bits, pix, has_pix, dq_in,
-                       has_dq_in, with_alpha, alpha_in, alpha_out, dq_out):
+                       has_dq_in, extra, has_extra, with_alpha, alpha_in, alpha_out, dq_out,
+                       signal_out, with_signal):
     for i in range(dq_out.shape[0]):
         yi = at(y, i)
+        if with_signal:  # np.subtract(y, d, dtype=float32): both rounded to float32 first
+            signal_out[i] = np.float32(yi) - np.float32(at(d, i))
         if with_alpha:
             alpha = alpha_paper_point(yi, at(t, i), at(a, i), at(b, i), at(d, i))
             alpha_out[i] = alpha
@@ -250,23 +257,28 @@ def _alpha_flags_block(y, t, a, b, d, threshold, full_scale, const_bits, pix, ha
         bits = leakage_bits(alpha, yi, threshold, full_scale) | const_bits
         bits |= pix[i] if has_pix else 0
         bits |= dq_in[i] if has_dq_in else 0
+        bits |= extra[i] if has_extra else 0
         dq_out[i] = bits
 
 
 def _alpha_flags_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, has_pix, dq_in,
-                      has_dq_in, with_alpha, alpha_in, alpha_out, dq_out):
+                      has_dq_in, extra, has_extra, with_alpha, alpha_in, alpha_out, dq_out,
+                      signal_out, with_signal):
     """Paper alpha into ``alpha_out`` (if ``with_alpha``; else alpha is read from
     ``alpha_in``) and the DQ of every pixel: :func:`leakage_bits` | ``const_bits`` | ``pix``
-    | ``dq_in``; per block of :data:`BLOCK` (size-1 placeholders of the unused planes are
-    sliced to at most one element and never read)."""
+    | ``dq_in`` | ``extra``; with ``with_signal``, also ``y - d`` in float32 into
+    ``signal_out`` (the dark subtraction of the same pixels, in the same pass); per block of
+    :data:`BLOCK` (size-1 placeholders of the unused planes are sliced to at most one element
+    and never read)."""
     n = dq_out.shape[0]
     for blk in prange((n + BLOCK - 1) // BLOCK):
         i0 = blk * BLOCK
         i1 = min(n, i0 + BLOCK)
         _alpha_flags_block(part(y, i0, i1), part(t, i0, i1), part(a, i0, i1), part(b, i0, i1),
                            part(d, i0, i1), threshold, full_scale, const_bits, pix[i0:i1],
-                           has_pix, dq_in[i0:i1], has_dq_in, with_alpha, alpha_in[i0:i1],
-                           alpha_out[i0:i1], dq_out[i0:i1])
+                           has_pix, dq_in[i0:i1], has_dq_in, extra[i0:i1], has_extra,
+                           with_alpha, alpha_in[i0:i1], alpha_out[i0:i1], dq_out[i0:i1],
+                           signal_out[i0:i1], with_signal)
 
 
-alpha_flags_kernel = Kernel(_alpha_flags_loop, 15)
+alpha_flags_kernel = Kernel(_alpha_flags_loop, 17)

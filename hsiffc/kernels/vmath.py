@@ -27,8 +27,8 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-__all__ = ["as_float64", "as_int64", "exp", "exp_expm1", "expm1", "fma", "log", "log1p",
-           "log_corrected", "logaddexp"]
+__all__ = ["as_float64", "as_int64", "exp", "exp_expm1", "exp_single", "expm1", "fma", "log",
+           "log1p", "log_corrected", "logaddexp"]
 
 # Not cached on purpose: a cached function is stored as machine code, which LLVM cannot inline
 # into (and vectorise with) a caller compiled later. The kernels that call these are cached.
@@ -139,6 +139,34 @@ def exp_expm1(x):
 def exp(x):
     """e^x for a float64 (1 ulp)."""
     return exp_expm1(x)[0]
+
+
+_EXP_SINGLE_MAX = 708.0  # e^708 and e^-708 are normal doubles: one 2^n factor suffices
+
+
+@njit(**_INL)
+def exp_single(x):
+    """e^x for results that end in float32: relative error below 1e-11 (the Taylor series to
+    degree 9 on ``|r| <= ln 2 / 2`` truncates at 7e-12), so rounding to float32 (6e-8) almost
+    always gives the same value as the exact e^x, and never more than 1 float32 ulp off.
+
+    Four fused multiply-adds fewer than :func:`exp` and one 2^n factor instead of two: the
+    alpha and DQ pass on a 2048 x 1088 frame (one thread) ran 8.3 -> 5.1 ms with it, against
+    3.7 ms for the same pass without arithmetic. ``inf`` above 708 and 0 below -708, where the
+    exact value is within a factor e of a double's range (callers square it or scale it into
+    float32, where both are the same as the exact value); NaN in gives NaN.
+    """
+    xc = min(max(x, -_EXP_SINGLE_MAX), _EXP_SINGLE_MAX)
+    shifted = xc * _INV_LN2 + _SHIFT
+    n = shifted - _SHIFT
+    r = (xc - n * _LN2_HI) - n * _LN2_LO
+    r2 = r * r
+    q = fma(fma(_E9, r, _E8), r2, fma(_E7, r, _E6))
+    q = fma(q, r2 * r2, fma(fma(_E5, r, _E4), r2, fma(_E3, r, _E2)))
+    w = fma(q, r2, r)
+    ex = (1.0 + w) * as_float64((as_int64(shifted) - _SHIFT_BITS + 1023) << 52)
+    ex = np.inf if x > _EXP_SINGLE_MAX else (0.0 if x < -_EXP_SINGLE_MAX else ex)
+    return ex if x == x else x
 
 
 @njit(**_JIT, inline="always")

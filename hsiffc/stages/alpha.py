@@ -13,10 +13,12 @@ class AlphaMask(Stage):
 
     Runs :func:`hsiffc.validity.validity_flags` on the frame's raw response (``frame.raw``: the
     data plus the dark a stage actually removed, since the leakage acts on the raw response);
-    the dark under it is the one a dark stage removed, else the calibrated dark. The frame keeps its data; it gains an ``alpha`` plane (percent; ``inf``
-    where no light rate can be estimated) and DQ bits: LEAKAGE (alpha over
-    ``threshold_percent`` or undefined), SATURATED, OUT_OF_DOMAIN (exposure outside the
-    calibrated range), and the calibration's own pixel flags.
+    the dark under it is the one a dark stage removed, else the calibrated dark. The frame
+    keeps its data; it gains an ``alpha`` plane (percent; ``inf`` where no light rate can be
+    estimated) and DQ bits: LEAKAGE (alpha over ``threshold_percent`` or undefined),
+    SATURATED, OUT_OF_DOMAIN (exposure outside the calibrated range), and the calibration's
+    own pixel flags. After a dark stage, in a pipeline followed by a two-point FFC, it runs
+    fused with both (:mod:`hsiffc.stages.fusion`: the same result).
 
     Parameters
     ----------
@@ -52,11 +54,21 @@ class AlphaMask(Stage):
 
     def transform(self, frame):
         """The frame with its alpha plane (percent) and LEAKAGE / OUT_OF_DOMAIN flags added."""
-        cal = self.require_calibration()
-        cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
-                             mosaic=frame.mosaic, what="the frame")
+        cal = self.calibration_for(frame)
         alpha, dq = validity_flags(frame.raw, frame.exposure_ms, cal,
                                    threshold_percent=float(self.threshold_percent),
                                    method=self.method, dark=frame.dark_removed, dq=frame.dq)
+        return self.flagged(frame, alpha, dq)
+
+    def calibration_for(self, frame):
+        """The calibration, checked against ``frame`` (shape, bit depth, mosaic)."""
+        cal = self.require_calibration()
+        cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
+                             mosaic=frame.mosaic, what="the frame")
+        return cal
+
+    def flagged(self, frame, alpha, dq):
+        """``frame`` with this stage's alpha plane and DQ (computed by :meth:`transform`, or
+        by a fused pass: :mod:`hsiffc.stages.fusion`)."""
         return frame.replace(dq=dq, alpha=alpha,
                              meta={"alpha_threshold_percent": float(self.threshold_percent)})

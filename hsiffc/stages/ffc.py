@@ -126,7 +126,12 @@ class TwoPointFFC(Stage):
         if frame.data.shape != self.gain_.shape:
             raise ValueError(f"frame shape {frame.data.shape} differs from the flat's "
                              f"{self.gain_.shape}")
-        dq = frame.dq | self.dq_
+        return self.corrected(frame, frame.dq | self.dq_)
+
+    def corrected(self, frame, dq):
+        """``frame`` corrected, given its DQ with the flat's own flags (``dq_``) merged in
+        (:meth:`transform` merges them; a fused pass merges them in its own pass:
+        :mod:`hsiffc.stages.fusion`)."""
         scale, band_map = 1.0, None
         if self.normalisation == "paper":
             band_map = frame.band_map()

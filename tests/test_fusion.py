@@ -1,0 +1,120 @@
+"""Stage fusion (hsiffc.stages.fusion): a pipeline's dark + alpha mask + two-point FFC run as
+one pass must give the frame the stages give one by one, bit for bit, with the same history,
+on simulated frames (with saturated, non-finite and flagged pixels, both sizes of kernel
+build) and on the real EMVA 1288 sweep."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hsiffc.calibrate import calibrate
+from hsiffc.frame import Frame
+from hsiffc.io import read_emva1288
+from hsiffc.kernels.launch import PARALLEL_MIN
+from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
+from hsiffc.stages import Pipeline, create
+from hsiffc.stages import fusion
+
+TRAIN = PAPER_LIGHT_W_M2["training"]
+
+
+def _stage_by_stage(pipe, frame):
+    """The pipeline's result with fusion switched off (every stage's own transform)."""
+    return pipe.transform(frame, fuse=False)
+
+
+def _assert_same_frame(a: Frame, b: Frame):
+    for field in ("data", "dq", "alpha", "dark_removed"):
+        x, y = getattr(a, field), getattr(b, field)
+        assert x.dtype == y.dtype and x.shape == y.shape, field
+        assert np.array_equal(x, y, equal_nan=True), field
+    assert a.corrected_by == b.corrected_by
+    assert a.meta == b.meta  # history, dark source, alpha threshold, FFC meta
+
+
+@pytest.fixture(scope="module")
+def sim():
+    """A (272, 512) sensor: over PARALLEL_MIN pixels, so the kernels' parallel build runs;
+    its calibration from a small sweep; training darks and flats."""
+    s = MosaicSensor((272, 512), seed=3)
+    assert s.shape[0] * s.shape[1] >= PARALLEL_MIN
+    cal = calibrate(s.sweep(np.round(np.geomspace(2, 400, 10), 3), "lamp A",
+                            irradiance_w_m2=0.25 * TRAIN, n_frames=1, seed=1))
+    train = Frame.list_from_sweep(s.sweep([12.9, 19.35, 25.8], "lamp A", irradiance_w_m2=TRAIN,
+                                          n_frames=2, seed=2))
+    return s, cal, train
+
+
+def _pipe(cal, train, **ffc):
+    return Pipeline([("dark", create("dark", match="scale")),
+                     ("mask", create("alpha_mask", calibration=cal)),
+                     ("ffc", create("two_point_ffc", calibration=cal, **ffc))]).fit(train)
+
+
+@pytest.mark.parametrize("ffc", [{}, {"normalisation": "mean_gain"}, {"exposure_ms": 19.35}])
+def test_fused_front_end_equals_the_stages_one_by_one(sim, ffc):
+    s, cal, train = sim
+    pipe = _pipe(cal, train, **ffc)
+    raw = s.capture(40.0, "lamp B", irradiance_w_m2=PAPER_LIGHT_W_M2["test"], seed=4).frames[0]
+    raw = raw.astype(np.float32)
+    raw[5, 7] = np.nan  # NONFINITE (set to 0 DN by from_raw), a saturated pixel, a hot row
+    raw[9, :40] = 1023
+    frame = Frame.from_raw(raw, exposure_ms=40.0, bit_depth=10, mosaic=s.mosaic)
+    assert fusion.fusable(pipe.steps, frame) == 3
+    fused = pipe.transform(frame)
+    assert np.count_nonzero(fused.dq) > 40 and fused.alpha is not None
+    _assert_same_frame(fused, _stage_by_stage(pipe, frame))
+
+
+def test_fused_front_end_on_a_small_frame_and_in_a_longer_pipeline():
+    s = MosaicSensor((32, 64), seed=5)
+    cal = calibrate(s.sweep(np.round(np.geomspace(2, 400, 10), 3), "lamp A",
+                            irradiance_w_m2=0.25 * TRAIN, n_frames=1, seed=1))
+    train = Frame.list_from_sweep(s.sweep([12.9, 25.8], "lamp A", irradiance_w_m2=TRAIN,
+                                          n_frames=2, seed=2))
+    pipe = Pipeline(_pipe(cal, train).steps + [("cube", create("reconstruct"))]).fit(train)
+    frame = Frame.from_raw(s.capture(30.0, "lamp A", irradiance_w_m2=TRAIN, seed=7).frames[0],
+                           exposure_ms=30.0, bit_depth=10, mosaic=s.mosaic)
+    fused = pipe.transform(frame)
+    assert [h["step"] for h in fused.history] == ["dark", "mask", "ffc", "cube"]
+    _assert_same_frame(fused, _stage_by_stage(pipe, frame))
+
+
+def test_what_is_not_fused_runs_stage_by_stage(sim):
+    s, cal, train = sim
+    frame = Frame.from_raw(s.capture(20.0, "lamp A", irradiance_w_m2=TRAIN, seed=4).frames[0],
+                           exposure_ms=20.0, bit_depth=10, mosaic=s.mosaic)
+    pipe = _pipe(cal, train)
+    model_alpha = Pipeline([pipe.steps[0], ("mask", create("alpha_mask", calibration=cal,
+                                                           method="model")), pipe.steps[2]])
+    dark_only = Pipeline(pipe.steps[:2])
+    assert fusion.fusable(model_alpha.steps, frame) == 0
+    assert fusion.fusable(dark_only.steps, frame) == 0
+    assert fusion.fusable(pipe.steps[1:], frame) == 0
+    # a frame whose dark was removed already, and a frame of another shape, are not fused:
+    # the stages raise their own errors
+    assert fusion.fusable(pipe.steps, pipe.steps[0][1].transform(frame)) == 0
+    small = Frame.from_raw(np.zeros((8, 8)), exposure_ms=20.0, bit_depth=10, mosaic=s.mosaic)
+    assert fusion.fusable(pipe.steps, small) == 0
+    with pytest.raises(ValueError, match="shape"):
+        pipe.transform(small)
+
+
+def test_fused_front_end_on_the_real_emva_sweep(emva_dir):
+    """Real CMOS frames (8 bit, no mosaic): calibration and flats from the measured sweep, the
+    test frame a measured one at another level; fused equals stage by stage."""
+    sweep = read_emva1288(emva_dir / "EMVA1288_Data.txt", max_frames_per_step=2)
+    frames = Frame.list_from_sweep(sweep)
+    cal = calibrate(sweep)
+    lights = sorted({f.exposure_ms for f in frames if f.kind == "light"})
+    train = [f for f in frames if f.exposure_ms in lights[len(lights) // 2:][:2]
+             or f.kind == "dark"]
+    pipe = Pipeline([("dark", create("dark")),
+                     ("mask", create("alpha_mask", calibration=cal)),
+                     ("ffc", create("two_point_ffc", calibration=cal))]).fit(train)
+    test = next(f for f in frames if f.kind == "light" and f.exposure_ms == lights[-3])
+    assert fusion.fusable(pipe.steps, test) == 3
+    fused = pipe.transform(test)
+    assert np.count_nonzero(fused.dq) > 0
+    _assert_same_frame(fused, _stage_by_stage(pipe, test))
