@@ -96,25 +96,22 @@ def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_
         response, exposure_ms, a, b, dark, names=("response", "exposure_ms", "a", "b", "dark"))
     def plane(v):
         if v is None:
-            return np.zeros(1, DQ_DTYPE), False
+            return None
         v = np.asarray(v)
         if v.shape != tuple(shape):
             raise ValueError(f"a DQ plane has shape {v.shape} but the frame has {tuple(shape)}")
-        return np.ascontiguousarray(v, DQ_DTYPE).reshape(-1), True
+        return np.ascontiguousarray(v, DQ_DTYPE).reshape(-1)
 
-    (pix, has_pix), (dq_in, has_dq), (extra, has_extra) = (plane(pixel_flags), plane(dq),
-                                                           plane(extra_dq))
-    with_alpha = alpha is None
-    given = (np.zeros(1, np.float32) if with_alpha
+    given = (None if alpha is None
              else np.ascontiguousarray(np.broadcast_to(alpha, shape), np.float32).reshape(-1))
-    alpha = np.empty(shape if with_alpha else 1, np.float32)
+    alpha = np.empty(shape, np.float32) if given is None else None
     out = np.empty(shape, DQ_DTYPE)
-    signal = np.empty(shape if with_signal else 1, np.float32)
+    signal = np.empty(shape, np.float32) if with_signal else None
     const = 0 if in_domain else int(DQ.OUT_OF_DOMAIN)
+    flat = (lambda v: None if v is None else v.reshape(-1))
     leakage.alpha_flags_kernel(y, t, a_, b_, d, float(threshold_percent), float(full_scale_dn),
-                               const, pix, has_pix, dq_in, has_dq, extra, has_extra, with_alpha,
-                               given, alpha.reshape(-1), out.reshape(-1), signal.reshape(-1),
-                               bool(with_signal))
+                               const, plane(pixel_flags), plane(dq), plane(extra_dq), given,
+                               flat(alpha), out.reshape(-1), flat(signal))
     return (signal, alpha, out) if with_signal else (alpha, out)
 
 
