@@ -135,7 +135,7 @@ def leakage_percentage_paper(y, t_ms, a, b, dark=0.0):
     Returns
     -------
     ndarray of float64, percent
-        Shape of the broadcast of the arguments; relative error below 1e-11.
+        Shape of the broadcast of the arguments.
     """
     return leakage_percentage_paper_into(None, y, t_ms, a, b, dark)
 
@@ -143,8 +143,7 @@ def leakage_percentage_paper(y, t_ms, a, b, dark=0.0):
 def leakage_percentage_paper_into(out, y, t_ms, a, b, dark=0.0):
     """:func:`leakage_percentage_paper` written into ``out`` (float32 or float64, the shape of
     the broadcast; None allocates float64). float32 is enough for a validity mask: alpha is
-    computed in float64 with an exponential good to 1e-11 relative (far below the calibration's
-    own errors) and rounded once (6e-8 relative).
+    computed in float64 and rounded once (1e-7 relative).
 
     Parameters
     ----------

@@ -34,8 +34,7 @@ def alpha_paper(response, exposure_ms: float, a, b, dark) -> np.ndarray:
     """Leakage percentage of eq. (4) with k estimated as ``(Y - dark) / exposure`` (the paper).
 
     ``alpha = 100 a e^{bY} / ((Y - dark) / t)`` in percent, element-wise: the compiled kernel
-    of :func:`hsiffc.model.leakage_percentage_paper` (double precision, its exponential good to
-    1e-11 relative; rounded once to float32).
+    of :func:`hsiffc.model.leakage_percentage_paper` (double precision, rounded once to float32).
 
     Parameters
     ----------

@@ -92,26 +92,20 @@ def test_elementary_functions_special_values():
         assert np.array_equal(out, expect, equal_nan=True), name
 
 
-def test_exp_single_is_good_to_float32_and_keeps_the_limits():
-    """The alpha pass's exponential: relative error < 1e-11 over the normal range (so its
-    float32 rounding is the exact value's, up to 1 ulp where the two straddle a rounding
-    boundary), inf above 708, 0 below -708, NaN through."""
-    rng = np.random.default_rng(1)
-    x = np.concatenate([rng.uniform(-708.0, 708.0, 200_000), rng.uniform(-1, 1, 10_000)])
-    out = np.empty_like(x)
-    _vectorised(vmath.exp_single)(x, out)
-    rel = np.abs(out / np.exp(x) - 1.0)
-    assert rel.max() < 1e-11
-    with np.errstate(over="ignore"):
-        f32 = out.astype(np.float32)
-        exact = np.exp(x).astype(np.float32)
-    fin = np.isfinite(exact) & (exact > 0)
-    ulps = np.abs(f32[fin].astype(np.float64) - exact[fin]) / np.spacing(exact[fin])
-    assert ulps.max() <= 1 and np.mean(ulps > 0) < 1e-3
-    edge = np.array([708.5, 1e4, np.inf, -708.5, -1e4, -np.inf, np.nan, 0.0])
-    out = np.empty_like(edge)
-    _vectorised(vmath.exp_single)(edge, out)
-    assert np.array_equal(out, [np.inf, np.inf, np.inf, 0, 0, 0, np.nan, 1.0], equal_nan=True)
+def test_paper_alpha_at_the_limits_of_the_exponential():
+    """alpha's e^{bY/2} is clamped at 708: beyond, alpha is inf (LEAKAGE), as the exact value
+    overflows float32 by far; far below, 0; NaN stays NaN; in between within 1 ulp of numpy."""
+    y = np.array([1000.0, 2000.0, 1e6, -1e6, np.nan, 500.0, -1e6])
+    b = np.array([1.4, 0.709, 0.01, 0.01, 0.01, 0.01, 0.01])
+    dark = np.array([100.0] * 6 + [-2e6])
+    b_nan = np.array([np.nan])
+    out = model.leakage_percentage_paper(y, 10.0, 1e-3, b, dark)
+    assert np.all(out[:3] == np.inf)
+    assert out[3] == np.inf and out[4] == np.inf  # signal not positive or NaN: no light rate
+    ref = 100 * 1e-3 * 10.0 * np.exp(0.01 * 500.0) / 400.0
+    assert abs(out[5] / ref - 1) < 1e-15
+    assert out[6] == 0.0  # e^{-5000}: 0 in double, as the exact value is
+    assert np.isnan(model.leakage_percentage_paper(500.0, 10.0, 1e-3, b_nan, 100.0))
 
 
 # -- response ---------------------------------------------------------------------------------

@@ -8,11 +8,8 @@ arithmetic.
 
 Precision: everything is computed in float64 (inputs may be float32 or float64). The
 response keeps ~1e-13 DN (tests: against ``solve_ivp`` and against the previous numpy form);
-alpha is computed in float64 with an exponential good to 1e-11 relative
-(:func:`~hsiffc.kernels.vmath.exp_single`) and stored as float32: within 1 float32 ulp (6e-8)
-of the exact value, and its LEAKAGE bit differs from the exact rule only for an alpha within
-1e-11 of the threshold, far below any threshold's meaning (a calibrated a and b carry
-percent-level errors).
+alpha is computed in float64 and may be stored as float32 (1e-7 relative, far below any
+threshold's meaning).
 
 Kernels run a ``prange`` loop over blocks of :data:`BLOCK` pixels, each a compiled block
 function: a branch-free loop (vectorised by LLVM, 4 doubles per instruction on AVX2) for the
@@ -20,6 +17,17 @@ common case, then a second loop repairs the rare pixels it cannot (over/underflo
 log-domain form) while the block is in cache. (LLVM does not vectorise the same loop written
 directly in the ``prange`` body: the alpha and DQ kernel ran 5.5 ms there against 3.6 ms
 blocked on a 2048 x 1088 frame, 2 threads.)
+
+The response's vector loops call the short, range-restricted exponentials and logarithm of
+:mod:`~hsiffc.kernels.vmath` (``exp_clamped``, ``expm1_clamped``, ``log_positive``: no
+special-value selects, degree-11 and fdlibm's 7-term polynomials; their results are screened
+by the ``ok`` test and repaired as before). Measured on a 2048 x 1088 frame (the benchmark's
+simulated sensor, t = 25 ms), one thread (``NUMBA_NUM_THREADS=1``), process CPU time, median
+of 15, the previous kernel compiled in the same run: 21.7 -> 15.5 ms (1.40 x); max difference
+2.3e-13 DN, and no change in the ulp errors against 50-digit arithmetic
+(``tests/test_vmath_short.py``). Where the time goes now (block in cache, one thread, 7.0
+ns/px): the exponentials' loop 3.2 ns, the logarithm's loop (with the divisions for q, the
+log and 1/b) 3.2 ns, the domain count and repair scan 0.6 ns.
 """
 
 from __future__ import annotations
@@ -30,7 +38,7 @@ from numba import njit, prange
 from ..dq import DQ
 from .launch import JIT_OPTIONS, Kernel
 from .operands import at, part
-from .vmath import exp, exp_single, expm1, log, log_corrected, logaddexp
+from .vmath import exp, exp_clamped, expm1, expm1_clamped, log, log_positive, logaddexp
 
 __all__ = ["BLOCK", "alpha_flags_kernel", "alpha_model_kernel", "alpha_model_point",
            "alpha_paper_kernel", "alpha_paper_point", "leakage_bits", "response_fast",
@@ -54,29 +62,32 @@ _LEAKAGE = int(DQ.LEAKAGE)
 
 @njit(**_INL)
 def _response_terms(t, k, a, b, d):
-    """(q, z) of :func:`response_fast`: the leakage term relative to the first, and their sum.
-    The two exponentials' half of the response (see :func:`_response_block` for why it is a
-    function of its own)."""
-    # Reciprocals and exponentials depend on the inputs only, so they run side by side.
-    # q = leak / e0 takes a division where e^{bd + x} took a second exponential: 14.8 -> 11.7
-    # ns/px (one thread).
+    """(leak, e0) of :func:`response_fast`: the two terms of ``e^{-bY}``, the exponentials'
+    half of the response (see :func:`_response_block` for why it is a function of its own).
+
+    Both exponentials by the clamped forms of :mod:`~hsiffc.kernels.vmath` (the sum is kept
+    only within [1e-290, 1e290], where they give what the full forms give, see
+    :func:`~hsiffc.kernels.vmath.exp_clamped`); NaN in any input makes e0 NaN."""
     x = b * k * t
-    ix = 1.0 / x
-    em = -expm1(-x)
+    ix = 1.0 / x  # beside the exponentials (it depends on the inputs only)
+    em = -expm1_clamped(-x)
     phi = em * ix if x > 0.0 else 1.0
     leak = a * b * t * phi
-    e0 = exp(-b * d - x)
-    return leak / e0, e0 + leak
+    e0 = exp_clamped(-b * d - x)
+    return leak, e0
 
 
 @njit(**_INL)
-def _response_level(q, z, t, k, b, d):
-    """(Y, ok) of :func:`response_fast` from its (q, z): the logarithm's half."""
+def _response_level(leak, e0, t, k, b, d):
+    """(Y, ok) of :func:`response_fast` from its (leak, e0): the logarithm's half."""
+    q = leak / e0  # the leakage term relative to the first
+    z = e0 + leak
     ib = 1.0 / b
     lin = q <= 1.0
     w = 1.0 + q if lin else z
-    # log1p(q) in the linear domain (the rounding error of 1 + q folded in), log(z) beyond
-    lw = log_corrected(w, (q - (w - 1.0)) if lin else 0.0)
+    # log1p(q) in the linear domain (the rounding error of 1 + q folded in), log(z) beyond;
+    # w is in [1, 2] or is z, a positive normal double wherever ok
+    lw = log_positive(w, (q - (w - 1.0)) if lin else 0.0)
     y = ((d + k * t) if lin else 0.0) - lw * ib
     ok = (z >= 1e-290) and (z <= 1e290)
     return y, ok
@@ -89,10 +100,10 @@ def response_fast(t, k, a, b, d):
     With x = b k t, ``e^{-bY} = e^{-bd-x} + a b t phi(x)``, phi(x) = (1 - e^{-x}) / x. While
     the leakage term q (relative to the first) is at most 1, ``Y = d + k t - log1p(q) / b``
     (exact in the linear regime); beyond it ``Y = -log(sum) / b``. ``ok`` is False where the
-    sum under/overflows (then use :func:`response_robust`).
+    sum under/overflows or is NaN (then use :func:`response_robust`).
     """
-    q, z = _response_terms(t, k, a, b, d)
-    return _response_level(q, z, t, k, b, d)
+    leak, e0 = _response_terms(t, k, a, b, d)
+    return _response_level(leak, e0, t, k, b, d)
 
 
 @njit(**_JIT)
@@ -121,14 +132,18 @@ def _response_block(t, k, a, b, d, out):
     The fast form runs as two loops, the exponentials' half into a block-sized buffer, then
     the logarithm's half: in one loop the vector code has more values live than AVX2 has
     registers and spills them (model.response on one thread, 2048 x 1088 frame: 26.5 -> 20.6
-    ms with the repair scan below skipped where nothing failed; same bits)."""
+    ms with the repair scan below skipped where nothing failed; same bits). The division q =
+    leak / e0 sits in the second loop, whose dependency chain was the shorter (measured equal
+    to or slightly faster than the first, block in cache). Three loops (the logarithm split
+    after its division) and the domain count fused into the second loop were measured too:
+    no gain (within 2 %) or 3 % slower."""
     n = out.shape[0]
-    qs = np.empty(n)
-    zs = np.empty(n)
+    leaks = np.empty(n)
+    e0s = np.empty(n)
     for i in range(n):
-        qs[i], zs[i] = _response_terms(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
+        leaks[i], e0s[i] = _response_terms(at(t, i), at(k, i), at(a, i), at(b, i), at(d, i))
     for i in range(n):
-        y, ok = _response_level(qs[i], zs[i], at(t, i), at(k, i), at(b, i), at(d, i))
+        y, ok = _response_level(leaks[i], e0s[i], at(t, i), at(k, i), at(b, i), at(d, i))
         out[i] = y if ok else np.nan
     negative = 0
     b_bad = 0
@@ -181,11 +196,14 @@ def alpha_paper_point(y, t, a, b, d):
     One exponential and one division (the log-domain form took two logs more on the pixel's
     chain of dependent operations): ``e^{bY}`` as the square of ``E = e^{bY / 2}``, applied
     as ``((100 a t / s) E) E`` so that no factor overflows before the result does (``E`` is
-    finite for ``bY`` up to 1416). ``E`` comes from :func:`~hsiffc.kernels.vmath.exp_single`
-    (1e-11 relative): alpha is stored as float32.
+    finite for ``bY`` up to 1416; beyond, ``E`` is inf, so alpha is too). ``E`` comes from
+    :func:`~hsiffc.kernels.vmath.exp_clamped` (1 ulp; the alpha and DQ pass on a 2048 x 1088
+    frame, one thread, ran 8.3 -> 5.1 ms with a clamped exponential instead of
+    :func:`~hsiffc.kernels.vmath.exp`, against 3.7 ms for the pass without arithmetic).
     """
     s = y - d
-    e = exp_single(0.5 * b * y)
+    x = 0.5 * b * y
+    e = np.inf if x > 708.0 else exp_clamped(x)  # below -708 alpha underflows to 0 either way
     alpha = ((100.0 * a * t / s) * e) * e
     return alpha if (s > 0.0 and t > 0.0) else np.inf
 
