@@ -81,6 +81,20 @@ def test_fused_front_end_on_a_small_frame_and_in_a_longer_pipeline():
     _assert_same_frame(fused, _stage_by_stage(pipe, frame))
 
 
+def test_dark_and_mask_fuse_before_the_model_based_ffc(sim):
+    """hsiffc correct's default pipeline: dark and alpha mask fused, then model_ffc."""
+    s, cal, train = sim
+    pipe = Pipeline([("dark", create("dark", calibration=cal)),
+                     ("mask", create("alpha_mask", calibration=cal)),
+                     ("ffc", create("model_ffc", calibration=cal))]).fit(train)
+    frame = Frame.from_raw(s.capture(25.0, "lamp A", irradiance_w_m2=TRAIN, seed=6).frames[0],
+                           exposure_ms=25.0, bit_depth=10, mosaic=s.mosaic)
+    assert fusion.fusable(pipe.steps, frame) == 2
+    fused = pipe.transform(frame)
+    assert [h["step"] for h in fused.history] == ["dark", "mask", "ffc"]
+    _assert_same_frame(fused, _stage_by_stage(pipe, frame))
+
+
 def test_what_is_not_fused_runs_stage_by_stage(sim):
     s, cal, train = sim
     frame = Frame.from_raw(s.capture(20.0, "lamp A", irradiance_w_m2=TRAIN, seed=4).frames[0],
@@ -88,17 +102,18 @@ def test_what_is_not_fused_runs_stage_by_stage(sim):
     pipe = _pipe(cal, train)
     model_alpha = Pipeline([pipe.steps[0], ("mask", create("alpha_mask", calibration=cal,
                                                            method="model")), pipe.steps[2]])
-    dark_only = Pipeline(pipe.steps[:2])
     assert fusion.fusable(model_alpha.steps, frame) == 0
-    assert fusion.fusable(dark_only.steps, frame) == 0
+    assert fusion.fusable(pipe.steps[:1], frame) == 0
     assert fusion.fusable(pipe.steps[1:], frame) == 0
-    # a frame whose dark was removed already, and a frame of another shape, are not fused:
-    # the stages raise their own errors
+    assert fusion.fusable(pipe.steps[:2], frame) == 2
+    # a frame whose dark was removed already is not fused; one of another shape fuses the
+    # dark and the mask only, and gets the dark stage's own error
     assert fusion.fusable(pipe.steps, pipe.steps[0][1].transform(frame)) == 0
     small = Frame.from_raw(np.zeros((8, 8)), exposure_ms=20.0, bit_depth=10, mosaic=s.mosaic)
-    assert fusion.fusable(pipe.steps, small) == 0
-    with pytest.raises(ValueError, match="shape"):
-        pipe.transform(small)
+    assert fusion.fusable(pipe.steps, small) == 2
+    for fuse in (True, False):
+        with pytest.raises(ValueError, match=r"dark has shape \(272, 512\) but frames have"):
+            pipe.transform(small, fuse=fuse)
 
 
 def test_fused_front_end_on_the_real_emva_sweep(emva_dir):

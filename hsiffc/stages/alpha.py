@@ -17,8 +17,8 @@ class AlphaMask(Stage):
     keeps its data; it gains an ``alpha`` plane (percent; ``inf`` where no light rate can be
     estimated) and DQ bits: LEAKAGE (alpha over ``threshold_percent`` or undefined),
     SATURATED, OUT_OF_DOMAIN (exposure outside the calibrated range), and the calibration's
-    own pixel flags. After a dark stage, in a pipeline followed by a two-point FFC, it runs
-    fused with both (:mod:`hsiffc.stages.fusion`: the same result).
+    own pixel flags. In a pipeline, after a dark stage, it runs fused with it (and with a
+    two-point FFC after it: :mod:`hsiffc.stages.fusion`, the same result).
 
     Parameters
     ----------

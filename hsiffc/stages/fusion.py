@@ -15,6 +15,9 @@ array functions and kernels as the stages (one implementation of each correction
 
 from __future__ import annotations
 
+import numpy as np
+
+from ..dark import subtract_dark
 from .alpha import AlphaMask
 from .dark import DarkSubtract
 from .ffc import TwoPointFFC
@@ -24,17 +27,20 @@ __all__ = ["fusable", "run_fused"]
 
 def fusable(steps, frame) -> int:
     """How many stages from the start of ``steps`` (a list of ``(name, stage)``) run fused on
-    ``frame``: 3 for a dark, an alpha mask (paper alpha) and a two-point FFC on a raw mosaic
-    frame of the flat's shape, else 0 (the stages then run one by one)."""
-    if len(steps) < 3 or frame.is_cube or frame.dark_removed is not None:
+    ``frame``: 3 for a dark, an alpha mask (paper alpha) and a two-point FFC of the frame's
+    shape; 2 for a dark and an alpha mask followed by anything else; 0 otherwise (the stages
+    then run one by one). Only a raw mosaic frame (no dark removed, not a cube) is fused."""
+    if len(steps) < 2 or frame.is_cube or frame.dark_removed is not None:
         return 0
-    (_, dark), (_, mask), (_, ffc) = steps[:3]
-    kinds = (type(dark), type(mask), type(ffc)) == (DarkSubtract, AlphaMask, TwoPointFFC)
-    if not kinds or mask.method != "paper" or frame.corrected_by is not None:
+    if frame.corrected_by is not None:
         return 0
-    if not ffc.is_fitted() or ffc.gain_.shape != frame.data.shape:
-        return 0  # the FFC stage raises its own error
-    return 3
+    (_, dark), (_, mask) = steps[:2]
+    if (type(dark), type(mask)) != (DarkSubtract, AlphaMask) or mask.method != "paper":
+        return 0
+    ffc = steps[2][1] if len(steps) > 2 else None
+    if type(ffc) is TwoPointFFC and ffc.is_fitted() and ffc.gain_.shape == frame.data.shape:
+        return 3
+    return 2  # a two-point FFC of another shape, or not fitted, raises its own error
 
 
 def run_fused(steps, frame, record):
@@ -45,15 +51,20 @@ def run_fused(steps, frame, record):
     on with. Returns the frame after the last fused stage."""
     from ..validity import subtract_dark_and_flag
 
-    (dark_name, dark), (mask_name, mask), (ffc_name, ffc) = steps[:3]
-    for _, stage in steps[:3]:
+    n = fusable(steps, frame)
+    (dark_name, dark), (mask_name, mask) = steps[:2]
+    ffc_name, ffc = steps[2] if n == 3 else (None, None)
+    for _, stage in steps[:n]:
         stage.check_is_fitted()
     plane, how = dark.dark_for(frame.exposure_ms, frame.data.shape)
+    if np.shape(plane) != frame.data.shape:
+        subtract_dark(frame.data, plane)  # raises the dark stage's own error
     cal = mask.calibration_for(frame)
     signal, alpha, dq = subtract_dark_and_flag(
         frame.data, plane, frame.exposure_ms, cal,
-        threshold_percent=float(mask.threshold_percent), dq=frame.dq, extra_dq=ffc.dq_)
+        threshold_percent=float(mask.threshold_percent), dq=frame.dq,
+        extra_dq=None if ffc is None else ffc.dq_)
     frame = record(dark_name, dark, frame.dark_subtracted(plane, signal=signal,
                                                           dark_source=how))
     frame = record(mask_name, mask, mask.flagged(frame, alpha, dq))
-    return record(ffc_name, ffc, ffc.corrected(frame, dq))
+    return frame if ffc is None else record(ffc_name, ffc, ffc.corrected(frame, dq))
