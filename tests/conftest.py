@@ -36,3 +36,18 @@ def imec_xml() -> Path:
 @pytest.fixture(scope="session")
 def sample_cubes() -> Path:
     return SAMPLE_CUBES
+
+
+@pytest.fixture(scope="session")
+def elementwise():
+    """``elementwise(fn)(x, out)`` sets ``out[i] = fn(x[i])`` in a compiled loop: a
+    :mod:`hsiffc.kernels.vmath` function run the way the kernels run it (inlined, vectorised)."""
+    from numba import njit
+
+    def make(fn):
+        @njit(error_model="numpy")
+        def run(x, out):
+            for i in range(x.shape[0]):
+                out[i] = fn(x[i])
+        return run
+    return make
