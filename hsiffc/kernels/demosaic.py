@@ -12,17 +12,18 @@ contiguous, vectorised loop per phase); the division into a band-major row buffe
 finished row goes into the (W, B) cube row through flat indices (:func:`_transpose_row`).
 
 A frame with flagged samples is first split into lattice planes
-(:mod:`hsiffc.kernels.lattice`), read contiguously. The DQ cube (zero-initialised by the caller) gets the samples' own flags at
-their sites; the values whose support S1 holds no usable sample are listed from the vertical
-pass (with one lattice per band, read off its column weights: a value is listed where its
-column and, off the column, the next one have none) and take the flags of S1 and the estimate
-of the twice-wide tent S2 (S2's column sums over the row, four columns per value); where S2
-holds none either the value is NaN for the caller's band-median fill. PPID values whose PPI
-is undefined take the plain bilinear value. Arithmetic in float64, bit-identical to the former
-kernels (the benchmark frame, 120 random layouts, offsets and flag fractions; tests against
-the ``cv2.sepFilter2D`` evaluation and against the DQ rule written out plainly). The listing
-and the flat-index row writes: same bits, one thread, 2048 x 1088 with 23 % of its pixels
-flagged, 2-9 % less CPU time (PPID with alpha 149 -> 137 ms median, bilinear 123 -> 120 ms).
+(:mod:`hsiffc.kernels.lattice`), read contiguously. The DQ cube (zero-initialised by the
+caller) gets the samples' own flags at their sites; the values whose support S1 holds no usable
+sample are listed from the vertical pass (with one lattice per band, read off its column
+weights: a value is listed where its column and, off the column, the next one have none) and
+take the flags of S1 and the estimate of the twice-wide tent S2 (S2's column sums over the row,
+four columns per value); where S2 holds none either the value is NaN for the caller's
+band-median fill. PPID values whose PPI is undefined take the plain bilinear value. Arithmetic
+in float64, bit-identical to the former kernels (for this version: the benchmark frame in all
+eight method, flag and alpha combinations, and the tests against the ``cv2.sepFilter2D``
+evaluation and against the DQ rule written out plainly). The listing and the flat-index row
+writes: same bits, one thread, 2048 x 1088 with 23 % of its pixels flagged, 2-9 % less CPU time
+(PPID with alpha 149 -> 137 ms median, bilinear 123 -> 120 ms).
 """
 
 from __future__ import annotations
