@@ -141,9 +141,9 @@ class Calibration:
         """ADC bit depth of the frames it was fitted on."""
         return int(self.domain["bit_depth"])
 
-    @property
+    @functools.cached_property
     def mosaic(self) -> Mosaic | None:
-        """The band layout, or None."""
+        """The band layout, or None (built once: every frame's check reads it)."""
         m = self.domain.get("mosaic")
         return Mosaic.from_dict(m) if m else None
 

@@ -10,6 +10,7 @@ arrays; ``set_state(json, arrays)`` restores them.
 from __future__ import annotations
 
 import copy
+import functools
 import inspect
 import json
 
@@ -21,6 +22,15 @@ from ..params import check_params
 
 class NotFittedError(HsiffcError, RuntimeError):
     """A stage was used before ``fit``."""
+
+
+@functools.cache
+def _init_parameters(init) -> tuple[str, ...]:
+    """The keyword parameters of a stage class's ``__init__`` (read once per class: a
+    pipeline records every stage's parameters for every frame)."""
+    sig = inspect.signature(init)
+    return tuple(p.name for p in sig.parameters.values()
+                 if p.name != "self" and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD))
 
 
 class Stage:
@@ -42,9 +52,7 @@ class Stage:
     # -- parameters ----------------------------------------------------------------------------
     @classmethod
     def _param_names(cls) -> list[str]:
-        sig = inspect.signature(cls.__init__)
-        return [p.name for p in sig.parameters.values()
-                if p.name != "self" and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
+        return list(_init_parameters(cls.__init__))
 
     def get_params(self) -> dict:
         """Constructor parameters and their current values."""
