@@ -212,9 +212,9 @@ def _options(cal, exposure_ms, threshold_percent, dq) -> dict:
 def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
                            threshold_percent: float, dq=None, extra_dq=None):
     """:func:`hsiffc.dark.subtract_dark` and :func:`validity_flags` (paper alpha, on the
-    response ``frame`` with this ``dark`` under it) in one compiled pass over the pixels:
-    the same values, bit for bit, as the two calls, in about half the time of the alpha pass
-    and the subtraction run one after the other (the planes are read once).
+    response ``frame`` with this ``dark`` under it) in one compiled pass over the pixels
+    instead of two: the same values, bit for bit, as the two calls, with the planes read
+    once.
 
     Parameters
     ----------

@@ -6,8 +6,9 @@ per-pixel work is a few operations on planes that each stage reads again; :class
 therefore hands such a run of stages to :func:`run_fused`, which does their per-pixel work in
 one pass (:func:`hsiffc.validity.subtract_dark_and_flag`) and then lets every stage finish
 its frame as its own ``transform`` would. The result is the same frame, bit for bit, with the
-same history (``tests/test_fusion.py`` compares them on simulated and real data), in about
-half the time.
+same history (``tests/test_fusion.py`` compares them on simulated and real data), in less time
+(the pipeline benchmark gives both figures: 8.8 against 11.3 ms on a 2048 x 1088 frame, 2
+threads, in the run at 4688e98).
 
 Only what the stages' own methods compute is computed here: a fused run calls the same
 array functions and kernels as the stages (one implementation of each correction).
@@ -18,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..dark import subtract_dark
+from ..validity import subtract_dark_and_flag
 from .alpha import AlphaMask
 from .dark import DarkSubtract
 from .ffc import TwoPointFFC
@@ -29,7 +31,8 @@ def fusable(steps, frame) -> int:
     """How many stages from the start of ``steps`` (a list of ``(name, stage)``) run fused on
     ``frame``: 3 for a dark, an alpha mask (paper alpha) and a two-point FFC of the frame's
     shape; 2 for a dark and an alpha mask followed by anything else; 0 otherwise (the stages
-    then run one by one). Only a raw mosaic frame (no dark removed, not a cube) is fused."""
+    then run one by one). Only a raw frame (no dark removed, not corrected, not a cube) is
+    fused."""
     if len(steps) < 2 or frame.is_cube or frame.dark_removed is not None:
         return 0
     if frame.corrected_by is not None:
@@ -49,8 +52,6 @@ def run_fused(steps, frame, record):
     ``record(name, stage, frame)`` is called after each stage with the frame that stage
     returns (the pipeline adds the stage's history entry there) and returns the frame to go
     on with. Returns the frame after the last fused stage."""
-    from ..validity import subtract_dark_and_flag
-
     n = fusable(steps, frame)
     (dark_name, dark), (mask_name, mask) = steps[:2]
     ffc_name, ffc = steps[2] if n == 3 else (None, None)
