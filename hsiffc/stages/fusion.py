@@ -47,15 +47,15 @@ def fusable(steps, frame) -> int:
 
 
 def run_fused(steps, frame, record):
-    """Run the first :func:`fusable` stages of ``steps`` on ``frame`` in one pass.
+    """Run ``steps``, a run of stages :func:`fusable` accepted for ``frame`` (its first 2 or
+    3), on ``frame`` in one pass.
 
     ``record(name, stage, frame)`` is called after each stage with the frame that stage
     returns (the pipeline adds the stage's history entry there) and returns the frame to go
     on with. Returns the frame after the last fused stage."""
-    n = fusable(steps, frame)
     (dark_name, dark), (mask_name, mask) = steps[:2]
-    ffc_name, ffc = steps[2] if n == 3 else (None, None)
-    for _, stage in steps[:n]:
+    ffc_name, ffc = steps[2] if len(steps) == 3 else (None, None)
+    for _, stage in steps:
         stage.check_is_fitted()
     plane, how = dark.dark_for(frame.exposure_ms, frame.data.shape)
     if np.shape(plane) != frame.data.shape:

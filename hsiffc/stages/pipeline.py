@@ -163,7 +163,7 @@ class Pipeline:
         while i < len(self.steps):
             n = fusable(self.steps[i:], frame) if fuse else 0
             if n:
-                frame = run_fused(self.steps[i:], frame, _recorded)
+                frame = run_fused(self.steps[i:i + n], frame, _recorded)
                 i += n
                 continue
             name, stage = self.steps[i]
