@@ -67,6 +67,13 @@ def band_layout(values, band_map, mask=None, mask_name: str = "good", *,
     return bm, period, int(rows.max()) + 1
 
 
+def band_mean(sums, counts) -> np.ndarray:
+    """The mean per band from its sum and count (:func:`hsiffc.kernels.bands.band_sums`):
+    NaN where the count is 0."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+
+
 def band_reduce(values, band_map=None, good=None, *, statistic: str = "mean",
                 n_bands: int | None = None) -> np.ndarray:
     """One statistic of ``values`` per band, over the good, finite pixels.
@@ -105,8 +112,7 @@ def band_reduce(values, band_map=None, good=None, *, statistic: str = "mean",
         as2d = (lambda a: np.reshape(a, (1, -1) if v.ndim < 2 else (-1, v.shape[-1])))
         sums, counts = band_sums(as2d(v), as2d(bm), None if good is None else as2d(good), n,
                                  period)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+        return band_mean(sums, counts)
     v = np.asarray(v, np.float64)
     use = np.isfinite(v)
     if good is not None:

@@ -102,9 +102,15 @@ def paper_ratio(raw, flat_mean, *, band_map=None, good=None) -> np.ndarray:
     (n_bands,) float32
         1.0 (neutral) in a band where either mean is undefined.
     """
-    avg = band_reduce(raw, band_map, good, n_bands=len(flat_mean))
+    return means_ratio(band_reduce(raw, band_map, good, n_bands=len(flat_mean)), flat_mean)
+
+
+def means_ratio(test_mean, flat_mean) -> np.ndarray:
+    """:func:`paper_ratio` from the test image's per-band mean ``Avg(L3)`` (DN, NaN where
+    undefined) when it is known already (a fused pass takes it:
+    :func:`hsiffc.validity.subtract_dark_and_flag`)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = avg / np.asarray(flat_mean, np.float64)
+        ratio = np.asarray(test_mean, np.float64) / np.asarray(flat_mean, np.float64)
     return np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0).astype(np.float32)
 
 

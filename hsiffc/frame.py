@@ -11,7 +11,7 @@ import numpy as np
 
 from .dark import subtract_dark
 from .dq import DQ, DQ_DTYPE, as_dq
-from .mosaic import Mosaic
+from .mosaic import Mosaic, single_band_map
 from .sweep import Sweep
 
 
@@ -241,9 +241,9 @@ class Frame:
         return self.data.ndim == 3
 
     def band_map(self) -> np.ndarray:
-        """Band index per pixel of a mosaic frame (all zeros without a mosaic)."""
+        """Band index per pixel of a mosaic frame (all zeros without a mosaic), read-only."""
         if self.mosaic is None:
-            return np.zeros(self.data.shape[:2], np.int64)
+            return single_band_map(self.data.shape[:2])
         return self.mosaic.band_map(self.data.shape[:2])
 
     @property

@@ -146,6 +146,13 @@ def _band_map(pattern: bytes, tile: tuple, offset: tuple, h: int, w: int) -> np.
     return out
 
 
+def single_band_map(shape) -> np.ndarray:
+    """The band map of a frame without a mosaic: every pixel band 0 (read-only, cached, and
+    known to :func:`row_period`, so band statistics sum it by rows as a mosaic's)."""
+    h, w = (int(n) for n in shape)
+    return _band_map(np.zeros(1, np.int64).tobytes(), (1, 1), (0, 0), h, w)
+
+
 # band maps built by _band_map (read-only, owning their data) -> their row period
 _ROW_PERIODS: dict[int, tuple[weakref.ref, int]] = {}
 

@@ -12,9 +12,10 @@ import numpy as np
 
 from . import model
 from .bandstats import STATISTICS as BAND_STATISTICS
-from .bandstats import band_reduce
+from .bandstats import band_layout, band_mean, band_reduce
 from .dq import DQ, DQ_DTYPE
 from .kernels import leakage
+from .kernels.bands import block_arrays
 from .kernels.operands import flat_operands
 from .params import validate_method
 from .sweep import Sweep
@@ -88,9 +89,12 @@ def alpha_model(response, exposure_ms: float, a, b, dark_dn, *, full_scale_dn=No
 
 
 def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_scale_dn,
-           in_domain, pixel_flags, dq, extra_dq=None, with_signal=False):
+           in_domain, pixel_flags, dq, extra_dq=None, with_signal=False, sums_by=None):
     """alpha (computed when ``alpha`` is None: paper form) and DQ in one compiled pass; with
-    ``with_signal`` also ``response - dark`` (float32), returned first."""
+    ``with_signal`` also ``response - dark`` (float32), returned first; with ``sums_by``, a
+    2-D frame's ``(band_map, row_period, n_bands)`` (period > 0), also the per-band sums and
+    counts of the finite ``response`` at pixels whose DQ is 0, returned last (the arrays
+    :func:`hsiffc.kernels.bands.band_sums` returns for them)."""
     shape, (y, t, a_, b_, d) = flat_operands(
         response, exposure_ms, a, b, dark, names=("response", "exposure_ms", "a", "b", "dark"))
     def plane(v):
@@ -108,10 +112,22 @@ def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_
     signal = np.empty(shape, np.float32) if with_signal else None
     const = 0 if in_domain else int(DQ.OUT_OF_DOMAIN)
     flat = (lambda v: None if v is None else v.reshape(-1))
-    leakage.alpha_flags_kernel(y, t, a_, b_, d, float(threshold_percent), float(full_scale_dn),
-                               const, plane(pixel_flags), plane(dq), plane(extra_dq), given,
-                               flat(alpha), out.reshape(-1), flat(signal))
-    return (signal, alpha, out) if with_signal else (alpha, out)
+    planes = (plane(pixel_flags), plane(dq), plane(extra_dq))
+    if sums_by is None:
+        leakage.alpha_flags_kernel(y, t, a_, b_, d, float(threshold_percent),
+                                   float(full_scale_dn), const, *planes, given, flat(alpha),
+                                   out.reshape(-1), flat(signal))
+        return (signal, alpha, out) if with_signal else (alpha, out)
+    band_map, period, n_bands = sums_by
+    bm = np.ascontiguousarray(band_map, np.int64)
+    if given is not None or len(shape) != 2 or bm.shape != tuple(shape) or period < 1:
+        raise ValueError("band sums need a 2-D frame, its band map and its row period")
+    sums, counts = block_arrays(shape[0], int(n_bands))
+    leakage.alpha_flags_sums_kernel(y, t, a_, b_, d, float(threshold_percent),
+                                    float(full_scale_dn), const, *planes, flat(alpha),
+                                    out.reshape(-1), flat(signal), bm, int(period), sums, counts)
+    sums = (sums.sum(axis=0), counts.sum(axis=0))
+    return (signal, alpha, out, sums) if with_signal else (alpha, out, sums)
 
 
 def leakage_dq(alpha, response, *, threshold_percent: float, full_scale_dn: float,
@@ -210,7 +226,8 @@ def _options(cal, exposure_ms, threshold_percent, dq) -> dict:
 
 
 def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
-                           threshold_percent: float, dq=None, extra_dq=None):
+                           threshold_percent: float, dq=None, extra_dq=None, band_map=None,
+                           n_bands: int | None = None):
     """:func:`hsiffc.dark.subtract_dark` and :func:`validity_flags` (paper alpha, on the
     response ``frame`` with this ``dark`` under it) in one compiled pass over the pixels
     instead of two: the same values, bit for bit, as the two calls, with the planes read
@@ -226,12 +243,19 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
         As for :func:`validity_flags`.
     extra_dq : (H, W) uint32, optional
         More bits to merge into the returned DQ (e.g. a flat field's own flags).
+    band_map : (H, W) int array, optional
+        A mosaic's band map (:meth:`hsiffc.mosaic.Mosaic.band_map`, whose row period is
+        known): the same pass then also takes the per-band mean of ``frame`` over the pixels
+        whose returned DQ is 0, as :func:`hsiffc.bandstats.band_reduce` gives it (bit for bit:
+        the same sums in the same order). ``n_bands``: its length (default: the map's).
 
     Returns
     -------
     signal : (H, W) float32, DN (``frame - dark``, nothing clipped)
     alpha : (H, W) float32, percent
     dq : (H, W) uint32
+    band_mean : (n_bands,) float64, DN, NaN for a band without such a pixel; only with a
+        ``band_map`` whose row period is known (None for any other map)
     """
     cal = calibration
     y = np.asarray(frame, np.float32)
@@ -239,9 +263,16 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
         raise ValueError(f"dark has shape {np.shape(dark)} but the frame has {y.shape}; use a "
                          "dark of the frame's shape")
     cal.check_compatible(frame_shape=y.shape, what="the frame")
-    return _flags(None, y, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"), dark,
-                  **_options(cal, exposure_ms, threshold_percent, dq), extra_dq=extra_dq,
-                  with_signal=True)
+    sums_by = None
+    if band_map is not None:
+        bm, period, n = band_layout(y, band_map, what="the frame")
+        sums_by = (bm, period, n if n_bands is None else int(n_bands)) if period else None
+    out = _flags(None, y, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"), dark,
+                 **_options(cal, exposure_ms, threshold_percent, dq), extra_dq=extra_dq,
+                 with_signal=True, sums_by=sums_by)
+    if band_map is None:
+        return out
+    return out[:3] + ((None,) if sums_by is None else (band_mean(*out[3]),))
 
 
 @dataclass(frozen=True)

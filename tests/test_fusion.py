@@ -15,6 +15,9 @@ from hsiffc.kernels.launch import PARALLEL_MIN
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline, create
 from hsiffc.stages import fusion
+from hsiffc.bandstats import band_reduce
+from hsiffc.mosaic import row_period, single_band_map
+from hsiffc.validity import subtract_dark_and_flag
 
 TRAIN = PAPER_LIGHT_W_M2["training"]
 
@@ -104,6 +107,38 @@ def test_dark_and_mask_fuse_before_the_model_based_ffc(small_sim):
     assert [h["step"] for h in fused.history] == ["dark", "mask", "ffc"]
     assert np.count_nonzero(fused.dq) > 0
     _assert_same_frame(fused, _stage_by_stage(pipe, frame))
+
+
+def test_the_fused_pass_takes_the_band_mean_band_reduce_gives():
+    """The pass's per-band mean of the frame over the pixels its DQ leaves good is
+    ``band_reduce``'s, bit for bit: 70 rows (a partial block of sums and of rows per call),
+    with NaN, inf, saturated and flagged pixels, a mosaic's map and a single band's."""
+    s = MosaicSensor((70, 48), seed=8)
+    cal = calibrate(s.sweep(np.round(np.geomspace(2, 400, 8), 3), "lamp A",
+                            irradiance_w_m2=0.25 * TRAIN, n_frames=1, seed=1))
+    raw = s.capture(30.0, "lamp A", irradiance_w_m2=0.2 * TRAIN,
+                    seed=9).frames[0].astype(np.float32)
+    raw[3, :5] = [np.nan, np.inf, -np.inf, 1023, 0]
+    dark = np.full(raw.shape, 20, np.float32)
+    dq = np.zeros(raw.shape, np.uint32)
+    dq[60:, 10] = 1
+    args = (raw, dark, 30.0, cal)
+    kw = {"threshold_percent": 5.0, "dq": dq}
+    plain = subtract_dark_and_flag(*args, **kw)
+    for bm in (s.mosaic.band_map(raw.shape), single_band_map(raw.shape)):
+        assert row_period(bm) > 0
+        n = int(bm.max()) + 1
+        *out, mean = subtract_dark_and_flag(*args, **kw, band_map=bm, n_bands=n + 1)
+        for x, y in zip(out, plain, strict=True):
+            assert np.array_equal(x, y, equal_nan=True)
+        good = plain[2] == 0
+        assert 0 < np.count_nonzero(~good) < good.size
+        assert np.array_equal(mean, band_reduce(raw, bm, good, n_bands=n + 1), equal_nan=True)
+        assert np.isfinite(mean[:n]).all() and np.isnan(mean[n])
+    # a map whose row period is not known gives no mean (the FFC then takes it itself)
+    assert subtract_dark_and_flag(*args, **kw, band_map=np.array(bm))[3] is None
+    with pytest.raises(ValueError, match=r"band_map has shape \(2, 2\) but the frame has"):
+        subtract_dark_and_flag(*args, **kw, band_map=np.zeros((2, 2), int))
 
 
 def test_what_is_not_fused_runs_stage_by_stage(sim):

@@ -15,46 +15,71 @@ from numba import njit, prange
 from .launch import JIT_OPTIONS, Kernel
 from .operands import at
 
-__all__ = ["band_scale_kernel", "band_sums", "phase_scale_kernel", "scale_kernel"]
+__all__ = ["ROWS", "add_row", "band_scale_kernel", "band_sums", "block_arrays", "fold_block",
+           "phase_scale_kernel", "scale_kernel"]
 
-_ROWS = 64  # rows per partial sum
+ROWS = 64  # rows per partial sum
+_JIT = {**JIT_OPTIONS, "cache": False}
+
+
+@njit(**_JIT)
+def add_row(acc, cnt, row, use_row, want):
+    """Add a row's finite values at pixels with ``use_row[x] == want`` into one phase's
+    column sums ``acc`` (float64) and counts ``cnt``: the accumulation of
+    :func:`band_sums` by row phase, also run inside a fused pass
+    (:func:`hsiffc.kernels.leakage.alpha_flags_sums_kernel`, ``use_row`` its DQ row and
+    ``want`` 0), so that both add the same values in the same order."""
+    for x in range(acc.shape[0]):  # integer tests: a short-circuit ``and`` stops vectorising
+        v = np.float64(row[x])
+        use = np.int32(abs(v) < np.inf) & np.int32(use_row[x] == want)
+        acc[x] += v if use != 0 else 0.0
+        cnt[x] += use
+
+
+@njit(**_JIT)
+def fold_block(col_sum, col_count, phase_bands, sums, counts):
+    """Fold a block's phase column sums into its per-band ``sums/counts`` (1-D rows of the
+    block): row ``phase`` of ``col_sum`` belongs to band map row ``phase_bands[phase]``."""
+    nb = sums.shape[0]
+    for phase in range(phase_bands.shape[0]):
+        for x in range(phase_bands.shape[1]):
+            band = phase_bands[phase, x]
+            if 0 <= band < nb:
+                sums[band] += col_sum[phase, x]
+                counts[band] += col_count[phase, x]
+
+
+def block_arrays(n_rows: int, n_bands: int):
+    """Zeroed partial sums and counts, one row per block of :data:`ROWS` rows."""
+    nblk = max((n_rows + ROWS - 1) // ROWS, 1)
+    return np.zeros((nblk, n_bands)), np.zeros((nblk, n_bands), np.int64)
 
 
 def _band_sums_loop(values, band_map, good, has_good, period, sums, counts):
-    """Partial sums and counts per block of ``_ROWS`` rows into ``sums/counts[block, band]``;
+    """Partial sums and counts per block of ``ROWS`` rows into ``sums/counts[block, band]``;
     finite values of good pixels only.
 
     ``period`` > 0 says rows ``y`` and ``y + period`` of ``band_map`` hold the same bands (a
     mosaic's band map): a block then adds its rows into ``period`` column-sum rows, one per
-    row phase (a vectorised stream, no per-pixel scatter), and folds those into bands through
-    the block's first ``period`` band-map rows. Otherwise every pixel is added to its band.
+    row phase (:func:`add_row`: a vectorised stream, no per-pixel scatter), and folds those
+    into bands through the block's first ``period`` band-map rows (:func:`fold_block`).
+    Otherwise every pixel is added to its band.
     """
     H, W = values.shape
     nb = sums.shape[1]
-    for blk in prange((H + _ROWS - 1) // _ROWS):
-        y0 = blk * _ROWS
-        y1 = min(H, y0 + _ROWS)
+    for blk in prange((H + ROWS - 1) // ROWS):
+        y0 = blk * ROWS
+        y1 = min(H, y0 + ROWS)
         if period > 0:
             col_sum = np.zeros((period, W))
             col_count = np.zeros((period, W), np.int32)
             everywhere = np.ones(W, np.uint8)
             for y in range(y0, y1):
                 phase = (y - y0) % period
-                acc = col_sum[phase]
-                cnt = col_count[phase]
-                row = values[y]
-                use_row = good[y] if has_good else everywhere
-                for x in range(W):  # integer tests: a short-circuit ``and`` stops vectorising
-                    v = np.float64(row[x])
-                    use = np.int32(abs(v) < np.inf) & np.int32(use_row[x] != 0)
-                    acc[x] += v if use != 0 else 0.0
-                    cnt[x] += use
-            for phase in range(min(period, y1 - y0)):
-                for x in range(W):
-                    band = band_map[y0 + phase, x]
-                    if 0 <= band < nb:
-                        sums[blk, band] += col_sum[phase, x]
-                        counts[blk, band] += col_count[phase, x]
+                add_row(col_sum[phase], col_count[phase], values[y],
+                        good[y] if has_good else everywhere, 1)
+            fold_block(col_sum, col_count, band_map[y0:y0 + min(period, y1 - y0)],
+                       sums[blk], counts[blk])
             continue
         for y in range(y0, y1):
             for x in range(W):
@@ -99,9 +124,7 @@ def band_sums(values, band_map, good, n_bands: int, row_period: int = 0):
         raise ValueError(f"band_sums: values {v.shape}, band_map {bm.shape} and good "
                          f"{None if good is None else g.shape} must be 2-D of one shape")
     g = g.view(np.uint8)  # compiled code tests bytes (a bool load branches)
-    nblk = (v.shape[0] + _ROWS - 1) // _ROWS
-    sums = np.zeros((max(nblk, 1), n_bands))
-    counts = np.zeros((max(nblk, 1), n_bands), np.int64)
+    sums, counts = block_arrays(v.shape[0], n_bands)
     if v.size:
         _kernel(v, bm, g, good is not None, int(row_period), sums, counts)
     return sums.sum(axis=0), counts.sum(axis=0)
@@ -144,7 +167,7 @@ def _band_scale_loop(signal, gain, ratio, band_map, out):
 band_scale_kernel = Kernel(_band_scale_loop, 4)
 
 
-@njit(**{**JIT_OPTIONS, "cache": False})
+@njit(**_JIT)
 def _phase_scale_rows(signal, gain, table, phase0, out):
     """Rows of :func:`_phase_scale_loop`; row ``y`` takes factor row ``(phase0 + y) % P``.
     Returns how many stored values are not finite."""
@@ -166,13 +189,13 @@ def _phase_scale_loop(signal, gain, table, out):
     """``out = signal * gain * table[y % P]`` for 2-D frames whose per-band factor repeats
     every ``P`` rows (a mosaic's): ``table`` holds each column's factor for the ``P`` row
     phases, so a pixel reads two values and writes one (no band map, no gather). Blocks of
-    ``_ROWS`` rows run in parallel, each a compiled row loop (vectorised). Returns how many
+    ``ROWS`` rows run in parallel, each a compiled row loop (vectorised). Returns how many
     stored values are not finite."""
     H = out.shape[0]
     bad = 0
-    for blk in prange((H + _ROWS - 1) // _ROWS):
-        y0 = blk * _ROWS
-        y1 = min(H, y0 + _ROWS)
+    for blk in prange((H + ROWS - 1) // ROWS):
+        y0 = blk * ROWS
+        y1 = min(H, y0 + ROWS)
         bad += _phase_scale_rows(signal[y0:y1], gain[y0:y1], table, y0, out[y0:y1])
     return bad
 

@@ -36,11 +36,13 @@ import numpy as np
 from numba import njit, prange
 
 from ..dq import DQ
+from .bands import ROWS, add_row, fold_block
 from .launch import JIT_OPTIONS, Kernel
 from .operands import at, part
 from .vmath import exp, exp_clamped, expm1, expm1_clamped, log, log_positive, logaddexp
 
-__all__ = ["BLOCK", "alpha_flags_kernel", "alpha_model_kernel", "alpha_model_point",
+__all__ = ["BLOCK", "alpha_flags_kernel", "alpha_flags_sums_kernel", "alpha_model_kernel",
+           "alpha_model_point",
            "alpha_paper_kernel", "alpha_paper_point", "leakage_bits", "response_fast",
            "response_kernel", "response_point", "response_robust"]
 
@@ -305,3 +307,42 @@ def _alpha_flags_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, dq_
 
 
 alpha_flags_kernel = Kernel(_alpha_flags_loop, 13)
+
+
+_SUB = 4  # rows per call of the block function in _alpha_flags_sums_loop
+
+
+def _alpha_flags_sums_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, dq_in, extra,
+                           alpha_out, dq_out, signal_out, band_map, period, sums, counts):
+    """:func:`_alpha_flags_loop` (alpha computed) over a 2-D frame given as flat operands
+    (rows of ``band_map.shape[1]`` pixels) by blocks of :data:`~hsiffc.kernels.bands.ROWS`
+    rows, which also adds each row's finite ``y`` at the pixels whose DQ comes out 0 into
+    ``sums/counts[block, band]``: the partial sums of
+    :func:`~hsiffc.kernels.bands.band_sums` of ``y`` with ``good = dq == 0`` and row period
+    ``period`` (> 0), the same values added in the same order (:func:`~hsiffc.kernels.bands.
+    add_row`, :func:`~hsiffc.kernels.bands.fold_block`). A two-point FFC's eq. (5) level of
+    the test frame thus comes out of this pass instead of a second pass over the frame."""
+    H, W = band_map.shape
+    for blk in prange((H + ROWS - 1) // ROWS):
+        y0 = blk * ROWS
+        y1 = min(H, y0 + ROWS)
+        col_sum = np.zeros((period, W))
+        col_count = np.zeros((period, W), np.int32)
+        for r0 in range(y0, y1, _SUB):  # a few rows flagged, then added while in cache
+            r1 = min(y1, r0 + _SUB)
+            i0 = r0 * W
+            i1 = r1 * W
+            _alpha_flags_block(part(y, i0, i1), part(t, i0, i1), part(a, i0, i1),
+                               part(b, i0, i1), part(d, i0, i1), threshold, full_scale,
+                               const_bits, part(pix, i0, i1), part(dq_in, i0, i1),
+                               part(extra, i0, i1), None, alpha_out[i0:i1], dq_out[i0:i1],
+                               part(signal_out, i0, i1))
+            for row in range(r0, r1):
+                phase = (row - y0) % period
+                add_row(col_sum[phase], col_count[phase], y[row * W:row * W + W],
+                        dq_out[row * W:row * W + W], 0)
+        fold_block(col_sum, col_count, band_map[y0:y0 + min(period, y1 - y0)], sums[blk],
+                   counts[blk])
+
+
+alpha_flags_sums_kernel = Kernel(_alpha_flags_sums_loop, 12)

@@ -14,7 +14,7 @@ import numpy as np
 from ..bandstats import band_reduce
 from ..dq import DQ_DTYPE
 from ..errors import HsiffcWarning, ParameterError
-from ..ffc import NORMALISATIONS, paper_ratio, two_point_apply, two_point_fit
+from ..ffc import NORMALISATIONS, means_ratio, paper_ratio, two_point_apply, two_point_fit
 from ..frame import stack_mean
 from ..params import Param
 from ..polyffc import PolynomialFlat, polynomial_apply, polynomial_fit
@@ -128,17 +128,25 @@ class TwoPointFFC(Stage):
                              f"{self.gain_.shape}")
         return self.corrected(frame, frame.dq | self.dq_)
 
-    def corrected(self, frame, dq):
+    def band_flat_mean(self, band_map) -> np.ndarray:
+        """The flat's per-band mean ``mean(R(L2) - R(L1))`` of eq. (5) (DN)."""
+        flat_mean = np.asarray(self.flat_mean_)
+        if flat_mean.ndim == 2:  # pipeline files of format 1 kept it per pixel
+            flat_mean = band_reduce(flat_mean, band_map)
+        return flat_mean
+
+    def corrected(self, frame, dq, test_mean=None):
         """``frame`` corrected, given its DQ with the flat's own flags (``dq_``) merged in
         (:meth:`transform` merges them; a fused pass merges them in its own pass:
-        :mod:`hsiffc.stages.fusion`)."""
+        :mod:`hsiffc.stages.fusion`). ``test_mean``: the per-band mean of the frame's raw
+        response over the pixels with ``dq == 0``, when a fused pass took it already (else it
+        is taken here: the ``"paper"`` normalisation's ``Avg(L3)``)."""
         scale, band_map = 1.0, None
         if self.normalisation == "paper":
             band_map = frame.band_map()
-            flat_mean = np.asarray(self.flat_mean_)
-            if flat_mean.ndim == 2:  # pipeline files of format 1 kept it per pixel
-                flat_mean = band_reduce(flat_mean, band_map)
-            scale = paper_ratio(frame.raw, flat_mean, band_map=band_map, good=dq == 0)
+            flat_mean = self.band_flat_mean(band_map)
+            scale = (paper_ratio(frame.raw, flat_mean, band_map=band_map, good=dq == 0)
+                     if test_mean is None else means_ratio(test_mean, flat_mean))
         out = two_point_apply(frame.signal, self.gain_, scale, band_map=band_map, dq=dq)
         return frame.replace(data=out, dq=dq,
                              corrected_by=self.name,
