@@ -91,10 +91,10 @@ def alpha_model(response, exposure_ms: float, a, b, dark_dn, *, full_scale_dn=No
 def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_scale_dn,
            in_domain, pixel_flags, dq, extra_dq=None, with_signal=False, sums_by=None):
     """alpha (computed when ``alpha`` is None: paper form) and DQ in one compiled pass; with
-    ``with_signal`` also ``response - dark`` (float32), returned first; with ``sums_by``, a
-    2-D frame's ``(band_map, row_period, n_bands)`` (period > 0), also the per-band sums and
-    counts of the finite ``response`` at pixels whose DQ is 0, returned last (the arrays
-    :func:`hsiffc.kernels.bands.band_sums` returns for them)."""
+    ``with_signal`` also ``response - dark`` (float32), returned first. ``sums_by``: a 2-D
+    frame's ``(band_map, row_period > 0, n_bands)``, checked by the caller; then the
+    :func:`~hsiffc.bandstats.band_reduce` mean of ``response`` over the pixels whose DQ is 0
+    is returned last."""
     shape, (y, t, a_, b_, d) = flat_operands(
         response, exposure_ms, a, b, dark, names=("response", "exposure_ms", "a", "b", "dark"))
     def plane(v):
@@ -112,22 +112,16 @@ def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_
     signal = np.empty(shape, np.float32) if with_signal else None
     const = 0 if in_domain else int(DQ.OUT_OF_DOMAIN)
     flat = (lambda v: None if v is None else v.reshape(-1))
-    planes = (plane(pixel_flags), plane(dq), plane(extra_dq))
+    args = (y, t, a_, b_, d, float(threshold_percent), float(full_scale_dn), const,
+            plane(pixel_flags), plane(dq), plane(extra_dq))
     if sums_by is None:
-        leakage.alpha_flags_kernel(y, t, a_, b_, d, float(threshold_percent),
-                                   float(full_scale_dn), const, *planes, given, flat(alpha),
-                                   out.reshape(-1), flat(signal))
+        leakage.alpha_flags_kernel(*args, given, flat(alpha), out.reshape(-1), flat(signal))
         return (signal, alpha, out) if with_signal else (alpha, out)
     band_map, period, n_bands = sums_by
-    bm = np.ascontiguousarray(band_map, np.int64)
-    if given is not None or len(shape) != 2 or bm.shape != tuple(shape) or period < 1:
-        raise ValueError("band sums need a 2-D frame, its band map and its row period")
-    sums, counts = block_arrays(shape[0], int(n_bands))
-    leakage.alpha_flags_sums_kernel(y, t, a_, b_, d, float(threshold_percent),
-                                    float(full_scale_dn), const, *planes, flat(alpha),
-                                    out.reshape(-1), flat(signal), bm, int(period), sums, counts)
-    sums = (sums.sum(axis=0), counts.sum(axis=0))
-    return (signal, alpha, out, sums) if with_signal else (alpha, out, sums)
+    sums, counts = block_arrays(shape[0], n_bands)
+    leakage.alpha_flags_sums_kernel(*args, flat(alpha), out.reshape(-1), flat(signal),
+                                    band_map, period, sums, counts)
+    return signal, alpha, out, band_mean(sums.sum(axis=0), counts.sum(axis=0))
 
 
 def leakage_dq(alpha, response, *, threshold_percent: float, full_scale_dn: float,
@@ -264,15 +258,14 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
                          "dark of the frame's shape")
     cal.check_compatible(frame_shape=y.shape, what="the frame")
     sums_by = None
-    if band_map is not None:
+    if band_map is not None:  # band_layout checks the map's shape: the kernel indexes it
         bm, period, n = band_layout(y, band_map, what="the frame")
-        sums_by = (bm, period, n if n_bands is None else int(n_bands)) if period else None
+        sums_by = (np.ascontiguousarray(bm, np.int64), period,
+                   n if n_bands is None else int(n_bands)) if period else None
     out = _flags(None, y, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"), dark,
                  **_options(cal, exposure_ms, threshold_percent, dq), extra_dq=extra_dq,
                  with_signal=True, sums_by=sums_by)
-    if band_map is None:
-        return out
-    return out[:3] + ((None,) if sums_by is None else (band_mean(*out[3]),))
+    return out if band_map is None or sums_by is not None else out + (None,)
 
 
 @dataclass(frozen=True)
