@@ -6,7 +6,8 @@ import numpy as np
 
 from ..dq import DQ_DTYPE
 from ..errors import ParameterError
-from ..model_ffc import FlatStack, log_gain_ratio, model_ffc_apply, model_flat_fit
+from ..model_ffc import log_gain_ratio, model_ffc_apply
+from ..model_flat import FlatStack, model_flat_fit
 from ..params import Param
 from .common import CALIBRATION, THRESHOLD
 from .base import Stage
