@@ -88,7 +88,7 @@ def _ppid_parts(frame, repeat: int) -> dict:
     def kernel():
         interpolate_bands(p.raw, p.dq, frame.alpha, None, ppi, ppi_ok, lv, p.lattices(),
                           mosaic.tile_shape, np.empty(shape, np.float32),
-                          np.zeros(shape, np.uint32), np.empty(shape, np.float32))
+                          np.empty(shape, np.uint32), np.empty(shape, np.float32))
 
     return {"prepare_and_band_levels": median_time(levels, repeat=repeat) * 1e3,
             "ppi_image": median_time(lambda: pseudo_panchromatic(p, lv), repeat=repeat) * 1e3,

@@ -282,7 +282,8 @@ def test_where_the_ppi_is_undefined_ppid_takes_the_bilinear_value():
     shape = raw.shape + (mosaic.n_bands,)
     cubes = []
     for ok in (None, ~undefined):
-        cube, cube_dq = np.empty(shape, np.float32), np.zeros(shape, DQ_DTYPE)
+        cube = np.empty(shape, np.float32)  # the DQ cube holds garbage: all of it is written
+        cube_dq = np.full(shape, 0xDEADBEEF, DQ_DTYPE)
         missing = interpolate_bands(p.raw, p.dq, None, None, ppi, ok, levels, p.lattices(),
                                     mosaic.tile_shape, cube, cube_dq, None)
         assert not missing.any()

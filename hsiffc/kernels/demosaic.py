@@ -11,10 +11,10 @@ each lattice at its columns; the horizontal blend per column phase ``x mod pw`` 
 contiguous, vectorised loop per phase); the division into a band-major row buffer, whose
 finished row goes into the (W, B) cube row through flat indices (:func:`_transpose_row`).
 
-A frame with flagged samples is first split into lattice planes
-(:mod:`hsiffc.kernels.lattice`), read contiguously. The DQ cube (zero-initialised by the
-caller) gets the samples' own flags at their sites; the values whose support S1 holds no usable
-sample are listed from the vertical pass (with one lattice per band, read off its column
+A frame with flagged samples is first split into lattice planes (:mod:`hsiffc.kernels.lattice`),
+read contiguously. Each row of the DQ cube is zeroed by the pass itself (no separate fill of the
+whole cube) and gets the samples' own flags at their sites; the values whose support S1 holds no
+usable sample are listed from the vertical pass (with one lattice per band, read off its column
 weights: a value is listed where its column and, off the column, the next one have none) and
 take the flags of S1 and the estimate of the twice-wide tent S2 (S2's column sums over the row,
 four columns per value); where S2 holds none either the value is NaN for the caller's
@@ -99,6 +99,9 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
     for y in range(blk * _ROWS, min(H, blk * _ROWS + _ROWS)):
         yph = y % ph
         n_bad = 0
+        dq_row = cube_dq[y].reshape(W * B)  # zeroed here, then flags OR-ed in while cached
+        for i in range(W * B):
+            dq_row[i] = 0
         if use_ppi and has_dq:
             for x in range(W):
                 if not ppi_ok[y, x]:
@@ -318,8 +321,8 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
 def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi, ppi_ok,
                       use_ppi, levels, lat_r, lat_c, lat_start, col_left, ph, pw,
                       cube, cube_dq, cube_alpha, missing_rows, lr, lf, lp):
-    """Fill ``cube`` (H, W, B) and, where present, ``cube_dq`` (zero-initialised) and
-    ``cube_alpha``.
+    """Fill ``cube`` (H, W, B), ``cube_dq`` (every value: each row is zeroed, then its flags
+    are set) and, where present, ``cube_alpha``.
 
     ``lat_r/lat_c`` are the first sample row/column (0 <= r < ph, 0 <= c < pw, offset
     included) of each pattern position; those of band b are ``lat_start[b]:lat_start[b+1]``.
@@ -370,7 +373,7 @@ def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, per
     lattices : list of B lists of (row, col): first sample row/column of each pattern position
     period : (ph, pw)
     cube : (H, W, B) float32, out
-    cube_dq : (H, W, B) uint32, zero-initialised out (only flagged values are written)
+    cube_dq : (H, W, B) uint32 out (any content: every value is written)
     cube_alpha : (H, W, B) float32 out, or None
 
     Returns ``(H, B)`` bool: the rows and bands holding values whose wide support has no usable

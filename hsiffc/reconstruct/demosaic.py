@@ -164,7 +164,7 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
         a = _alpha_plane(alpha, p.shape)
         common = _ppi_window_max(a, mosaic) if method == "ppid" else None
     cube = np.empty((H, W, B), np.float32)
-    cube_dq = np.zeros((H, W, B), DQ_DTYPE)
+    cube_dq = np.empty((H, W, B), DQ_DTYPE)  # every value written by the kernel
     cube_alpha = None if a is None else np.empty((H, W, B), np.float32)
     missing = interpolate_bands(p.raw, p.dq, a, common, ppi, ppi_ok, levels, p.lattices(),
                                 mosaic.tile_shape, cube, cube_dq, cube_alpha)
