@@ -42,9 +42,8 @@ from .operands import at, part
 from .vmath import exp, exp_clamped, expm1, expm1_clamped, log, log_positive, logaddexp
 
 __all__ = ["BLOCK", "alpha_flags_kernel", "alpha_flags_sums_kernel", "alpha_model_kernel",
-           "alpha_model_point",
-           "alpha_paper_kernel", "alpha_paper_point", "leakage_bits", "response_fast",
-           "response_kernel", "response_point", "response_robust"]
+           "alpha_model_point", "alpha_paper_kernel", "alpha_paper_point", "leakage_bits",
+           "response_fast", "response_kernel", "response_point", "response_robust"]
 
 BLOCK = 4096
 # Only the kernels (entry points, see launch.Kernel) are cached on disk. The per-point
@@ -319,9 +318,10 @@ def _alpha_flags_sums_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix
     rows, which also adds each row's finite ``y`` at the pixels whose DQ comes out 0 into
     ``sums/counts[block, band]``: the partial sums of
     :func:`~hsiffc.kernels.bands.band_sums` of ``y`` with ``good = dq == 0`` and row period
-    ``period`` (> 0), the same values added in the same order (:func:`~hsiffc.kernels.bands.
-    add_row`, :func:`~hsiffc.kernels.bands.fold_block`). A two-point FFC's eq. (5) level of
-    the test frame thus comes out of this pass instead of a second pass over the frame."""
+    ``period`` (> 0), the same values added in the same order
+    (:func:`~hsiffc.kernels.bands.add_row`, :func:`~hsiffc.kernels.bands.fold_block`). A
+    two-point FFC's eq. (5) level of the test frame thus comes out of this pass instead of a
+    second pass over the frame."""
     H, W = band_map.shape
     for blk in prange((H + ROWS - 1) // ROWS):
         y0 = blk * ROWS
