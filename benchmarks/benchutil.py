@@ -19,6 +19,23 @@ def median_time(fn, *, repeat: int = 5, warmup: int = 1) -> float:
     return statistics.median(times)
 
 
+def interleaved_medians(fns: dict, *, repeat: int = 5, warmup: int = 1) -> dict:
+    """Median wall time (s) of each of ``fns`` (name -> callable), the calls taken in turn,
+    one of each per round, for ``repeat`` rounds after ``warmup`` rounds: a figure and its
+    baseline see the same state of a shared machine (whose speed drifts within a run by up
+    to ~1.5 x), so their ratio holds even when their absolute values move."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    times = {name: [] for name in fns}
+    for _ in range(repeat):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    return {name: statistics.median(t) for name, t in times.items()}
+
+
 def peak_memory_mb(fn) -> float:
     """Peak Python-heap allocation (numpy arrays included) during ``fn()``, in MiB."""
     tracemalloc.start()
