@@ -17,7 +17,7 @@ from hsiffc.kernels.demosaic import interpolate_bands
 from hsiffc.reconstruct.prepare import band_levels, prepare, pseudo_panchromatic
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline, create
-from hsiffc.validity import subtract_dark_and_flag
+from hsiffc.stages.fusion import fused_pass
 
 SHAPE = (1088, 2048)
 TRAIN = PAPER_LIGHT_W_M2["training"]
@@ -97,23 +97,14 @@ def _ppid_parts(frame, repeat: int) -> dict:
 
 def _front_end_parts(front, frame, repeat: int) -> dict:
     """The fused front end's parts alone, as :func:`hsiffc.stages.fusion.run_fused` runs
-    them: the pass of dark, alpha, DQ and the FFC's per-band test level (one kernel), and the
-    two-point FFC's finish (the gain: one more pass)."""
+    them: the pass of dark, alpha, DQ and the FFC's per-band test level (one kernel,
+    :func:`~hsiffc.stages.fusion.fused_pass`), and the two-point FFC's finish (the gain: one
+    more pass)."""
     (_, dark), (_, mask), (_, ffc) = front.steps
-    plane = dark.dark_for(frame.exposure_ms, frame.data.shape)[0]
-    cal = mask.calibration_for(frame)
-    band_map = frame.band_map()
-    n_bands = len(ffc.band_flat_mean(band_map))
-
-    def fused_pass():
-        return subtract_dark_and_flag(frame.data, plane, frame.exposure_ms, cal,
-                                      threshold_percent=float(mask.threshold_percent),
-                                      dq=frame.dq, extra_dq=ffc.dq_, band_map=band_map,
-                                      n_bands=n_bands)
-
-    *_, dq, test_mean = fused_pass()
+    *_, dq, test_mean = fused_pass(front.steps, frame)
     masked = mask.transform(dark.transform(frame))
-    return {"dark_alpha_dq_pass": median_time(fused_pass, repeat=repeat) * 1e3,
+    return {"dark_alpha_dq_pass": median_time(lambda: fused_pass(front.steps, frame),
+                                              repeat=repeat) * 1e3,
             "ffc_finish": median_time(lambda: ffc.corrected(masked, dq.copy(), test_mean),
                                       repeat=repeat) * 1e3}
 

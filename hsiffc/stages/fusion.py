@@ -26,7 +26,7 @@ from .alpha import AlphaMask
 from .dark import DarkSubtract
 from .ffc import TwoPointFFC
 
-__all__ = ["fusable", "run_fused"]
+__all__ = ["fusable", "fused_pass", "run_fused"]
 
 
 def fusable(steps, frame) -> int:
@@ -48,9 +48,29 @@ def fusable(steps, frame) -> int:
     return 2  # a two-point FFC of another shape, or not fitted, raises its own error
 
 
+def fused_pass(steps, frame):
+    """The one compiled pass of ``steps`` (a run :func:`fusable` accepted) over ``frame``:
+    returns ``(dark plane, its source, signal, alpha, dq, test_mean)``, ``test_mean`` being
+    the two-point FFC's eq. (5) level of the frame (None without such an FFC)."""
+    (_, dark), (_, mask) = steps[:2]
+    ffc = steps[2][1] if len(steps) == 3 else None
+    plane, how = dark.dark_for(frame.exposure_ms, frame.data.shape)
+    if np.shape(plane) != frame.data.shape:
+        subtract_dark(frame.data, plane)  # raises the dark stage's own error
+    band_map, n_bands = None, None
+    if ffc is not None and ffc.normalisation == "paper":  # eq. (5)'s test level, same pass
+        band_map = frame.band_map()
+        n_bands = len(ffc.band_flat_mean(band_map))
+    signal, alpha, dq, *test_mean = subtract_dark_and_flag(
+        frame.data, plane, frame.exposure_ms, mask.calibration_for(frame),
+        threshold_percent=float(mask.threshold_percent), dq=frame.dq,
+        extra_dq=None if ffc is None else ffc.dq_, band_map=band_map, n_bands=n_bands)
+    return plane, how, signal, alpha, dq, (test_mean or [None])[0]
+
+
 def run_fused(steps, frame, record):
     """Run ``steps``, a run of stages :func:`fusable` accepted for ``frame`` (its first 2 or
-    3), on ``frame`` in one pass.
+    3), on ``frame`` in one pass (:func:`fused_pass`).
 
     ``record(name, stage, frame)`` is called after each stage with the frame that stage
     returns (the pipeline adds the stage's history entry there) and returns the frame to go
@@ -59,21 +79,10 @@ def run_fused(steps, frame, record):
     ffc_name, ffc = steps[2] if len(steps) == 3 else (None, None)
     for _, stage in steps:
         stage.check_is_fitted()
-    plane, how = dark.dark_for(frame.exposure_ms, frame.data.shape)
-    if np.shape(plane) != frame.data.shape:
-        subtract_dark(frame.data, plane)  # raises the dark stage's own error
-    cal = mask.calibration_for(frame)
-    band_map, n_bands = None, None
-    if ffc is not None and ffc.normalisation == "paper":  # eq. (5)'s test level, same pass
-        band_map = frame.band_map()
-        n_bands = len(ffc.band_flat_mean(band_map))
-    signal, alpha, dq, *test_mean = subtract_dark_and_flag(
-        frame.data, plane, frame.exposure_ms, cal,
-        threshold_percent=float(mask.threshold_percent), dq=frame.dq,
-        extra_dq=None if ffc is None else ffc.dq_, band_map=band_map, n_bands=n_bands)
+    plane, how, signal, alpha, dq, test_mean = fused_pass(steps, frame)
     frame = record(dark_name, dark, frame.dark_subtracted(plane, signal=signal,
                                                           dark_source=how))
     frame = record(mask_name, mask, mask.flagged(frame, alpha, dq))
     if ffc is None:
         return frame
-    return record(ffc_name, ffc, ffc.corrected(frame, dq, *test_mean))
+    return record(ffc_name, ffc, ffc.corrected(frame, dq, test_mean))
