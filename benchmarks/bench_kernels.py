@@ -4,8 +4,12 @@ to the disk cache) and in a later process (warm: loaded from the cache).
 Each measurement runs in a fresh Python process with its own ``NUMBA_CACHE_DIR``: the cold
 run starts from an empty folder, the warm run reuses it. Timed are the calls a correction
 makes on a full 2048 x 1088 frame (closed form, inversion, alpha, model_ffc, bilinear and
-PPID demosaicing, each its parallel build) and, separately, the same calls on a 64 x 64 frame
-(their serial builds, what the test suite mostly compiles). Import of hsiffc is timed apart.
+PPID demosaicing of a frame with flagged samples, each its parallel build) and, separately,
+the same calls on a 64 x 64 frame (their serial builds, what the test suite mostly compiles).
+Import of hsiffc is timed apart. The cold run also counts the machine-code versions of the
+block functions the interpolation and PPI kernels call: one each means both builds share it
+(the check of the slow test
+``test_each_block_function_compiles_once_for_the_serial_and_parallel_builds``).
 """
 
 from __future__ import annotations
@@ -40,9 +44,18 @@ for label, shape in (("frame", (1088, 2048)), ("small", (64, 64))):
     model_ffc_apply(y, 25.0, a, b, d, np.ones(shape), gain_sweep=np.ones(shape),
                     full_scale_dn=1023.0)
     m = Mosaic.rectangular(2, 4)
+    # flagged samples, 2 % of the pixels in even rows and 30 % in odd ones (the PPI fills the
+    # flagged pixels of a row one by one or the whole row at once: both paths compile)
+    p_row = np.where(np.arange(shape[0]) % 2 == 0, 0.02, 0.3)[:, None]
+    dq = (rng.random(shape) < p_row).astype(np.uint32) * np.uint32(1024)
     for method in ("bilinear", "ppid"):
-        demosaic(y.astype(np.float32), m, method=method, alpha=alpha)
+        demosaic(y.astype(np.float32), m, method=method, dq=dq, alpha=alpha)
     out[label + "_s"] = time.perf_counter() - t0
+# machine code versions of the block functions the interpolation and PPI kernels call (not
+# cached on disk: compiled into each build that calls them): one each, serial and parallel
+from hsiffc.kernels import demosaic as kd, ppi as kp
+out["callee_versions"] = {f.py_func.__name__: len(f.signatures) for f in (
+    kd._interpolate_block, kp._window_block, kp.row_neighbour_sums, kp.pixel_neighbour_sums)}
 print(json.dumps(out))
 """
 
@@ -72,6 +85,10 @@ def main(quick: bool = False) -> dict:
                  "load the cache (the ratio is cold / warm)"))
     print(row("import hsiffc (model + reconstruct)", warm["import_s"], "s",
               f"cold run {cold['import_s']:.2f} s"))
+    versions = cold["callee_versions"]
+    results["block_functions_compiled_once"] = max(versions.values()) == 1
+    print(f"  block functions compiled once for both builds: "
+          f"{results['block_functions_compiled_once']} ({versions})")
     return results
 
 

@@ -378,3 +378,29 @@ def test_samples_of_several_bands_equal_the_strided_lattice_samples():
                                       else np.ones_like(raw[r::ph, c::pw], bool)]
                     for r, c in p.lattices()[b]]
             assert np.array_equal(v, np.concatenate(want))
+
+
+@pytest.mark.slow  # compiles the parallel builds; bench_kernels checks the same on a clean cache
+def test_each_block_function_compiles_once_for_the_serial_and_parallel_builds():
+    """The interpolation and PPI kernels hand their block functions int64 indices in both
+    builds. numba types a parallel loop's index uint64 (and a literal ``1`` as a literal), and
+    it compiled each callee once per type it saw: on a clean numba cache the first full-frame
+    PPID cube took 63 s of compiling instead of 34 (measured in this repository, the default
+    pipeline's first call). Checkable where the kernels compile in this process (a clean
+    checkout, as in CI); kernels loaded from numba's disk cache compile no callee at all."""
+    rng = np.random.default_rng(5)
+    mosaic = Mosaic(np.arange(8).reshape(2, 4))
+    for shape, flagged in (((16, 32), 0.05), ((256, 288), 0.05), ((256, 288), 0.4)):
+        assert (np.prod(shape) >= launch.PARALLEL_MIN) == (shape[0] == 256)  # both builds run
+        raw = rng.uniform(10.0, 100.0, shape).astype(np.float32)
+        dq = np.where(rng.random(shape) < flagged, DQ.LEAKAGE, 0).astype(DQ_DTYPE)
+        alpha = rng.uniform(0.0, 5.0, shape).astype(np.float32)
+        for method in ("bilinear", "ppid"):
+            demosaic(raw, mosaic, method=method, dq=dq, alpha=alpha)
+    from hsiffc.kernels import demosaic as demosaic_kernels
+    callees = (demosaic_kernels._interpolate_block, ppi_kernels._window_block,
+               ppi_kernels.row_neighbour_sums, ppi_kernels.pixel_neighbour_sums)
+    compiled = {f.py_func.__name__: [str(s) for s in f.signatures] for f in callees}
+    if not any(compiled.values()):
+        pytest.skip("the kernels came from numba's disk cache: no callee compiled here")
+    assert all(len(s) == 1 for s in compiled.values()), compiled

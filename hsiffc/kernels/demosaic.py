@@ -341,12 +341,13 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi
     """
     H = raw.shape[0]
     B = lat_start.shape[0] - 1
-    n_lat = 1
+    n_lat = np.int64(1)  # not a literal 1: see below
     for b in range(B):
         n_lat = max(n_lat, lat_start[b + 1] - lat_start[b])
     missing = 0
     for blk in prange((H + _ROWS - 1) // _ROWS):
-        missing += _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common,
+        # int64 arguments: numba compiled the block once per type it saw (uint64 blk, literal 1)
+        missing += _interpolate_block(np.int64(blk), raw, dq, has_dq, alpha, has_alpha, common,
                                       has_common, ppi, ppi_ok, use_ppi, levels, lat_r, lat_c,
                                       lat_start, col_left, ph, pw, n_lat, cube, cube_dq,
                                       cube_alpha, missing_rows, lr, lf, lp)

@@ -50,6 +50,8 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
             inv_row[yph, x] = inv_level[band_of[yph, x % pw]]
     for y in prange(H):  # samples: scaled to a common level, flagged ones filled from the lattice
         yph = y % ph
+        row = np.int64(y)  # int64 for the calls below: numba types a parallel loop's index
+        # uint64 and compiled each callee for both types (the serial build's is int64)
         for x in range(W):
             vals[y, x] = raw[y, x] * inv_row[yph, x]
             wts[y, x] = 1.0
@@ -66,9 +68,10 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
         wsum = np.empty(W)
         if 8 * n_fl < W:  # a few flagged pixels: their own sums (same terms, same order)
             for i in range(n_fl):
-                acc[fl_x[i]], wsum[fl_x[i]] = pixel_neighbour_sums(raw, dq, y, fl_x[i], offs)
+                x = fl_x[i]
+                acc[x], wsum[x] = pixel_neighbour_sums(raw, dq, row, x, offs)
         else:  # many: the whole row, vectorised
-            row_neighbour_sums(raw, dq, y, offs, acc, wsum)
+            row_neighbour_sums(raw, dq, row, offs, acc, wsum)
         for i in range(n_fl):
             x = fl_x[i]
             if wsum[x] > 0.0:
@@ -80,7 +83,7 @@ def _ppi_rows(raw, dq, has_dq, band_of, inv_level, rows, cols, kx, ky, ppi, ok):
     my = ky.size // 2
     mx = kx.size // 2
     for blk in prange((H + _ROWS - 1) // _ROWS):  # window sums, a block of rows at a time
-        _window_block(blk, vals, wts, rows, cols, kx, ky, my, mx, ppi, ok)
+        _window_block(np.int64(blk), vals, wts, rows, cols, kx, ky, my, mx, ppi, ok)
 
 
 @njit(**_JIT)
