@@ -73,7 +73,9 @@ def _model_ffc_block(y, t, a, b, d, base, log_ratio, dark_current, has_sweep, fu
     m = out.shape[0]
     k = np.empty(m)
     alpha = np.empty(m)
-    invert_rounds(y, t, a, b, d, full_scale, np.inf, tol_dn, ROUNDS, k, dq_out, alpha)
+    # an int64, as the inversion kernel passes it (a literal compiles invert_rounds anew)
+    invert_rounds(y, t, a, b, d, full_scale, np.inf, tol_dn, np.int64(ROUNDS), k, dq_out,
+                  alpha)
     left = 0
     for j in range(m):
         yi = at(y, j)
