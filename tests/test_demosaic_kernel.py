@@ -403,4 +403,6 @@ def test_each_block_function_compiles_once_for_the_serial_and_parallel_builds():
     compiled = {f.py_func.__name__: [str(s) for s in f.signatures] for f in callees}
     if not any(compiled.values()):
         pytest.skip("the kernels came from numba's disk cache: no callee compiled here")
-    assert all(len(s) == 1 for s in compiled.values()), compiled
+    # at most once each: a kernel whose source did not change loads from the disk cache and
+    # compiles no callee, while an edited one compiles its own
+    assert all(len(s) <= 1 for s in compiled.values()), compiled

@@ -6,7 +6,8 @@ convolution ``(K * (v w)) / (K * w)`` with the tent ``K`` of half-width one tile
 each band's sample lattice (the tent covers two sample rows and columns: a vertical blend of
 two sample rows, then a horizontal blend of two columns; separable, exact, no zero-filled
 planes). One pass over the output rows, parallel over blocks of rows, writes every band of the
-cube and its alpha (the max over the same samples). Per row and band: the vertical blend of
+cube and its alpha: the max over the same samples (bilinear), or the plane the caller gives
+for every band (PPID: the max under the PPI window, which holds those samples). Per row and band: the vertical blend of
 each lattice at its columns; the horizontal blend per column phase ``x mod pw`` (one
 contiguous, vectorised loop per phase); the division into a band-major row buffer, whose
 finished row goes into the (W, B) cube row through flat indices (:func:`_transpose_row`).
@@ -218,15 +219,9 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
                     nKq = (W - qa + pw - 1) // pw
                     ma = amaxA[qa]
                     out_a = row_a[b, qa::pw]
-                    if has_common:
-                        common_q = common[y, qa::pw]
-                        for K in range(nKq):
-                            a = max(ma[K], common_q[K])
-                            out_a[K] = a if a > _NEG else 0.0
-                    else:
-                        for K in range(nKq):
-                            a = ma[K]
-                            out_a[K] = a if a > _NEG else 0.0
+                    for K in range(nKq):
+                        a = ma[K]
+                        out_a[K] = a if a > _NEG else 0.0
             if not has_dq:  # then every S1 holds a usable sample and the PPI is defined
                 continue
             for j in range(j0, j1):  # the samples' own flags at their sites
@@ -315,6 +310,12 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
         _transpose_row(row_v, cube[y])  # the row into the cube: (W, B) contiguous
         if has_alpha:
             _transpose_row(row_a, cube_alpha[y])
+        elif has_common:  # the alpha of every band: the given plane's, in each band
+            a_row = cube_alpha[y].reshape(W * B)
+            c_row = common[y]
+            for x in range(W):
+                for b in range(B):
+                    a_row[x * B + b] = c_row[x]
     return missing
 
 
@@ -368,7 +369,9 @@ def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, per
     dq : (H, W) uint32 or None (no flagged sample)
     alpha : (H, W) float32, finite, or None
     common : (H, W) float32 or None
-        A per-pixel floor of the alpha of every band (PPID: the max alpha under the PPI window).
+        The alpha of every band at each pixel, when the caller has it: PPID's, the max alpha
+        under the PPI window, which holds every sample of each band's S1 (so S1's max is never
+        above it, and the kernel does not take it). Given with ``alpha`` None.
     ppi, ppi_ok : (H, W) float32 and bool (None: defined everywhere), or None (bilinear)
     levels : (B,) float64, the PPI scale of each band
     lattices : list of B lists of (row, col): first sample row/column of each pattern position
@@ -382,6 +385,9 @@ def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, per
     the tile), those with DO_NOT_USE; those values are NaN (fill them with the band median).
     """
     H, W = raw.shape
+    if alpha is not None and common is not None:
+        raise ValueError("give alpha (the cube's alpha is S1's max) or common (the alpha of "
+                         "every band), not both")
     dummy_f = np.zeros((1, 1), np.float32)
     lat_r, lat_c, lat_start = lattice_arrays(lattices)
     missing_rows = np.zeros((H, len(lattices)), np.bool_)

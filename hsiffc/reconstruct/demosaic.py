@@ -47,9 +47,11 @@ def _alpha_plane(alpha, shape):
 
 
 def _ppi_window_max(a, mosaic):
-    """PPID's alpha floor: the max alpha over every raw pixel that enters the PPI at the
-    samples of a value (a window of ``2 ph - 1 + len(ppi_kernel(ph)) - 1`` rows, likewise
-    columns)."""
+    """PPID's alpha: the max alpha over every raw pixel that enters the PPI at the samples of
+    a value (a centred window of ``2 ph - 1 + len(ppi_kernel(ph)) - 1`` rows, likewise
+    columns: an odd size, since the PPI kernel's is odd). The window holds the value's S1
+    (its same-band samples within ``ph - 1`` rows and ``pw - 1`` columns) too, so this is the
+    alpha of the value in every band, and the kernel writes it without taking S1's max."""
     ph, pw = mosaic.tile_shape
     kh, kw = ppi_kernel(ph).size, ppi_kernel(pw).size
     big = np.ones((2 * ph - 1 + kh - 1, 2 * pw - 1 + kw - 1), np.uint8)
@@ -162,10 +164,11 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
     a = None
     if alpha is not None:
         a = _alpha_plane(alpha, p.shape)
-        common = _ppi_window_max(a, mosaic) if method == "ppid" else None
+        if method == "ppid":  # the window max: every band's alpha (the window holds S1)
+            a, common = None, _ppi_window_max(a, mosaic)
     cube = np.empty((H, W, B), np.float32)
     cube_dq = np.empty((H, W, B), DQ_DTYPE)  # every value written by the kernel
-    cube_alpha = None if a is None else np.empty((H, W, B), np.float32)
+    cube_alpha = None if alpha is None else np.empty((H, W, B), np.float32)
     missing = interpolate_bands(p.raw, p.dq, a, common, ppi, ppi_ok, levels, p.lattices(),
                                 mosaic.tile_shape, cube, cube_dq, cube_alpha)
     fill = np.flatnonzero(missing.any(axis=0))  # bands with values whose wide support
@@ -176,7 +179,7 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
             row[np.isnan(row)] = med
     if method == "nearest":
         _nearest(p, cube)
-    return (cube, cube_dq) if a is None else (cube, cube_dq, cube_alpha)
+    return (cube, cube_dq) if alpha is None else (cube, cube_dq, cube_alpha)
 
 
 def reconstruct_alpha(alpha, mosaic: Mosaic, *, method: str = "bilinear",
