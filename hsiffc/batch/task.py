@@ -22,6 +22,7 @@ from ..atomic import PART_SUFFIX, atomic_path
 from ..dq import DQ
 from ..errors import DataFormatError, HsiffcError
 from ..frame import Frame
+from ..memory import reuse_freed_memory
 from ..io.corrected import (
     BackgroundWriter,
     CorrectedWriter,
@@ -68,6 +69,7 @@ def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> d
     """
     t0 = time.perf_counter()
     res = empty_result(job)
+    reuse_freed_memory()  # also in a Dask worker process (hsiffc.memory; once per process)
     try:
         res["bytes"] = os.stat(job.input).st_size
         ctx = context_for(settings)

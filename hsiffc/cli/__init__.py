@@ -21,6 +21,7 @@ import warnings
 from .. import __version__
 from ..atomic import write_policy
 from ..errors import HsiffcError
+from ..memory import reuse_freed_memory
 from . import data, importer, pipeline, reports, uniformity
 from .args import OneLineParser
 from .common import check_declared_outputs, declared, input_files
@@ -128,6 +129,7 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
+    reuse_freed_memory()  # a frame's large arrays reuse the last frame's pages (hsiffc.memory)
     prefix = f"hsiffc {args.command}: error:"
     try:
         inputs = declared(args, "input_args")
