@@ -40,10 +40,10 @@ import tifffile
 
 from benchutil import figure, median_time, row
 from hsiffc.batch import correct_batch, default_pipeline
-from hsiffc.memory import reuse_freed_memory
 from hsiffc.calibrate.product import Calibration
 from hsiffc.frame import Frame
 from hsiffc.io import read_sweep, write_sweep
+from hsiffc.memory import reuse_freed_memory
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline
 

@@ -192,10 +192,11 @@ def main(quick: bool = False) -> dict:
     results = {"allocator_reuses_freed_memory": allocator}
     pipes = {}
     for method in ("bilinear", "ppid"):
-        pipe = pipes[method] = Pipeline([("dark", create("dark", match="scale")),
-                         ("mask", create("alpha_mask", calibration=str(cal_path))),
-                         ("ffc", create("two_point_ffc", calibration=str(cal_path))),
-                         ("cube", create("reconstruct", method=method))]).fit(train)
+        pipe = pipes[method] = Pipeline([
+            ("dark", create("dark", match="scale")),
+            ("mask", create("alpha_mask", calibration=str(cal_path))),
+            ("ffc", create("two_point_ffc", calibration=str(cal_path))),
+            ("cube", create("reconstruct", method=method))]).fit(train)
         t = median_time(lambda: pipe.transform(test), repeat=repeat)
         results[f"pipeline_{method}_mpx_s"] = npx / t / 1e6
         results[f"pipeline_{method}_s"] = t

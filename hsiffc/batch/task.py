@@ -22,13 +22,13 @@ from ..atomic import PART_SUFFIX, atomic_path
 from ..dq import DQ
 from ..errors import DataFormatError, HsiffcError
 from ..frame import Frame
-from ..memory import reuse_freed_memory
 from ..io.corrected import (
     BackgroundWriter,
     CorrectedWriter,
     is_corrected_file,
     read_provenance,
 )
+from ..memory import reuse_freed_memory
 from .context import Context, Settings, context_for, sha256_file
 from .plan import BatchError, Job
 from .source import open_input

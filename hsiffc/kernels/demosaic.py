@@ -7,10 +7,11 @@ each band's sample lattice (the tent covers two sample rows and columns: a verti
 two sample rows, then a horizontal blend of two columns; separable, exact, no zero-filled
 planes). One pass over the output rows, parallel over blocks of rows, writes every band of the
 cube and its alpha: the max over the same samples (bilinear), or the plane the caller gives
-for every band (PPID: the max under the PPI window, which holds those samples). Per row and band: the vertical blend of
-each lattice at its columns; the horizontal blend per column phase ``x mod pw`` (one
-contiguous, vectorised loop per phase); the division into a band-major row buffer, whose
-finished row goes into the (W, B) cube row through flat indices (:func:`_transpose_row`).
+for every band (PPID: the max under the PPI window, which holds those samples). Per row and
+band: the vertical blend of each lattice at its columns; the horizontal blend per column phase
+``x mod pw`` (one contiguous, vectorised loop per phase); the division into a band-major row
+buffer, whose finished row goes into the (W, B) cube row through flat indices
+(:func:`_transpose_row`).
 
 A frame with flagged samples is first split into lattice planes (:mod:`hsiffc.kernels.lattice`),
 read contiguously. Each row of the DQ cube is zeroed by the pass itself (no separate fill of the
