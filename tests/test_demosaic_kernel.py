@@ -24,13 +24,16 @@ from hsiffc.reconstruct.prepare import (Prepared, band_levels, periodic_index, p
 
 # -- the reference (OpenCV filters on zero-filled planes) --------------------------------------
 
-def _tent(period):
+def _tent(period, dtype=np.float32):
     d = np.arange(-(period - 1), period, dtype=np.float64)
-    return (1.0 - np.abs(d) / period).astype(np.float32)
+    return (1.0 - np.abs(d) / period).astype(dtype)
 
 
 def _filt(img, kx, ky):
-    return cv2.sepFilter2D(img, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
+    """The separable filter in the image's own precision (float32 or float64)."""
+    depth = cv2.CV_64F if img.dtype == np.float64 else cv2.CV_32F
+    return cv2.sepFilter2D(img, depth, kx.astype(img.dtype), ky.astype(img.dtype),
+                           borderType=cv2.BORDER_CONSTANT)
 
 
 def _interp(values, w, ph, pw):
@@ -44,7 +47,8 @@ def _interp(values, w, ph, pw):
     return est, have1, have1 | fill
 
 
-def reference(raw, mosaic, dq, method, alpha=None):
+def reference(raw, mosaic, dq, method, alpha=None, dtype=np.float32):
+    """The cube, its DQ and (with ``alpha``) its alpha; values in ``dtype`` arithmetic."""
     raw = raw.astype(np.float32)
     dq = np.zeros(raw.shape, DQ_DTYPE) if dq is None else dq
     good = dq == 0
@@ -54,18 +58,21 @@ def reference(raw, mosaic, dq, method, alpha=None):
         p = Prepared(raw, dq.copy(), mosaic)  # the general (flag-aware) PPI path
         levels = band_levels(p)
         ppi, ppi_ok = pseudo_panchromatic(p, levels)
-    cube = np.empty(raw.shape + (mosaic.n_bands,), np.float32)
+        ppi = ppi.astype(dtype)
+    cube = np.empty(raw.shape + (mosaic.n_bands,), dtype)
     cube_dq = np.zeros(cube.shape, DQ_DTYPE)
+    values = raw.astype(dtype)
     for b in range(mosaic.n_bands):
-        w = ((bm == b) & good).astype(np.float32)
+        w = ((bm == b) & good).astype(dtype)
         if method == "ppid":
-            diff, have1, have2 = _interp(raw - np.float32(levels[b]) * ppi, w, ph, pw)
-            est = diff + np.float32(levels[b]) * ppi
-            bil, _, bil2 = _interp(raw, w, ph, pw)
+            level = dtype(levels[b])
+            diff, have1, have2 = _interp(values - level * ppi, w, ph, pw)
+            est = diff + level * ppi
+            bil, _, bil2 = _interp(values, w, ph, pw)
             hole = ~ppi_ok & bil2
             est[hole] = bil[hole]
         else:
-            est, have1, have2 = _interp(raw, w, ph, pw)
+            est, have1, have2 = _interp(values, w, ph, pw)
         vals = raw[(bm == b) & good]
         est[~have2] = np.median(vals) if vals.size else 0.0
         cube[:, :, b] = est
@@ -126,6 +133,23 @@ def test_kernel_equals_the_opencv_filter_evaluation(method, mosaic, flag_fractio
     assert np.array_equal(cube_dq, ref_dq)
     assert np.array_equal(cube_a, ref_a)
     assert np.array_equal(reconstruct_alpha(alpha, mosaic, method=method), ref_a)
+
+
+@pytest.mark.parametrize("method", ["bilinear", "ppid"])
+@pytest.mark.parametrize("mosaic", MOSAICS, ids=lambda m: f"{m.tile_shape}{m.offset}")
+def test_float32_interpolation_stays_within_its_error_budget(method, mosaic):
+    """The kernel interpolates in float32: every value within 4 float32 ulps of the frame's
+    largest value (2**-22 of it) of the same interpolation in float64, and, for bilinear,
+    within 4 ulps of the value itself (PPID subtracts and adds back the PPI, so its error
+    scales with the frame, not with a value near zero)."""
+    raw, dq, _ = _scene((61, 83), mosaic, 3, 0.2)
+    raw *= np.float32(20.0)  # thousands of DN, where an ulp is about 1e-4 DN
+    cube, _ = demosaic(raw, mosaic, method=method, dq=dq)
+    ref, _ = reference(raw, mosaic, dq, method, dtype=np.float64)
+    err = np.abs(cube - ref)
+    assert err.max() <= 2.0 ** -22 * np.abs(ref).max()
+    if method == "bilinear":
+        assert np.all(err <= 4 * np.spacing(np.abs(ref).astype(np.float32)))
 
 
 def test_a_band_without_any_usable_sample_takes_the_median_and_do_not_use():
