@@ -18,6 +18,7 @@ from hsiffc.frame import Frame
 from hsiffc.kernels import modelffc
 from hsiffc.kernels.demosaic import interpolate_bands
 from hsiffc.memory import reuse_freed_memory
+from hsiffc.reconstruct.demosaic import _alpha_plane, _ppi_window_max
 from hsiffc.reconstruct.prepare import band_levels, prepare, pseudo_panchromatic
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline, create
@@ -112,7 +113,9 @@ def _floors(raw32, dark, gain, n_bands: int, repeat: int) -> dict:
 def _ppid_parts(frame, repeat: int) -> dict:
     """Where the PPID cube's time goes, each part alone on the frame the cube stage receives:
     checking the frame (prepare) with the band levels (medians: cached per prepared frame, so
-    timed with a fresh one), the PPI image, and the interpolation kernel (cube, DQ, alpha)."""
+    timed with a fresh one), the PPI image, the interpolation kernel (cube and DQ) and the
+    alpha (the PPI window's max, one plane for every band), as
+    :func:`hsiffc.reconstruct.demosaic` runs them."""
     mosaic = frame.mosaic
     p = prepare(frame.data, mosaic, frame.dq)
     shape = (*p.shape, mosaic.n_bands)
@@ -124,13 +127,16 @@ def _ppid_parts(frame, repeat: int) -> dict:
     ppi, ppi_ok = pseudo_panchromatic(p, lv)
 
     def kernel():
-        interpolate_bands(p.raw, p.dq, frame.alpha, None, ppi, ppi_ok, lv, p.lattices(),
-                          mosaic.tile_shape, np.empty(shape, np.float32),
-                          np.empty(shape, np.uint32), np.empty(shape, np.float32))
+        interpolate_bands(p.raw, p.dq, None, ppi, ppi_ok, lv, p.lattices(), mosaic.tile_shape,
+                          np.empty(shape, np.float32), np.empty(shape, np.uint32), None)
+
+    def alpha():
+        return _ppi_window_max(_alpha_plane(frame.alpha, p.shape), mosaic)
 
     return {"prepare_and_band_levels": median_time(levels, repeat=repeat) * 1e3,
             "ppi_image": median_time(lambda: pseudo_panchromatic(p, lv), repeat=repeat) * 1e3,
-            "interpolation": median_time(kernel, repeat=repeat) * 1e3}
+            "interpolation": median_time(kernel, repeat=repeat) * 1e3,
+            "alpha_window_max": median_time(alpha, repeat=repeat) * 1e3}
 
 
 def _front_end_parts(front, frame, repeat: int) -> dict:

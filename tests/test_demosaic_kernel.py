@@ -308,7 +308,7 @@ def test_where_the_ppi_is_undefined_ppid_takes_the_bilinear_value():
     for ok in (None, ~undefined):
         cube = np.empty(shape, np.float32)  # the DQ cube holds garbage: all of it is written
         cube_dq = np.full(shape, 0xDEADBEEF, DQ_DTYPE)
-        missing = interpolate_bands(p.raw, p.dq, None, None, ppi, ok, levels, p.lattices(),
+        missing = interpolate_bands(p.raw, p.dq, None, ppi, ok, levels, p.lattices(),
                                     mosaic.tile_shape, cube, cube_dq, None)
         assert not missing.any()
         cubes.append((cube, cube_dq))

@@ -365,6 +365,13 @@ def test_reconstruct_alpha_is_the_max_over_sources():
     assert not np.delete(full, 6, axis=2).any()
     ppid = reconstruct_alpha(alpha, m, method="ppid")
     assert np.all(ppid >= full) and ppid[9, 10, 0] == 50.0
+    # PPID's alpha is one plane for every band: a read-only view repeating it, not 16 copies
+    assert ppid.strides[2] == 0 and not ppid.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        ppid[0, 0, 0] = 1.0
+    copy = np.array(ppid)
+    assert copy.flags.writeable and np.array_equal(copy, ppid)
+    assert all(np.array_equal(ppid[:, :, b], ppid[:, :, 0]) for b in range(16))
     tiles = reconstruct_alpha(alpha, m, resolution="tile")
     assert tiles.shape == (6, 6, 16) and tiles[2, 2, 6] == 50.0 and tiles.sum() == 50.0
 
@@ -450,6 +457,21 @@ def test_ppi_kernel_weights_every_tile_position_equally():
         for i, v in enumerate(k):
             per_phase[i % p] += v
         np.testing.assert_allclose(per_phase, 1.0 / p, rtol=1e-6)
+
+
+def test_ppid_alpha_view_goes_through_the_correction_matrix(imec_xml):
+    """The virtual bands' alpha is the max over the bands with a non-zero coefficient; from
+    PPID's view (one plane for every band) that is the plane itself, as a real array."""
+    cal = read_imec_xml(imec_xml)
+    f = _simulated_frame(cal.mosaic(), cal.bands, shape=(30, 35), seed=5)
+    f = f.replace(alpha=np.linspace(0, 40, f.data.size, dtype=np.float32).reshape(f.data.shape))
+    stage = Reconstruct(method="ppid", correction="imec", imec_xml=imec_xml).fit([f])
+    out = stage.transform(f)
+    plain = Reconstruct(method="ppid").transform(f).alpha
+    assert out.alpha.shape == out.data.shape and out.alpha.strides[2] != 0
+    support = np.any(np.asarray(stage.matrix_) != 0, axis=1)
+    for v in np.flatnonzero(support):
+        np.testing.assert_array_equal(out.alpha[:, :, v], plain[:, :, 0])
 
 
 def test_fitted_correction_survives_a_pipeline_file(imec_xml, tmp_path):

@@ -6,8 +6,8 @@ convolution ``(K * (v w)) / (K * w)`` with the tent ``K`` of half-width one tile
 each band's sample lattice (the tent covers two sample rows and columns: a vertical blend of
 two sample rows, then a horizontal blend of two columns; separable, exact, no zero-filled
 planes). One pass over the output rows, parallel over blocks of rows, writes every band of the
-cube and its alpha: the max over the same samples (bilinear), or the plane the caller gives
-for every band (PPID: the max under the PPI window, which holds those samples). Per row and
+cube and, when asked, its alpha: the max over the same samples (bilinear; PPID's alpha, the
+max under the PPI window, is one plane for every band and is not made here). Per row and
 band: the vertical blend of each lattice at its columns; the horizontal blend per column phase
 ``x mod pw`` (one contiguous, vectorised loop per phase); the division into a band-major row
 buffer, whose finished row goes into the (W, B) cube row through flat indices
@@ -71,7 +71,7 @@ def _transpose_row(src, dst):
 
 
 @njit(**_JIT)
-def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi, ppi_ok,
+def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok,
                        use_ppi, levels, lat_r, lat_c, lat_start, col_left, ph, pw, n_lat,
                        cube, cube_dq, cube_alpha, missing_rows, lr, lf, lp):
     """Rows ``blk * _ROWS`` on of :func:`_interpolate_rows`, a compiled function of its own
@@ -323,16 +323,10 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, common, has_commo
         _transpose_row(row_v, cube[y])  # the row into the cube: (W, B) contiguous
         if has_alpha:
             _transpose_row(row_a, cube_alpha[y])
-        elif has_common:  # the alpha of every band: the given plane's, in each band
-            a_row = cube_alpha[y].reshape(W * B)
-            c_row = common[y]
-            for x in range(W):
-                for b in range(B):
-                    a_row[x * B + b] = c_row[x]
     return missing
 
 
-def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi, ppi_ok,
+def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok,
                       use_ppi, levels, lat_r, lat_c, lat_start, col_left, ph, pw,
                       cube, cube_dq, cube_alpha, missing_rows, lr, lf, lp):
     """Fill ``cube`` (H, W, B), ``cube_dq`` (every value: each row is zeroed, then its flags
@@ -361,8 +355,8 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi
     missing = 0
     for blk in prange((H + _ROWS - 1) // _ROWS):
         # int64 arguments: numba compiled the block once per type it saw (uint64 blk, literal 1)
-        missing += _interpolate_block(np.int64(blk), raw, dq, has_dq, alpha, has_alpha, common,
-                                      has_common, ppi, ppi_ok, use_ppi, levels, lat_r, lat_c,
+        missing += _interpolate_block(np.int64(blk), raw, dq, has_dq, alpha, has_alpha, ppi,
+                                      ppi_ok, use_ppi, levels, lat_r, lat_c,
                                       lat_start, col_left, ph, pw, n_lat, cube, cube_dq,
                                       cube_alpha, missing_rows, lr, lf, lp)
     return missing
@@ -371,20 +365,18 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, common, has_common, ppi
 _interpolate = Kernel(_interpolate_rows, 0)
 
 
-def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, period,
+def interpolate_bands(raw, dq, alpha, ppi, ppi_ok, levels, lattices, period,
                       cube, cube_dq, cube_alpha):
-    """Run the kernel; optional inputs (``dq``, ``alpha``, ``common``, ``ppi``, ``ppi_ok``)
-    may be None.
+    """Run the kernel; optional inputs (``dq``, ``alpha``, ``ppi``, ``ppi_ok``) may be None.
 
     Parameters
     ----------
     raw : (H, W) float32, finite
     dq : (H, W) uint32 or None (no flagged sample)
     alpha : (H, W) float32, finite, or None
-    common : (H, W) float32 or None
-        The alpha of every band at each pixel, when the caller has it: PPID's, the max alpha
-        under the PPI window, which holds every sample of each band's S1 (so S1's max is never
-        above it, and the kernel does not take it). Given with ``alpha`` None.
+        With ``cube_alpha``: each value's alpha is the max over its S1 samples (bilinear's;
+        PPID's cube alpha is the PPI window's max, one plane for every band, which
+        :func:`hsiffc.reconstruct.demosaic` takes without this kernel).
     ppi, ppi_ok : (H, W) float32 and bool (None: defined everywhere), or None (bilinear)
     levels : (B,) float64, the PPI scale of each band
     lattices : list of B lists of (row, col): first sample row/column of each pattern position
@@ -398,9 +390,6 @@ def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, per
     the tile), those with DO_NOT_USE; those values are NaN (fill them with the band median).
     """
     H, W = raw.shape
-    if alpha is not None and common is not None:
-        raise ValueError("give alpha (the cube's alpha is S1's max) or common (the alpha of "
-                         "every band), not both")
     dummy_f = np.zeros((1, 1), np.float32)
     lat_r, lat_c, lat_start = lattice_arrays(lattices)
     missing_rows = np.zeros((H, len(lattices)), np.bool_)
@@ -418,7 +407,6 @@ def interpolate_bands(raw, dq, alpha, common, ppi, ppi_ok, levels, lattices, per
     _interpolate(
         raw, np.zeros((1, 1), np.uint32) if dq is None else dq, dq is not None,
         dummy_f if alpha is None else alpha, alpha is not None,
-        dummy_f if common is None else common, common is not None,
         dummy_f if ppi is None else ppi,
         np.ones((1, 1), np.bool_) if ppi_ok is None else ppi_ok, ppi is not None,
         np.asarray(levels, np.float64), lat_r, lat_c, lat_start,

@@ -51,11 +51,17 @@ def _ppi_window_max(a, mosaic):
     a value (a centred window of ``2 ph - 1 + len(ppi_kernel(ph)) - 1`` rows, likewise
     columns: an odd size, since the PPI kernel's is odd). The window holds the value's S1
     (its same-band samples within ``ph - 1`` rows and ``pw - 1`` columns) too, so this is the
-    alpha of the value in every band, and the kernel writes it without taking S1's max."""
+    alpha of the value in every band, and S1's max is not taken."""
     ph, pw = mosaic.tile_shape
     kh, kw = ppi_kernel(ph).size, ppi_kernel(pw).size
     big = np.ones((2 * ph - 1 + kh - 1, 2 * pw - 1 + kw - 1), np.uint8)
     return cv2.dilate(a, big, borderType=cv2.BORDER_REPLICATE)
+
+
+def _every_band(plane, n_bands):
+    """``plane`` (H, W) as the alpha of every band, ``(H, W, n_bands)``: a read-only view that
+    repeats it along the band axis (stride 0), not a copy per band."""
+    return np.broadcast_to(plane[:, :, None], plane.shape + (n_bands,))
 
 
 def _nearest(p: Prepared, cube):
@@ -141,6 +147,9 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
     cube_dq : (H, W, B) uint32
         DQ of every band value, by the rule in the package docstring.
     cube_alpha : (H, W, B) float32, only when ``alpha`` is given
+        For "ppid" one plane for every band (the PPI window's max): a read-only view that
+        repeats it along the band axis (``np.broadcast_to``); ``np.array(cube_alpha)`` gives
+        a writable copy.
 
     Examples
     --------
@@ -156,21 +165,23 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
     p = prepare(raw, mosaic, dq)
     H, W = p.shape
     B = mosaic.n_bands
-    ppi = ppi_ok = common = None
+    ppi = ppi_ok = None
     levels = np.ones(B)
     if method == "ppid":
         levels = band_levels(p)
         ppi, ppi_ok = pseudo_panchromatic(p, levels)
-    a = None
+    a = cube_alpha = None
     if alpha is not None:
         a = _alpha_plane(alpha, p.shape)
         if method == "ppid":  # the window max: every band's alpha (the window holds S1)
-            a, common = None, _ppi_window_max(a, mosaic)
+            a, cube_alpha = None, _every_band(_ppi_window_max(a, mosaic), B)
+        else:
+            cube_alpha = np.empty((H, W, B), np.float32)
     cube = np.empty((H, W, B), np.float32)
     cube_dq = np.empty((H, W, B), DQ_DTYPE)  # every value written by the kernel
-    cube_alpha = None if alpha is None else np.empty((H, W, B), np.float32)
-    missing = interpolate_bands(p.raw, p.dq, a, common, ppi, ppi_ok, levels, p.lattices(),
-                                mosaic.tile_shape, cube, cube_dq, cube_alpha)
+    missing = interpolate_bands(p.raw, p.dq, a, ppi, ppi_ok, levels, p.lattices(),
+                                mosaic.tile_shape, cube, cube_dq,
+                                None if a is None else cube_alpha)
     fill = np.flatnonzero(missing.any(axis=0))  # bands with values whose wide support
     for b, med in zip(fill, band_medians(p, fill), strict=True):  # has no usable sample
         med = np.float32(med)

@@ -49,7 +49,8 @@ class Reconstruct(Stage):
     ``alpha`` plane, the output alpha is a cube of the same shape as the data holding, per
     value, the max alpha of the raw pixels it was made from
     (:func:`hsiffc.reconstruct.reconstruct_alpha`; for virtual bands the max over the bands
-    with non-zero coefficient), so thresholding it stays conservative.
+    with non-zero coefficient), so thresholding it stays conservative. PPID's is one plane for
+    every band, held as a read-only view that repeats it along the band axis.
     """
 
     #: the registered name, also when the class is instantiated directly (pipeline files
