@@ -9,8 +9,8 @@ one pass (:func:`hsiffc.validity.subtract_dark_and_flag`, which with the two-poi
 :func:`hsiffc.bandstats.band_reduce` would take, in its order) and then lets every stage finish
 its frame as its own ``transform`` would. The result is the same frame, bit for bit, with the
 same history (``tests/test_fusion.py`` compares them on simulated and real data), in less time
-(the pipeline benchmark times both in turn: 8.2 against 12.0 ms on a 2048 x 1088 frame, 2
-threads, in the run of ``docs/results/benchmarks.md`` at 2026-11-25).
+(the pipeline benchmark times both in turn on a 2048 x 1088 frame; ``docs/results/benchmarks.md``
+gives its last run's figures, e.g. 3.9 against 6.5 ms in the run of 2026-11-25 21:33 UTC).
 
 Only what the stages' own methods compute is computed here: a fused run calls the same
 array functions and kernels as the stages (one implementation of each correction).
