@@ -236,7 +236,10 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
     exposure_ms, calibration, threshold_percent, dq
         As for :func:`validity_flags`.
     extra_dq : (H, W) uint32, optional
-        More bits to merge into the returned DQ (e.g. a flat field's own flags).
+        More bits to merge into the returned DQ (e.g. a flat field's own flags). A read-only
+        plane (a fitted two-point FFC's flags are) is merged with the calibration's flags once
+        and kept (:meth:`~hsiffc.calibrate.Calibration.flags_with`): the pass then reads one
+        flag plane for both.
     band_map : (H, W) int array, optional
         A mosaic's band map (:meth:`hsiffc.mosaic.Mosaic.band_map`, whose row period is
         known): the same pass then also takes the per-band mean of ``frame`` over the pixels
@@ -262,9 +265,13 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
         bm, period, n = band_layout(y, band_map, what="the frame")
         sums_by = (np.ascontiguousarray(bm, np.int64), period,
                    n if n_bands is None else int(n_bands)) if period else None
+    options = _options(cal, exposure_ms, threshold_percent, dq)
+    if (isinstance(extra_dq, np.ndarray) and not extra_dq.flags.writeable
+            and extra_dq.dtype == DQ_DTYPE and extra_dq.shape == y.shape
+            and options["pixel_flags"] is not None):  # fixed: both in one plane, kept
+        options["pixel_flags"], extra_dq = cal.flags_with(extra_dq), None
     out = _flags(None, y, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"), dark,
-                 **_options(cal, exposure_ms, threshold_percent, dq), extra_dq=extra_dq,
-                 with_signal=True, sums_by=sums_by)
+                 **options, extra_dq=extra_dq, with_signal=True, sums_by=sums_by)
     return out if band_map is None or sums_by is not None else out + (None,)
 
 

@@ -179,3 +179,54 @@ def test_fused_front_end_on_the_real_emva_sweep(emva_dir):
     fused = pipe.transform(test)
     assert np.count_nonzero(fused.dq) > 0
     _assert_same_frame(fused, _stage_by_stage(pipe, test))
+
+
+def test_fixed_flag_planes_are_read_once_merged_and_still_reach_the_dq(sim):
+    """A fitted two-point FFC's flat flags are read-only, so the fused pass merges them with
+    the calibration's flags once (Calibration.flags_with) and reads one plane for both; the
+    frame stays the one the stages give one by one, flat flags included."""
+    from hsiffc.dq import DQ
+
+    s, cal, train = sim
+    pipe = _pipe(cal, train)
+    ffc = pipe.named_steps["ffc"]
+    assert not ffc.dq_.flags.writeable  # fixed once fitted
+    with pytest.raises(ValueError, match="read-only"):
+        ffc.dq_[0, 0] = 1
+    flat = np.zeros(ffc.dq_.shape, np.uint32)  # a flat with unusable pixels
+    flat[3, :50] = DQ.NO_FLAT
+    flat.flags.writeable = False
+    ffc.dq_ = flat
+    raw = s.capture(30.0, "lamp B", irradiance_w_m2=PAPER_LIGHT_W_M2["test"], seed=6).frames[0]
+    frame = Frame.from_raw(raw, exposure_ms=30.0, bit_depth=10, mosaic=s.mosaic)
+    fused = pipe.transform(frame)
+    _assert_same_frame(fused, _stage_by_stage(pipe, frame))
+    assert np.all(fused.dq[3, :50] & DQ.NO_FLAT) and not np.any(fused.dq[4] & DQ.NO_FLAT)
+    merged = cal.flags_with(flat)
+    assert merged is cal.flags_with(flat) and not merged.flags.writeable  # made once, kept
+    import pickle  # the kept result stays in this process: a pickled calibration drops it
+    again = pickle.loads(pickle.dumps(cal))
+    assert "_flags_with" not in again.__dict__
+    np.testing.assert_array_equal(again.arrays["flags"], cal.arrays["flags"])
+    np.testing.assert_array_equal(merged, np.asarray(cal.arrays["flags"], np.uint32) | flat)
+    # a writable plane could change under the kept result: refused, and read as its own plane
+    writable = flat.copy()
+    with pytest.raises(ValueError, match="read-only uint32 plane"):
+        cal.flags_with(writable)
+    ffc.dq_ = writable
+    _assert_same_frame(pipe.transform(frame), fused)
+    key = id(flat)  # the kept result goes with its plane (no growing cache)
+    assert key in cal.__dict__["_flags_with"]
+    del flat, merged
+    import gc
+    gc.collect()
+    assert key not in cal.__dict__["_flags_with"]
+
+
+def test_a_loaded_two_point_ffc_has_fixed_flags(sim, tmp_path):
+    s, cal, train = sim
+    pipe = _pipe(cal, train)
+    loaded = Pipeline.load(pipe.save(tmp_path / "p.npz"))
+    dq = loaded.named_steps["ffc"].dq_
+    assert not dq.flags.writeable and dq.dtype == np.uint32
+    np.testing.assert_array_equal(dq, pipe.named_steps["ffc"].dq_)

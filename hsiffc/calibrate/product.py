@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as _dt
 import functools
 import hashlib
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -112,6 +113,38 @@ class Calibration:
             src = self.dark_current if name == "dark_current_dn_per_ms" else self.arrays[name]
             cache[name] = np.asarray(src, np.float32)
         return cache[name]
+
+    def __getstate__(self):
+        """Pickled (another process, a deep copy) without :meth:`flags_with`'s kept results:
+        they refer to planes of this process."""
+        state = dict(self.__dict__)
+        state.pop("_flags_with", None)
+        return state
+
+    def flags_with(self, other: np.ndarray) -> np.ndarray:
+        """The calibration's ``flags`` OR-ed with ``other``, a read-only uint32 plane of the
+        frame's shape that does not change (a fitted two-point FFC's flat flags): made once
+        per such plane and kept while it lives, so that a fused front end reads one flag plane
+        instead of two (:func:`hsiffc.validity.subtract_dark_and_flag`).
+
+        Returns
+        -------
+        ndarray of uint32
+            (H, W), read-only; shared.
+        """
+        if other.flags.writeable or other.dtype != np.uint32 or other.shape != self.frame_shape:
+            raise ValueError(f"flags_with needs a read-only uint32 plane of shape "
+                             f"{self.frame_shape} (one that cannot change under the kept "
+                             f"result), got {other.dtype} {other.shape}"
+                             + (", writable" if other.flags.writeable else ""))
+        cache = self.__dict__.setdefault("_flags_with", {})
+        key = id(other)
+        hit = cache.get(key)
+        if hit is None or hit[0]() is not other:
+            merged = np.bitwise_or(np.asarray(self.arrays["flags"], np.uint32), other)
+            merged.flags.writeable = False
+            hit = cache[key] = (weakref.ref(other, lambda _ref: cache.pop(key, None)), merged)
+        return hit[1]
 
     def dark_at(self, exposure_ms: float) -> np.ndarray:
         """The calibrated dark (DN, float32, (H, W)) at one exposure: dark level plus dark

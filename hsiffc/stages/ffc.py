@@ -49,6 +49,10 @@ class TwoPointFFC(Stage):
         of the test frame's good pixels (:func:`hsiffc.ffc.paper_scale`); ``"mean_gain"``:
         ``(R3 - R1) mean(R2 - R1) / (R2 - R1)`` (DN).
     average : "median" or "mean" (for the flat stacks)
+
+    Fitted attributes: ``gain_`` (H, W), ``flat_mean_`` (per band), ``dq_`` (the flats' own
+    DQ bits, read-only: fixed once fitted or loaded, so a fused front end keeps it merged with
+    the calibration's flags) and ``selected_ms_`` (the flat exposure of each band).
     """
 
     name = "two_point_ffc"
@@ -65,6 +69,15 @@ class TwoPointFFC(Stage):
         self.threshold_percent = threshold_percent
         self.normalisation = normalisation
         self.average = average
+
+    def set_state(self, js: dict, arrays: dict) -> "TwoPointFFC":
+        """As :meth:`Stage.set_state`; the flat's flags ``dq_`` become a read-only copy, fixed
+        as after :meth:`fit`."""
+        super().set_state(js, arrays)
+        if getattr(self, "dq_", None) is not None:
+            self.dq_ = np.array(self.dq_, DQ_DTYPE)
+            self.dq_.flags.writeable = False
+        return self
 
     @property
     def requires(self):  # eq. (5) scales by the raw test level: it needs the raw response
@@ -96,6 +109,7 @@ class TwoPointFFC(Stage):
             gain[mask] = ff.gain[mask]
             dq[mask] |= ff.dq[mask]
             flat_mean[bands] = ff.flat_mean[bands]
+        dq.flags.writeable = False  # fixed once fitted (a fused pass keeps it merged)
         self.gain_, self.flat_mean_, self.dq_ = gain, flat_mean, dq
         self.selected_ms_ = selected
         self.alpha_table_ = None if table is None else table.to_dict()
