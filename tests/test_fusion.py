@@ -5,10 +5,14 @@ build) and on the real EMVA 1288 sweep."""
 
 from __future__ import annotations
 
+import gc
+import pickle
+
 import numpy as np
 import pytest
 
 from hsiffc.calibrate import calibrate
+from hsiffc.dq import DQ
 from hsiffc.frame import Frame
 from hsiffc.io import read_emva1288
 from hsiffc.kernels.launch import PARALLEL_MIN
@@ -185,8 +189,6 @@ def test_fixed_flag_planes_are_read_once_merged_and_still_reach_the_dq(sim):
     """A fitted two-point FFC's flat flags are read-only, so the fused pass merges them with
     the calibration's flags once (Calibration.flags_with) and reads one plane for both; the
     frame stays the one the stages give one by one, flat flags included."""
-    from hsiffc.dq import DQ
-
     s, cal, train = sim
     pipe = _pipe(cal, train)
     ffc = pipe.named_steps["ffc"]
@@ -204,7 +206,7 @@ def test_fixed_flag_planes_are_read_once_merged_and_still_reach_the_dq(sim):
     assert np.all(fused.dq[3, :50] & DQ.NO_FLAT) and not np.any(fused.dq[4] & DQ.NO_FLAT)
     merged = cal.flags_with(flat)
     assert merged is cal.flags_with(flat) and not merged.flags.writeable  # made once, kept
-    import pickle  # the kept result stays in this process: a pickled calibration drops it
+    # the kept result stays in this process: a pickled calibration drops it
     again = pickle.loads(pickle.dumps(cal))
     assert "_flags_with" not in again.__dict__
     np.testing.assert_array_equal(again.arrays["flags"], cal.arrays["flags"])
@@ -218,7 +220,6 @@ def test_fixed_flag_planes_are_read_once_merged_and_still_reach_the_dq(sim):
     key = id(flat)  # the kept result goes with its plane (no growing cache)
     assert key in cal.__dict__["_flags_with"]
     del flat, merged
-    import gc
     gc.collect()
     assert key not in cal.__dict__["_flags_with"]
 
