@@ -1,6 +1,15 @@
-"""Data-quality bit flags, one uint32 plane per frame (JWST-style).
+"""Data-quality bit flags, one uint32 plane per frame.
 
 Flag, never delete: a flagged pixel keeps a finite value and gains a bit here.
+
+The bit values are hsiffc's own (bits 0 and 1 happen to match JWST's ``DO_NOT_USE`` and
+``SATURATED``; the others do not follow JWST's table). Every file hsiffc writes carries the
+table (:func:`table`: name, value, meaning), so a DQ plane can be decoded without hsiffc; in
+Python, :func:`mask` turns names into a boolean mask::
+
+    >>> dq = np.array([0, 2, 4, 6], DQ_DTYPE)
+    >>> mask(dq, "SATURATED|LEAKAGE").tolist()
+    [False, True, True, True]
 """
 
 from __future__ import annotations
@@ -13,7 +22,7 @@ DQ_DTYPE = np.uint32
 
 
 class DQ(enum.IntFlag):
-    """Named data-quality bits."""
+    """Named data-quality bits (their meanings: :data:`MEANINGS`, :func:`table`)."""
 
     GOOD = 0
     DO_NOT_USE = 1 << 0
@@ -68,3 +77,101 @@ def describe(value: int) -> list[str]:
     ['SATURATED', 'LEAKAGE']
     """
     return [f.name for f in DQ if f and (int(value) & int(f)) == int(f)]
+
+
+#: What each bit means, as written into every output file's DQ table.
+MEANINGS = {
+    "DO_NOT_USE": "do not use this value (set with other bits when no estimate is trustworthy)",
+    "SATURATED": "at full scale (ADC clip) or full well",
+    "LEAKAGE": "leakage percentage alpha above the threshold",
+    "DEAD": "dead pixel (no response)",
+    "HOT": "hot pixel (dark signal far above its band's)",
+    "NO_FLAT": "no valid flat-field value for this pixel",
+    "NONFINITE": "the input or the correction was NaN or inf (value set to 0)",
+    "BELOW_DARK": "response below what zero light can give",
+    "UNREACHABLE": "no light rate explains the response",
+    "NOT_CONVERGED": "the per-pixel inversion did not converge",
+    "LEAK_UNCONSTRAINED": "calibration: the data do not pin the leakage parameters a, b",
+    "OUT_OF_DOMAIN": "outside the calibration's validity domain (exposure, light, bit depth)",
+}
+
+#: Version of the bit table; raised whenever a bit's value or meaning changes.
+TABLE_VERSION = 1
+
+
+def table() -> list[dict]:
+    """The DQ bit table: one ``{"name", "value", "bit", "meaning"}`` per bit, by value.
+
+    Written into every file hsiffc writes (TIFF provenance ``"dq_bits"``, ENVI header
+    ``dq bit names`` / ``dq bit values``, netCDF attributes ``flag_masks`` / ``flag_meanings``),
+    so a DQ plane is decoded with the file alone.
+
+    Examples
+    --------
+    >>> table()[1]["name"], table()[1]["value"], table()[1]["bit"]
+    ('SATURATED', 2, 1)
+    """
+    return [{"name": f.name, "value": int(f), "bit": int(f).bit_length() - 1,
+             "meaning": MEANINGS[f.name]} for f in DQ if f]
+
+
+def bits(flags) -> int:
+    """The integer value of ``flags``: a DQ, an int, a name or names joined by ``|``, ``+`` or
+    ``,`` (``"SATURATED|LEAKAGE"``), or a sequence of those (astropy.nddata.bitmask's
+    conventions). Unknown names raise ValueError listing the known ones.
+
+    Examples
+    --------
+    >>> bits("SATURATED | leakage"), bits(["DEAD", 16]), bits(None)
+    (6, 24, 0)
+    """
+    if flags is None:
+        return 0
+    if isinstance(flags, (int, np.integer)):  # DQ members are ints
+        if int(flags) < 0 or int(flags) > int(np.iinfo(DQ_DTYPE).max):
+            raise ValueError(f"DQ flags {flags} are not a 32-bit set of bits")
+        return int(flags)
+    if isinstance(flags, str):
+        parts = [p.strip() for p in flags.replace("+", "|").replace(",", "|").split("|")]
+        value = 0
+        for name in filter(None, parts):
+            if name.isdigit():
+                value |= int(name)
+                continue
+            try:
+                value |= int(DQ[name.upper()])
+            except KeyError:
+                known = ", ".join(f.name for f in DQ if f)
+                raise ValueError(f"unknown DQ flag {name!r}; known flags: {known}") from None
+        return value
+    value = 0
+    for item in flags:
+        value |= bits(item)
+    return value
+
+
+def mask(dq, flags=None, *, good: bool = False) -> np.ndarray:
+    """Boolean mask of the values that carry any of ``flags`` (all bits when None).
+
+    Parameters
+    ----------
+    dq : array_like of unsigned integers
+        A DQ plane or cube.
+    flags : str, int, DQ or sequence, optional
+        Bits to test, by name (``"SATURATED|LEAKAGE"``), value or both (see :func:`bits`).
+    good : bool
+        Return the opposite: True where none of ``flags`` is set (the values to keep).
+
+    Returns
+    -------
+    ndarray of bool, dq's shape
+
+    Examples
+    --------
+    >>> dq = np.array([0, DQ.SATURATED, DQ.DEAD], DQ_DTYPE)
+    >>> mask(dq, "SATURATED|DEAD").tolist(), mask(dq, good=True).tolist()
+    ([False, True, True], [True, False, False])
+    """
+    value = bits(flags) if flags is not None else int(np.iinfo(DQ_DTYPE).max)
+    hit = (as_dq(dq) & DQ_DTYPE(value)) != 0
+    return ~hit if good else hit

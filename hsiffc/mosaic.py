@@ -24,6 +24,10 @@ class Mosaic:
         Centre wavelength of each band, in band-index order.
     offset : (row, col)
         Position of the tile origin on the sensor (IMEC filter areas start at an offset).
+    fwhm_nm : sequence of float, optional
+        Full width at half maximum of each band (nm), in band-index order; written into
+        exported cubes (ENVI ``fwhm``). Not part of equality: it describes the bands, not the
+        layout.
 
     Examples
     --------
@@ -38,6 +42,7 @@ class Mosaic:
     wavelengths_nm: tuple[float, ...] | None = None
     offset: tuple[int, int] = (0, 0)
     name: str = field(default="", compare=False)
+    fwhm_nm: tuple[float, ...] | None = field(default=None, compare=False)
 
     def __post_init__(self):
         p = np.asarray(self.pattern)
@@ -55,6 +60,12 @@ class Mosaic:
                 raise ValueError(
                     f"wavelengths_nm has {len(wl)} entries but the pattern has {self.n_bands} bands")
             object.__setattr__(self, "wavelengths_nm", wl)
+        if self.fwhm_nm is not None:
+            fw = tuple(float(w) for w in self.fwhm_nm)
+            if len(fw) != self.n_bands:
+                raise ValueError(
+                    f"fwhm_nm has {len(fw)} entries but the pattern has {self.n_bands} bands")
+            object.__setattr__(self, "fwhm_nm", fw)
         object.__setattr__(self, "offset", (int(self.offset[0]), int(self.offset[1])))
 
     def __eq__(self, other):
@@ -122,6 +133,7 @@ class Mosaic:
             "wavelengths_nm": None if self.wavelengths_nm is None else list(self.wavelengths_nm),
             "offset": list(self.offset),
             "name": self.name,
+            **({} if self.fwhm_nm is None else {"fwhm_nm": list(self.fwhm_nm)}),
         }
 
     @classmethod
@@ -129,7 +141,8 @@ class Mosaic:
         """The Mosaic described by :meth:`to_dict`'s output."""
         try:
             return cls(np.asarray(d["pattern"], dtype=np.int64), d.get("wavelengths_nm"),
-                       tuple(d.get("offset", (0, 0))), name=d.get("name", ""))
+                       tuple(d.get("offset", (0, 0))), name=d.get("name", ""),
+                       fwhm_nm=d.get("fwhm_nm"))
         except (KeyError, TypeError) as exc:
             raise ValueError(f"mosaic description {d!r} is missing 'pattern': {exc}") from exc
 

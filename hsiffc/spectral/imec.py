@@ -113,7 +113,8 @@ class ImecSensorCalibration:
         return Mosaic(np.arange(ph * pw).reshape(ph, pw),
                       tuple(float(c) for c in self.bands.centres_nm),
                       (self.filter_area.offset_y, self.filter_area.offset_x),
-                      name=f"IMEC {Path(self.path).stem}")
+                      name=f"IMEC {Path(self.path).stem}",
+                      fwhm_nm=tuple(float(f) for f in self.bands.fwhm_nm))
 
     def correct(self, band_values, axis: int = -1) -> np.ndarray:
         """Apply the vendor correction to band signals along ``axis`` (n_bands long, ordered by
