@@ -22,7 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from .testing import assert_golden
+# hsiffc.testing (numpy, numba, scipy through the stages) is imported by the fixture when a
+# test uses it, not when pytest loads the plugin in every session of an environment
 
 _REGENERATED = pytest.StashKey[list]()
 
@@ -67,6 +68,8 @@ def golden(request):
     regenerate = bool(request.config.getoption("regen_golden"))
 
     def check(name: str, arrays: dict, *, rtol: float = 1e-6, atol: float = 0.0) -> bool:
+        from .testing import assert_golden
+
         written = assert_golden(name, arrays, golden_dir=folder, rtol=rtol, atol=atol,
                                 regenerate=regenerate)
         if written:

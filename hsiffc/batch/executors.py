@@ -13,6 +13,7 @@ import socket
 import time
 from urllib.parse import urlparse
 
+from ..memory import reuse_freed_memory
 from .plan import BatchError
 from .commits import DeferredCommits
 from .task import correct_file, empty_result, settle
@@ -103,9 +104,22 @@ def local_cluster(workers: int):
                             dashboard_address=None, silence_logs=logging.ERROR)
 
 
+def correct_file_in_worker(job, settings):
+    """:func:`correct_file` in a Dask worker process, whose allocator is set up first
+    (:func:`hsiffc.memory.reuse_freed_memory`, once per process: a process-wide setting made
+    only where hsiffc owns the process, the CLI and its workers, never in a caller's)."""
+    reuse_freed_memory()
+    return correct_file(job, settings)
+
+
 def run_dask(jobs, settings, *, workers: int, scheduler: str | None, observer=None) -> dict:
     """One Dask task per job on a local cluster (``workers``) or on ``scheduler``."""
-    from distributed import Client, as_completed
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise BatchError("--workers above 1 and --scheduler run on Dask, which is not "
+                         "installed: install it with pip install 'hsiffc[dask]', or run "
+                         "with --workers 1") from None
 
     cluster = None
     if scheduler:
@@ -115,7 +129,7 @@ def run_dask(jobs, settings, *, workers: int, scheduler: str | None, observer=No
         client = Client(cluster)
     results = {}
     try:
-        futures = {client.submit(correct_file, job, settings, pure=False,
+        futures = {client.submit(correct_file_in_worker, job, settings, pure=False,
                                  key=f"hsiffc-correct-{i}-{os.getpid()}-{time.time_ns()}"): i
                    for i, job in enumerate(jobs)}
         for fut in as_completed(list(futures)):

@@ -28,7 +28,6 @@ from ..io.corrected import (
     is_corrected_file,
     read_provenance,
 )
-from ..memory import reuse_freed_memory
 from .context import Context, Settings, context_for, sha256_file
 from .plan import BatchError, Job
 from .source import open_input
@@ -69,7 +68,6 @@ def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> d
     """
     t0 = time.perf_counter()
     res = empty_result(job)
-    reuse_freed_memory()  # also in a Dask worker process (hsiffc.memory; once per process)
     try:
         res["bytes"] = os.stat(job.input).st_size
         ctx = context_for(settings)
