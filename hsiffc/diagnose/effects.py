@@ -279,6 +279,126 @@ def inject(name: str, size: float, *, t, k, signal, order, prev_signal, light, f
     raise KeyError(f"unknown effect {name!r}; known: {sorted(EFFECTS) + sorted(OUTSIDE)}")
 
 
+def truth_terms(sweep) -> dict:
+    """The noise-free quantities an effect is built from, per pixel and step of a simulated
+    sweep (``meta["truth"]``): exposure ``t`` (S,) ms, ``light`` (S,) bool, light rate
+    ``k_light`` and total rate ``k`` (P, S) DN/ms, leakage ``a`` and ``b`` and dark level ``d``
+    (P, 1), the expected response ``expected`` and ``signal`` above dark (P, S) DN, ``dydt`` and
+    ``dydlnk``, acquisition ``order`` (S,) and the previous step's signal ``prev`` (P, S).
+
+    Parameters
+    ----------
+    sweep : Sweep
+        A simulated sweep with ``meta["truth"]``.
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    ValueError
+        The sweep has no ``meta["truth"]``.
+    """
+    from .. import model as leakage_model
+
+    truth = sweep.meta.get("truth")
+    if truth is None:
+        raise ValueError("add_effect needs a simulated sweep with meta['truth'] "
+                         "(MosaicSensor.sweep)")
+    steps = sweep.steps()
+    light = np.array([sweep.kind[sweep.step == s][0] == "light" for s in steps])
+    t = np.array([sweep.exposure_ms[sweep.step == s][0] for s in steps])
+    levels = np.asarray(sweep.meta.get("levels", np.where(light, 1.0, 0.0)), float)
+    k_light = truth.k_dn_per_ms.reshape(-1, 1) * levels[None, :]
+    k = np.where(light[None, :], k_light, 0.0) + truth.dark_current_dn_per_ms.reshape(-1, 1)
+    a = truth.a_dn_per_ms.reshape(-1, 1)
+    b = truth.b_per_dn.reshape(-1, 1)
+    d = truth.dark_dn.reshape(-1, 1)
+    expected = leakage_model.response(t[None, :], k, a, b, d)
+    eps = 1e-4
+    dydlnk = (leakage_model.response(t[None, :], k * (1 + eps), a, b, d)
+              - leakage_model.response(t[None, :], k * (1 - eps), a, b, d)) / (2 * eps)
+    signal = expected - d
+    prev = np.zeros_like(signal)
+    prev[:, 1:] = signal[:, :-1]
+    return {"steps": steps, "light": light, "t": t, "k_light": k_light, "k": k, "a": a, "b": b,
+            "d": d, "expected": expected, "signal": signal, "prev": prev,
+            "dydt": k - leakage_model.leakage_rate(expected, a, b), "dydlnk": dydlnk,
+            "order": (np.arange(len(steps)) / max(len(steps) - 1, 1)) * 2 - 1}
+
+
+def effect_term(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = True,
+                terms: dict | None = None) -> np.ndarray:
+    """What effect ``name`` of ``size`` adds to the noise-free response of every pixel and step
+    of a simulated sweep, (P, S) in DN (see :func:`add_effect`; ``frame_light_change``: what
+    it adds to the second frame of a step).
+
+    Parameters
+    ----------
+    sweep : Sweep
+        A simulated sweep with ``meta["truth"]``.
+    name : str
+        Effect name.
+    size : float
+        Its size (see :func:`inject`).
+    seed : int
+        Seed of the effect's random spreads.
+    in_well : bool
+        dark_current only: collected in the well (True) or added after the leakage.
+    terms : dict, optional
+        :func:`truth_terms` of the sweep (computed when not given).
+
+    Returns
+    -------
+    ndarray, (P, S), DN
+    """
+    from .. import model as leakage_model
+
+    c = truth_terms(sweep) if terms is None else terms
+    t, light = c["t"], c["light"]
+    extra = inject(name, size, t=np.broadcast_to(t, c["signal"].shape),
+                   k=c["k_light"] * light[None, :], signal=c["signal"], order=c["order"],
+                   prev_signal=c["prev"], light=light, full_scale=float(sweep.full_scale_dn),
+                   rng=np.random.default_rng(seed), dydt=c["dydt"], dydlnk=c["dydlnk"])
+    if ALIASES.get(name, name) == "dark_current" and in_well:  # collected and leaking
+        extra = leakage_model.response(t[None, :], c["k"] + extra / np.maximum(t[None, :], 1e-12),
+                                       c["a"], c["b"], c["d"]) - c["expected"]
+    return extra
+
+
+def add_term(sweep, extra, *, per_frame: bool = False, meta: dict | None = None):
+    """A copy of ``sweep`` with ``extra`` (P, S) DN added to the raw frames of every step
+    (``per_frame``: ``j * extra`` to frame j of the step), rounded and clipped to the ADC range
+    as the sensor would.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        Frames (N, H, W).
+    extra : ndarray, (P, S), DN
+        P = H * W pixels, S steps (in ``sweep.steps()`` order).
+    per_frame : bool
+        Scale by the frame's index within its step.
+    meta : dict, optional
+        Entries to add to the copy's ``meta``.
+
+    Returns
+    -------
+    Sweep
+    """
+    from dataclasses import replace as replace_fields
+
+    h, w = sweep.frame_shape
+    data = sweep.data.astype(np.float64)
+    for i, s in enumerate(sweep.steps()):
+        sel = np.flatnonzero(sweep.step == s)
+        for j, f in enumerate(sel):
+            data[f] += (j if per_frame else 1) * extra[:, i].reshape(h, w)
+    data = np.clip(np.rint(data), 0, sweep.full_scale_dn).astype(sweep.data.dtype)
+    return replace_fields(sweep, data=data, meta={**sweep.meta, **(meta or {})})
+
+
 def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = True):
     """A copy of a simulated sweep (with ``meta["truth"]``) with effect ``name`` added to its
     raw frames (then rounded and clipped to the ADC range as the sensor would).
@@ -320,50 +440,6 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = 
     >>> lagged.data.shape == sweep.data.shape, bool((lagged.data != sweep.data).any())
     (True, True)
     """
-    from dataclasses import replace as replace_fields
-
-    from .. import model as leakage_model
-
-    truth = sweep.meta.get("truth")
-    if truth is None:
-        raise ValueError("add_effect needs a simulated sweep with meta['truth'] "
-                         "(MosaicSensor.sweep)")
-    rng = np.random.default_rng(seed)
-    steps = sweep.steps()
-    h, w = sweep.frame_shape
-    light = np.array([sweep.kind[sweep.step == s][0] == "light" for s in steps])
-    t = np.array([sweep.exposure_ms[sweep.step == s][0] for s in steps])
-    levels = np.asarray(sweep.meta.get("levels", np.where(light, 1.0, 0.0)), float)
-    k_light = truth.k_dn_per_ms.reshape(-1, 1) * levels[None, :]
-    k = np.where(light[None, :], k_light, 0.0) + truth.dark_current_dn_per_ms.reshape(-1, 1)
-    a = truth.a_dn_per_ms.reshape(-1, 1)
-    b = truth.b_per_dn.reshape(-1, 1)
-    d = truth.dark_dn.reshape(-1, 1)
-    expected = leakage_model.response(t[None, :], k, a, b, d)
-    dydt = k - leakage_model.leakage_rate(expected, a, b)
-    eps = 1e-4
-    dydlnk = (leakage_model.response(t[None, :], k * (1 + eps), a, b, d)
-              - leakage_model.response(t[None, :], k * (1 - eps), a, b, d)) / (2 * eps)
-    signal = expected - truth.dark_dn.reshape(-1, 1)
-    order = (np.arange(len(steps)) / max(len(steps) - 1, 1)) * 2 - 1
-    prev = np.zeros_like(signal)
-    prev[:, 1:] = signal[:, :-1]
-    extra = inject(name, size, t=np.broadcast_to(t, signal.shape), k=k_light * light[None, :],
-                   signal=signal, order=order, prev_signal=prev, light=light,
-                   full_scale=float(sweep.full_scale_dn), rng=rng, dydt=dydt, dydlnk=dydlnk)
-    if name == "dark_current" and in_well:  # collected (and leaking) like the light's charge
-        extra = leakage_model.response(t[None, :], k + extra / np.maximum(t[None, :], 1e-12), a, b,
-                                    d) - expected
-    data = sweep.data.astype(np.float64)
-    per_frame = ALIASES.get(name, name) == "frame_light_change"
-    for i, s in enumerate(steps):
-        sel = np.flatnonzero(sweep.step == s)
-        if per_frame:  # frame j of the step sees the light (1 + size) ** j times the first
-            for j, f in enumerate(sel):
-                data[f] += j * extra[:, i].reshape(h, w)
-        else:
-            data[sel] += extra[:, i].reshape(h, w)
-    data = np.clip(np.rint(data), 0, sweep.full_scale_dn).astype(sweep.data.dtype)
-    meta = dict(sweep.meta)
-    meta["injected_effect"] = {"name": name, "size": size, "seed": seed}
-    return replace_fields(sweep, data=data, meta=meta)
+    extra = effect_term(sweep, name, size, seed=seed, in_well=in_well)
+    return add_term(sweep, extra, per_frame=ALIASES.get(name, name) == "frame_light_change",
+                    meta={"injected_effect": {"name": name, "size": size, "seed": seed}})

@@ -1,0 +1,718 @@
+"""How often does ``diagnose`` name the right effect on sweeps it was never tuned on?
+
+A seeded generator of small simulated sweeps (:func:`case_spec`, :func:`build_case`), each with
+random sensor parameters (8-16 bit, read noise, PRNU, dark level, linear or leaky pixels, dark
+current when there are dark frames), a random design (exposure sweeps at 1-4 light rates, light
+sweeps at one exposure, mixed designs; with or without dark frames) and one of:
+
+- nothing (a clean control);
+- one library effect at 2x, 5x, 10x or 100x its detection limit;
+- two library effects at 10x each;
+- an effect outside the library: ``column_gain_jump`` (half the column groups change gain
+  halfway through the acquisition), ``slow_lag`` (image lag decaying over several steps, time
+  constant 4 steps, where the library's lag lasts one step) or ``adc_ripple``.
+
+**Detection limit (DL).** An effect's size is given in units of its detection limit on *that*
+sweep: the size at which the part of the effect the true base model cannot absorb (the
+noise-free effect projected off the Jacobian of the true per-pixel model, over the light
+samples below 90 % of full scale) has an RMS of ``DL_OF_NOISE`` (0.1) times the temporal noise
+of one frame. Sizes whose effect would exceed ``MAX_OF_FULL_SCALE`` of full scale are not
+drawn (a smaller multiple, or another effect, is drawn instead), and effects the design cannot
+identify at all (a timing offset or a dark current on a sweep at one exposure) are not drawn.
+
+The seeds split into halves: even seeds are the development half (tune on these), odd seeds
+the evaluation half (only scored). :func:`run` diagnoses the cases, :func:`summarise` scores
+them (named right, false alarms, out-of-library reported as unexplained, a confusion matrix)
+and :func:`markdown` renders the tables of the diagnose docs page::
+
+    python3 -m hsiffc.diagnose.evaluation --half eval --cases 240 --json eval.json
+    python3 -m hsiffc.diagnose.evaluation --half eval --cases 240 --page docs/diagnose.md
+
+The second form also diagnoses the sweeps of ``../shared/data`` (one row each) and writes the
+tables between ``<!-- BEGIN evaluation -->`` and ``<!-- END evaluation -->`` of the page.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DL_OF_NOISE = 0.1
+MAX_OF_FULL_SCALE = 0.15
+MULTIPLES = (2, 5, 10, 100)
+SHAPE = (32, 64)
+MAX_PIXELS = 1024
+OUTSIDE_EFFECTS = ("column_gain_jump", "slow_lag", "adc_ripple")
+SHARED_SETS = ("emva1288-cmos8-roi", "emva1288-refsim-linear12-exposure",
+               "emva1288-refsim-linear10-light")
+#: shared sets that are linear: diagnose must keep a linear base and select nothing
+LINEAR_SETS = SHARED_SETS[1:]
+GOALS = {"named_right_5x": 0.90, "false_alarm_clean": 0.05, "outside_unexplained": 0.90}
+
+
+def half_of(seed: int) -> str:
+    """``"dev"`` for even seeds, ``"eval"`` for odd ones.
+
+    Parameters
+    ----------
+    seed : int
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> half_of(4), half_of(7)
+    ('dev', 'eval')
+    """
+    return "dev" if seed % 2 == 0 else "eval"
+
+
+def seeds(half: str, n_cases: int) -> list[int]:
+    """The seeds of one half among the first ``n_cases`` seeds.
+
+    Parameters
+    ----------
+    half : {"dev", "eval", "all"}
+    n_cases : int
+        Seeds 0 .. n_cases - 1.
+
+    Returns
+    -------
+    list of int
+    """
+    if half not in ("dev", "eval", "all"):
+        raise ValueError(f"half must be 'dev', 'eval' or 'all', got {half!r}")
+    return [s for s in range(n_cases) if half == "all" or half_of(s) == half]
+
+
+def case_spec(seed: int) -> dict:
+    """The random choices of case ``seed`` (sensor, design, what is put in); JSON-safe.
+
+    Parameters
+    ----------
+    seed : int
+
+    Returns
+    -------
+    dict
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([38, seed]))
+    bits = int(rng.choice([8, 10, 12, 14, 16]))
+    fs = 2 ** bits - 1
+    full_well = float(np.exp(rng.uniform(np.log(4e3), np.log(4e4))))
+    dark = float(fs * rng.uniform(0.01, 0.06) + 2.0)
+    gain = 0.93 * (fs - dark) / full_well
+    design = str(rng.choice(["exposure", "light", "mixed"]))
+    darks = bool(rng.random() < 0.6)
+    leaky = bool(rng.random() < 0.5)
+    spec = {
+        "seed": seed, "half": half_of(seed), "bit_depth": bits, "design": design,
+        "darks": darks, "leaky": leaky, "n_steps": int(rng.integers(16, 37)),
+        "n_rates": int(rng.integers(1, 5)) if design == "exposure" else 0,
+        "shuffled": bool(rng.random() < 0.4),
+        "t_max_ms": float(rng.uniform(20.0, 200.0)),
+        "fill": float(rng.uniform(0.8, 1.25) if leaky else rng.uniform(0.75, 1.1)),
+        "params": {
+            "bit_depth": bits, "full_well_e": full_well, "conversion_gain_dn_per_e": gain,
+            "read_noise_dn": float(np.exp(rng.uniform(np.log(2), np.log(25))) * gain),
+            "dark_level_dn": dark, "dsnu_dn": float(dark * rng.uniform(0.02, 0.1)),
+            "prnu": float(rng.uniform(0.002, 0.02)),
+            "dark_current_dn_per_ms": (float(fs * np.exp(rng.uniform(np.log(1e-6),
+                                                                      np.log(2e-4))))
+                                       if darks and rng.random() < 0.3 else 0.0),
+            "dark_current_spread": float(rng.uniform(0.2, 1.0)),
+            "leak_b_per_dn": float(rng.uniform(6.0, 14.0) / fs),
+            "leak_ref_dn": float(0.8 * fs),
+            "leak_a_spread": 0.2,
+        },
+        "leak_of_rate": float(rng.uniform(0.3, 1.0)),
+    }
+    u = rng.random()
+    kind = "clean" if u < 0.2 else "single" if u < 0.7 else "pair" if u < 0.8 else "outside"
+    spec["kind"] = kind
+    spec["effect_seed"] = int(rng.integers(2 ** 31))
+    spec["multiple"] = int(rng.choice(MULTIPLES))
+    spec["candidates"] = [str(x) for x in rng.permutation(_library())]
+    spec["outside"] = str(rng.choice(OUTSIDE_EFFECTS))
+    return spec
+
+
+def _library():
+    from .effects import EFFECTS
+    return list(EFFECTS)
+
+
+def _design_steps(spec, rng):
+    n, t_max = spec["n_steps"], spec["t_max_ms"]
+    if spec["design"] == "light":
+        t = np.full(n, t_max)
+        levels = np.linspace(0.02, 1.0, n)
+        order = rng.permutation(n) if spec["shuffled"] else np.arange(n)
+        return t[order], levels[order]
+    if spec["design"] == "mixed":
+        t = rng.permutation(np.geomspace(t_max / 80.0, t_max, n))
+        return t, np.exp(rng.uniform(np.log(0.15), 0.0, n))
+    rates = np.geomspace(1.0, rng.uniform(0.2, 0.5), spec["n_rates"]) if spec["n_rates"] > 1 \
+        else np.ones(1)
+    per = int(np.ceil(n / rates.size))
+    t = np.concatenate([np.geomspace(t_max / 60.0, t_max, per) for _ in rates])
+    levels = np.repeat(rates, per)
+    order = rng.permutation(t.size) if spec["shuffled"] else np.arange(t.size)
+    return t[order], levels[order]
+
+
+def clean_sweep(spec: dict):
+    """The simulated sweep of a case without anything put in (``meta["truth"]`` kept).
+
+    Parameters
+    ----------
+    spec : dict
+        From :func:`case_spec`.
+
+    Returns
+    -------
+    Sweep
+    """
+    from ..simulate import MosaicSensor, SensorParams
+
+    p = dict(spec["params"])
+    rng = np.random.default_rng(np.random.SeedSequence([38, spec["seed"], 1]))
+    t, levels = _design_steps(spec, rng)
+    fs = 2 ** spec["bit_depth"] - 1
+    k_max = spec["fill"] * (fs - p["dark_level_dn"]) / spec["t_max_ms"]
+    p["leak_rate_dn_per_ms"] = spec["leak_of_rate"] * k_max if spec["leaky"] else 1e-12
+    sensor = MosaicSensor(SHAPE, params=SensorParams(**p), seed=spec["seed"])
+    unit = sensor.light_rate("lamp A", irradiance_w_m2=1.0)
+    irr = k_max / float(np.median(unit[sensor.band_map == np.argmax(
+        [np.median(unit[sensor.band_map == b]) for b in range(sensor.mosaic.n_bands)])]))
+    return sensor.sweep_varying_light(t, levels, "lamp A", irradiance_w_m2=irr, n_frames=2,
+                                      darks=spec["darks"], seed=spec["seed"] + 1000)
+
+
+def outside_term(sweep, name: str, size: float, terms: dict) -> np.ndarray:
+    """What an effect outside the library adds (P, S) in DN; ``size`` is relative
+    (``column_gain_jump``: gain change; ``slow_lag``: fraction carried into the next step) or
+    DN (``adc_ripple``: amplitude).
+
+    Parameters
+    ----------
+    sweep : Sweep
+        The simulated sweep.
+    name : {"column_gain_jump", "slow_lag", "adc_ripple"}
+    size : float
+    terms : dict
+        :func:`hsiffc.diagnose.effects.truth_terms` of the sweep.
+
+    Returns
+    -------
+    ndarray, (P, S), DN
+    """
+    signal, order = terms["signal"], terms["order"]
+    if name == "column_gain_jump":
+        cols = np.indices(sweep.frame_shape)[1].ravel()
+        block = ((cols // 4) % 2 == 1)[:, None]
+        return size * signal * block * (order[None, :] > 0)
+    if name == "slow_lag":
+        tau = 4.0
+        out = np.zeros_like(signal)
+        for j in range(1, signal.shape[1]):
+            out[:, j:] += np.exp(-(j - 1) / tau) * signal[:, :-j]
+        return size * out
+    if name == "adc_ripple":
+        return size * np.sin(2 * np.pi * (signal + 32.0) / 37.0) * (signal > 0)
+    raise ValueError(f"unknown outside effect {name!r}; known: {OUTSIDE_EFFECTS}")
+
+
+def _noise_and_projector(sweep, terms):
+    """Per-frame temporal noise (P, S) DN, the mask of usable light samples and the projector
+    off the true base model's Jacobian."""
+    from ..calibrate import model_and_jacobian
+    from .effectfit import projector
+
+    truth = sweep.meta["truth"]
+    p = sweep.meta["simulator"]["params"]
+    light, t = terms["light"], terms["t"]
+    levels = np.asarray(sweep.meta["levels"], float)
+    g = truth.k_dn_per_ms.reshape(-1, 1)
+    theta = np.column_stack([np.log(np.maximum(g[:, 0], 1e-12)),
+                             np.log(terms["a"][:, 0]), np.log(terms["b"][:, 0]),
+                             terms["d"][:, 0]])
+    _, jac = model_and_jacobian(theta, t, np.where(light, levels, 0.0),
+                                truth.dark_current_dn_per_ms.reshape(-1, 1))
+    var = (p["read_noise_dn"] ** 2 + 1 / 12.0
+           + p["conversion_gain_dn_per_e"] * np.maximum(terms["signal"], 0.0))
+    fs = float(sweep.full_scale_dn)
+    ok = terms["expected"] < 0.9 * fs
+    mask = ok & light[None, :]
+    w = np.where(ok, 1.0 / var, 0.0)
+    return np.sqrt(var), mask, projector(jac, w)
+
+
+def detection_limit(sweep, extra_unit, terms, pair=False) -> float:
+    """The size (in the unit of ``extra_unit``'s size) whose separable RMS is ``DL_OF_NOISE``
+    times the temporal noise of one frame; inf when nothing of it is separable.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        The simulated sweep.
+    extra_unit : ndarray, (P, S), DN
+        The effect at size 1.
+    terms : dict
+        :func:`hsiffc.diagnose.effects.truth_terms`.
+    pair : bool
+        A within-step effect (its frame difference is separable as a whole).
+
+    Returns
+    -------
+    float
+    """
+    sd, mask, project = _noise_and_projector(sweep, terms)
+    sep = 0.5 * extra_unit if pair else project(np.where(np.isfinite(extra_unit), extra_unit, 0))
+    rms = float(np.sqrt(np.mean(sep[mask] ** 2))) if mask.any() else 0.0
+    noise = float(np.sqrt(np.mean(sd[mask] ** 2))) if mask.any() else 1.0
+    return DL_OF_NOISE * noise / rms if rms > 0 else np.inf
+
+
+def _identifiable(name, spec, sweep):
+    one_exposure = spec["design"] == "light"
+    if name in ("exposure_offset", "dark_current") and one_exposure:
+        return False
+    return True
+
+
+def _unit_term(sweep, name, spec, terms):
+    from .effects import effect_term
+
+    if name in OUTSIDE_EFFECTS:
+        return outside_term(sweep, name, 1.0, terms)
+    return effect_term(sweep, name, 1.0, seed=spec["effect_seed"], terms=terms)
+
+
+def build_case(spec: dict):
+    """The sweep of a case and what was put in it.
+
+    Parameters
+    ----------
+    spec : dict
+        From :func:`case_spec`.
+
+    Returns
+    -------
+    sweep : Sweep
+        The sweep with the effects in its raw frames.
+    truth : dict
+        ``kind``, ``effects`` [{name, multiple, size, detection_limit}], ``outside`` (bool).
+    """
+    from .effects import add_term, effect_term, truth_terms
+
+    sweep = clean_sweep(spec)
+    terms = truth_terms(sweep)
+    fs = float(sweep.full_scale_dn)
+    kind = spec["kind"]
+    put = []
+    if kind in ("single", "pair", "outside"):
+        names = [spec["outside"]] if kind == "outside" else spec["candidates"]
+        want = 2 if kind == "pair" else 1
+        multiples = [10] if kind == "pair" else sorted(
+            {m for m in MULTIPLES if m <= spec["multiple"]}, reverse=True)
+        for name in names:
+            if len(put) == want:
+                break
+            if not _identifiable(name, spec, sweep):
+                continue
+            unit = _unit_term(sweep, name, spec, terms)
+            dl = detection_limit(sweep, unit, terms, pair=name == "frame_light_change")
+            for m in multiples:
+                size = m * dl
+                peak = float(np.abs(unit).max()) * size
+                if np.isfinite(size) and peak <= MAX_OF_FULL_SCALE * fs:
+                    put.append({"name": name, "multiple": m, "size": float(size),
+                                "detection_limit": float(dl)})
+                    break
+        if len(put) < want:  # nothing fits this sweep: a clean control
+            kind, put = "clean", []
+    for e in put:
+        if e["name"] in OUTSIDE_EFFECTS:
+            extra = outside_term(sweep, e["name"], e["size"], terms)
+        else:
+            extra = effect_term(sweep, e["name"], e["size"], seed=spec["effect_seed"],
+                                terms=terms)
+        sweep = add_term(sweep, extra, per_frame=e["name"] == "frame_light_change")
+    return sweep, {"kind": kind, "effects": put, "outside": kind == "outside"}
+
+
+def run_case(seed: int) -> dict:
+    """Build case ``seed``, diagnose it and score it.
+
+    Parameters
+    ----------
+    seed : int
+
+    Returns
+    -------
+    dict
+        The case (spec summary and what was put in), what diagnose found and the verdict.
+    """
+    from . import diagnose
+    from ..errors import DataFormatError
+
+    spec = case_spec(seed)
+    sweep, truth = build_case(spec)
+    t0 = time.perf_counter()
+    try:
+        out = diagnose(sweep, max_pixels=MAX_PIXELS, seed=seed)
+        found = {"selected": out["selected_effects"], "unexplained": out["unexplained"],
+                 "ambiguous": out.get("ambiguous", []), "base": out["base_model"],
+                 "dark_current_in_base": "dark current" in out["dark_model"]["model"],
+                 "noise_floor_dn": out["noise_floor_dn"],
+                 "systematic_after_dn": out["after"]["systematic_rms_dn"],
+                 "refused": None}
+    except DataFormatError as exc:
+        found = {"selected": [], "unexplained": False, "ambiguous": [], "base": "",
+                 "dark_current_in_base": False, "refused": str(exc)}
+    found["runtime_s"] = time.perf_counter() - t0
+    case = {k: spec[k] for k in ("seed", "half", "bit_depth", "design", "darks", "leaky",
+                                 "n_steps", "n_rates")}
+    case["sensor_dark_current"] = spec["params"]["dark_current_dn_per_ms"] > 0
+    return {"case": case, "truth": truth, "found": found, **verdict(truth, found)}
+
+
+def verdict(truth: dict, found: dict) -> dict:
+    """Score one case: ``right`` (the effects put in, and only they, are named; for a clean
+    control nothing selected and nothing unexplained; for an effect outside the library
+    ``unexplained``) and ``false_alarm`` (a clean control with something selected or
+    unexplained).
+
+    Parameters
+    ----------
+    truth : dict
+        From :func:`build_case`.
+    found : dict
+        What diagnose found (``selected``, ``unexplained``, ``dark_current_in_base``).
+
+    Returns
+    -------
+    dict
+        ``right`` and ``false_alarm`` (bool).
+
+    Examples
+    --------
+    >>> verdict({"kind": "single", "effects": [{"name": "image_lag"}]},
+    ...         {"selected": ["image_lag"], "unexplained": False, "dark_current_in_base": False})
+    {'right': True, 'false_alarm': False}
+    """
+    sel = set(found["selected"])
+    if truth["kind"] == "clean":
+        alarm = bool(sel) or bool(found["unexplained"])
+        return {"right": not alarm, "false_alarm": alarm}
+    if truth["kind"] == "outside":
+        return {"right": bool(found["unexplained"]), "false_alarm": False}
+    want = {e["name"] for e in truth["effects"]}
+    if "dark_current" in want and found.get("dark_current_in_base"):
+        sel = sel | {"dark_current"}
+    return {"right": sel == want, "false_alarm": False}
+
+
+def run(case_seeds, jobs: int = 1, progress=None) -> list[dict]:
+    """:func:`run_case` for every seed (in ``jobs`` processes).
+
+    Parameters
+    ----------
+    case_seeds : sequence of int
+    jobs : int
+        Worker processes (1: in this process).
+    progress : callable, optional
+        Called with each result as it comes.
+
+    Returns
+    -------
+    list of dict
+        In the order of the seeds.
+    """
+    results = []
+    if jobs <= 1:
+        for s in case_seeds:
+            results.append(run_case(s))
+            if progress:
+                progress(results[-1])
+        return results
+    from concurrent.futures import ProcessPoolExecutor
+    with ProcessPoolExecutor(jobs) as pool:
+        for r in pool.map(run_case, case_seeds):
+            results.append(r)
+            if progress:
+                progress(r)
+    return results
+
+
+def _row_label(r):
+    t = r["truth"]
+    if t["kind"] == "clean":
+        return "clean"
+    if t["kind"] == "pair":
+        return "pair: " + " + ".join(sorted(e["name"] for e in t["effects"]))
+    return t["effects"][0]["name"] + (" (outside)" if t["kind"] == "outside" else "")
+
+
+def summarise(results: list[dict]) -> dict:
+    """Scores and the confusion matrix of a list of :func:`run_case` results.
+
+    Parameters
+    ----------
+    results : list of dict
+
+    Returns
+    -------
+    dict
+        ``scores`` (fractions with their counts), ``by_multiple``, ``confusion``
+        (row label -> {n, column -> count}) and ``columns``.
+    """
+    def frac(rows, key="right"):
+        n = len(rows)
+        k = sum(bool(r[key]) for r in rows)
+        return {"fraction": k / n if n else None, "right": k, "n": n}
+
+    single = [r for r in results if r["truth"]["kind"] == "single"]
+    pairs = [r for r in results if r["truth"]["kind"] == "pair"]
+    outside = [r for r in results if r["truth"]["kind"] == "outside"]
+    clean = [r for r in results if r["truth"]["kind"] == "clean"]
+    big = [r for r in single if r["truth"]["effects"][0]["multiple"] >= 5]
+    scores = {
+        "named_right_5x": frac(big),
+        "named_right_2x": frac([r for r in single if r["truth"]["effects"][0]["multiple"] == 2]),
+        "pairs_both_named": frac(pairs),
+        "false_alarm_clean": frac(clean, "false_alarm"),
+        "outside_unexplained": frac([r for r in outside
+                                     if r["truth"]["effects"][0]["multiple"] >= 5]),
+        "outside_unexplained_2x": frac([r for r in outside
+                                        if r["truth"]["effects"][0]["multiple"] == 2]),
+        "ambiguous_reported": frac([dict(r, right=bool(r["found"]["ambiguous"]))
+                                    for r in results]),
+    }
+    by_multiple = {str(m): frac([r for r in single if r["truth"]["effects"][0]["multiple"] == m])
+                   for m in MULTIPLES}
+    columns = ["nothing"] + _library() + ["unexplained"]
+    confusion: dict = {}
+    for r in results:
+        if r["truth"]["kind"] == "single" and r["truth"]["effects"][0]["multiple"] < 5:
+            continue
+        if r["truth"]["kind"] == "outside" and r["truth"]["effects"][0]["multiple"] < 5:
+            continue
+        label = _row_label(r)
+        row = confusion.setdefault(label, {"n": 0, **{c: 0 for c in columns}})
+        row["n"] += 1
+        sel = list(r["found"]["selected"])
+        if r["found"].get("dark_current_in_base") and "dark_current" in label:
+            sel.append("dark_current")
+        for name in sel:
+            row[name] += 1
+        if not sel:
+            row["nothing"] += 1
+        if r["found"]["unexplained"]:
+            row["unexplained"] += 1
+    order = ["clean"] + _library()
+    keys = sorted(confusion, key=lambda k: (order.index(k) if k in order else len(order), k))
+    return {"scores": scores, "by_multiple": by_multiple, "columns": columns,
+            "confusion": {k: confusion[k] for k in keys}, "n_cases": len(results),
+            "runtime_s": float(sum(r["found"]["runtime_s"] for r in results))}
+
+
+def shared_rows(data_dir: Path) -> list[dict]:
+    """Diagnose every shared data set that is present; one row each.
+
+    Parameters
+    ----------
+    data_dir : Path
+        ``../shared/data``.
+
+    Returns
+    -------
+    list of dict
+    """
+    from . import diagnose
+    from ..io import read_sweep
+
+    rows = []
+    for name in SHARED_SETS:
+        path = data_dir / name
+        if not path.exists():
+            continue
+        out = diagnose(read_sweep(path))
+        ok = None
+        if name in LINEAR_SETS:
+            ok = out["base_model"].startswith("linear") and not out["selected_effects"]
+        rows.append({"set": name, "base": out["base_model"].split(",")[0].split(";")[0],
+                     "selected": out["selected_effects"], "unexplained": out["unexplained"],
+                     "ambiguous": out.get("ambiguous", []), "leakage": out["leakage"]["verdict"],
+                     "noise_floor_dn": out["noise_floor_dn"],
+                     "systematic_after_dn": out["after"]["systematic_rms_dn"],
+                     "linear_and_nothing_selected": ok})
+    return rows
+
+
+def _pct(s):
+    return "-" if s["fraction"] is None else f"{100 * s['fraction']:.0f} % ({s['right']}/{s['n']})"
+
+
+def markdown(summary: dict, shared: list[dict], how: str) -> str:
+    """The evaluation's tables in Markdown.
+
+    Parameters
+    ----------
+    summary : dict
+        From :func:`summarise`.
+    shared : list of dict
+        From :func:`shared_rows`.
+    how : str
+        How and where it was measured (one sentence).
+
+    Returns
+    -------
+    str
+    """
+    sc = summary["scores"]
+    goal_rows = [
+        ("library effect at >= 5x its detection limit named right (and nothing else)",
+         sc["named_right_5x"], ">= 90 %", GOALS["named_right_5x"], True),
+        ("false alarms on clean sweeps (something selected or unexplained)",
+         sc["false_alarm_clean"], "<= 5 %", GOALS["false_alarm_clean"], False),
+        ("out-of-library effect at >= 5x reported unexplained", sc["outside_unexplained"],
+         ">= 90 %", GOALS["outside_unexplained"], True),
+    ]
+    lines = [how, "", "| measure | result | goal | met |", "|---|---|---|---|"]
+    for label, s, goal, g, higher in goal_rows:
+        met = "-" if s["fraction"] is None else (
+            "yes" if (s["fraction"] >= g if higher else s["fraction"] <= g) else "**no**")
+        lines.append(f"| {label} | {_pct(s)} | {goal} | {met} |")
+    lines += [f"| library effect at 2x named right | {_pct(sc['named_right_2x'])} | | |",
+              f"| pairs (10x each): both named, nothing else | {_pct(sc['pairs_both_named'])} "
+              "| | |",
+              f"| out-of-library effect at 2x reported unexplained | "
+              f"{_pct(sc['outside_unexplained_2x'])} | | |",
+              f"| cases with an `ambiguous` entry | {_pct(sc['ambiguous_reported'])} | | |", ""]
+    lines += ["Named right, by size (single library effects):", "",
+              "| multiple of the detection limit | " + " | ".join(
+                  f"{m}x" for m in MULTIPLES) + " |",
+              "|---|" + "---|" * len(MULTIPLES),
+              "| named right | " + " | ".join(_pct(summary["by_multiple"][str(m)])
+                                             for m in MULTIPLES) + " |", ""]
+    cols = summary["columns"]
+    short = {c: c.replace("_", " ") for c in cols}
+    lines += ["Confusion matrix (rows: what was put in, library effects at >= 5x, outside "
+              "effects at >= 5x; columns: how many of the row's cases selected that effect, "
+              "selected nothing, or were reported unexplained; a case can count in several "
+              "columns):", "",
+              "| put in | n | " + " | ".join(short[c] for c in cols) + " |",
+              "|---|---|" + "---|" * len(cols)]
+    for label, row in summary["confusion"].items():
+        lines.append(f"| {label} | {row['n']} | " + " | ".join(
+            str(row[c]) if row[c] else "." for c in cols) + " |")
+    if shared:
+        lines += ["", "Shared data sets (`../shared/data`, one row each; the two linear "
+                  "reference simulations must keep a linear base with nothing selected):", "",
+                  "| set | base | selected | leakage | unexplained | ambiguous | noise floor "
+                  "(DN) | systematic after (DN) | linear, nothing selected |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in shared:
+            amb = "; ".join(" / ".join(a["effects"]) for a in r["ambiguous"]) or "-"
+            ok = {None: "-", True: "yes", False: "**no**"}[r["linear_and_nothing_selected"]]
+            lines.append(f"| {r['set']} | {r['base']} | {', '.join(r['selected']) or '-'} | "
+                         f"{r['leakage']} | {'yes' if r['unexplained'] else 'no'} | {amb} | "
+                         f"{r['noise_floor_dn']:.3g} | {r['systematic_after_dn']:.3g} | {ok} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_page(page: Path, text: str) -> None:
+    """Replace the text between ``<!-- BEGIN evaluation -->`` and ``<!-- END evaluation -->``
+    of ``page`` (atomically).
+
+    Parameters
+    ----------
+    page : Path
+    text : str
+
+    Raises
+    ------
+    ValueError
+        The page lacks the markers.
+    """
+    from ..atomic import atomic_write_text
+
+    begin, end = "<!-- BEGIN evaluation -->", "<!-- END evaluation -->"
+    doc = page.read_text()
+    if begin not in doc or end not in doc:
+        raise ValueError(f"{page}: no '{begin}' ... '{end}' markers to write between; add them "
+                         "where the evaluation belongs")
+    head, rest = doc.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    atomic_write_text(page, head + begin + "\n\n" + text + "\n" + end + tail, overwrite=True)
+
+
+def main(argv=None) -> int:
+    """``python3 -m hsiffc.diagnose.evaluation`` (see the module docstring).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+
+    Returns
+    -------
+    int
+        Exit status.
+    """
+    ap = argparse.ArgumentParser(prog="python3 -m hsiffc.diagnose.evaluation",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("--half", choices=("dev", "eval", "all"), default="dev",
+                    help="which half of the seeds (default dev: tune on dev, score eval)")
+    ap.add_argument("--cases", type=int, default=240, help="seeds 0 .. CASES-1 (default 240)")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    ap.add_argument("--json", type=Path, help="write every case and the summary here")
+    ap.add_argument("--page", type=Path, help="write the tables into this Markdown page")
+    ap.add_argument("--data", type=Path,
+                    default=Path(__file__).resolve().parents[3] / "shared" / "data",
+                    help="shared data sets (default ../shared/data next to the repository)")
+    args = ap.parse_args(argv)
+    if args.cases < 1:
+        ap.error(f"--cases must be >= 1, got {args.cases}")
+    t0 = time.time()
+    done = []
+
+    def progress(r):
+        done.append(r)
+        f = r["found"]
+        print(f"[{len(done)}] seed {r['case']['seed']} {r['case']['design']:8s} "
+              f"{_row_label(r):40s} -> {','.join(f['selected']) or 'nothing':40s} "
+              f"unexplained={f['unexplained']} {'ok' if r['right'] else 'WRONG'} "
+              f"({f['runtime_s']:.1f} s)", flush=True)
+    results = run(seeds(args.half, args.cases), jobs=args.jobs, progress=progress)
+    summary = summarise(results)
+    shared = shared_rows(args.data) if args.page else []
+    wall = time.time() - t0
+    how = (f"Measured by `python3 -m hsiffc.diagnose.evaluation --half {args.half} --cases "
+           f"{args.cases}{' --jobs ' + str(args.jobs) if args.jobs > 1 else ''} --page "
+           f"docs/diagnose.md` on {platform.machine()}, {platform.python_version()}: "
+           f"{summary['n_cases']} sweeps of the {args.half} half ({SHAPE[0]} x {SHAPE[1]} px, "
+           f"{MAX_PIXELS} analysed), {wall:.0f} s.")
+    text = markdown(summary, shared, how)
+    print(text)
+    if args.json:
+        from ..atomic import atomic_write_text
+        atomic_write_text(args.json, json.dumps({"summary": summary, "shared": shared,
+                                                 "cases": results}, indent=1, default=str)
+                          + "\n", overwrite=True)
+    if args.page:
+        write_page(args.page, text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
