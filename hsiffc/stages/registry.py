@@ -30,6 +30,7 @@ BUILTIN = {
     "linearise": "hsiffc.stages.linearise:LeakageLinearise",
     "model_ffc": "hsiffc.stages.model_ffc:ModelFFC",
     "reconstruct": "hsiffc.stages.reconstruct:Reconstruct",
+    "reflectance": "hsiffc.stages.reflectance:Reflectance",
 }
 
 
