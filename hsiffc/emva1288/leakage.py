@@ -1,0 +1,219 @@
+"""What the leakage model says about the EMVA 1288 figures (beyond the standard): numbers only.
+
+The standard sees a leaky pixel only through its mean curve: leakage bends the response below
+the line (a linearity error) and makes it level off below full scale (a variance peak, hence a
+saturation point, set by the leakage rather than the well or the ADC). With a per-pixel
+calibration of the leakage model (:func:`hsiffc.calibrate.calibrate`; ``k = responsivity x
+photons/exposure + dark current``, ``dY/dt = k - a exp(b Y)``) every light step of the sweep is
+predicted pixel by pixel and the standard's computations are repeated on the predictions:
+
+*Linearity error explained.* The model's mean curve (mean over the pixels of the predicted
+response, clipped at full scale as the ADC clips, less the predicted dark at that exposure)
+goes through the standard's linearity computation (same fit range, same relative fit). The
+share of the linearity error explained is ``1 - sum((dev - dev_model)^2) / sum(dev^2)`` over the
+fit range, ``dev`` the measured relative deviation (percent). The same with leakage switched
+off (``a = 0``, the same responsivity, dark and clipping) is the control: what clipping and the
+light rates alone explain. The difference is the leakage's share.
+
+*Dynamic saturation against light rate.* The level ``ln(k/a)/b`` where leakage balances the
+light, per pixel at the light rate of each light step (median and 10th-90th percentiles over the
+pixels), and the share of pixels for which it lies below full scale (they level off before they
+can clip).
+
+*Alpha at the standard's points.* The model leakage percentage ``100 a exp(b Y) / k`` (the
+share of the light rate that leaks at the predicted response) per pixel at the end of the
+sensitivity fit range (70 %: K and R are fitted up to there), at the end of the linearity
+range (95 %) and at the saturation point.
+
+*Saturation capacity: leakage or well.* At the saturation step, per pixel: the generated signal
+``k t`` (what the standard's ``u_e_sat = QE u_p_sat`` counts, in DN), the part lost to leakage
+(``k t`` minus the predicted response above dark), the part lost to clipping at full scale, and
+the stored part; means over the pixels in DN and in electrons (over the standard's K). Also the
+photon count at which the median pixel would reach full scale without leakage, against the
+standard's ``u_p_sat``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import model
+from ..errors import CalibrationMismatchError
+from .compute import LINEARITY_RANGE, _relative_fit
+
+__all__ = ["leakage_effects", "ALPHA_LEVELS"]
+
+ALPHA_LEVELS = (5.0, 12.0, 50.0)  # percent: shares of pixels above these alphas
+PCTS = (10, 50, 90)
+
+
+def _pcts(v) -> dict:
+    v = np.asarray(v, np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return {f"p{p}": None for p in PCTS}
+    return {f"p{p}": float(x) for p, x in zip(PCTS, np.percentile(v, PCTS))}
+
+
+def _linearity_deviation(u_p, y, lo, hi) -> np.ndarray:
+    a, b = _relative_fit(u_p[lo:hi + 1], y[lo:hi + 1])
+    fit = a * u_p + b
+    return 100.0 * (y - fit) / fit
+
+
+def leakage_effects(sweep, emva: dict, calibration) -> dict:
+    """The leakage model's account of the EMVA 1288 figures of ``sweep``.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        The measurement :func:`~hsiffc.emva1288.characterise` characterised.
+    emva : dict
+        Its result (the curves and fit ranges of the whole frame are used).
+    calibration : Calibration
+        Per-pixel leakage-model calibration of the same frames (photons / exposure as the light
+        rate: what :func:`hsiffc.calibrate.calibrate` fits on an EMVA 1288 sweep).
+
+    Returns
+    -------
+    dict
+        ``linearity`` (measured and model deviations, shares explained), ``dynamic_saturation``
+        (per light step), ``alpha`` (at the sensitivity end, linearity end and saturation
+        point), ``saturation_budget`` (generated, leaked, clipped, stored at the saturation
+        step) and the calibration's fit status.
+
+    Raises
+    ------
+    CalibrationMismatchError
+        The calibration is for another frame size or another light-rate unit.
+    """
+    h, w = sweep.frame_shape
+    if tuple(calibration.domain.get("frame_shape", ())) != (h, w):
+        raise CalibrationMismatchError(
+            f"the calibration is for frames {calibration.domain.get('frame_shape')}, the sweep "
+            f"has {[h, w]}: calibrate this measurement")
+    unit = calibration.domain.get("light_rate_unit")
+    if unit not in (None, "photons/ms"):
+        raise CalibrationMismatchError(
+            f"the calibration's light rate is in {unit!r}; the EMVA 1288 figures need one "
+            "calibrated with photons / exposure (calibrate the EMVA 1288 sweep itself)")
+    c = emva["curves"]
+    fr = emva["fit_ranges"]
+    fs = float(sweep.full_scale_dn)
+    arr = {k: np.asarray(calibration.arrays[k], np.float64).ravel()
+           for k in ("responsivity", "a_dn_per_ms", "b_per_dn", "dark_dn")}
+    g, a, b, dark = arr["responsivity"], arr["a_dn_per_ms"], arr["b_per_dn"], arr["dark_dn"]
+    dc = np.asarray(calibration.dark_current, np.float64).ravel()
+    u_p = np.asarray(c["u_p"], np.float64)
+    t = np.asarray(c["texp_ms"], np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rate = np.where(t > 0, u_p / t, 0.0)  # photons / ms; a step at t = 0 holds no light
+    y_meas = np.asarray(c["u_y"]) - np.asarray(c["u_ydark"])
+    n = len(u_p)
+    y_model = np.empty(n)
+    y_noleak = np.empty(n)
+    sat_med = np.empty(n)
+    sat_lo = np.empty(n)
+    sat_hi = np.empty(n)
+    below_fs = np.empty(n)
+    isat = fr["index_u_ysat"]
+    isens = fr["sensitivity"]["index"][1]
+    lo, hi = fr["linearity"]["index"]
+    points = {"sensitivity_end": isens, "linearity_end": hi, "saturation": isat}
+    alpha, budget = {}, None
+    for i in range(n):
+        k = g * rate[i] + dc
+        resp = model.response(t[i], k, a, b, dark)
+        d_resp = model.response(t[i], dc, a, b, dark)
+        y_model[i] = np.minimum(resp, fs).mean() - np.minimum(d_resp, fs).mean()
+        y_noleak[i] = (np.minimum(dark + k * t[i], fs).mean()
+                       - np.minimum(dark + dc * t[i], fs).mean())
+        if rate[i] > 0:
+            ysat = model.dynamic_saturation_level(np.maximum(k, 1e-300), a, b)
+            sat_lo[i], sat_med[i], sat_hi[i] = np.percentile(ysat, PCTS)
+            below_fs[i] = float((ysat < fs).mean())
+        else:  # no light in the step: no dynamic saturation to speak of
+            sat_lo[i] = sat_med[i] = sat_hi[i] = below_fs[i] = np.nan
+        for name, j in points.items():
+            if i == j:
+                al = model.leakage_percentage(resp, np.maximum(k, 1e-300), a, b)
+                alpha[name] = {"index": int(j), "u_p": float(u_p[j]),
+                               "signal_dn": float(y_meas[j]),
+                               "mean_percent": float(np.mean(al)), **_pcts(al),
+                               "max_percent": float(np.max(al)),
+                               **{f"share_above_{lv:g}_percent": float((al > lv).mean())
+                                  for lv in ALPHA_LEVELS}}
+        if i == isat:
+            gen = k * t[i] + 0.0
+            stored_model = resp - dark
+            stored_adc = np.minimum(resp, fs) - dark
+            K = emva["figures"]["K"]["value"]
+            data = sweep.data[sweep.step == int(c["step"][i])]
+            clipped_meas = (data >= sweep.full_scale_dn).any(axis=0).ravel()
+            budget = {
+                "index": int(i), "u_p": float(u_p[i]), "exposure_ms": float(t[i]),
+                "light_rate_photons_per_ms": float(rate[i]),
+                "generated_dn": float(gen.mean()), "leaked_dn": float((gen - stored_model).mean()),
+                "clipped_dn": float((stored_model - stored_adc).mean()),
+                "stored_dn": float(stored_adc.mean()),
+                "measured_signal_dn": float(y_meas[i]),
+                "generated_e": float(gen.mean() / K),
+                "leaked_e": float((gen - stored_model).mean() / K),
+                "clipped_e": float((stored_model - stored_adc).mean() / K),
+                "stored_e": float(stored_adc.mean() / K),
+                "u_e_sat_standard": emva["figures"]["u_e_sat"]["value"],
+                "share_pixels_leakage_limited": float(below_fs[i]),
+                "share_pixels_clipped_model": float((resp >= fs).mean()),
+                "share_pixels_clipped_measured": float(clipped_meas.mean()),
+            }
+    gen_share = budget["generated_dn"]
+    for key in ("leaked", "clipped", "stored"):
+        budget[f"{key}_share"] = budget[f"{key}_dn"] / gen_share if gen_share > 0 else None
+    # photons at which a pixel would reach full scale without leakage (light only, t-free)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        per_photon = g  # k t = g * photons (+ dark current x t, small): DN per photon
+        u_p_fs = (fs - dark) / per_photon
+    budget["u_p_full_scale_without_leakage"] = _pcts(u_p_fs[np.isfinite(u_p_fs)
+                                                            & (u_p_fs > 0)])
+    budget["u_p_sat_over_median_u_p_full_scale"] = (
+        float(u_p[isat] / budget["u_p_full_scale_without_leakage"]["p50"])
+        if budget["u_p_full_scale_without_leakage"]["p50"] else None)
+
+    dev = np.asarray(c["linearity_deviation_percent"], np.float64)
+    dev_model = _linearity_deviation(u_p, y_model, lo, hi)
+    dev_noleak = _linearity_deviation(u_p, y_noleak, lo, hi)
+    r = slice(lo, hi + 1)
+    ss = float((dev[r] ** 2).sum())
+    explained = 1.0 - float(((dev[r] - dev_model[r]) ** 2).sum()) / ss if ss > 0 else None
+    explained_noleak = (1.0 - float(((dev[r] - dev_noleak[r]) ** 2).sum()) / ss
+                        if ss > 0 else None)
+    linearity = {
+        "range_index": [lo, hi], "rule": f"{LINEARITY_RANGE[0]:.0%}-{LINEARITY_RANGE[1]:.0%}",
+        "LE_min_measured": float(dev[r].min()), "LE_max_measured": float(dev[r].max()),
+        "LE_min_model": float(dev_model[r].min()), "LE_max_model": float(dev_model[r].max()),
+        "LE_min_without_leakage": float(dev_noleak[r].min()),
+        "LE_max_without_leakage": float(dev_noleak[r].max()),
+        "LE_min_left": float((dev - dev_model)[r].min()),
+        "LE_max_left": float((dev - dev_model)[r].max()),
+        "share_explained_model": explained,
+        "share_explained_without_leakage": explained_noleak,
+        "share_explained_by_leakage": (None if explained is None else
+                                       explained - explained_noleak),
+        "rms_measured_percent": float(np.sqrt(np.mean(dev[r] ** 2))),
+        "rms_left_percent": float(np.sqrt(np.mean((dev[r] - dev_model[r]) ** 2))),
+    }
+    status = calibration.fitted_on.get("fit_status")
+    return {
+        "calibration": {"method": calibration.method, "fit_status": status,
+                        "n_pixels": int(h * w)},
+        "linearity": linearity,
+        "curves": {"u_p": u_p, "light_rate_photons_per_ms": rate, "signal_measured_dn": y_meas,
+                   "signal_model_dn": y_model, "signal_without_leakage_dn": y_noleak,
+                   "deviation_measured_percent": dev, "deviation_model_percent": dev_model,
+                   "deviation_without_leakage_percent": dev_noleak},
+        "dynamic_saturation": {"light_rate_photons_per_ms": rate, "u_p": u_p,
+                               "p10_dn": sat_lo, "p50_dn": sat_med, "p90_dn": sat_hi,
+                               "share_below_full_scale": below_fs, "full_scale_dn": fs},
+        "alpha": alpha,
+        "saturation_budget": budget,
+    }

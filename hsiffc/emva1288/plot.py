@@ -1,0 +1,213 @@
+"""The EMVA 1288 plots of a characterisation (matplotlib figures; writing is in
+:mod:`hsiffc.emva1288.render`).
+
+Photon transfer, sensitivity, SNR, linearity and its error, dark current (when the exposure
+varies), DSNU and PRNU histograms and spectrograms, and the leakage figure (beyond the
+standard). Each function takes the result of :func:`hsiffc.emva1288.characterise` (and the
+spatial images or the leakage result where it needs them) and returns a Figure.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..reports.figures import new_figure
+from .compute import QUANTISATION_VARIANCE
+
+__all__ = ["photon_transfer_figure", "sensitivity_figure", "snr_figure", "linearity_figure",
+           "dark_current_figure", "histogram_figure", "spectrogram_figure", "leakage_figure",
+           "spatial_images"]
+
+
+def _ranges(ax, x, fr, key, label):
+    i0, i1 = fr[key]["index"]
+    ax.axvspan(x[i0], x[i1], color="0.9", zorder=0, label=label)
+
+
+def photon_transfer_figure(res: dict):
+    """Temporal variance against mean signal (both dark-subtracted), with the K fit."""
+    c, fr, f = res["curves"], res["fit_ranges"], res["figures"]
+    x = c["u_y"] - c["u_ydark"]
+    y = c["s2_y"] - c["s2_ydark"]
+    fig, ax = new_figure((6.4, 4.2))
+    _ranges(ax, x, fr, "sensitivity", "fit range")
+    ax.plot(x, y, "o", ms=3, label="data")
+    i1 = fr["sensitivity"]["index"][1]
+    xx = np.array([0.0, x[i1]])
+    ax.plot(xx, f["K"]["value"] * xx, "-", color="C3", label=f"K = {f['K']['value']:.4g} DN/e-")
+    i = fr["index_u_ysat"]
+    ax.plot(x[i], y[i], "s", mfc="none", ms=9, color="k", label="saturation point")
+    ax.set(xlabel="u_y - u_y.dark (DN)", ylabel="s2_y - s2_y.dark (DN^2)",
+           title="Photon transfer")
+    ax.legend(fontsize=8)
+    return fig
+
+
+def sensitivity_figure(res: dict):
+    """Mean signal against photons, with the responsivity fit."""
+    c, fr, f = res["curves"], res["fit_ranges"], res["figures"]
+    y = c["u_y"] - c["u_ydark"]
+    fig, ax = new_figure((6.4, 4.2))
+    _ranges(ax, c["u_p"], fr, "sensitivity", "fit range")
+    ax.plot(c["u_p"], y, "o", ms=3, label="data")
+    xx = np.array([0.0, c["u_p"][fr["sensitivity"]["index"][1]]])
+    ax.plot(xx, f["R"]["value"] * xx, "-", color="C3", label=f"R = {f['R']['value']:.4g} DN/p")
+    ax.set(xlabel="u_p (photons per pixel)", ylabel="u_y - u_y.dark (DN)", title="Sensitivity")
+    ax.legend(fontsize=8)
+    return fig
+
+
+def snr_figure(res: dict):
+    """SNR against photons: measured, the standard's model and the ideal sqrt(u_p)."""
+    c, f = res["curves"], res["figures"]
+    y = c["u_y"] - c["u_ydark"]
+    ok = (y > 0) & (c["u_p"] > 0)
+    snr = np.where(ok, y / np.sqrt(c["s2_y"]), np.nan)
+    fig, ax = new_figure((6.4, 4.2))
+    ax.loglog(c["u_p"][ok], snr[ok], "o", ms=3, label="data")
+    qe, K = f["QE"]["value"] / 100, f["K"]["value"]
+    up = np.geomspace(max(c["u_p"][ok].min() / 3, 1e-3), f["u_p_sat"]["value"], 200)
+    sd = f["sigma_d"]["value"]
+    model = qe * up / np.sqrt(sd ** 2 + QUANTISATION_VARIANCE / K ** 2 + qe * up)
+    ax.loglog(up, model, "-", color="C3", label="model (QE, sigma_d, K)")
+    ax.loglog(up, np.sqrt(up), ":", color="0.4", label="ideal sqrt(u_p)")
+    ax.axvline(f["u_p_min"]["value"], color="0.5", lw=0.8, ls="--")
+    ax.axvline(f["u_p_sat"]["value"], color="0.5", lw=0.8, ls="--")
+    ax.set(xlabel="u_p (photons per pixel)", ylabel="SNR", title="Signal-to-noise ratio "
+           "(dashed: u_p.min, u_p.sat)")
+    ax.legend(fontsize=8)
+    return fig
+
+
+def linearity_figure(res: dict):
+    """Signal against photons with the linearity fit, and the relative deviation (percent)."""
+    c, fr = res["curves"], res["fit_ranges"]
+    y = c["u_y"] - c["u_ydark"]
+    lin = fr["linearity"]
+    fig, (ax, ax2) = new_figure((6.4, 6.0), nrows=2, sharex=True)
+    _ranges(ax, c["u_p"], fr, "linearity", "fit range")
+    ax.plot(c["u_p"], y, "o", ms=3, label="data")
+    ax.plot(c["u_p"], lin["fit_slope_dn_per_p"] * c["u_p"] + lin["fit_offset_dn"], "-",
+            color="C3", label="fit")
+    ax.set(ylabel="u_y - u_y.dark (DN)", title="Linearity")
+    ax.legend(fontsize=8)
+    _ranges(ax2, c["u_p"], fr, "linearity", None)
+    dev = c["linearity_deviation_percent"]
+    i0, i1 = lin["index"]
+    ax2.plot(c["u_p"][i0:i1 + 1], dev[i0:i1 + 1], "o-", ms=3)
+    ax2.axhline(0, color="0.5", lw=0.8)
+    ax2.set(xlabel="u_p (photons per pixel)", ylabel="linearity error (%)")
+    return fig
+
+
+def dark_current_figure(res: dict):
+    """Dark mean and dark variance against exposure, with their lines (None with <= 2
+    exposures)."""
+    c, f = res["curves"], res["figures"]
+    t = np.asarray(c["dark_texp_ms"], np.float64) / 1e3
+    if len(t) <= 2:
+        return None
+    fig, (ax, ax2) = new_figure((6.4, 6.0), nrows=2, sharex=True)
+    K = f["K"]["value"]
+    for a, v, key, lab, scale in ((ax, c["dark_u_y"], "u_I_mean", "u_y.dark (DN)", K),
+                                  (ax2, c["dark_s2_y"], "s2_y.dark", "s2_y.dark (DN^2)", K * K)):
+        a.plot(t, v, "o", ms=3)
+        m, b = np.polyfit(t, v, 1)
+        a.plot(t, m * t + b, "-", color="C3")
+        a.set(ylabel=lab)
+    ui, uv = f["u_I_mean"]["value"], f["u_I_var"]["value"]
+    ax.set_title(f"Dark current: u_I.mean = {ui:.4g} e-/s, u_I.var = "
+                 f"{'n/a' if uv is None else format(uv, '.4g')} e-/s", fontsize=9)
+    ax2.set(xlabel="exposure (s)")
+    return fig
+
+
+def spatial_images(sweep, res: dict):
+    """Mean images (H, W) of the dark stack and of the light stack less the dark, or None."""
+    sp = res.get("spatial")
+    if sp is None:
+        return None
+    dark = sweep.data[sweep.step == sp["step_dark"]].mean(axis=0, dtype=np.float64)
+    light = sweep.data[sweep.step == sp["step_light"]].mean(axis=0, dtype=np.float64)
+    return {"dark": dark, "light_minus_dark": light - dark,
+            "L_dark": sp["dark"]["L"], "L_light": sp["light"]["L"],
+            "var_dark": sp["dark"]["var_mean"], "var_light": sp["light"]["var_mean"]}
+
+
+def histogram_figure(images: dict):
+    """DSNU (DN) and PRNU (percent) histograms of the mean images, log counts."""
+    fig, (ax, ax2) = new_figure((6.4, 6.0), nrows=2)
+    d = images["dark"] - images["dark"].mean()
+    ax.hist(d.ravel(), bins=128, log=True, color="C0")
+    ax.set(xlabel="dark mean image - its mean (DN)", ylabel="pixels", title="DSNU histogram")
+    p = images["light_minus_dark"]
+    rel = 100 * (p / p.mean() - 1)
+    ax2.hist(rel.ravel(), bins=128, log=True, color="C1")
+    ax2.set(xlabel="(light - dark) / its mean - 1 (%)", ylabel="pixels", title="PRNU histogram")
+    return fig
+
+
+def _spectrum(img: np.ndarray, axis: int) -> np.ndarray:
+    """Amplitude spectrum along ``axis`` (rows: horizontal), power averaged over the other
+    axis, as sqrt(power) in the image's unit (first half, DC left out)."""
+    m = img - img.mean()
+    if axis == 0:
+        m = m.T
+    n = m.shape[1]
+    power = (np.abs(np.fft.rfft(m, axis=1)) ** 2 / n).mean(axis=0)
+    return np.sqrt(power[1:n // 2 + 1])
+
+
+def spectrogram_figure(images: dict):
+    """Horizontal and vertical spectrograms of DSNU (DN) and PRNU (percent), with the level
+    the temporal noise of the mean images would give."""
+    fig, axes = new_figure((9.0, 6.0), nrows=2, ncols=2)
+    p = images["light_minus_dark"]
+    rows = (("DSNU", images["dark"], 1.0, images["var_dark"] / images["L_dark"], "DN"),
+            ("PRNU", p, 100.0 / p.mean(),
+             (images["var_light"] / images["L_light"] + images["var_dark"] / images["L_dark"]),
+             "%"))
+    for r, (name, img, scale, tvar, unit) in enumerate(rows):
+        for cidx, (axis, lab) in enumerate(((1, "horizontal"), (0, "vertical"))):
+            ax = axes[r, cidx]
+            s = _spectrum(img * scale, axis)
+            fq = np.arange(1, len(s) + 1) / (2 * len(s))
+            ax.semilogy(fq, s, lw=0.8)
+            ax.axhline(np.sqrt(tvar) * scale, color="C3", lw=0.8, ls="--",
+                       label="temporal noise of the mean")
+            ax.set(title=f"{name} {lab}", xlabel="frequency (cycles/pixel)",
+                   ylabel=f"amplitude ({unit})")
+            if r == 0 and cidx == 0:
+                ax.legend(fontsize=7)
+    return fig
+
+
+def leakage_figure(res: dict, leak: dict):
+    """Beyond the standard: linearity error measured and predicted by the leakage model, and
+    the dynamic saturation level against the light rate."""
+    c = leak["curves"]
+    lo, hi = leak["linearity"]["range_index"]
+    fig, (ax, ax2) = new_figure((6.4, 6.4), nrows=2)
+    r = slice(lo, hi + 1)
+    ax.plot(c["u_p"][r], c["deviation_measured_percent"][r], "o", ms=3, label="measured")
+    ax.plot(c["u_p"][r], c["deviation_model_percent"][r], "-", color="C3",
+            label="leakage model (calibrated per pixel)")
+    ax.plot(c["u_p"][r], c["deviation_without_leakage_percent"][r], ":", color="0.4",
+            label="same pixels without leakage")
+    ax.axhline(0, color="0.5", lw=0.6)
+    share = leak["linearity"]["share_explained_model"]
+    ax.set(xlabel="u_p (photons per pixel)", ylabel="linearity error (%)",
+           title=f"Linearity error: {100 * share:.0f} % of its sum of squares explained")
+    ax.legend(fontsize=8)
+    d = leak["dynamic_saturation"]
+    rate = np.asarray(d["light_rate_photons_per_ms"], np.float64)
+    ok = np.isfinite(np.asarray(d["p50_dn"], np.float64)) & (rate > 0)
+    o = np.argsort(rate[ok])
+    ax2.fill_between(rate[ok][o], np.asarray(d["p10_dn"])[ok][o], np.asarray(d["p90_dn"])[ok][o],
+                     color="C0", alpha=0.25, label="10th-90th percentile of pixels")
+    ax2.plot(rate[ok][o], np.asarray(d["p50_dn"])[ok][o], "-", color="C0", label="median pixel")
+    ax2.axhline(d["full_scale_dn"], color="k", lw=0.8, ls="--", label="full scale")
+    ax2.set(xlabel="light rate (photons per pixel per ms)", ylabel="dynamic saturation (DN)",
+            title="Dynamic saturation level against light rate")
+    ax2.legend(fontsize=8)
+    return fig
