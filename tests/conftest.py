@@ -11,6 +11,49 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("HSIFFC_SHARED_DATA", REPO.parent / "shared" / "data"))
 SAMPLE_CUBES = REPO / "sample_cubes"
 
+#: what test tools (not the tests) may leave in the working directory: git-ignored caches
+TOOL_CACHES = frozenset({".pytest_cache", ".hypothesis", "__pycache__"})
+
+
+def _listing(folder: Path) -> dict[str, int | None]:
+    """Names in ``folder`` with the modification times of its files in ns (top level only:
+    cheap enough to take around every test; ``.ci/run`` checks the whole tree with ``git
+    status``). Folders get None: Python and numba add ``__pycache__`` folders inside them."""
+    out: dict[str, int | None] = {}
+    try:
+        with os.scandir(folder) as it:
+            for entry in it:
+                if entry.name in TOOL_CACHES:
+                    continue
+                try:
+                    out[entry.name] = (None if entry.is_dir(follow_symlinks=False)
+                                       else entry.stat(follow_symlinks=False).st_mtime_ns)
+                except FileNotFoundError:
+                    pass
+    except OSError:  # the working directory is gone or unreadable: nothing to compare
+        pass
+    return out
+
+
+@pytest.fixture(autouse=True)
+def _working_directory_untouched(request):
+    """Fail a test that creates, replaces or deletes anything in the current directory: tests
+    read and write under ``tmp_path`` only (a ``monkeypatch.chdir(tmp_path)`` is fine: the
+    directory checked is the one the test started in)."""
+    cwd = Path.cwd()
+    before = _listing(cwd)
+    yield
+    after = _listing(cwd)
+    created = sorted(set(after) - set(before))
+    deleted = sorted(set(before) - set(after))
+    changed = sorted(n for n in set(before) & set(after) if before[n] != after[n])
+    if created or deleted or changed:
+        parts = [f"{what} {', '.join(names)}" for what, names in
+                 (("created", created), ("deleted", deleted), ("modified", changed)) if names]
+        pytest.fail(f"{request.node.nodeid} touched the current directory {cwd}: "
+                    f"{'; '.join(parts)}; a test writes under tmp_path (and monkeypatch.chdir"
+                    "(tmp_path) where code writes relative paths)", pytrace=False)
+
 
 def _require(path: Path, what: str) -> Path:
     if not path.exists():
@@ -36,6 +79,15 @@ def imec_xml() -> Path:
 @pytest.fixture(scope="session")
 def sample_cubes() -> Path:
     return SAMPLE_CUBES
+
+
+@pytest.fixture(scope="session")
+def demo_result(sample_cubes):
+    """The demo's result on the sample cubes, computed once per session (read it, do not
+    change it)."""
+    from hsiffc.reports.demo import compute_demo
+
+    return compute_demo(sample_cubes)
 
 
 @pytest.fixture(scope="session")

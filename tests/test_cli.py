@@ -27,10 +27,16 @@ def test_demo_on_sample_cubes_shows_dynamic_saturation(sample_cubes, tmp_path, c
     assert np.all(np.diff(alpha, axis=0) >= -1e-9)  # alpha grows with exposure in every band
 
 
-def test_demo_without_samples_says_how_to_fix(tmp_path, capsys):
-    assert main(["demo", str(tmp_path)]) == 2
+def test_demo_without_samples_says_how_to_fix(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)  # the default output folder ./hsiffc-demo is under tmp_path
+    (tmp_path / "hsiffc-demo").mkdir()
+    (tmp_path / "hsiffc-demo" / "notes.txt").write_text("not the demo's")
+    (tmp_path / "empty").mkdir()
+    assert main(["demo", "empty"]) == 2
     err = capsys.readouterr().err
-    assert "sweep_2900K.tif" in err and "make_samples.py" in err
+    # the missing inputs are named first, even though the output folder is taken as well
+    assert "sweep_2900K.tif" in err and "make_samples.py" in err and "already holds" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "hsiffc-demo"]
 
 
 def test_simulate_then_info(tmp_path, capsys):

@@ -12,8 +12,8 @@ from hsiffc.reports.demo import compute_demo, demo_figure, fit_curve, render_tex
 
 
 @pytest.fixture(scope="module")
-def demo(sample_cubes):
-    return compute_demo(sample_cubes)
+def demo(demo_result):
+    return demo_result
 
 
 def test_compute_is_silent_and_leaves_matplotlib_alone(sample_cubes, capsys):

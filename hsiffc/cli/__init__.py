@@ -22,14 +22,15 @@ from .. import __version__
 from ..atomic import write_policy
 from ..errors import HsiffcError
 from ..memory import reuse_freed_memory
-from . import data, importer, pipeline, reports, uniformity
+from . import cubes, data, emva1288, importer, pipeline, reports, uniformity
 from .args import OneLineParser
 from .common import check_declared_outputs, declared, input_files
+from .status import command_status
 
 log = logging.getLogger("hsiffc")
 
 #: modules whose ``register(sub)`` adds sub-commands, in the order ``--help`` lists them
-COMMAND_MODULES = [reports, data, pipeline, importer, uniformity]
+COMMAND_MODULES = [reports, data, pipeline, cubes, importer, uniformity, emva1288]
 
 EXIT_USAGE = 2
 EXIT_INTERNAL = 3
@@ -141,7 +142,8 @@ def main(argv=None) -> int:
                 warnings.simplefilter("always")
                 warnings.showwarning = _warning_printer(args.command)
             check_declared_outputs(args)
-            return int(args.func(args) or 0)
+            with command_status(args.command):  # what it is doing, kernel compiles included
+                return int(args.func(args) or 0)
     except KeyboardInterrupt:
         if args.debug:
             raise

@@ -33,15 +33,19 @@ def _add_demo(sub):
     p.add_argument("samples", nargs="?", type=Path, default=DEFAULT_SAMPLES,
                    help="folder with the sample cubes (default: ./sample_cubes)")
     p.add_argument("-o", "--outdir", type=Path, default=Path("hsiffc-demo"),
-                   help="where to write the plot and the JSON summary (default: ./hsiffc-demo)")
-    add_overwrite(p, "replace the files of an earlier demo in OUTDIR")
-    p.set_defaults(func=_cmd_demo, input_args=("samples",), output_dirs=("outdir",))
+                   help="where to write the plot, the JSON summary, the calibration and the "
+                        "pipeline (default: ./hsiffc-demo); a folder an earlier demo wrote is "
+                        "reused, its files replaced")
+    add_overwrite(p, "write into an OUTDIR that holds other files (replacing the demo's names)")
+    # the output folder is checked by run_demo, after the samples: a missing sample is named
+    # even when the folder is taken, and a rerun into the demo's own folder is allowed
+    p.set_defaults(func=_cmd_demo, input_args=("samples",))
 
 
 def _cmd_demo(args) -> int:
     from ..reports.demo import run_demo, render_text
 
-    res = run_demo(args.samples, args.outdir)
+    res = run_demo(args.samples, args.outdir, overwrite=args.overwrite or None)
     print(res.sweep.summary())
     print()
     print(render_text(res))

@@ -16,43 +16,95 @@ As every report: :func:`compute_demo` returns a :class:`DemoResult`, :func:`rend
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
-from ...atomic import atomic_write_text
+from ...atomic import OutputError, atomic_write_text, check_output_folder
 from ..figures import save_figure
-from .compute import SWEEP_NAME, DemoResult, compute_demo, demo_pipeline, fit_curve
+from .compute import (SAMPLE_NAMES, SWEEP_NAME, DemoResult, check_samples, compute_demo,
+                      demo_pipeline, fit_curve)
 from .render import demo_figure, render_text
 
-__all__ = ["SWEEP_NAME", "DemoResult", "compute_demo", "demo_figure", "demo_pipeline",
-           "fit_curve", "render_text", "run_demo"]
+__all__ = ["DEMO_FILES", "DEMO_MARKER", "SAMPLE_NAMES", "SWEEP_NAME", "DemoResult",
+           "check_samples", "compute_demo", "demo_figure", "demo_pipeline", "fit_curve",
+           "is_demo_folder", "render_text", "run_demo"]
+
+log = logging.getLogger(__name__)
+
+
+#: marker file of a folder the demo wrote: the demo replaces its own files there on a rerun
+DEMO_MARKER = ".hsiffc-demo"
+#: the files the demo writes into its folder
+DEMO_FILES = ("dynamic_saturation.png", "calibration.npz", "pipeline.npz", "demo_summary.json")
+
+
+def is_demo_folder(folder) -> bool:
+    """Whether ``folder`` is one the demo wrote (it holds the demo's marker file, a plain file).
+
+    Parameters
+    ----------
+    folder : path-like
+
+    Returns
+    -------
+    bool
+    """
+    marker = Path(folder) / DEMO_MARKER
+    return (Path(folder).is_dir() and not Path(folder).is_symlink() and marker.is_file()
+            and not marker.is_symlink())
 
 
 def run_demo(samples, outdir, *, overwrite: bool | None = None) -> DemoResult:
     """Run the demo and write its files into ``outdir``.
+
+    The sample folder is checked first, then the output folder, both before any work. A
+    folder an earlier demo wrote (it holds the marker file :data:`DEMO_MARKER`) is the demo's
+    own: a rerun replaces its files there (:data:`DEMO_FILES`, nothing else), so the demo can
+    be run again and again. Any other folder that holds files is refused unless ``overwrite``.
 
     Parameters
     ----------
     samples : path-like
         The sample folder (see :func:`compute_demo`).
     outdir : path-like
-        Receives ``dynamic_saturation.png``, ``demo_summary.json``, ``calibration.npz`` and
-        ``pipeline.npz`` (created if missing).
+        Receives ``dynamic_saturation.png``, ``demo_summary.json``, ``calibration.npz``,
+        ``pipeline.npz`` and the marker (created if missing).
     overwrite : bool, optional
-        Replace the files of an earlier demo (None: as the write policy in force says).
+        Replace files in a folder that is not the demo's own (None: as the write policy in
+        force says).
 
     Returns
     -------
     DemoResult
         With ``files`` (name -> path) added to ``result.correction``.
+
+    Raises
+    ------
+    DataFormatError
+        A sample file is missing.
+    OutputError
+        ``outdir`` cannot be written (e.g. it holds other files and ``overwrite`` is false).
     """
-    res = compute_demo(samples)
+    check_samples(samples)
     outdir = Path(outdir)
+    own = is_demo_folder(outdir)
+    if own:
+        overwrite = True
+        for name in DEMO_FILES:  # the demo's own names: refuse to write through a link
+            if (outdir / name).is_symlink():
+                raise OutputError(f"{outdir / name}: is a symbolic link; remove it or choose "
+                                  "another folder (hsiffc demo -o FOLDER)")
+    check_output_folder(outdir, overwrite=overwrite)
+    log.info("running the demo on %s", samples)
+    res = compute_demo(samples)
     outdir.mkdir(parents=True, exist_ok=True)
-    files = {"figure": save_figure(demo_figure(res), outdir / "dynamic_saturation.png", dpi=110,
+    atomic_write_text(outdir / DEMO_MARKER, "written by hsiffc demo: a rerun replaces "
+                      f"{', '.join(DEMO_FILES)} in this folder\n", overwrite=True)
+    files = {"figure": save_figure(demo_figure(res), outdir / DEMO_FILES[0], dpi=110,
                                    tight=False, overwrite=overwrite),
-             "calibration": res.calibration.save(outdir / "calibration.npz", overwrite=overwrite),
-             "pipeline": res.pipeline.save(outdir / "pipeline.npz", overwrite=overwrite),
-             "summary": outdir / "demo_summary.json"}
+             "calibration": res.calibration.save(outdir / DEMO_FILES[1], overwrite=overwrite),
+             "pipeline": res.pipeline.save(outdir / DEMO_FILES[2], overwrite=overwrite),
+             "summary": outdir / DEMO_FILES[3]}
     res.correction["files"] = {k: str(v) for k, v in files.items()}
     atomic_write_text(files["summary"], json.dumps(res.summary(), indent=2) + "\n",
                       overwrite=overwrite)

@@ -19,8 +19,8 @@ from ...io import read_sweep
 from ...stages import Pipeline, create
 from ...uniformity import fixed_pattern_nonuniformity
 
-__all__ = ["SWEEP_NAME", "THRESHOLD_PERCENT", "DemoResult", "compute_demo", "demo_pipeline",
-           "fit_curve"]
+__all__ = ["SAMPLE_NAMES", "SWEEP_NAME", "THRESHOLD_PERCENT", "DemoResult", "check_samples",
+           "compute_demo", "demo_pipeline", "fit_curve"]
 
 log = logging.getLogger(__name__)
 
@@ -28,6 +28,8 @@ SWEEP_NAME = "sweep_2900K.tif"
 TRAINING_NAME = "training_2900K.tif"
 DARKS_NAME = "darks.tif"
 TEST_NAME = "test_2200K.tif"
+#: the files the demo reads from the sample folder
+SAMPLE_NAMES = (SWEEP_NAME, TRAINING_NAME, DARKS_NAME, TEST_NAME)
 THRESHOLD_PERCENT = 12.0
 
 
@@ -149,6 +151,35 @@ def demo_pipeline(calibration, threshold_percent: float = THRESHOLD_PERCENT) -> 
                      ("cube", create("reconstruct", method="ppid"))])
 
 
+def check_samples(samples) -> Path:
+    """Check that the sample folder holds the four files the demo reads (before any work and
+    before the output folder is looked at).
+
+    Parameters
+    ----------
+    samples : path-like
+        The sample folder.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    DataFormatError
+        A file is missing (the message names them, where to run from and how to regenerate).
+    """
+    samples = Path(samples)
+    missing = [name for name in SAMPLE_NAMES if not (samples / name).is_file()]
+    if missing:
+        raise DataFormatError(
+            f"sample {'file' if len(missing) == 1 else 'files'} {', '.join(missing)} not found; "
+            "run from the repository root or pass the sample folder (hsiffc demo "
+            "path/to/sample_cubes); regenerate them with 'python sample_cubes/make_samples.py'",
+            path=samples)
+    return samples
+
+
 def compute_demo(samples) -> DemoResult:
     """Run the demo on the sample folder: dynamic saturation, then the correction pipeline.
 
@@ -162,13 +193,8 @@ def compute_demo(samples) -> DemoResult:
     -------
     DemoResult
     """
-    samples = Path(samples)
+    samples = check_samples(samples)
     path = samples / SWEEP_NAME
-    if not path.exists():
-        raise DataFormatError(
-            f"sample sweep {SWEEP_NAME} not found; run from the repository root or pass the "
-            "sample folder (hsiffc demo path/to/sample_cubes); regenerate it with "
-            "'python sample_cubes/make_samples.py'", path=samples)
     sweep = read_sweep(path)
     if sweep.mosaic is None:
         raise DataFormatError("the sweep has no mosaic layout in its metadata", path=path)
