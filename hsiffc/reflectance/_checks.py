@@ -112,28 +112,33 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
     t = report["exposure_ms"]
     n = int(report["n_frames"])
     level = np.asarray(report["level_dn"], float)
-    rng = np.asarray(report["range_dn"], float)
+    rng = np.asarray([np.nan if v is None else v for v in report["range_dn"]], float)
     snr = np.asarray([np.nan if v is None else v for v in report["snr_frame"]], float)
     panel = np.asarray(report["panel"], float)
     nb = len(level)
-    frac = level / rng
+    frac = level / rng  # NaN where the values are not the sensor's DN (no level check)
     # a low SNR at a high level comes from leakage or saturation (their own checks), not darkness
     dark = [i for i in range(nb) if (frac[i] < min_level_fraction)
-            or (snr[i] < min_snr and frac[i] < 0.5)]
+            or (snr[i] < min_snr and not frac[i] >= 0.5)]
     if dark:
         dark = _worst(frac, dark, lowest=True)
         gain = panel / np.maximum(level, 1e-9)
         amp = 0.5 * rng / np.maximum(level, 1e-9)
         snr_txt = ("not measured (one frame)" if n < 2 else
                    "single-frame SNR " + ", ".join(f"{snr[i]:.1f}" for i in dark[:6]))
+        of_range = (", ".join(f"{100 * frac[i]:.1f} %" for i in dark[:6]) + " of the range"
+                    if np.isfinite(frac[dark[0]]) else "virtual bands: not the sensor's DN")
+        half = (f" ({amp[dark[0]]:.1f} x what a reference at half the range gives)"
+                if np.isfinite(amp[dark[0]]) else "")
+        cost = (f"Each DN of scene noise becomes {gain[dark[0]]:.3g} in reflectance{half} in "
+                f"band {dark[0] + 1}" if level[dark[0]] > 0 else
+                f"Band {dark[0] + 1} has no signal above dark: its reflectance is meaningless")
         warn(WhiteReferenceTooDarkWarning,
              f"white reference ({t:g} ms) too dark in {len(dark)} of {nb} bands: "
              f"{_bands_text(dark, level, '.1f')} DN above dark "
-             f"({', '.join(f'{100 * frac[i]:.1f} %' for i in dark[:6])} of the range; "
-             f"asked for >= {100 * min_level_fraction:g} % and SNR >= {min_snr:g}); {snr_txt}. "
-             f"Each DN of scene noise becomes {gain[dark[0]]:.3g} in reflectance "
-             f"({amp[dark[0]]:.1f} x what a reference at half the range gives) in band "
-             f"{dark[0] + 1}: lengthen the reference's exposure, light the panel better or "
+             f"({of_range}; asked for >= {100 * min_level_fraction:g} % and SNR >= "
+             f"{min_snr:g}); {snr_txt}. "
+             f"{cost}: lengthen the reference's exposure, light the panel better or "
              "open the aperture (same settings for the scenes)")
     sat = np.asarray(report["saturated_percent"], float)
     hit = [i for i in range(nb) if sat[i] > max_saturated_percent]

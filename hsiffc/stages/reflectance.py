@@ -254,6 +254,8 @@ class Reflectance(Stage):
             dark = self.require_calibration().dark_at(f0.exposure_ms)
         dark_level = float(np.median(dark)) if dark is not None else 0.0
         level = band_median(signal, bands, n_bands)
+        # virtual bands (a correction matrix) are not in the sensor's DN: no level check
+        mixed = bool(f0.is_cube and (f0.meta.get("reconstruction") or {}).get("correction"))
         snr = [None] * n_bands
         if ref.sigma is not None:
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -261,7 +263,8 @@ class Reflectance(Stage):
         saturated = np.bitwise_or.reduce([f.dq for f in stack], axis=0) & DQ.SATURATED
         report = {"exposure_ms": f0.exposure_ms, "n_frames": len(stack), "method": method,
                   "panel": [float(v) for v in panel], "level_dn": level.tolist(),
-                  "range_dn": [full - dark_level] * n_bands, "snr_frame": snr,
+                  "range_dn": [None if mixed else full - dark_level] * n_bands,
+                  "snr_frame": snr,
                   "saturated_percent": (100 * band_fraction(saturated != 0, bands,
                                                             n_bands)).tolist(),
                   "alpha_percent": None, "loss_percent": None}
