@@ -83,6 +83,22 @@ class FixedPattern:
         return float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
 
     @property
+    def pooled_fpn_var_rel(self) -> float:
+        """Mean over bands of the fixed-pattern variance relative to the squared mean signal,
+        signed: negative where the pattern is below what the frames can measure (its square
+        root, in percent, is :attr:`pooled_fpn_percent` where positive)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v = np.asarray(self.fpn_var_dn2) / np.asarray(self.mean_dn) ** 2
+        v = v[np.isfinite(v)]
+        return float(np.mean(v)) if v.size else float("nan")
+
+    @property
+    def below_noise(self) -> bool:
+        """The pooled fixed-pattern variance estimate is not positive: the pattern is below
+        what the frames can measure (say so; "0.00 %" would claim too much)."""
+        return bool(self.pooled_fpn_var_rel <= 0)
+
+    @property
     def pooled_fpn_se_percent(self) -> float:
         """Standard error of :attr:`pooled_fpn_percent`, conservatively the root mean square of
         the per-band errors (pooling bands averages some of it away). Where the fixed pattern
@@ -158,7 +174,8 @@ def fixed_pattern_variance(stack, mask=None) -> tuple[float, float, float]:
     return measured - temporal / n_frames, temporal, float(mu.mean())
 
 
-def fixed_pattern_nonuniformity(stack, band_map=None, *, dark=None, mask=None) -> FixedPattern:
+def fixed_pattern_nonuniformity(stack, band_map=None, *, dark=None, mask=None,
+                                dark_stack=None) -> FixedPattern:
     """Fixed-pattern non-uniformity per band of a frame stack, in DN and percent.
 
     Parameters
@@ -172,6 +189,12 @@ def fixed_pattern_nonuniformity(stack, band_map=None, *, dark=None, mask=None) -
         EMVA 1288 PRNU). Leave out for frames that are already dark-subtracted.
     mask : (H, W) bool, optional
         Pixels to use, e.g. no DQ bit set in any frame (see :func:`uniformity_before_after`).
+    dark_stack : (L_d, H, W) array, optional, DN
+        Dark frames of the same exposure (L_d >= 2), instead of ``dark``: their mean is
+        subtracted and their temporal variance over ``L_d`` is removed from the fixed-pattern
+        variance too (EMVA 1288 Release 4.0 removes the temporal variance of both the bright
+        and the dark stack), so neither the dark's temporal noise nor a modelled dark's error
+        counts as pattern.
 
     Returns
     -------
@@ -189,7 +212,16 @@ def fixed_pattern_nonuniformity(stack, band_map=None, *, dark=None, mask=None) -
     s = np.asarray(stack, np.float64)
     if s.ndim != 3:
         raise ValueError(f"stack must be (frames, H, W), got shape {s.shape}")
-    if dark is not None:
+    dstack = None
+    if dark_stack is not None:
+        if dark is not None:
+            raise ValueError("give dark or dark_stack, not both")
+        dstack = np.asarray(dark_stack, np.float64)
+        if dstack.ndim != 3 or dstack.shape[0] < 2 or dstack.shape[1:] != s.shape[1:]:
+            raise ValueError(f"dark_stack must be (L >= 2, H, W) dark frames of the frames' "
+                             f"shape {s.shape[1:]}, got shape {dstack.shape}")
+        s = s - dstack.mean(axis=0)
+    elif dark is not None:
         s = s - np.asarray(dark, np.float64)
     bm = np.zeros(s.shape[1:], np.int64) if band_map is None else np.asarray(band_map)
     if bm.shape != s.shape[1:]:
@@ -199,9 +231,13 @@ def fixed_pattern_nonuniformity(stack, band_map=None, *, dark=None, mask=None) -
         use &= np.asarray(mask, bool)
     n_bands = int(bm.max()) + 1
     rows = []
+    dark_tvar = np.zeros(n_bands)
     for b in range(n_bands):
         sel = use & (bm == b)
         fpn, tvar, mean = fixed_pattern_variance(s[:, sel])
+        if dstack is not None:  # the dark mean's temporal variance is not pattern either
+            _, dark_tvar[b], _ = fixed_pattern_variance(dstack[:, sel])
+            fpn -= dark_tvar[b] / dstack.shape[0]
         eq6 = [_eq6(frame[sel]) for frame in s]
         rows.append((mean, fpn, tvar, float(np.mean(eq6)), int(sel.sum())))
     mean, fpn, tvar, eq6, npx = (np.array(c) for c in zip(*rows))
@@ -210,8 +246,10 @@ def fixed_pattern_nonuniformity(stack, band_map=None, *, dark=None, mask=None) -
     n_fr = int(s.shape[0])
     with np.errstate(divide="ignore", invalid="ignore"):
         pct = 100.0 * fpn_dn / mean
-        var_se = np.sqrt(2 * (np.clip(fpn, 0, None) + tvar / n_fr) ** 2 / npx
-                         + 2 * tvar ** 2 / (npx * n_fr ** 2 * (n_fr - 1)))
+        n_d = 2 if dstack is None else dstack.shape[0]
+        var_se = np.sqrt(2 * (np.clip(fpn, 0, None) + tvar / n_fr + dark_tvar / n_d) ** 2 / npx
+                         + 2 * tvar ** 2 / (npx * n_fr ** 2 * (n_fr - 1))
+                         + 2 * dark_tvar ** 2 / (npx * n_d ** 2 * (n_d - 1)))
         se_pct = 100.0 * var_se / (2 * np.maximum(fpn_dn, np.sqrt(var_se))) / mean
     return FixedPattern(mean_dn=mean, fpn_var_dn2=fpn, fpn_dn=fpn_dn, fpn_percent=pct,
                         temporal_dn=np.sqrt(tvar), eq6_percent=eq6, n_pixels=npx.astype(np.int64),

@@ -69,8 +69,9 @@ def _cmd_uniformity(args) -> int:
     from ..jsonsafe import json_safe
     from ..frame import Frame
     from ..io import read_sweep
-    from ..reports.sweep_uniformity import (plot_uniformity, signal_ranges_dn, summarise,
-                                            sweep_uniformity, to_json)
+    from ..reports.sweep_uniformity import (dark_frames_by_exposure, plot_uniformity,
+                                            signal_ranges_dn, summarise, sweep_uniformity,
+                                            to_json)
 
     corrections, cal = _correction(args)
     sweep = read_sweep(args.sweep, overrides=input_overrides(args))
@@ -92,7 +93,10 @@ def _cmd_uniformity(args) -> int:
                           "not scaled; record darks at two exposures or give --calibration "
                           "for the dark at each exposure", HsiffcWarning, stacklevel=2)
             dark_for = (lambda t, master=stage.masters_[0]: master)
-    steps = sweep_uniformity(frames, corrections, dark_for=dark_for)
+    # raw figures: the dark frames of each step's exposure where there are two or more, their
+    # temporal variance removed too (EMVA 1288), so no dark's noise or error counts as pattern
+    steps = sweep_uniformity(frames, corrections, dark_for=dark_for,
+                             dark_frames_for=dark_frames_by_exposure(frames))
     if not steps:
         raise HsiffcError(f"{args.sweep}: no light step with two or more frames; the fixed "
                           "pattern cannot be told from temporal noise with one frame per step")
@@ -140,14 +144,19 @@ def _cell(figures) -> str:
 
 def _add_study(sub):
     p = sub.add_parser(
-        "study-ffc", help="held-out flat-field correction study on the real EMVA 1288 sweep",
-        description="Calibrate on the even light steps and the darks of an EMVA 1288 sweep, "
-                    "correct the odd light steps with two-point FFC (2-frame flat, flat stack) "
-                    "and model_ffc, and write ffc_study.md, ffc_study.json and "
-                    "ffc_study.png (fixed-pattern non-uniformity against signal) into OUTDIR.")
+        "study-ffc", help="held-out flat-field correction study on an EMVA 1288 sweep",
+        description="Calibrate on the even light steps and the darks of an EMVA 1288 sweep "
+                    "(any bit depth; exposure or light sweep), correct the odd light steps "
+                    "with two-point FFC (2-frame flat near half saturation, flat stack) and "
+                    "model_ffc, and write ffc_study.md, ffc_study.json and ffc_study.png "
+                    "(fixed-pattern non-uniformity against signal, per range of saturation) "
+                    "into OUTDIR.")
     p.add_argument("outdir", type=Path, help="folder for the page (created if missing)")
     p.add_argument("--emva", type=Path, default=Path("../shared/data/emva1288-cmos8-roi"),
                    help="EMVA 1288 folder (default: ../shared/data/emva1288-cmos8-roi)")
+    p.add_argument("--goal", type=float, default=None,
+                   help="also check model_ffc at or below this percent from 12 %% of "
+                        "saturation up")
     add_overwrite(p, "replace the files of an earlier study in OUTDIR")
     p.set_defaults(func=_cmd_study, input_args=("emva",), output_dirs=("outdir",))
 
@@ -157,6 +166,6 @@ def _cmd_study(args) -> int:
 
     if not args.emva.exists():
         raise HsiffcError(f"--emva: {args.emva} not found; give the EMVA 1288 measurement folder")
-    paths = write_ffc_study(args.emva, args.outdir)
+    paths = write_ffc_study(args.emva, args.outdir, goal_percent=args.goal)
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0

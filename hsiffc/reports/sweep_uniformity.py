@@ -18,6 +18,7 @@ from ..dq import DQ
 from ..uniformity import FixedPattern, fixed_pattern_nonuniformity
 
 __all__ = ["SIGNAL_RANGES_DN", "signal_ranges_dn", "StepUniformity", "step_uniformity",
+           "dark_frames_by_exposure",
            "sweep_uniformity", "summarise", "to_json", "plot_uniformity"]
 
 log = logging.getLogger(__name__)
@@ -65,10 +66,12 @@ class StepUniformity:
         ``fpn_percent``)."""
         fp = self.raw if name is None else self.corrected[name]
         return {"eq6_percent": fp.pooled_eq6_percent, "fpn_percent": fp.pooled_fpn_percent,
-                "fpn_se_percent": fp.pooled_fpn_se_percent}
+                "fpn_se_percent": fp.pooled_fpn_se_percent,
+                "fpn_var_rel": fp.pooled_fpn_var_rel, "below_noise": fp.below_noise}
 
 
-def step_uniformity(frames, corrections: dict, *, dark=None) -> StepUniformity:
+def step_uniformity(frames, corrections: dict, *, dark=None,
+                    dark_frames=None) -> StepUniformity:
     """Fixed-pattern non-uniformity of one step's frames, raw and after each correction.
 
     Parameters
@@ -80,6 +83,10 @@ def step_uniformity(frames, corrections: dict, *, dark=None) -> StepUniformity:
     dark : (H, W) array or float, optional, DN
         Subtracted from the raw frames (default: the dark the first correction removed, else
         none).
+    dark_frames : (L, H, W) array, optional, DN
+        Dark frames of the step's exposure (L >= 2): the raw figure subtracts their mean and
+        removes their temporal variance (EMVA 1288), so neither a dark's noise nor a modelled
+        dark's error counts as the raw pattern; ``dark`` then only sets the signal level.
     """
     frames = list(frames)
     raw = np.stack([f.data for f in frames])
@@ -93,7 +100,13 @@ def step_uniformity(frames, corrections: dict, *, dark=None) -> StepUniformity:
                      if o[0].dark_removed is not None), None)
     band_map = frames[0].band_map()
     good = ~bad
-    raw_fp = fixed_pattern_nonuniformity(raw, band_map, dark=dark, mask=good)
+    if dark_frames is not None and len(dark_frames) >= 2:
+        dark_frames = np.asarray(dark_frames)
+        raw_fp = fixed_pattern_nonuniformity(raw, band_map, dark_stack=dark_frames, mask=good)
+        if dark is None:
+            dark = dark_frames.mean(axis=0)
+    else:
+        raw_fp = fixed_pattern_nonuniformity(raw, band_map, dark=dark, mask=good)
     corrected = {name: fixed_pattern_nonuniformity(np.stack([o.data for o in out]), band_map,
                                                    mask=good) for name, out in outs.items()}
     signal = raw.mean(axis=0) - (0.0 if dark is None else dark)
@@ -104,7 +117,8 @@ def step_uniformity(frames, corrections: dict, *, dark=None) -> StepUniformity:
                           flagged_fraction=float(bad.mean()), raw=raw_fp, corrected=corrected)
 
 
-def sweep_uniformity(frames, corrections: dict, *, dark_for=None, steps=None) -> list:
+def sweep_uniformity(frames, corrections: dict, *, dark_for=None, steps=None,
+                     dark_frames_for=None) -> list:
     """:func:`step_uniformity` for every light step with two or more frames.
 
     Parameters
@@ -117,6 +131,9 @@ def sweep_uniformity(frames, corrections: dict, *, dark_for=None, steps=None) ->
         first correction removed).
     steps : iterable of int, optional
         Only these steps.
+    dark_frames_for : callable, optional
+        ``dark_frames_for(exposure_ms) -> (L, H, W) or None``: dark frames of that exposure for
+        the raw figures (see :func:`step_uniformity`); :func:`dark_frames_by_exposure` makes one.
     """
     groups: dict = {}
     for f in frames:
@@ -130,9 +147,26 @@ def sweep_uniformity(frames, corrections: dict, *, dark_for=None, steps=None) ->
         if len(group) < 2 or (wanted is not None and key not in wanted):
             continue
         dark = None if dark_for is None else dark_for(group[0].exposure_ms)
-        out.append(step_uniformity(group, corrections, dark=dark))
+        dframes = None if dark_frames_for is None else dark_frames_for(group[0].exposure_ms)
+        out.append(step_uniformity(group, corrections, dark=dark, dark_frames=dframes))
         log.debug("step %s: %.1f DN", key, out[-1].signal_dn)
     return sorted(out, key=lambda s: s.signal_dn)
+
+
+def dark_frames_by_exposure(frames):
+    """``dark_frames_for(exposure_ms)`` for :func:`sweep_uniformity`: every dark frame of that
+    exposure (within 1e-6 relative), stacked, or None where fewer than two."""
+    darks: dict = {}
+    for f in frames:
+        if f.kind == "dark" and not f.is_cube:
+            darks.setdefault(float(f.exposure_ms), []).append(f.raw)
+
+    def dark_frames_for(exposure_ms):
+        for t, group in darks.items():
+            if abs(t - exposure_ms) <= 1e-6 * max(abs(t), 1e-9) and len(group) >= 2:
+                return np.stack(group)
+        return None
+    return dark_frames_for
 
 
 def summarise(steps, methods, *, ranges=SIGNAL_RANGES_DN,
@@ -151,10 +185,15 @@ def summarise(steps, methods, *, ranges=SIGNAL_RANGES_DN,
             figs = [s.figures(None if name == "raw" else name) for s in sel]
             vals, eq6, se = (np.array([f[k] for f in figs], float)
                              for k in ("fpn_percent", "eq6_percent", "fpn_se_percent"))
+            var_rel = np.array([f.get("fpn_var_rel", np.nan) for f in figs], float)
+            med_var = _nanmedian_or_nan(var_rel)
             # no finite figure (every pixel of the range's steps flagged): no worst step
             worst = int(np.nanargmax(vals)) if np.isfinite(vals).any() else None
             row["methods"][name] = {
-                "fpn_percent_median": _nanmedian_or_nan(vals),
+                # the median of the signed variance: below the noise when it is not positive
+                "fpn_percent_median": (100 * float(np.sqrt(max(med_var, 0.0)))
+                                       if np.isfinite(med_var) else _nanmedian_or_nan(vals)),
+                "below_noise": bool(np.isfinite(med_var) and med_var <= 0),
                 "fpn_percent_max": float("nan") if worst is None else float(vals[worst]),
                 "worst_step": None if worst is None else sel[worst].step,
                 "worst_signal_dn": None if worst is None else sel[worst].signal_dn,
