@@ -38,6 +38,7 @@ import contextvars
 import errno
 import os
 import re
+import stat
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,8 +47,8 @@ from .errors import HsiffcError
 
 __all__ = ["FolderLockedError", "OutputError", "OutputExistsError", "WritePolicy",
            "atomic_path", "atomic_write_bytes", "atomic_write_text", "check_output",
-           "check_output_folder", "current_policy", "folder_lock", "protect_inputs",
-           "write_policy"]
+           "check_output_folder", "current_policy", "file_kind", "folder_lock",
+           "protect_inputs", "require_regular_input", "require_private_file", "write_policy"]
 
 PART_SUFFIX = ".part"
 
@@ -58,6 +59,91 @@ class OutputError(HsiffcError, OSError):
 
 class OutputExistsError(OutputError, FileExistsError):
     """The output exists and replacing it was not asked for."""
+
+
+# -- file kinds: the one place that says whether a path is a regular file we may touch --------
+def file_kind(st: os.stat_result) -> str:
+    """What a ``stat``/``lstat`` result describes, in words ("a regular file", "a named pipe
+    (FIFO)", "a character device", ...)."""
+    mode = st.st_mode
+    for test, words in ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a folder"),
+                        (stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
+                        (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                        (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return words
+    return "not a regular file"
+
+
+def require_regular_input(path, *, what: str = "input") -> os.stat_result:
+    """Check, without opening it, that ``path`` is a regular file hsiffc may read.
+
+    A named pipe, device or socket given (or found) where a file is expected is refused before
+    anything opens it: opening a FIFO blocks until a writer comes, and ``/dev/zero`` never
+    ends. A symbolic link to a regular file is read (it is an input, never written).
+
+    Parameters
+    ----------
+    path : path-like
+    what : str
+        What the file is (for the message), e.g. "EMVA 1288 descriptor".
+
+    Returns
+    -------
+    os.stat_result
+        The file's ``stat`` (sizes checked against it need no second call).
+
+    Raises
+    ------
+    DataFormatError
+        Missing, or not a regular file; one line naming the file and what it is.
+    """
+    from .errors import DataFormatError
+
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise DataFormatError(f"{what} not found; check the path", path=path) from None
+    except OSError as exc:
+        raise DataFormatError(f"cannot read this {what} ({exc.strerror}); check the path and "
+                              "its permissions", path=path) from None
+    if not stat.S_ISREG(st.st_mode):
+        raise DataFormatError(f"is {file_kind(st)}, not a regular file; hsiffc reads an {what} "
+                              "only from a regular file (it never opens pipes, devices or "
+                              "sockets): give a file", path=path)
+    return st
+
+
+def require_private_file(path, st: os.stat_result, *, what: str) -> None:
+    """Refuse to write into an existing file unless it is a regular file with one name.
+
+    hsiffc writes its outputs as new files and renames them (a hard link elsewhere keeps the
+    old data); the few files it opens and writes in place (the batch folder lock) must be
+    regular files with a single name (``st_nlink == 1``), so that a hard link to an input, a
+    FIFO or a device planted at that name is never written into.
+
+    Parameters
+    ----------
+    path : path-like
+        The name (for the message).
+    st : os.stat_result
+        ``lstat`` of the name, or ``fstat`` of the file opened at it.
+    what : str
+        What hsiffc wanted to write (for the message).
+
+    Raises
+    ------
+    OutputError
+        Not a regular file, or a file with more than one name.
+    """
+    if not stat.S_ISREG(st.st_mode):
+        raise OutputError(f"{path}: is {file_kind(st)}, not the {what} hsiffc writes; hsiffc "
+                          "never writes into it: remove it (or choose another output folder)")
+    if st.st_nlink != 1:
+        raise OutputError(f"{path}: is a hard link ({st.st_nlink} names for one file, e.g. an "
+                          f"input), not the {what} hsiffc writes; hsiffc never writes into it: "
+                          "remove this name (the other names keep the data) or choose another "
+                          "output folder")
 
 
 # -- the policy -------------------------------------------------------------------------------
@@ -197,12 +283,14 @@ def check_output(path, *, overwrite: bool | None = None, inputs=()) -> Path:
     if path.is_dir():
         raise OutputError(f"{path}: is a folder; give a file name (the folder was left as it "
                           "was)")
-    if os.path.lexists(path) and not path.is_file():
-        # a FIFO, socket or device node: renaming a file onto it would replace the node itself
-        # (as root, /dev/full or /dev/stdout for every process), never write into it
-        raise OutputError(f"{path}: is not a regular file (a device, pipe or socket); hsiffc "
-                          "writes outputs as new files and never replaces such a node, even "
-                          "with --overwrite: give a file name")
+    with contextlib.suppress(OSError):
+        st = os.lstat(path)
+        if not stat.S_ISREG(st.st_mode):
+            # a FIFO, socket or device node: renaming a file onto it would replace the node
+            # itself (as root, /dev/full or /dev/stdout for every process), never write into it
+            raise OutputError(f"{path}: is {file_kind(st)}, not a regular file (a device, pipe "
+                              "or socket); hsiffc writes outputs as new files and never "
+                              "replaces such a node, even with --overwrite: give a file name")
     if os.path.lexists(path) and not allowed:
         raise OutputExistsError(f"{path}: already exists; pass --overwrite (in Python: "
                                 "overwrite=True) to replace it, or choose another name (the "

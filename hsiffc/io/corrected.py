@@ -2,7 +2,10 @@
 
 File layout
 -----------
-* Pages come in groups of three, one group per input frame, in the input's order::
+* Pages come in groups of three (two for a cube without alpha: ``"pages_per_frame"``), one
+  group per input frame, in the input's order (format 2 also holds cubes: each page then is
+  ``(H, W, B)``, the bands as samples of each pixel, and ``"frame_shape"`` has three
+  entries; pages may be compressed, ``"compression"``)::
 
       page 3k + 0   data   float32 (H, W)   corrected frame k (DN)
       page 3k + 1   dq     uint32  (H, W)   hsiffc.dq.DQ bits of frame k
@@ -14,7 +17,8 @@ File layout
   ``(N, H, W)``. Slicing pages (``key=slice(j, None, 3)``) works with any TIFF reader.
 * The ImageDescription of the first page holds the provenance as one JSON object (ASCII):
   ``"format": "hsiffc-corrected"``, ``"format_version"``, ``"status": "complete"``, ``"planes"``,
-  ``"n_frames"``, ``"frame_shape"``, the input (path, size, mtime_ns, sha256), the calibration
+  ``"n_frames"``, ``"frame_shape"``, ``"dq_bits"`` (the DQ bit table: name, value, bit,
+  meaning, so the DQ plane is decoded with the file alone), the input (path, size, mtime_ns, sha256), the calibration
   (identity, path), the pipeline (steps with parameters, fingerprint), ``"hsiffc_version"``,
   per-frame ``"exposure"`` (ms), ``"kind"``, ``"illumination"``, per-frame statistics and
   timing. It is written as a padded placeholder with ``"status": "incomplete"`` before the
@@ -37,7 +41,6 @@ This module reads the layout back; :mod:`hsiffc.io.corrected_writer` writes it
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,6 +51,7 @@ import tifffile
 from ..errors import DataFormatError
 from .corrected_format import FORMAT, FORMAT_VERSION, PLANE_DTYPES, PLANES, SUFFIX
 from .corrected_writer import BackgroundWriter, CorrectedWriter
+from .parsers import load_json
 from .tiffpages import TiffLog
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "PLANES", "SUFFIX", "BackgroundWriter", "Corrected",
@@ -61,11 +65,12 @@ class Corrected:
 
     Parameters
     ----------
-    data : ndarray of float32, (N, H, W)
-        Corrected values (DN as the pipeline produced them).
-    dq : ndarray of uint32, (N, H, W)
-        DQ bits.
-    alpha : ndarray of float32, (N, H, W), percent
+    data : ndarray of float32, (N, H, W) or (N, H, W, B)
+        Corrected values (DN as the pipeline produced them); cubes when the pipeline's last
+        step reconstructs (band order and wavelengths in ``provenance["cube"]``).
+    dq : ndarray of uint32, same shape
+        DQ bits (their names and values: ``provenance["dq_bits"]``).
+    alpha : ndarray of float32, same shape, percent
         Leakage percentage (NaN where the pipeline computed none).
     provenance : dict
         The file's provenance JSON.
@@ -94,8 +99,8 @@ def _open_checked(tf, path: Path) -> dict:
         raise DataFormatError("the TIFF holds no page; not an hsiffc corrected file", path=path)
     text = (pages[0].description or "").strip()
     try:
-        doc = json.loads(text) if text.startswith("{") else None
-    except ValueError:
+        doc = load_json(text, path=path, what="description") if text.startswith("{") else None
+    except DataFormatError:
         doc = None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise DataFormatError(f'not an hsiffc corrected file (no "format": "{FORMAT}" in the '
@@ -199,8 +204,11 @@ def iter_corrected(path):
     with _open(path) as tf:
         doc = _open_checked(tf, path)
         per = doc.get("pages_per_frame", len(PLANES))
+        shape = tuple(doc["frame_shape"])
         for k in range(doc["n_frames"]):
-            data, dq, alpha = (tf.pages[per * k + j].asarray() for j in range(3))
+            data, dq = (tf.pages[per * k + j].asarray().reshape(shape) for j in range(2))
+            alpha = (tf.pages[per * k + 2].asarray().reshape(shape) if per > 2
+                     else np.full(shape, np.nan, np.float32))
             yield k, data, dq, alpha
 
 
@@ -225,9 +233,11 @@ def read_corrected(path, frames=None) -> Corrected:
         index = np.arange(doc["n_frames"])
         if frames is not None:
             index = np.atleast_1d(index[frames])
-        h, w = doc["frame_shape"]
-        out = [np.empty((len(index), h, w), PLANE_DTYPES[p]) for p in PLANES]
+        shape = tuple(doc["frame_shape"])
+        out = [np.empty((len(index),) + shape, PLANE_DTYPES[p]) for p in PLANES]
         for i, k in enumerate(index):
-            for j in range(3):
-                out[j][i] = tf.pages[per * int(k) + j].asarray()
+            for j in range(min(per, 3)):
+                out[j][i] = tf.pages[per * int(k) + j].asarray().reshape(shape)
+        if per < 3:  # a cube file without alpha pages
+            out[2].fill(np.nan)
     return Corrected(out[0], out[1], out[2], doc)

@@ -8,7 +8,6 @@ with one error per problem naming the file, the key and the fix.
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 
@@ -107,11 +106,9 @@ def parse_document(description: str, path) -> dict:
     text = description.strip()
     if not text.startswith("{"):
         raise DataFormatError(f"plain TIFF without hsiffc metadata; {hint}", path=path)
-    try:
-        doc = json.loads(text)
-    except ValueError as exc:
-        raise DataFormatError(f"the ImageDescription is not valid JSON ({exc}); {hint}",
-                              path=path) from exc
+    from .parsers import load_json
+
+    doc = load_json(text, path=path, what="ImageDescription", hint=hint)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
         raise DataFormatError('plain TIFF without hsiffc metadata (its ImageDescription JSON '
                               f'lacks "format": "hsiffc"); {hint}', path=path)

@@ -23,7 +23,7 @@ taken as spatial steps; their step ids are listed in ``meta["spatial_steps"]`` a
 
 from __future__ import annotations
 
-import contextlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -43,42 +43,53 @@ __all__ = ["read_emva1288", "open_emva1288", "find_emva_descriptor", "has_emva_d
 SPATIAL_FACTOR = 2.0  # a step with more than this x the median images per step is "spatial"
 
 
-@contextlib.contextmanager
-def _quiet_opencv(cv2):
-    """Silence OpenCV's own stderr warnings while decoding (we raise clear errors instead)."""
-    try:
-        level = cv2.utils.logging.getLogLevel()
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    except AttributeError:  # very old OpenCV: nothing to silence
-        yield
-        return
-    try:
-        yield
-    finally:
-        cv2.utils.logging.setLogLevel(level)
+def _load_image(image: Path, descriptor: Path, lineno: int, shape: tuple) -> np.ndarray:
+    """Decode one image named by an ``i`` line, after checking from its header (PNG ``IHDR``,
+    TIFF page) that it is one plane of the size the ``n`` line declares: the descriptor's size
+    is what the limits were checked against, so an image claiming more is refused before any
+    pixel is decoded."""
+    from ..atomic import require_regular_input
+    from .images import decode_png, png_header
 
-
-def _load_image(cv2, image: Path, descriptor: Path, lineno: int) -> np.ndarray:
     where = f"line {lineno}: image {image}"
-    if not image.is_file():
+    if not os.path.lexists(image):
         raise DataFormatError(f"{where} not found; check the 'i' line and that the images were "
                               "copied with the descriptor", path=descriptor)
-    if image.suffix.lower() in (".tif", ".tiff"):
-        try:
-            return tifffile.imread(image)
-        except Exception as exc:
-            raise DataFormatError(f"{where} is unreadable or truncated ({exc}); copy it again",
-                                  path=descriptor) from exc
     try:
-        buffer = np.fromfile(image, dtype=np.uint8)
-    except OSError as exc:
-        raise DataFormatError(f"{where} cannot be read ({exc}); check the permissions",
+        require_regular_input(image, what="image")
+        if image.suffix.lower() in (".tif", ".tiff"):
+            with tifffile.TiffFile(image) as tf:
+                pages = tf.pages
+                found = (len(pages),) + tuple(pages[0].shape) if len(pages) else (0,)
+                if found != (1,) + tuple(shape):
+                    _wrong_size(where, found[1:] if found[0] == 1 else found, shape,
+                                descriptor)
+                return pages[0].asarray()
+        facts = png_header(image)
+        channels = {0: 1, 2: 3, 4: 2, 6: 4}.get(facts["colour_type"], 1)
+        found = (facts["height"], facts["width"]) + ((channels,) if channels > 1 else ())
+        if found != tuple(shape):
+            _wrong_size(where, found, shape, descriptor)
+        return decode_png(image, facts)
+    except DataFormatError as exc:
+        if exc.path == str(descriptor):
+            raise
+        text = str(exc)
+        if exc.path and text.startswith(f"{exc.path}: "):
+            text = text[len(exc.path) + 2:]
+        raise DataFormatError(f"{where} is unreadable or truncated: {text}",
                               path=descriptor) from exc
-    array = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if buffer.size else None
-    if array is None:
-        raise DataFormatError(f"{where} is unreadable or truncated (OpenCV could not decode it); "
-                              "copy it again", path=descriptor)
-    return array
+    except Exception as exc:  # tifffile, OpenCV: a damaged or cut file
+        raise DataFormatError(f"{where} is unreadable or truncated ({type(exc).__name__}: "
+                              f"{' '.join(str(exc).split())[:200]}); copy it again",
+                              path=descriptor) from exc
+
+
+def _wrong_size(where: str, found: tuple, shape: tuple, descriptor: Path):
+    dims = " x ".join(str(int(s)) for s in found)
+    raise DataFormatError(f"{where} is {dims} but the 'n' line says {shape[0]} rows x "
+                          f"{shape[1]} columns (single channel); nothing was decoded: fix the "
+                          "'n' line or the image", path=descriptor)
 
 
 def read_emva1288(path, *, exposure_unit: str = "ns", steps=None,
@@ -156,8 +167,6 @@ def open_emva1288(path, limits: ReadLimits, *, exposure_unit: str = "ns", steps=
     ValueError
         Unknown ``exposure_unit`` or ``max_frames_per_step`` < 1.
     """
-    import cv2  # opencv-python-headless (core dependency); imported here to keep import light
-
     path = Path(path)
     if not path.exists():
         raise DataFormatError("EMVA 1288 descriptor or folder not found; check the path",
@@ -194,8 +203,7 @@ def open_emva1288(path, limits: ReadLimits, *, exposure_unit: str = "ns", steps=
     def read(k: int) -> np.ndarray:
         _, _, name, lineno = plan[k]
         image = root / image_path(name)
-        with _quiet_opencv(cv2):
-            array = _load_image(cv2, image, descriptor, lineno)
+        array = _load_image(image, descriptor, lineno, (height, width))
         if array.shape != (height, width):
             raise DataFormatError(
                 f"line {lineno}: image {image} is {array.shape} but the 'n' line says "

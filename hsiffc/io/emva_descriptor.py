@@ -4,7 +4,9 @@ builds the sweep from what this module parses)."""
 
 from __future__ import annotations
 
+import os
 import re
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +65,8 @@ def find_emva_descriptor(folder) -> Path:
     found = []
     for txt in sorted(folder.glob("*.txt")):
         try:
+            if not stat.S_ISREG(os.stat(txt).st_mode):
+                continue  # a FIFO, device or socket named *.txt is never opened (it may block)
             text = txt.read_text(errors="replace")
         except OSError:
             continue
@@ -130,6 +134,9 @@ def image_path(name: str) -> str:
 
 
 def parse_descriptor(descriptor: Path):
+    from ..atomic import require_regular_input
+
+    require_regular_input(descriptor, what="EMVA 1288 descriptor")
     try:
         text = descriptor.read_text(encoding="utf-8", errors="replace")
     except OSError as exc:

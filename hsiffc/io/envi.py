@@ -259,7 +259,13 @@ def open_envi(path, limits: ReadLimits) -> FileLayout:
             break
     for key in ("bit depth", "data bit depth"):
         if key in head:
-            layout.give("bit_depth", _int(head, key, header), f"file (ENVI header '{key}')")
+            bits = _int(head, key, header)
+            most = 8 * dtype.itemsize if dtype.kind in "ui" else 32
+            if not 1 <= bits <= min(most, 32):
+                raise DataFormatError(f"header field '{key}' = {head[key]!r} is not a bit depth "
+                                      f"1..{min(most, 32)} (the data are {dtype.name}); correct "
+                                      "the header", path=header)
+            layout.give("bit_depth", bits, f"file (ENVI header '{key}')")
     if wavelengths is not None:
         layout.meta["wavelengths_nm"] = wavelengths
     for key in ("gain", "description", "sensor type", "band names"):

@@ -167,7 +167,8 @@ def open_fits(path, limits: ReadLimits) -> FileLayout:
             dtype = _stored_type(bitpix, bzero, bscale)
             limits.check_frames(path=path, n_frames=n, shape=(h, w), itemsize=dtype.itemsize)
             info = hdul.fileinfo(index) or {}
-            need = info.get("datLoc", 0) + n * h * w * abs(bitpix) // 8
+            need = info.get("datLoc", 0) + _stored_bytes(hdul[index], fits, n * h * w *
+                                                         abs(bitpix) // 8)
             size = path.stat().st_size
             if size < need:
                 raise DataFormatError(f"file is truncated: the header needs {need} bytes but "
@@ -211,6 +212,21 @@ def open_fits(path, limits: ReadLimits) -> FileLayout:
     if gain is not None:
         layout.meta["gain"] = gain
     return layout
+
+
+def _stored_bytes(hdu, fits, image_bytes: int) -> int:
+    """Bytes the data of ``hdu`` take in the file: the image's size, or for a tile-compressed
+    image (``CompImageHDU``, what fpack writes) the size of its binary table and heap
+    (``NAXIS1 * NAXIS2 + PCOUNT`` of the table header), which is far below the image's."""
+    if not isinstance(hdu, fits.CompImageHDU):
+        return image_bytes
+    table = getattr(getattr(hdu, "_bintable", None), "header", None)
+    if table is None:  # another astropy layout: the header gives no compressed size to check
+        return 0
+    try:
+        return int(table["NAXIS1"]) * int(table["NAXIS2"]) + int(table.get("PCOUNT", 0))
+    except (KeyError, TypeError, ValueError):
+        return 0
 
 
 def _inherits(head, primary) -> bool:

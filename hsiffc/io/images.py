@@ -1,8 +1,10 @@
 """PNG frames (8- or 16-bit, one frame per file), as cameras and OpenCV/Pillow write them.
 
-The header is read by hand before decoding: the ``IHDR`` chunk gives the size, bit depth and
-colour type (checked against the size limits), the chunk chain must reach ``IEND`` inside the
-file (else the file is truncated), and an ``sBIT`` chunk, when present, gives the significant
+The header is read by hand before decoding: the ``IHDR`` chunk (the first chunk, 13 bytes,
+only one) gives the size, bit depth and colour type (checked against the size limits), the
+chunk chain must reach ``IEND`` inside the file (else the file is truncated), every chunk's
+CRC and the inflated image data are checked before the decoder sees them (so libpng never
+prints its own error lines), and an ``sBIT`` chunk, when present, gives the significant
 bits of the samples (e.g. 12 in a 16-bit PNG) as the bit depth. Palette PNGs are refused (they
 do not hold counts). Gray+alpha and RGB(A) PNGs give 4- or 3-channel frames that
 :mod:`hsiffc.io.quirks` reduces to one channel when the channels are equal.
@@ -11,6 +13,7 @@ do not hold counts). Gray+alpha and RGB(A) PNGs give 4- or 3-channel frames that
 from __future__ import annotations
 
 import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -19,16 +22,50 @@ from ..errors import DataFormatError
 from .layout import FileLayout
 from .limits import ReadLimits
 
-__all__ = ["open_png", "png_header"]
+__all__ = ["check_png_data", "decode_png", "open_png", "png_header"]
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # PNG colour type -> channels after OpenCV's IMREAD_UNCHANGED decoding
 _CHANNELS = {0: 1, 2: 3, 4: 4, 6: 4}
 
 
+# valid IHDR bit depths per colour type, and samples per pixel (PNG specification, 11.2.2)
+_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
+_SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+# Adam7 passes: (first column, first row, column step, row step)
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2),
+          (0, 1, 1, 2))
+
+
+def _damaged(path, what: str) -> DataFormatError:
+    return DataFormatError(f"the PNG is damaged: {what}; copy or write it again", path=path)
+
+
+def _ihdr(body: bytes, path) -> dict:
+    """The fields of an IHDR chunk body, each checked against the PNG specification."""
+    if len(body) != 13:
+        raise _damaged(path, f"its IHDR header chunk is {len(body)} bytes, not 13")
+    width, height, depth, colour, compression, filtering, interlace = struct.unpack(
+        ">IIBBBBB", body)
+    if not (0 < width < 2 ** 31 and 0 < height < 2 ** 31):
+        raise _damaged(path, f"its IHDR states a size of {width} x {height} pixels")
+    if colour not in _DEPTHS or depth not in _DEPTHS[colour]:
+        raise _damaged(path, f"its IHDR states colour type {colour} with {depth}-bit samples, "
+                             "which PNG does not define")
+    if compression or filtering or interlace not in (0, 1):
+        raise _damaged(path, f"its IHDR states compression {compression}, filter method "
+                             f"{filtering}, interlace {interlace} (PNG defines 0, 0 and 0/1)")
+    return {"width": width, "height": height, "bit_depth": depth, "colour_type": colour,
+            "interlace": interlace}
+
+
 def png_header(path) -> dict:
     """Facts of a PNG's chunks without decoding it: ``width``, ``height``, ``bit_depth`` (per
-    sample), ``colour_type``, ``significant_bits`` (sBIT or None), ``text`` (tEXt chunks).
+    sample), ``colour_type``, ``interlace``, ``significant_bits`` (sBIT or None), ``text``
+    (tEXt chunks).
+
+    The ``IHDR`` chunk must come first, be 13 bytes and be the only one (a second header,
+    which a decoder might read instead of the first, is refused).
 
     Parameters
     ----------
@@ -42,7 +79,8 @@ def png_header(path) -> dict:
     Raises
     ------
     DataFormatError
-        Not a PNG, or the chunk chain ends before ``IEND`` (truncated file).
+        Not a PNG, a malformed or repeated IHDR, or the chunk chain ends before ``IEND``
+        (truncated file).
     """
     path = Path(path)
     size = path.stat().st_size
@@ -63,6 +101,9 @@ def png_header(path) -> dict:
                 raise DataFormatError(f"file is truncated: chunk {kind!r} needs bytes up to "
                                       f"{offset + 12 + length} but the file has {size}; copy or "
                                       "write it again", path=path)
+            if (offset == 8) != (kind == b"IHDR"):
+                raise _damaged(path, "its IHDR header chunk is not the first chunk or appears "
+                                     "twice")
             if kind in (b"IHDR", b"sBIT", b"tEXt"):
                 body = fh.read(length)
                 fh.seek(4, 1)
@@ -71,8 +112,7 @@ def png_header(path) -> dict:
                 fh.seek(length + 4, 1)
             offset += 12 + length
             if kind == b"IHDR":
-                width, height, depth, colour = struct.unpack(">IIBB", body[:10])
-                facts.update(width=width, height=height, bit_depth=depth, colour_type=colour)
+                facts.update(_ihdr(body, path))
             elif kind == b"sBIT" and body:
                 facts["significant_bits"] = max(body)
             elif kind == b"tEXt" and b"\0" in body:
@@ -80,9 +120,115 @@ def png_header(path) -> dict:
                 facts["text"][key.decode("latin-1")] = value.decode("latin-1")[:500]
             elif kind == b"IEND":
                 break
-    if "width" not in facts:
-        raise DataFormatError("the PNG has no IHDR header chunk; the file is damaged", path=path)
     return facts
+
+
+def _inflated_rows(facts) -> list[tuple[int, int]]:
+    """(rows, bytes per row with its filter byte) of each pass of the image's data stream."""
+    bits = facts["bit_depth"] * _SAMPLES[facts["colour_type"]]
+    w, h = facts["width"], facts["height"]
+    passes = _ADAM7 if facts["interlace"] else ((0, 0, 1, 1),)
+    out = []
+    for x0, y0, dx, dy in passes:
+        pw, ph = -(-(w - x0) // dx) if w > x0 else 0, -(-(h - y0) // dy) if h > y0 else 0
+        if pw and ph:
+            out.append((ph, 1 + -(-(pw * bits) // 8)))
+    return out
+
+
+def check_png_data(blob: bytes, facts: dict, path) -> None:
+    """Check a whole PNG in memory before a decoder sees it, so that libpng never meets damage
+    it would report on stderr: every chunk's CRC, the image data (``IDAT``) in one run of
+    chunks, inflating to exactly the size the header states, with a valid filter type (0..4)
+    on every row.
+
+    Parameters
+    ----------
+    blob : bytes
+        The file's content.
+    facts : dict
+        :func:`png_header` of the same file.
+    path : str or Path
+        The file (for the message).
+
+    Raises
+    ------
+    DataFormatError
+        One line naming the file and the damage.
+    """
+    offset, idat, runs, last = 8, [], 0, None
+    while offset + 12 <= len(blob):
+        length, kind = struct.unpack(">I4s", blob[offset:offset + 8])
+        body = blob[offset + 8:offset + 8 + length]
+        crc = blob[offset + 8 + length:offset + 12 + length]
+        if len(crc) < 4:
+            break
+        if zlib.crc32(kind + body) != struct.unpack(">I", crc)[0]:
+            raise _damaged(path, f"chunk {kind.decode('latin-1')!r} at byte {offset} fails its "
+                                 "CRC check")
+        if kind == b"IDAT":
+            runs += last != b"IDAT"
+            idat.append(body)
+        last = kind
+        offset += 12 + length
+        if kind == b"IEND":
+            break
+    if not idat or runs != 1:
+        raise _damaged(path, "its image data (IDAT chunks) are missing or not in one run")
+    rows = _inflated_rows(facts)
+    expected = sum(n * stride for n, stride in rows)
+    inflater = zlib.decompressobj()
+    try:
+        raw = inflater.decompress(b"".join(idat), expected + 1)
+    except zlib.error as exc:
+        raise _damaged(path, f"its image data do not inflate ({exc})") from None
+    if len(raw) != expected or not inflater.eof:
+        raise _damaged(path, f"its image data inflate to {len(raw)}{'+' * (len(raw) > expected)}"
+                             f" bytes{'' if inflater.eof else ' (the stream does not end)'}, "
+                             f"the header states {expected}")
+    at = 0
+    for n, stride in rows:
+        filters = np.frombuffer(raw, np.uint8, n * stride, at)[::stride]
+        at += n * stride
+        if filters.max(initial=0) > 4:
+            raise _damaged(path, f"a row has filter type {int(filters.max())} (PNG defines 0..4)")
+
+
+def decode_png(path, facts: dict | None = None) -> np.ndarray:
+    """Decode a PNG checked first by :func:`check_png_data` (OpenCV, ``IMREAD_UNCHANGED``).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    facts : dict, optional
+        Its :func:`png_header` (read when not given).
+
+    Returns
+    -------
+    ndarray
+        (H, W) or (H, W, C) as OpenCV decodes it.
+
+    Raises
+    ------
+    DataFormatError
+        A damaged file (one line; libpng prints nothing).
+    """
+    import cv2
+
+    facts = facts or png_header(path)
+    blob = Path(path).read_bytes()
+    check_png_data(blob, facts, path)
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        array = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+    if array is None:
+        raise DataFormatError("the PNG cannot be decoded (damaged data); copy or write it "
+                              "again", path=path)
+    return array
 
 
 def open_png(path, limits: ReadLimits) -> FileLayout:
@@ -123,19 +269,7 @@ def open_png(path, limits: ReadLimits) -> FileLayout:
     limits.check_frames(path=path, n_frames=1, shape=shape, itemsize=dtype.itemsize)
 
     def read(k: int) -> np.ndarray:
-        import cv2
-
-        buffer = np.fromfile(path, dtype=np.uint8)
-        level = cv2.utils.logging.getLogLevel()
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-        try:
-            array = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED)
-        finally:
-            cv2.utils.logging.setLogLevel(level)
-        if array is None:
-            raise DataFormatError("the PNG cannot be decoded (damaged data); copy or write it "
-                                  "again", path=path)
-        return array
+        return decode_png(path, facts)
 
     layout = FileLayout(path=path, format="png", n_frames=1, shape=shape, dtype=dtype,
                         read=read)

@@ -14,11 +14,19 @@ limit                       default               environment variable
 pixels per frame            100 000 000 (100 MP)  ``HSIFFC_MAX_FRAME_PIXELS``
 frames per input            1 000 000             ``HSIFFC_MAX_FRAMES``
 bytes loaded at once        8 GiB                 ``HSIFFC_MAX_BYTES``
+samples of a spectral grid  100 000               ``HSIFFC_MAX_SPECTRAL_SAMPLES``
 ==========================  ====================  ========================================
 
 "Bytes loaded at once" is the decoded size of everything a command holds in memory together:
 a whole sweep for ``info``/``calibrate``/``fit`` (:meth:`FrameSource.to_sweep`), a single frame
-when frames are streamed (``hsiffc correct``).
+when frames are streamed (``hsiffc correct``). "Samples of a spectral grid" bounds the
+wavelength grids a file declares (an IMEC sensor calibration's measurement range and step)
+before arrays of that length are made: 100 000 samples is a 0.1 nm grid over 10 um.
+
+Other files are checked from their headers against the same limits: the images an EMVA 1288
+descriptor names (each must be the size its ``n`` line declares, read from the PNG or TIFF
+header before decoding), the arrays of a calibration or pipeline file (their stored ``.npy``
+headers, before they are inflated: :func:`check_npz_members`).
 """
 
 from __future__ import annotations
@@ -31,7 +39,7 @@ from ..errors import DataFormatError
 __all__ = ["ReadLimits", "default_limits"]
 
 _ENV = {"max_frame_pixels": "HSIFFC_MAX_FRAME_PIXELS", "max_frames": "HSIFFC_MAX_FRAMES",
-        "max_bytes": "HSIFFC_MAX_BYTES"}
+        "max_bytes": "HSIFFC_MAX_BYTES", "max_spectral_samples": "HSIFFC_MAX_SPECTRAL_SAMPLES"}
 
 
 @dataclass(frozen=True)
@@ -46,11 +54,37 @@ class ReadLimits:
         Frames in one input (a file, folder or glob).
     max_bytes : int
         Decoded bytes held in memory at once.
+    max_spectral_samples : int
+        Samples of a wavelength grid a file declares.
     """
 
     max_frame_pixels: int = 100_000_000
     max_frames: int = 1_000_000
     max_bytes: int = 8 * 1024 ** 3
+    max_spectral_samples: int = 100_000
+
+    def check_spectral_samples(self, *, path, field: str, n: int) -> None:
+        """Refuse a wavelength grid of more than ``max_spectral_samples`` samples.
+
+        Parameters
+        ----------
+        path : str or Path
+            The file (for the message).
+        field : str
+            The element or key that declares the grid (for the message).
+        n : int
+            Samples the grid would have.
+
+        Raises
+        ------
+        DataFormatError
+            One line naming the file, the field, the count, the limit and how to raise it.
+        """
+        if n > self.max_spectral_samples:
+            raise DataFormatError(
+                f"{field} declares a grid of {n:,} samples, more than the limit of "
+                f"{self.max_spectral_samples:,}; correct the file, or if it is genuine raise the "
+                f"limit ({_ENV['max_spectral_samples']}=...)", path=path)
 
     def check_frames(self, *, path, n_frames: int, shape, itemsize: int) -> None:
         """Refuse a header that states more than the limits allow (nothing decoded yet).

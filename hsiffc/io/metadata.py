@@ -131,7 +131,8 @@ class Overrides:
                 if f.name != "sidecar" and getattr(self, f.name) is not None}
 
 
-def parse_mosaic(spec, *, base=None, path=None) -> tuple[Mosaic, ActiveArea | None]:
+def parse_mosaic(spec, *, base=None, path=None, frame_shape=None,
+                 origin: str = "") -> tuple[Mosaic, ActiveArea | None]:
     """A mosaic from ``"4x4"``, ``"5x5"``, ``"WxH"`` (tile width x height) or an IMEC XML path.
 
     Parameters
@@ -142,6 +143,11 @@ def parse_mosaic(spec, *, base=None, path=None) -> tuple[Mosaic, ActiveArea | No
         Folder a relative XML path is relative to (a sidecar's folder).
     path : str or Path, optional
         The data file (for the messages).
+    frame_shape : tuple of int, optional
+        (H, W) of the frames: a tile larger than the frame is refused before the tile's
+        pattern is built (a "100000x100000" tile would take 80 GB).
+    origin : str
+        Where the value came from ("sidecar x.toml", "--mosaic"), for the messages.
 
     Returns
     -------
@@ -161,8 +167,14 @@ def parse_mosaic(spec, *, base=None, path=None) -> tuple[Mosaic, ActiveArea | No
     match = _TILE.match(text)
     if match:
         width, height = int(match.group(1)), int(match.group(2))
+        where = f" from {origin}" if origin else ""
         if width < 1 or height < 1:
-            raise DataFormatError(f"mosaic {text!r}: tile sizes must be >= 1", path=path)
+            raise DataFormatError(f"mosaic {text!r}{where}: tile sizes must be >= 1", path=path)
+        if frame_shape is not None and (height > frame_shape[0] or width > frame_shape[1]):
+            raise DataFormatError(
+                f"mosaic {text!r}{where}: a tile of {width} x {height} px (W x H) is larger than "
+                f"the frames ({frame_shape[1]} x {frame_shape[0]} px); give the filter pattern's "
+                "tile size (e.g. 4x4, 5x5) there", path=path)
         return Mosaic.rectangular(height, width, name=f"{width}x{height}"), None
     xml = Path(text)
     if base is not None and not xml.is_absolute():
@@ -178,7 +190,8 @@ def parse_mosaic(spec, *, base=None, path=None) -> tuple[Mosaic, ActiveArea | No
     mosaic = cal.mosaic()
     fa = cal.filter_area
     area = ActiveArea(fa.offset_y, fa.offset_x, fa.height, fa.width)
-    return Mosaic(mosaic.pattern, mosaic.wavelengths_nm, (0, 0), name=mosaic.name), area
+    return Mosaic(mosaic.pattern, mosaic.wavelengths_nm, (0, 0), name=mosaic.name,
+                  fwhm_nm=mosaic.fwhm_nm), area
 
 
 def missing_field_error(path, name: str, *, sidecar=None) -> DataFormatError:
@@ -272,13 +285,15 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
         value, origin = candidates[0]
         if name == "mosaic" and not isinstance(value, Mosaic):
             base = sidecar.path.parent if origin == side_label else None
-            value, area = parse_mosaic(value, base=base, path=layout.path)
+            value, area = parse_mosaic(value, base=base, path=layout.path,
+                                       frame_shape=layout.shape[:2], origin=origin)
             if area is not None:
                 values["active_area"] = area
         for other, other_origin in candidates[1:]:
             if name == "mosaic" and not isinstance(other, Mosaic):
                 base = sidecar.path.parent if other_origin == side_label else None
-                other = parse_mosaic(other, base=base, path=layout.path)[0]
+                other = parse_mosaic(other, base=base, path=layout.path,
+                                     frame_shape=layout.shape[:2], origin=other_origin)[0]
             if not _same(value, other):
                 warnings.warn(f"{layout.path}: {name} from {other_origin} ({_short(other)}) "
                               f"ignored; the {origin} says {_short(value)} and comes first",

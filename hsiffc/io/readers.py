@@ -68,12 +68,15 @@ def open_layout(path, limits: ReadLimits) -> FileLayout:
     DataFormatError
         Unreadable, truncated or unsupported file, or a header over the limits.
     """
+    from ..atomic import require_regular_input
+
     path = Path(path)
     if not path.exists():
         raise DataFormatError("file not found; check the path", path=path)
     if path.is_dir():
         raise DataFormatError("is a folder; give a file (folders are expanded by open_source)",
                               path=path)
+    require_regular_input(path)  # a FIFO or device is refused before anything opens it
     suffix = path.suffix.lower()
     if suffix in TIFF:
         from .tiffpages import open_tiff

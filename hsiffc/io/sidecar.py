@@ -54,7 +54,6 @@ from __future__ import annotations
 import csv
 import fnmatch
 import math
-import tomllib
 from pathlib import Path
 
 from ..errors import DataFormatError
@@ -142,6 +141,9 @@ class Sidecar:
         self.rules: list[tuple[str, dict]] = []
         if not self.path.is_file():
             raise DataFormatError("sidecar not found; check the path", path=self.path)
+        from ..atomic import require_regular_input
+
+        require_regular_input(self.path, what="sidecar")
         try:
             text = self.path.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
@@ -152,11 +154,10 @@ class Sidecar:
             self._parse_toml(text)
 
     def _parse_toml(self, text):
-        try:
-            doc = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise DataFormatError(f"not valid TOML ({exc}); see the sidecar format in "
-                                  "docs/formats-and-metadata.md", path=self.path) from exc
+        from .parsers import load_toml
+
+        doc = load_toml(text, path=self.path, what="sidecar", hint="see the sidecar format in "
+                        "docs/formats-and-metadata.md")
         unknown = sorted(set(doc) - {"defaults", "files"})
         if unknown:
             raise DataFormatError(f"unknown tables {unknown}; use [defaults] and [[files]] "

@@ -20,7 +20,6 @@ byte (10, 12, 14 bits). hsiffc TIFFs carry everything in their JSON document
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 import struct
@@ -33,6 +32,7 @@ from ..errors import DataFormatError
 from .document import document_fields, is_hsiffc_document, parse_document
 from .layout import FileLayout
 from .limits import ReadLimits
+from .parsers import load_json
 
 __all__ = ["open_tiff", "TIFF_SUFFIXES", "CORRECTED_MARK"]
 
@@ -94,8 +94,8 @@ def _declared_frames(description: str, page_shape: tuple) -> int | None:
     text = description.strip()
     if text.startswith("{") and '"shape"' in text[:200]:
         try:
-            shape = json.loads(text).get("shape")
-        except (ValueError, AttributeError):
+            shape = load_json(text, what="description").get("shape")
+        except (DataFormatError, AttributeError):
             return None
         nd = len(page_shape)
         if (isinstance(shape, list) and all(isinstance(s, int) for s in shape)
@@ -106,6 +106,24 @@ def _declared_frames(description: str, page_shape: tuple) -> int | None:
             return n
     match = _IMAGEJ_IMAGES.search(text) if text.startswith("ImageJ") else None
     return int(match.group(1)) if match else None
+
+
+def _declared_total(pages, description: str) -> int | None:
+    """Frames the descriptions declare over the whole page chain. tifffile writes a shape
+    description on the first page of each series, so a file written frame by frame (one series
+    per page, each ``{"shape": [H, W]}``) declares one frame per page: the counts of every page
+    that starts a series add up. ImageJ states its count once, on the first page."""
+    first = _declared_frames(description, pages[0].shape)
+    if first is None or description.strip().startswith("ImageJ"):
+        return first
+    total = first
+    for page in pages[1:]:
+        text = page.description or ""
+        if text.strip().startswith("{"):
+            more = _declared_frames(text, page.shape)
+            if more is not None:
+                total += more
+    return total
 
 
 def _frame_shape(page) -> tuple:
@@ -150,9 +168,10 @@ def _exposure_from_tags(page) -> tuple[float | None, str]:
     if mm is not None:
         value = mm.value
         try:
-            doc = json.loads(value) if isinstance(value, (str, bytes)) else value
+            doc = (load_json(value, what="Micro-Manager metadata")
+                   if isinstance(value, (str, bytes)) else value)
             return float(doc["Exposure-ms"]), "Micro-Manager Exposure-ms (tag 51123)"
-        except (ValueError, KeyError, TypeError):
+        except (DataFormatError, ValueError, KeyError, TypeError):
             pass
     return None, ""
 
@@ -239,7 +258,7 @@ def _layout(tf, path: Path, size: int, limits: ReadLimits, log: TiffLog) -> File
         raise DataFormatError(f"file is truncated or damaged: the page chain breaks after page "
                               f"{n - 1} ({log.messages[0]}); copy or write the file again",
                               path=path)
-    declared = None if hsiffc_doc is not None else _declared_frames(description, first.shape)
+    declared = None if hsiffc_doc is not None else _declared_total(pages, description)
     if declared is not None and declared != n:
         raise DataFormatError(
             f"the file declares {declared} frames but holds {n} pages; it is probably truncated "

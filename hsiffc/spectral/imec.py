@@ -188,6 +188,12 @@ class _Reader:
         return v
 
 
+def _grid_count(start: float, end: float, step: float) -> int:
+    """Samples of the grid start..end at step (a count past any limit when it overflows)."""
+    ratio = (end - start) / step
+    return int(round(ratio)) + 1 if np.isfinite(ratio) and abs(ratio) < 2 ** 62 else 2 ** 62
+
+
 def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration:
     """Read an IMEC sensor calibration XML (see the module docstring for the interpretation).
 
@@ -238,6 +244,14 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
     w_fa = "filter_info/filter_area"
     fa = FilterArea(*(rd.number(fa_e, t, w_fa, int)
                       for t in ("offset_x", "offset_y", "width", "height")))
+    if width < 1 or height < 1:
+        rd.fail(f"<{w_s}/width> x <{w_s}/height> is {width} x {height}; a sensor is at least "
+                "1 x 1 px")
+    if (fa.offset_x < 0 or fa.offset_y < 0 or fa.width < 1 or fa.height < 1
+            or fa.offset_x + fa.width > width or fa.offset_y + fa.height > height):
+        rd.fail(f"<{w_fa}> (offset {fa.offset_x}, {fa.offset_y}, size {fa.width} x {fa.height}) "
+                f"is not an area inside the {width} x {height} px sensor; offsets must be >= 0 "
+                "and the size >= 1 px")
     pw = rd.number(fi, "pattern_width", w_f, int)
     ph = rd.number(fi, "pattern_height", w_f, int)
     if pw < 1 or ph < 1:
@@ -257,7 +271,12 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
         step = 1.0
     if step <= 0 or end <= start:
         rd.fail(f"bad measurement range {start:g}-{end:g} nm at {step:g} nm")
-    n_samples = int(round((end - start) / step)) + 1
+    n_samples = _grid_count(start, end, step)
+    from ..io.limits import default_limits
+
+    limits = default_limits()
+    limits.check_spectral_samples(path=p, field=f"<{w_ci if ci is not None else w_f}> "
+                                  f"({start:g}-{end:g} nm at {step:g} nm)", n=n_samples)
     declared = rd.optional(ci, "nr_measurements", w_ci, int)
     if declared is not None and declared != n_samples:
         rd.fail(f"<{w_ci}/nr_measurements> is {declared} but {start:g}-{end:g} nm at "
@@ -271,7 +290,9 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
         r_start = rd.optional(rf, "wavelength_start_nm", w_rf, float, start)
         r_end = rd.optional(rf, "wavelength_end_nm", w_rf, float, end)
         r_step = rd.optional(rf, "wavelength_resolution_nm", w_rf, float, step)
-        r_n = int(round((r_end - r_start) / r_step)) + 1 if r_step > 0 else 0
+        r_n = _grid_count(r_start, r_end, r_step) if r_step > 0 else 0
+        limits.check_spectral_samples(path=p, field=f"<{w_rf}> ({r_start:g}-{r_end:g} nm at "
+                                      f"{r_step:g} nm)", n=r_n)
         rej_raw = rd.vector(rd.child(rf, "filter_response", w_rf),
                             w_rf + "/filter_response", r_n)
         rej = np.interp(wl, r_start + r_step * np.arange(r_n), rej_raw, left=0.0, right=0.0)
