@@ -138,11 +138,11 @@ def histogram_figure(images: dict):
     """DSNU (DN) and PRNU (percent) histograms of the mean images, log counts."""
     fig, (ax, ax2) = new_figure((6.4, 6.0), nrows=2)
     d = images["dark"] - images["dark"].mean()
-    ax.hist(d.ravel(), bins=128, log=True, color="C0")
+    ax.hist(d.ravel(), bins=128, log=True, color="C0", histtype="step")
     ax.set(xlabel="dark mean image - its mean (DN)", ylabel="pixels", title="DSNU histogram")
     p = images["light_minus_dark"]
     rel = 100 * (p / p.mean() - 1)
-    ax2.hist(rel.ravel(), bins=128, log=True, color="C1")
+    ax2.hist(rel.ravel(), bins=128, log=True, color="C1", histtype="step")
     ax2.set(xlabel="(light - dark) / its mean - 1 (%)", ylabel="pixels", title="PRNU histogram")
     return fig
 
