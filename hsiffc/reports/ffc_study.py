@@ -350,7 +350,7 @@ def render_markdown(res: FFCStudy, *, title: str | None = None) -> str:
         fp = s.corrected["model_ffc"]
         lines += ["", f"Worst model_ffc step from 12 % of saturation up: step {s.step} at "
                   f"{s.signal_dn:.0f} DN, {fp.pooled_fpn_percent:.2f} % (± "
-                  f"{fp.pooled_fpn_se_percent:.2f} % measurement error), "
+                  f"{fp.pooled_fpn_se_percent:.2g} % measurement error), "
                   f"{100 * s.clipped_fraction:.2f} % of its pixels clipped and "
                   f"{100 * s.flagged_fraction:.2f} % flagged."]
     u = res.uncertainty["bands"][0]

@@ -31,9 +31,10 @@ import numpy as np
 from ..simulate import MosaicSensor
 from ..simulate.params import SensorParams
 from ..sweep import Sweep
-from .ffc_study import FFCStudy, cell, method_names, range_label, run_ffc_study
+from .ffc_study import (RANGES_FRACTION, FFCStudy, cell, method_names, range_label,
+                        run_ffc_study)
 
-__all__ = ["ZooCase", "zoo_case", "zoo_sweep", "run_zoo", "render_zoo", "DEV_SEEDS",
+__all__ = ["RANGES_FRACTION", "ZooCase", "zoo_case", "zoo_sweep", "run_zoo", "render_zoo", "DEV_SEEDS",
            "EVAL_SEEDS", "SHARED_SETS", "main"]
 
 log = logging.getLogger(__name__)
