@@ -363,6 +363,11 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
         m_u, _, m_u_se, _ = _line(texp_s, ta["dark_u_y"])
         figs["u_I_mean"] = fig("u_I_mean", m_u / K, abs(m_u / K) * math.hypot(m_u_se / m_u,
                                                                                K_se / K))
+        if m_u < 0:
+            notes.append(f"the dark mean falls with exposure ({m_u:.4g} DN/s): u_I_mean is "
+                         "negative, which no dark current is (an offset drifting along the "
+                         "sweep, or a clamped dark level); check the dark steps and the "
+                         "descriptor's exposure unit")
         if m_v >= 0:
             figs["u_I_var"] = fig("u_I_var", m_v / K ** 2,
                                   abs(m_v / K ** 2) * math.hypot(m_v_se / m_v, 2 * K_se / K))
