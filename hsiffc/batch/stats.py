@@ -78,7 +78,9 @@ class FrameStats:
         self.nonfinite.append(int(nonfinite))
         self.nonfinite_out.append(int(nonfinite_out))
         self.flagged.append(round(np.count_nonzero(result.dq) / result.dq.size, 6))
-        if frame.kind != "light":
+        # eq. (6) of a scene is no figure of a reflectance product (a scene is not uniform):
+        # 'hsiffc reflectance check' measures one on a uniform target
+        if frame.kind != "light" or result.meta.get("units") == "reflectance factor":
             self.before.append(None)
             self.after.append(None)
             return

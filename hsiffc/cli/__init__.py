@@ -22,7 +22,7 @@ from .. import __version__
 from ..atomic import write_policy
 from ..errors import HsiffcError
 from ..memory import reuse_freed_memory
-from . import cubes, data, emva1288, importer, pipeline, reports, uniformity
+from . import cubes, data, emva1288, importer, pipeline, reflectance, reports, uniformity
 from .args import OneLineParser
 from .common import check_declared_outputs, declared, input_files
 from .status import command_status
@@ -30,7 +30,7 @@ from .status import command_status
 log = logging.getLogger("hsiffc")
 
 #: modules whose ``register(sub)`` adds sub-commands, in the order ``--help`` lists them
-COMMAND_MODULES = [reports, data, pipeline, cubes, importer, uniformity, emva1288]
+COMMAND_MODULES = [reports, data, pipeline, reflectance, cubes, importer, uniformity, emva1288]
 
 EXIT_USAGE = 2
 EXIT_INTERNAL = 3

@@ -63,19 +63,35 @@ def _add_fit(sub):
 
 
 def _cmd_fit(args) -> int:
-    from ..frame import Frame
-    from ..io import read_sweep
     from ..stages import Pipeline
 
     if args.output.suffix != ".npz":  # before any input is read
         raise HsiffcError(f"-o {args.output}: a fitted pipeline file ends in .npz; rename it "
                           f"(e.g. {args.output.with_suffix('.npz').name})")
     pipe = Pipeline.from_toml(args.description)
-    frames, first = [], None
     inputs = ([(p, {}) for p in args.training] + [(p, {"kind": "dark"}) for p in args.dark]
               + [(p, {"kind": "light"}) for p in args.flat])
     if not inputs:
         raise HsiffcError("give training frames: TRAINING paths, --dark and/or --flat")
+    pipe.fit(read_training(args, inputs))
+    pipe.save(args.output, overwrite=args.overwrite)
+    for name, stage in pipe.steps:
+        extra = ""
+        if hasattr(stage, "selected_ms_"):
+            extra = f"  training exposure per band (ms): {stage.selected_ms_}"
+        print(f"  fitted {name} ({stage.name}){extra}")
+    print(f"wrote {args.output}")
+    return 0
+
+
+def read_training(args, inputs) -> list:
+    """Training frames from ``inputs`` (``(path, fixed metadata)`` pairs, read with the
+    command's input options), a summary of each printed; refuses inputs of other sensor sizes
+    or mosaics than the first."""
+    from ..frame import Frame
+    from ..io import read_sweep
+
+    frames, first = [], None
     for path, fixed in inputs:
         sweep = read_sweep(path, overrides=input_overrides(args, **fixed))
         print(sweep.summary())
@@ -91,15 +107,7 @@ def _cmd_fit(args) -> int:
                               f"{first[2].describe()}; train a pipeline on frames of one sensor "
                               "(give the right --mosaic or fit each sensor separately)")
         frames += Frame.list_from_sweep(sweep)
-    pipe.fit(frames)
-    pipe.save(args.output, overwrite=args.overwrite)
-    for name, stage in pipe.steps:
-        extra = ""
-        if hasattr(stage, "selected_ms_"):
-            extra = f"  training exposure per band (ms): {stage.selected_ms_}"
-        print(f"  fitted {name} ({stage.name}){extra}")
-    print(f"wrote {args.output}")
-    return 0
+    return frames
 
 
 def _add_correct(sub):
