@@ -81,7 +81,7 @@ def describe(value: int) -> list[str]:
 
 #: What each bit means, as written into every output file's DQ table.
 MEANINGS = {
-    "DO_NOT_USE": "do not use this value (set with other bits when no estimate is trustworthy)",
+    "DO_NOT_USE": "do not use this value: no trustworthy estimate",
     "SATURATED": "at full scale (ADC clip) or full well",
     "LEAKAGE": "leakage percentage alpha above the threshold",
     "DEAD": "dead pixel (no response)",
@@ -91,8 +91,8 @@ MEANINGS = {
     "BELOW_DARK": "response below what zero light can give",
     "UNREACHABLE": "no light rate explains the response",
     "NOT_CONVERGED": "the per-pixel inversion did not converge",
-    "LEAK_UNCONSTRAINED": "calibration: the data do not pin the leakage parameters a, b",
-    "OUT_OF_DOMAIN": "outside the calibration's validity domain (exposure, light, bit depth)",
+    "LEAK_UNCONSTRAINED": "calibration: the data do not pin the leakage parameters a and b",
+    "OUT_OF_DOMAIN": "outside the calibration's validity domain (exposure or light or bit depth)",
 }
 
 #: Version of the bit table; raised whenever a bit's value or meaning changes.

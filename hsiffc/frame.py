@@ -283,6 +283,16 @@ class Frame:
             object.__setattr__(self, "_raw", cached)
         return cached
 
+    def to_xarray(self, *, sort: bool = True):
+        """This reconstructed cube as an ``xarray.Dataset``: dims (y, x, band), coordinate
+        ``wavelength`` (ascending when ``sort``), variables ``data``, ``dq`` (with the DQ bit
+        table) and ``alpha``; history in the attributes (:func:`hsiffc.cubes.to_xarray`;
+        needs xarray: ``pip install 'hsiffc[xarray]'``). Raises ValueError for a mosaic
+        frame."""
+        from .cubes import to_xarray
+
+        return to_xarray(self, sort=sort)
+
     def state(self) -> frozenset[str]:
         """What this frame offers the next stage, in the words stages declare (see
         :data:`STATES`)."""

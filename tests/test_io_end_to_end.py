@@ -1,6 +1,7 @@
 """The everyday workflow without a sweep, in the words of the camera-data guide: a folder of plain 8-bit
 compressed TIFFs of a 5x5 mosaic camera, a dark and a white reference, metadata from a sidecar,
-``hsiffc fit`` + ``hsiffc correct``, and a cube with 25 bands and the IMEC wavelengths."""
+``hsiffc fit`` + ``hsiffc correct``, a cube with 25 bands and the IMEC wavelengths in order, and
+a full-resolution PPID cube that SPy opens, with its quicklook."""
 
 from __future__ import annotations
 
@@ -78,11 +79,31 @@ def test_folder_of_camera_tiffs_fit_correct_cube(tmp_path, imec_xml, capsys):
     assert after < before / 3, (before, after)     # the fixed pattern is removed
 
     cube, head = read_envi(tmp_path / "out" / "scene_0.corrected.hdr")
-    assert cube.shape == (216, 409, 25)
-    np.testing.assert_allclose(head["wavelengths_nm"], imec.bands.centres_nm, rtol=1e-5)
+    assert cube.shape == (216, 409, 25)                 # one spectrum per tile, as before
+    np.testing.assert_allclose(head["wavelengths_nm"], np.sort(imec.bands.centres_nm), rtol=1e-5)
     dq_cube, _ = read_envi(tmp_path / "out" / "scene_0.corrected.dq.hdr")
     assert dq_cube.shape == cube.shape and dq_cube.dtype == np.uint32
     assert np.isfinite(cube).all()
+
+    # the product of the work: a full-resolution PPID cube that SPy opens, and its quicklook
+    import spectral
+
+    assert main(["correct", "--pipeline", str(tmp_path / "pipe.npz"), str(raw / "scene_0.tif"),
+                 "-o", str(tmp_path / "cubes"), "--cube", "ppid", "--format", "envi",
+                 "-q"]) == 0
+    hdr = tmp_path / "cubes" / "scene_0.corrected.hdr"
+    img = spectral.open_image(str(hdr))
+    assert (img.nrows, img.ncols, img.nbands) == (1080, 2045, 25)   # every band at every pixel
+    order = np.argsort(imec.bands.centres_nm)
+    np.testing.assert_allclose(img.bands.centers, imec.bands.centres_nm[order], rtol=1e-5)
+    np.testing.assert_allclose(img.bands.bandwidths, imec.bands.fwhm_nm[order], rtol=1e-5)
+    full = img.open_memmap()
+    assert np.isfinite(full).all()
+    # the full cube's band means follow the tile cube's: the same scene, the same band order
+    np.testing.assert_allclose(full.mean(axis=(0, 1)), cube.mean(axis=(0, 1)), rtol=0.02)
+    png = tmp_path / "cubes" / "scene_0.png"
+    assert main(["quicklook", str(hdr), "-o", str(png), "--pixel", "540", "1000"]) == 0
+    assert png.stat().st_size > 20_000
 
 
 def test_correct_without_calibration_needs_a_pipeline(tmp_path, capsys):

@@ -46,7 +46,9 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                   scheduler: str | None = None,
                   overwrite: bool = False, nan: str = "flag", hash_inputs: bool = True,
                   overrides: dict | None = None, observer=None,
-                  wait_s: float = 0.0) -> BatchSummary:
+                  wait_s: float = 0.0, cube: str | None = None,
+                  cube_correction: str | None = None, imec_xml=None,
+                  compression: str | None = None) -> BatchSummary:
     """Correct every input (files, folders, globs) into ``outdir``; see ``hsiffc correct``.
 
     Parameters
@@ -91,6 +93,15 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         ``file(result, counted_frames)`` and ``close()`` (the CLI's progress bar).
     wait_s : float
         Seconds to wait when another run holds OUTDIR's lock (default: refuse at once).
+    cube : {"nearest", "bilinear", "ppid", "tile"}, optional
+        Append a reconstruct step: the outputs hold (H, W, B) cubes ("tile": one spectrum per
+        mosaic tile). A fitted pipeline whose last step reconstructs writes cubes without it.
+    cube_correction : {"imec", "derived"}, optional
+        With ``cube``: the IMEC correction matrix to virtual bands (needs ``imec_xml``).
+    imec_xml : path, optional
+        The sensor's IMEC calibration XML (for ``cube_correction``).
+    compression : {"zlib", "zstd", "lzma"}, optional
+        TIFF compression of the outputs' pages (imagecodecs; default none).
 
     Returns
     -------
@@ -118,13 +129,18 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                         threshold_percent=float(threshold_percent), linearise=bool(linearise),
                         ffc=ffc if pipeline is None else "none",
                         overwrite=bool(overwrite), nan=nan, hash_inputs=bool(hash_inputs),
-                        overrides=_overrides(overrides))
+                        overrides=_overrides(overrides), cube=cube,
+                        cube_correction=cube_correction,
+                        imec_xml=None if imec_xml is None else str(Path(imec_xml).resolve()),
+                        compression=_compression(compression))
+    if settings.imec_xml and not Path(settings.imec_xml).is_file():
+        raise BatchError(f"{imec_xml}: IMEC calibration XML not found")
     if settings.pipeline and not Path(settings.pipeline).is_file():
         raise BatchError(f"{pipeline}: pipeline file not found")
     ctx = context_for(settings, cal)  # validates the pipeline here, before any file is touched
     del cal
     jobs, ignored = plan_jobs(inputs, outdir)
-    used = [p for p in (cal_path, settings.pipeline) if p]
+    used = [p for p in (cal_path, settings.pipeline, settings.imec_xml) if p]
     with protect_inputs([j.input for j in jobs] + used), \
             folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
         if observer is not None:
@@ -142,6 +158,18 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                          "identity": ctx.identity},
                         {k: v for k, v in ctx.info.items() if k != "steps"} | {"steps": steps},
                         ignored)
+
+
+def _compression(name):
+    """A compression the outputs' TIFF pages take (None: uncompressed)."""
+    from ..cubes.writers import COMPRESSIONS
+
+    if name is None or name == "none":
+        return None
+    if name not in COMPRESSIONS:
+        raise BatchError(f"--compression must be one of none, {', '.join(COMPRESSIONS)}, got "
+                         f"{name!r}")
+    return name
 
 
 def _overrides(values) -> tuple:

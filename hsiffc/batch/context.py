@@ -15,8 +15,8 @@ from ..calibrate.product import Calibration
 from ..stages import Pipeline, create
 from .plan import BatchError
 
-__all__ = ["FFC_CHOICES", "Context", "Settings", "check_ffc", "context_for", "default_pipeline",
-           "load_pipeline", "sha256_file"]
+__all__ = ["CUBE_METHODS", "FFC_CHOICES", "Context", "Settings", "check_ffc", "context_for",
+           "default_pipeline", "load_pipeline", "sha256_file", "with_cube_step"]
 
 NAN_POLICIES = ("flag", "fail")
 
@@ -50,6 +50,28 @@ def default_pipeline(calibration, *, threshold_percent: float = 12.0,
     return Pipeline(steps)
 
 
+CUBE_METHODS = ("nearest", "bilinear", "ppid", "tile")
+
+
+def with_cube_step(pipe: Pipeline, method: str, correction=None, imec_xml=None) -> Pipeline:
+    """``pipe`` with a fitted ``reconstruct`` step appended (``hsiffc correct --cube``):
+    ``method`` one of :data:`CUBE_METHODS` ("tile": one spectrum per mosaic tile), with the
+    IMEC correction matrix to virtual bands when ``correction`` is "imec" or "derived"."""
+    if method not in CUBE_METHODS:
+        raise BatchError(f"--cube must be one of {', '.join(CUBE_METHODS)}, got {method!r}")
+    if any(stage.name == "reconstruct" for _, stage in pipe.steps):
+        raise BatchError("--cube adds a reconstruct step, but the pipeline already has one: "
+                         "drop --cube (the pipeline's own step writes the cubes)")
+    if correction is not None and imec_xml is None:
+        raise BatchError(f"--cube-correction {correction} needs --imec-xml (the sensor's IMEC "
+                         "calibration XML, which holds the correction matrix)")
+    params = {"method": "bilinear" if method == "tile" else method,
+              "resolution": "tile" if method == "tile" else "full",
+              "correction": correction, "imec_xml": imec_xml}
+    step = create("reconstruct", **params).fit([])
+    return Pipeline(list(pipe.steps) + [("cube", step)])
+
+
 def check_ffc(ffc: str, linearise: bool) -> None:
     """BatchError unless ``ffc`` is one of :data:`FFC_CHOICES` and not ``"model"`` together
     with ``linearise``."""
@@ -76,9 +98,6 @@ def load_pipeline(path, calibration: Calibration | None, notes: list | None = No
                          "fit a TOML description first")
     pipe = Pipeline.load(path, calibration=calibration)  # same identity: no file read
     for name, stage in pipe.steps:
-        if stage.name == "reconstruct":
-            raise BatchError(f"{path}: step {name!r} reconstructs cubes; hsiffc correct writes "
-                             "corrected mosaic frames (H, W): fit a pipeline without it")
         if not stage.is_fitted():
             raise BatchError(f"{path}: step {name!r} is not fitted; fit it with 'hsiffc fit'")
         other = stage.get_params().get("calibration")
@@ -111,6 +130,13 @@ class Settings:
     hash_inputs: bool = True
     #: metadata for inputs that do not carry it (fields of :class:`hsiffc.io.Overrides`)
     overrides: tuple = ()
+    #: a reconstruct step appended to the pipeline (``--cube``): method ("nearest",
+    #: "bilinear", "ppid" or "tile"), correction (None, "imec", "derived") and its IMEC XML
+    cube: str | None = None
+    cube_correction: str | None = None
+    imec_xml: str | None = None
+    #: TIFF compression of the outputs (None, "zlib", "zstd", "lzma")
+    compression: str | None = None
 
 
 @dataclass
@@ -130,7 +156,8 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
     """The calibration and pipeline of these settings, built once per process (from
     ``calibration`` when it is already loaded)."""
     key = (settings.calibration, settings.calibration_identity, settings.pipeline,
-           settings.threshold_percent, settings.linearise, settings.ffc, settings.overrides)
+           settings.threshold_percent, settings.linearise, settings.ffc, settings.overrides,
+           settings.cube, settings.cube_correction, settings.imec_xml)
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         cal = calibration
@@ -149,6 +176,9 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
             pipe = default_pipeline(cal, threshold_percent=settings.threshold_percent,
                                     linearise=settings.linearise, ffc=settings.ffc)
             info = {"kind": "default", "path": None, "sha256": None, "notes": []}
+        if settings.cube:
+            pipe = with_cube_step(pipe, settings.cube, settings.cube_correction,
+                                  settings.imec_xml)
         steps = [{"name": s["name"], "stage": s["stage"], "params": s["params"]}
                  for s in pipe.manifest()["steps"]]
         identity = settings.calibration_identity
@@ -162,6 +192,7 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
         info["fingerprint"] = hashlib.sha256(json.dumps(
             basis, sort_keys=True).encode()).hexdigest()[:16]
         info["alpha_computed"] = any(s["stage"] == "alpha_mask" for s in steps)
+        info["cube"] = bool(steps) and steps[-1]["stage"] == "reconstruct"
         ctx = Context(cal, identity, pipe, info)
         if len(_CONTEXTS) > 4:
             _CONTEXTS.clear()

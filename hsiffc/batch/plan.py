@@ -31,8 +31,9 @@ def _is_tiff(path) -> bool:
     return PurePath(path).suffix.lower() in IMAGE_SUFFIXES
 
 
-#: the ENVI cubes ``hsiffc correct --format envi`` writes beside a corrected file
-_ENVI_OUTPUT = re.compile(re.escape(SUFFIX[:-len(".tif")]) + r"(_f\d{4})?(\.dq)?\.(hdr|img)$")
+#: the cubes ``hsiffc correct --format envi|ome|netcdf`` writes beside a corrected file
+_ENVI_OUTPUT = re.compile(re.escape(SUFFIX[:-len(".tif")])
+                          + r"(_f\d{4})?((\.dq|\.alpha)?\.(hdr|img)|\.ome\.tiff?|\.nc)$")
 
 
 def is_batch_output(path) -> bool:
@@ -41,6 +42,8 @@ def is_batch_output(path) -> bool:
     ``*.corrected_f0001.dq.img``, ...).
 
     >>> is_batch_output("a.corrected.tif"), is_batch_output("a.corrected_f0002.dq.hdr")
+    (True, True)
+    >>> is_batch_output("a.corrected_f0001.ome.tif"), is_batch_output("a.corrected.alpha.img")
     (True, True)
     >>> is_batch_output("a.tif")
     False

@@ -14,7 +14,8 @@ import numpy as np
 
 from ..ffc import uniformity_per_band
 
-__all__ = ["STATS_PIXELS", "FrameStats", "band_uniformity", "mean_bands", "stats_rows"]
+__all__ = ["STATS_PIXELS", "FrameStats", "band_uniformity", "cube_uniformity", "mean_bands",
+           "stats_rows"]
 
 STATS_PIXELS = 1 << 16
 
@@ -35,6 +36,16 @@ def band_uniformity(values, band, dq) -> list:
     rounded to 4 significant digits; None where a band has no value."""
     u = uniformity_per_band(values, band, dq=dq)
     return [float(f"{x:.4g}") if np.isfinite(x) else None for x in u]
+
+
+def cube_uniformity(cube, dq) -> list:
+    """Eq. (6) per band of a cube (H, W, B) on evenly spaced rows (about :data:`STATS_PIXELS`
+    values per band), over the values without DQ bits."""
+    h, w, n = cube.shape
+    rows = stats_rows((h, w), None)
+    values = cube[rows].reshape(-1, n)
+    band = np.broadcast_to(np.arange(n), values.shape)
+    return band_uniformity(values, np.ascontiguousarray(band), dq[rows].reshape(-1, n))
 
 
 def mean_bands(rows) -> list:
@@ -83,6 +94,13 @@ class FrameStats:
         if frame.kind != "light" or result.meta.get("units") == "reflectance factor":
             self.before.append(None)
             self.after.append(None)
+            return
+        if result.is_cube:  # before: the mosaic frame's own flags; after: the cube's bands
+            before = frame.data[r]
+            if result.dark_removed is not None:
+                before = before - result.dark_removed[r]
+            self.before.append(band_uniformity(before, self.band, frame.dq[r]))
+            self.after.append(cube_uniformity(result.data, result.dq))
             return
         dq = frame.dq[r] | result.dq[r]  # the same pixels before and after
         before = frame.data[r]

@@ -153,6 +153,13 @@ def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame,
                 ctx.calibration.check_compatible(frame_shape=src.frame_shape,
                                                  bit_depth=src.bit_depth, mosaic=src.mosaic,
                                                  what=path.name)
+                if src.mosaic is None and ctx.calibration.mosaic is not None:
+                    res["warnings"].append(
+                        "the file gives no mosaic layout but the calibration is for "
+                        f"{ctx.calibration.mosaic.describe()}, {ctx.calibration.mosaic.n_bands} "
+                        "bands: corrected pixel by pixel, its "
+                        "per-band figures are for the whole frame as one band; give the "
+                        "layout (--mosaic, or a sidecar hsiffc.toml) to get them by band")
             stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st, hasher=hasher,
                         commits=commits)
     finally:
@@ -177,18 +184,25 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
     prov = _provenance(job, settings, ctx, src, st)
     t0 = time.perf_counter()
     _remove_leftovers(out)  # of an interrupted earlier run (the folder lock is held)
-    with atomic_path(out, overwrite=True, defer=commits) as tmp, \
-            CorrectedWriter(tmp, prov, n_frames=src.n_frames, frame_shape=shape,
-                            reserve_per_frame=96 + 20 * stats.n_bands) as writer:
-        sink = BackgroundWriter(writer)
+    writer = sink = cube = None
+    with atomic_path(out, overwrite=True, defer=commits) as tmp:
         frames = Prefetch(src)
         try:
             for raw, meta in frames:
                 frame, bad = _to_frame(raw, meta, src, settings)
                 result = ctx.pipeline.transform(frame)
-                if result.data.shape != shape:
-                    raise ValueError(f"the pipeline turned a {shape} frame into "
-                                     f"{result.data.shape}; hsiffc correct writes (H, W) frames")
+                if writer is None:  # the first frame tells the output's shape (a cube or not)
+                    writer = CorrectedWriter(
+                        tmp, prov, n_frames=src.n_frames,
+                        frame_shape=_output_shape(result, shape),
+                        reserve_per_frame=96 + 20 * max(stats.n_bands, result.data.shape[-1]),
+                        alpha=ctx.info["alpha_computed"], compression=settings.compression)
+                    sink = BackgroundWriter(writer)
+                    cube = cube_description(result)
+                elif result.data.shape != writer.frame_shape:
+                    raise ValueError(f"the pipeline turned frame {meta.index} into "
+                                     f"{result.data.shape}, the first into "
+                                     f"{writer.frame_shape}; one file holds one shape")
                 data, dq, lost = _finite(result)
                 sink.write(data, dq, result.alpha)
                 stats.add(frame, result, bad, lost)
@@ -198,18 +212,27 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
                     on_frame(res["bytes"] / src.n_frames)
         except BaseException:
             frames.close()
-            sink.close(cancel=True)
+            if sink is not None:
+                sink.close(cancel=True)
+            if writer is not None:
+                writer.close()
             raise
         frames.close()
-        sink.close()
-        if res["frames"] != src.n_frames:
+        if sink is not None:
+            sink.close()
+        if res["frames"] != src.n_frames or writer is None:
+            if writer is not None:
+                writer.close()
             raise DataFormatError(f"only {res['frames']} of {src.n_frames} frames could be read",
                                   path=job.input)
         res.update(stats.file_result())
         sha = hasher.wait() if hasher is not None else None
-        writer.finish({"input": {**prov["input"], "sha256": sha}, "frames": stats.to_dict(),
-                       "seconds": round(time.perf_counter() - t0, 3),
-                       "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+        final = {"input": {**prov["input"], "sha256": sha}, "frames": stats.to_dict(),
+                 "seconds": round(time.perf_counter() - t0, 3),
+                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        if cube is not None:
+            final["cube"] = cube
+        writer.finish(final)
     bad = [b for b in stats.nonfinite if b]
     if bad:
         res["warnings"].append(f"{sum(bad)} NaN/inf pixels in {len(bad)} frames flagged "
@@ -219,6 +242,33 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
         res["warnings"].append(f"the correction gave {sum(lost)} NaN/inf pixels in {len(lost)} "
                                "frames (e.g. an exposure far outside the calibration's range): "
                                "flagged NONFINITE + DO_NOT_USE and written as 0 DN")
+
+
+def _output_shape(result: Frame, shape: tuple) -> tuple:
+    """The shape every frame of this file is written with: the input's (H, W), or the cube
+    of a pipeline whose last step reconstructs."""
+    if result.is_cube:
+        return tuple(result.data.shape)
+    if result.data.shape != shape:
+        raise ValueError(f"the pipeline turned a {shape} frame into {result.data.shape}; "
+                         "hsiffc correct writes (H, W) frames or the cubes of a reconstruct "
+                         "step")
+    return shape
+
+
+def cube_description(result: Frame) -> dict | None:
+    """What the provenance says of a cube's bands (None for a mosaic frame): wavelengths,
+    widths, mosaic positions in the cube's band order (``"band index"``: the pipeline's, not
+    sorted; exports sort them by wavelength) and how it was reconstructed."""
+    if not result.is_cube:
+        return None
+    meta = result.meta
+    n = result.data.shape[-1]
+    return {"shape": list(result.data.shape), "unit": str(meta.get("unit", "DN")),
+            "band_order": "band index", "band_index": list(range(n)),
+            "wavelengths_nm": meta.get("wavelengths_nm"), "fwhm_nm": meta.get("fwhm_nm"),
+            "band_positions": meta.get("band_positions"),
+            "reconstruction": meta.get("reconstruction"), "tile_origin": meta.get("tile_origin")}
 
 
 def _finite(result: Frame):

@@ -116,7 +116,10 @@ def _add_correct(sub):
         description="Correct every input (image files: TIFF, PNG, ENVI .hdr, FITS; folders "
                     "searched recursively, or globs) frame by frame and write one "
                     "<name>.corrected.tif per input under OUTDIR (pages per frame: data "
-                    "float32, dq uint32, alpha float32; provenance JSON). Outputs appear "
+                    "float32, dq uint32, alpha float32; provenance JSON with the DQ bit "
+                    "table); (H, W, bands) cubes when the pipeline's last step reconstructs "
+                    "(--cube METHOD adds one), also as ENVI, OME-TIFF or netCDF (--format). "
+                    "Outputs appear "
                     "atomically; a rerun skips the outputs that "
                     "are complete and up to date. Exit status 0: every file done or skipped; "
                     "1: some file failed (listed with its reason); 2: usage error.")
@@ -159,11 +162,29 @@ def _add_correct(sub):
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_input_options(p)
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
-    p.add_argument("--format", choices=("tiff", "envi"), default="tiff",
-                   help="envi: also write every corrected frame as an ENVI cube (one spectrum "
-                        "per mosaic tile, band wavelengths in the header) and its DQ cube next "
-                        "to the corrected TIFF")
-    p.set_defaults(func=_cmd_correct, input_args=("inputs", "calibration", "pipeline"),
+    p.add_argument("--format", choices=("tiff", "envi", "ome", "netcdf"), default="tiff",
+                   help="besides the hsiffc TIFF, write every corrected frame as a cube in this "
+                        "format: envi (NAME.hdr/.img, bands by wavelength, DQ and alpha as "
+                        "their own files), ome (NAME.ome.tif, channels named by wavelength), "
+                        "netcdf (NAME.nc through xarray: pip install 'hsiffc[xarray]'); mosaic "
+                        "frames become one spectrum per tile. See the formats page")
+    p.add_argument("--cube", choices=("nearest", "bilinear", "ppid", "tile"), default=None,
+                   metavar="METHOD",
+                   help="append a reconstruct step: write full-resolution (H, W, bands) cubes "
+                        "by METHOD (nearest, bilinear, ppid) or one spectrum per mosaic tile "
+                        "(tile). A --pipeline whose last step reconstructs writes cubes without "
+                        "it")
+    p.add_argument("--cube-correction", choices=("imec", "derived"), default=None,
+                   help="with --cube: apply the IMEC correction matrix to virtual bands (imec: "
+                        "the vendor's; derived: computed from the band responses); needs "
+                        "--imec-xml")
+    p.add_argument("--imec-xml", type=Path, default=None, metavar="XML",
+                   help="the sensor's IMEC calibration XML, for --cube-correction")
+    p.add_argument("--compression", choices=("none", "zlib", "zstd", "lzma"), default="none",
+                   help="compress the TIFF outputs' pages (and --format ome/netcdf; netCDF "
+                        "takes zlib only); default none")
+    p.set_defaults(func=_cmd_correct,
+                   input_args=("inputs", "calibration", "pipeline", "imec_xml"),
                    output_args=("json",))
 
 
@@ -211,22 +232,24 @@ class Progress:
         self._p.stop()
 
 
-def _envi_outputs(summary, *, overwrite: bool) -> int:
-    """ENVI cubes of the outputs this run wrote, and of skipped ones whose cubes are missing or
-    older than the corrected file. An existing ENVI file is replaced only when hsiffc wrote it
-    from the same corrected file (its header says so) or with ``--overwrite``; any other file
-    at one of the names is reported and that output's cubes are left unwritten.
+def _exports(summary, fmt: str, *, overwrite: bool, compression=None) -> int:
+    """Cubes in format ``fmt`` of the outputs this run wrote, and of skipped ones whose cubes
+    are missing or older than the corrected file. An existing file is replaced only when
+    hsiffc wrote it from the same corrected file (it names it as its source) or with
+    ``--overwrite``; any other file at one of the names is reported and that output's cubes
+    are left unwritten.
 
     Returns the number of corrected files whose cubes could not be written (0: all done).
     """
+    from ..cubes.export import export_corrected, export_files, written_from
     from ..io.corrected import read_provenance
-    from ..io.envi_write import corrected_envi_files, corrected_to_envi, written_from
 
     failed = 0
+    label = {"envi": "ENVI", "ome": "OME-TIFF", "netcdf": "netCDF"}[fmt]
     for r in summary.done + summary.skipped:
         out = Path(r["output"])
         try:
-            files = corrected_envi_files(out, int(read_provenance(out)["n_frames"]))
+            files = export_files(out, fmt, read_provenance(out))
             present = [p for p in files if os.path.lexists(p)]
             made = out.stat().st_mtime
             if (r["status"] == "skipped" and not overwrite and len(present) == len(files)
@@ -234,15 +257,17 @@ def _envi_outputs(summary, *, overwrite: bool) -> int:
                 continue  # complete and up to date
             foreign = [p for p in present if not written_from(p, out)]
             if foreign and not overwrite:
-                raise HsiffcError(f"{foreign[0]}: already exists and is not an ENVI cube hsiffc "
+                raise HsiffcError(f"{foreign[0]}: already exists and is not a cube hsiffc "
                                   f"wrote from {out.name}; pass --overwrite to replace it, or "
                                   "move it")
-            corrected_to_envi(out, overwrite=True)
+            export_corrected(out, fmt, overwrite=True,
+                             compression=None if fmt == "envi" else compression)
         except (HsiffcError, OSError) as exc:
             failed += 1
-            print(f"hsiffc correct: ENVI cubes of {out.name} not written: {exc}", file=sys.stderr)
+            print(f"hsiffc correct: {label} cubes of {out.name} not written: {exc}",
+                  file=sys.stderr)
             continue
-        print(f"wrote ENVI cubes for {out.name}")
+        print(f"wrote {label} cubes for {out.name}")
     return failed
 
 
@@ -267,6 +292,13 @@ def _cmd_correct(args) -> int:
         # an input found in a folder or glob
         check_output(args.json, overwrite=args.overwrite,
                      inputs=[path for path, _ in discover_inputs(args.inputs)[0]])
+    if args.cube_correction is not None and args.cube is None:
+        raise HsiffcError("--cube-correction applies to the cubes of --cube METHOD; add --cube")
+    if args.format == "netcdf":  # checked before any file is corrected
+        from ..cubes.xr import require_xarray
+
+        require_xarray()
+    compression = None if args.compression == "none" else args.compression
     show = not args.quiet and sys.stderr.isatty()
     try:
         summary = correct_batch(args.inputs, args.outdir, args.calibration,
@@ -276,14 +308,16 @@ def _cmd_correct(args) -> int:
                                 scheduler=args.scheduler, overwrite=args.overwrite, nan=args.nan,
                                 hash_inputs=not args.no_hash, wait_s=args.wait,
                                 overrides=vars(input_overrides(args)),
-                                observer=Progress() if show else None)
+                                observer=Progress() if show else None, cube=args.cube,
+                                cube_correction=args.cube_correction,
+                                imec_xml=args.imec_xml, compression=compression)
     except KeyboardInterrupt:
         print("hsiffc correct: interrupted; finished outputs are kept (no partial file is left "
               "under a final name): run the same command again to resume", file=sys.stderr)
         return 130
     print(summary.to_text())
-    envi_failed = _envi_outputs(summary, overwrite=args.overwrite) if args.format == "envi" \
-        else 0
+    envi_failed = (_exports(summary, args.format, overwrite=args.overwrite,
+                            compression=compression) if args.format != "tiff" else 0)
     if args.json:
         write_json(args.json, summary.to_dict())
     return max(summary.exit_status, 1 if envi_failed else 0)

@@ -26,7 +26,22 @@ from .tiff import TIFF_SUFFIXES, read_sweep_tiff, write_sweep
 __all__ = ["open_source", "FrameSource", "FrameMeta", "Overrides", "ReadLimits",
            "default_limits", "expand_inputs", "read_sweep", "read_sweep_tiff", "read_emva1288",
            "write_sweep", "read_corrected", "LayoutWarning", "MetadataConflictWarning",
-           "TIFF_SUFFIXES", "ACCEPTED"]
+           "TIFF_SUFFIXES", "ACCEPTED", "write_cube"]
+
+
+def write_cube(cube, path, **options):
+    """Write a reconstructed cube (a :class:`~hsiffc.frame.Frame` or
+    :class:`~hsiffc.cubes.Cube`) with its DQ and alpha as hsiffc TIFF, ENVI, OME-TIFF or
+    netCDF, chosen by ``format=`` or the file name; see :func:`hsiffc.cubes.write_cube`.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    from ..cubes import write_cube as _write_cube
+
+    return _write_cube(cube, path, **options)
 
 
 def read_sweep(path, **options):

@@ -12,7 +12,9 @@ import numpy as np
 __all__ = ["FORMAT", "FORMAT_VERSION", "PLANES", "PLANE_DTYPES", "SUFFIX"]
 
 FORMAT = "hsiffc-corrected"
-FORMAT_VERSION = 1
+#: 1: mosaic frames (H, W), three pages per frame. 2: also cubes (H, W, B) (one page per plane
+#: and frame, the bands as samples), files without alpha pages and compressed pages.
+FORMAT_VERSION = 2
 PLANES = ("data", "dq", "alpha")
 PLANE_DTYPES = {"data": np.float32, "dq": np.uint32, "alpha": np.float32}
 #: name of an output: ``<input stem>.corrected.tif``

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
+from ..dq import TABLE_VERSION as DQ_TABLE_VERSION
+from ..dq import table as dq_table
 from ..jsonsafe import json_safe
 from .corrected_format import FORMAT, FORMAT_VERSION, PLANE_DTYPES, PLANES
 
@@ -32,7 +34,7 @@ def _dumps(doc: dict) -> str:
 
 
 class CorrectedWriter:
-    """Write a corrected cube page by page (three pages per frame) to ``path``.
+    """Write corrected frames or cubes page by page (one page per plane and frame) to ``path``.
 
     ``path`` is normally the temporary file of :func:`hsiffc.atomic.atomic_path`; this class
     does not rename anything. Call :meth:`write` once per frame, then :meth:`finish` with the
@@ -47,26 +49,36 @@ class CorrectedWriter:
         Provenance fields written now (the file is marked incomplete until :meth:`finish`).
     n_frames : int
         Frames that will be written (>= 1).
-    frame_shape : (int, int)
-        (H, W) of every plane.
+    frame_shape : (int, int) or (int, int, int)
+        (H, W) of every plane (mosaic frames), or (H, W, B) (cubes: one page per plane, the
+        B bands as samples of each pixel, as the pipeline's cube holds them in memory).
     reserve_per_frame : int
         Bytes reserved in the description per frame for the final provenance.
+    alpha : bool
+        Write alpha pages (a NaN plane where a frame has none). Cubes without alpha leave
+        them out (``"planes": ["data", "dq"]``); mosaic files always hold them (format 1).
+    compression : str, optional
+        TIFF compression of every page (``"zlib"``, ``"zstd"``, ``"lzma"``: imagecodecs).
     """
 
     def __init__(self, path, document: dict, *, n_frames: int, frame_shape,
-                 reserve_per_frame: int = _PAD_PER_FRAME):
+                 reserve_per_frame: int = _PAD_PER_FRAME, alpha: bool = True,
+                 compression: str | None = None):
         self.path = Path(path)
         self.n_frames = int(n_frames)
         self.frame_shape = tuple(int(s) for s in frame_shape)
-        if len(self.frame_shape) != 2 or min(self.frame_shape) < 1:
-            raise ValueError(f"frames must be (H, W), got {self.frame_shape}")
+        if len(self.frame_shape) not in (2, 3) or min(self.frame_shape) < 1:
+            raise ValueError(f"frames must be (H, W) or cubes (H, W, B), got {self.frame_shape}")
         if self.n_frames < 1:
             raise ValueError("a corrected file holds at least one frame")
-        h, w = self.frame_shape
+        self.planes = PLANES if (alpha or len(self.frame_shape) == 2) else PLANES[:2]
+        self.compression = compression
+        h = self.frame_shape[0]
         self._doc = self._base(document)
         placeholder = _dumps({**self._doc, "status": "incomplete"})
         self._description = placeholder + " " * (_PAD_FIXED + int(reserve_per_frame) * self.n_frames)
-        volume = self.n_frames * h * w * 12 + len(self._description)
+        volume = self.n_frames * int(np.prod(self.frame_shape)) * 4 * len(self.planes) + \
+            len(self._description)
         self._tw = tifffile.TiffWriter(self.path, bigtiff=volume > _BIGTIFF_ABOVE)
         self._alpha_rows = max(1, (h + 1) // 2) if h > 1 else 1  # tells alpha from data pages
         self._nan = None
@@ -75,11 +87,13 @@ class CorrectedWriter:
         self._closed = False
 
     def _base(self, document: dict) -> dict:
-        return {"format": FORMAT, "format_version": FORMAT_VERSION, "status": "incomplete",
-                "planes": list(PLANES),
-                "plane_dtypes": [np.dtype(PLANE_DTYPES[p]).name for p in PLANES],
+        v1 = len(self.frame_shape) == 2 and self.compression is None
+        return {"format": FORMAT, "format_version": 1 if v1 else FORMAT_VERSION,
+                "status": "incomplete", "planes": list(self.planes),
+                "plane_dtypes": [np.dtype(PLANE_DTYPES[p]).name for p in self.planes],
                 "n_frames": self.n_frames, "frame_shape": list(self.frame_shape),
-                "pages_per_frame": len(PLANES), **document}
+                "pages_per_frame": len(self.planes), "compression": self.compression,
+                "dq_bits": dq_table(), "dq_table_version": DQ_TABLE_VERSION, **document}
 
     def write(self, data, dq, alpha=None) -> None:
         """Append frame ``written``: its corrected data, DQ plane and alpha (or None).
@@ -103,7 +117,7 @@ class CorrectedWriter:
         if self.written >= self.n_frames:
             raise ValueError(f"all {self.n_frames} frames are already written")
         planes = []
-        for name, arr in (("data", data), ("dq", dq), ("alpha", alpha)):
+        for name, arr in (("data", data), ("dq", dq), ("alpha", alpha))[:len(self.planes)]:
             if arr is None:
                 if self._nan is None:
                     self._nan = np.full(self.frame_shape, np.nan, np.float32)
@@ -111,15 +125,26 @@ class CorrectedWriter:
             arr = np.ascontiguousarray(arr, dtype=PLANE_DTYPES[name])
             if arr.shape != self.frame_shape:
                 raise ValueError(f"{name} of frame {self.written} has shape {arr.shape}; this file "
-                                 f"holds frames of shape {self.frame_shape} (H, W)")
+                                 f"holds frames of shape {self.frame_shape}")
             planes.append(arr)
         h = self.frame_shape[0]
         first = self.written == 0
-        self._tw.write(planes[0], photometric="minisblack", metadata=None, rowsperstrip=h,
-                       description=self._description if first else None)
-        self._tw.write(planes[1], photometric="minisblack", metadata=None, rowsperstrip=h)
-        self._tw.write(planes[2], photometric="minisblack", metadata=None,
-                       rowsperstrip=self._alpha_rows)
+        # uncompressed: one strip per page (the fastest to write and read); compressed:
+        # strips of about 1 MiB, so tifffile compresses them on several threads
+        if self.compression is None:
+            rows = [h, h, self._alpha_rows]
+        else:
+            row_bytes = int(np.prod(self.frame_shape[1:])) * 4
+            strip = max(1, min(h, (1 << 20) // max(row_bytes, 1)))
+            rows = [strip, strip, max(1, strip - 1) if strip > 1 else strip]
+        options = {"photometric": "minisblack", "metadata": None,
+                   "compression": self.compression}
+        if len(self.frame_shape) == 3:  # the bands as samples of each pixel, as in memory
+            options["planarconfig"] = "contig"
+        for k, plane in enumerate(planes):
+            self._tw.write(plane, rowsperstrip=rows[k],
+                           description=self._description if first and k == 0 else None,
+                           **options)
         self.written += 1
 
     def sync(self) -> None:

@@ -127,11 +127,10 @@ def corrected_to_envi(path, *, overwrite: bool | None = None) -> list[Path]:
     """Write a corrected file (an output of ``hsiffc correct``) as ENVI cubes beside it.
 
     Each frame becomes ``NAME.hdr``/``NAME.img`` (``NAME_fKKKK`` when the file holds several
-    frames; ``NAME`` is the corrected file's name without ``.tif``): an ``(H', W', bands)``
-    float32 cube of one spectrum per mosaic tile (:func:`hsiffc.reconstruct.tile_cube`, DN as
-    corrected) with the band centres as ``wavelength`` when the mosaic has them, and a matching
-    ``NAME.dq.hdr``/``.img`` uint32 cube of the DQ bits. Without a mosaic the frame is written
-    as a one-band image.
+    frames; ``NAME`` is the corrected file's name without ``.tif``) with its DQ as
+    ``NAME.dq.hdr``/``.img`` (and alpha as ``NAME.alpha.*`` when computed): a cube file as it
+    is, a mosaic frame as one spectrum per tile; bands by wavelength, ascending
+    (:func:`hsiffc.cubes.export.export_corrected`).
 
     Parameters
     ----------
@@ -143,35 +142,12 @@ def corrected_to_envi(path, *, overwrite: bool | None = None) -> list[Path]:
     Returns
     -------
     list of Path
-        The header files written (data and DQ for every frame).
+        The header files written (data, DQ and alpha for every frame).
     """
-    from ..mosaic import Mosaic
-    from ..reconstruct import tile_cube
-    from .corrected import iter_corrected, read_provenance
+    from ..cubes.export import export_corrected
 
-    path = Path(path)
-    prov = read_provenance(path)
-    mosaic = None if prov.get("mosaic") is None else Mosaic.from_dict(prov["mosaic"])
-    n = int(prov["n_frames"])
-    names = corrected_envi_names(path, n)
-    exposure = prov.get("exposure") or [None] * n
-    kinds = prov.get("kind") or [""] * n
-    written = []
-    for k, data, dq, _ in iter_corrected(path):
-        cube, cube_dq = (tile_cube(data, mosaic, dq=dq) if mosaic is not None
-                         else (data[:, :, None], dq[:, :, None]))
-        name = names[k]
-        wl = None if mosaic is None else mosaic.wavelengths_nm
-        extra = {"exposure time": exposure[k], "exposure time units": "ms", "frame kind": kinds[k],
-                 "source": path.name} if exposure[k] is not None else {"source": path.name}
-        hdr, _ = write_envi(name, cube.astype(np.float32), wavelengths_nm=wl,
-                            description=f"hsiffc corrected frame {k} of {path.name} (DN)",
-                            extra=extra, overwrite=overwrite)
-        dq_hdr, _ = write_envi(name.with_name(name.name + ".dq"), cube_dq.astype(np.uint32),
-                               wavelengths_nm=wl, description=f"hsiffc DQ bits of frame {k}",
-                               extra={"source": path.name}, overwrite=overwrite)
-        written += [hdr, dq_hdr]
-    return written
+    return [p for p in export_corrected(path, "envi", overwrite=overwrite)
+            if p.suffix == ".hdr"]
 
 
 def written_from(envi_file, corrected) -> bool:

@@ -14,6 +14,21 @@ RESOLUTIONS = ("full", "tile")
 CORRECTIONS = (None, "imec", "derived")
 
 
+def band_positions(mosaic) -> list:
+    """(row, col) of each band's first position in the mosaic tile, in band-index order.
+
+    >>> from hsiffc.mosaic import Mosaic
+    >>> band_positions(Mosaic.rectangular(2, 2))
+    [[0, 0], [0, 1], [1, 0], [1, 1]]
+    """
+    pattern = np.asarray(mosaic.pattern)
+    out = []
+    for b in range(mosaic.n_bands):
+        r, c = np.argwhere(pattern == b)[0]
+        out.append([int(r), int(c)])
+    return out
+
+
 class Reconstruct(Stage):
     """Turn a 2-D mosaic frame into a cube ``(H, W, B)`` (or ``(H', W', B)`` per tile), and
     optionally apply a spectral correction matrix to get virtual bands ``(..., V)``.
@@ -41,7 +56,10 @@ class Reconstruct(Stage):
     ``virtual_wavelengths_nm_`` (list of float); saved without pickle. With ``correction=None``
     the stage is stateless (``fit`` only marks it fitted).
 
-    Output frame: data and DQ of the cube (DQ rule in :mod:`hsiffc.reconstruct`; a virtual
+    Output frame: ``meta["fwhm_nm"]`` (the mosaic's band FWHMs, or the virtual bands' width;
+    None when unknown), ``meta["band_positions"]`` ((row, col) of each physical band in the
+    tile; None for virtual bands), data and DQ of the cube (DQ rule in
+    :mod:`hsiffc.reconstruct`; a virtual
     band ORs the DQ of every band with a non-zero coefficient), ``meta["wavelengths_nm"]``
     (band centres from the mosaic, in band order, or the virtual wavelengths; None when the
     mosaic has none), ``meta["reconstruction"]`` = {method, resolution, correction} and, for
@@ -114,6 +132,9 @@ class Reconstruct(Stage):
                                      f"mosaic has {mosaic.n_bands} bands")
             self.matrix_ = matrix
             self.virtual_wavelengths_nm_ = wl
+            width = (cal.virtual_fwhm_nm if self.correction == "imec"
+                     else float(self.virtual_fwhm_nm))
+            self.virtual_fwhm_nm_ = None if width is None else float(width)
         self.fitted_ = True
         return self
 
@@ -140,6 +161,8 @@ class Reconstruct(Stage):
             if frame.alpha is not None:
                 alpha = rc.reconstruct_alpha(frame.alpha, mosaic, resolution="tile")
         wavelengths = None if mosaic.wavelengths_nm is None else list(mosaic.wavelengths_nm)
+        fwhm = None if mosaic.fwhm_nm is None else list(mosaic.fwhm_nm)
+        positions = band_positions(mosaic)
         if self.correction is not None:
             matrix = np.asarray(self.matrix_, dtype=np.float64)
             if matrix.shape[1] != mosaic.n_bands:
@@ -150,7 +173,10 @@ class Reconstruct(Stage):
                 alpha = rc.reduce_over_support(alpha, rc.correction_support(matrix), np.maximum,
                                                 np.float32)
             wavelengths = [float(v) for v in self.virtual_wavelengths_nm_]
-        meta = {"wavelengths_nm": wavelengths,
+            width = getattr(self, "virtual_fwhm_nm_", None)
+            fwhm = None if width is None else [float(width)] * len(wavelengths)
+            positions = None
+        meta = {"wavelengths_nm": wavelengths, "fwhm_nm": fwhm, "band_positions": positions,
                 "reconstruction": {"method": self.method if self.resolution == "full" else None,
                                    "resolution": self.resolution,
                                    "correction": self.correction}}

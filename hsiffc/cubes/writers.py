@@ -1,0 +1,242 @@
+"""Writing a :class:`~hsiffc.cubes.Cube` in the formats users' tools open: :func:`write_cube`.
+
+=========  ===========================  ===================================================
+format     files                        what carries the bands and the DQ bit table
+=========  ===========================  ===================================================
+tiff       ``NAME.tif`` (hsiffc TIFF)   provenance JSON of page 0 (``"cube"``, ``"dq_bits"``)
+envi       ``NAME.hdr/.img``,           header ``wavelength``, ``fwhm``, ``band names``,
+           ``NAME.dq.hdr/.img``,        ``default bands``; the DQ header ``dq bit names``,
+           ``NAME.alpha.hdr/.img``      ``dq bit values``, ``dq bit meanings``
+ome        ``NAME.ome.tif``             OME-XML: channels named by wavelength; series 0 data,
+                                        1 DQ, 2 alpha; Description: JSON with the bit table
+netcdf     ``NAME.nc``                  coordinate ``wavelength``; ``dq`` CF ``flag_masks``
+                                        / ``flag_meanings``; attributes (needs xarray)
+=========  ===========================  ===================================================
+
+Every format but the hsiffc TIFF (written in the pipeline's band order with the order
+recorded) holds the bands by wavelength, ascending. Each file is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import tifffile
+
+from ..atomic import atomic_path
+from ..dq import TABLE_VERSION, table
+from ..errors import DataFormatError, HsiffcError
+from ..jsonsafe import json_safe
+
+__all__ = ["FORMATS", "COMPRESSIONS", "format_for", "cube_files", "write_cube"]
+
+#: format -> the suffix of its main file
+FORMATS = {"tiff": ".tif", "envi": ".hdr", "ome": ".ome.tif", "netcdf": ".nc"}
+#: compressions the TIFF formats take (imagecodecs), and netCDF (zlib only)
+COMPRESSIONS = ("zlib", "zstd", "lzma")
+_BIGTIFF_ABOVE = 2 ** 32 - 2 ** 26
+
+
+def format_for(path) -> str:
+    """The format a file name asks for: ``.ome.tif``/``.ome.tiff`` ome, ``.tif``/``.tiff``
+    tiff, ``.hdr``/``.img`` envi, ``.nc`` netcdf.
+
+    >>> format_for("a.ome.tif"), format_for("b.hdr"), format_for("c.nc")
+    ('ome', 'envi', 'netcdf')
+    """
+    name = Path(path).name.lower()
+    if name.endswith((".ome.tif", ".ome.tiff")):
+        return "ome"
+    for suffix, fmt in ((".tif", "tiff"), (".tiff", "tiff"), (".hdr", "envi"), (".img", "envi"),
+                        (".nc", "netcdf")):
+        if name.endswith(suffix):
+            return fmt
+    raise DataFormatError(f"cannot tell the cube format from the name {Path(path).name!r}; "
+                          f"end it in .tif, .ome.tif, .hdr or .nc, or give format= "
+                          f"({', '.join(FORMATS)})")
+
+
+def _stem(path: Path) -> Path:
+    name = path.name
+    for suffix in (".ome.tiff", ".ome.tif", ".tiff", ".tif", ".hdr", ".img", ".nc"):
+        if name.lower().endswith(suffix):
+            return path.with_name(name[:-len(suffix)])
+    return path
+
+
+def cube_files(path, fmt: str, *, alpha: bool = True) -> list[Path]:
+    """Every file :func:`write_cube` writes for ``path`` in format ``fmt``.
+
+    >>> [p.name for p in cube_files("a.hdr", "envi", alpha=False)]
+    ['a.hdr', 'a.img', 'a.dq.hdr', 'a.dq.img']
+    """
+    base = _stem(Path(path))
+    if fmt == "envi":
+        parts = ["", ".dq"] + ([".alpha"] if alpha else [])
+        return [base.with_name(base.name + p + s) for p in parts for s in (".hdr", ".img")]
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    return [base.with_name(base.name + FORMATS[fmt])]
+
+
+def _document(cube) -> dict:
+    return json_safe({"format": "hsiffc-cube", "cube": cube.describe(),
+                      "dq_bits": table(), "dq_table_version": TABLE_VERSION,
+                      "history": list(cube.history), "attrs": cube.attrs})
+
+
+def write_cube(cube, path, *, format: str | None = None, compression: str | None = None,
+               overwrite: bool | None = None, description: str = "",
+               extra: dict | None = None) -> list[Path]:
+    """Write a cube (with its DQ and alpha) as ``format``.
+
+    Parameters
+    ----------
+    cube : Cube or Frame
+        A :class:`~hsiffc.cubes.Cube` or a reconstructed :class:`~hsiffc.frame.Frame`.
+    path : str or Path
+        The main file (its suffix chooses the format when ``format`` is None).
+    format : {"tiff", "envi", "ome", "netcdf"}, optional
+    compression : {"zlib", "zstd", "lzma"}, optional
+        For the TIFF formats (imagecodecs), and netCDF (zlib). ENVI is never compressed.
+    overwrite : bool, optional
+        Replace existing files (default: the current write policy, which refuses).
+    description : str
+        A line saying what the cube is (ENVI ``description``, TIFF provenance).
+    extra : dict, optional
+        More ENVI header entries.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    from .product import Cube
+
+    if not isinstance(cube, Cube):
+        cube = Cube.from_frame(cube)
+    path = Path(path)
+    fmt = format or format_for(path)
+    if fmt not in FORMATS:
+        raise DataFormatError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}",
+                              path=path)
+    if compression is not None and compression not in COMPRESSIONS:
+        raise DataFormatError(f"compression must be one of {', '.join(COMPRESSIONS)}, got "
+                              f"{compression!r}", path=path)
+    if fmt == "envi" and compression is not None:
+        raise DataFormatError("ENVI files are not compressed; drop the compression or choose "
+                              "tiff, ome or netcdf", path=path)
+    files = cube_files(path, fmt, alpha=cube.alpha is not None)
+    if fmt == "envi":
+        _write_envi(cube.sorted(), files[0], description, extra, overwrite)
+    elif fmt == "ome":
+        _write_ome(cube.sorted(), files[0], compression, description, overwrite)
+    elif fmt == "netcdf":
+        _write_netcdf(cube, files[0], compression, description, overwrite)
+    else:
+        _write_tiff(cube.sorted(), files[0], compression, description, overwrite)
+    return files
+
+
+def _write_tiff(cube, path, compression, description, overwrite) -> None:
+    from ..io.corrected_writer import CorrectedWriter
+
+    doc = {**_document(cube), "format_note": description or "written by hsiffc.io.write_cube",
+           "alpha_computed": cube.alpha is not None}
+    doc.pop("format")
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        writer = CorrectedWriter(tmp, doc, n_frames=1, frame_shape=cube.data.shape,
+                                 alpha=cube.alpha is not None, compression=compression)
+        with writer:
+            writer.write(cube.data, cube.dq, cube.alpha)
+            writer.finish()
+
+
+def _envi_dq_entries() -> dict:
+    rows = table()
+    return {"dq bit names": [r["name"] for r in rows],
+            "dq bit values": [r["value"] for r in rows],
+            "dq bit meanings": [r["meaning"] for r in rows],
+            "dq table version": TABLE_VERSION}
+
+
+def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
+    from ..io.envi_write import write_envi
+
+    base = header.with_suffix("")
+    bands = {"band names": cube.band_names()}
+    if cube.fwhm_nm is not None:
+        bands["fwhm"] = list(cube.fwhm_nm)
+    if cube.n_bands >= 3:
+        bands["default bands"] = [b + 1 for b in cube.default_bands()]  # ENVI counts from 1
+    common = {**(extra or {})}
+    if "exposure_ms" in cube.attrs:
+        common.setdefault("exposure time", cube.attrs["exposure_ms"])
+        common.setdefault("exposure time units", "ms")
+    wl = cube.wavelengths_nm
+    text = description or "hsiffc spectral cube"
+    names = {k: v for k, v in bands.items() if k != "band names"}
+    files = {"dq": base.with_name(base.name + ".dq"),
+             "alpha": base.with_name(base.name + ".alpha")}
+    write_envi(files["dq"], cube.dq, wavelengths_nm=wl, band_names=cube.band_names(),
+               description=f"{text}: DQ bits (uint32; names and values in dq bit names / dq "
+                           "bit values)", interleave="bsq",
+               extra={**common, **names, **_envi_dq_entries()},
+               overwrite=overwrite)
+    if cube.alpha is not None:
+        write_envi(files["alpha"], cube.alpha, wavelengths_nm=wl, band_names=cube.band_names(),
+                   description=f"{text}: leakage percentage alpha (percent)",
+                   extra={**common, **names, "data units": "percent"}, overwrite=overwrite)
+    data_extra = {**common, **names, "data units": cube.unit,
+                  "dq file": files["dq"].name + ".img"}
+    if cube.alpha is not None:
+        data_extra["alpha file"] = files["alpha"].name + ".img"
+    write_envi(base, cube.data, wavelengths_nm=wl, band_names=cube.band_names(),
+               description=f"{text} ({cube.unit})", interleave="bsq", extra=data_extra,
+               overwrite=overwrite)
+
+
+def _write_ome(cube, path: Path, compression, description, overwrite) -> None:
+    names = cube.band_names()
+    doc = json.dumps({**_document(cube), "note": description}, allow_nan=False)
+    planes = [("data", cube.data, names), ("dq", cube.dq, [f"DQ {n}" for n in names])]
+    if cube.alpha is not None:
+        planes.append(("alpha", cube.alpha, [f"alpha {n}" for n in names]))
+    volume = sum(a.nbytes for _, a, _ in planes)
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        with tifffile.TiffWriter(tmp, ome=True, bigtiff=volume > _BIGTIFF_ABOVE) as tw:
+            for name, arr, channels in planes:
+                meta = {"axes": "CYX", "Name": name, "Channel": {"Name": channels}}
+                if name == "data":
+                    meta["Description"] = doc
+                tw.write(np.ascontiguousarray(np.moveaxis(arr, 2, 0)), photometric="minisblack",
+                         compression=compression, metadata=meta)
+
+
+def _write_netcdf(cube, path: Path, compression, description, overwrite) -> None:
+    from .xr import require_xarray, to_xarray
+
+    require_xarray()
+    try:
+        import h5netcdf  # noqa: F401
+        engine = "h5netcdf"
+    except ImportError:
+        try:
+            import netCDF4  # noqa: F401
+            engine = "netcdf4"
+        except ImportError:
+            raise HsiffcError("writing netCDF needs h5netcdf or netCDF4: pip install "
+                              "'hsiffc[xarray]'") from None
+    ds = to_xarray(cube)
+    if description:
+        ds.attrs["description"] = description
+    encoding = {}
+    if compression is not None:
+        if compression != "zlib":
+            raise DataFormatError(f"netCDF compression is zlib only, got {compression!r}",
+                                  path=path)
+        encoding = {v: {"zlib": True, "complevel": 4} for v in ds.data_vars}
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        ds.to_netcdf(tmp, engine=engine, encoding=encoding)

@@ -1,0 +1,95 @@
+"""A :class:`~hsiffc.cubes.Cube` as an ``xarray.Dataset`` (optional: ``pip install hsiffc[xarray]``).
+
+Layout: dims ``(y, x, band)``; coordinates ``wavelength`` (nm, ascending), ``fwhm`` (nm),
+``band_index`` (the band's index in the pipeline's cube), ``pattern_row`` / ``pattern_col``
+(its position in the mosaic tile; -1 for virtual bands) and ``band_name``; variables ``data``
+(float32, in the cube's unit), ``dq`` (uint32, CF ``flag_masks`` / ``flag_meanings``
+attributes: the bit table) and ``alpha`` (float32 percent, when computed). Dataset attributes:
+``history`` and ``dq_bits`` (JSON text: netCDF attributes are flat), the cube's unit and
+whatever the cube's ``attrs`` hold.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from ..dq import TABLE_VERSION, table
+from ..errors import HsiffcError
+from ..jsonsafe import json_safe
+
+__all__ = ["require_xarray", "to_xarray"]
+
+
+def require_xarray():
+    """The xarray module, or an error that says how to install it."""
+    try:
+        import xarray
+    except ImportError:
+        raise HsiffcError("this needs xarray, an optional dependency: pip install "
+                          "'hsiffc[xarray]' (xarray with h5netcdf for netCDF)") from None
+    return xarray
+
+
+def dq_attrs() -> dict:
+    """CF-convention attributes of a DQ variable: ``flag_masks`` (uint32 values),
+    ``flag_meanings`` (names, space-separated) and the full table as JSON text."""
+    rows = table()
+    return {"flag_masks": np.array([r["value"] for r in rows], np.uint32),
+            "flag_meanings": " ".join(r["name"] for r in rows),
+            "dq_bits": json.dumps(rows), "dq_table_version": TABLE_VERSION,
+            "long_name": "data-quality bits (hsiffc.dq.DQ)"}
+
+
+def _text(value) -> str:
+    return json.dumps(json_safe(value), allow_nan=False)
+
+
+def to_xarray(cube, *, sort: bool = True):
+    """The cube as an ``xarray.Dataset`` (layout in this module's docstring).
+
+    Parameters
+    ----------
+    cube : Cube or Frame
+        A :class:`~hsiffc.cubes.Cube`, or a reconstructed :class:`~hsiffc.frame.Frame`.
+    sort : bool
+        Order the bands by wavelength, ascending (default).
+
+    Returns
+    -------
+    xarray.Dataset
+    """
+    from .product import Cube
+
+    xr = require_xarray()
+    if not isinstance(cube, Cube):
+        cube = Cube.from_frame(cube)
+    if sort:
+        cube = cube.sorted()
+    n = cube.n_bands
+    nan = [float("nan")] * n
+    rows = [-1 if p is None else p[0] for p in (cube.positions or [None] * n)]
+    cols = [-1 if p is None else p[1] for p in (cube.positions or [None] * n)]
+    coords = {"wavelength": ("band", np.asarray(cube.wavelengths_nm or nan, np.float64),
+                             {"units": "nm", "long_name": "band centre wavelength"}),
+              "fwhm": ("band", np.asarray(cube.fwhm_nm or nan, np.float64),
+                       {"units": "nm", "long_name": "band full width at half maximum"}),
+              "band_index": ("band", np.asarray(cube.band_index, np.int32)),
+              "pattern_row": ("band", np.asarray(rows, np.int32)),
+              "pattern_col": ("band", np.asarray(cols, np.int32)),
+              "band_name": ("band", np.asarray(cube.band_names(), dtype=str))}
+    variables = {"data": (("y", "x", "band"), cube.data, {"units": cube.unit}),
+                 "dq": (("y", "x", "band"), cube.dq, dq_attrs())}
+    if cube.alpha is not None:
+        variables["alpha"] = (("y", "x", "band"), np.ascontiguousarray(cube.alpha),
+                              {"units": "percent", "long_name": "leakage percentage alpha"})
+    attrs = {"title": "hsiffc spectral cube", "unit": cube.unit,
+             "history": _text(list(cube.history)), "dq_bits": json.dumps(table()),
+             "band_order": "wavelength ascending" if cube.is_sorted else "band index"}
+    for key, value in cube.attrs.items():
+        if isinstance(value, (str, int, float)) and not isinstance(value, bool):
+            attrs[key] = value
+        elif value is not None:
+            attrs[key] = _text(value)
+    return xr.Dataset(variables, coords=coords, attrs=attrs)
