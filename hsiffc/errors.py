@@ -28,6 +28,17 @@ class ParameterError(HsiffcError, ValueError):
     """
 
 
+class UnknownStageError(ParameterError, KeyError):
+    """No stage is registered (or loads) under the name asked for.
+
+    A :class:`ParameterError` (so a ``ValueError``); also a ``KeyError`` for callers that
+    looked a stage up as in a mapping. Its text is the message itself, not its repr.
+    """
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
 class CalibrationMismatchError(HsiffcError, ValueError):
     """A calibration product does not fit the data it is applied to."""
 

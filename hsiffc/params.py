@@ -128,6 +128,65 @@ def check_params(owner: str, spec: Mapping[str, Param], values: Mapping) -> None
                                  f"{param.describe()}")
 
 
+def did_you_mean(name, valid) -> str:
+    """``"did you mean 'x'? "`` when ``name`` is close to one of ``valid`` (difflib), else "".
+
+    Parameters
+    ----------
+    name : object
+        The name given (anything: only a string gets a suggestion).
+    valid : iterable of str
+        The valid names.
+
+    Returns
+    -------
+    str
+        The suggestion, ending with a space, or an empty string.
+
+    Examples
+    --------
+    >>> did_you_mean("threshold_percnt", ["calibration", "threshold_percent"])
+    "did you mean 'threshold_percent'? "
+    >>> did_you_mean("x", ["calibration"])
+    ''
+    """
+    import difflib
+
+    if not isinstance(name, str):
+        return ""
+    close = difflib.get_close_matches(name, [str(v) for v in valid], n=1, cutoff=0.6)
+    return f"did you mean {close[0]!r}? " if close else ""
+
+
+def unknown_parameters(owner: str, given, valid) -> None:
+    """Raise :class:`ParameterError` for the first of ``given`` that is not in ``valid``: one
+    line naming the owner, the parameter, the closest valid name and every valid one.
+
+    Parameters
+    ----------
+    owner : str
+        Whose parameters (e.g. ``"stage 'alpha_mask'"``), for the message.
+    given : iterable of str
+        The parameter names passed.
+    valid : iterable of str
+        The names the owner takes.
+
+    Examples
+    --------
+    >>> unknown_parameters("stage 'alpha_mask'", ["threshold_percnt"],
+    ...                    ["calibration", "threshold_percent"])
+    Traceback (most recent call last):
+    ...
+    hsiffc.errors.ParameterError: stage 'alpha_mask' has no parameter 'threshold_percnt'; did you mean 'threshold_percent'? valid: calibration, threshold_percent
+    """
+    valid = list(valid)
+    for name in given:
+        if name not in valid:
+            raise ParameterError(f"{owner} has no parameter {name!r}; "
+                                 f"{did_you_mean(name, valid)}valid: "
+                                 f"{', '.join(valid) or '(none)'}")
+
+
 def validate_method(name, registry, what: str):
     """Look up ``name`` in a method registry; an unknown name lists the valid ones.
 
@@ -147,5 +206,6 @@ def validate_method(name, registry, what: str):
     """
     names = list(registry)
     if not isinstance(name, str) or name not in names:
-        raise ParameterError(f"unknown {what} {name!r}; valid: {', '.join(map(str, names))}")
+        raise ParameterError(f"unknown {what} {name!r}; {did_you_mean(name, names)}valid: "
+                             f"{', '.join(map(str, names))}")
     return registry[name] if isinstance(registry, Mapping) else name

@@ -15,51 +15,30 @@ SAMPLE_CUBES = REPO / "sample_cubes"
 TOOL_CACHES = frozenset({".pytest_cache", ".hypothesis", "__pycache__"})
 
 
-def _listing(folder: Path) -> dict[str, int | None]:
-    """Names in ``folder`` with the modification times of its files in ns (top level only:
-    cheap enough to take around every test; ``.ci/run`` checks the whole tree with ``git
-    status``). Folders get None: Python and numba add ``__pycache__`` folders inside them."""
-    out: dict[str, int | None] = {}
+def _names(folder: Path) -> set[str]:
+    """The names in ``folder`` (top level only: cheap enough to take around every test;
+    ``.ci/run`` checks the whole tree with ``git status``)."""
     try:
-        with os.scandir(folder) as it:
-            for entry in it:
-                if entry.name in TOOL_CACHES:
-                    continue
-                try:
-                    out[entry.name] = (None if entry.is_dir(follow_symlinks=False)
-                                       else entry.stat(follow_symlinks=False).st_mtime_ns)
-                except FileNotFoundError:
-                    pass
+        return {name for name in os.listdir(folder) if name not in TOOL_CACHES}
     except OSError:  # the working directory is gone or unreadable: nothing to compare
-        pass
-    return out
+        return set()
 
 
 @pytest.fixture(autouse=True)
 def _working_directory_untouched(request):
-    """Fail a test that creates, replaces or deletes anything in the current directory: tests
-    read and write under ``tmp_path`` only (a ``monkeypatch.chdir(tmp_path)`` is fine: the
-    directory checked is the one the test started in)."""
+    """Fail a test that creates a file or folder in the current directory: tests read and
+    write under ``tmp_path`` (a ``monkeypatch.chdir(tmp_path)`` is fine: the directory checked
+    is the one the test started in). Only new names are checked, not edits: people editing
+    the checkout while tests run must not fail them; ``.ci/run``'s ``git status`` sees the
+    rest."""
     cwd = Path.cwd()
-    before = _listing(cwd)
+    before = _names(cwd)
     yield
-    after = _listing(cwd)
-    created = sorted(set(after) - set(before))
-    deleted = sorted(set(before) - set(after))
-    changed = sorted(n for n in set(before) & set(after) if before[n] != after[n])
-    if created or deleted or changed:
-        parts = [f"{what} {', '.join(names)}" for what, names in
-                 (("created", created), ("deleted", deleted), ("modified", changed)) if names]
-        pytest.fail(f"{request.node.nodeid} touched the current directory {cwd}: "
-                    f"{'; '.join(parts)}; a test writes under tmp_path (and monkeypatch.chdir"
+    created = sorted(_names(cwd) - before)
+    if created:
+        pytest.fail(f"{request.node.nodeid} touched the current directory {cwd}: created "
+                    f"{', '.join(created)}; a test writes under tmp_path (and monkeypatch.chdir"
                     "(tmp_path) where code writes relative paths)", pytrace=False)
-
-
-def _require(path: Path, what: str) -> Path:
-    if not path.exists():
-        pytest.skip(f"{what} not found at {path}: this test needs the measured data in "
-                    "../shared/data (set HSIFFC_SHARED_DATA to its folder to run it)")
-    return path
 
 
 @pytest.fixture(scope="session")

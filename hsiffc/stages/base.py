@@ -17,7 +17,7 @@ import json
 import numpy as np
 
 from ..errors import HsiffcError
-from ..params import check_params
+from ..params import check_params, unknown_parameters
 
 
 class NotFittedError(HsiffcError, RuntimeError):
@@ -60,10 +60,9 @@ class Stage:
 
     def set_params(self, **params) -> "Stage":
         """Set constructor parameters by name; returns ``self`` (checked at ``fit``)."""
-        valid = self._param_names()
+        unknown_parameters(f"stage {self.name or type(self).__name__!r}", params,
+                           self._param_names())  # a ParameterError: closest and valid names
         for key, value in params.items():
-            if key not in valid:
-                raise ValueError(f"{type(self).__name__} has no parameter {key!r}; valid: {valid}")
             setattr(self, key, value)
         return self
 

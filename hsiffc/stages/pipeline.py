@@ -277,6 +277,13 @@ class Pipeline:
             name = spec.pop("name", None) or stage_name
             try:  # a stage or a parameter name misspelt: named, with the closest valid one
                 stage_cls = registry.get(stage_name)
+            except KeyError as exc:
+                raise DataFormatError(f"step {name!r}: {exc}", path=path) from None
+            try:
+                registry.check_param_names(stage_name, stage_cls, spec)
+            except ParameterError as exc:
+                raise ParameterError(f"{path}: step {name!r}: {exc}") from None
+            try:
                 for key, value in spec.items():  # relative file names: beside the TOML
                     if _is_file(stage_cls, key) and isinstance(value, str):
                         spec[key] = str((path.parent / value).resolve())
@@ -295,13 +302,6 @@ def _load_step(spec: dict, arrays: dict, path: Path, given: Calibration | None):
     name, stage_name = spec["name"], spec["stage"]
     params = dict(spec["params"])
     try:
-            except KeyError as exc:
-                raise DataFormatError(f"step {name!r}: {exc}", path=path) from None
-            try:
-                registry.check_param_names(stage_name, stage_cls, spec)
-            except ParameterError as exc:
-                raise ParameterError(f"{path}: step {name!r}: {exc}") from None
-            try:
         stage_cls = registry.get(stage_name)
     except KeyError as exc:
         raise DataFormatError(f"step {name!r}: {exc.args[0]}", path=path) from exc

@@ -18,7 +18,8 @@ import warnings
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 
-from ..errors import HsiffcWarning
+from ..errors import HsiffcWarning, UnknownStageError
+from ..params import did_you_mean, unknown_parameters
 
 GROUP = "hsiffc.stages"
 
@@ -60,12 +61,20 @@ def entries() -> dict[str, StageEntry]:
 
 
 def get(name: str):
-    """The stage class registered as ``name``."""
+    """The stage class registered as ``name``.
+
+    Raises
+    ------
+    UnknownStageError
+        No stage has that name (the message suggests the closest and lists every one), or
+        its plugin failed to load. A ``ParameterError`` (``ValueError``) and a ``KeyError``.
+    """
     table = entries()
     if name not in table:
-        raise KeyError(f"no stage named {name!r}; installed stages: {sorted(table)} "
-                       "(third-party stages register under the entry-point group "
-                       f"{GROUP!r})")
+        raise UnknownStageError(
+            f"no stage named {name!r}; {did_you_mean(name, table)}installed stages: "
+            f"{', '.join(sorted(table))} (third-party stages register under the entry-point "
+            f"group {GROUP!r}; hsiffc stages lists them)")
     entry = table[name]
     module, _, attr = entry.target.partition(":")
     try:
@@ -73,16 +82,44 @@ def get(name: str):
     except Exception as exc:  # a broken plugin must not take hsiffc down
         warnings.warn(f"stage {name!r} from {entry.source} could not be loaded "
                       f"({type(exc).__name__}: {exc})", PluginWarning, stacklevel=2)
-        raise KeyError(f"stage {name!r} is installed ({entry.source}) but failed to load: "
-                       f"{exc}") from exc
+        raise UnknownStageError(f"stage {name!r} is installed ({entry.source}) but failed to "
+                                f"load: {exc}") from exc
     if not getattr(cls, "name", ""):
         cls.name = name
     return cls
 
 
+def check_param_names(name: str, cls, params) -> None:
+    """Refuse a parameter the stage class does not take, before it is built: one line naming
+    the stage, the parameter, the closest valid name and every valid one.
+
+    Raises
+    ------
+    ParameterError
+    """
+    unknown_parameters(f"stage {name!r}", params, cls._param_names())
+
+
 def create(name: str, **params):
-    """An instance of the stage registered as ``name``."""
-    return get(name)(**params)
+    """An instance of the stage registered as ``name``.
+
+    Raises
+    ------
+    UnknownStageError
+        No stage has that name (a ``ParameterError``).
+    ParameterError
+        A parameter the stage does not take (the message suggests the closest).
+
+    Examples
+    --------
+    >>> create("alpha_mask", threshold_percnt=12)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    hsiffc.errors.ParameterError: stage 'alpha_mask' has no parameter 'threshold_percnt'; did you mean 'threshold_percent'? valid: calibration, threshold_percent...
+    """
+    cls = get(name)
+    check_param_names(name, cls, params)
+    return cls(**params)
 
 
 def describe() -> list[dict]:
