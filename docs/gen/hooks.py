@@ -32,6 +32,11 @@ def _cli_reference() -> str:
     for name, sub in subs.choices.items():
         sub.prog = f"hsiffc {name}"
         out += [f"## `hsiffc {name}`", "", "```text", sub.format_help().rstrip(), "```", ""]
+        for act in (a for a in sub._actions if isinstance(a, argparse._SubParsersAction)):
+            for action, child in act.choices.items():  # e.g. hsiffc reflectance fit
+                child.prog = f"hsiffc {name} {action}"
+                out += [f"### `hsiffc {name} {action}`", "", "```text",
+                        child.format_help().rstrip(), "```", ""]
     return "\n".join(out)
 
 

@@ -64,6 +64,14 @@ class Reflectance(Stage):
     ``max_bright_fraction`` of its good values above ``max_reflectance``) and an exposure or
     gain (``meta["gain"]``, when the frames carry one) different from the reference's.
 
+    Fitted attributes: ``method_``, ``panel_`` (per band), ``panel_source_``,
+    ``white_exposures_ms_``, ``white_rate_`` (references, one per exposure, DN/ms),
+    ``dq_`` (their flags), ``white_gain_``, ``checks_`` (per reference: the figures of the
+    checks and the warnings they gave).
+
+    Output: ``data`` is the reflectance factor (float32, 1 = a perfect diffuse reflector),
+    ``meta["units"] = "reflectance factor"``, ``meta["reflectance"]`` says how it was made.
+
     Parameters
     ----------
     panel : float or list of float, optional
@@ -94,13 +102,6 @@ class Reflectance(Stage):
     max_bright_fraction : float
         Share of a scene's good values above ``max_reflectance`` that triggers the warning.
 
-    Fitted attributes: ``method_``, ``panel_`` (per band), ``panel_source_``,
-    ``white_exposures_ms_``, ``white_rate_`` (references, one per exposure, DN/ms),
-    ``dq_`` (their flags), ``white_gain_``, ``checks_`` (per reference: the figures of the
-    checks and the warnings they gave).
-
-    Output: ``data`` is the reflectance factor (float32, 1 = a perfect diffuse reflector),
-    ``meta["units"] = "reflectance factor"``, ``meta["reflectance"]`` says how it was made.
     """
 
     name = "reflectance"
