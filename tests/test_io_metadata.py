@@ -1,4 +1,4 @@
-"""Metadata from the file, a sidecar and options (in that order), missing-metadata errors, and
+"""Metadata from options, the file and a sidecar (in that order), missing-metadata errors, and
 the layout quirks of camera files."""
 
 from __future__ import annotations
@@ -52,18 +52,25 @@ def test_sidecar_csv(tmp_path):
     assert sweep.meta["metadata_origins"]["bit_depth"] == "sidecar hsiffc.csv"
 
 
-def test_file_then_sidecar_then_options(tmp_path):
+def test_options_then_file_then_sidecar(tmp_path):
     path = tmp_path / "t.tif"
     tifffile.imwrite(path, np.zeros((4, 4), np.uint16), extratags=[(33434, 5, 1, (1, 100), True)])
     (tmp_path / "hsiffc.toml").write_text("[defaults]\nexposure_ms = 50.0\nbit_depth = 10\n")
     with pytest.warns(MetadataConflictWarning) as record:
+        src = open_source(path)
+    assert src.exposure_ms[0] == pytest.approx(10.0)     # the file's own tag beats the sidecar
+    assert [w.message.args[0].split(": ")[1].split()[0] for w in record] == ["exposure_ms"]
+    src.close()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                   # what the user asks for: no warning
         src = open_source(path, exposure_ms=70.0, bit_depth=12, kind="dark")
-    assert src.exposure_ms[0] == pytest.approx(10.0)     # the file's own tag wins
-    assert src.bit_depth == 10                           # the sidecar beats the option
+    assert src.exposure_ms[0] == pytest.approx(70.0)     # the option beats the file's tag
+    assert src.bit_depth == 12                           # and the sidecar
     assert src.kind[0] == "dark"                         # only the option gives it
-    assert {"exposure_ms", "bit_depth"} <= {w.message.args[0].split(": ")[1].split()[0]
-                                            for w in record}
-    assert src.origins == {**src.origins, "kind": "--kind", "bit_depth": "sidecar hsiffc.toml"}
+    assert src.origins["kind"] == "--kind"
+    assert src.origins["exposure_ms"].startswith("--exposure-ms (overrides file")
+    assert "sidecar hsiffc.toml 50.0" in src.origins["exposure_ms"]
+    assert src.origins["bit_depth"] == "--bit-depth (overrides sidecar hsiffc.toml 10)"
     src.close()
 
 
@@ -222,3 +229,15 @@ def test_cli_prints_each_warning_once_on_one_line(tmp_path, capsys):
     warned = [line for line in err if "assuming 8 bits" in line]
     assert len(warned) == 1 and warned[0].startswith("hsiffc info: warning: ")
     assert not any("source.py" in line or line.startswith("  ") for line in err), err
+
+
+def test_info_shows_what_an_option_overrode(tmp_path, capsys):
+    from hsiffc.cli import main
+
+    path = tmp_path / "t.tif"   # EXIF ExposureTime 1/100 s in the file, 70 ms on the command line
+    tifffile.imwrite(path, np.zeros((4, 4), np.uint16), extratags=[(33434, 5, 1, (1, 100), True)])
+    assert main(["info", str(path), "--exposure-ms", "70", "--bit-depth", "12"]) == 0
+    out = capsys.readouterr().out
+    line = next(s for s in out.splitlines() if s.strip().startswith("exposure_ms"))
+    assert "--exposure-ms (overrides file" in line and "10.0" in line
+    assert " 70 " in out                                  # the steps table uses the option's value

@@ -1,14 +1,16 @@
-"""Where a frame's metadata come from: the file, a sidecar, or the command line, in that order.
+"""Where a frame's metadata come from: the command line, the file, or a sidecar, in that order.
 
 For every field (exposure, kind, illumination, bit depth, mosaic, bit shift, photons, step)
 :func:`resolve_fields` takes the first of
 
-1. the file itself (hsiffc JSON document, EMVA 1288 descriptor, ENVI header, FITS header,
+1. command-line options / keyword arguments (:class:`Overrides`): what the user says
+   explicitly wins (a wrong exposure in a file's header can be corrected with
+   ``--exposure-ms``); the origin then names what it overrode (``hsiffc info`` shows it);
+2. the file itself (hsiffc JSON document, EMVA 1288 descriptor, ENVI header, FITS header,
    TIFF tags such as EXIF ``ExposureTime``);
-2. a sidecar next to the data (``hsiffc.toml`` / ``hsiffc.csv``, :mod:`hsiffc.io.sidecar`);
-3. command-line options / keyword arguments (:class:`Overrides`).
+3. a sidecar next to the data (``hsiffc.toml`` / ``hsiffc.csv``, :mod:`hsiffc.io.sidecar`).
 
-A lower-priority value that disagrees with the one used is reported with a
+A sidecar value that disagrees with the file's is reported with a
 :class:`MetadataConflictWarning` (the file's own record wins; fix the file or the sidecar).
 Defaults: ``kind`` "light", ``illumination`` "" (unknown), ``photons`` unknown; the bit depth
 is inferred later from the values or the dtype (with a warning). A missing exposure time is an
@@ -46,7 +48,7 @@ _TILE = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
 
 
 class MetadataConflictWarning(HsiffcWarning):
-    """A sidecar or option disagrees with a value the file itself gives (the file wins)."""
+    """A sidecar disagrees with a value the file itself gives (the file wins)."""
 
 
 @dataclass(frozen=True)
@@ -249,7 +251,7 @@ def _per_frame(layout: FileLayout, name, value, origin):
 
 def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
                    missing: list | None = None) -> tuple[dict, dict]:
-    """Fields and their origins for one file (file, then sidecar, then overrides).
+    """Fields and their origins for one file (overrides, then the file, then the sidecar).
 
     Parameters
     ----------
@@ -274,15 +276,21 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
     for name in ("exposure_ms", "kind", "illumination", "photons", "step", "bit_depth",
                  "mosaic", "bit_shift"):
         candidates = []
+        if name in given:  # explicit beats implicit
+            candidates.append((given[name], "--" + name.replace("_", "-")))
         if name in layout.fields:
             candidates.append((layout.fields[name], layout.origins.get(name, "file")))
         if name in side:
             candidates.append((side[name], side_label))
-        if name in given:
-            candidates.append((given[name], "--" + name.replace("_", "-")))
         if not candidates:
             continue
         value, origin = candidates[0]
+        if name in given and len(candidates) > 1:
+            # what the option replaced, kept in the origin (hsiffc info shows it); no warning:
+            # the user asked for it
+            origin += " (overrides " + "; ".join(
+                f"{o} {_short(v)}" for v, o in candidates[1:]) + ")"
+            candidates = candidates[:1]
         if name == "mosaic" and not isinstance(value, Mosaic):
             base = sidecar.path.parent if origin == side_label else None
             value, area = parse_mosaic(value, base=base, path=layout.path,
