@@ -181,7 +181,8 @@ def _add_calibrate(sub):
     p.add_argument("--full-well-dn", type=positive, default=None,
                    help="leave out samples at or above this level (full-well saturation)")
     p.add_argument("--steps", choices=("all", "sweep"), default="sweep",
-                   help="EMVA 1288: use only the sweep steps (default) or also the spatial set")
+                   help="EMVA 1288: fit the sweep steps and fold the spatial flat stack into "
+                        "the responsivity map (default), or fit every step")
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
     add_overwrite(p)
     p.set_defaults(func=_cmd_calibrate, input_args=("sweep",), output_args=("output", "json"))
@@ -191,13 +192,22 @@ def _cmd_calibrate(args) -> int:
     from ..calibrate import calibrate
     from ..io import read_sweep
 
-    sweep = read_sweep(args.sweep, overrides=input_overrides(args))
+    sweep = full = read_sweep(args.sweep, overrides=input_overrides(args))
     if args.steps == "sweep" and "sweep_steps" in sweep.meta:
         sweep = sweep.select(np.isin(sweep.step, sweep.meta["sweep_steps"]))
     print(sweep.summary())
     if args.output.suffix != ".npz":
         raise HsiffcError(f"{args.output}: the calibration file must end in .npz; rename it")
     cal = calibrate(sweep, method=args.method, full_well_dn=args.full_well_dn)
+    if args.steps == "sweep" and full.meta.get("spatial_steps"):
+        # the EMVA 1288 flat stack: folded into the responsivity map, not a sample of the fit
+        from ..calibrate.flats import add_flat_stacks
+
+        cal = add_flat_stacks(cal, full.select(np.isin(full.step, full.meta["spatial_steps"])))
+        for s in cal.fitted_on.get("flat_stacks", []):
+            print(f"  flat stack: step {s['step']}, {s['n_frames']} frames at "
+                  f"{s['exposure_ms']:g} ms, {s['level_dn']:.0f} DN above dark ({s['dark']} "
+                  "dark): folded into the responsivity map")
     cal.save(args.output, overwrite=args.overwrite)
     print(cal.summary())
     counts = {k: int(cal[k].sum()) for k in ("n_valid", "n_clipped", "n_full_well")

@@ -6,20 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import HsiffcError
+from .args import positive
 from .common import add_input_options, add_overwrite, input_overrides, write_json
-
-
-def _positive(text: str) -> float:
-    import argparse
-    import math
-
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return value
 
 
 def register(sub) -> None:
@@ -44,9 +32,9 @@ def register(sub) -> None:
     p.add_argument("--report", type=Path, default=None, metavar="DIR",
                    help="also write emva1288.md, emva1288.json and the standard's plots (PNG) "
                         "into DIR")
-    p.add_argument("--pixel-area-um2", type=_positive, default=None, metavar="A",
+    p.add_argument("--pixel-area-um2", type=positive, default=None, metavar="A",
                    help="pixel area in um^2: adds saturation and threshold per area")
-    p.add_argument("--wavelength-nm", type=_positive, default=None, metavar="L",
+    p.add_argument("--wavelength-nm", type=positive, default=None, metavar="L",
                    help="wavelength of the light in nm: adds the photon energy and, with the "
                         "pixel area, the irradiation at saturation and threshold (uJ/m^2); QE "
                         "needs neither, the descriptor gives photons per pixel")
