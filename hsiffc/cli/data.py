@@ -139,12 +139,31 @@ def _simulated_lamp(sensor, spec: str, irradiance_w_m2: float, vignetting: float
     return illum
 
 
+def _check_simulated_size(args) -> None:
+    """Refuse a sweep larger than the read limits allow (hsiffc.io.limits: one frame's pixels,
+    and the bytes held at once, about 8 per pixel while simulating) before allocating it."""
+    from ..io.limits import default_limits
+
+    h, w = args.shape
+    limits = default_limits()
+    frames = len(args.exposures_ms) * args.frames * (1 if args.no_darks else 2)
+    nbytes = frames * h * w * 8
+    if h * w > limits.max_frame_pixels or nbytes > limits.max_bytes:
+        raise ParameterError(
+            f"--shape {h} {w}: {frames} frames of {h * w:,} pixels (about "
+            f"{nbytes / 1024 ** 3:.3g} GiB in memory) exceed the limits of "
+            f"{limits.max_frame_pixels:,} pixels per frame (HSIFFC_MAX_FRAME_PIXELS) and "
+            f"{limits.max_bytes / 1024 ** 3:.3g} GiB (HSIFFC_MAX_BYTES); give a smaller --shape "
+            "or fewer frames, or raise the limits")
+
+
 def _cmd_simulate(args) -> int:
     from ..io import write_sweep
     from ..mosaic import Mosaic
     from ..simulate import PAPER_LIGHT_W_M2, MosaicSensor
     from ..spectral import imec_4x4_visible, imec_5x5_nir
 
+    _check_simulated_size(args)
     irr = args.irradiance_w_m2 if args.irradiance_w_m2 is not None else PAPER_LIGHT_W_M2["training"]
     if args.mosaic == "paper8":
         sensor = MosaicSensor(tuple(args.shape), seed=args.seed)

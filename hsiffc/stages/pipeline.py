@@ -13,14 +13,12 @@ in memory), so a pipeline built in a notebook saves and loads without saving any
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 import numpy as np
 
 from ..calibrate.product import Calibration
 from ..errors import DataFormatError, HsiffcError, ParameterError
-from ..params import did_you_mean
 from ..frame import Frame
 from ..products import read_product, write_product
 from . import registry
@@ -132,9 +130,7 @@ class Pipeline:
         for key, value in params.items():
             name, sep, param = key.partition("__")
             if not sep or name not in steps:
-                raise ParameterError(f"{key!r}: use step__param with a step of {list(steps)}"
-                                     + (f"; {did_you_mean(name, steps).strip()}" if sep and
-                                        did_you_mean(name, steps) else ""))
+                raise ValueError(f"{key!r}: use step__param with a step of {list(steps)}")
             steps[name].set_params(**{param: value})
             steps[name].validate_params()
         check_order(self.steps)
@@ -252,13 +248,16 @@ class Pipeline:
             calibration = "cal.npz"      # paths are relative to the TOML file
             threshold_percent = 12
         """
+        from ..atomic import require_regular_input
+        from ..io.parsers import load_toml
+
         path = Path(path)
+        require_regular_input(path, what="pipeline description")  # never a FIFO: it may block
         try:
-            doc = tomllib.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise DataFormatError("pipeline description not found", path=path) from None
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
             raise DataFormatError(f"not valid TOML: {exc}", path=path) from exc
+        doc = load_toml(text, path=path, what="pipeline description")
         specs = doc.get("step")
         if not specs or not isinstance(specs, list):
             raise DataFormatError("no [[step]] tables: describe each stage as [[step]] with "
@@ -275,15 +274,8 @@ class Pipeline:
             if not isinstance(stage_name, str):
                 raise DataFormatError(f"step {i + 1} has no stage = \"...\"", path=path)
             name = spec.pop("name", None) or stage_name
-            try:  # a stage or a parameter name misspelt: named, with the closest valid one
+            try:
                 stage_cls = registry.get(stage_name)
-            except KeyError as exc:
-                raise DataFormatError(f"step {name!r}: {exc}", path=path) from None
-            try:
-                registry.check_param_names(stage_name, stage_cls, spec)
-            except ParameterError as exc:
-                raise ParameterError(f"{path}: step {name!r}: {exc}") from None
-            try:
                 for key, value in spec.items():  # relative file names: beside the TOML
                     if _is_file(stage_cls, key) and isinstance(value, str):
                         spec[key] = str((path.parent / value).resolve())
