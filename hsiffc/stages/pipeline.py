@@ -19,6 +19,7 @@ import numpy as np
 
 from ..calibrate.product import Calibration
 from ..errors import DataFormatError, HsiffcError, ParameterError
+from ..params import did_you_mean
 from ..frame import Frame
 from ..products import read_product, write_product
 from . import registry
@@ -130,7 +131,9 @@ class Pipeline:
         for key, value in params.items():
             name, sep, param = key.partition("__")
             if not sep or name not in steps:
-                raise ValueError(f"{key!r}: use step__param with a step of {list(steps)}")
+                raise ParameterError(f"{key!r}: use step__param with a step of {list(steps)}"
+                                     + (f"; {did_you_mean(name, steps).strip()}" if sep and
+                                        did_you_mean(name, steps) else ""))
             steps[name].set_params(**{param: value})
             steps[name].validate_params()
         check_order(self.steps)
@@ -274,8 +277,15 @@ class Pipeline:
             if not isinstance(stage_name, str):
                 raise DataFormatError(f"step {i + 1} has no stage = \"...\"", path=path)
             name = spec.pop("name", None) or stage_name
-            try:
+            try:  # a stage or a parameter name misspelt: named, with the closest valid one
                 stage_cls = registry.get(stage_name)
+            except KeyError as exc:
+                raise DataFormatError(f"step {name!r}: {exc}", path=path) from None
+            try:
+                registry.check_param_names(stage_name, stage_cls, spec)
+            except ParameterError as exc:
+                raise ParameterError(f"{path}: step {name!r}: {exc}") from None
+            try:
                 for key, value in spec.items():  # relative file names: beside the TOML
                     if _is_file(stage_cls, key) and isinstance(value, str):
                         spec[key] = str((path.parent / value).resolve())
