@@ -238,3 +238,13 @@ def test_frame_to_xarray_and_dq_names(tmp_path):
     assert bits(["SATURATED", "HOT"]) == int(DQ.SATURATED | DQ.HOT)
     with pytest.raises(ValueError, match="known flags"):
         mask(dq, "SATURATD")
+
+
+def test_formats_page_lists_the_dq_table():
+    """The DQ bit table on the formats page is the one every file carries."""
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "formats-and-metadata.md").read_text()
+    rows = re.findall(r"^\| `([A-Z_]+)` \| (\d+) \| (.+?) \|$", page, flags=re.M)
+    assert [(n, int(v), m) for n, v, m in rows] == [(r["name"], r["value"], r["meaning"])
+                                                    for r in table()]
