@@ -19,7 +19,9 @@ step with at most 1 % of its pixels clipped, clipped meaning at the sweep's high
 * ``model_ffc``: the model-based correction from the calibration, trained on all training
   frames (the even steps, the darks and the flat stack);
 * ``model_ffc_calibration``: the same from the calibration alone (no training frames, the
-  calibration's dark): what ``hsiffc correct`` applies by default.
+  calibration's dark): what ``hsiffc correct`` applies by default. The calibration carries the
+  flat stack (:func:`hsiffc.calibrate.flats.add_flat_stacks`, as ``hsiffc calibrate`` does), so
+  the two differ only where the training frames add something.
 
 The dark of the two-point corrections is a per-pixel line through the dark masters when darks
 were recorded at two or more exposures, else the master of the frame's exposure (a light sweep
@@ -34,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..calibrate import calibrate
+from ..calibrate.flats import add_flat_stacks
 from ..dq import DQ
 from ..errors import DataFormatError
 from ..frame import Frame
@@ -141,8 +144,9 @@ def run_ffc_study(source, *, calibration=None, goal_percent: float | None = None
         flat and dark stacks (and ``meta["sweep_steps"]`` the others); without a flat stack the
         stack two-point column is left out.
     calibration : Calibration, optional
-        A calibration of the training steps (made here when not given: the even light steps
-        and the darks; the flat stack enters model_ffc's fit).
+        A calibration of the training steps (made here when not given, as ``hsiffc
+        calibrate`` makes it: fitted on the even light steps and the darks, the flat stack
+        folded in by :func:`hsiffc.calibrate.flats.add_flat_stacks`).
     goal_percent : float, optional
         A sensor-specific goal: model_ffc at or below it from 12 % of saturation up.
     calibrate_kwargs : dict, optional
@@ -155,6 +159,9 @@ def run_ffc_study(source, *, calibration=None, goal_percent: float | None = None
         log.info("calibrating on %d even light steps and %d dark steps", len(even), len(darks))
         calibration = calibrate(sweep.select(np.isin(sweep.step, even + darks)),
                                 **(calibrate_kwargs or {}))
+        if flat_step is not None:  # as hsiffc calibrate does: the stack in the calibration
+            calibration = add_flat_stacks(
+                calibration, sweep.select(np.isin(sweep.step, [flat_step] + darks)))
     frames = Frame.list_from_sweep(sweep)
     by_step: dict = {}
     for f in frames:
@@ -314,7 +321,7 @@ def render_markdown(res: FFCStudy, *, title: str | None = None) -> str:
              f"Calibration ({res.calibration['identity']}) on the "
              f"{res.calibration['light_steps']} even light steps, "
              f"{res.calibration['dark_steps']} dark steps"
-             + (" (model_ffc adds the flat stack)" if res.flat_stack else "") + "; every figure "
+             + (" (the flat stack folded into it)" if res.flat_stack else "") + "; every figure "
              "is measured "
              "on the odd light steps, which no correction saw. Fixed-pattern non-uniformity in "
              "the EMVA 1288 way (temporal noise of the step's frames and of the dark frames of "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..calibrate.flats import combined_dark
 from ..dq import DQ_DTYPE
 from ..errors import ParameterError
 from ..model_ffc import log_gain_ratio, model_ffc_apply
@@ -33,7 +34,9 @@ class ModelFFC(Stage):
     ``k t`` in DN above dark on the band-mean scale: a uniform scene gives a uniform frame and a
     spectrum keeps its shape up to strong leakage. The responsivity map comes from the
     calibration's sweep fit and, combined by inverse variance, from every flat stack among the
-    training frames (``min_flat_frames`` or more frames of one step); :attr:`sigma_ln_gain_` is
+    training frames (``min_flat_frames`` or more frames of one step), else from the flat stacks
+    the calibration carries (``hsiffc calibrate`` folds a sweep's flat stacks into it:
+    :func:`hsiffc.calibrate.flats.add_flat_stacks`); :attr:`sigma_ln_gain_` is
     each pixel's 1-sigma relative uncertainty of its factor and :attr:`uncertainty_` says per
     band how much comes from the sweep, the flats and the model's inconsistency with them.
 
@@ -92,8 +95,23 @@ class ModelFFC(Stage):
         for group in flat_stacks(frames, int(self.min_flat_frames)):
             cal = self._cal_for(group[0])
             usable = np.all([f.dq == 0 for f in group], axis=0)
-            stacks.append(FlatStack.from_arrays([f.raw for f in group], group[0].exposure_ms,
-                                                self._dark(group[0], cal), usable=usable))
+            t = group[0].exposure_ms
+            if group[0].dark_removed is not None:
+                dark = group[0].dark_removed
+            else:  # the dark frames of the stack's exposure, combined with the calibration's
+                darks = [f.raw for f in frames if f.kind == "dark"
+                         and np.isclose(f.exposure_ms, t, rtol=1e-6, atol=0.0)]
+                dark = combined_dark(cal, t, darks if len(darks) >= 2 else None)
+            stacks.append(FlatStack.from_arrays([f.raw for f in group], t, dark, usable=usable))
+        if not stacks and "flat_gain" in cal.arrays:
+            # no flat stack among the training frames: the ones the calibration carries
+            # (hsiffc.calibrate.flats.add_flat_stacks), combined when it was made
+            self.gain_, self.gain_sweep_ = cal["flat_gain"], cal["flat_gain_sweep"]
+            self.sigma_ln_gain_ = cal["sigma_ln_flat_gain"]
+            self.flat_weight_, self.dq_ = cal["flat_weight"], cal["flat_dq"]
+            self.uncertainty_ = cal.fitted_on.get("flat_summary", {})
+            self.fitted_ = True
+            return self
         mf = model_flat_fit(cal["responsivity"], cal.arrays.get("sigma_ln_g"), cal.a, cal.b,
                             band_map, flags=cal.arrays.get("flags"), flats=stacks)
         self.gain_, self.gain_sweep_ = mf.gain, mf.gain_sweep
