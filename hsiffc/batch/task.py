@@ -275,6 +275,8 @@ def _finite(result: Frame):
     """The corrected planes with NaN/inf data set to 0 DN and flagged (outputs are never
     NaN/inf silently); and how many pixels that was."""
     data, dq = result.data, result.dq
+    if np.isfinite(np.add.reduce(data, axis=None)):  # one pass, no mask: a NaN/inf anywhere
+        return data, dq, 0                          # makes the sum so (overflow: checked below)
     bad = ~np.isfinite(data)
     n = int(np.count_nonzero(bad))
     if n:
