@@ -511,11 +511,15 @@ def test_an_unfinished_corrected_file_is_not_valid(tmp_path):
 
 # -- parallel and distributed ------------------------------------------------------------------
 
-def test_local_workers_give_identical_outputs(world, tmp_path, clean_run):
+def test_local_workers_give_identical_outputs(world, tmp_path, clean_run, monkeypatch):
+    import hsiffc.batch.workers as planning
+
+    monkeypatch.setattr(planning, "STARTUP_S", 0.0)  # a cluster even for this small input
     bar = Progress()
     summary = batch.correct_batch([world["raw"]], tmp_path, world["cal"], workers=2,
                                   observer=bar)
     assert len(summary.done) == 5 and summary.exit_status == 0
+    assert summary.execution["workers"] == min(2, planning.available_cores())
     assert bar._frames == 20 and bar._failed == 0  # the CLI's bar saw every file
     _assert_same(_outputs(tmp_path), clean_run[1])
 

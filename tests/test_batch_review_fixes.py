@@ -146,7 +146,10 @@ def test_local_workers_keep_dask_chatter_off_stderr(world, tmp_path):
     import subprocess
     import sys
 
-    run = subprocess.run([sys.executable, "-m", "hsiffc", "correct", str(world["raw"]),
+    # a cluster even for this small input (hsiffc.batch.workers would run it in-process)
+    code = ("import sys, hsiffc.batch.workers as w; w.STARTUP_S = 0.0; "
+            "from hsiffc.cli import main; sys.exit(main(sys.argv[1:]))")
+    run = subprocess.run([sys.executable, "-c", code, "correct", str(world["raw"]),
                           "--calibration", str(world["cal"]), "-o", str(tmp_path / "o"),
                           "--workers", "2", "-q"], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr

@@ -17,6 +17,7 @@ carries on. The output folder is locked while a batch writes into it
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -35,10 +36,11 @@ from .executors import check_scheduler, run_jobs
 from .plan import BatchError, Job, discover_inputs, output_name, plan_jobs
 from .summary import BatchSummary
 from .task import correct_file
+from .workers import WorkerPlan, plan_workers
 
 __all__ = ["FFC_CHOICES", "BatchError", "BatchSummary", "Job", "Settings", "check_scheduler", "correct_batch",
            "correct_file", "default_pipeline", "discover_inputs", "load_pipeline", "output_name",
-           "plan_jobs"]
+           "plan_jobs", "plan_workers", "WorkerPlan"]
 
 
 def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_percent: float = 12.0,
@@ -145,9 +147,11 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
             folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
         if observer is not None:
             observer.start(len(jobs))
+        plan = None if scheduler else plan_workers(workers, _sizes(jobs))
         try:
-            results = run_jobs(jobs, settings, workers=workers, scheduler=scheduler,
-                               observer=observer)
+            results = run_jobs(jobs, settings, workers=1 if plan is None else plan.workers,
+                               scheduler=scheduler, observer=observer,
+                               threads=None if plan is None else plan.threads_per_worker)
         finally:
             if observer is not None:
                 observer.close()
@@ -157,7 +161,20 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                         {"path": None if cal_path is None else str(cal_path),
                          "identity": ctx.identity},
                         {k: v for k, v in ctx.info.items() if k != "steps"} | {"steps": steps},
-                        ignored)
+                        ignored,
+                        execution={"scheduler": scheduler} if plan is None else plan.to_dict()
+                        | {"text": plan.describe()})
+
+
+def _sizes(jobs) -> list[int]:
+    """Each job's input size in bytes (0 where it cannot be read now: the task reports it)."""
+    out = []
+    for job in jobs:
+        try:
+            out.append(os.stat(job.input).st_size)
+        except OSError:
+            out.append(0)
+    return out
 
 
 def _compression(name):

@@ -25,10 +25,13 @@ CONNECT_TIMEOUT_S = 3.0
 
 
 def run_jobs(jobs, settings, *, workers: int = 1, scheduler: str | None = None,
-             observer=None) -> dict:
-    """Run every job; returns ``{job index: result dict}``."""
+             observer=None, threads: int | None = None) -> dict:
+    """Run every job; returns ``{job index: result dict}``. ``threads``: numba threads of
+    each local worker's kernels (:func:`hsiffc.batch.workers.plan_workers`; None: numba's
+    default, every core)."""
     if scheduler or workers > 1:
-        return run_dask(jobs, settings, workers=workers, scheduler=scheduler, observer=observer)
+        return run_dask(jobs, settings, workers=workers, scheduler=scheduler, observer=observer,
+                        threads=threads)
     return run_local(jobs, settings, observer=observer)
 
 
@@ -104,16 +107,23 @@ def local_cluster(workers: int):
                             dashboard_address=None, silence_logs=logging.ERROR)
 
 
-def correct_file_in_worker(job, settings):
+def correct_file_in_worker(job, settings, threads: int | None = None):
     """:func:`correct_file` in a Dask worker process, whose allocator is set up first
     (:func:`hsiffc.memory.reuse_freed_memory`, once per process: a process-wide setting made
-    only where hsiffc owns the process, the CLI and its workers, never in a caller's)."""
+    only where hsiffc owns the process, the CLI and its workers, never in a caller's), and
+    whose kernels run on ``threads`` numba threads (so that workers x threads <= cores)."""
     reuse_freed_memory()
+    if threads is not None:
+        import numba
+
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
     return correct_file(job, settings)
 
 
-def run_dask(jobs, settings, *, workers: int, scheduler: str | None, observer=None) -> dict:
-    """One Dask task per job on a local cluster (``workers``) or on ``scheduler``."""
+def run_dask(jobs, settings, *, workers: int, scheduler: str | None, observer=None,
+             threads: int | None = None) -> dict:
+    """One Dask task per job on a local cluster (``workers``, their kernels on ``threads``
+    threads each) or on ``scheduler``."""
     try:
         from distributed import Client, as_completed
     except ImportError:
@@ -129,7 +139,8 @@ def run_dask(jobs, settings, *, workers: int, scheduler: str | None, observer=No
         client = Client(cluster)
     results = {}
     try:
-        futures = {client.submit(correct_file_in_worker, job, settings, pure=False,
+        futures = {client.submit(correct_file_in_worker, job, settings,
+                                 None if scheduler else threads, pure=False,
                                  key=f"hsiffc-correct-{i}-{os.getpid()}-{time.time_ns()}"): i
                    for i, job in enumerate(jobs)}
         for fut in as_completed(list(futures)):

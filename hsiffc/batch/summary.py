@@ -22,6 +22,9 @@ class BatchSummary:
     calibration: dict
     pipeline: dict
     ignored: list = field(default_factory=list)
+    #: how it ran: :meth:`hsiffc.batch.workers.WorkerPlan.to_dict` and its ``text``, or the
+    #: ``scheduler`` address
+    execution: dict = field(default_factory=dict)
 
     def _with(self, status):
         return [r for r in self.results if r["status"] == status]
@@ -82,6 +85,7 @@ class BatchSummary:
                           "counts": {s: len(self._with(s)) for s in ("done", "skipped", "failed")},
                           "exit_status": self.exit_status, "calibration": self.calibration,
                           "pipeline": self.pipeline, "ignored": [str(p) for p in self.ignored],
+                          "execution": self.execution,
                           "uniformity_before": None if u is None else u[0],
                           "uniformity_after": None if u is None else u[1],
                           "results": self.results})
@@ -95,6 +99,8 @@ class BatchSummary:
         lines = [f"{len(self.results)} files: {len(done)} done, {len(self.skipped)} skipped, "
                  f"{len(self.failed)} failed; {frames} frames corrected in {self.seconds:.1f} s "
                  f"({frames / t:.2f} frames/s, {mb / t:.1f} MB/s of input)"]
+        if self.execution.get("text"):
+            lines.append(self.execution["text"])
         lines += [f"note: {n}" for n in self.pipeline.get("notes", [])]
         if self.ignored:
             lines.append(f"ignored {len(self.ignored)} files named like outputs of hsiffc "

@@ -143,8 +143,11 @@ def _add_correct(sub):
                    help="with --ffc none: add leakage linearisation (model_ffc already "
                         "inverts the leakage)")
     p.add_argument("--workers", type=count, default=1,
-                   help="parallel worker processes on this machine (Dask local cluster; "
-                        "default 1: in this process)")
+                   help="at most this many worker processes on this machine (Dask local "
+                        "cluster; default 1: in this process). Fewer are used where the input "
+                        "is too small to pay for a cluster's start, or there are fewer files "
+                        "or cores; each worker's kernels get cores/workers threads; the "
+                        "summary says what ran")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run on a Dask distributed cluster (e.g. tcp://host:8786); its workers "
                         "must see the inputs, calibration and OUTDIR at the same paths")
