@@ -41,6 +41,13 @@ def _working_directory_untouched(request):
                     "(tmp_path) where code writes relative paths)", pytrace=False)
 
 
+def _require(path: Path, what: str) -> Path:
+    if not path.exists():
+        pytest.skip(f"{what} not found at {path}: this test needs the measured data in "
+                    "../shared/data (set HSIFFC_SHARED_DATA to its folder to run it)")
+    return path
+
+
 @pytest.fixture(scope="session")
 def emva_dir() -> Path:
     """Folder of the real EMVA 1288 sweep (skips when absent)."""
