@@ -55,6 +55,13 @@ PAGES = {
     "ffc-zoo": ("Flat-field correction on a zoo of sensors",
                 lambda out: [PY, "-m", "hsiffc.reports.ffc_zoo", str(out), "--shared", str(DATA)],
                 ("ffc_zoo.md", "ffc_zoo.json")),
+    "reflectance": ("Reflectance on a leaky sensor: leakage-aware against the plain ratio",
+                    lambda out: [PY, "-m", "hsiffc.reports.reflectance", str(out),
+                                 "--emva", str(EMVA),
+                                 "--emva", str(DATA / "emva1288-refsim-linear10-light"),
+                                 "--emva", str(DATA / "emva1288-refsim-linear12-exposure")],
+                    ("reflectance_study.md", "reflectance_study.json",
+                     "reflectance_study.png")),
     "benchmarks": ("Benchmarks: speed and memory",
                    lambda out: [PY, "benchmarks/run.py", "--json", str(out / "benchmarks.json")],
                    ("benchmarks.json",)),
@@ -229,6 +236,15 @@ def _body_emva1288(d: Path, stdout: str) -> str:
 
 BODIES = {"ffc-study": _body_ffc_study, "ffc-zoo": _body_ffc_zoo, "emva1288": _body_emva1288, "demo": _body_demo, "paper": _body_paper, "emva-leakage": _body_emva,
           "benchmarks": _body_benchmarks}
+
+
+def _body_reflectance(d: Path, stdout: str) -> str:
+    return ("How to measure reflectance with hsiffc, the checks and the commands: [the "
+            "reflectance guide](../guide/reflectance.md).\n\n"
+            + _report_md(d / "reflectance_study.md", "reflectance"))
+
+
+BODIES["reflectance"] = _body_reflectance
 
 
 README = ROOT / "README.md"

@@ -1,4 +1,4 @@
-"""``python3 -m hsiffc.reports.reflectance OUTDIR``: the reflectance study from the command line.
+"""``python3 -m hsiffc.reports.reflectance OUTDIR [--emva FOLDER]``: the reflectance study.
 
 OUTDIR receives ``reflectance_study.md``, ``reflectance_study.json`` and
 ``reflectance_study.png`` (an existing file is replaced only with ``--overwrite``).
@@ -22,12 +22,16 @@ def main(argv=None) -> int:
     ap.add_argument("--dev", action="store_true",
                     help=f"run the development seeds {DEV_SEEDS} instead of the evaluation "
                          f"seeds {EVAL_SEEDS}")
+    ap.add_argument("--emva", action="append", default=[], metavar="FOLDER",
+                    help="also a part on this EMVA 1288 light sweep (e.g. "
+                         "../shared/data/emva1288-cmos8-roi); may be repeated")
     ap.add_argument("--overwrite", action="store_true", help="replace an earlier study")
     args = ap.parse_args(argv)
     try:
-        with write_policy(overwrite=args.overwrite, inputs=[]):
+        with write_policy(overwrite=args.overwrite, inputs=args.emva):
             paths = write_reflectance_study(args.outdir,
-                                            seeds=DEV_SEEDS if args.dev else EVAL_SEEDS)
+                                            seeds=DEV_SEEDS if args.dev else EVAL_SEEDS,
+                                            emva=args.emva)
     except (HsiffcError, OSError) as exc:
         print(f"reflectance study: error: {exc}", file=sys.stderr)
         return 2
