@@ -248,3 +248,31 @@ def test_formats_page_lists_the_dq_table():
     rows = re.findall(r"^\| `([A-Z_]+)` \| (\d+) \| (.+?) \|$", page, flags=re.M)
     assert [(n, int(v), m) for n, v, m in rows] == [(r["name"], r["value"], r["meaning"])
                                                     for r in table()]
+
+
+@pytest.mark.realdata
+def test_imec_virtual_bands_written_with_their_wavelengths(imec_xml, tmp_path):
+    """The IMEC correction matrix to virtual bands: the ENVI cube lists the virtual
+    wavelengths ascending with the XML's virtual FWHM, and names the bands virtual."""
+    import spectral
+
+    from hsiffc.spectral.imec import read_imec_xml
+
+    imec = read_imec_xml(imec_xml)
+    mosaic = imec.mosaic()
+    raw = np.random.default_rng(3).integers(100, 900, (40, 50)).astype(np.uint16)
+    frame = Frame.from_raw(raw, exposure_ms=10.0, bit_depth=10,
+                           mosaic=Mosaic(mosaic.pattern, mosaic.wavelengths_nm,
+                                         fwhm_nm=mosaic.fwhm_nm))
+    step = create("reconstruct", method="ppid", correction="imec", imec_xml=str(imec_xml))
+    cube = step.fit([frame]).transform(frame)
+    write_cube(cube, tmp_path / "v.hdr")
+    img = spectral.open_image(str(tmp_path / "v.hdr"))
+    virtual = np.asarray(imec.virtual_wavelengths_nm, float)
+    assert img.nbands == len(virtual)
+    np.testing.assert_allclose(img.bands.centers, np.sort(virtual), rtol=1e-5)
+    if imec.virtual_fwhm_nm is not None:
+        np.testing.assert_allclose(img.bands.bandwidths, imec.virtual_fwhm_nm, rtol=1e-5)
+    assert all(" virtual " in name for name in img.metadata["band names"])
+    order = np.argsort(virtual, kind="stable")
+    np.testing.assert_array_equal(np.asarray(img.load()), cube.data[:, :, order])

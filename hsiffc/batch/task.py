@@ -19,6 +19,7 @@ import numpy as np
 
 from .. import __version__
 from ..atomic import PART_SUFFIX, atomic_path
+from ..cubes.product import frame_unit
 from ..dq import DQ
 from ..errors import DataFormatError, HsiffcError
 from ..frame import Frame
@@ -264,7 +265,7 @@ def cube_description(result: Frame) -> dict | None:
         return None
     meta = result.meta
     n = result.data.shape[-1]
-    return {"shape": list(result.data.shape), "unit": str(meta.get("unit", "DN")),
+    return {"shape": list(result.data.shape), "unit": frame_unit(meta),
             "band_order": "band index", "band_index": list(range(n)),
             "wavelengths_nm": meta.get("wavelengths_nm"), "fwhm_nm": meta.get("fwhm_nm"),
             "band_positions": meta.get("band_positions"),

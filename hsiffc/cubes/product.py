@@ -45,6 +45,12 @@ def default_bands(wavelengths_nm) -> list[int]:
     return [int(np.argmin(np.abs(wl - t))) for t in targets]
 
 
+def frame_unit(meta) -> str:
+    """The unit of a frame's values: what a stage recorded (``meta["units"]``, e.g. the
+    reflectance stage's "reflectance factor"), else DN."""
+    return str(meta.get("unit") or meta.get("units") or "DN")
+
+
 def _tuple(values, n, what):
     if values is None:
         return None
@@ -139,7 +145,7 @@ class Cube:
                  "reconstruction": meta.get("reconstruction")}
         return cls(frame.data, frame.dq, frame.alpha, meta.get("wavelengths_nm"),
                    meta.get("fwhm_nm"), meta.get("band_positions"),
-                   unit=str(meta.get("unit", "DN")), history=meta.get("history", ()),
+                   unit=frame_unit(meta), history=meta.get("history", ()),
                    attrs={k: v for k, v in attrs.items() if v is not None})
 
     @property
@@ -178,19 +184,16 @@ class Cube:
     def band_names(self) -> list[str]:
         """A name per band: wavelength, band index and mosaic position, e.g.
         ``"614.9 nm band 0 r0c0"`` (no commas: ENVI lists are comma-separated)."""
+        virtual = bool((self.attrs.get("reconstruction") or {}).get("correction"))
         out = []
         for k in range(self.n_bands):
             wl = self.wavelengths_nm[k] if self.wavelengths_nm is not None else math.nan
             head = f"{wl:.1f} nm" if math.isfinite(wl) else "band"
-            if self.positions is not None and self.positions[k] is not None:
-                r, c = self.positions[k]
-                out.append(f"{head} band {self.band_index[k]} r{r}c{c}")
-            elif self.positions is None and self.wavelengths_nm is not None and \
-                    self.attrs.get("reconstruction", {}) and \
-                    (self.attrs["reconstruction"] or {}).get("correction"):
-                out.append(f"{head} virtual {self.band_index[k]}")
+            pos = self.positions[k] if self.positions is not None else None
+            if pos is not None:
+                out.append(f"{head} band {self.band_index[k]} r{pos[0]}c{pos[1]}")
             else:
-                out.append(f"{head} band {self.band_index[k]}")
+                out.append(f"{head} {'virtual' if virtual else 'band'} {self.band_index[k]}")
         return out
 
     def default_bands(self) -> list[int]:
