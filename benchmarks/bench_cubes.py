@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from bench_batch import _make_inputs
+from bench_batch import _make_inputs, _timed
 from benchutil import figure, median_time, row
 from hsiffc.batch import correct_batch, default_pipeline
 from hsiffc.frame import Frame
@@ -58,15 +58,6 @@ def _baseline(files, out: Path) -> None:
                                  metadata=None, rowsperstrip=h)
             fh.flush()
             os.fsync(fh.fileno())
-
-
-def _timed(fn, out: Path) -> float:
-    shutil.rmtree(out, ignore_errors=True)
-    t0 = time.perf_counter()
-    fn()
-    seconds = time.perf_counter() - t0
-    shutil.rmtree(out, ignore_errors=True)
-    return seconds
 
 
 def main(quick: bool = False) -> dict:
