@@ -109,6 +109,28 @@ class Frame:
         object.__setattr__(self, "dq", dq)
         object.__setattr__(self, "meta", MappingProxyType(meta))
 
+    def __repr__(self) -> str:  # key figures, never the arrays
+        shape = " x ".join(str(s) for s in self.data.shape)
+        what = "cube" if self.is_cube else "frame"
+        parts = [f"{what} {shape} {self.data.dtype}"]
+        try:
+            parts.append(f"{self.exposure_ms:g} ms, {self.bit_depth}-bit, {self.kind}")
+        except (KeyError, TypeError, ValueError):
+            pass
+        if self.mosaic is not None:
+            parts.append(f"mosaic {self.mosaic.describe()}")
+        flagged = np.count_nonzero(self.dq) / max(1, self.dq.size)
+        parts.append(f"{100 * flagged:.2f} % flagged")
+        done = [name for name, there in (("dark removed", self.dark_removed is not None),
+                                         ("alpha", self.alpha is not None)) if there]
+        if self.corrected_by:
+            done.append(f"corrected by {self.corrected_by}")
+        steps = [str(h.get("step", h.get("stage", "?"))) for h in self.history
+                 if isinstance(h, dict)]
+        if steps:
+            done.append(f"after {', '.join(steps)}")
+        return f"<Frame {', '.join(parts + done)}>"
+
     # -- construction --------------------------------------------------------------------------
     @classmethod
     def from_raw(cls, raw, *, exposure_ms: float, bit_depth: int, mosaic: Mosaic | None = None,

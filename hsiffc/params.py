@@ -128,6 +128,28 @@ def check_params(owner: str, spec: Mapping[str, Param], values: Mapping) -> None
                                  f"{param.describe()}")
 
 
+def short_repr(value, limit: int = 60) -> str:
+    """A parameter value as a repr fit for one line: arrays by shape and dtype, long texts and
+    containers cut, objects with a short repr (a Calibration) as that.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> short_repr(np.zeros((96, 128), np.float32))
+    'array((96, 128) float32)'
+    >>> short_repr(12)
+    '12'
+    """
+    import numpy as np
+
+    if isinstance(value, np.ndarray):
+        return f"array({value.shape} {value.dtype})"
+    text = repr(value)
+    if len(text) > limit and isinstance(getattr(value, "identity", None), str):
+        return f"<{type(value).__name__} {value.identity}>"  # e.g. a Calibration
+    return text if len(text) <= limit else text[: limit - 4] + " ..."
+
+
 def did_you_mean(name, valid) -> str:
     """``"did you mean 'x'? "`` when ``name`` is close to one of ``valid`` (difflib), else "".
 

@@ -70,6 +70,16 @@ class Calibration:
             object.__setattr__(self, "created",
                                _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
 
+    def __repr__(self) -> str:  # key figures, never the arrays (a REPL echo stays short)
+        h, w = self.frame_shape
+        lo, hi = self.domain.get("exposure_ms", (float("nan"), float("nan")))
+        mos = self.mosaic
+        layout = "no mosaic" if mos is None else f"mosaic {mos.describe()}, {mos.n_bands} bands"
+        where = f", file {self.path!r}" if self.path else ", in memory"
+        return (f"<Calibration {self.method}: {h} x {w} px, {self.bit_depth}-bit, {layout}, "
+                f"exposures {lo:g}-{hi:g} ms, {len(self.arrays)} arrays, identity "
+                f"{self.identity}{where}>")
+
     # -- convenient views ----------------------------------------------------------------------
     def __getitem__(self, name: str) -> np.ndarray:
         return self.arrays[name]

@@ -17,7 +17,7 @@ import json
 import numpy as np
 
 from ..errors import HsiffcError
-from ..params import check_params, unknown_parameters
+from ..params import check_params, short_repr, unknown_parameters
 
 
 class NotFittedError(HsiffcError, RuntimeError):
@@ -66,8 +66,8 @@ class Stage:
             setattr(self, key, value)
         return self
 
-    def __repr__(self):
-        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+    def __repr__(self):  # one line: arrays by shape, a calibration by its key figures
+        args = ", ".join(f"{k}={short_repr(v)}" for k, v in self.get_params().items())
         return f"{type(self).__name__}({args})"
 
     def validate_params(self) -> None:

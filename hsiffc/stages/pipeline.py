@@ -117,8 +117,10 @@ class Pipeline:
         """``{step name: stage}``."""
         return dict(self.steps)
 
-    def __repr__(self):
-        return "Pipeline([" + ", ".join(f"({n!r}, {s!r})" for n, s in self.steps) + "])"
+    def __repr__(self):  # one line per step; calibrations and arrays by their key figures
+        fitted = all(s.is_fitted() for _, s in self.steps)
+        steps = ",\n".join(f"    ({n!r}, {s!r})" for n, s in self.steps)
+        return f"Pipeline([  # {'fitted' if fitted else 'not fitted'}\n{steps}])"
 
     # -- parameters ----------------------------------------------------------------------------
     def get_params(self) -> dict:

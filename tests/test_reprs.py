@@ -1,0 +1,46 @@
+"""Short reprs: a REPL echo of a calibration, a pipeline or a frame shows key figures (shape,
+dtype, bit depth, exposure, mosaic, what was done) in a few lines, never an array."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hsiffc.frame import Frame
+from hsiffc.stages import Pipeline, create
+
+
+def test_calibration_repr_is_one_line_of_key_figures(demo_result):
+    cal = demo_result.calibration
+    text = repr(cal)
+    h, w = cal.frame_shape
+    assert "\n" not in text and len(text) < 250
+    for part in (f"{h} x {w} px", f"{cal.bit_depth}-bit", cal.mosaic.describe(), "8 bands",
+                 cal.identity, "ms"):
+        assert part in text, part
+    assert "array(" not in text
+
+
+def test_pipeline_repr_is_a_line_per_step(demo_result):
+    pipe = demo_result.pipeline
+    text = repr(pipe)
+    lines = text.splitlines()
+    assert len(lines) == len(pipe.steps) + 1 and lines[0].endswith("# fitted")
+    assert all(len(line) < 200 for line in lines) and "array(" not in text.replace(
+        "array((", "")  # arrays only ever as array((shape) dtype)
+    assert demo_result.calibration.identity in text
+    unfitted = Pipeline([("dark", create("dark"))])
+    assert "# not fitted" in repr(unfitted)
+
+
+def test_frame_repr_names_shape_dtype_exposure_and_what_was_done(sample_cubes, demo_result):
+    from hsiffc.io import read_sweep
+
+    frame = Frame.list_from_sweep(read_sweep(sample_cubes / "test_2200K.tif"))[0]
+    text = repr(frame)
+    assert text.startswith("<Frame frame 96 x 128 float32, 16.125 ms, 10-bit, light, mosaic 4x2")
+    out = demo_result.pipeline.transform(frame)
+    text = repr(out)
+    assert "\n" not in text and len(text) < 300
+    assert "dark removed" in text and "alpha" in text and "after " in text
+    bare = Frame.from_raw(np.zeros((4, 8)), exposure_ms=1.0, bit_depth=12)
+    assert repr(bare) == "<Frame frame 4 x 8 float32, 1 ms, 12-bit, light, 0.00 % flagged>"
