@@ -13,8 +13,9 @@ netcdf     ``NAME.nc``                  coordinate ``wavelength``; ``dq`` CF ``f
                                         / ``flag_meanings``; attributes (needs xarray)
 =========  ===========================  ===================================================
 
-Every format but the hsiffc TIFF (written in the pipeline's band order with the order
-recorded) holds the bands by wavelength, ascending. Each file is written atomically.
+Every file written here holds the bands by wavelength, ascending (the hsiffc TIFF that
+``hsiffc correct`` streams keeps the pipeline's band order and records it in its provenance's
+``"cube"``). Each file is written atomically.
 """
 
 from __future__ import annotations
