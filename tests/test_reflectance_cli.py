@@ -61,6 +61,16 @@ def test_plain_camera_tiffs_to_reflectance(tmp_path, capsys):
     res = read_corrected(tmp_path / "out" / "scene_0.corrected.tif")
     good = res.dq[0] == 0
     assert abs(np.median(res.data[0][good]) / 0.3 - 1) < 0.01
+    # cubes: reconstruction before the reflectance, written as (H, W, bands) by correct
+    assert main(["reflectance", "fit", "--dark", *map(str, sorted(refs.glob("dark_*"))),
+                 "--white", *map(str, sorted(refs.glob("white_*"))), "--panel", "0.99",
+                 "--cube", "bilinear", "-o", str(tmp_path / "cube.npz")]) == 0
+    assert main(["correct", "--pipeline", str(tmp_path / "cube.npz"), str(scenes), "-o",
+                 str(tmp_path / "cubes"), "-q"]) == 0
+    capsys.readouterr()
+    cube = read_corrected(tmp_path / "cubes" / "scene_0.corrected.tif")
+    assert cube.data.shape == (1, 32, 48, 16)
+    assert abs(np.median(cube.data[cube.dq == 0]) / 0.3 - 1) < 0.01
     # the same reference checks a grey target: its mean against its value, its uniformity
     assert main(["reflectance", "check", str(scenes), "--pipeline", str(refl), "--expected",
                  "0.3", "--json", str(tmp_path / "target.json")]) == 0
