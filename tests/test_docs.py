@@ -25,21 +25,38 @@ def test_site_builds_in_strict_mode(tmp_path):
                           cwd=ROOT, capture_output=True, text=True, timeout=300,
                           env={**__import__("os").environ, "NO_MKDOCS_2_WARNING": "1"})
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    for page in ("index.html", "getting-started/index.html", "api/stages/index.html",
-                 "reference/cli/index.html", "results/paper/index.html"):
+    for page in ("index.html", "getting-started.html", "api/stages.html",
+                 "reference/cli.html", "results/paper.html"):
         assert (site / page).is_file(), page
     # the API pages are generated from the docstrings, the CLI page from the parser
-    api = (site / "api" / "stages" / "index.html").read_text(encoding="utf-8")
+    api = (site / "api" / "stages.html").read_text(encoding="utf-8")
     assert "Pipeline" in api and "fit" in api
-    cli = (site / "reference" / "cli" / "index.html").read_text(encoding="utf-8")
+    cli = (site / "reference" / "cli.html").read_text(encoding="utf-8")
     assert "hsiffc correct" in cli and "--overwrite" in cli
     # equations are typeset when the site is built (no raw TeX, nothing loaded from a CDN)
-    physics = (site / "physics" / "index.html").read_text(encoding="utf-8")
+    physics = (site / "physics.html").read_text(encoding="utf-8")
     assert physics.count('class="hsiffc-math"') >= 7 and "\\tag{" not in physics
     for page in site.rglob("*.html"):
         text = page.read_text(encoding="utf-8")
         assert not re.search(r'<script[^>]+src="https?://|<link[^>]+href="https?://', text), \
             f"{page.relative_to(site)} loads a script, font or style from the network"
+    _links_work_from_disk(site)
+
+
+def _links_work_from_disk(site: Path) -> None:
+    """Every link of every page, followed as a browser does with file:// URLs, reaches a
+    file: no link to a folder (a folder listing from disk), none to a missing page."""
+    broken = []
+    pages = [p for p in site.rglob("*.html") if p.name != "404.html"]
+    for page in pages:
+        text = page.read_text(encoding="utf-8")
+        for href in re.findall(r'<a[^>]+href="([^"#?]*)[^"]*"', text):
+            if not href or re.match(r"[a-z]+:", href):
+                continue  # an anchor on the page itself, or another site (mailto:, https:)
+            target = (page.parent / href).resolve()
+            if href.endswith("/") or target.is_dir() or not target.is_file():
+                broken.append(f"{page.relative_to(site)} -> {href}")
+    assert len(pages) > 20 and not broken, broken[:20]
 
 
 def test_readme_links_resolve():

@@ -161,10 +161,11 @@ def _run(cmd: str, cwd: Path, env: dict) -> subprocess.CompletedProcess:
 def test_readme_blocks_pass_on_a_fresh_clone_twice(tmp_path):
     """The README's first block twice, then the second block's collection, in a fresh clone
     of this repository, run verbatim by bash with a virtual environment's ``python3`` first
-    on PATH. The environment sees this machine's packages (``--system-site-packages``) and pip
-    is kept offline by its environment variables (no index, no build isolation, no
-    dependencies: they are installed already), so pip installs the clone itself, editable.
-    Compiling the kernels in the clone makes this test slow (a few minutes on 2 cores)."""
+    on PATH. The environment sees this machine's packages (``--system-site-packages``) and
+    pip's environment says ``--no-deps`` (they are installed already), so pip installs the
+    clone itself, editable; pip still builds it in isolation as a user's pip does, which
+    fetches the build requirements (setuptools, wheel) from the package index: without one
+    the test skips. Compiling the kernels in the clone makes it slow (minutes on 2 cores)."""
     if shutil.which("git") is None or not (ROOT / ".git").exists():
         pytest.skip("needs git and this repository's .git to clone it")
     clone = tmp_path / "clone"
@@ -173,14 +174,17 @@ def test_readme_blocks_pass_on_a_fresh_clone_twice(tmp_path):
     subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)],
                    check=True)
     env = {**os.environ, "PATH": f"{venv / 'bin'}{os.pathsep}{os.environ['PATH']}",
-           "PIP_NO_INDEX": "1", "PIP_NO_DEPS": "1", "PIP_NO_BUILD_ISOLATION": "0",
-           "PIP_DISABLE_PIP_VERSION_CHECK": "1", "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+           "PIP_NO_DEPS": "1", "PIP_DISABLE_PIP_VERSION_CHECK": "1",
+           "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
     env.pop("HSIFFC_SHARED_DATA", None)
     env.pop("PYTHONPATH", None)
     (block1, _), (block2, _) = ((code.strip(), lang) for lang, code in readme_blocks())
     said = []
     for attempt in (1, 2):
         res = _run(block1, clone, env)
+        if res.returncode and re.search(r"No matching distribution|Could not find a version|"
+                                        r"Failed to establish a new connection", res.stderr):
+            pytest.skip("pip cannot reach a package index for the build requirements")
         assert res.returncode == 0, f"README block 1, run {attempt}:\n{res.stderr[-3000:]}"
         assert "level off below full scale" in res.stdout
         said.append(COMPILE_NOTICE in res.stderr)
