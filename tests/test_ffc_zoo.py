@@ -133,7 +133,10 @@ def test_rule_counts_only_differences_beyond_the_standard_error():
     assert check_rule([row(1.0, 0.20, 0.21)])[0]["failures"] == []
     goals, _ = check_rule([row(1.0, 0.20, 0.25)])
     assert goals["failures"] == ["40 %: model_ffc above 1.1 x the stack two-point"]
-    assert check_rule([row(1.0, 0.20, 0.25, se=0.1)])[0]["failures"] == []  # unresolved
+    goals, _ = check_rule([row(1.0, 0.20, 0.25, se=0.1)])
+    assert goals["failures"] == []  # higher, but the frames cannot resolve it: said so
+    assert goals["unresolved"] == ["40 %: model_ffc above 1.1 x the stack two-point within "
+                                   "twice the standard error"]
     goals, _ = check_rule([row(0.5, 0.6, 0.7, lo=0.02)])  # below 12 %: raw only
     assert goals["failures"] == ["2 %: model_ffc above raw"]
     goals, _ = check_rule([row(1.0, 0.3, 0.31)], goal_percent=0.3)

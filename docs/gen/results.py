@@ -358,6 +358,13 @@ def _ffc_zoo_table() -> list[str]:
     def met(sensor):
         return not sensor["goals"]["failures"]
 
+    def verdict(sensor):
+        if not met(sensor):
+            return "**broken**"
+        at = sorted({u.split(":")[0] for u in sensor["goals"].get("unresolved", [])},
+                    key=lambda x: float(x.split()[0]))
+        return "met" + (f" (higher within the noise from {', '.join(at)})" if at else "")
+
     shared = [x for x in s["sensors"] if not x["name"].startswith("simulated")]
     sim = [x for x in s["sensors"] if x["name"].startswith("simulated")]
     lines = ["**Flat-field correction on a zoo of sensors.** Fixed-pattern non-uniformity "
@@ -371,7 +378,7 @@ def _ffc_zoo_table() -> list[str]:
     for x in shared:
         lines.append(f"| {x['name']} | {fmt(figs(x, 'raw'))} | "
                      f"{fmt(figs(x, 'two_point_stack'))} | {fmt(figs(x, 'model_ffc'))} | "
-                     f"{'met' if met(x) else '**broken**'} |")
+                     f"{verdict(x)} |")
     if sim:
         def med(method):
             cols = [[v for v in c if isinstance(v, float)]
@@ -379,7 +386,9 @@ def _ffc_zoo_table() -> list[str]:
             return [float(np.median(c)) if c else None for c in cols]
         lines.append(f"| simulated, {len(sim)} sensors (evaluation half; median) | "
                      f"{fmt(med('raw'))} | {fmt(med('two_point_stack'))} | "
-                     f"{fmt(med('model_ffc'))} | met on {sum(map(met, sim))} of {len(sim)} |")
+                     f"{fmt(med('model_ffc'))} | met on {sum(map(met, sim))} of {len(sim)} "
+                     f"({sum(bool(x['goals'].get('unresolved')) for x in sim)} of them higher "
+                     "within the noise in a range) |")
     lines += ["", "Every sensor's table (2-12 % too, the 2-frame flat, `hsiffc correct`'s "
               "default): [the zoo](docs/results/ffc-zoo.md); the real CMOS in detail: "
               "[real-data FFC study](docs/results/ffc-study.md)."]
