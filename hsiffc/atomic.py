@@ -283,14 +283,16 @@ def check_output(path, *, overwrite: bool | None = None, inputs=()) -> Path:
     if path.is_dir():
         raise OutputError(f"{path}: is a folder; give a file name (the folder was left as it "
                           "was)")
-    with contextlib.suppress(OSError):
+    try:
         st = os.lstat(path)
-        if not stat.S_ISREG(st.st_mode):
-            # a FIFO, socket or device node: renaming a file onto it would replace the node
-            # itself (as root, /dev/full or /dev/stdout for every process), never write into it
-            raise OutputError(f"{path}: is {file_kind(st)}, not a regular file (a device, pipe "
-                              "or socket); hsiffc writes outputs as new files and never "
-                              "replaces such a node, even with --overwrite: give a file name")
+    except OSError:
+        st = None
+    if st is not None and not stat.S_ISREG(st.st_mode):
+        # a FIFO, socket or device node: renaming a file onto it would replace the node
+        # itself (as root, /dev/full or /dev/stdout for every process), never write into it
+        raise OutputError(f"{path}: is {file_kind(st)}, not a regular file (a device, pipe "
+                          "or socket); hsiffc writes outputs as new files and never "
+                          "replaces such a node, even with --overwrite: give a file name")
     if os.path.lexists(path) and not allowed:
         raise OutputExistsError(f"{path}: already exists; pass --overwrite (in Python: "
                                 "overwrite=True) to replace it, or choose another name (the "

@@ -175,7 +175,8 @@ def _manifest(zf, header, path, format: str, format_version: int) -> dict:
 
 # -- the schema of what a product file holds --------------------------------------------------
 #: Fitted state of the built-in stages: field -> JSON kind ("bool", "int", "number",
-#: "numbers", "dict", "str", "any"; "|null" allows null) or array spec (dtype kinds, dims).
+#: "numbers", "dict", "str", "any"; "|null" allows null) or array spec (dtype kinds, dims, or a
+#: list of dims the array may have).
 #: Dims are "H"/"W" (the frame, shared by the whole file), another capital letter (a size
 #: shared within the step, e.g. bands), or the name of a list field (its length). A plugin
 #: stage may declare its own ``state_schema`` class attribute the same way.
@@ -185,7 +186,9 @@ STATE_SCHEMAS = {
              "master_dq_": ("u", ("exposures_ms_", "H", "W")),
              "dark0_": ("f", ("H", "W")), "dark_slope_": ("f", ("H", "W"))},
     "two_point_ffc": {"fitted_": "bool", "selected_ms_": "numbers", "alpha_table_": "dict|null",
-                      "gain_": ("f", ("H", "W")), "flat_mean_": ("f", ("selected_ms_",)),
+                      "gain_": ("f", ("H", "W")),
+                      # one value per band; format 1 stored it per pixel
+                      "flat_mean_": ("f", [("selected_ms_",), ("H", "W")]),
                       "dq_": ("u", ("H", "W"))},
     "polynomial_ffc": {"fitted_": "bool", "n_levels_": "int", "coef_": ("f", ("K", "H", "W")),
                        "scale_": ("f", ("H", "W")), "x_min_": ("f", ("H", "W")),
@@ -266,6 +269,8 @@ def _check_arrays(dims: _Dims, where: str, schema: dict, headers: dict, fields: 
         if not isinstance(spec, tuple):
             dims.fail(here, "is not one this part of the file stores")
         kinds, names = spec
+        if isinstance(names, list):  # alternatives: the one with as many axes as the array
+            names = next((n for n in names if len(n) == len(shape)), names[0])
         if dtype.kind not in kinds:
             dims.fail(here, f"holds {dtype} values, expected {_DTYPE_WORDS.get(kinds, 'numbers')}")
         if len(shape) != len(names):

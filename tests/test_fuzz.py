@@ -9,7 +9,10 @@ import hashlib
 import io
 import json
 import math
+import os
+import struct
 import tempfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -171,3 +174,163 @@ def test_odd_simulate_parameters(tmp_path, exposures, frames):
         if code == 0:
             sweep = read_sweep(out)
             assert np.isfinite(sweep.data).all() and (sweep.exposure_ms >= 0).all()
+
+
+# -- hostile inputs, round two (issue 35): header fields, nesting, sizes, file kinds -----------
+@contextlib.contextmanager
+def _fd2_captured():
+    """What the process writes to file descriptor 2 (C libraries such as libpng included)."""
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        box = {}
+        try:
+            yield box
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            box["text"] = tmp.read().decode(errors="replace")
+
+
+@FUZZ
+@example(width=16, height=12, depth=8, colour=0, interlace=0, ihdr_cut=13, rows_kept=12,
+         filter_type=0)
+@given(width=st.integers(0, 40), height=st.integers(0, 40), depth=st.sampled_from([1, 8, 16, 3]),
+       colour=st.sampled_from([0, 2, 3, 4, 6, 5]), interlace=st.integers(0, 2),
+       ihdr_cut=st.integers(0, 14), rows_kept=st.integers(0, 45), filter_type=st.integers(0, 6))
+def test_png_header_fields_and_sizes(tmp_path, width, height, depth, colour, interlace,
+                                     ihdr_cut, rows_kept, filter_type):
+    """Any IHDR (cut short, odd fields) and any amount of image data: a frame of the stated
+    size or one DataFormatError line, and never a line from libpng."""
+    from hsiffc.errors import DataFormatError
+    from hsiffc.io import open_source
+    from test_hostile_inputs import _png
+
+    samples = {0: 1, 2: 3, 4: 2, 6: 4}.get(colour, 1)
+    stride = 1 + -(-(width * samples * depth) // 8)
+    rows = [bytes([filter_type]) + bytes(range(stride - 1)) for _ in range(min(rows_kept,
+                                                                               height))]
+    ihdr = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, interlace)[:ihdr_cut]
+    with tempfile.TemporaryDirectory(dir=tmp_path) as d:
+        path = _png(Path(d) / "f.png", 1, 1, chunks=[
+            (b"IHDR", ihdr), (b"IDAT", zlib.compress(b"".join(rows))), (b"IEND", b"")])
+        with _fd2_captured() as err:
+            try:
+                with open_source(path, exposure_ms=1, bit_depth=8) as src:
+                    frame = src.read(0)
+            except DataFormatError as exc:
+                assert "\n" not in str(exc) and "f.png" in str(exc)
+                frame = None
+        assert "libpng" not in err["text"], err["text"]
+        if frame is not None:
+            assert frame.shape[:2] == (height, width)
+            assert ihdr_cut == 13 and rows_kept >= height and filter_type <= 4
+
+
+@settings(FUZZ, max_examples=15)
+@given(depth=st.integers(1, 3000), where=st.sampled_from(["sidecar", "description",
+                                                          "manifest"]))
+def test_nesting_depth_never_reaches_the_parser_limit(world, tmp_path, depth, where):
+    from hsiffc.errors import DataFormatError
+    from hsiffc.io import open_source
+    from hsiffc.stages import Pipeline
+
+    deep = "[" * depth + "]" * depth
+    with tempfile.TemporaryDirectory(dir=tmp_path) as d:
+        d = Path(d)
+        try:
+            if where == "sidecar":
+                (d / "s.toml").write_text(f"[defaults]\nexposure_ms = 5\nnotes = {deep}\n")
+                open_source(world["good"], sidecar=d / "s.toml").close()
+            elif where == "description":
+                doc = json.dumps(world["doc"])[:-1] + f', "deep": {deep}}}'
+                tifffile.imwrite(d / "t.tif", world["data"], photometric="minisblack",
+                                 description=doc, metadata=None)
+                open_source(d / "t.tif").close()
+            else:
+                text = json.dumps({"format": "hsiffc-pipeline", "format_version": 2,
+                                   "steps": []})[:-1] + f', "deep": {deep}}}'
+                np.savez(d / "p.npz", **{"manifest.json": np.frombuffer(text.encode(),
+                                                                        np.uint8)})
+                Pipeline.load(d / "p.npz")
+        except DataFormatError as exc:
+            assert "\n" not in str(exc)
+            if depth > 64:
+                assert "nest" in str(exc) or where == "sidecar" and "notes" in str(exc)
+
+
+@FUZZ
+@given(lines=st.integers(-1, 6), samples=st.integers(-1, 6), bands=st.integers(-1, 4),
+       offset=st.integers(-8, 64), data_type=st.sampled_from([1, 2, 4, 12, 99]),
+       bit_depth=st.integers(-1, 40), stored=st.integers(0, 200))
+def test_envi_declared_against_actual_size(tmp_path, lines, samples, bands, offset, data_type,
+                                           bit_depth, stored):
+    from hsiffc.errors import DataFormatError
+    from hsiffc.io import open_source
+
+    with tempfile.TemporaryDirectory(dir=tmp_path) as d:
+        d = Path(d)
+        (d / "c.img").write_bytes(bytes(range(256))[:stored])
+        (d / "c.hdr").write_text(f"ENVI\nsamples = {samples}\nlines = {lines}\nbands = {bands}\n"
+                                 f"header offset = {offset}\ndata type = {data_type}\n"
+                                 f"interleave = bsq\nbyte order = 0\nbit depth = {bit_depth}\n")
+        try:
+            with open_source(d / "c.hdr", exposure_ms=1) as src:
+                sweep = src.to_sweep()
+        except DataFormatError as exc:
+            assert "\n" not in str(exc)
+            return
+        assert sweep.data.shape == (bands, lines, samples)
+        assert 1 <= sweep.bit_depth <= 8 * sweep.data.dtype.itemsize
+        assert offset + sweep.data.nbytes <= stored
+
+
+def _plant(path: Path, kind: str, target: Path):
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "hardlink":
+        os.link(target, path)
+    elif kind == "device":
+        os.symlink("/dev/zero", path)
+    elif kind == "symlink":
+        os.symlink(target, path)
+    elif kind == "folder":
+        path.mkdir()
+    elif kind == "data":
+        path.write_bytes(b"measured data")
+    elif kind == "record":
+        path.write_text('{"pid": 1, "host": "h", "started": "s", "command": "c"}\n')
+
+
+@settings(FUZZ, max_examples=20)
+@given(at_lock=st.sampled_from(["none", "fifo", "hardlink", "device", "symlink", "folder",
+                                "data", "record"]),
+       as_input=st.sampled_from(["regular", "fifo", "device", "symlink", "folder"]))
+def test_file_kinds_at_the_lock_and_as_input(world, tmp_path, at_lock, as_input):
+    """Whatever sits at the lock's name or at an input's name: never blocks, never writes into
+    anything but a lock hsiffc made, one line and exit 2 for what it refuses."""
+    with tempfile.TemporaryDirectory(dir=tmp_path) as d:
+        d = Path(d)
+        src = d / "in.tif"
+        if as_input == "regular":
+            src.write_bytes(world["bytes"])
+        else:
+            (d / "real.tif").write_bytes(world["bytes"])
+            _plant(src, as_input, d / "real.tif")
+        out = d / "out"
+        out.mkdir()
+        _plant(out / ".hsiffc.lock", at_lock, d / ("in.tif" if as_input == "regular"
+                                                   else "real.tif"))
+        data_file = src if as_input == "regular" else d / "real.tif"
+        before = _digest(data_file)
+        code, err = _run(["correct", src, "--calibration", world["cal"], "-o", out, "-q"])
+        _assert_clean(code, err)
+        readable = as_input in ("regular", "symlink")
+        if at_lock in ("none", "record") and readable:
+            assert code == 0, err
+        else:
+            assert code == 2, err
+        assert _digest(data_file) == before
+        if at_lock == "data":
+            assert (out / ".hsiffc.lock").read_bytes() == b"measured data"
