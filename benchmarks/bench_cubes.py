@@ -12,6 +12,11 @@ frames of the simulated 8-band (4 x 2) mosaic sensor, with the simulator's own c
 * Runs interleaved (baseline, engine; 3 rounds, 2 with --quick), medians; outputs deleted
   after each run. The target (issue 39): the engine at >= 0.7 of the I/O bound.
 
+Measured (``python3 benchmarks/bench_cubes.py``, 2026-11-26 04:33-04:42 UTC, this 2-core
+machine shared with other jobs at load 13-17): I/O bound 0.311 frames/s (67 MB/s written; runs
+51.4, 53.6, 30.5 s), engine 0.343 frames/s (runs 49.8, 45.6, 46.6 s): 1.10 of the I/O bound
+(target >= 0.7: met); pipeline + bilinear cube alone 2.65 s/frame on that loaded machine.
+
 Needs about 0.2 GB of input and 3.5 GB (quick: 0.2 GB) of free disk per run;
 ``HSIFFC_BENCH_DIR`` chooses the folder.
 """
