@@ -159,6 +159,22 @@ def test_saturated_reference_warns_and_flags(sim):
         np.all((out.dq & DQ.SATURATED) >= (dq & DQ.SATURATED))
 
 
+def test_a_panel_at_a_full_well_below_full_scale_is_named(sim):
+    """A response that stops at a full well below the ADC's full scale is not SATURATED; its
+    temporal noise falls to the dark's, which the check sees."""
+    t = 24.0
+    darks = sim.darks(t)
+    whites = [f.replace(data=np.minimum(f.data, np.float32(600))) for f in
+              sim.frames(t, 0.99, 10)]  # a full well at 600 DN: every pixel clipped there
+    _, cats, msgs = caught(lambda: sim.pipeline(whites + darks, method="ratio"))
+    assert cats == [ReferenceSaturatedWarning], msgs
+    assert "stopped responding below full scale" in msgs[0] and "no shot noise" in msgs[0]
+    # the same panel unclipped: silent
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sim.pipeline(sim.frames(t, 0.99, 10) + darks, method="ratio")
+
+
 def test_too_few_frames_for_the_precision(sim):
     t = 16.0
     darks = sim.darks(t)

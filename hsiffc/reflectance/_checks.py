@@ -9,7 +9,8 @@ Reference (at fit):
 - too dark: the panel's signal is a small part of the sensor's range, or its single-frame
   signal-to-noise ratio is low. One DN of scene noise becomes ``R_panel / level`` of
   reflectance, so a reference at 12 DN turns every DN of noise into 8 % reflectance;
-- saturated, or in strong leakage (median model alpha over a threshold): its response is no
+- saturated (at the ADC's full scale, or at a full well below it: no shot noise left), or in
+  strong leakage (median model alpha over a threshold): its response is no
   longer linear in the light, so a plain ratio overestimates every target darker than it
   (by the charge the panel's response lost to leakage);
 - too few frames for the requested precision: the reference's own noise, ``1 / (SNR sqrt(N))``,
@@ -93,7 +94,8 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
         dark), ``range_dn`` (full scale less dark), ``snr_frame`` (single-frame SNR of the
         rate), ``saturated_percent``, ``alpha_percent`` (median model alpha; None without a
         calibration), ``loss_percent`` (charge the response lost to leakage), ``panel``; and
-        ``n_frames``, ``exposure_ms``.
+        ``n_frames``, ``exposure_ms``; optionally ``temporal_var_dn2`` and ``dark_var_dn2``
+        (median temporal variance of the panel's and the dark's frames, DN^2).
     min_level_fraction, min_snr, precision_percent, max_saturated_percent,
     reference_alpha_percent : float
         Thresholds (the stage's parameters).
@@ -149,6 +151,21 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
              f"pixels at full scale (allowed {max_saturated_percent:g} %); their reflectances "
              "are wrong and flagged SATURATED: shorten the reference's exposure or dim the "
              "light (and record the scenes at settings the panel does not saturate)")
+    var_w, var_d = report.get("temporal_var_dn2"), report.get("dark_var_dn2")
+    if var_w is not None and var_d is not None:
+        var_w, var_d = (np.asarray([np.nan if v is None else v for v in x], float)
+                        for x in (var_w, var_d))
+        # at a full well the shot noise is gone: the panel is as quiet as the dark
+        hit = [i for i in range(nb) if frac[i] > 0.3 and var_w[i] <= 2 * var_d[i]]
+        if hit:
+            warn(ReferenceSaturatedWarning,
+                 f"white reference ({t:g} ms) stopped responding below full scale: "
+                 f"{_bands_text(hit, level, '.0f')} DN above dark with a temporal noise of "
+                 f"{', '.join(f'{var_w[i]:.2g}' for i in hit[:6])} DN^2, no more than the "
+                 f"dark's ({', '.join(f'{var_d[i]:.2g}' for i in hit[:6])} DN^2): no shot "
+                 "noise, the pixels sit at a full well below the ADC's full scale (not flagged "
+                 "SATURATED); every reflectance is overestimated: shorten the reference's "
+                 "exposure or dim the light")
     alpha = report.get("alpha_percent")
     if alpha is not None:
         alpha = np.asarray([np.nan if v is None else v for v in alpha], float)

@@ -212,9 +212,14 @@ class Reflectance(Stage):
         groups: dict[float, list] = {}
         for f in whites:
             groups.setdefault(f.exposure_ms, []).append(f)
+        darks: dict[float, list] = {}
+        for f in frames:
+            if f.kind == "dark" and f.data.shape == whites[0].data.shape:
+                darks.setdefault(f.exposure_ms, []).append(f)
         rates, dqs, checks, gains = [], [], [], []
         for t, stack in sorted(groups.items()):
-            ref, report = self._reference(stack, method, bands, n_bands, panel)
+            ref, report = self._reference(stack, method, bands, n_bands, panel,
+                                          darks.get(t, []))
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 texts = reference_warnings(
@@ -241,8 +246,9 @@ class Reflectance(Stage):
         self.fitted_ = True
         return self
 
-    def _reference(self, stack, method, bands, n_bands, panel):
-        """One exposure's reference and the figures of its checks."""
+    def _reference(self, stack, method, bands, n_bands, panel, darks=()):
+        """One exposure's reference and the figures of its checks (``darks``: dark frames at
+        its exposure, for the temporal noise without light)."""
         per = [self._rate(f, method) for f in stack]
         dqs = [f.dq if d is None else f.dq | d for f, (_, d, _, _) in zip(stack, per)]
         ref = white_reference([p[0] for p in per], dqs, bands, n_bands,
@@ -268,7 +274,13 @@ class Reflectance(Stage):
                   "snr_frame": snr,
                   "saturated_percent": (100 * band_fraction(saturated != 0, bands,
                                                             n_bands)).tolist(),
-                  "alpha_percent": None, "loss_percent": None}
+                  "alpha_percent": None, "loss_percent": None,
+                  "temporal_var_dn2": None, "dark_var_dn2": None}
+        if len(stack) >= 2 and len(darks) >= 2:  # no shot noise left: the response stopped
+            report["temporal_var_dn2"] = band_median(
+                np.var([f.data for f in stack], axis=0, ddof=1), bands, n_bands).tolist()
+            report["dark_var_dn2"] = band_median(
+                np.var([f.data for f in darks], axis=0, ddof=1), bands, n_bands).tolist()
         cal = self.calibration_product()
         if cal is not None and not f0.is_cube and f0.corrected_by is None:
             if method == "model":

@@ -178,8 +178,8 @@ def run_emva_rows(emva_dir) -> dict:
         whites = [f for f in frames if f.meta["step"] == w]
         row = {"white_step": int(w), "white_dn": level[w] * full, "targets": []}
         for m in METHODS:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
                 pipe = Pipeline([("dark", create("dark", match=match, average="mean")),
                                  ("reflectance", create("reflectance", panel=1.0,
                                                         calibration=cal, method=m))]
@@ -187,6 +187,8 @@ def run_emva_rows(emva_dir) -> dict:
                 if m == "model":
                     row["alpha_percent"] = pipe.named_steps["reflectance"].checks_[0][
                         "alpha_percent"][0]
+                    row["warnings"] = sorted({w.category.__name__ for w in caught
+                                              if "reference" in str(w.message)})
                 for s in odd:
                     if s == w or not EMVA_RANGES[0][0] <= level[s] < level[w]:
                         continue
@@ -314,7 +316,7 @@ def render_markdown(res: ReflectanceStudy, figure: str | None = None) -> str:
         lines += ["", f"**`{real['source']}`** ({real['bit_depth']}-bit):", "",
                   "| panel (mean raw DN) | panel's alpha | "
                   + " | ".join(f"targets {100 * lo:g}-{100 * hi:g} %" for lo, hi in EMVA_RANGES)
-                  + " |", "|---|---|" + "---|" * len(EMVA_RANGES)]
+                  + " | reference checks |", "|---|---|" + "---|" * (len(EMVA_RANGES) + 1)]
         for row in real["rows"]:
             cells = []
             for lo, hi in EMVA_RANGES:
@@ -324,15 +326,18 @@ def render_markdown(res: ReflectanceStudy, figure: str | None = None) -> str:
                              f"{np.median(got['ratio']):+.2f} / {np.median(got['model']):+.2f} "
                              f"({len(got['ratio'])})")
             lines.append(f"| {row['white_dn']:.0f} (step {row['white_step']}) | "
-                         f"{row['alpha_percent']:.1f} % | " + " | ".join(cells) + " |")
+                         f"{row['alpha_percent']:.1f} % | " + " | ".join(cells) + " | "
+                         + (", ".join(row["warnings"]) or "passed") + " |")
         both = [row for row in real["rows"] if row["targets"] and all(
             abs(t["error_percent"]) > 1 for t in row["targets"] if t["level"] >= 0.12)]
         for row in both:  # an error both methods share: the panel itself is wrong
             lines += ["", f"The panel at {row['white_dn']:.0f} DN gives both methods an error "
                       "above 1 % at every target from 12 % up, with a small model alpha: its "
-                      "response is clipped below the ADC's full scale (a full well), which "
-                      "neither the SATURATED flag (full-scale code) nor the leakage check sees; "
-                      "keep the panel below the level where the sensor's response stops."]
+                      "response is clipped below the ADC's full scale (a full well), which the "
+                      "SATURATED flag (full-scale code) and the leakage check do not see"
+                      + ("; the reference checks name it (no shot noise left)"
+                         if "ReferenceSaturatedWarning" in row["warnings"] else "")
+                      + ": keep the panel below the level where the sensor's response stops."]
 
     return "\n".join(lines) + "\n"
 
