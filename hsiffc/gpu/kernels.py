@@ -1,0 +1,333 @@
+"""CUDA kernels of the correction (numba-cuda), built from the CPU kernels' scalar functions.
+
+:data:`correct` runs, per pixel, what the fused dark + alpha mask pass and the model FFC do on
+the CPU: the dark subtraction, :func:`~hsiffc.kernels.leakage.alpha_paper_point` and
+:func:`~hsiffc.kernels.leakage.leakage_bits`, then :func:`~hsiffc.kernels.inversion.invert_point`,
+:func:`~hsiffc.kernels.leakage.alpha_model_point` and
+:func:`~hsiffc.kernels.modelffc.correct_point` - the same numba functions, compiled for the
+GPU. :data:`bilinear` evaluates the normalised convolution of
+:mod:`hsiffc.kernels.demosaic` per output value (the tent of S1 in float32, the twice-wide S2
+where S1 holds no usable sample in float64, DQ and alpha by the same rules) and stores the
+cube in the stream's output types (:mod:`hsiffc.gpu.pack`).
+
+Tolerance against the CPU path (tests/test_gpu.py in the simulator, benchmarks/gpu.py on the
+device): DQ equal bit for bit; the corrected frame within 2 float32 ulps (the CPU takes most
+pixels through the vectorised Halley rounds of
+:func:`~hsiffc.kernels.inversion.invert_rounds`, the GPU every pixel through the bracketed
+scalar iteration: both stop within 1e-9 DN of the root); the cube within 4 float32 ulps of
+the frame's largest value (the CPU sums a pixel's tent in another order, and the GPU compiler
+may fuse multiply-adds).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..dq import DQ
+from ..kernels.demosaic import EPS
+from ..kernels.inversion import invert_point
+from ..kernels.leakage import alpha_model_point, alpha_paper_point, leakage_bits
+from ..kernels.modelffc import correct_point
+from . import cuda_module
+from .pack import clip_half, fold_dq8, round_u16
+
+cuda = cuda_module()
+
+__all__ = ["bilinear", "correct", "pack2d"]
+
+_SAT = np.uint32(DQ.SATURATED)
+_BAD_INPUT = np.uint32(DQ.NONFINITE | DQ.DO_NOT_USE)
+_DNU = np.uint32(DQ.DO_NOT_USE)
+_F32_MAX = float(np.finfo(np.float32).max)
+_NEG = np.float32(-np.inf)
+
+
+@cuda.jit
+def correct(raw, dq_in, has_dq_in, raw_full, t, dark, a32, b32, pix, const_bits, threshold,
+            full_scale_mask, do_ffc, a, b, base, log_ratio, has_sweep, dark_current,
+            full_scale, flat_alpha, alpha_limit, below_tol, tol_dn, max_iter,
+            out, alpha_out, dq_out):
+    """One pixel per thread: dark, paper alpha and DQ (the mask), then with ``do_ffc`` the
+    model FFC. ``raw`` is the frame as read (any real dtype); without ``dq_in`` its DQ is what
+    :meth:`hsiffc.frame.Frame.from_raw` gives (SATURATED at ``raw_full``, non-finite values
+    read as 0 with NONFINITE | DO_NOT_USE)."""
+    c, r = cuda.grid(2)  # x (fastest) along the row: coalesced
+    if r >= out.shape[0] or c >= out.shape[1]:
+        return
+    y32 = np.float32(raw[r, c])
+    bits_in = np.uint32(0)
+    if not (abs(y32) < np.inf):
+        y32 = np.float32(0.0)
+        bits_in = _BAD_INPUT
+    if has_dq_in:
+        bits_in = dq_in[r, c]
+    elif y32 >= raw_full:
+        bits_in |= _SAT
+    y = np.float64(y32)
+    d32 = dark[r, c]
+    d = np.float64(d32)
+    alpha = alpha_paper_point(y, t, np.float64(a32[r, c]), np.float64(b32[r, c]), d)
+    alpha_out[r, c] = np.float32(alpha)
+    bits = np.int64(leakage_bits(alpha, y, threshold, full_scale_mask)) | const_bits
+    bits |= np.int64(pix[r, c]) | np.int64(bits_in)
+    if do_ffc:
+        ar = np.float64(a[r, c])
+        br = np.float64(b[r, c])
+        k, flags, _ = invert_point(y, t, ar, br, d, full_scale, np.inf, tol_dn, max_iter)
+        am = alpha_model_point(y, max(k, 1e-300), ar, br)
+        lr = np.float64(log_ratio[r, c]) if has_sweep else 0.0
+        o, q, _ = correct_point(k, flags, am, y, t, d, np.float64(base[r, c]), lr, has_sweep,
+                                dark_current, flat_alpha, alpha_limit, below_tol)
+        out[r, c] = np.float32(o)
+        bits |= q
+    else:
+        out[r, c] = y32 - d32
+    dq_out[r, c] = np.uint32(bits)
+
+
+@cuda.jit(device=True, inline=True)
+def _store(cube, cube_dq, y, x, b, v, bits, mode, fold):
+    if mode == 1:
+        v, extra = clip_half(v)
+        bits |= extra
+        cube[y, x, b] = v
+    elif mode == 2:
+        v, extra = round_u16(v)
+        bits |= extra
+        cube[y, x, b] = v
+    else:
+        cube[y, x, b] = v
+    cube_dq[y, x, b] = fold_dq8(bits) if fold else bits
+
+
+@cuda.jit(device=True, inline=True)
+def _finite_alpha(a):
+    """Non-finite alpha counts as the largest float32 (as :func:`hsiffc.reconstruct.demosaic`
+    reads the alpha plane)."""
+    return a if abs(a) < np.inf else np.float32(_F32_MAX)
+
+
+@cuda.jit
+def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw,
+             mode, fold, medians, has_medians, cube, cube_dq, cube_alpha, missing):
+    """Band ``i mod B`` at pixel (y, ``i // B``), one thread per cube value (consecutive
+    threads write consecutive values): :mod:`hsiffc.kernels.demosaic`'s bilinear value, its DQ
+    and (``has_alpha``) its alpha. Where the twice-wide support holds no usable sample either,
+    the value is ``medians[band]`` (``has_medians``) or NaN; both with DO_NOT_USE. Without
+    medians, ``missing[0]`` counts such values and ``missing[1 + band]`` marks their bands:
+    the caller then takes the band medians of the frame (:func:`hsiffc.reconstruct.prepare.
+    band_medians`, as the CPU path) and runs the kernel again with them."""
+    i, y = cuda.grid(2)
+    H = data.shape[0]
+    W = data.shape[1]
+    B = lat_start.shape[0] - 1
+    x = i // B
+    band = i - x * B
+    if y >= H or x >= W:
+        return
+    num = np.float32(0.0)
+    den = np.float32(0.0)
+    amax = _NEG
+    own = np.uint32(0)
+    for j in range(lat_start[band], lat_start[band + 1]):
+        ry0 = y - ((y - lat_r[j]) % ph)
+        wy1 = (y - ry0) / ph
+        ry1 = ry0 + ph
+        w0 = np.float32((1.0 - wy1) if ry0 >= 0 else 0.0)
+        w1 = np.float32(wy1 if ry1 < H else 0.0)
+        r0 = ry0 if ry0 >= 0 else ry1
+        r1 = ry1 if ry1 < H else r0
+        if r0 >= H:
+            continue
+        c0 = lat_c[j]
+        qa = x % pw
+        s = 0 if qa >= c0 else 1
+        p = qa - c0 + s * pw
+        wr = np.float32(p / pw)
+        wl = np.float32(1.0 - p / pw)
+        xl = x - p
+        for side in range(2):
+            xs = xl + side * pw
+            wx = wl if side == 0 else wr
+            if xs < 0 or xs >= W or (side == 1 and p == 0):
+                continue
+            g0 = w0
+            g1 = w1
+            if has_dq:
+                g0 = w0 if dq[r0, xs] == 0 else np.float32(0.0)
+                g1 = w1 if dq[r1, xs] == 0 else np.float32(0.0)
+            num += wx * (g0 * data[r0, xs] + g1 * data[r1, xs])
+            den += wx * (g0 + g1)
+            if has_alpha:
+                if w0 > 0.0:
+                    amax = max(amax, _finite_alpha(alpha[r0, xs]))
+                if w1 > 0.0:
+                    amax = max(amax, _finite_alpha(alpha[r1, xs]))
+        if has_dq and lat_r[j] == y % ph and p == 0:
+            own = dq[y, x]
+    bits = own
+    value = np.float64(num / den) if den > 0.0 else np.nan
+    if has_dq and not den > EPS:  # S1 holds no usable sample: S2, and S1's flags
+        n2 = 0.0
+        d2 = 0.0
+        for j in range(lat_start[band], lat_start[band + 1]):
+            ry0 = y - ((y - lat_r[j]) % ph)
+            xs0 = x - ((x - lat_c[j]) % pw)
+            for tj in range(4):  # columns: the vertical sum first, as on the CPU
+                xs = xs0 + (tj - 1) * pw
+                wx = max(1.0 - abs(x - xs) / (2.0 * pw), 0.0)
+                if xs < 0 or xs >= W:
+                    continue
+                s1_col = tj == 1 or (tj == 2 and x != xs0)
+                col_v = 0.0
+                col_w = 0.0
+                for ti in range(4):
+                    ys = ry0 + (ti - 1) * ph
+                    wy = 1.0 - abs(y - ys) / (2.0 * ph)
+                    if ys < 0 or ys >= H or not wy > 0.0:
+                        continue
+                    f = dq[ys, xs]
+                    if s1_col and (ti == 1 or (ti == 2 and y != ry0)):
+                        bits |= f
+                    if f == 0:
+                        col_v += wy * np.float64(data[ys, xs])
+                        col_w += wy
+                n2 += wx * col_v
+                d2 += wx * col_w
+        if d2 <= EPS:
+            bits |= _DNU
+            if has_medians:
+                value = np.float64(medians[band])
+            else:
+                value = np.nan
+                cuda.atomic.add(missing, 0, 1)
+                missing[1 + band] = 1
+        else:
+            value = n2 / d2
+    _store(cube, cube_dq, y, x, band, value, np.int64(bits), mode, fold)
+    if has_alpha:
+        cube_alpha[y, x, band] = amax if amax > _NEG else np.float32(0.0)
+
+
+@cuda.jit
+def pack2d(frame, dq, mode, fold, out, out_dq):
+    """A corrected frame (float32, uint32 DQ) into the stream's output types."""
+    c, r = cuda.grid(2)
+    if r < frame.shape[0] and c < frame.shape[1]:
+        _store2(out, out_dq, r, c, np.float64(frame[r, c]), np.int64(dq[r, c]), mode, fold)
+
+
+@cuda.jit(device=True, inline=True)
+def _store2(out, out_dq, r, c, v, bits, mode, fold):
+    if mode == 1:
+        v, extra = clip_half(v)
+        bits |= extra
+    elif mode == 2:
+        v, extra = round_u16(v)
+        bits |= extra
+    out[r, c] = v
+    out_dq[r, c] = fold_dq8(bits) if fold else bits
+
+
+# -- band medians (the fill of values with no usable sample), exact, on the device -------------
+# The median of a band's usable samples as numpy's partition gives it (the CPU path's
+# hsiffc.reconstruct.prepare.band_medians): the order statistics of rank n // 2 (and n // 2 - 1
+# for an even count, averaged in float32) found by a radix select over the float32 bit
+# patterns made order-preserving (sign flipped for positives, all bits for negatives), four
+# bits per pass, eight passes, with no round trip to the host. Up to MAX_BANDS bands (the
+# block-local histograms live in shared memory).
+_RANKS = 2
+_BINS = 16
+MAX_BANDS = 32
+DIGIT_SHIFTS = tuple(range(28, -1, -4))
+
+
+@cuda.jit(device=True, inline=True)
+def _key(bits):
+    """Order-preserving key of a float32's bits (as uint32)."""
+    return bits ^ (np.uint32(0xFFFFFFFF) if (bits >> np.uint32(31)) != 0
+                   else np.uint32(0x80000000))
+
+
+@cuda.jit
+def median_hist(bits, dq, phase_band, ph, pw, prefix, mask, shift, first, hist):
+    """Per band and rank, the histogram of the next 4 key bits of the usable samples whose
+    higher bits equal the rank's ``prefix`` (``mask``: the bits known; every sample on the
+    ``first`` pass), block-local first."""
+    local = cuda.shared.array(shape=(MAX_BANDS, _RANKS, _BINS), dtype=np.int32)
+    tid = cuda.threadIdx.x + cuda.threadIdx.y * cuda.blockDim.x
+    nthreads = cuda.blockDim.x * cuda.blockDim.y
+    B = hist.shape[0]
+    for t in range(tid, B * _RANKS * _BINS, nthreads):
+        local[t // (_RANKS * _BINS), (t // _BINS) % _RANKS, t % _BINS] = 0
+    cuda.syncthreads()
+    x, y = cuda.grid(2)
+    if y < bits.shape[0] and x < bits.shape[1] and dq[y, x] == 0:
+        band = phase_band[(y % ph) * pw + (x % pw)]
+        if band >= 0:
+            key = _key(bits[y, x])
+            for r in range(_RANKS):
+                if first or (key & mask) == prefix[band, r]:
+                    cuda.atomic.add(local, (band, r, (key >> shift) & np.uint32(0xF)), 1)
+    cuda.syncthreads()
+    for t in range(tid, B * _RANKS * _BINS, nthreads):
+        b = t // (_RANKS * _BINS)
+        r = (t // _BINS) % _RANKS
+        v = local[b, r, t % _BINS]
+        if v != 0:
+            cuda.atomic.add(hist, (b, r, t % _BINS), v)
+
+
+@cuda.jit
+def median_select(hist, prefix, rank, count, shift, first):
+    """One thread per (band, rank): the bin holding the rank (the count and the ranks set on
+    the first pass), appended to the prefix; the histogram zeroed for the next pass."""
+    b = cuda.blockIdx.x
+    r = cuda.threadIdx.x
+    if b >= hist.shape[0] or r >= _RANKS:
+        return
+    if first:  # every sample in both ranks' histograms: each thread counts its own
+        n = 0
+        for i in range(_BINS):
+            n += hist[b, r, i]
+        if r == 0:
+            count[b] = n
+        rank[b, r] = n // 2 - 1 if (r == 0 and n % 2 == 0) else n // 2
+        prefix[b, r] = 0
+    k = rank[b, r]
+    for i in range(_BINS):
+        c = hist[b, r, i]
+        if k >= 0 and k < c:
+            prefix[b, r] |= np.uint32(i) << shift
+            rank[b, r] = k
+            k = -1
+        elif k >= 0:
+            k -= c
+    for i in range(_BINS):
+        hist[b, r, i] = 0
+
+
+@cuda.jit
+def median_finish(prefix, count, out_bits):
+    """The keys found back to float32 bits (read as float32 by :data:`median_mean`)."""
+    b = cuda.grid(1)
+    if b < prefix.shape[0]:
+        for r in range(_RANKS):
+            key = prefix[b, r]
+            out_bits[b, r] = key ^ (np.uint32(0x80000000) if (key >> np.uint32(31)) != 0
+                                    else np.uint32(0xFFFFFFFF))
+
+
+@cuda.jit
+def median_mean(values, count, medians):
+    """Median of each band: the middle value, the float32 mean of the two middle values for
+    an even count, 0 for a band with no usable sample."""
+    b = cuda.grid(1)
+    if b < medians.shape[0]:
+        n = count[b]
+        if n == 0:
+            medians[b] = 0.0
+        elif n % 2:
+            medians[b] = values[b, 1]
+        else:
+            medians[b] = np.float32(values[b, 0] + values[b, 1]) / np.float32(2.0)

@@ -1,0 +1,474 @@
+"""A fitted pipeline on the GPU: :class:`GpuPipeline` (``Pipeline.to("cuda")``).
+
+Runs on the device: ``dark`` + ``alpha_mask`` (paper alpha) [+ ``model_ffc``]
+[+ ``reconstruct`` with ``method="bilinear"``, ``resolution="full"``, no correction matrix].
+Other stages are refused at construction with one line naming the step. Calibration planes go
+to the device once; the dark of each exposure once (the dark stage's own
+:meth:`~hsiffc.stages.dark.DarkSubtract.dark_for`, so it is the CPU's plane).
+
+Frames the kernels do not take are corrected by the CPU pipeline instead, the same frame:
+an exposure of 0 ms (the model FFC's special case), and a cube with values whose twice-wide
+support holds no usable sample (the band-median fill).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+
+from ..dq import DQ, DQ_DTYPE
+from ..errors import ParameterError
+from ..frame import Frame
+from ..kernels.lattice import lattice_arrays
+from ..kernels.operands import float_array
+from ..reconstruct.prepare import band_medians, prepare
+from ..stages.alpha import AlphaMask
+from ..stages.dark import DarkSubtract
+from ..stages.model_ffc import ModelFFC
+from ..stages.pipeline import json_params
+from ..stages.reconstruct import Reconstruct
+from . import cuda_module
+from .pack import DATA_DTYPES, check_dtypes, pack_cpu
+
+__all__ = ["GpuPipeline", "StreamItem"]
+
+_BLOCK = (32, 8)
+_TOL_DN = 1e-9  # hsiffc.model_ffc's tolerance of the inversion
+_MAX_ITER = 60  # hsiffc.model.invert_response's
+
+
+class StreamItem:
+    """One corrected frame or cube from :meth:`GpuPipeline.stream` (or
+    :meth:`hsiffc.stages.Pipeline.stream`): ``data``, ``dq``, ``alpha`` (None unless asked
+    for) in the stream's output types, and ``meta`` (the frame's metadata with the history of
+    every step)."""
+
+    __slots__ = ("alpha", "data", "dq", "meta")
+
+    def __init__(self, data, dq, alpha, meta):
+        self.data, self.dq, self.alpha, self.meta = data, dq, alpha, meta
+
+    def to_frame(self) -> Frame:
+        """As a :class:`~hsiffc.frame.Frame` (float32 data, uint32 DQ)."""
+        return Frame(self.data.astype(np.float32), self.dq.astype(DQ_DTYPE), self.meta,
+                     alpha=self.alpha)
+
+
+def _entry(name, stage):
+    return {"step": name, "stage": stage.name or type(stage).__name__,
+            "params": json_params(stage), "status": "ok"}
+
+
+def plan(pipeline):
+    """``(dark, mask, ffc or None, reconstruct or None)`` of a pipeline the GPU runs, with
+    their step names; ParameterError naming the first step it cannot run."""
+    steps = list(pipeline.steps)
+    kinds = [(DarkSubtract, "dark"), (AlphaMask, "alpha_mask"), (ModelFFC, "model_ffc"),
+             (Reconstruct, "reconstruct")]
+    found = {}
+    i = 0
+    for cls, key in kinds:
+        if i < len(steps) and type(steps[i][1]) is cls:
+            found[key] = steps[i]
+            i += 1
+        elif key in ("dark", "alpha_mask"):
+            name = steps[i][0] if i < len(steps) else "(none)"
+            raise ParameterError(f"device='cuda' runs dark, alpha_mask[, model_ffc]"
+                                 f"[, reconstruct]; step {name!r} is not {key}: run this "
+                                 "pipeline with device='cpu'")
+    if i < len(steps):
+        name, stage = steps[i]
+        raise ParameterError(f"step {name!r} ({stage.name}) does not run on the GPU (it runs "
+                             "dark, alpha_mask, model_ffc and bilinear reconstruct); run this "
+                             "pipeline with device='cpu'")
+    mask = found["alpha_mask"][1]
+    if mask.method != "paper":
+        raise ParameterError(f"step {found['alpha_mask'][0]!r}: the GPU computes the paper "
+                             f"alpha, not method={mask.method!r}; use device='cpu'")
+    rec = found.get("reconstruct")
+    if rec is not None:
+        r = rec[1]
+        if r.method != "bilinear" or r.resolution != "full" or r.correction is not None:
+            raise ParameterError(f"step {rec[0]!r}: the GPU reconstructs method='bilinear', "
+                                 "resolution='full' without a correction matrix; got "
+                                 f"method={r.method!r}, resolution={r.resolution!r}, "
+                                 f"correction={r.correction!r}: use device='cpu'")
+    for _, stage in steps:
+        stage.check_is_fitted()
+    return found["dark"], found["alpha_mask"], found.get("model_ffc"), rec
+
+
+def _phase_band(lattices, period) -> np.ndarray:
+    """Band of each tile phase ``(y mod ph) * pw + x mod pw`` (-1: none)."""
+    ph, pw = (int(v) for v in period)
+    table = np.full(ph * pw, -1, np.int64)
+    for b, lat in enumerate(lattices):
+        for r, c in lat:
+            table[r * pw + c] = b
+    return table
+
+
+class GpuPipeline:
+    """A fitted :class:`~hsiffc.stages.Pipeline` run on an NVIDIA GPU (see the module).
+
+    ``transform(frame)`` gives the CPU pipeline's frame (within the tolerance of
+    :mod:`hsiffc.gpu.kernels`); ``stream(frames)`` yields corrected frames or cubes with
+    upload, compute and download overlapped; ``to("cpu")`` gives the CPU pipeline back.
+    """
+
+    def __init__(self, pipeline):
+        self.pipeline = pipeline
+        self.dark, self.mask, self.ffc, self.rec = plan(pipeline)
+        self.cuda = cuda_module()
+        from . import kernels
+        self.k = kernels
+        self._planes = {}  # per frame shape: the device planes
+        self._darks = OrderedDict()  # (shape, exposure) -> device dark
+
+    def __repr__(self):
+        return f"GpuPipeline({self.pipeline!r})"
+
+    @property
+    def steps(self):
+        return self.pipeline.steps
+
+    def to(self, device: str):
+        """``"cpu"``: the CPU pipeline; ``"cuda"``: this one."""
+        return self.pipeline if device == "cpu" else self
+
+    # -- device constants ----------------------------------------------------------------------
+    def _const(self, frame_like_shape, exposure_ms, bit_depth, mosaic):
+        shape = tuple(frame_like_shape)
+        planes = self._planes.get(shape)
+        if planes is None:
+            planes = self._upload(shape, bit_depth, mosaic)
+            self._planes[shape] = planes
+        key = (shape, float(exposure_ms))
+        dark = self._darks.get(key)
+        if dark is None:
+            plane, how = self.dark[1].dark_for(exposure_ms, shape)
+            dark = (self.cuda.to_device(np.ascontiguousarray(plane, np.float32)), how,
+                    np.asarray(plane, np.float32))
+            self._darks[key] = dark
+            while len(self._darks) > 4:
+                self._darks.popitem(last=False)
+        return planes, dark
+
+    def _upload(self, shape, bit_depth, mosaic):
+        cuda = self.cuda
+        probe = Frame(np.zeros(shape, np.float32), np.zeros(shape, DQ_DTYPE),
+                      {"exposure_ms": 1.0, "bit_depth": int(bit_depth), "mosaic": mosaic})
+        cal = self.mask[1].calibration_for(probe)
+        dev = lambda a: cuda.to_device(np.ascontiguousarray(a))  # noqa: E731
+        pix = np.zeros(shape, DQ_DTYPE)
+        if cal.arrays.get("flags") is not None:
+            pix |= np.asarray(cal.arrays["flags"], DQ_DTYPE)
+        p = {"cal": cal, "a32": dev(cal.f32("a_dn_per_ms")), "b32": dev(cal.f32("b_per_dn"))}
+        one = dev(np.zeros((1, 1), np.float32))
+        if self.ffc is not None:
+            ffc = self.ffc[1]
+            cal_f = ffc._cal_for(probe)
+            pix |= np.asarray(ffc.dq_, DQ_DTYPE)
+            has_sweep = ffc.gain_sweep_ is not None
+            p.update(a=dev(float_array(cal_f.a)), b=dev(float_array(cal_f.b)),
+                     base=dev(float_array(ffc.gain_sweep_ if has_sweep else ffc.gain_)),
+                     log_ratio=dev(float_array(ffc._log_ratio())) if has_sweep else one,
+                     has_sweep=has_sweep)
+        else:
+            p.update(a=one, b=one, base=one, log_ratio=one, has_sweep=False)
+        p["pix"] = dev(pix)
+        if self.rec is not None:
+            if mosaic is None:
+                raise ValueError("reconstruct needs the frame's mosaic layout (meta['mosaic']); "
+                                 "this frame has none")
+            lat = prepare(np.zeros(shape, np.float32), mosaic, None).lattices()
+            lat_r, lat_c, lat_start = lattice_arrays(lat)
+            p.update(lat_r=dev(lat_r), lat_c=dev(lat_c), lat_start=dev(lat_start),
+                     period=tuple(int(v) for v in mosaic.tile_shape), n_bands=len(lat),
+                     no_medians=dev(np.zeros(1, np.float32)),
+                     phase_band=dev(_phase_band(lat, mosaic.tile_shape)))
+        return p
+
+    # -- one frame ----------------------------------------------------------------------------
+    def _launch(self, d_raw, d_dq, has_dq, shape, exposure_ms, bit_depth, mosaic, bufs,
+                mode, fold, with_alpha, stream):
+        planes, (d_dark, _, _) = self._const(shape, exposure_ms, bit_depth, mosaic)
+        cal = planes["cal"]
+        mask = self.mask[1]
+        H, W = shape
+        grid = ((W + _BLOCK[0] - 1) // _BLOCK[0], (H + _BLOCK[1] - 1) // _BLOCK[1])
+        ffc = self.ffc[1] if self.ffc is not None else None
+        const = 0 if cal.in_domain(exposure_ms) else int(DQ.OUT_OF_DOMAIN)
+        self.k.correct[grid, _BLOCK, stream](
+            d_raw, d_dq, has_dq, float(2 ** int(bit_depth) - 1), float(exposure_ms), d_dark,
+            planes["a32"], planes["b32"], planes["pix"], const, float(mask.threshold_percent),
+            float(cal.domain["full_scale_dn"]), ffc is not None, planes["a"], planes["b"],
+            planes["base"], planes["log_ratio"], planes["has_sweep"], 0.0,
+            float(2 ** int(bit_depth) - 1),
+            float(ffc.flat_alpha_percent) if ffc else 0.0,
+            float(ffc.alpha_limit_percent) if ffc else 0.0, 1.0, _TOL_DN, _MAX_ITER,
+            bufs["frame"], bufs["alpha"], bufs["fdq"])
+        if self.rec is None:
+            self.k.pack2d[grid, _BLOCK, stream](bufs["frame"], bufs["fdq"], mode, fold,
+                                                bufs["out"], bufs["out_dq"])
+            return
+        bufs["missing"].copy_to_device(np.zeros(planes["n_bands"] + 1, np.int64),
+                                       stream=stream)
+        medians = self._medians(planes, bufs, stream)
+        self._bilinear(planes, bufs, mode, fold, with_alpha, medians, stream)
+
+    def _medians(self, planes, bufs, stream):
+        """The band medians of the corrected frame on the device (:func:`hsiffc.gpu.kernels.
+        median_hist` ...), or None for more bands than the kernels take (then a cube with
+        values to fill goes through :meth:`_fill`)."""
+        k, B = self.k, planes["n_bands"]
+        if B > k.MAX_BANDS:
+            return None
+        H, W = bufs["frame"].shape
+        ph, pw = planes["period"]
+        grid = ((W + _BLOCK[0] - 1) // _BLOCK[0], (H + _BLOCK[1] - 1) // _BLOCK[1])
+        bits = bufs["frame"].view(np.uint32)
+        for n, shift in enumerate(k.DIGIT_SHIFTS):
+            mask = (0xFFFFFFFF << (shift + 4)) & 0xFFFFFFFF
+            k.median_hist[grid, _BLOCK, stream](bits, bufs["fdq"], planes["phase_band"], ph,
+                                                pw, bufs["prefix"], mask, shift, n == 0,
+                                                bufs["hist"])
+            k.median_select[B, 2, stream](bufs["hist"], bufs["prefix"], bufs["rank"],
+                                          bufs["count"], shift, n == 0)
+        k.median_finish[1, k.MAX_BANDS, stream](bufs["prefix"], bufs["count"],
+                                                bufs["sel_bits"])
+        k.median_mean[1, k.MAX_BANDS, stream](bufs["sel_bits"].view(np.float32),
+                                              bufs["count"], bufs["medians"])
+        return bufs["medians"]
+
+    def _bilinear(self, planes, bufs, mode, fold, with_alpha, medians, stream):
+        H, W = bufs["frame"].shape
+        B = planes["n_bands"]
+        ph, pw = planes["period"]
+        grid = ((W * B + _BLOCK[0] - 1) // _BLOCK[0], (H + _BLOCK[1] - 1) // _BLOCK[1])
+        self.k.bilinear[grid, _BLOCK, stream](
+            bufs["frame"], bufs["fdq"], True, bufs["alpha"], with_alpha, planes["lat_r"],
+            planes["lat_c"], planes["lat_start"], ph, pw, mode, fold,
+            planes["no_medians"] if medians is None else medians, medians is not None,
+            bufs["out"], bufs["out_dq"], bufs["out_alpha"], bufs["missing"])
+
+    def _fill(self, slot):
+        """A cube with values whose wide support has no usable sample: the band medians of
+        the corrected frame (the CPU path's own :func:`~hsiffc.reconstruct.prepare.
+        band_medians`), then the cube again with them (synchronous: such frames are rare)."""
+        dev, host, st = slot["dev"], slot["host"], slot["stream"]
+        planes, mos = slot["planes"], slot["mosaic"]
+        frame = dev["frame"].copy_to_host(stream=st)
+        fdq = dev["fdq"].copy_to_host(stream=st)
+        st.synchronize()
+        bands = np.flatnonzero(host["missing"][1:])
+        meds = np.zeros(planes["n_bands"], np.float32)
+        meds[bands] = band_medians(prepare(frame, mos, fdq), bands).astype(np.float32)
+        self._bilinear(planes, dev, slot["mode"], slot["fold"], slot["alpha"],
+                       self.cuda.to_device(meds, stream=st), st)
+        self._download(slot)
+        st.synchronize()
+
+    def _download(self, slot):
+        dev, host, st = slot["dev"], slot["host"], slot["stream"]
+        dev["out"].copy_to_host(host["out"], stream=st)
+        dev["out_dq"].copy_to_host(host["out_dq"], stream=st)
+        if slot["alpha"]:
+            src = dev["out_alpha"] if self.rec is not None else dev["alpha"]
+            src.copy_to_host(host["alpha"], stream=st)
+
+    def _buffers(self, shape, n_bands, data_dtype, dq_dtype, with_alpha):
+        cuda = self.cuda
+        H, W = shape
+        out_shape = (H, W) if self.rec is None else (H, W, n_bands)
+        a_shape = out_shape if (with_alpha and self.rec is not None) else (1, 1, 1)
+        dev = {"frame": cuda.device_array(shape, np.float32),
+               "alpha": cuda.device_array(shape, np.float32),
+               "fdq": cuda.device_array(shape, DQ_DTYPE),
+               "out": cuda.device_array(out_shape, data_dtype),
+               "out_dq": cuda.device_array(out_shape, dq_dtype),
+               "out_alpha": cuda.device_array(a_shape, np.float32),
+               "missing": cuda.device_array(n_bands + 1, np.int64)}
+        if self.rec is not None:
+            nb = max(n_bands, 1)
+            dev.update(hist=cuda.to_device(np.zeros((nb, 2, 16), np.int32)),
+                       prefix=cuda.device_array((nb, 2), np.uint32),
+                       rank=cuda.device_array((nb, 2), np.int64),
+                       count=cuda.device_array(nb, np.int64),
+                       sel_bits=cuda.device_array((nb, 2), np.uint32),
+                       medians=cuda.device_array(nb, np.float32))
+        empty = cuda.pinned_array
+        host = {"out": empty(out_shape, data_dtype), "out_dq": empty(out_shape, dq_dtype),
+                "missing": empty(n_bands + 1, np.int64),
+                "alpha": empty(a_shape if self.rec is not None else
+                               (shape if with_alpha else (1, 1)), np.float32)}
+        return dev, host
+
+    def _meta(self, meta, exposure_ms, how):
+        """The metadata the CPU pipeline gives the frame (history of every step)."""
+        meta = dict(meta)
+        hist = list(meta.get("history", ()))
+        meta["dark_source"] = how
+        hist.append(_entry(*self.dark))
+        meta["alpha_threshold_percent"] = float(self.mask[1].threshold_percent)
+        hist.append(_entry(*self.mask))
+        if self.ffc is not None:
+            meta["ffc"] = "model"
+            hist.append(_entry(*self.ffc))
+        if self.rec is not None:
+            meta.update(self._rec_meta(meta.get("mosaic"), meta.get("bit_depth", 16)))
+            hist.append(_entry(*self.rec))
+        meta["history"] = tuple(hist)
+        return meta
+
+    def _rec_meta(self, mosaic, bit_depth):
+        """What the reconstruct stage adds to a frame's metadata (wavelengths, band positions
+        ...): the stage's own ``transform`` on a frame of two tiles of this mosaic, kept per
+        mosaic (it depends on nothing else at full resolution)."""
+        cache = self.__dict__.setdefault("_rec_meta_cache", {})
+        key = id(mosaic)
+        if key not in cache:
+            ph, pw = (int(v) for v in mosaic.tile_shape)
+            stub = Frame(np.zeros((2 * ph, 2 * pw), np.float32),
+                         np.zeros((2 * ph, 2 * pw), DQ_DTYPE),
+                         {"exposure_ms": 1.0, "bit_depth": int(bit_depth), "mosaic": mosaic})
+            before = set(stub.meta)
+            done = self.rec[1].transform(stub).meta
+            cache[key] = (mosaic, {k: v for k, v in done.items()
+                                   if k not in before or k in ("wavelengths_nm",)})
+        return dict(cache[key][1])
+
+    def transform(self, frame: Frame) -> Frame:
+        """The CPU pipeline's frame for ``frame``, computed on the GPU."""
+        item, done = next(iter(self._run([frame], {"alpha": True, "copy": True})))
+        if done is not None:
+            return done
+        return Frame(item.data, item.dq, item.meta, alpha=item.alpha,
+                     dark_removed=self._last_dark,
+                     corrected_by=self.ffc[1].name if self.ffc is not None else None)
+
+    # -- the live stream ------------------------------------------------------------------------
+    def stream(self, frames, *, exposure_ms=None, bit_depth=None, mosaic=None,
+               data_dtype: str = "float32", dq_dtype: str = "uint32", alpha: bool = False,
+               copy: bool = True):
+        """Correct ``frames`` (an iterable of :class:`~hsiffc.frame.Frame` or of raw 2-D
+        arrays, which then need ``exposure_ms``, ``bit_depth`` and, for a cube, ``mosaic``)
+        and yield one :class:`StreamItem` per frame, in order.
+
+        Two slots, each with its CUDA stream, pinned host buffers and device buffers: frame
+        ``i`` is uploaded, corrected and downloaded on one slot while the caller works on
+        frame ``i - 1`` from the other. ``copy=False`` yields views of the pinned buffers,
+        valid until the item after next is asked for (no host copy: the fastest); the default
+        copies. ``data_dtype`` / ``dq_dtype``: :mod:`hsiffc.gpu.pack`. ``alpha``: also the
+        alpha plane or cube (float32; costs its copy).
+        """
+        opts = {"exposure_ms": exposure_ms, "bit_depth": bit_depth, "mosaic": mosaic,
+                "data_dtype": data_dtype, "dq_dtype": dq_dtype, "alpha": alpha, "copy": copy}
+        for item, _ in self._run(frames, opts):
+            yield item
+
+    def _run(self, frames, opts):
+        """:meth:`stream`'s items, each with the CPU pipeline's frame where that made it."""
+        exposure_ms, bit_depth, mosaic = (opts.get(k) for k in ("exposure_ms", "bit_depth",
+                                                                  "mosaic"))
+        alpha, copy = bool(opts.get("alpha", False)), bool(opts.get("copy", True))
+        data_dtype, dq_dtype = check_dtypes(opts.get("data_dtype", "float32"),
+                                            opts.get("dq_dtype", "uint32"))
+        mode, fold = DATA_DTYPES.index(data_dtype), dq_dtype == "uint8"
+        cuda = self.cuda
+        slots = [None, None]
+        pending = [None, None]
+        i = 0
+        for item in frames:
+            s = i % 2
+            if pending[s] is not None:
+                yield self._finish(*pending[s], copy)
+                pending[s] = None
+            if isinstance(item, Frame):
+                raw, dq_in, exp, bd, mos, meta = (item.data, item.dq, item.exposure_ms,
+                                                  item.bit_depth, item.mosaic, dict(item.meta))
+            else:
+                raw, dq_in = np.asarray(item), None
+                if exposure_ms is None or bit_depth is None:
+                    raise ParameterError("stream of raw arrays: give exposure_ms= and "
+                                         "bit_depth= (and mosaic= for a cube)")
+                exp, bd, mos = float(exposure_ms), int(bit_depth), mosaic
+                meta = {"exposure_ms": exp, "bit_depth": bd, "mosaic": mos, "kind": "light"}
+            if exp == 0 or raw.ndim != 2:  # the CPU pipeline's own case
+                pending[s] = ("cpu", item, raw, dq_in, exp, bd, mos, meta,
+                              (data_dtype, dq_dtype, alpha))
+                i += 1
+                continue
+            key = (raw.shape, raw.dtype.str, dq_in is not None)
+            slot = slots[s]
+            if slot is None or slot["key"] != key:
+                planes, _ = self._const(raw.shape, exp, bd, mos)
+                dev, host = self._buffers(raw.shape, planes.get("n_bands", 0), data_dtype,
+                                          dq_dtype, alpha)
+                slot = {"key": key, "alpha": alpha, "planes": planes, "mosaic": mos,
+                        "mode": mode, "fold": fold, "dev": dev, "host": host, "stream": cuda.stream(),
+                        "pin_raw": cuda.pinned_array(raw.shape, raw.dtype),
+                        "d_raw": cuda.device_array(raw.shape, raw.dtype),
+                        "pin_dq": cuda.pinned_array(raw.shape, DQ_DTYPE) if dq_in is not None
+                        else None,
+                        "d_dq": cuda.device_array(raw.shape if dq_in is not None else (1, 1),
+                                                  DQ_DTYPE)}
+                slots[s] = slot
+            st = slot["stream"]
+            np.copyto(slot["pin_raw"], raw)
+            slot["d_raw"].copy_to_device(slot["pin_raw"], stream=st)
+            if dq_in is not None:
+                np.copyto(slot["pin_dq"], dq_in)
+                slot["d_dq"].copy_to_device(slot["pin_dq"], stream=st)
+            dev, host = slot["dev"], slot["host"]
+            self._launch(slot["d_raw"], slot["d_dq"], dq_in is not None, raw.shape, exp, bd,
+                         mos, dev, mode, fold, alpha, st)
+            self._download(slot)
+            if self.rec is not None:
+                dev["missing"].copy_to_host(host["missing"], stream=st)
+            _, (_, how, plane) = self._const(raw.shape, exp, bd, mos)
+            self._last_dark = plane
+            pending[s] = ("gpu", item, raw, dq_in, exp, bd, mos, self._meta(meta, exp, how),
+                          slot)
+            i += 1
+        for k in range(2):
+            s = (i + k) % 2
+            if pending[s] is not None:
+                yield self._finish(*pending[s], copy)
+
+    def _finish(self, where, item, raw, dq_in, exp, bd, mos, meta, slot, copy):
+        if where == "gpu":
+            slot["stream"].synchronize()
+            host = slot["host"]
+            if self.rec is not None and int(host["missing"][0]):
+                self._fill(slot)
+            pick = (lambda a: a.copy()) if copy else (lambda a: a)
+            alpha = pick(host["alpha"]) if slot["alpha"] else None
+            return StreamItem(pick(host["out"]), pick(host["out_dq"]), alpha, meta), None
+        dtypes = slot
+        frame = item if isinstance(item, Frame) else Frame.from_raw(
+            raw, exposure_ms=exp, bit_depth=bd, mosaic=mos)
+        done = self.pipeline.transform(frame)
+        data, dq = pack_cpu(done.data, done.dq, dtypes[0], dtypes[1])
+        alpha = None if not dtypes[2] or done.alpha is None else np.asarray(done.alpha)
+        return StreamItem(data, dq, alpha, dict(done.meta)), done
+
+
+def cpu_stream(pipeline, frames, *, exposure_ms=None, bit_depth=None, mosaic=None,
+               data_dtype: str = "float32", dq_dtype: str = "uint32", alpha: bool = False,
+               copy: bool = True):
+    """:meth:`GpuPipeline.stream` on the CPU: a plain loop over ``pipeline.transform``, the
+    output in the same types (``copy`` has nothing to share and is ignored)."""
+    data_dtype, dq_dtype = check_dtypes(data_dtype, dq_dtype)
+    for item in frames:
+        if not isinstance(item, Frame):
+            if exposure_ms is None or bit_depth is None:
+                raise ParameterError("stream of raw arrays: give exposure_ms= and bit_depth= "
+                                     "(and mosaic= for a cube)")
+            item = Frame.from_raw(np.asarray(item), exposure_ms=float(exposure_ms),
+                                  bit_depth=int(bit_depth), mosaic=mosaic)
+        done = pipeline.transform(item)
+        data, dq = pack_cpu(done.data, done.dq, data_dtype, dq_dtype)
+        a = None if not alpha or done.alpha is None else np.asarray(done.alpha)
+        yield StreamItem(data, dq, a, dict(done.meta))

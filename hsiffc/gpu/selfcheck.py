@@ -1,0 +1,81 @@
+"""The GPU path against the CPU path on the same frames (used by tests/test_gpu.py in numba's
+CUDA simulator and by benchmarks/gpu.py on a device).
+
+:func:`scene` makes a simulated sensor, its calibration and a test frame; :func:`compare`
+runs one pipeline both ways and returns the largest differences.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..batch.context import default_pipeline
+from ..calibrate import calibrate
+from ..dq import DQ_DTYPE
+from ..frame import Frame
+from ..simulate import PAPER_LIGHT_W_M2, MosaicSensor
+from ..stages import Pipeline, create
+
+__all__ = ["compare", "holed", "pipelines", "scene"]
+
+
+def scene(shape, *, seed: int = 0, n_exposures: int = 12):
+    """(sensor, calibration, raw test frame at 16.125 ms) of a simulated mosaic sensor."""
+    sensor = MosaicSensor(tuple(shape), seed=seed)
+    sweep = sensor.sweep(np.round(np.geomspace(2, 400, n_exposures), 3), "lamp A",
+                         irradiance_w_m2=0.25 * PAPER_LIGHT_W_M2["training"], n_frames=1,
+                         seed=seed + 1)
+    cal = calibrate(sweep)
+    raw = sensor.capture(16.125, "lamp B", irradiance_w_m2=PAPER_LIGHT_W_M2["test"],
+                         seed=seed + 3).frames[0]
+    return sensor, cal, raw
+
+
+def pipelines(cal) -> dict:
+    """The fitted pipelines the GPU runs: the default correction, it with a bilinear cube,
+    and dark + mask alone with a cube."""
+    base = default_pipeline(cal)
+    cube = create("reconstruct", method="bilinear").fit([])
+    front = Pipeline(base.steps[:2])
+    return {"correct": base, "correct+bilinear": Pipeline(base.steps + [("cube", cube)]),
+            "mask+bilinear": Pipeline(front.steps + [("cube", cube)])}
+
+
+def _ulps(a, b, scale):
+    """Largest |a - b| in float32 ulps of ``scale`` (ulp at the magnitude ``scale``)."""
+    diff = np.abs(a.astype(np.float64) - b.astype(np.float64))
+    return float(diff.max() / np.spacing(np.float32(max(scale, 1e-30)))) if diff.size else 0.0
+
+
+def compare(pipe, gpu, frame: Frame) -> dict:
+    """Largest differences between the CPU and GPU frames of ``frame``: ``data_ulps_of_value``
+    (per value), ``data_ulps_of_max`` (against the frame's largest value), the count of DQ
+    values that differ and of alpha values that differ beyond 1 ulp."""
+    cpu = pipe.transform(frame)
+    dev = gpu.transform(frame)
+    c, g = cpu.data, dev.data
+    rel = np.abs(c.astype(np.float64) - g) / np.maximum(np.spacing(np.abs(c)), 1e-45)
+    out = {"shape": list(c.shape),
+           "data_ulps_of_value": float(rel.max()),
+           "data_ulps_of_max": _ulps(c, g, float(np.abs(c).max())),
+           "dq_differ": int(np.count_nonzero(cpu.dq.astype(DQ_DTYPE) != dev.dq)),
+           "history_equal": cpu.history == dev.history,
+           "meta_equal": {k: v for k, v in cpu.meta.items() if k != "history"}
+           == {k: v for k, v in dev.meta.items() if k != "history"}}
+    if cpu.alpha is not None and dev.alpha is not None:
+        ca, ga = np.asarray(cpu.alpha, np.float64), np.asarray(dev.alpha, np.float64)
+        same = (ca == ga) | (np.abs(ca - ga) <= np.spacing(np.abs(ca).astype(np.float32)))
+        out["alpha_differ"] = int(np.count_nonzero(~same))
+    return out
+
+
+def holed(frame: Frame, *, seed: int = 0) -> Frame:
+    """``frame`` with flagged samples the reconstruction must bridge: a block of DEAD pixels
+    two tiles high and wide (values with no usable sample in S1, some in neither S1 nor S2:
+    the band-median fill) and 2 % scattered HOT pixels."""
+    rng = np.random.default_rng(seed)
+    dq = frame.dq.copy()
+    H, W = dq.shape
+    dq[H // 3:H // 3 + 6, W // 3:W // 3 + 10] |= DQ_DTYPE(8)  # DEAD
+    dq[rng.random(dq.shape) < 0.02] |= DQ_DTYPE(16)  # HOT
+    return frame.replace(dq=dq)
