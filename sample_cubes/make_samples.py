@@ -2,7 +2,7 @@
 
     python sample_cubes/make_samples.py [OUTDIR]      # default: this folder
 
-Writes hsiffc TIFF sweeps (see the README, "Data format") and MANIFEST.sha256
+Writes hsiffc TIFF sweeps (format: docs/reference/formats.md) and MANIFEST.sha256
 (check with ``sha256sum -c MANIFEST.sha256`` in the folder):
 
 - ``darks.tif``          dark frames, 4 per exposure, at the candidate and test exposures;

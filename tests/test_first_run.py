@@ -214,3 +214,91 @@ def test_a_test_that_writes_the_working_directory_fails(pytester):
     res.assert_outcomes(passed=2, errors=1)
     res.stdout.fnmatch_lines(["*test_writes_here touched the current directory*created "
                               "stray.txt*tmp_path*"])
+
+
+def test_getting_started_opens_with_the_readme_commands_and_types_no_counts():
+    page = (ROOT / "docs" / "getting-started.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"```bash\n(.*?)\n```", page, re.S)
+    assert [b.strip() for b in blocks[:2]] == [code.strip() for _, code in readme_blocks()]
+    # a count pytest prints is not typed into the page (it drifts: "4 deselected" was 7)
+    assert not re.search(r"\d+ deselected|(?:One|Two|Three|Four|Five|Six|Seven) test",
+                         page), "say what pytest's line counts, not the number"
+
+
+def _subcommands():
+    import argparse
+
+    from hsiffc.cli import build_parser
+
+    def walk(parser, prefix):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, child in action.choices.items():
+                    nested = [a for a in child._actions
+                              if isinstance(a, argparse._SubParsersAction)]
+                    if nested:
+                        yield from walk(child, f"{prefix}{name} ")
+                    else:
+                        yield f"{prefix}{name}", child
+    return list(walk(build_parser(), ""))
+
+
+def test_every_command_help_ends_with_examples_that_parse():
+    import shlex
+
+    from hsiffc.cli import build_parser
+
+    commands = _subcommands()
+    assert len(commands) >= 15
+    for name, parser in commands:
+        text = parser.format_help().rstrip()
+        assert "\nexamples:\n" in text, f"hsiffc {name} --help has no examples"
+        examples = text.split("\nexamples:\n", 1)[1].splitlines()
+        assert 1 <= len(examples) <= 2, name
+        for line in examples:
+            argv = shlex.split(line.strip())
+            assert argv[0] == "hsiffc" and " ".join(argv[1:]).startswith(name), line
+            try:
+                build_parser().parse_args(argv[1:])  # options and values as the parser takes
+            except SystemExit as exc:
+                pytest.fail(f"the example {line.strip()!r} of hsiffc {name} does not parse "
+                            f"(exit {exc.code})")
+
+
+def test_stages_summaries_are_whole_sentences(capsys):
+    assert main(["stages"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    summaries = [line.strip() for line in out if line.startswith(" ")]
+    assert summaries and all(s.endswith((".", "!", "?")) for s in summaries), summaries
+    assert not any("``" in s or ":func:" in s for s in summaries)
+
+
+def test_uniformity_prints_its_table_without_json(sample_cubes, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["uniformity", str(sample_cubes / "test_2200K.tif")]) == 0
+    out = capsys.readouterr().out
+    assert "fixed-pattern non-uniformity" in out and "--json FILE" in out
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+def test_info_describes_hsiffc_corrected_outputs(demo_result, sample_cubes, tmp_path, capsys):
+    from hsiffc.batch import correct_batch
+
+    cal = demo_result.calibration.save(tmp_path / "cal.npz")
+    correct_batch([sample_cubes / "test_2200K.tif"], tmp_path / "out", cal)
+    out_file = tmp_path / "out" / "test_2200K.corrected.tif"
+    assert main(["info", str(out_file), "--json", str(tmp_path / "info.json")]) == 0
+    out = capsys.readouterr().out
+    assert "output of hsiffc correct" in out and "6 frames of 96 x 128 px" in out
+    assert demo_result.calibration.identity in out and "exposures 16.125, 32.25 ms" in out
+    import json
+
+    doc = json.loads((tmp_path / "info.json").read_text())
+    assert doc["n_frames"] == 6 and doc["calibration"]["identity"] == demo_result.calibration.identity
+
+
+def test_make_samples_points_to_pages_that_exist():
+    text = (ROOT / "sample_cubes" / "make_samples.py").read_text(encoding="utf-8")
+    refs = re.findall(r"docs/[\w/.-]+\.md", text)
+    assert refs and all((ROOT / r).is_file() for r in refs), refs
+    assert '"Data format"' not in text  # the README section it named is long gone

@@ -25,6 +25,7 @@ from ..memory import reuse_freed_memory
 from . import cubes, data, emva1288, importer, pipeline, reflectance, reports, uniformity
 from .args import OneLineParser
 from .common import check_declared_outputs, declared, input_files
+from .examples import add_examples
 from .status import command_status
 
 log = logging.getLogger("hsiffc")
@@ -59,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in COMMAND_MODULES:
         module.register(sub)
+    add_examples(sub)  # every command's help ends with examples (hsiffc.cli.examples)
     return parser
 
 

@@ -28,7 +28,8 @@ def register(sub) -> None:
 
 def _add_info(sub):
     p = sub.add_parser("info", help="describe frames of any supported format and where each "
-                                    "metadata field came from")
+                                    "metadata field came from (of hsiffc correct's outputs: "
+                                    "their provenance)")
     p.add_argument("sweep", type=Path, nargs="+", help="files, folders or globs")
     p.add_argument("--json", type=Path, default=None, help="also write the description as JSON")
     add_input_options(p)
@@ -38,7 +39,10 @@ def _add_info(sub):
 
 def _cmd_info(args) -> int:
     from ..io import open_source
+    from ..io.corrected import is_corrected_file
 
+    if all(Path(p).is_file() and is_corrected_file(p) for p in args.sweep):
+        return _info_corrected(args)  # hsiffc correct's own outputs: their provenance
     with open_source(args.sweep, overrides=input_overrides(args), inspect=True) as src:
         print(src.describe())
         steps = _stream_steps(src)
@@ -59,6 +63,41 @@ def _cmd_info(args) -> int:
     if missing:
         print(f"missing: {', '.join(missing)} (the other commands refuse these files until it "
               "is given; see above how)")
+    return 0
+
+
+def _info_corrected(args) -> int:
+    """``hsiffc info`` on outputs of ``hsiffc correct``: what each holds and where it came
+    from (its provenance; the planes are not read)."""
+    from ..io.corrected import read_provenance
+
+    docs = []
+    for path in args.sweep:
+        prov = read_provenance(path)
+        docs.append({"path": str(path), **prov})
+        shape = " x ".join(str(s) for s in prov.get("frame_shape", []))
+        cube = prov.get("cube") or {}
+        what = "cubes" if cube or len(prov.get("frame_shape", [])) == 3 else "frames"
+        exposures = sorted({float(e) for e in prov.get("exposure", [])})
+        flagged = (prov.get("frames") or {}).get("flagged_fraction") or []
+        cal = prov.get("calibration") or {}
+        steps = [s.get("name", "?") for s in (prov.get("pipeline") or {}).get("steps", [])]
+        src = (prov.get("input") or {}).get("path", "?")
+        print(f"{path}: output of hsiffc correct ({prov.get('format')} version "
+              f"{prov.get('format_version')}, {prov.get('status')}), written by hsiffc "
+              f"{prov.get('hsiffc_version', '?')}")
+        print(f"  {prov.get('n_frames')} {what} of {shape} px, planes "
+              f"{', '.join(prov.get('planes', []))}; {prov.get('bit_depth')}-bit input "
+              f"{prov.get('input_dtype', '')} from {src}")
+        print(f"  exposures {', '.join(f'{e:g}' for e in exposures)} "
+              f"{prov.get('exposure_unit', 'ms')}; flagged "
+              + (f"{100 * float(np.mean(flagged)):.2f} % of pixels on average" if flagged
+                 else "fraction not recorded"))
+        print(f"  pipeline {' -> '.join(steps) or '?'}; calibration "
+              f"{cal.get('identity', 'none')}"
+              + (f" ({cal.get('method')}, fitted on {cal.get('fitted_on')})" if cal else ""))
+    if args.json:
+        write_json(args.json, docs if len(docs) > 1 else docs[0])
     return 0
 
 

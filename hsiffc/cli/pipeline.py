@@ -112,7 +112,8 @@ def read_training(args, inputs) -> list:
 
 def _add_correct(sub):
     p = sub.add_parser(
-        "correct", help="correct a batch of TIFF frames or cubes with a calibration",
+        "correct", help="correct a batch of frames (TIFF, PNG, ENVI, FITS) with a calibration "
+                        "or a fitted pipeline",
         description="Correct every input (image files: TIFF, PNG, ENVI .hdr, FITS; folders "
                     "searched recursively, or globs) frame by frame and write one "
                     "<name>.corrected.tif per input under OUTDIR (pages per frame: data "

@@ -38,7 +38,8 @@ def _add_uniformity(sub):
                    help="calibration (.npz): model_ffc corrects (or the pipeline uses it)")
     p.add_argument("--pipeline", type=Path, default=None,
                    help="fitted pipeline (.npz from 'hsiffc fit') to measure instead")
-    p.add_argument("--json", type=Path, required=True, help="output JSON")
+    p.add_argument("--json", type=Path, default=None,
+                   help="also write every step's figures as JSON (the table is printed always)")
     p.add_argument("--plot", type=Path, default=None, help="also plot against signal (PNG)")
     add_overwrite(p)
     p.set_defaults(func=_cmd_uniformity, input_args=("sweep", "calibration", "pipeline"),
@@ -103,7 +104,8 @@ def _cmd_uniformity(args) -> int:
     methods = tuple(corrections)
     ranges = signal_ranges_dn(sweep.bit_depth)  # the same fractions of full scale at any depth
     summary = summarise(steps, methods, ranges=ranges)
-    write_json(args.json, json_safe(to_json(steps, methods, summary)))
+    if args.json is not None:
+        write_json(args.json, json_safe(to_json(steps, methods, summary)))
     if args.plot:
         from ..atomic import atomic_path
 
@@ -115,8 +117,9 @@ def _cmd_uniformity(args) -> int:
         lo, hi = row["signal_range_dn"]
         cells = [_cell(row["methods"].get(m)) for m in ("raw", *methods)]
         print(f"{f'{lo:g}-{hi:g}':<12} {row['n_steps']:>5}  " + "  ".join(cells))
-    print(f"fixed-pattern non-uniformity (EMVA 1288, temporal noise removed), median per range; "
-          f"{len(steps)} steps written to {args.json}")
+    print("fixed-pattern non-uniformity (EMVA 1288, temporal noise removed), median per range; "
+          + (f"{len(steps)} steps written to {args.json}" if args.json is not None else
+             f"{len(steps)} steps (--json FILE writes each step's figures)"))
     if any(v["fpn_percent_median"] < v["fpn_se_percent_median"]
            for row in summary for v in row["methods"].values()):
         print("< x: the fixed pattern left is below what the frames can resolve (x is twice the "

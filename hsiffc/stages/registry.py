@@ -122,6 +122,23 @@ def create(name: str, **params):
     return cls(**params)
 
 
+def first_sentence(doc: str) -> str:
+    """The first sentence of a docstring's first paragraph, on one line (a summary that
+    runs over two source lines is not cut at the line's end).
+
+    Examples
+    --------
+    >>> first_sentence("Turn a frame into a cube, and keep\n    its flags. More here.\n\nNotes")
+    'Turn a frame into a cube, and keep its flags.'
+    """
+    import re
+
+    paragraph = " ".join(doc.strip().split("\n\n")[0].split())
+    paragraph = re.sub(r":\w+:`~?([^`]+)`", r"\1", paragraph).replace("``", "")  # roles
+    m = re.match(r"(.+?[.!?])(\s|$)", paragraph)
+    return m.group(1) if m else paragraph
+
+
 def describe() -> list[dict]:
     """Name, class, source and load status of every registered stage (for ``hsiffc stages``)."""
     rows = []
@@ -131,7 +148,7 @@ def describe() -> list[dict]:
                 warnings.simplefilter("ignore", PluginWarning)
                 cls = get(entry.name)
             status = "ok"
-            doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+            doc = first_sentence(cls.__doc__ or "")
         except KeyError as exc:
             status, doc = f"broken: {exc.__cause__}", ""
         rows.append({"name": entry.name, "target": entry.target, "source": entry.source,
