@@ -70,6 +70,7 @@ def test_plain_camera_tiffs_to_reflectance(tmp_path, capsys):
     capsys.readouterr()
     cube = read_corrected(tmp_path / "cubes" / "scene_0.corrected.tif")
     assert cube.data.shape == (1, 32, 48, 16)
+    assert cube.provenance["cube"]["unit"] == "reflectance factor"
     assert abs(np.median(cube.data[cube.dq == 0]) / 0.3 - 1) < 0.01
     # the same reference checks a grey target: its mean against its value, its uniformity
     assert main(["reflectance", "check", str(scenes), "--pipeline", str(refl), "--expected",
