@@ -180,6 +180,22 @@ class Pipeline:
         """``fit(frames)`` then ``transform(test)``."""
         return self.fit(frames).transform(test)
 
+    # -- devices and live streams (hsiffc.gpu) --------------------------------------------------
+    def to(self, device: str):
+        """This pipeline for ``device``: ``"cpu"`` (itself) or ``"cuda"`` (a
+        :class:`hsiffc.gpu.pipeline.GpuPipeline`; :class:`hsiffc.gpu.GpuUnavailableError`, one
+        line, where numba-cuda or a GPU is missing)."""
+        from ..gpu import to_device
+        return to_device(self, device)
+
+    def stream(self, frames, **options):
+        """Correct an iterable of frames (or raw arrays) one by one, yielding
+        :class:`hsiffc.gpu.pipeline.StreamItem` s; ``options`` as
+        :meth:`hsiffc.gpu.pipeline.GpuPipeline.stream` (output types, alpha). On the CPU a
+        plain loop over :meth:`transform`."""
+        from ..gpu.pipeline import cpu_stream
+        return cpu_stream(self, frames, **options)
+
     # -- persistence ---------------------------------------------------------------------------
     def manifest(self) -> dict:
         """The JSON manifest :meth:`save` writes (format, versions, steps with parameters)."""
