@@ -222,20 +222,25 @@ def test_saturation_search_skips_noise_peaks_below_the_top():
 
 
 # -- leakage ------------------------------------------------------------------------------------
-def leaky_sweep(seed=0, shape=(8, 16), b=0.004, bits=12):
-    """An exposure sweep of a leaky pixel array (the leakage model plus shot and read noise),
-    one light rate, a dark step at every exposure; photons given as EMVA 1288 does."""
+def leaky_sweep(seed=0, shape=(32, 32), b=0.004, bits=12, t_max=80.0):
+    """An exposure sweep of a leaky pixel array (the leakage model; shot noise damped by the
+    leakage as :func:`~hsiffc.emva1288.leakage.predicted_temporal_variance` integrates it, plus
+    1 DN read noise), one light rate, a dark step at every exposure; photons given as EMVA 1288
+    does."""
+    from hsiffc.emva1288.leakage import predicted_temporal_variance
+
     rng = np.random.default_rng(seed)
     K, qe, dark = 0.25, 0.5, 100.0
     k = 40.0 * (1 + 0.02 * rng.standard_normal(shape))  # DN/ms
     a = 40.0 * np.exp(-b * 3300.0) * (1 + 0.05 * rng.standard_normal(shape))
     fs = 2 ** bits - 1
-    ts = np.linspace(2.0, 130.0, 40)
+    ts = np.linspace(2.0, t_max, 40)
     data, kind, t_all, photons, step = [], [], [], [], []
     for i, t in enumerate(ts):
         for is_light in (True, False):
             y = model.response(t, k if is_light else 0.0, a, b, dark)
-            noise = np.sqrt(K * np.maximum(y - dark, 0) + 1.0)
+            kk = np.broadcast_to(k if is_light else 0.0, shape)
+            noise = np.sqrt(predicted_temporal_variance(t, kk, a, b, dark, K, 1e9, 64) + 1.0)
             fr = np.clip(np.round(y + noise * rng.standard_normal((2,) + shape)), 0, fs)
             data.append(fr.astype(np.uint16))
             kind += ["light" if is_light else "dark"] * 2
@@ -251,23 +256,84 @@ def test_leakage_explains_the_linearity_error_of_a_leaky_sensor(tmp_path):
 
     sweep = leaky_sweep()
     res = characterise(sweep)
-    assert res["figures"]["LE_min"]["value"] < -1.0  # leakage bends the mean curve
+    assert res["figures"]["LE_min"]["value"] < -0.1  # leakage bends the mean curve
     leak = leakage_effects(sweep, res, calibrate(sweep, method="joint"))
     lin = leak["linearity"]
-    assert lin["share_explained_model"] > 0.9
-    assert lin["share_explained_by_leakage"] > 0.9  # not the clipping: the control has none
+    assert lin["share_explained_model"] > 0.6
+    assert lin["share_explained_by_leakage"] > 0.6  # not the clipping: the control has none
     al = leak["alpha"]["saturation"]
-    assert al["p50"] > 20.0  # the variance peaks where leakage takes a good part of the light
+    assert al["p50"] > 2.0  # the variance peaks where leakage takes a part of the light
     bud = leak["saturation_budget"]
-    assert bud["leaked_share"] > 0.05 and bud["clipped_dn"] == 0.0
+    assert bud["leaked_share"] > 0.002 and bud["clipped_dn"] == 0.0
     assert bud["share_pixels_leakage_limited"] == 1.0
     d = leak["dynamic_saturation"]
     assert np.nanmedian(d["p50_dn"]) == pytest.approx(3300.0, abs=100)
+    # leakage damps the temporal variance (the leaked charge's own shot noise adds a little
+    # at low signal)
+    cv = leak["curves"]
+    assert np.all(cv["variance_model_dn2"] <= 1.001 * cv["variance_without_leakage_dn2"])
+    tv = leak["temporal_variance"]
+    assert abs(tv["saturation_index_predicted"] - tv["saturation_index_measured"]) <= 2
+    assert tv["saturation_index_without_leakage"] > tv["saturation_index_measured"] + 5
+    assert tv["saturation_index_without_leakage"] == len(cv["u_p"]) - 1  # still rising
+    assert tv["share_damped_by_leakage_at_saturation"] > 0.05
     files = write_report(sweep, res, tmp_path / "rep", leak)
     md = Path(files["markdown"]).read_text()
     assert "Share explained by leakage" in md and "emva1288_leakage.png" in md
     assert "emva1288_histograms.png" not in md  # no spatial stack: no histograms
     assert any("no spatial stack" in n for n in res["notes"])
+
+
+def test_predicted_variance_matches_a_fine_euler_integration():
+    """The piecewise-exact variance of a leaky pixel against a plain Euler integration of
+    dY/dt = k - a e^{bY}, dV/dt = K (k + a e^{bY}) - 2 b a e^{bY} V with 20000 steps."""
+    from hsiffc.emva1288.leakage import predicted_temporal_variance
+
+    k, b, dark, K, t = 40.0, 0.004, 100.0, 0.25, 110.0
+    a = k * np.exp(-b * 3300.0)
+    y, v, n = dark, 0.0, 20000
+    h = t / n
+    for _ in range(n):
+        leak = a * np.exp(b * y)
+        y, v = y + h * (k - leak), v + h * (K * (k + leak) - 2 * b * leak * v)
+    got = predicted_temporal_variance(t, np.array([k]), np.array([a]), np.array([b]),
+                                      np.array([dark]), K, 4095, 64)[0]
+    assert got == pytest.approx(v, rel=2e-3)
+    assert v < 0.8 * K * k * t  # damped well below the shot noise of a leak-free pixel
+    clipped = predicted_temporal_variance(t, np.array([k]), np.array([a]), np.array([b]),
+                                          np.array([dark]), K, 3000, 64)
+    assert clipped[0] == 0.0  # its mean path ends above full scale: clipped
+
+
+def test_a_variance_plateau_stopping_the_saturation_search_is_noted():
+    """Deep in dynamic saturation a leaky pixel keeps a variance: the standard's search from
+    the brightest step down stops on the plateau's noise, not at the peak; hsiffc follows the
+    reference and says so."""
+    res = characterise(leaky_sweep(shape=(8, 16), t_max=130.0))
+    sat = res["fit_ranges"]["saturation"]
+    assert sat["highest_variance_index"] < res["fit_ranges"]["index_u_ysat"] - 5
+    assert any("peaks higher at light step" in n for n in res["notes"])
+
+
+@pytest.mark.slow
+def test_leakage_sets_the_saturation_point_of_the_real_cmos(emva_dir):
+    """On the real CMOS set the leakage model predicts the standard's saturation point (the
+    variance peak, light step 71) within two steps; without leakage it would be where the
+    pixels clip, many steps later. (The default run covers the same code on a simulated
+    sensor.)"""
+    from hsiffc.calibrate import calibrate
+    from hsiffc.io import read_emva1288
+    from hsiffc.reports.emva_leakage import sweep_steps_only
+
+    sweep = read_emva1288(emva_dir)
+    res = characterise(sweep)
+    leak = leakage_effects(sweep, res, calibrate(sweep_steps_only(sweep), method="joint"))
+    tv = leak["temporal_variance"]
+    assert tv["saturation_index_measured"] == 71
+    assert abs(tv["saturation_index_predicted"] - 71) <= 2
+    assert tv["saturation_index_without_leakage"] >= 80
+    assert 0.05 < leak["linearity"]["share_explained_by_leakage"] < 0.5
+    assert leak["saturation_budget"]["share_pixels_clipped_measured"] == 0.0
 
 
 # -- command line -------------------------------------------------------------------------------

@@ -82,6 +82,10 @@ def _cmd_emva1288(args) -> int:
               f"{al['p50']:.3g} % (max {al['max_percent']:.3g} %); at saturation "
               f"{100 * bud['leaked_share']:.2f} % of the generated signal leaked, "
               f"{100 * bud['share_pixels_leakage_limited']:.1f} % of pixels leakage-limited")
+        tv = leak["temporal_variance"]
+        print(f"leakage: saturation point predicted at light step "
+              f"{tv['saturation_index_predicted']} (measured {tv['saturation_index_measured']}; "
+              f"{tv['saturation_index_without_leakage']} without leakage)")
     elif note:
         print(f"leakage: {note}")
     print(f"wrote {args.json}")

@@ -305,6 +305,14 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
     notes = []
     isat = saturation_index(s2_y)
     ysat = y[isat]
+    top = int(np.argmax(s2_y))
+    if s2_y[top] > s2_y[isat]:
+        notes.append(f"the temporal variance peaks higher at light step {top} ({s2_y[top]:.4g} "
+                     f"DN^2) than at the saturation point the standard's search finds from the "
+                     f"brightest step down (step {isat}, {s2_y[isat]:.4g} DN^2): a plateau or "
+                     "noise near the top stopped it early (a pixel that levels off without "
+                     "clipping keeps a variance); the figures use step "
+                     f"{isat}, as the reference implementation does")
     isens = int(np.flatnonzero(y <= SENSITIVITY_FRACTION * ysat).max())
     sl = slice(0, isens + 1)
     R, R_se = _slope0(u_p[sl], y[sl])
@@ -411,7 +419,8 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
     fit_ranges = {
         "index_u_ysat": isat,
         "saturation": {"step": int(ta["step"][isat]), "u_p": u_p_sat,
-                       "signal_dn": float(ysat), "s2_y_dn2": float(s2_y[isat])},
+                       "signal_dn": float(ysat), "s2_y_dn2": float(s2_y[isat]),
+                       "highest_variance_index": top},
         "sensitivity": {"index": [0, isens], "u_p": [float(u_p[0]), float(u_p[isens])],
                         "signal_dn": [float(y[0]), float(y[isens])],
                         "rule": f"light steps up to {SENSITIVITY_FRACTION:.0%} of the "

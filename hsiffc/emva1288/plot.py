@@ -187,7 +187,7 @@ def leakage_figure(res: dict, leak: dict):
     the dynamic saturation level against the light rate."""
     c = leak["curves"]
     lo, hi = leak["linearity"]["range_index"]
-    fig, (ax, ax2) = new_figure((6.4, 6.4), nrows=2)
+    fig, (ax, ax3, ax2) = new_figure((6.4, 9.6), nrows=3)
     r = slice(lo, hi + 1)
     ax.plot(c["u_p"][r], c["deviation_measured_percent"][r], "o", ms=3, label="measured")
     ax.plot(c["u_p"][r], c["deviation_model_percent"][r], "-", color="C3",
@@ -199,6 +199,19 @@ def leakage_figure(res: dict, leak: dict):
     ax.set(xlabel="u_p (photons per pixel)", ylabel="linearity error (%)",
            title=f"Linearity error: {100 * share:.0f} % of its sum of squares explained")
     ax.legend(fontsize=8)
+    sig = np.asarray(c["signal_measured_dn"], np.float64)
+    ax3.plot(sig, c["variance_measured_dn2"], "o", ms=3, label="measured")
+    ax3.plot(sig, c["variance_model_dn2"], "-", color="C3", label="leakage model")
+    ax3.plot(sig, c["variance_without_leakage_dn2"], ":", color="0.4",
+             label="same pixels without leakage")
+    tv = leak["temporal_variance"]
+    for key, col in (("measured", "k"), ("predicted", "C3")):
+        i = tv[f"saturation_index_{key}"]
+        y = c["variance_measured_dn2" if key == "measured" else "variance_model_dn2"][i]
+        ax3.plot(sig[i], y, "s", mfc="none", ms=9, color=col)
+    ax3.set(xlabel="u_y - u_y.dark (DN)", ylabel="s2_y - s2_y.dark (DN^2)",
+            title="Photon transfer: the variance peak (saturation point), squares")
+    ax3.legend(fontsize=8)
     d = leak["dynamic_saturation"]
     rate = np.asarray(d["light_rate_photons_per_ms"], np.float64)
     ok = np.isfinite(np.asarray(d["p50_dn"], np.float64)) & (rate > 0)

@@ -82,6 +82,28 @@ def leakage_markdown(leak: dict) -> list[str]:
                      f"{fmt(a['p90'], 3)} | {fmt(a['max_percent'], 3)} | "
                      f"{pct(a['share_above_5_percent'])} | {pct(a['share_above_12_percent'])} |")
     fsp = bud["u_p_full_scale_without_leakage"]
+    tv = leak.get("temporal_variance")
+    if tv is not None:
+        at = tv["at_saturation_dn2"]
+        lines += [
+            "", "### Temporal variance and the saturation point", "",
+            "The standard's saturation point is the peak of the temporal variance. Predicted "
+            f"from the calibration ({tv['pixels']} pixels, seed {tv['seed']}; leakage damps the "
+            "noise before it bends the mean):", "",
+            "| | saturation step (index) | u_p_sat (p) | variance there (DN^2) |",
+            "|---|---:|---:|---:|",
+            f"| measured (the standard's) | {tv['saturation_index_measured']} | "
+            f"{tv['u_p_sat_measured']:.6g} | {at['measured']:.3f} |",
+            f"| leakage model | {tv['saturation_index_predicted']} | "
+            f"{tv['u_p_sat_predicted']:.6g} | {at['predicted']:.3f} |",
+            f"| same pixels without leakage (peak where they clip) | "
+            f"{tv['saturation_index_without_leakage']} | {tv['u_p_sat_without_leakage']:.6g} | "
+            f"{at['without_leakage']:.3f} |", "",
+            f"At the measured saturation step leakage has damped "
+            f"{pct(tv['share_damped_by_leakage_at_saturation'])} of the temporal variance; the "
+            f"saturation capacity the standard reports is "
+            f"{fmt(tv['u_p_sat_measured'] / tv['u_p_sat_without_leakage'], 3)} of the one the "
+            "same pixels would have without leakage."]
     lines += [
         "", "### Saturation capacity: leakage or well", "",
         f"At the saturation step ({bud['u_p']:.6g} photons, {bud['exposure_ms']:.4g} ms), mean "
