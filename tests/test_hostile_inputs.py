@@ -231,24 +231,28 @@ def test_imec_xml_declaring_a_huge_grid_is_refused_before_allocating(tmp_path):
     assert "HSIFFC_MAX_SPECTRAL_SAMPLES" in done.stdout and "huge.xml" in done.stdout
 
 
-def test_mosaic_tile_larger_than_the_frame_is_refused(sweep, tmp_path, capsys):
-    code = main(["info", str(sweep / "s.tif"), "--mosaic", "4000x4000"])
-    assert code == 2
-    _one_line(capsys, "--mosaic", "4000 x 4000", "larger than the frames")
+def test_mosaic_tile_and_simulated_shape_are_bounded(sweep, tmp_path):
+    """A tile larger than the frame (--mosaic 12000x12000 took 9.4 GB, a sidecar's
+    "100000x100000" ran out of memory) and simulate --shape 50000 50000 (24 GB): refused in
+    one line each, in a child whose memory would not hold them."""
     data = tmp_path / "raw.tif"
     tifffile.imwrite(data, np.zeros((2, 32, 64), np.uint16), photometric="minisblack")
     side = tmp_path / "raw.toml"
     side.write_text('[defaults]\nexposure_ms = 5\nbit_depth = 12\nmosaic = "100000x100000"\n')
-    code = main(["info", str(data), "--sidecar", str(side)])
-    assert code == 2
-    _one_line(capsys, "sidecar raw.toml", "mosaic '100000x100000'", "64 x 32")
-
-
-def test_simulate_shape_is_bounded(tmp_path, capsys):
-    code = main(["simulate", str(tmp_path / "x.tif"), "--exposures-ms", "1", "--shape",
-                 "50000", "50000"])
-    assert code == 2
-    _one_line(capsys, "--shape 50000 50000", "HSIFFC_MAX_FRAME_PIXELS")
+    runs = [["info", str(sweep / "s.tif"), "--mosaic", "12000x12000"],
+            ["info", str(data), "--sidecar", str(side)],
+            ["simulate", str(tmp_path / "x.tif"), "--exposures-ms", "1", "--shape", "50000",
+             "50000"]]
+    code = "".join(f"sys.stderr.write('===\\n'); sys.stderr.flush(); codes.append(main({r!r})); "
+                   for r in runs)
+    done = _in_child(f"codes = []; {code}sys.exit(10 * max(codes) + min(codes))")
+    assert done.returncode == 22, done.stderr
+    parts = [[ln for ln in p.splitlines() if ln.strip()] for p in done.stderr.split("===")[1:]]
+    assert [len(p) for p in parts] == [1, 1, 1], done.stderr
+    for part, names in zip(parts, [("--mosaic", "12000 x 12000", "larger than the frames"),
+                                   ("sidecar raw.toml", "mosaic '100000x100000'", "64 x 32"),
+                                   ("--shape 50000 50000", "HSIFFC_MAX_FRAME_PIXELS")]):
+        assert all(n in part[0] for n in names), part[0]
     assert not (tmp_path / "x.tif").exists()
 
 
