@@ -363,7 +363,7 @@ def _ffc_zoo_table() -> list[str]:
             return "**broken**"
         at = sorted({u.split(":")[0] for u in sensor["goals"].get("unresolved", [])},
                     key=lambda x: float(x.split()[0]))
-        return "met" + (f" (higher within the noise from {', '.join(at)})" if at else "")
+        return "met" + (f" (higher within the noise at {', '.join(at)})" if at else "")
 
     shared = [x for x in s["sensors"] if not x["name"].startswith("simulated")]
     sim = [x for x in s["sensors"] if x["name"].startswith("simulated")]
