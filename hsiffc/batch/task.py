@@ -187,6 +187,9 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
     _remove_leftovers(out)  # of an interrupted earlier run (the folder lock is held)
     writer = sink = cube = None
     with atomic_path(out, overwrite=True, defer=commits) as tmp:
+        # the temporary file exists from the start, as when its shape was known up front (the
+        # writer opens it once the first frame tells whether the output holds cubes)
+        Path(tmp).touch()
         frames = Prefetch(src)
         try:
             for raw, meta in frames:
