@@ -302,3 +302,13 @@ def test_make_samples_points_to_pages_that_exist():
     refs = re.findall(r"docs/[\w/.-]+\.md", text)
     assert refs and all((ROOT / r).is_file() for r in refs), refs
     assert '"Data format"' not in text  # the README section it named is long gone
+
+
+def test_calibrate_reports_its_progress_to_the_status_line(sample_cubes, tmp_path, caplog):
+    import logging
+
+    caplog.set_level(logging.INFO, logger="hsiffc")
+    assert main(["calibrate", str(sample_cubes / "sweep_2900K.tif"), "-o",
+                 str(tmp_path / "cal.npz")]) == 0
+    rows = [r.getMessage() for r in caplog.records if "rows fitted" in r.getMessage()]
+    assert rows and rows[-1] == "calibrating: 96 of 96 rows fitted (100 %)"

@@ -66,6 +66,14 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _rows_done(done: int, total: int) -> None:
+    """The joint calibration's progress, as an INFO record (the status line shows it)."""
+    import logging
+
+    logging.getLogger("hsiffc.calibrate").info("calibrating: %d of %d rows fitted (%.0f %%)",
+                                               done, total, 100.0 * done / max(total, 1))
+
+
 def _info_corrected(args) -> int:
     """``hsiffc info`` on outputs of ``hsiffc correct``: what each holds and where it came
     from (its provenance; the planes are not read)."""
@@ -256,7 +264,8 @@ def _cmd_calibrate(args) -> int:
     print(sweep.summary())
     if args.output.suffix != ".npz":
         raise HsiffcError(f"{args.output}: the calibration file must end in .npz; rename it")
-    cal = calibrate(sweep, method=args.method, full_well_dn=args.full_well_dn)
+    extra = {} if args.method == "paper" else {"progress": _rows_done}  # on the status line
+    cal = calibrate(sweep, method=args.method, full_well_dn=args.full_well_dn, **extra)
     if args.steps == "sweep" and full.meta.get("spatial_steps"):
         # the EMVA 1288 flat stack: folded into the responsivity map, not a sample of the fit
         from ..calibrate.flats import add_flat_stacks
