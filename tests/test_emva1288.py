@@ -5,13 +5,13 @@ is known, the saturation search, the leakage account on a leaky sensor, the comm
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
 from hsiffc import model
 from hsiffc.cli import main
 from hsiffc.emva1288 import characterise, leakage_effects, saturation_index, write_report
@@ -20,6 +20,8 @@ from hsiffc.emva1288.agreement import (REFERENCE_FILE, TOLERANCES, compare_with_
 from hsiffc.errors import DataFormatError, ParameterError
 from hsiffc.sweep import Sweep
 
+SHARED_DATA = Path(os.environ.get("HSIFFC_SHARED_DATA",
+                                  Path(__file__).resolve().parents[2] / "shared" / "data"))
 SETS = ("emva1288-cmos8-roi", "emva1288-refsim-linear12-exposure",
         "emva1288-refsim-linear10-light")
 
