@@ -52,9 +52,11 @@ def test_envi_cubes_of_skipped_outputs_are_left_alone_on_a_rerun(world, tmp_path
     out = tmp_path / "out"
     assert _correct(world, [world["raw"]], out) == 0
     cubes = _envi(out)
-    # 4 frames -> _f0000.._f0003, 1 frame -> no index; each: data + DQ, header + data file
-    assert len(cubes) == 4 * 4 + 4
+    # 4 frames -> _f0000.._f0003, 1 frame -> no index; each: data + DQ + alpha (the default
+    # pipeline computes alpha), header + data file
+    assert len(cubes) == 4 * 6 + 6
     assert any(p.name == "multi.corrected_f0003.dq.img" for p in cubes)
+    assert any(p.name == "multi.corrected_f0003.alpha.hdr" for p in cubes)
     assert any(p.name == "single.corrected.hdr" for p in cubes)
     stamps = {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in cubes}
     capsys.readouterr()
@@ -69,7 +71,7 @@ def test_envi_cubes_missing_for_a_skipped_output_are_written(world, tmp_path, ca
                  str(out), "-q"]) == 0
     assert not _envi(out)
     assert _correct(world, [world["raw"]], out) == 0
-    assert len(_envi(out)) == 20
+    assert len(_envi(out)) == 30
 
 
 def test_a_file_hsiffc_did_not_write_at_an_envi_name_is_kept(world, tmp_path, capsys):
@@ -99,7 +101,7 @@ def test_envi_outputs_in_the_input_folder_are_not_read_back(world, tmp_path, cap
     assert sorted(p.name for p in folder.iterdir()) == before
     pairs, ignored = discover_inputs([folder])
     assert sorted(p.name for p, _ in pairs) == ["multi.tif", "single.tif"]
-    assert all(is_batch_output(p) for p in ignored) and len(ignored) == 2 + 10
+    assert all(is_batch_output(p) for p in ignored) and len(ignored) == 2 + 15
 
 
 @pytest.mark.parametrize("name", ["single.corrected.tif", "multi.corrected_f0000.dq.hdr",
