@@ -119,3 +119,16 @@ def test_file_without_a_mosaic_corrected_with_a_mosaic_calibration_is_warned(
     note = [w for w in res["warnings"] if "no mosaic layout" in w]
     assert note and f"calibration is for {demo_result.calibration.mosaic.describe()}, 8 bands" \
         in note[0] and "--mosaic" in note[0]
+
+
+def test_command_line_choices_and_options_get_a_suggestion(capsys):
+    assert main(["correct", "x.tif", "--ffc", "modle", "-o", "o"]) == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'modle'" in err and "did you mean 'model'?" in err
+    assert main(["corect"]) == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'corect'" in err and "did you mean 'correct'?" in err
+    assert main(["correct", "x.tif", "--calibraton", "c.npz", "-o", "o"]) == 2
+    err = capsys.readouterr().err
+    assert "unrecognized arguments: --calibraton" in err
+    assert "did you mean '--calibration'?" in err and err.count("\n") == 1

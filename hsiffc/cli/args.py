@@ -8,9 +8,21 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 
 __all__ = ["OneLineParser", "count", "exposure_ms", "percent", "positive", "real", "seed"]
+
+
+def _option_strings(parser) -> set:
+    """Every long option of ``parser`` and of its sub-commands."""
+    out = set()
+    for action in parser._actions:
+        out |= {s for s in action.option_strings if s.startswith("--")}
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                out |= _option_strings(child)
+    return out
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -31,8 +43,22 @@ class OneLineParser(argparse.ArgumentParser):
         message : str
             argparse's description of the usage error.
         """
-        text = " ".join(message.split())
+        text = " ".join(message.split()) + self._suggestion(message)
         self.exit(2, f"{self.prog}: error: {text} (see {self.prog} --help)\n")
+
+    def _suggestion(self, message: str) -> str:
+        """``"; did you mean 'x'?"`` for a misspelt choice or option (difflib), else ""."""
+        from ..params import did_you_mean
+
+        m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if m:
+            hint = did_you_mean(m.group(1), re.findall(r"'([^']*)'", m.group(2)))
+        else:
+            m = re.search(r"unrecognized arguments: (.*)", message)
+            given = [w.split("=")[0] for w in (m.group(1).split() if m else [])
+                     if w.startswith("--")]
+            hint = did_you_mean(given[0], sorted(_option_strings(self))) if given else ""
+        return f"; {hint.strip()}" if hint else ""
 
     def exit(self, status=0, message=None):
         """Write ``message`` (if any) to stderr and raise SystemExit(``status``).
