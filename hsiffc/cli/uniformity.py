@@ -67,12 +67,13 @@ def _correction(args):
 
 
 def _cmd_uniformity(args) -> int:
+    import numpy as np
+
     from ..jsonsafe import json_safe
     from ..frame import Frame
     from ..io import read_sweep
     from ..reports.sweep_uniformity import (dark_frames_by_exposure, plot_uniformity,
-                                            signal_ranges_dn, summarise, sweep_uniformity,
-                                            to_json)
+                                            summarise, sweep_uniformity, to_json)
 
     corrections, cal = _correction(args)
     sweep = read_sweep(args.sweep, overrides=input_overrides(args))
@@ -89,10 +90,13 @@ def _cmd_uniformity(args) -> int:
         dark_for = (lambda t: stage.dark_for(t, sweep.frame_shape)[0])
         if len(stage.exposures_ms_) == 1 and cal is None:
             only = stage.exposures_ms_[0]
-            warnings.warn(f"{args.sweep}: dark frames at one exposure only ({only:g} ms): "
-                          "their master is subtracted at every exposure, the dark current "
-                          "not scaled; record darks at two exposures or give --calibration "
-                          "for the dark at each exposure", HsiffcWarning, stacklevel=2)
+            if any(not np.isclose(f.exposure_ms, only, rtol=1e-6, atol=0.0)
+                   for f in frames if f.kind == "light"):  # a light sweep at one exposure
+                warnings.warn(f"{args.sweep}: dark frames at one exposure only ({only:g} ms): "
+                              "their master is subtracted at every exposure, the dark "
+                              "current not scaled; record darks at two exposures or give "
+                              "--calibration for the dark at each exposure", HsiffcWarning,
+                              stacklevel=2)  # has its darks there: nothing to scale
             dark_for = (lambda t, master=stage.masters_[0]: master)
     # raw figures: the dark frames of each step's exposure where there are two or more, their
     # temporal variance removed too (EMVA 1288), so no dark's noise or error counts as pattern
@@ -102,8 +106,10 @@ def _cmd_uniformity(args) -> int:
         raise HsiffcError(f"{args.sweep}: no light step with two or more frames; the fixed "
                           "pattern cannot be told from temporal noise with one frame per step")
     methods = tuple(corrections)
-    ranges = signal_ranges_dn(sweep.bit_depth)  # the same fractions of full scale at any depth
+    ranges, fractions = _ranges(sweep, dark_for)
     summary = summarise(steps, methods, ranges=ranges)
+    for row, frac in zip(summary, fractions or ()):
+        row["range_fraction"] = list(frac)
     if args.json is not None:
         write_json(args.json, json_safe(to_json(steps, methods, summary)))
     if args.plot:
@@ -112,11 +118,18 @@ def _cmd_uniformity(args) -> int:
         fig = plot_uniformity(steps, methods, title=str(args.sweep), ranges=ranges)
         with atomic_path(args.plot) as tmp:
             fig.savefig(tmp, dpi=120, format="png")
-    print(f"{'signal (DN)':<12} {'steps':>5}  " + "  ".join(f"{m:>18}" for m in ("raw", *methods)))
-    for row in summary:
+    print(f"{'signal (DN)':<24} {'steps':>5}  "
+          + "  ".join(f"{m:>18}" for m in ("raw", *methods)))
+    for i, row in enumerate(summary):
         lo, hi = row["signal_range_dn"]
+        label = f"{lo:.0f}-{hi:.0f}"
+        if fractions is not None:
+            label += f" ({100 * fractions[i][0]:g}-{100 * fractions[i][1]:g} %)"
         cells = [_cell(row["methods"].get(m)) for m in ("raw", *methods)]
-        print(f"{f'{lo:g}-{hi:g}':<12} {row['n_steps']:>5}  " + "  ".join(cells))
+        print(f"{label:<24} {row['n_steps']:>5}  " + "  ".join(cells))
+    if fractions is not None:
+        print(f"ranges in percent of saturation ({ranges[-1][1]:.0f} DN above dark: the "
+              "brightest light step with at most 1 % of its pixels clipped)")
     print("fixed-pattern non-uniformity (EMVA 1288, temporal noise removed), median per range; "
           + (f"{len(steps)} steps written to {args.json}" if args.json is not None else
              f"{len(steps)} steps (--json FILE writes each step's figures)"))
@@ -128,6 +141,26 @@ def _cmd_uniformity(args) -> int:
         print("n/a: no step of the range has a figure: every pixel flagged (e.g. dynamically "
               "saturated) or none left after the correction's flags")
     return 0
+
+
+def _ranges(sweep, dark_for):
+    """The summary's signal ranges (DN above dark) and their fractions of saturation: 2-12,
+    12-40, 40-80 and 80-100 % of the sweep's saturation where it has darks to measure it
+    (:func:`hsiffc.reports.ffc_study.saturation_level`), else the same fractions of full scale
+    at the sweep's bit depth (fractions None)."""
+    from ..reports.ffc_study import RANGES_FRACTION, saturation_level
+    from ..reports.sweep_uniformity import signal_ranges_dn
+
+    light = [int(s) for s in sweep.steps() if sweep.kind[sweep.step == s][0] == "light"
+             and (sweep.step == s).sum() >= 2]
+    if dark_for is None or not light:
+        return signal_ranges_dn(sweep.bit_depth), None
+    try:
+        sat = saturation_level(sweep, light, dark_for)["signal_dn"]
+    except HsiffcError:  # every step clipped: full scale it is
+        return signal_ranges_dn(sweep.bit_depth), None
+    return (tuple((lo * sat, hi * sat * (1 + 1e-9)) for lo, hi in RANGES_FRACTION),
+            RANGES_FRACTION)
 
 
 def _cell(figures) -> str:
