@@ -42,9 +42,8 @@ import numpy as np
 
 from . import model
 from .dq import DQ, DQ_DTYPE
-from .kernels.inversion import PENDING
 from .kernels.leakage import BLOCK
-from .kernels.modelffc import model_ffc_finish, model_ffc_kernel
+from .kernels.modelffc import model_ffc_finish, model_ffc_kernel, pending_indices
 from .kernels.operands import flat_operands
 
 #: convergence tolerance (DN) of the leakage inversion inside the correction
@@ -143,8 +142,7 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     if model_ffc_kernel(*ops, has_sweep, full_scale, *limits, _TOL_DN, *flat, left):
         # what the vector steps left (scanned in the blocks that have some): the bracketed
         # inversion, then the same step
-        idx = np.concatenate([np.flatnonzero(flat[1][s:s + BLOCK] & DQ_DTYPE(PENDING)) + s
-                              for s in np.flatnonzero(left) * BLOCK])
+        idx = pending_indices(flat[1], left)
         y, t, a_, b_, d = (v if isinstance(v, float) else v[idx] for v in ops[:5])
         inv = model.invert_response(y, t, a_, b_, d, full_scale=full_scale_dn, tol_dn=_TOL_DN)
         model_ffc_finish(idx, np.atleast_1d(inv.k), np.atleast_1d(inv.flags), *ops,

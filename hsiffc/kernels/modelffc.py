@@ -24,7 +24,7 @@ from .leakage import BLOCK, alpha_model_point
 from .operands import at, part
 from .vmath import exp
 
-__all__ = ["correct_point", "model_ffc_finish", "model_ffc_kernel"]
+__all__ = ["correct_point", "model_ffc_finish", "model_ffc_kernel", "pending_indices"]
 
 _INL = {**JIT_OPTIONS, "cache": False, "inline": "always"}
 _F32_MAX = float(np.finfo(np.float32).max)
@@ -118,14 +118,43 @@ def _model_ffc_loop(y, t, a, b, d, base, log_ratio, dark_current, has_sweep, ful
 model_ffc_kernel = Kernel(_model_ffc_loop, 14)
 
 
-@njit(**{**JIT_OPTIONS, "cache": True})
-def model_ffc_finish(idx, k, flags, y, t, a, b, d, base, log_ratio, dark_current, has_sweep,
-                     flat_alpha, alpha_limit, below_tol, out, dq_out, alpha_out):
+def _pending_loop(dq, block_left, block, idx):
+    """The indices of the pixels marked :data:`PENDING` in ``dq`` into ``idx`` (ascending),
+    scanning only the blocks ``block_left`` says hold some, parallel over those blocks."""
+    n_blocks = block_left.shape[0]
+    start = np.zeros(n_blocks + 1, np.int64)
+    for blk in range(n_blocks):
+        start[blk + 1] = start[blk] + block_left[blk]
+    for blk in prange(n_blocks):
+        if block_left[blk] == 0:
+            continue
+        m = start[blk]
+        for i in range(blk * block, min(dq.shape[0], (blk + 1) * block)):
+            if dq[i] & PENDING:
+                idx[m] = i
+                m += 1
+
+
+pending_kernel = Kernel(_pending_loop, 0)
+
+
+def pending_indices(dq, block_left) -> np.ndarray:
+    """Indices of the :data:`PENDING` pixels of a :data:`model_ffc_kernel` result, in one
+    compiled pass over the blocks that hold some (was a Python loop over those blocks: a
+    serial part that kept the correction from scaling with threads, issue 42)."""
+    idx = np.empty(int(block_left.sum()), np.int64)
+    pending_kernel(dq, block_left, BLOCK, idx)
+    return idx
+
+
+def _finish_loop(idx, k, flags, y, t, a, b, d, base, log_ratio, dark_current, has_sweep,
+                 flat_alpha, alpha_limit, below_tol, out, dq_out, alpha_out):
     """Correct the pixels ``idx`` (those :data:`PENDING` after :data:`model_ffc_kernel`)
     from their rates ``k`` and flags found by the bracketed scalar inversion
-    (:func:`hsiffc.model.invert_response` on those pixels): serial, they are few. Operands
-    as in the kernel (flat arrays of every pixel, or scalars)."""
-    for m in range(idx.shape[0]):
+    (:func:`hsiffc.model.invert_response` on those pixels), in parallel (on a bright frame
+    they are the saturated pixels: not few). Operands as in the kernel (flat arrays of every
+    pixel, or scalars)."""
+    for m in prange(idx.shape[0]):
         j = idx[m]
         yj = at(y, j)
         aj = at(a, j)
@@ -137,3 +166,6 @@ def model_ffc_finish(idx, k, flags, y, t, a, b, d, base, log_ratio, dark_current
         out[j] = o
         alpha_out[j] = al
         dq_out[j] = q
+
+
+model_ffc_finish = Kernel(_finish_loop, 0)

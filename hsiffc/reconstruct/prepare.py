@@ -12,6 +12,7 @@ from ..dq import DQ, DQ_DTYPE, as_dq
 from ..kernels.demosaic import EPS
 from ..kernels.lattice import band_samples, lattice_arrays
 from ..kernels.ppi import ppi_image
+from ..kernels.select import medians_of
 from ..mosaic import Mosaic
 
 __all__ = ["EPS", "Prepared", "band_levels", "band_median", "band_medians", "periodic_index",
@@ -150,6 +151,12 @@ class Prepared:
         -------
         list of 1-D float32 arrays (views into one buffer)
         """
+        out, counts = self.sample_rows(bands)
+        return [out[i, :n] for i, n in enumerate(counts)]
+
+    def sample_rows(self, bands) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`samples_of` as one buffer: ``(samples, counts)``, band ``bands[i]``'s
+        usable samples in ``samples[i, :counts[i]]``."""
         lats = self.lattices()
         bands = np.asarray(bands, np.int64)
         ph, pw = self.period
@@ -160,7 +167,7 @@ class Prepared:
         counts = np.zeros(len(bands), np.int64)
         band_samples(self.raw, np.zeros((1, 1), DQ_DTYPE) if self.dq is None else self.dq,
                      self.dq is not None, *lattice_arrays(lats), bands, ph, pw, out, counts)
-        return [out[i, :n] for i, n in enumerate(counts)]
+        return out, counts
 
 
 def prepare(raw, mosaic, dq) -> Prepared:
@@ -247,7 +254,8 @@ def band_medians(p: Prepared, bands) -> np.ndarray:
     """The median of the usable samples of each band in ``bands`` (0 for a band with none),
     cached in ``p.medians`` (PPID's band levels and the no-source fill share them). The
     samples of the bands not cached yet are gathered in one compiled pass
-    (:meth:`Prepared.samples_of`), then their medians taken one after another.
+    (:meth:`Prepared.sample_rows`), then their medians taken in parallel, one band per
+    thread (:func:`hsiffc.kernels.select.medians_of`, the value of :func:`_median_in_place`).
 
     Parameters
     ----------
@@ -262,8 +270,8 @@ def band_medians(p: Prepared, bands) -> np.ndarray:
     """
     bands = [int(b) for b in bands]
     todo = [b for b in dict.fromkeys(bands) if b not in p.medians]
-    if todo:  # one after another: numpy's partition holds the GIL (2 threads were slower)
-        p.medians.update((b, _median_in_place(v)) for b, v in zip(todo, p.samples_of(todo)))
+    if todo:  # every band in its own thread (numba's partition: no GIL held)
+        p.medians.update(zip(todo, medians_of(*p.sample_rows(todo)).tolist()))
     return np.array([p.medians[b] for b in bands], np.float64)
 
 

@@ -7,6 +7,7 @@ import numpy as np
 from ..calibrate.flats import combined_dark
 from ..dq import DQ_DTYPE
 from ..errors import ParameterError
+from ..kernels.bits import or_into
 from ..model_ffc import log_gain_ratio, model_ffc_apply
 from ..model_flat import FlatStack, model_flat_fit
 from ..params import Param
@@ -140,8 +141,8 @@ class ModelFFC(Stage):
             gain_sweep=self.gain_sweep_, flat_alpha_percent=float(self.flat_alpha_percent),
             full_scale_dn=2 ** frame.bit_depth - 1,
             alpha_limit_percent=float(self.alpha_limit_percent), log_ratio=self._log_ratio())
-        dq |= frame.dq  # dq is this call's own array: merged in place, no temporaries
-        dq |= self.dq_.astype(DQ_DTYPE, copy=False)
+        # dq is this call's own array: merged in place, in parallel (hsiffc.kernels.bits)
+        or_into(dq, frame.dq, self.dq_.astype(DQ_DTYPE, copy=False))
         return frame.replace(data=out, dq=dq,
                              dark_removed=np.asarray(dark, np.float32), corrected_by=self.name,
                              meta={"ffc": "model"})
