@@ -108,7 +108,7 @@ def require_regular_input(path, *, what: str = "input") -> os.stat_result:
         raise DataFormatError(f"cannot read this {what} ({exc.strerror}); check the path and "
                               "its permissions", path=path) from None
     if not stat.S_ISREG(st.st_mode):
-        raise DataFormatError(f"is {file_kind(st)}, not a regular file; hsiffc reads an {what} "
+        raise DataFormatError(f"is {file_kind(st)}, not a regular file; hsiffc reads the {what} "
                               "only from a regular file (it never opens pipes, devices or "
                               "sockets): give a file", path=path)
     return st

@@ -437,16 +437,34 @@ def test_envi_bit_depth_is_checked(tmp_path, bits, ok):
 
 
 # -- 8. FIFOs, devices and sockets where a file is expected -------------------------------------
-def test_fifo_as_descriptor_or_in_a_searched_folder_never_blocks(tmp_path):
-    os.mkfifo(tmp_path / "EMVA1288_Data.txt")
-    os.mkfifo(tmp_path / "notes.txt")
-    code = ("from hsiffc.cli import main; import sys; "
-            f"sys.exit(main(['info', {str(tmp_path / 'notes.txt')!r}]) + "
-            f"10 * main(['info', {str(tmp_path)!r}]))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=60)  # blocked forever before
+def test_fifo_where_a_file_is_expected_never_blocks(sweep, tmp_path):
+    """A named pipe as an EMVA descriptor, inside a folder searched for one, as a sidecar, an
+    IMEC XML mosaic, a pipeline description or a calibration: each refused (or skipped) in one
+    line without being opened (opening one blocked forever before)."""
+    fifos = tmp_path / "fifos"
+    fifos.mkdir()
+    for name in ("EMVA1288_Data.txt", "notes.txt", "side.toml", "imec.xml", "p.toml", "c.npz"):
+        os.mkfifo(fifos / name)
+    s_tif = str(sweep / "s.tif")
+    runs = [["info", str(fifos / "notes.txt")],
+            ["info", str(fifos)],
+            ["info", s_tif, "--sidecar", str(fifos / "side.toml")],
+            ["info", s_tif, "--mosaic", str(fifos / "imec.xml")],
+            ["fit", str(fifos / "p.toml"), s_tif, "-o", str(tmp_path / "p.npz")],
+            ["correct", s_tif, "--calibration", str(fifos / "c.npz"), "-o", str(tmp_path / "o")]]
+    code = "".join(f"sys.stderr.write('===\\n'); sys.stderr.flush(); codes.append(main({r!r})); "
+                   for r in runs)
+    done = subprocess.run([sys.executable, "-c", "import sys; from hsiffc.cli import main; "
+                           f"codes = []; {code}sys.exit(10 * max(codes) + min(codes))"],
+                          capture_output=True, text=True, timeout=120)
     assert done.returncode == 22, done.stderr
-    assert "named pipe (FIFO)" in done.stderr and len(done.stderr.strip().splitlines()) == 2
+    parts = [[ln for ln in p.splitlines() if ln.strip()] for p in done.stderr.split("===")[1:]]
+    assert [len(p) for p in parts] == [1] * len(runs), done.stderr
+    for k, part in enumerate(parts):
+        if k == 1:  # the folder: its FIFOs are skipped, so it holds no descriptor
+            assert "no image file" in part[0] or "no EMVA 1288 descriptor" in part[0], part
+        else:
+            assert "named pipe (FIFO)" in part[0], part
 
 
 @pytest.mark.parametrize("kind", ["fifo", "device", "socket"])

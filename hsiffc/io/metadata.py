@@ -184,7 +184,7 @@ def parse_mosaic(spec, *, base=None, path=None, frame_shape=None,
     if xml.suffix.lower() != ".xml":
         raise DataFormatError(f"mosaic {text!r} is not 4x4, 5x5, WxH (e.g. 5x5) or the path of "
                               "an IMEC sensor calibration .xml", path=path)
-    if not xml.is_file():
+    if not xml.exists():
         raise DataFormatError(f"mosaic file {xml} not found; check the path", path=path)
     from ..spectral.imec import read_imec_xml
 

@@ -139,11 +139,9 @@ class Sidecar:
     def __init__(self, path):
         self.path = Path(path)
         self.rules: list[tuple[str, dict]] = []
-        if not self.path.is_file():
-            raise DataFormatError("sidecar not found; check the path", path=self.path)
         from ..atomic import require_regular_input
 
-        require_regular_input(self.path, what="sidecar")
+        require_regular_input(self.path, what="sidecar")  # missing, or a FIFO: never opened
         try:
             text = self.path.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:

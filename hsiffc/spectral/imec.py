@@ -214,8 +214,11 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
     """
     p = Path(path)
     rd = _Reader(p)
-    if not p.is_file():
+    from ..atomic import require_regular_input
+
+    if not p.exists():
         rd.fail("file not found (expected an IMEC sensor calibration .xml)")
+    require_regular_input(p, what="IMEC sensor calibration")  # a FIFO would block
     try:
         root = ET.parse(p).getroot()
     except ET.ParseError as exc:
