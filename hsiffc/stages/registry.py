@@ -128,7 +128,7 @@ def first_sentence(doc: str) -> str:
 
     Examples
     --------
-    >>> first_sentence("Turn a frame into a cube, and keep\n    its flags. More here.\n\nNotes")
+    >>> first_sentence("Turn a frame into a cube, and keep\\n    its flags. More.\\n\\nNotes")
     'Turn a frame into a cube, and keep its flags.'
     """
     import re
