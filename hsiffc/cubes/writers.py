@@ -83,7 +83,10 @@ def cube_files(path, fmt: str, *, alpha: bool = True) -> list[Path]:
 
 
 def _document(cube) -> dict:
-    return json_safe({"format": "hsiffc-cube", "cube": cube.describe(),
+    from .. import __version__
+
+    return json_safe({"format": "hsiffc-cube", "hsiffc_version": __version__,
+                      "cube": cube.describe(),
                       "dq_bits": table(), "dq_table_version": TABLE_VERSION,
                       "history": list(cube.history), "attrs": cube.attrs})
 
