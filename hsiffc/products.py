@@ -11,7 +11,6 @@ itself against the data it is applied to (e.g. :meth:`hsiffc.calibrate.Calibrati
 from __future__ import annotations
 
 import json
-import os
 import zipfile
 import zlib
 from pathlib import Path
@@ -95,7 +94,7 @@ def read_product(path, *, format: str, format_version: int, remedy: str,
     from .io.limits import default_limits
 
     path = Path(path)
-    if not os.path.lexists(path):
+    if not path.exists():
         raise DataFormatError(f"{format} file not found; {remedy}", path=path)
     require_regular_input(path, what=f"{format} file")
     limits = limits or default_limits()
