@@ -143,6 +143,9 @@ def _add_correct(sub):
     p.add_argument("--linearise", action="store_true",
                    help="with --ffc none: add leakage linearisation (model_ffc already "
                         "inverts the leakage)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="cuda: check for the GPU path (hsiffc[gpu]: numba-cuda and an NVIDIA "
+                        "GPU); a missing part is named in one line (default: cpu)")
     p.add_argument("--workers", type=count, default=1,
                    help="at most this many worker processes on this machine (Dask local "
                         "cluster; default 1: in this process). Fewer are used where the input "
@@ -296,6 +299,12 @@ def _cmd_correct(args) -> int:
         # an input found in a folder or glob
         check_output(args.json, overwrite=args.overwrite,
                      inputs=[path for path, _ in discover_inputs(args.inputs)[0]])
+    if args.device == "cuda":  # hsiffc.gpu: one line naming what is missing
+        from ..gpu import require
+
+        require("--device cuda")
+        raise HsiffcError("--device cuda: the GPU is usable, but the batch runner does not "
+                          "run on it yet; use Pipeline.to('cuda') in Python, or --device cpu")
     if args.cube_correction is not None and args.cube is None:
         raise HsiffcError("--cube-correction applies to the cubes of --cube METHOD; add --cube")
     if args.format == "netcdf":  # checked before any file is corrected

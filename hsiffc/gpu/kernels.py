@@ -32,6 +32,13 @@ from . import cuda_module
 from .pack import clip_half, fold_dq8, round_u16
 
 cuda = cuda_module()
+if cuda is None:  # importable without numba-cuda (documentation, doctest collection): the
+    class _NoCuda:  # kernels stay plain functions; hsiffc.gpu.require refuses to run them
+        @staticmethod
+        def jit(fn=None, **_):
+            return fn if fn is not None else (lambda f: f)
+
+    cuda = _NoCuda()
 
 __all__ = ["bilinear", "correct", "pack2d"]
 

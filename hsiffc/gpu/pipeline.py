@@ -33,7 +33,7 @@ from .pack import DATA_DTYPES, check_dtypes, pack_cpu
 
 __all__ = ["GpuPipeline", "StreamItem"]
 
-_BLOCK = (32, 8)
+_BLOCK = (32, 8)  # threads per block (x along the row); GpuPipeline.block may change it
 _TOL_DN = 1e-9  # hsiffc.model_ffc's tolerance of the inversion
 _MAX_ITER = 60  # hsiffc.model.invert_response's
 
@@ -117,6 +117,10 @@ class GpuPipeline:
     upload, compute and download overlapped; ``to("cpu")`` gives the CPU pipeline back.
     """
 
+    #: threads per block of the frame kernels (x along the row); the tests make it small so
+    #: that numba's simulator, one Python thread per CUDA thread, stays fast
+    block = _BLOCK
+
     def __init__(self, pipeline):
         self.pipeline = pipeline
         self.dark, self.mask, self.ffc, self.rec = plan(pipeline)
@@ -197,10 +201,11 @@ class GpuPipeline:
         cal = planes["cal"]
         mask = self.mask[1]
         H, W = shape
-        grid = ((W + _BLOCK[0] - 1) // _BLOCK[0], (H + _BLOCK[1] - 1) // _BLOCK[1])
+        bx, by = self.block
+        grid = ((W + bx - 1) // bx, (H + by - 1) // by)
         ffc = self.ffc[1] if self.ffc is not None else None
         const = 0 if cal.in_domain(exposure_ms) else int(DQ.OUT_OF_DOMAIN)
-        self.k.correct[grid, _BLOCK, stream](
+        self.k.correct[grid, self.block, stream](
             d_raw, d_dq, has_dq, float(2 ** int(bit_depth) - 1), float(exposure_ms), d_dark,
             planes["a32"], planes["b32"], planes["pix"], const, float(mask.threshold_percent),
             float(cal.domain["full_scale_dn"]), ffc is not None, planes["a"], planes["b"],
@@ -210,7 +215,7 @@ class GpuPipeline:
             float(ffc.alpha_limit_percent) if ffc else 0.0, 1.0, _TOL_DN, _MAX_ITER,
             bufs["frame"], bufs["alpha"], bufs["fdq"])
         if self.rec is None:
-            self.k.pack2d[grid, _BLOCK, stream](bufs["frame"], bufs["fdq"], mode, fold,
+            self.k.pack2d[grid, self.block, stream](bufs["frame"], bufs["fdq"], mode, fold,
                                                 bufs["out"], bufs["out_dq"])
             return
         bufs["missing"].copy_to_device(np.zeros(planes["n_bands"] + 1, np.int64),
@@ -227,11 +232,12 @@ class GpuPipeline:
             return None
         H, W = bufs["frame"].shape
         ph, pw = planes["period"]
-        grid = ((W + _BLOCK[0] - 1) // _BLOCK[0], (H + _BLOCK[1] - 1) // _BLOCK[1])
+        bx, by = self.block
+        grid = ((W + bx - 1) // bx, (H + by - 1) // by)
         bits = bufs["frame"].view(np.uint32)
         for n, shift in enumerate(k.DIGIT_SHIFTS):
             mask = (0xFFFFFFFF << (shift + 4)) & 0xFFFFFFFF
-            k.median_hist[grid, _BLOCK, stream](bits, bufs["fdq"], planes["phase_band"], ph,
+            k.median_hist[grid, self.block, stream](bits, bufs["fdq"], planes["phase_band"], ph,
                                                 pw, bufs["prefix"], mask, shift, n == 0,
                                                 bufs["hist"])
             k.median_select[B, 2, stream](bufs["hist"], bufs["prefix"], bufs["rank"],
@@ -246,8 +252,9 @@ class GpuPipeline:
         H, W = bufs["frame"].shape
         B = planes["n_bands"]
         ph, pw = planes["period"]
-        grid = ((W * B + _BLOCK[0] - 1) // _BLOCK[0], (H + _BLOCK[1] - 1) // _BLOCK[1])
-        self.k.bilinear[grid, _BLOCK, stream](
+        bx, by = self.block
+        grid = ((W * B + bx - 1) // bx, (H + by - 1) // by)
+        self.k.bilinear[grid, self.block, stream](
             bufs["frame"], bufs["fdq"], True, bufs["alpha"], with_alpha, planes["lat_r"],
             planes["lat_c"], planes["lat_start"], ph, pw, mode, fold,
             planes["no_medians"] if medians is None else medians, medians is not None,

@@ -1,0 +1,150 @@
+"""The GPU path (hsiffc.gpu): refused in one line without a GPU, and its kernels equal to the
+CPU path in numba's CUDA simulator (a child process with NUMBA_ENABLE_CUDASIM=1: the same
+kernels, run on the CPU)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hsiffc import gpu
+from hsiffc.cli import main
+from hsiffc.dq import DQ
+from hsiffc.gpu.pack import pack_cpu
+from hsiffc.kernels.select import medians_of
+from hsiffc.reconstruct.prepare import _median_in_place
+
+REPO = Path(__file__).resolve().parent.parent
+
+needs_no_gpu = pytest.mark.skipif(gpu.available(), reason="a GPU is usable here")
+
+
+@needs_no_gpu
+def test_device_cuda_without_a_gpu_is_one_line(tmp_path):
+    with pytest.raises(gpu.GpuUnavailableError) as err:
+        gpu.require("--device cuda")
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith("--device cuda: ")
+    assert "GPU" in msg or "numba" in msg
+
+
+@needs_no_gpu
+def test_cli_device_cuda_exit_2_one_line(tmp_path, capsys):
+    rc = main(["correct", str(tmp_path / "x.tif"), "--calibration", str(tmp_path / "c.npz"),
+               "-o", str(tmp_path / "out"), "--device", "cuda"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "--device cuda" in err
+
+
+def test_pipeline_to_cpu_is_itself_and_bad_device_refused():
+    from hsiffc.errors import ParameterError
+    from hsiffc.stages import Pipeline, create
+
+    pipe = Pipeline([("dark", create("dark")), ("mask", create("alpha_mask"))])
+    assert pipe.to("cpu") is pipe
+    with pytest.raises(ParameterError, match="device='tpu'"):
+        pipe.to("tpu")
+
+
+def test_pack_rules_flag_what_they_clip():
+    data = np.array([[-3.0, 0.4, 70000.0, 65504.0, 1e6, -1e6, 12.5, 13.5]], np.float32)
+    dq = np.array([[0, 0, 0, 0, 0, 0, int(DQ.OUT_OF_DOMAIN), 0]], np.uint32)
+    u16, q16 = pack_cpu(data, dq, "uint16", "uint8")
+    assert u16.dtype == np.uint16 and q16.dtype == np.uint8
+    assert u16.tolist() == [[0, 0, 65535, 65504, 65535, 0, 13, 14]]  # floor(v + 0.5)
+    assert q16[0, 0] == DQ.BELOW_DARK and q16[0, 2] == DQ.SATURATED and q16[0, 1] == 0
+    assert q16[0, 6] == DQ.DO_NOT_USE  # OUT_OF_DOMAIN (bit 11) folded into DO_NOT_USE
+    h, qh = pack_cpu(data, dq, "float16", "uint32")
+    assert h.dtype == np.float16 and np.isfinite(h).all()
+    assert qh[0, 4] == DQ.SATURATED and qh[0, 5] == DQ.SATURATED and qh[0, 3] == 0
+    assert qh[0, 6] == DQ.OUT_OF_DOMAIN  # uint32: nothing folded
+
+
+def test_parallel_band_medians_equal_numpy_partition():
+    rng = np.random.default_rng(4)
+    for n in (0, 1, 2, 7, 10, 1001):
+        rows = [rng.normal(100, 30, n).astype(np.float32), np.round(rng.normal(5, 2, n))]
+        buf = np.zeros((2, max(n, 1)), np.float32)
+        for i, r in enumerate(rows):
+            buf[i, :n] = r
+        want = [_median_in_place(np.asarray(r, np.float32).copy()) for r in rows]
+        assert medians_of(buf, np.array([n, n])).tolist() == want
+
+
+_CHILD = r"""
+import json, sys
+import numpy as np
+from hsiffc.frame import Frame
+from hsiffc.gpu import available, selfcheck
+from hsiffc.gpu.pack import pack_cpu
+from hsiffc.gpu.pipeline import GpuPipeline
+assert available()
+GpuPipeline.block = (8, 4)  # few simulated threads per block: the simulator runs each in Python
+shape = tuple(int(v) for v in sys.argv[2].split("x"))
+sensor, cal, raw = selfcheck.scene(shape, n_exposures=8)
+frame = Frame.from_raw(raw, exposure_ms=16.125, bit_depth=10, mosaic=sensor.mosaic)
+holed = selfcheck.holed(frame)
+pipes = selfcheck.pipelines(cal)
+out = {}
+for name in sys.argv[1].split(","):
+    pipe = pipes[name]
+    g = pipe.to("cuda")
+    out[name + " holed"] = selfcheck.compare(pipe, g, holed)
+    cpu = pipe.transform(holed)
+    item, = g.stream([holed], data_dtype="uint16", dq_dtype="uint8", copy=False)
+    d, q = pack_cpu(cpu.data, cpu.dq, "uint16", "uint8")
+    out[name + " stream uint16/uint8"] = bool(np.array_equal(item.data, d)
+                                              and np.array_equal(item.dq, q))
+    if len(sys.argv) > 3:  # raw arrays in, float16 out, on the GPU and the CPU
+        plain = pipe.transform(frame)
+        d, q = pack_cpu(plain.data, plain.dq, "float16", "uint32")
+        opts = dict(exposure_ms=16.125, bit_depth=10, mosaic=sensor.mosaic, data_dtype="float16")
+        item, = g.stream([raw], **opts)
+        out[name + " raw float16"] = bool(np.array_equal(item.data, d) and np.array_equal(item.dq, q))
+        item, = pipe.stream([raw], **opts)
+        out[name + " cpu stream"] = bool(np.array_equal(item.data, d))
+print("RESULT " + json.dumps(out))
+"""
+
+
+def _simulate(names: str, shape: str, *more: str) -> dict:
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    run = subprocess.run([sys.executable, "-c", _CHILD, names, shape, *more],
+                         capture_output=True, text=True,
+                         env=env, cwd=REPO, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    line = [x for x in run.stdout.splitlines() if x.startswith("RESULT ")][-1]
+    return json.loads(line[len("RESULT "):])
+
+
+def _assert_equal(res: dict) -> None:
+    for key, r in res.items():
+        if isinstance(r, dict):  # the simulator runs the kernels in float arithmetic of the
+            assert r["data_ulps_of_value"] == 0.0, (key, r)  # CPU: equal bit for bit
+            assert r["dq_differ"] == 0 and r.get("alpha_differ", 0) == 0, (key, r)
+            assert r["history_equal"] and r["meta_equal"], (key, r)
+        elif isinstance(r, list):
+            assert all(r), (key, r)
+        else:
+            assert r, key
+
+
+def test_simulated_gpu_cube_equals_cpu():
+    """Dark + alpha mask + bilinear cube on a frame with a block of DEAD pixels (the
+    twice-wide tent and the band medians on the device), also streamed in compact types."""
+    _assert_equal(_simulate("mask+bilinear", "12x16"))
+
+
+@pytest.mark.slow
+def test_simulated_gpu_model_ffc_equals_cpu():
+    """The default correction (model FFC through invert_point) with and without the cube,
+    from frames and from raw arrays; slow: the scalar inversion compiles for the CPU in the
+    child and the simulator runs every thread in Python (minutes). The default run covers the
+    mask and cube kernels above; benchmarks/gpu.py checks the model FFC on a device."""
+    _assert_equal(_simulate("correct,correct+bilinear", "16x24", "raw"))
