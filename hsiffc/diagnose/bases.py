@@ -108,6 +108,49 @@ class LeakageBase(BaseModel):
         """
         return theta[:, 3:4]
 
+    def measure_dc(self, y, t, r, valid, w, theta0):
+        """Dark current per pixel (P,) in DN/ms: the straight-line slope of the dark samples,
+        then refined (Gauss-Newton, the other parameters of ``theta0`` held) so that the dark
+        samples follow the leakage model too: a dark current strong enough to fill the well
+        leaks like the light's charge, and its darks bend.
+
+        Parameters and result as
+        :meth:`hsiffc.diagnose.linearbase.BaseModel.measure_dc`; ``theta0`` (P, 5) also gives
+        the leakage and dark level held during the refinement.
+        """
+        dc = super().measure_dc(y, t, r, valid, w, theta0)
+        if not self.dark_current or theta0[:, 1].max() <= LINEAR_LN_A + 1:
+            return dc
+        from .. import model as leakage_model
+
+        wd = np.where(valid & (np.broadcast_to(r, y.shape) == 0), w, 0.0)
+        a, b = np.exp(theta0[:, 1:2]), np.exp(theta0[:, 2:3])
+        d = theta0[:, 3:4]
+        tt = t[None, :]
+
+        def cost_and_model(rate):
+            with np.errstate(over="ignore", invalid="ignore"):
+                m = leakage_model.response(tt, rate[:, None], a, b, d)
+            c = (wd * np.where(wd > 0, y - m, 0.0) ** 2).sum(axis=1)
+            return np.where(np.isfinite(c), c, np.inf), m
+
+        best, (c_best, m) = dc, cost_and_model(dc)
+        for _ in range(4):
+            h = 1e-4 * np.maximum(best, 1e-2)
+            m_h = cost_and_model(best + h)[1]
+            jac = np.where(wd > 0, (m_h - m) / h[:, None], 0.0)
+            num = (wd * jac * np.where(wd > 0, y - m, 0.0)).sum(axis=1)
+            den = (wd * jac * jac).sum(axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                trial = np.clip(best + np.where(den > 0, num / den, 0.0), 0.0, None)
+            trial = np.where(np.isfinite(trial), trial, best)
+            c_trial, m_trial = cost_and_model(trial)
+            better = c_trial < c_best
+            best = np.where(better, trial, best)
+            c_best = np.where(better, c_trial, c_best)
+            m = np.where(better[:, None], m_trial, m)
+        return best
+
     def _cost(self, theta, y, t, r, valid, w):
         res = np.where(valid, y - self.predict(theta, t, r), 0.0)
         c = (w * res * res).sum(axis=1)

@@ -2,7 +2,8 @@
 
 A seeded generator of small simulated sweeps (:func:`case_spec`, :func:`build_case`), each with
 random sensor parameters (8-16 bit, read noise, PRNU, dark level, linear or leaky pixels, dark
-current when there are dark frames), a random design (exposure sweeps at 1-4 light rates, light
+current when there are dark frames; the full well lies just above the ADC's full scale, so that
+bright samples clip at full scale, which diagnose leaves out), a random design (exposure sweeps at 1-4 light rates, light
 sweeps at one exposure, mixed designs; with or without dark frames) and one of:
 
 - nothing (a clean control);
@@ -109,7 +110,7 @@ def case_spec(seed: int) -> dict:
     fs = 2 ** bits - 1
     full_well = float(np.exp(rng.uniform(np.log(4e3), np.log(4e4))))
     dark = float(fs * rng.uniform(0.01, 0.06) + 2.0)
-    gain = 0.93 * (fs - dark) / full_well
+    gain = 1.05 * (fs - dark) / full_well  # the ADC clips before the full well
     design = str(rng.choice(["exposure", "light", "mixed"]))
     darks = bool(rng.random() < 0.6)
     leaky = bool(rng.random() < 0.5)

@@ -161,7 +161,8 @@ def write_report(result: dict, outdir) -> Path:
     for c in result["candidates"]:
         lines.append(f"| {c['base']} | {c['round']} | {c['name']} | {c['heldout_rms_dn']:.4g} | "
                      f"{c['heldout_mse_gain_dn2']:.3g} | {c['gain_standard_error_dn2']:.2g} | "
-                     f"{c['criterion']:.6g} | {'yes' if c.get('selected_in_round') else ''} |")
+                     f"{c['criterion']:.6g} | {'yes' if c.get('selected_in_round') else ''}"
+                     f"{' (rejected: ' + c['rejected'] + ')' if c.get('rejected') else ''} |")
     lines += ["", "## Structure left in the held-out residual", "",
               "| grouping | bins | chi2 | p | structured RMS (DN) | expected from noise (DN) | "
               "significant |", "|---|---|---|---|---|---|---|"]
@@ -170,11 +171,17 @@ def write_report(result: dict, outdir) -> Path:
         lines.append(f"| {f['grouping']} | {f['bins']} | {f['chi2']:.1f} | {f['p_value']:.2g} | "
                      f"{f['structured_rms_dn']:.3g} | {'' if null is None else f'{null:.3g}'} | "
                      f"{'yes' if f['significant'] else ''} |")
-    verdict = ("Structured residual remains that no candidate explains (see the table and the "
-               "figure): it is reported, not forced onto the nearest candidate."
+    reason = result.get("unexplained_reason", "")
+    verdict = (f"**Unexplained**: {reason}. It is reported, not forced onto the nearest "
+               "candidate (see the table and the figure)."
                if result["unexplained"] else
-               "No structure beyond the noise remains in the held-out residual.")
-    lines += ["", verdict, "", "![residuals](residuals.png)", "",
+               f"Nothing unexplained: {reason}.")
+    lines += ["", verdict, ""]
+    if result.get("ambiguous"):
+        lines += ["## Equally good explanations", ""]
+        lines += [f"- {' / '.join(a['effects'])}: {a['reason']}." for a in result["ambiguous"]]
+        lines += [""]
+    lines += ["![residuals](residuals.png)", "",
               "## The effect library", ""]
     lines += [f"- `{e.name}` ({e.scope}): {e.summary}" for e in EFFECTS.values()]
     path = outdir / "report.md"

@@ -7,18 +7,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scipy import stats
+
 from .effects import EFFECTS
-from .fitting import Data, State, describe_params, fitpredict
+from .fitting import Data, State, context, describe_params, fitpredict
 
 SELECT_SIGMAS = 5.0  # held-out improvement needed, in standard errors of the paired difference
 MIN_GAIN_OF_NOISE = 0.08  # ... and at least this fraction of the noise floor, as an RMS
 MIN_EXPLAINED = 0.5  # ... and at least this fraction of the current systematic error
 TIE_SIGMAS = 2.0  # two models whose held-out errors differ by less are equally good
+TREND_P = 5e-3  # per-step factors that trend with exposure, signal or order (F-test p below)
+MIN_TREND_STEPS = 8  # fewer light steps: the trend test is not made
+N_PERMUTATIONS = 4000  # random orders of the step factors in the trend test
 
 RULE = (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} standard errors of the "
         f"paired difference, by more than ({MIN_GAIN_OF_NOISE:g} x noise floor)^2 and by more than "
         f"{MIN_EXPLAINED:g} of the current systematic error (which must itself exceed "
-        f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2); among those the lowest BIC")
+        f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2); a per-step effect only when its step factors "
+        f"show no trend with exposure, signal, light rate or acquisition order (F-test p >= "
+        f"{TREND_P:g}); among those the lowest BIC")
 
 
 @dataclass
@@ -99,8 +106,93 @@ def paired(a: Fitted, b: Fitted, valid_ho):
     return float(d.mean()), float(d.std() / np.sqrt(max(d.size, 1)))
 
 
+def step_trend(trial: Fitted, name: str, data: Data):
+    """Do the fitted per-step factors of effect ``name`` trend with exposure, signal, light
+    rate or acquisition order? A per-step light error is random from step to step; factors
+    that follow a smooth function of the step are the signature of a smooth misfit of the
+    model, which one free factor per step absorbs.
+
+    Parameters
+    ----------
+    trial : Fitted
+        A model with the per-step effect.
+    name : str
+        The per-step effect.
+    data : Data
+        The samples.
+
+    Returns
+    -------
+    str or None
+        What the factors trend with (and the p-value), or None.
+    """
+    theta = np.asarray(trial.state.effects[name][0], float)
+    _, _, ctx = context(trial.state.base, trial.state.theta, data)
+    x = EFFECTS[name].columns(ctx)[..., 0]
+    den = (np.where(data.valid, data.w, 0.0) * x * x).sum(axis=0)
+    steps = np.flatnonzero(data.light & (den > 0) & (theta != 0))
+    if steps.size < MIN_TREND_STEPS:
+        return None
+    f = theta[steps]
+    se2 = 1.0 / den[steps]
+    sig = np.array([np.median(ctx.signal[data.valid[:, s], s]) if data.valid[:, s].any() else 0
+                    for s in steps]) / data.full_scale
+    regs = {"exposure": np.log(data.t[steps]), "signal": sig, "signal^2": sig ** 2,
+            "light rate": np.log(np.maximum(data.r[steps], 1e-12)),
+            "acquisition order": data.order[steps]}
+    cols = [v for v in regs.values() if np.ptp(v) > 1e-9 * (np.abs(v).max() + 1e-300)]
+    if not cols:
+        return None
+    X = np.column_stack([np.ones(steps.size)] + [(c - c.mean()) / c.std() for c in cols])
+    q = X.shape[1] - 1
+    if steps.size - q - 1 < 4:
+        X, q = X[:, :3], min(q, 2)
+    scatter2 = max(float(np.var(f)) - float(np.mean(se2)), 0.0)
+    wt = 1.0 / (se2 + scatter2 + 1e-300)
+    sw = np.sqrt(wt)
+    full = np.linalg.lstsq(X * sw[:, None], f * sw, rcond=None)
+    rss1 = float(((f - X @ full[0]) ** 2 * wt).sum())
+    mean = float((f * wt).sum() / wt.sum())
+    rss0 = float(((f - mean) ** 2 * wt).sum())
+    dof = steps.size - q - 1
+    if rss1 <= 0 or dof < 1:
+        return None
+    fstat = ((rss0 - rss1) / q) / (rss1 / dof)
+    p_poly = float(stats.f.sf(fstat, q, dof))
+    # a smooth function of any one of them, whatever its shape: the factors sorted by it change
+    # little from one step to the next. Robust ratio of successive differences to the spread
+    # (medians: one odd step does not hide a trend), against random orders of the same
+    # factors (permutation test); Bonferroni over the orderings
+    names = [k for k, v in regs.items() if np.ptp(v) > 1e-9 * (np.abs(v).max() + 1e-300)
+             and k != "signal^2"]
+    n = steps.size
+    fc = (f - np.median(f)) * sw
+    perm = np.argsort(np.random.default_rng(0).random((N_PERMUTATIONS, n)), axis=1)
+
+    def ratio(v):  # v: (..., n)
+        return (np.median(np.diff(v, axis=-1) ** 2, axis=-1)
+                / np.maximum(np.median((v - np.median(v, axis=-1, keepdims=True)) ** 2,
+                                       axis=-1), 1e-300))
+    null = ratio(fc[perm])
+    p_vn, by = 1.0, names[0] if names else "signal"
+    for k in names:
+        r_k = ratio(fc[np.argsort(regs[k], kind="stable")])
+        pk = (1 + np.sum(null <= r_k)) / (1 + N_PERMUTATIONS) * len(names)
+        if pk < p_vn:
+            p_vn, by = float(pk), k
+    p = min(2 * p_poly, 2 * p_vn)
+    if p >= TREND_P:
+        return None
+    if p_poly < p_vn:  # which single regressor follows the factors best (for the report)
+        r2 = [abs(np.corrcoef(regs[k], f)[0, 1]) if np.ptp(f) > 0 else 0.0 for k in names]
+        by = names[int(np.argmax(r2))]
+    return (f"its step factors follow {by} smoothly (p = {p:.2g} against factors independent "
+            "from step to step): a smooth misfit of the model, not a random light error per "
+            "step")
+
+
 def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_light: int,
-           candidates: list, label: str) -> Fitted:
+           candidates: list, label: str, ambiguous: list | None = None) -> Fitted:
     """Add effects while one beats the current model by more than the noise allows.
 
     Parameters
@@ -148,6 +240,11 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                      and current.mse - noise_floor ** 2 > floor2
                      and gain > SELECT_SIGMAS * se and gain > floor2
                      and gain > MIN_EXPLAINED * systematic2)
+            if beats and EFFECTS[name].scope == "step":
+                trend = step_trend(trial, name, data)
+                if trend:
+                    entry["rejected"] = trend
+                    beats = False
             if beats:
                 passed.append((trial, entry))
         if not passed:
@@ -156,6 +253,20 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         # the held-out frame of its own step and would otherwise absorb what is common to a step
         best = min(passed, key=lambda p: p[0].bic)
         best[1]["selected_in_round"] = True
+        if ambiguous is not None:
+            for trial, entry in passed:
+                if trial is best[0] or not equally_good(best[0], trial, data.valid_ho,
+                                                        noise_floor):
+                    continue
+                if not equally_good(trial, best[0], data.valid_ho, noise_floor):
+                    continue
+                ambiguous.append({
+                    "effects": [best[1]["name"], entry["name"]],
+                    "reason": (f"both fit the held-out data equally well (held-out RMS "
+                               f"{np.sqrt(best[0].mse):.4g} and {np.sqrt(trial.mse):.4g} DN, "
+                               f"within {TIE_SIGMAS:g} standard errors); "
+                               f"{best[1]['name']} is kept as the more parsimonious (BIC "
+                               f"{best[0].bic:.6g} against {trial.bic:.6g})")})
         chosen = best[0].names
         current = evaluate(fitpredict(chosen, data, current.state), chosen, data, n_pix, n_light)
     return current
@@ -182,7 +293,7 @@ def equally_good(a: Fitted, b: Fitted, valid_ho, noise_floor) -> bool:
 
 
 def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_floor, n_pix,
-                  n_light, design, candidates) -> tuple[Fitted, dict]:
+                  n_light, design, candidates, ambiguous=None) -> tuple[Fitted, dict]:
     """Is the bending of the response leakage? Compare the leakage model (with its selected
     effects) to a linear response with a readout nonlinearity (signal only) and its own
     selected effects; keep the simpler one where both are equally good on held-out data.
@@ -205,6 +316,8 @@ def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_f
         The sweep's design.
     candidates : list
         Filled with the candidates tried.
+    ambiguous : list, optional
+        Filled with the ties of the linear model's own selection.
 
     Returns
     -------
@@ -236,10 +349,12 @@ def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_f
                        f"{gain / max(se, 1e-300):.0f} standard errors); {why_design}"))
         return leak, out
     linear = greedy(linear_start, names, data, noise_floor, n_pix, n_light, candidates,
-                    label="linear")
+                    label="linear", ambiguous=ambiguous)
     if not equally_good(leak, linear, data.valid_ho, noise_floor):
         linear = alt  # the greedy search stopped short of a model known to be as good
     what = f"a linear response with {', '.join(linear.names) or 'no effect'}"
+    out["models"] = [" + ".join(["leakage base"] + leak.names),
+                     " + ".join(["linear base"] + linear.names)]
     out.update(heldout_rms_leakage_dn=float(np.sqrt(leak.mse)),
                heldout_rms_without_dn=float(np.sqrt(linear.mse)))
     if linear.bic >= leak.bic:
@@ -248,7 +363,9 @@ def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_f
             "the leakage model is kept"))
         return leak, out
     leak_worse = not equally_good(linear, leak, data.valid_ho, noise_floor)
-    verdict = "not needed" if (leak_worse or design.rate_at_equal_signal) else "cannot tell"
+    bends = rn in linear.names  # else there is no bending for leakage to explain
+    verdict = ("not needed" if (leak_worse or design.rate_at_equal_signal or not bends)
+               else "cannot tell")
     out.update(verdict=verdict, reason=(
         f"{what} fits the held-out data as well as the leakage model "
         f"({np.sqrt(linear.mse):.4g} against {np.sqrt(leak.mse):.4g} DN) with fewer parameters "
