@@ -199,8 +199,10 @@ def _cmd_diagnose(args) -> int:
     print(f"  leakage: {result['leakage']['verdict']} ({result['leakage']['reason']})")
     for s_ in result["skipped"]:
         print(f"  skipped {s_['name']}: {s_['reason']}")
-    print("  unexplained structure remains" if result["unexplained"]
-          else "  no structure beyond the noise remains")
+    print(f"  {'unexplained' if result['unexplained'] else 'nothing unexplained'}: "
+          f"{result['unexplained_reason']}")
+    for amb in result["ambiguous"]:
+        print(f"  equally good: {' / '.join(amb['effects'])} ({amb['reason']})")
     print(f"  ({result['runtime_s']:.1f} s)")
     if args.json:
         write_json(result, args.json)
