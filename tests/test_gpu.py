@@ -148,3 +148,21 @@ def test_simulated_gpu_model_ffc_equals_cpu():
     child and the simulator runs every thread in Python (minutes). The default run covers the
     mask and cube kernels above; benchmarks/gpu.py checks the model FFC on a device."""
     _assert_equal(_simulate("correct,correct+bilinear", "16x24", "raw"))
+
+
+def test_results_page_is_what_the_benchmark_measured():
+    """docs/results/gpu.md is rendered from the committed outputs of benchmarks/gpu.py."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_gpu", REPO / "benchmarks" / "gpu.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = REPO / "docs" / "results" / "gpu"
+    run = json.loads((res / "run2.json").read_text())
+    before = json.loads((res / "run1_before.json").read_text())
+    page = mod.render_page(run, before, "run2.json", "run1_before.json")
+    assert (REPO / "docs" / "results" / "gpu.md").read_text() == page, (
+        "docs/results/gpu.md is stale or edited: python3 benchmarks/gpu.py --page "
+        "docs/results/gpu.md --run docs/results/gpu/run2.json --before "
+        "docs/results/gpu/run1_before.json")
+    assert run["environment"]["device"] and "H200" in run["environment"]["nvidia_smi"]
