@@ -166,3 +166,60 @@ def test_results_page_is_what_the_benchmark_measured():
         "docs/results/gpu.md --run docs/results/gpu/run2.json --before "
         "docs/results/gpu/run1_before.json")
     assert run["environment"]["device"] and "H200" in run["environment"]["nvidia_smi"]
+
+
+def test_plan_refuses_steps_the_gpu_does_not_run_in_one_line():
+    from hsiffc.errors import ParameterError
+    from hsiffc.gpu.pipeline import plan
+    from hsiffc.stages import Pipeline, create
+
+    dark, mask = ("dark", create("dark")), ("mask", create("alpha_mask"))
+    cases = {"ppid": [dark, mask, ("cube", create("reconstruct", method="ppid"))],
+             "two_point_ffc": [dark, mask, ("ffc", create("two_point_ffc"))],
+             "step 'mask' is not dark": [mask]}
+    for word, steps in cases.items():
+        with pytest.raises(ParameterError) as err:
+            plan(Pipeline(steps))
+        assert word in str(err.value) and "\n" not in str(err.value)
+        assert "device='cpu'" in str(err.value)
+
+
+_EDGES = r"""
+import json
+import numpy as np
+from hsiffc.frame import Frame
+from hsiffc.gpu import selfcheck
+from hsiffc.gpu.pipeline import GpuPipeline
+GpuPipeline.block = (8, 4)
+sensor, cal, raw = selfcheck.scene((12, 16), n_exposures=8)
+pipe = selfcheck.pipelines(cal)["mask+bilinear"]
+g = pipe.to("cuda")
+same = lambda a, b: bool(np.array_equal(a.data, b.data) and np.array_equal(a.dq, b.dq))
+out = {}
+f0 = Frame.from_raw(raw, exposure_ms=0.0, bit_depth=10, mosaic=sensor.mosaic)
+out["exposure 0 (the CPU's own case)"] = same(g.transform(f0), pipe.transform(f0))
+rf = raw.astype(np.float32)
+rf[3, 5], rf[7, 2] = np.nan, np.inf
+cpu, = pipe.stream([rf], exposure_ms=16.125, bit_depth=10, mosaic=sensor.mosaic)
+out["non-finite raw"] = [same(i, cpu) for i in g.stream([rf, rf], exposure_ms=16.125,
+                                                       bit_depth=10, mosaic=sensor.mosaic)]
+fr = [Frame.from_raw(raw, exposure_ms=e, bit_depth=10, mosaic=sensor.mosaic)
+      for e in (16.125, 8.0, 16.125)]
+views = [(i.data.copy(), i.dq.copy()) for i in g.stream(fr, copy=False)]
+out["two slots, two exposures"] = [bool(np.array_equal(d, pipe.transform(f).data)
+                                        and np.array_equal(q, pipe.transform(f).dq))
+                                   for (d, q), f in zip(views, fr)]
+print("RESULT " + json.dumps(out))
+"""
+
+
+@pytest.mark.slow
+def test_simulated_gpu_stream_edges():
+    """A 0 ms exposure goes through the CPU pipeline inside the stream; non-finite raw values
+    as Frame.from_raw reads them; frames of two exposures alternate between the two slots."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    run = subprocess.run([sys.executable, "-c", _EDGES], capture_output=True, text=True,
+                         env=env, cwd=REPO, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    res = json.loads([x for x in run.stdout.splitlines() if x.startswith("RESULT ")][-1][7:])
+    _assert_equal(res)
