@@ -198,3 +198,17 @@ def test_full_evaluation_half(tmp_path):
     for line in table.splitlines():
         if line.startswith("| ") and "%" in line:
             assert line in published, line
+
+
+def test_report_states_ties_and_the_unexplained_reason(tmp_path):
+    from hsiffc.diagnose.report import write_report
+
+    out = diagnose(simulated_sweep("mixed", seed=3, shape=(16, 16), n_steps=12))
+    out["ambiguous"] = [{"effects": ["readout_nonlinearity", "illumination_error"],
+                         "reason": "both fit the held-out data equally well"}]
+    text = write_report(out, tmp_path).read_text()
+    assert "## Equally good explanations" in text
+    assert "readout_nonlinearity / illumination_error: both fit" in text
+    assert out["unexplained_reason"] in text
+    doc = json.loads((tmp_path / "diagnosis.json").read_text())
+    assert doc["ambiguous"][0]["effects"] == ["readout_nonlinearity", "illumination_error"]
