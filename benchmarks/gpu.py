@@ -250,8 +250,7 @@ def main() -> int:
             for name in ("correct", "correct+bilinear"):
                 g = pipes[name].to("cuda")
                 planes, _ = g._const(shape, 16.125, 10, sensor.mosaic)
-                dev, _ = g._buffers(shape, planes.get("n_bands", 0), np.float32, np.uint32,
-                                    False)
+                dev, _ = g._buffers(shape, planes, np.float32, np.uint32, False)
                 d_raw = cuda.to_device(raw)
                 d_dq = cuda.device_array((1, 1), np.uint32)
                 st = cuda.stream()

@@ -2,7 +2,8 @@
 
 ``Pipeline.to("cuda")`` returns a :class:`~hsiffc.gpu.pipeline.GpuPipeline` for a fitted
 pipeline of the default correction: ``dark``, ``alpha_mask`` (paper alpha, DQ) and optionally
-``model_ffc`` and ``reconstruct`` (bilinear, full resolution, no spectral matrix). Its
+``model_ffc`` and ``reconstruct`` (bilinear, full resolution, optionally with the spectral
+correction matrix, e.g. IMEC's). Its
 ``transform`` gives the same frame as the CPU pipeline (within the float32 tolerance stated in
 :mod:`hsiffc.gpu.kernels`); its ``stream`` overlaps upload, compute and download for live
 frames. Stages it does not run on the device are refused with one line naming the step.

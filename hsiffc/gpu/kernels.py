@@ -338,3 +338,35 @@ def median_mean(values, count, medians):
             medians[b] = values[b, 1]
         else:
             medians[b] = np.float32(values[b, 0] + values[b, 1]) / np.float32(2.0)
+
+
+@cuda.jit
+def correction_matrix(cube, cube_dq, cube_alpha, has_alpha, coef, support, mode, fold, out,
+                      out_dq, out_alpha):
+    """The spectral correction matrix per pixel (:func:`hsiffc.reconstruct.apply_correction`),
+    one thread per virtual value: ``sum_b coef[b, v] cube[b]`` in float32 (``coef`` the
+    matrix transposed, as the CPU's float32 product takes it; the sum's order differs from
+    BLAS's, so the value agrees within float32 rounding of the terms), the OR of the DQ and
+    the max of the alpha of the bands in the row's ``support`` (0 where it has none), stored
+    in the stream's output types."""
+    i, y = cuda.grid(2)
+    H = cube.shape[0]
+    W = cube.shape[1]
+    B = cube.shape[2]
+    V = coef.shape[1]
+    x = i // V
+    v = i - x * V
+    if y >= H or x >= W:
+        return
+    acc = np.float32(0.0)
+    bits = np.uint32(0)
+    amax = _NEG
+    for b in range(B):
+        acc += cube[y, x, b] * coef[b, v]
+        if support[b, v]:
+            bits |= cube_dq[y, x, b]
+            if has_alpha:
+                amax = max(amax, cube_alpha[y, x, b])
+    _store(out, out_dq, y, x, v, np.float64(acc), np.int64(bits), mode, fold)
+    if has_alpha:
+        out_alpha[y, x, v] = amax if amax > _NEG else np.float32(0.0)

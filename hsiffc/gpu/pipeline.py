@@ -1,7 +1,8 @@
 """A fitted pipeline on the GPU: :class:`GpuPipeline` (``Pipeline.to("cuda")``).
 
 Runs on the device: ``dark`` + ``alpha_mask`` (paper alpha) [+ ``model_ffc``]
-[+ ``reconstruct`` with ``method="bilinear"``, ``resolution="full"``, no correction matrix].
+[+ ``reconstruct`` with ``method="bilinear"``, ``resolution="full"``, with or without a
+spectral correction matrix (``correction="imec"`` or ``"derived"``)].
 Other stages are refused at construction with one line naming the step. Calibration planes go
 to the device once; the dark of each exposure once (the dark stage's own
 :meth:`~hsiffc.stages.dark.DarkSubtract.dark_for`, so it is the CPU's plane).
@@ -89,11 +90,11 @@ def plan(pipeline):
     rec = found.get("reconstruct")
     if rec is not None:
         r = rec[1]
-        if r.method != "bilinear" or r.resolution != "full" or r.correction is not None:
+        if r.method != "bilinear" or r.resolution != "full":
             raise ParameterError(f"step {rec[0]!r}: the GPU reconstructs method='bilinear', "
-                                 "resolution='full' without a correction matrix; got "
-                                 f"method={r.method!r}, resolution={r.resolution!r}, "
-                                 f"correction={r.correction!r}: use device='cpu'")
+                                 "resolution='full' (with or without a correction matrix); "
+                                 f"got method={r.method!r}, resolution={r.resolution!r}: use "
+                                 "device='cpu'")
     for _, stage in steps:
         stage.check_is_fitted()
     return found["dark"], found["alpha_mask"], found.get("model_ffc"), rec
@@ -192,6 +193,15 @@ class GpuPipeline:
                      period=tuple(int(v) for v in mosaic.tile_shape), n_bands=len(lat),
                      no_medians=dev(np.zeros(1, np.float32)),
                      phase_band=dev(_phase_band(lat, mosaic.tile_shape)))
+            rec = self.rec[1]
+            if rec.correction is not None:  # the matrix as the CPU's float32 product
+                m = np.asarray(rec.matrix_, np.float64)  # takes it (transposed)
+                if m.shape[1] != len(lat):
+                    raise ValueError(f"the correction matrix has {m.shape[1]} band columns "
+                                     f"but the frame's mosaic has {len(lat)} bands")
+                p.update(coef=dev(np.ascontiguousarray(m.T, np.float32)),
+                         support=dev(np.ascontiguousarray((m != 0).T, np.uint8)),
+                         n_virtual=m.shape[0])
         return p
 
     # -- one frame ----------------------------------------------------------------------------
@@ -221,7 +231,22 @@ class GpuPipeline:
         bufs["missing"].copy_to_device(np.zeros(planes["n_bands"] + 1, np.int64),
                                        stream=stream)
         medians = self._medians(planes, bufs, stream)
-        self._bilinear(planes, bufs, mode, fold, with_alpha, medians, stream)
+        if "coef" not in planes:
+            self._bilinear(planes, bufs, mode, fold, with_alpha, medians, stream)
+            return
+        cube = {**bufs, "out": bufs["cube"], "out_dq": bufs["cube_dq"],
+                "out_alpha": bufs["cube_alpha"]}
+        self._bilinear(planes, cube, 0, False, with_alpha, medians, stream)
+        self._matrix(planes, bufs, mode, fold, with_alpha, stream)
+
+    def _matrix(self, planes, bufs, mode, fold, with_alpha, stream):
+        H, W = bufs["frame"].shape
+        V = planes["n_virtual"]
+        bx, by = self.block
+        grid = ((W * V + bx - 1) // bx, (H + by - 1) // by)
+        self.k.correction_matrix[grid, self.block, stream](
+            bufs["cube"], bufs["cube_dq"], bufs["cube_alpha"], with_alpha, planes["coef"],
+            planes["support"], mode, fold, bufs["out"], bufs["out_dq"], bufs["out_alpha"])
 
     def _medians(self, planes, bufs, stream):
         """The band medians of the corrected frame on the device (:func:`hsiffc.gpu.kernels.
@@ -272,8 +297,14 @@ class GpuPipeline:
         bands = np.flatnonzero(host["missing"][1:])
         meds = np.zeros(planes["n_bands"], np.float32)
         meds[bands] = band_medians(prepare(frame, mos, fdq), bands).astype(np.float32)
-        self._bilinear(planes, dev, slot["mode"], slot["fold"], slot["alpha"],
-                       self.cuda.to_device(meds, stream=st), st)
+        d_meds = self.cuda.to_device(meds, stream=st)
+        if "coef" in planes:
+            cube = {**dev, "out": dev["cube"], "out_dq": dev["cube_dq"],
+                    "out_alpha": dev["cube_alpha"]}
+            self._bilinear(planes, cube, 0, False, slot["alpha"], d_meds, st)
+            self._matrix(planes, dev, slot["mode"], slot["fold"], slot["alpha"], st)
+        else:
+            self._bilinear(planes, dev, slot["mode"], slot["fold"], slot["alpha"], d_meds, st)
         self._download(slot)
         st.synchronize()
 
@@ -285,10 +316,12 @@ class GpuPipeline:
             src = dev["out_alpha"] if self.rec is not None else dev["alpha"]
             src.copy_to_host(host["alpha"], stream=st)
 
-    def _buffers(self, shape, n_bands, data_dtype, dq_dtype, with_alpha):
+    def _buffers(self, shape, planes, data_dtype, dq_dtype, with_alpha):
         cuda = self.cuda
         H, W = shape
-        out_shape = (H, W) if self.rec is None else (H, W, n_bands)
+        n_bands = planes.get("n_bands", 0)
+        n_out = planes.get("n_virtual", n_bands)
+        out_shape = (H, W) if self.rec is None else (H, W, n_out)
         a_shape = out_shape if (with_alpha and self.rec is not None) else (1, 1, 1)
         dev = {"frame": cuda.device_array(shape, np.float32),
                "alpha": cuda.device_array(shape, np.float32),
@@ -297,6 +330,11 @@ class GpuPipeline:
                "out_dq": cuda.device_array(out_shape, dq_dtype),
                "out_alpha": cuda.device_array(a_shape, np.float32),
                "missing": cuda.device_array(n_bands + 1, np.int64)}
+        if "coef" in planes:  # the physical-band cube before the matrix
+            dev.update(cube=cuda.device_array((H, W, n_bands), np.float32),
+                       cube_dq=cuda.device_array((H, W, n_bands), DQ_DTYPE),
+                       cube_alpha=cuda.device_array((H, W, n_bands) if with_alpha
+                                                    else (1, 1, 1), np.float32))
         if self.rec is not None:
             nb = max(n_bands, 1)
             dev.update(hist=cuda.to_device(np.zeros((nb, 2, 16), np.int32)),
@@ -411,8 +449,7 @@ class GpuPipeline:
             slot = slots[s]
             if slot is None or slot["key"] != key:
                 planes, _ = self._const(raw.shape, exp, bd, mos)
-                dev, host = self._buffers(raw.shape, planes.get("n_bands", 0), data_dtype,
-                                          dq_dtype, alpha)
+                dev, host = self._buffers(raw.shape, planes, data_dtype, dq_dtype, alpha)
                 slot = {"key": key, "alpha": alpha, "planes": planes, "mosaic": mos,
                         "mode": mode, "fold": fold, "dev": dev, "host": host, "stream": cuda.stream(),
                         "pin_raw": cuda.pinned_array(raw.shape, raw.dtype),

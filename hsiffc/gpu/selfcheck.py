@@ -16,7 +16,7 @@ from ..frame import Frame
 from ..simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from ..stages import Pipeline, create
 
-__all__ = ["compare", "holed", "pipelines", "scene"]
+__all__ = ["compare", "compare_matrix", "holed", "matrix_pipeline", "pipelines", "scene"]
 
 
 def scene(shape, *, seed: int = 0, n_exposures: int = 12):
@@ -79,3 +79,42 @@ def holed(frame: Frame, *, seed: int = 0) -> Frame:
     dq[H // 3:H // 3 + 6, W // 3:W // 3 + 10] |= DQ_DTYPE(8)  # DEAD
     dq[rng.random(dq.shape) < 0.02] |= DQ_DTYPE(16)  # HOT
     return frame.replace(dq=dq)
+
+
+def matrix_pipeline(pipe, n_virtual: int = 5, *, seed: int = 0):
+    """``pipe`` (dark + mask [+ model FFC], no cube) with a bilinear cube and a random
+    spectral correction matrix (a zero coefficient, and a row of one band), as a fitted
+    ``reconstruct`` stage with ``correction="imec"`` would hold it."""
+    n_bands = pipe.steps[0][1].calibration_product().mosaic.n_bands
+    rng = np.random.default_rng(seed)
+    m = rng.normal(0.0, 0.5, (n_virtual, n_bands))
+    m[:, 0] += 1.0
+    m[min(2, n_virtual - 1), min(3, n_bands - 1)] = 0.0
+    m[-1, :] = 0.0
+    m[-1, n_bands - 2] = 2.0
+    rec = create("reconstruct", method="bilinear", correction="imec", imec_xml="matrix.xml")
+    rec.matrix_ = m
+    rec.virtual_wavelengths_nm_ = [500.0 + 10.0 * i for i in range(n_virtual)]
+    rec.fitted_ = True
+    return Pipeline(list(pipe.steps) + [("cube", rec)])
+
+
+def compare_matrix(pipe, gpu, frame: Frame) -> dict:
+    """:func:`compare` for a pipeline ending in a correction matrix: the value's error in
+    units of float32 epsilon times the sum of the absolute terms (a sum with cancellation is
+    only as exact as its terms), DQ, alpha, history and metadata."""
+    cpu = pipe.transform(frame)
+    dev = gpu.transform(frame)
+    bands = Pipeline(pipe.steps[:-1] + [("cube", create("reconstruct", method="bilinear")
+                                         .fit([]))]).transform(frame).data
+    m = np.abs(np.asarray(pipe.steps[-1][1].matrix_, np.float64))
+    terms = np.einsum("hwb,vb->hwv", np.abs(bands.astype(np.float64)), m)
+    err = np.abs(cpu.data.astype(np.float64) - dev.data)
+    return {"shape": list(cpu.data.shape),
+            "err_in_eps_of_terms": float((err / (terms * np.finfo(np.float32).eps
+                                                  + 1e-30)).max()),
+            "dq_differ": int(np.count_nonzero(cpu.dq != dev.dq)),
+            "alpha_differ": int(np.count_nonzero(np.asarray(cpu.alpha) != dev.alpha)),
+            "history_equal": cpu.history == dev.history,
+            "meta_equal": {k: v for k, v in cpu.meta.items() if k != "history"}
+            == {k: v for k, v in dev.meta.items() if k != "history"}}
