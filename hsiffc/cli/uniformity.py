@@ -145,9 +145,10 @@ def _cmd_uniformity(args) -> int:
 
 def _ranges(sweep, dark_for):
     """The summary's signal ranges (DN above dark) and their fractions of saturation: 2-12,
-    12-40, 40-80 and 80-100 % of the sweep's saturation where it has darks to measure it
-    (:func:`hsiffc.reports.ffc_study.saturation_level`), else the same fractions of full scale
-    at the sweep's bit depth (fractions None)."""
+    12-40, 40-80 and 80-100 % of the sweep's saturation where it has darks to measure it and
+    reaches it (:func:`hsiffc.reports.ffc_study.saturation_level`), else the same fractions of
+    full scale at the sweep's bit depth (fractions None): a sweep that stops below saturation
+    does not say where saturation is."""
     from ..reports.ffc_study import RANGES_FRACTION, saturation_level
     from ..reports.sweep_uniformity import signal_ranges_dn
 
@@ -156,9 +157,12 @@ def _ranges(sweep, dark_for):
     if dark_for is None or not light:
         return signal_ranges_dn(sweep.bit_depth), None
     try:
-        sat = saturation_level(sweep, light, dark_for)["signal_dn"]
+        level = saturation_level(sweep, light, dark_for)
     except HsiffcError:  # every step clipped: full scale it is
         return signal_ranges_dn(sweep.bit_depth), None
+    if not level["reached"]:
+        return signal_ranges_dn(sweep.bit_depth), None
+    sat = level["signal_dn"]
     return (tuple((lo * sat, hi * sat * (1 + 1e-9)) for lo, hi in RANGES_FRACTION),
             RANGES_FRACTION)
 

@@ -102,26 +102,58 @@ def _split(sweep):
     return light[0::2], light[1::2], darks, (flat[0] if flat else None)
 
 
+def _light(sweep, i) -> float:
+    """The light a frame collected, in arbitrary units: photons where the sweep gives them,
+    else its exposure (ms: a sweep at one light level)."""
+    if sweep.photons is not None and np.isfinite(sweep.photons[i]):
+        return float(sweep.photons[i])
+    return float(sweep.exposure_ms[i])
+
+
+def _levels_off(levels, compression: float = 0.1) -> bool:
+    """True when the brightest step's signal lies ``compression`` or more below the line
+    through the origin fitted to the steps in the lower half of the signal."""
+    light, signal = (np.asarray(v, float) for v in zip(*levels))
+    if np.unique(light).size < 3:  # a light sweep without photons: the light is unknown
+        return False
+    low = (signal <= 0.5 * signal.max()) & (signal > 0) & (light > 0)
+    if low.sum() < 2:
+        return False
+    slope = float((light[low] * signal[low]).sum() / (light[low] ** 2).sum())
+    top = int(np.argmax(light))
+    return bool(signal[top] < (1 - compression) * slope * light[top])
+
+
 def saturation_level(sweep, steps, dark_for) -> dict:
     """The sensor's saturation for the summary's ranges.
 
     ``clip_code_dn``: the highest raw value of the sweep (the ADC's full scale, or a full well
     below it where the response stops there); ``signal_dn``: the mean signal above dark of the
-    brightest of ``steps`` with at most 1 % of its pixels at that code."""
+    brightest of ``steps`` with at most 1 % of its pixels at that code; ``reached``: whether
+    some step has more, or the response levels off (a leaky pixel's dynamic saturation: the
+    brightest step 10 % or more below the line through the lower half of the signal). False:
+    the sweep stops below saturation, and ``signal_dn`` is only its brightest step."""
     code = float(np.max(sweep.data[np.isin(sweep.step, steps)]))
     best = None
+    reached = False
+    levels = []  # (light of the step, arbitrary units; signal above dark, DN)
     for s in steps:
         idx = np.flatnonzero(sweep.step == s)
         d = sweep.data[idx]
         if (d >= code).any(axis=0).mean() > MAX_CLIPPED_FRACTION:
+            reached = True
             continue
         level = float(d.mean() - dark_for(float(sweep.exposure_ms[idx[0]])).mean())
         best = level if best is None else max(best, level)
+        levels.append((_light(sweep, idx[0]), level))
+    if not reached and best is not None and len(levels) >= 3:
+        reached = _levels_off(levels)
     if best is None or best <= 0:
         raise DataFormatError("every light step has more than 1 % of its pixels clipped at "
                               f"{code:g} DN: no saturation level below clipping; record light "
                               "steps below saturation", path=sweep.source or None)
-    return {"signal_dn": best, "clip_code_dn": code, "bit_depth": int(sweep.bit_depth),
+    return {"signal_dn": best, "clip_code_dn": code, "reached": reached,
+            "bit_depth": int(sweep.bit_depth),
             "full_scale_dn": int(sweep.full_scale_dn)}
 
 
