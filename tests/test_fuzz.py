@@ -209,7 +209,8 @@ def test_png_header_fields_and_sizes(tmp_path, width, height, depth, colour, int
 
     samples = {0: 1, 2: 3, 4: 2, 6: 4}.get(colour, 1)
     stride = 1 + -(-(width * samples * depth) // 8)
-    rows = [bytes([filter_type]) + bytes(range(stride - 1)) for _ in range(min(rows_kept,
+    rows = [bytes([filter_type]) + bytes(i % 256 for i in range(stride - 1))
+            for _ in range(min(rows_kept,
                                                                                height))]
     ihdr = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, interlace)[:ihdr_cut]
     with tempfile.TemporaryDirectory(dir=tmp_path) as d:

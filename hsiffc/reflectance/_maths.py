@@ -153,8 +153,9 @@ def reflectance_factor(rate, white_rate, panel) -> np.ndarray:
 
     Examples
     --------
-    >>> reflectance_factor(np.array([1.0, 2.0]), np.array([4.0, 4.0]), 0.99).tolist()
-    [0.24750000238418579, 0.4950000047683716]
+    >>> r = reflectance_factor(np.array([1.0, 2.0]), np.array([4.0, 4.0]), 0.99)
+    >>> r.dtype, [round(v, 6) for v in r.tolist()]
+    (dtype('float32'), [0.2475, 0.495])
     """
     out = np.asarray(rate, np.float64) * (np.asarray(panel, np.float64)
                                           / np.asarray(white_rate, np.float64))
