@@ -19,8 +19,8 @@ import numpy as np
 
 from ..calibrate.product import Calibration
 from ..errors import DataFormatError, HsiffcError, ParameterError
-from ..params import did_you_mean
 from ..frame import Frame
+from ..params import did_you_mean
 from ..products import read_product, write_product
 from . import registry
 from .base import Stage
