@@ -1,0 +1,68 @@
+"""The import paths of modules that moved into the layer folders (hsiffc 0.2), kept working.
+
+``import hsiffc.frame`` (and ``from hsiffc.model_ffc import ...``, pickles and
+``unittest.mock.patch`` strings naming the old path) give the module at its new place, the
+same module object, with a :class:`DeprecationWarning` naming the new path. The old paths go in
+hsiffc 0.4.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.abc
+import importlib.util
+import sys
+import warnings
+
+#: old module path -> new module path
+MOVED = {
+    'hsiffc.atomic': 'hsiffc._shared.atomic',
+    'hsiffc.folderlock': 'hsiffc._shared.folderlock',
+    'hsiffc.jsonsafe': 'hsiffc._shared.jsonsafe',
+    'hsiffc.io.limits': 'hsiffc._shared.limits',
+    'hsiffc.io.parsers': 'hsiffc._shared.parsers',
+    'hsiffc.frame': 'hsiffc.data.frame',
+    'hsiffc.dq': 'hsiffc.data.dq',
+    'hsiffc.mosaic': 'hsiffc.data.mosaic',
+    'hsiffc.sweep': 'hsiffc.data.sweep',
+    'hsiffc.params': 'hsiffc.data.params',
+    'hsiffc.products': 'hsiffc.data.products',
+    'hsiffc.bandstats': 'hsiffc.data.bandstats',
+    'hsiffc.dark': 'hsiffc.data.dark',
+    'hsiffc.model': 'hsiffc.leakage.model',
+    'hsiffc.model_derived': 'hsiffc.leakage._derived',
+    'hsiffc.model_numerics': 'hsiffc.leakage._numerics',
+    'hsiffc.validity': 'hsiffc.leakage.validity',
+    'hsiffc.linearise': 'hsiffc.leakage.linearise',
+    'hsiffc.ffc': 'hsiffc.flatfield.two_point',
+    'hsiffc.polyffc': 'hsiffc.flatfield.polynomial',
+    'hsiffc.model_ffc': 'hsiffc.flatfield.model_based',
+    'hsiffc.model_flat': 'hsiffc.flatfield.model_flat',
+    'hsiffc.ffc_floor': 'hsiffc.flatfield.floor',
+    'hsiffc.uniformity': 'hsiffc.flatfield.uniformity',
+    'hsiffc.memory': 'hsiffc.batch.memory',
+}
+
+
+class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Resolves an old module path to the module at its new path."""
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname in MOVED:
+            return importlib.util.spec_from_loader(fullname, self)
+        return None
+
+    def create_module(self, spec):
+        new = MOVED[spec.name]
+        warnings.warn(f"{spec.name} moved to {new}: import it from there (the old path goes "
+                      "in hsiffc 0.4)", DeprecationWarning, stacklevel=2)
+        return importlib.import_module(new)
+
+    def exec_module(self, module):
+        """Nothing to run: the module was imported at its new path."""
+
+
+def install() -> None:
+    """Put the finder first on ``sys.meta_path``, once (it answers only the old paths)."""
+    if not any(isinstance(f, _MovedModules) for f in sys.meta_path):
+        sys.meta_path.insert(0, _MovedModules())

@@ -1,0 +1,11 @@
+"""Flat-field corrections as array functions, and the figures that judge them.
+
+- :mod:`.two_point` - the classic two-point (dark + flat) correction;
+- :mod:`.polynomial` - per-pixel polynomial correction over several flats;
+- :mod:`.model_based` - the leakage-model-based correction and its uncertainty;
+- :mod:`.model_flat` - the model-based correction's training (responsivity per pixel);
+- :mod:`.floor` - the fixed-pattern floor a calibration sweep sets;
+- :mod:`.uniformity` - fixed-pattern non-uniformity figures.
+
+The stages in :mod:`hsiffc.stages` wrap these functions.
+"""
