@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hsiffc.dq import DQ, DQ_DTYPE
+from hsiffc.data.dq import DQ, DQ_DTYPE
 
 
 def f64(*arrays):
@@ -64,7 +64,7 @@ def dy_dlogk(t_ms, k, a, b, dark, y_model):
 
 def invert_response(y, t_ms, a, b, dark, *, full_scale=None, k_max=None, tol_dn=1e-9,
                     max_iter=60) :
-    """k, flags and iterations of the former numpy inversion (see hsiffc.model.invert_response)."""
+    """k, flags and iterations of the former numpy inversion (see hsiffc.leakage.model.invert_response)."""
     y, t_ms, a, b, dark = np.broadcast_arrays(*f64(y, t_ms, a, b, dark))
     if np.any(t_ms <= 0):
         raise ValueError("t_ms must be > 0 to invert a response (at t = 0 no light is measured)")

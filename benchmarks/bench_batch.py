@@ -41,9 +41,9 @@ import tifffile
 from benchutil import figure, median_time, row
 from hsiffc.batch import correct_batch, default_pipeline
 from hsiffc.calibrate.product import Calibration
-from hsiffc.frame import Frame
+from hsiffc.data.frame import Frame
 from hsiffc.io import read_sweep, write_sweep
-from hsiffc.memory import reuse_freed_memory
+from hsiffc.batch.memory import reuse_freed_memory
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline
 
@@ -137,7 +137,7 @@ def main(quick: bool = False) -> dict:
         raise SystemExit(f"bench_batch needs {need / 1e3:.1f} GB in {base_dir}, only "
                          f"{free / 1e3:.1f} GB free; set HSIFFC_BENCH_DIR or use --quick")
     # hsiffc correct sets the allocator so that a frame's arrays reuse freed memory
-    # (hsiffc.memory); set here first, the I/O bound and the engine run in the same state
+    # (hsiffc.batch.memory); set here first, the I/O bound and the engine run in the same state
     results = {"frame_shape": [h, w], "frames_per_cube": cfg["frames"],
                "allocator_reuses_freed_memory": reuse_freed_memory()}
     print(f"Batch correction: cubes of {cfg['frames']} x {w} x {h} uint16 ({cube_mb:.1f} MB in, "

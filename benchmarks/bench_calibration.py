@@ -30,7 +30,7 @@ import numpy as np
 from scipy.optimize import OptimizeWarning, curve_fit
 
 from benchutil import figure, row
-from hsiffc import model
+from hsiffc.leakage import model
 from hsiffc.calibrate import calibrate, collect_samples, photon_transfer
 from hsiffc.calibrate.joint import prepared_samples, run_kernel
 from hsiffc.calibrate.sensor import kernel_samples

@@ -37,9 +37,9 @@ import tifffile
 from bench_batch import _make_inputs, _timed
 from benchutil import figure, median_time, row
 from hsiffc.batch import correct_batch, default_pipeline
-from hsiffc.frame import Frame
+from hsiffc.data.frame import Frame
 from hsiffc.io import read_sweep
-from hsiffc.memory import reuse_freed_memory
+from hsiffc.batch.memory import reuse_freed_memory
 from hsiffc.stages import create
 
 FULL = {"shape": (1088, 2048), "frames": 8, "cubes": 2, "repeat": 3}

@@ -16,7 +16,7 @@ from numba import njit, prange
 
 import baselines
 from benchutil import figure, median_time, row
-from hsiffc import model
+from hsiffc.leakage import model
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 
 SHAPE = (1088, 2048)

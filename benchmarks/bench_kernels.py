@@ -27,8 +27,8 @@ import json, sys, time
 t0 = time.perf_counter()
 import numpy as np
 from hsiffc import model
-from hsiffc.mosaic import Mosaic
-from hsiffc.model_ffc import model_ffc_apply
+from hsiffc.data.mosaic import Mosaic
+from hsiffc.flatfield.model_based import model_ffc_apply
 from hsiffc.reconstruct import demosaic
 t_import = time.perf_counter() - t0
 out = {"import_s": t_import}

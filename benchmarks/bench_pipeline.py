@@ -14,10 +14,10 @@ from numba import njit, prange
 
 from benchutil import figure, interleaved_medians, median_time, row
 from hsiffc.calibrate import calibrate
-from hsiffc.frame import Frame
+from hsiffc.data.frame import Frame
 from hsiffc.kernels import modelffc
 from hsiffc.kernels.demosaic import interpolate_bands
-from hsiffc.memory import reuse_freed_memory
+from hsiffc.batch.memory import reuse_freed_memory
 from hsiffc.reconstruct.demosaic import _alpha_plane, _ppi_window_max
 from hsiffc.reconstruct.prepare import band_levels, prepare, pseudo_panchromatic
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
@@ -28,14 +28,14 @@ SHAPE = (1088, 2048)
 TRAIN = PAPER_LIGHT_W_M2["training"]
 
 # The cube pipelines again in a child process with glibc's default allocator settings (no
-# hsiffc.memory.reuse_freed_memory): every frame's 71 MB cubes are then fresh pages.
+# hsiffc.batch.memory.reuse_freed_memory): every frame's 71 MB cubes are then fresh pages.
 _DEFAULT_ALLOCATOR_CHILD = """
 import json, sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
 from benchutil import median_time
-from hsiffc.frame import Frame
-from hsiffc.mosaic import Mosaic
+from hsiffc.data.frame import Frame
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.stages import Pipeline
 spec = json.loads(sys.argv[2])
 test = Frame.from_raw(np.load(spec["raw"]), exposure_ms=spec["exposure_ms"], bit_depth=10,
@@ -51,7 +51,7 @@ print(json.dumps(out))
 def _default_allocator_times(tmp: Path, pipes: dict, test_raw, exposure_ms, mosaic,
                              repeat: int) -> dict:
     """Median seconds per frame of each pipeline in ``pipes`` (method -> Pipeline) in a child
-    process without the allocator setting (:mod:`hsiffc.memory`)."""
+    process without the allocator setting (:mod:`hsiffc.batch.memory`)."""
     np.save(tmp / "test_raw.npy", test_raw)
     paths = {m: str(p.save(tmp / f"pipe_{m}.npz")) for m, p in pipes.items()}
     spec = {"raw": str(tmp / "test_raw.npy"), "exposure_ms": exposure_ms,
@@ -182,7 +182,7 @@ def main(quick: bool = False) -> dict:
     allocator = reuse_freed_memory()
     print(f"Pipeline benchmark on {shape[1]} x {shape[0]} frames ({npx / 1e6:.2f} Mpx), median "
           f"of {repeat} runs" + (" -- QUICK MODE" if quick else "")
-          + ("; allocator: freed memory reused (hsiffc.memory)" if allocator else ""))
+          + ("; allocator: freed memory reused (hsiffc.batch.memory)" if allocator else ""))
     sensor = MosaicSensor(shape, seed=0)
     # a calibration from a small sweep of the same sensor (its time is not part of this figure)
     sweep = sensor.sweep(np.round(np.geomspace(2, 400, 12), 3), "lamp A",
@@ -354,7 +354,7 @@ def main(quick: bool = False) -> dict:
                ratio=t_plain / results["pipeline_bilinear_s"], target=">= 100 Mpx/s",
                met=results["pipeline_bilinear_mpx_s"] >= 100,
                note="dark, alpha mask, two-point FFC, reconstruction with DQ and alpha cubes"
-               " (allocator: freed memory reused, as in hsiffc correct: hsiffc.memory)"
+               " (allocator: freed memory reused, as in hsiffc correct: hsiffc.batch.memory)"
                + alloc_note["bilinear"] + cube_note),
         figure("full pipeline, PPID cube (8 bands)", results["pipeline_ppid_mpx_s"], "Mpx/s",
                baseline=plain, baseline_name="plain numpy (raw - dark) * gain",

@@ -204,7 +204,7 @@ def main() -> int:
     import numba
 
     from hsiffc import gpu
-    from hsiffc.frame import Frame
+    from hsiffc.data.frame import Frame
     from hsiffc.gpu import selfcheck
 
     @section(out, "environment")

@@ -10,8 +10,12 @@ try:
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
 
-from .dq import DQ
-from .mosaic import Mosaic
-from .sweep import Sweep
+from .data.dq import DQ
+from .data.mosaic import Mosaic
+from .data.sweep import Sweep
+
+from ._moved import install as _install_moved
+
+_install_moved()  # old module paths (hsiffc.data.frame, ...) keep working
 
 __all__ = ["DQ", "Mosaic", "Sweep", "__version__"]

@@ -16,11 +16,11 @@ import warnings
 
 #: old module path -> new module path
 MOVED = {
-    'hsiffc.atomic': 'hsiffc._shared.atomic',
-    'hsiffc.folderlock': 'hsiffc._shared.folderlock',
-    'hsiffc.jsonsafe': 'hsiffc._shared.jsonsafe',
-    'hsiffc.io.limits': 'hsiffc._shared.limits',
-    'hsiffc.io.parsers': 'hsiffc._shared.parsers',
+    'hsiffc.atomic': 'hsiffc.files.atomic',
+    'hsiffc.folderlock': 'hsiffc.files.folderlock',
+    'hsiffc.jsonsafe': 'hsiffc.files.jsonsafe',
+    'hsiffc.io.limits': 'hsiffc.files.limits',
+    'hsiffc.io.parsers': 'hsiffc.files.parsers',
     'hsiffc.frame': 'hsiffc.data.frame',
     'hsiffc.dq': 'hsiffc.data.dq',
     'hsiffc.mosaic': 'hsiffc.data.mosaic',

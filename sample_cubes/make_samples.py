@@ -29,7 +29,7 @@ import numpy as np
 
 from hsiffc.io import write_sweep
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
-from hsiffc.sweep import Sweep
+from hsiffc.data.sweep import Sweep
 
 SHAPE = (96, 128)
 SEED = 2026

@@ -6,16 +6,16 @@ array."""
 import numpy as np
 import pytest
 
-from hsiffc.bandstats import band_reduce
-from hsiffc.dq import DQ
-from hsiffc.ffc import two_point_apply, two_point_fit, uniformity_per_band
-from hsiffc.frame import Frame
+from hsiffc.data.bandstats import band_reduce
+from hsiffc.data.dq import DQ
+from hsiffc.flatfield.two_point import two_point_apply, two_point_fit, uniformity_per_band
+from hsiffc.data.frame import Frame
 from hsiffc.kernels.bands import band_sums
 from hsiffc.kernels.launch import PARALLEL_MIN
-from hsiffc.model import invert_response
-from hsiffc.model_ffc import model_ffc_apply
-from hsiffc.mosaic import Mosaic
-from hsiffc.polyffc import polynomial_fit
+from hsiffc.leakage.model import invert_response
+from hsiffc.flatfield.model_based import model_ffc_apply
+from hsiffc.data.mosaic import Mosaic
+from hsiffc.flatfield.polynomial import polynomial_fit
 from hsiffc.stages import create
 from hsiffc.stages.common import find_exposure
 
@@ -138,7 +138,7 @@ def test_polynomial_fit_refuses_an_order_below_one(order):
 
 
 def test_linearise_names_the_exposure_when_there_is_no_light_to_recover():
-    from hsiffc.linearise import linearise
+    from hsiffc.leakage.linearise import linearise
     for t in (0.0, float("nan")):
         with pytest.raises(ValueError, match="exposure_ms must be a finite time > 0 ms to "
                                              "linearise"):
@@ -165,7 +165,7 @@ def test_planes_that_are_not_dq_bits_or_real_counts_are_refused():
 
 
 def test_polynomial_apply_flags_what_is_not_finite_in_float32():
-    from hsiffc.polyffc import polynomial_apply
+    from hsiffc.flatfield.polynomial import polynomial_apply
     rng = np.random.default_rng(0)
     flat = polynomial_fit(np.stack([rng.uniform(50, 60, (4, 6)) * m for m in (1, 2, 3)]),
                           order=2)

@@ -1,4 +1,4 @@
-"""The one writer (hsiffc.atomic): no silent replacement, never an input, never through a
+"""The one writer (hsiffc.files.atomic): no silent replacement, never an input, never through a
 symbolic link, atomic, named errors, and the batch folder lock."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import textwrap
 
 import pytest
 
-from hsiffc import atomic
-from hsiffc.atomic import (
+from hsiffc.files import atomic
+from hsiffc.files.atomic import (
     FolderLockedError,
     OutputError,
     OutputExistsError,
@@ -181,7 +181,7 @@ def test_report_folder_holding_files_is_refused_up_front(tmp_path):
 def test_folder_lock_refuses_a_second_holder_and_names_the_first(tmp_path):
     script = textwrap.dedent(f"""
         import sys, time
-        from hsiffc.atomic import folder_lock
+        from hsiffc.files.atomic import folder_lock
         with folder_lock({str(tmp_path)!r}, what="hsiffc correct"):
             print("locked", flush=True)
             sys.stdin.readline()
@@ -214,7 +214,7 @@ def test_golden_regeneration_replaces_the_file_on_purpose(tmp_path):
 
 
 def test_protected_inputs_last_for_the_command_not_for_the_process(tmp_path):
-    from hsiffc.atomic import protect_inputs
+    from hsiffc.files.atomic import protect_inputs
 
     raw = tmp_path / "raw.tif"
     raw.write_bytes(b"raw")

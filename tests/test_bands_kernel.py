@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc.bandstats import band_reduce
+from hsiffc.data.bandstats import band_reduce
 from hsiffc.kernels import launch
 
 
@@ -53,7 +53,7 @@ def test_band_mean_any_layout(h, w, n, seed):
 
 @pytest.mark.parametrize("n", [1000, launch.PARALLEL_MIN + 7])
 def test_two_point_apply_equals_the_numpy_product(n):
-    from hsiffc.ffc import two_point_apply
+    from hsiffc.flatfield.two_point import two_point_apply
 
     rng = np.random.default_rng(1)
     signal = rng.normal(300, 50, n).astype(np.float32)
@@ -72,8 +72,8 @@ def test_per_band_scale_equals_the_per_pixel_map(shape):
     """The stage's path (a factor per band, looked up in the kernel; on the larger frame, a
     mosaic map, by row phase: each column's factor per phase row) gives the same array as
     the per-pixel map of paper_scale, bit for bit; bad band maps are refused."""
-    from hsiffc.ffc import paper_ratio, paper_scale, two_point_apply
-    from hsiffc.mosaic import Mosaic
+    from hsiffc.flatfield.two_point import paper_ratio, paper_scale, two_point_apply
+    from hsiffc.data.mosaic import Mosaic
 
     rng = np.random.default_rng(2)
     bm = Mosaic.rectangular(2, 4).band_map(shape)
@@ -100,10 +100,10 @@ def test_per_band_scale_equals_the_per_pixel_map(shape):
        cols=st.integers(1, 6), off=st.tuples(st.integers(0, 7), st.integers(0, 7)),
        masked=st.booleans(), seed=st.integers(0, 99))
 def test_mosaic_band_mean_by_row_phase(h, w, rows, cols, off, masked, seed):
-    """A mosaic's band map is summed by row phase (hsiffc.mosaic.row_period); the result is
+    """A mosaic's band map is summed by row phase (hsiffc.data.mosaic.row_period); the result is
     the same as bincount's over the usable pixels, for any tile, offset and frame height
     (blocks of 64 rows that do not start on a tile row included)."""
-    from hsiffc.mosaic import Mosaic, row_period
+    from hsiffc.data.mosaic import Mosaic, row_period
 
     rng = np.random.default_rng(seed)
     pattern = rng.permutation(rows * cols).reshape(rows, cols)

@@ -10,11 +10,11 @@ import pytest
 from hsiffc import batch
 from hsiffc.calibrate import calibrate
 from hsiffc.cli import main
-from hsiffc.dq import DQ
+from hsiffc.data.dq import DQ
 from hsiffc.io import read_sweep, write_sweep
 from hsiffc.io.corrected import read_corrected
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
-from hsiffc.uniformity import fixed_pattern_nonuniformity
+from hsiffc.flatfield.uniformity import fixed_pattern_nonuniformity
 
 SHAPE = (48, 64)
 LIGHT = PAPER_LIGHT_W_M2["training"]
@@ -68,7 +68,7 @@ def test_default_correction_flattens_a_uniform_scene(world, tmp_path):
     for t, (raw, cor, usable, alpha) in rows.items():
         assert usable > 0.9, t
         # measured: raw ~1.0 %, corrected 0.33 / 0.29 % at 5 / 15 ms and 0.49 % at 30 ms,
-        # where the median alpha is 30 % (what limits it: docstring of hsiffc.model_ffc)
+        # where the median alpha is 30 % (what limits it: docstring of hsiffc.flatfield.model_based)
         assert cor < (0.4 if alpha < 12 else 0.6) * raw, (t, alpha, raw, cor)
     assert max(a for *_, a in rows.values()) > 12  # the strong-leakage case was tested
     assert (c.dq & int(DQ.LEAKAGE)).any()  # the 30 ms frames leak: flagged, values kept

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from hsiffc.calibrate import Calibration, calibrate, photon_transfer
-from hsiffc.dq import DQ
+from hsiffc.data.dq import DQ
 from hsiffc.errors import CalibrationMismatchError, DataFormatError
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
-from hsiffc.sweep import Sweep
+from hsiffc.data.sweep import Sweep
 
 TRAIN = PAPER_LIGHT_W_M2["training"]
 SWEEP_MS = np.round(np.geomspace(2, 400, 20), 3)
@@ -59,7 +59,7 @@ def test_joint_fit_matches_truth_within_its_stated_uncertainty(joint):
     assert np.median(np.abs(cal.b / truth.b_per_dn - 1)) < 0.15
     assert np.median(np.abs(cal.dark - truth.dark_dn)) < 0.3
     # the dynamic saturation level is pinned far better than a itself
-    from hsiffc.model import dynamic_saturation_level
+    from hsiffc.leakage.model import dynamic_saturation_level
 
     true_sat = dynamic_saturation_level(truth.k_dn_per_ms + truth.dark_current_dn_per_ms,
                                         truth.a_dn_per_ms, truth.b_per_dn)

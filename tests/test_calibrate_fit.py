@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hsiffc import model
+from hsiffc.leakage import model
 from hsiffc.calibrate import model_and_jacobian, predict
 
 

@@ -13,10 +13,10 @@ import pytest
 from hsiffc.calibrate import Calibration, calibrate
 from hsiffc.calibrate.flats import FLAT_ARRAYS, add_flat_stacks, combined_dark
 from hsiffc.cli import main
-from hsiffc.frame import Frame
+from hsiffc.data.frame import Frame
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import create
-from hsiffc.sweep import Sweep
+from hsiffc.data.sweep import Sweep
 
 SHARED = Path(os.environ.get("HSIFFC_SHARED_DATA",
                              Path(__file__).resolve().parents[2] / "shared" / "data"))

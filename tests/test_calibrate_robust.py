@@ -11,7 +11,7 @@ import pytest
 
 from hsiffc.calibrate import STATUS_REASONS, calibrate, fit_pixels
 from hsiffc.diagnose.effects import add_effect
-from hsiffc.dq import DQ
+from hsiffc.data.dq import DQ
 from hsiffc.errors import HsiffcError
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor, SensorParams
 

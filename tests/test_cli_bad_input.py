@@ -11,6 +11,14 @@ import pytest
 
 from hsiffc.cli import main
 from hsiffc.io import read_sweep, write_sweep
+import logging
+import struct
+import tifffile
+from hsiffc.errors import DataFormatError
+from hsiffc.io import open_source, read_sweep, read_sweep_tiff, write_sweep
+from hsiffc.io.corrected import is_corrected_file
+from hsiffc.files.limits import ReadLimits
+from hsiffc.data.sweep import Sweep
 
 
 def _error(capsys, *names) -> str:
@@ -195,3 +203,253 @@ def test_correct_never_writes_its_json_over_an_input_found_in_a_folder(data, tmp
     assert code == 2
     _error(capsys, "a.tif", "input of this command")
     assert (raw / "a.tif").read_bytes() == before
+
+
+# -- Input review fixes: bad arguments and damaged or odd files give one clear line (exit 2 fro
+
+def _one_line(capsys, *names) -> str:
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err and "internal error" not in err, err
+    for name in names:
+        assert name in lines[0], lines[0]
+    return lines[0]
+
+
+# -- 1. hsiffc simulate: bad arguments ------------------------------------------------------------
+@pytest.mark.parametrize("extra, name", [
+    (["--lamp", "bogus"], "--lamp"),
+    (["--lamp", "0K"], "--lamp"),
+    (["--lamp", "1K"], "--lamp"),            # too cold to emit on the sensor's grid
+    (["--seed", "-1"], "--seed"),
+    (["--vignetting", "-0.5"], "--vignetting"),
+    (["--vignetting", "1"], "--vignetting"),  # all light lost at the corners
+    (["--vignetting", "2"], "--vignetting"),
+    (["--irradiance-w-m2", "1e300"], "--irradiance-w-m2"),
+])
+def test_simulate_bad_argument_is_one_line_usage_error(tmp_path, capsys, extra, name):
+    out = tmp_path / "s.tif"
+    argv = ["simulate", str(out), "--exposures-ms", "1", "--shape", "8", "8"] + extra
+    assert main(argv) == 2
+    _one_line(capsys, name)
+    assert not out.exists()
+
+
+def test_simulate_lamp_checked_up_front_gives_the_same_frames(tmp_path):
+    out = tmp_path / "s.tif"
+    assert main(["simulate", str(out), "--exposures-ms", "1", "4", "--shape", "8", "8",
+                 "--lamp", "D65", "--vignetting", "0.3", "--seed", "5"]) == 0
+    from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
+
+    ref = MosaicSensor((8, 8), seed=5).sweep([1.0, 4.0], "D65",
+                                             irradiance_w_m2=PAPER_LIGHT_W_M2["training"],
+                                             vignetting=0.3)
+    got = read_sweep_tiff(out)
+    assert np.array_equal(got.data, ref.data)
+    assert list(got.illumination) == list(ref.illumination)
+
+
+# -- 2. ENVI headers ------------------------------------------------------------------------------
+def _envi(tmp_path, name="a", **keys):
+    head = {"samples": "4", "lines": "3", "bands": "1", "data type": "12", "interleave": "bsq",
+            "exposure time": "5", "bit depth": "12"}
+    head.update({k.replace("_", " "): v for k, v in keys.items()})
+    (tmp_path / f"{name}.raw").write_bytes(np.arange(12, dtype="<u2").tobytes())
+    hdr = tmp_path / f"{name}.hdr"
+    hdr.write_text("ENVI\n" + "".join(f"{k} = {v}\n" for k, v in head.items()))
+    return hdr
+
+
+@pytest.mark.parametrize("key, value", [("header_offset", "-4"), ("bands", "0"),
+                                        ("lines", "0"), ("samples", "0"),
+                                        ("byte_order", "2"), ("byte_order", "-1")])
+def test_envi_bad_geometry_key_is_refused_naming_file_and_key(tmp_path, key, value):
+    hdr = _envi(tmp_path, **{key: value})
+    with pytest.raises(DataFormatError) as exc:
+        read_sweep(hdr)
+    text = str(exc.value)
+    assert "a.hdr" in text and key.replace("_", " ") in text and "\n" not in text
+
+
+def test_envi_negative_header_offset_is_exit_2_not_internal_error(tmp_path, capsys):
+    hdr = _envi(tmp_path, header_offset="-4")
+    assert main(["info", str(hdr)]) == 2
+    _one_line(capsys, "a.hdr", "header offset")
+
+
+def test_envi_byte_order_1_still_reads_big_endian(tmp_path):
+    hdr = _envi(tmp_path, byte_order="1")
+    (tmp_path / "a.raw").write_bytes(np.arange(12, dtype=">u2").tobytes())
+    assert read_sweep(hdr).data.ravel().tolist() == list(range(12))
+
+
+def test_read_limits_refuse_a_header_stating_no_frames(tmp_path):
+    with pytest.raises(DataFormatError, match="no frames"):
+        ReadLimits().check_frames(path=tmp_path / "x", n_frames=0, shape=(4, 4), itemsize=2)
+
+
+# -- 3. FITS headers and data ---------------------------------------------------------------------
+def _fits(path, data, **cards):
+    fits = pytest.importorskip("astropy.io.fits")
+    hdu = fits.PrimaryHDU(data)
+    hdu.header["EXPTIME"] = 0.01
+    for key, value in cards.items():
+        hdu.header[key] = value
+    hdu.writeto(path, overwrite=True)
+    return path
+
+
+@pytest.mark.parametrize("key, value", [("EXPTIME", "abc"), ("EXPTIME", True),
+                                        ("BITDEPTH", "x"), ("BITDEPTH", 12.5),
+                                        ("GAIN", "high")])
+def test_fits_non_numeric_keyword_is_refused_naming_file_and_keyword(tmp_path, key, value):
+    path = _fits(tmp_path / "k.fits", np.zeros((4, 4), np.uint16), **{key: value})
+    with pytest.raises(DataFormatError) as exc:
+        read_sweep(path, bit_depth=12)
+    assert "k.fits" in str(exc.value) and key in str(exc.value)
+
+
+def test_fits_non_numeric_exptime_is_exit_2(tmp_path, capsys):
+    path = _fits(tmp_path / "k.fits", np.zeros((4, 4), np.uint16), EXPTIME="abc")
+    assert main(["info", str(path)]) == 2
+    _one_line(capsys, "k.fits", "EXPTIME")
+
+
+@pytest.mark.parametrize("cut", [1000, 2880 + 50])  # inside the header; inside the data
+def test_fits_truncated_file_is_one_line_without_astropy_warnings(tmp_path, capsys, cut):
+    good = _fits(tmp_path / "good.fits", np.arange(64, dtype=np.uint16).reshape(8, 8))
+    bad = tmp_path / "cut.fits"
+    bad.write_bytes(good.read_bytes()[:cut])
+    assert main(["info", str(bad), "--bit-depth", "16"]) == 2
+    line = _one_line(capsys, "cut.fits")
+    assert "WARNING" not in line
+
+
+def test_fits_uint32_is_read_exactly(tmp_path):
+    values = np.array([[0, 2 ** 24 + 1], [2 ** 32 - 1, 2 ** 31 + 3]], dtype=np.uint32)
+    path = _fits(tmp_path / "u32.fits", values)
+    sweep = read_sweep(path, bit_depth=32)
+    assert sweep.data.dtype == np.uint32
+    assert sweep.data[0].tolist() == values.tolist()
+
+
+def test_fits_image_extension_takes_the_primary_headers_keywords(tmp_path):
+    # the common camera layout: metadata in an empty primary HDU, the image in extension 1;
+    # the exposure was reported missing
+    fits = pytest.importorskip("astropy.io.fits")
+    primary = fits.PrimaryHDU()
+    primary.header["EXPTIME"] = 0.025
+    primary.header["IMAGETYP"] = "Dark Frame"
+    primary.header["GAIN"] = 2.5
+    image = fits.ImageHDU(np.arange(64, dtype=np.uint16).reshape(8, 8))
+    image.header["BITDEPTH"] = 12
+    fits.HDUList([primary, image]).writeto(tmp_path / "ext.fits")
+    with open_source(tmp_path / "ext.fits") as src:
+        assert src.bit_depth == 12 and src.meta.get("gain") == 2.5
+        origins = src.describe()
+    sweep = read_sweep(tmp_path / "ext.fits")
+    assert sweep.exposure_ms.tolist() == [25.0] and sweep.kind.tolist() == ["dark"]
+    assert "primary header" in origins
+    image.header["INHERIT"] = False  # the extension declines the primary's keywords
+    fits.HDUList([primary, image]).writeto(tmp_path / "own.fits")
+    with pytest.raises(DataFormatError, match="exposure"):
+        read_sweep(tmp_path / "own.fits")
+
+
+# -- 4. sidecar bit_shift, exposures that are not finite times ------------------------------------
+def _tiff_with_sidecar(tmp_path, toml: str, data=None):
+    data = np.arange(64, dtype=np.uint16).reshape(8, 8) * 16 if data is None else data
+    tifffile.imwrite(tmp_path / "a.tif", data)
+    (tmp_path / "hsiffc.toml").write_text(toml)
+    return tmp_path / "a.tif"
+
+
+@pytest.mark.parametrize("value", ["-1", "32", "40", "1.5"])
+def test_sidecar_bit_shift_out_of_range_names_sidecar_and_key(tmp_path, capsys, value):
+    path = _tiff_with_sidecar(tmp_path, f"[defaults]\nexposure_ms = 5\nbit_depth = 12\n"
+                                        f"bit_shift = {value}\n")
+    with pytest.raises(DataFormatError) as exc:
+        read_sweep(path)
+    assert "hsiffc.toml" in str(exc.value) and "bit_shift" in str(exc.value)
+    assert "whole number 0..31" in str(exc.value) or "whole number" in str(exc.value)
+    assert main(["info", str(path)]) == 2
+    _one_line(capsys, "hsiffc.toml", "bit_shift")
+
+
+def test_bit_shift_on_float_frames_is_refused(tmp_path, capsys):
+    path = _tiff_with_sidecar(tmp_path, "[defaults]\nexposure_ms = 5\nbit_depth = 12\n"
+                                        "bit_shift = 4\n",
+                              data=np.full((8, 8), 16.0, np.float32))
+    assert main(["info", str(path)]) == 2
+    _one_line(capsys, "a.tif", "bit_shift", "float32")
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-2.0"])
+def test_sidecar_exposure_not_a_finite_time_is_refused_by_info(tmp_path, capsys, value):
+    path = _tiff_with_sidecar(tmp_path, f"[defaults]\nexposure_ms = {value}\n"
+                                        "bit_depth = 12\n")
+    assert main(["info", str(path)]) == 2
+    _one_line(capsys, "hsiffc.toml", "exposure_ms")
+
+
+@pytest.mark.parametrize("value", ["nan", "-3", "inf"])
+def test_envi_header_exposure_not_a_finite_time_is_refused_by_info(tmp_path, capsys, value):
+    hdr = _envi(tmp_path, exposure_time=value)
+    assert main(["info", str(hdr)]) == 2
+    _one_line(capsys, "a.hdr", "exposure_ms", "exposure time")
+
+
+# -- 5. pipeline TOML -----------------------------------------------------------------------------
+@pytest.mark.parametrize("text", ["step = [1, 2]\n", 'step = [{stage = "dark"}, "ffc"]\n'])
+def test_pipeline_toml_step_that_is_not_a_table_is_refused(tmp_path, text):
+    from hsiffc.stages.pipeline import Pipeline
+
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    with pytest.raises(DataFormatError) as exc:
+        Pipeline.from_toml(path)
+    assert "p.toml" in str(exc.value) and "[[step]]" in str(exc.value)
+
+
+# -- 6. import of signed integers -----------------------------------------------------------------
+def test_import_int16_tiff_keeps_negative_values(tmp_path, capsys):
+    values = np.array([[-5, 3], [-32768, 32767]], dtype=np.int16)
+    tifffile.imwrite(tmp_path / "s.tif", values)
+    out = tmp_path / "out.tif"
+    assert main(["import", str(tmp_path / "s.tif"), "-o", str(out), "--exposure-ms", "3",
+                 "--bit-depth", "16"]) == 0
+    got = read_sweep_tiff(out)
+    assert got.data.dtype == np.int16 and got.data[0].tolist() == values.tolist()
+
+
+def test_write_sweep_round_trips_signed_frames(tmp_path):
+    data = np.array([[[-100, 0], [7, 2 ** 20]]], dtype=np.int32)
+    write_sweep(tmp_path / "s.tif", Sweep(data, [1.0], "light", 24))
+    got = read_sweep_tiff(tmp_path / "s.tif")
+    assert got.data.dtype == np.int32 and np.array_equal(got.data, data)
+
+
+def test_import_int64_is_refused_in_one_line_naming_the_input(tmp_path, capsys):
+    hdr = _envi(tmp_path, data_type="14", bit_depth="16")
+    (tmp_path / "a.raw").write_bytes(np.arange(12, dtype="<i8").tobytes())
+    assert main(["import", str(hdr), "-o", str(tmp_path / "o.tif")]) == 2
+    _one_line(capsys, "a.hdr", "int64")
+    assert not (tmp_path / "o.tif").exists()
+
+
+# -- 7. probing odd files for the corrected format is quiet ------------------------------------
+def test_is_corrected_file_does_not_log_tifffile_errors(tmp_path, caplog):
+    odd = tmp_path / "odd.tif"  # a TIFF header whose only IFD has no strip offsets or counts
+    odd.write_bytes(b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1)
+                    + struct.pack("<HHII", 256, 3, 1, 10) + struct.pack("<I", 0))
+    with caplog.at_level(logging.DEBUG):
+        assert is_corrected_file(odd) is False
+    assert not [r for r in caplog.records if r.name.startswith("tifffile")], caplog.text
+
+
+def test_open_source_still_reads_valid_sidecar_values(tmp_path):
+    path = _tiff_with_sidecar(tmp_path, "[defaults]\nexposure_ms = 5\nbit_depth = 12\n"
+                                        "bit_shift = 4\nphotons = nan\n")
+    with open_source(path) as src:
+        assert src.bit_shift == 4 and src.bit_depth == 12

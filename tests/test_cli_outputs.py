@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from hsiffc import atomic
+from hsiffc.files import atomic
 from hsiffc.cli import main
 
 

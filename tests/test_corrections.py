@@ -12,18 +12,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc.bandstats import band_reduce
+from hsiffc.data.bandstats import band_reduce
 from hsiffc.calibrate import Calibration, calibrate
-from hsiffc.dq import DQ
+from hsiffc.data.dq import DQ
 from hsiffc.errors import DataFormatError, ParameterError
-from hsiffc.ffc import two_point_correct
-from hsiffc.frame import Frame, stack_mean
+from hsiffc.flatfield.two_point import two_point_correct
+from hsiffc.data.frame import Frame, stack_mean
 from hsiffc.io import read_sweep
-from hsiffc.linearise import linearise
-from hsiffc.params import validate_method
-from hsiffc.polyffc import polynomial_apply, polynomial_fit
+from hsiffc.leakage.linearise import linearise
+from hsiffc.data.params import validate_method
+from hsiffc.flatfield.polynomial import polynomial_apply, polynomial_fit
 from hsiffc.stages import Pipeline, check_stage, create, registry
-from hsiffc.validity import alpha_table_of, validity_flags
+from hsiffc.leakage.validity import alpha_table_of, validity_flags
 
 T_MS = 32.25  # a training flat, a dark stack and a test frame share this exposure
 
@@ -282,7 +282,7 @@ def test_the_training_exposure_guide_shows_what_select_prints(cal, sample_cubes)
     the table this calibration gives today (it went stale once, by 0.04 points)."""
     from pathlib import Path
 
-    from hsiffc.validity import alpha_table
+    from hsiffc.leakage.validity import alpha_table
 
     guide = (Path(__file__).resolve().parents[1] / "docs" / "guide"
              / "training-exposure.md").read_text()

@@ -17,9 +17,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hsiffc.dq import DQ, DQ_DTYPE
+from hsiffc.data.dq import DQ, DQ_DTYPE
 from hsiffc.kernels import launch
-from hsiffc.mosaic import Mosaic
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.reconstruct import demosaic
 from hsiffc.reconstruct import ppi_kernel
 from hsiffc.reconstruct.prepare import band_levels, prepare, pseudo_panchromatic

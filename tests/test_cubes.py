@@ -16,10 +16,10 @@ import tifffile
 
 from hsiffc.cli import main
 from hsiffc.cubes import Cube, read_cube, write_cube
-from hsiffc.dq import DQ, bits, mask, table
-from hsiffc.frame import Frame
+from hsiffc.data.dq import DQ, bits, mask, table
+from hsiffc.data.frame import Frame
 from hsiffc.io import read_corrected, read_sweep, write_sweep
-from hsiffc.mosaic import Mosaic
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.simulate.params import default_bands
 from hsiffc.spectral.bands import BandSet

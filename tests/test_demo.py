@@ -54,7 +54,7 @@ def test_render_text_names_both_measures(demo):
 
 
 def test_fit_curve_recovers_known_parameters():
-    from hsiffc import model
+    from hsiffc.leakage import model
 
     t = np.linspace(1, 300, 30)
     y = model.response(t, 6.0, 0.02, 0.01, 32.0)

@@ -11,12 +11,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc.dq import DQ, DQ_DTYPE
+from hsiffc.data.dq import DQ, DQ_DTYPE
 from hsiffc.kernels import launch
 from hsiffc.kernels import ppi as ppi_kernels
 from hsiffc.kernels.demosaic import interpolate_bands
 from hsiffc.kernels.lattice import split_lattices
-from hsiffc.mosaic import Mosaic
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.reconstruct import demosaic, ppi_kernel, reconstruct_alpha
 from hsiffc.reconstruct.prepare import (Prepared, band_levels, periodic_index, prepare,
                                         pseudo_panchromatic)

@@ -12,13 +12,13 @@ import cv2
 import numpy as np
 import pytest
 
-from hsiffc import model
+from hsiffc.leakage import model
 from hsiffc.cli import main
 from hsiffc.emva1288 import characterise, leakage_effects, saturation_index, write_report
 from hsiffc.emva1288.agreement import (REFERENCE_FILE, TOLERANCES, compare_with_reference,
                                        render_agreement)
 from hsiffc.errors import DataFormatError, ParameterError
-from hsiffc.sweep import Sweep
+from hsiffc.data.sweep import Sweep
 
 SHARED_DATA = Path(os.environ.get("HSIFFC_SHARED_DATA",
                                   Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -194,7 +194,7 @@ def test_options_add_area_and_energy_figures_and_are_checked(simulated):
 def test_mosaic_bands_get_their_own_figures(simulated):
     from dataclasses import replace
 
-    from hsiffc.mosaic import Mosaic
+    from hsiffc.data.mosaic import Mosaic
 
     sweep, _ = simulated
     res = characterise(replace(sweep, mosaic=Mosaic.square(2)))

@@ -7,8 +7,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc.dq import DQ
-from hsiffc.ffc import two_point_correct, two_point_gain, uniformity, uniformity_per_band
+from hsiffc.data.dq import DQ
+from hsiffc.flatfield.two_point import (
+    two_point_correct,
+    two_point_gain,
+    uniformity,
+    uniformity_per_band,
+)
 
 
 def test_uniformity_is_std_over_mean_in_percent():
@@ -74,7 +79,7 @@ def test_shape_and_option_errors():
 
 
 def test_uniformity_improvement_between_two_stages():
-    from hsiffc.ffc import uniformity_improvement
+    from hsiffc.flatfield.two_point import uniformity_improvement
 
     rng = np.random.default_rng(1)
     band_map = np.indices((16, 16)).sum(axis=0) % 2

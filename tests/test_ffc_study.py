@@ -122,7 +122,7 @@ def test_a_pattern_below_the_resolution_is_printed_as_a_bound(sample_cubes, tmp_
 
 def test_summarise_range_without_any_figure():
     from hsiffc.reports.sweep_uniformity import StepUniformity, summarise
-    from hsiffc.uniformity import FixedPattern
+    from hsiffc.flatfield.uniformity import FixedPattern
 
     fields = FixedPattern.__dataclass_fields__
     nan_pattern = FixedPattern(**{k: np.array([np.nan]) for k in fields})
@@ -136,7 +136,7 @@ def test_summarise_range_without_any_figure():
 
 def test_uniformity_command_without_multi_frame_steps(tmp_path, capsys):
     from hsiffc.io.tiff import write_sweep
-    from hsiffc.sweep import Sweep
+    from hsiffc.data.sweep import Sweep
 
     path = tmp_path / "one.tif"
     write_sweep(path, Sweep(np.full((2, 8, 8), 100, np.uint16), [1.0, 2.0],

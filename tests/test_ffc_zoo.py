@@ -16,7 +16,7 @@ from hsiffc.cli import main
 from hsiffc.errors import DataFormatError
 from hsiffc.reports import ffc_zoo
 from hsiffc.reports.ffc_study import cell, check_rule, render_markdown, run_ffc_study
-from hsiffc.uniformity import fixed_pattern_nonuniformity
+from hsiffc.flatfield.uniformity import fixed_pattern_nonuniformity
 
 SHARED = Path(os.environ.get("HSIFFC_SHARED_DATA",
                              Path(__file__).resolve().parents[2] / "shared" / "data"))

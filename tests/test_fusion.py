@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 
 from hsiffc.calibrate import calibrate
-from hsiffc.dq import DQ
-from hsiffc.frame import Frame
+from hsiffc.data.dq import DQ
+from hsiffc.data.frame import Frame
 from hsiffc.io import read_emva1288
 from hsiffc.kernels.launch import PARALLEL_MIN
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline, create
 from hsiffc.stages import fusion
-from hsiffc.bandstats import band_reduce
-from hsiffc.mosaic import row_period, single_band_map
-from hsiffc.validity import subtract_dark_and_flag
+from hsiffc.data.bandstats import band_reduce
+from hsiffc.data.mosaic import row_period, single_band_map
+from hsiffc.leakage.validity import subtract_dark_and_flag
 
 TRAIN = PAPER_LIGHT_W_M2["training"]
 

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from hsiffc.calibrate import calibrate
-from hsiffc.dq import DQ
-from hsiffc.frame import Frame
+from hsiffc.data.dq import DQ
+from hsiffc.data.frame import Frame
 from hsiffc.io import read_sweep
 from hsiffc.stages import Pipeline, create
 

@@ -15,7 +15,7 @@ import pytest
 
 from hsiffc import gpu
 from hsiffc.cli import main
-from hsiffc.dq import DQ
+from hsiffc.data.dq import DQ
 from hsiffc.gpu.pack import pack_cpu
 from hsiffc.kernels.select import medians_of
 from hsiffc.reconstruct.prepare import _median_in_place
@@ -80,7 +80,7 @@ def test_parallel_band_medians_equal_numpy_partition():
 _CHILD = r"""
 import json, sys
 import numpy as np
-from hsiffc.frame import Frame
+from hsiffc.data.frame import Frame
 from hsiffc.gpu import available, selfcheck
 from hsiffc.gpu.pack import pack_cpu
 from hsiffc.gpu.pipeline import GpuPipeline
@@ -197,7 +197,7 @@ def test_plan_refuses_steps_the_gpu_does_not_run_in_one_line():
 _EDGES = r"""
 import json
 import numpy as np
-from hsiffc.frame import Frame
+from hsiffc.data.frame import Frame
 from hsiffc.gpu import selfcheck
 from hsiffc.gpu.pipeline import GpuPipeline
 GpuPipeline.block = (8, 4)

@@ -1,4 +1,4 @@
-"""The compiled kernels behind hsiffc.model: elementary functions, and the model functions
+"""The compiled kernels behind hsiffc.leakage.model: elementary functions, and the model functions
 against the previous numpy formulas (re-derived here), solve_ivp and hypothesis properties."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc import model
-from hsiffc.dq import DQ
+from hsiffc.leakage import model
+from hsiffc.data.dq import DQ
 from hsiffc.kernels import inversion, launch, leakage, vmath
 
 
@@ -277,7 +277,7 @@ def test_alpha_forms_equal_the_previous_numpy_forms():
 # -- validity flags (alpha and DQ in one pass) -------------------------------------------------
 
 def test_alpha_and_flags_in_one_pass_equal_the_numpy_rule():
-    from hsiffc.validity import leakage_dq
+    from hsiffc.leakage.validity import leakage_dq
 
     rng = np.random.default_rng(7)
     n = launch.PARALLEL_MIN + 99

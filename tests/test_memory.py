@@ -1,4 +1,4 @@
-"""hsiffc.memory: after reuse_freed_memory, a large array freed by one frame is reused by the
+"""hsiffc.batch.memory: after reuse_freed_memory, a large array freed by one frame is reused by the
 next without fresh pages from the kernel (each check in a fresh process: the setting is
 process-wide and is not undone)."""
 
@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from hsiffc.memory import reuse_freed_memory
+from hsiffc.batch.memory import reuse_freed_memory
 
 glibc = pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
                            reason="the allocator settings exist on glibc (Linux) only")
@@ -19,7 +19,7 @@ glibc = pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0
 _CHILD = """
 import json, resource, sys
 import numpy as np
-from hsiffc.memory import reuse_freed_memory
+from hsiffc.batch.memory import reuse_freed_memory
 applied = reuse_freed_memory() if sys.argv[1] == "tuned" else None
 faults = []
 for _ in range(4):  # a 72 MB cube per 'frame', as a 2048 x 1088 x 8 float32 cube

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc import model
-from hsiffc.dq import DQ
+from hsiffc.leakage import model
+from hsiffc.data.dq import DQ
 
 # Paper-like parameters: 2 DN/ms of leakage at 800 DN, b = 0.0125 / DN, dark 32 DN
 B = 0.0125
@@ -203,7 +203,7 @@ def test_bad_arguments_are_named():
                 max_size=20))
 def test_smallest_below_zero_means_any_below_zero(values):
     """The input checks use smallest(x) < 0 (one pass, no temporary) for np.any(x < 0)."""
-    from hsiffc.model_numerics import smallest
+    from hsiffc.leakage._numerics import smallest
 
     x = np.array(values, np.float64)
     assert (smallest(x) < 0) == bool(np.any(x < 0))

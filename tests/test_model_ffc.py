@@ -7,13 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hsiffc import model
-from hsiffc.bandstats import band_reduce
+from hsiffc.leakage import model
+from hsiffc.data.bandstats import band_reduce
 from hsiffc.calibrate import calibrate
-from hsiffc.dq import DQ
-from hsiffc.ffc_floor import parameter_covariance, sweep_floor
-from hsiffc.frame import Frame
-from hsiffc.model_ffc import correction_uncertainty, model_ffc_apply
+from hsiffc.data.dq import DQ
+from hsiffc.flatfield.floor import parameter_covariance, sweep_floor
+from hsiffc.data.frame import Frame
+from hsiffc.flatfield.model_based import correction_uncertainty, model_ffc_apply
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline, create
 
@@ -72,7 +72,7 @@ def test_reaches_the_calibration_floor_where_two_point_does_not(sim):
     ``flat_alpha_percent``, 5 %), the error of the factor combined from the sweep and the flat
     stack plus the dark's (:func:`correction_uncertainty`); above it the sweep fit's
     Cramer-Rao bound with the full covariance of g, a, b and the dark
-    (:mod:`hsiffc.ffc_floor`), which the calibration's per-parameter sigmas cannot give (ln a
+    (:mod:`hsiffc.flatfield.floor`), which the calibration's per-parameter sigmas cannot give (ln a
     and ln b errors are correlated at about -0.998). Measured: model_ffc at 0.81-1.03 times
     the first (0.12-0.20 %) and 0.95-1.11 times the second (0.15-0.34 % at alpha 5.5-50 %;
     two-point 0.31-0.82 % there), from 5 % of full scale up."""

@@ -1,7 +1,7 @@
 """The compiled model_ffc kernel against a plain numpy statement of the same correction.
 
 ``_reference`` is the numpy form model_ffc_apply had before it became one compiled pass (kept
-here only as the test's reference): inversion by :func:`hsiffc.model.invert_response`, then the
+here only as the test's reference): inversion by :func:`hsiffc.leakage.model.invert_response`, then the
 signal, the model alpha, the alpha-blended factor and the DQ bits as whole-array operations.
 """
 
@@ -12,9 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc import model
-from hsiffc.dq import DQ, DQ_DTYPE
-from hsiffc.model_ffc import log_gain_ratio, model_ffc_apply
+from hsiffc.leakage import model
+from hsiffc.data.dq import DQ, DQ_DTYPE
+from hsiffc.flatfield.model_based import log_gain_ratio, model_ffc_apply
 
 
 def _reference(y, t, a, b, d, gain, gain_sweep, flat_alpha, full_scale, alpha_limit=50.0,

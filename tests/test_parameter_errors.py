@@ -8,7 +8,7 @@ import tifffile
 
 from hsiffc.cli import main
 from hsiffc.errors import HsiffcError, ParameterError, UnknownStageError
-from hsiffc.params import did_you_mean, validate_method
+from hsiffc.data.params import did_you_mean, validate_method
 from hsiffc.stages import Pipeline, create
 
 
@@ -81,8 +81,8 @@ def test_method_names_get_a_suggestion_too():
 
 
 def test_frame_of_another_mosaic_shape_or_depth_is_refused_with_both_values(demo_result):
-    from hsiffc.frame import Frame
-    from hsiffc.mosaic import Mosaic
+    from hsiffc.data.frame import Frame
+    from hsiffc.data.mosaic import Mosaic
 
     cal = demo_result.calibration
     stage = create("alpha_mask", calibration=cal)

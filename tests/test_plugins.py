@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 from scipy.ndimage import median_filter
 
-from hsiffc.dq import DQ
-from hsiffc.frame import Frame
+from hsiffc.data.dq import DQ
+from hsiffc.data.frame import Frame
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor, SensorParams
 from hsiffc.stages import Pipeline, check_stage, create, describe, get, registry
 from hsiffc.stages.registry import PluginWarning

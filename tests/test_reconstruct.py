@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc.dq import DQ, DQ_DTYPE
-from hsiffc.frame import Frame
-from hsiffc.mosaic import Mosaic
+from hsiffc.data.dq import DQ, DQ_DTYPE
+from hsiffc.data.frame import Frame
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.reconstruct import (
     DEMOSAIC_METHODS,
     apply_correction,

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from hsiffc.calibrate import calibrate
-from hsiffc.dq import DQ
+from hsiffc.data.dq import DQ
 from hsiffc.errors import DataFormatError, ParameterError
-from hsiffc.frame import Frame
-from hsiffc.mosaic import Mosaic
+from hsiffc.data.frame import Frame
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.reflectance import (ExposureMismatchWarning, GainMismatchWarning,
                                 ReferenceLeakageWarning, ReferenceSaturatedWarning,
                                 SceneBrighterThanReferenceWarning, TooFewReferenceFramesWarning,

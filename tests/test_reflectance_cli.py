@@ -11,10 +11,10 @@ import tifffile
 from hsiffc.calibrate import calibrate
 from hsiffc.cli import main
 from hsiffc.io import read_corrected, write_sweep
-from hsiffc.mosaic import Mosaic
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.spectral import imec_4x4_visible
-from hsiffc.sweep import Sweep
+from hsiffc.data.sweep import Sweep
 
 LIGHT = PAPER_LIGHT_W_M2["training"]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hsiffc.frame import Frame
+from hsiffc.data.frame import Frame
 from hsiffc.stages import Pipeline, create
 
 

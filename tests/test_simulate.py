@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hsiffc import model
-from hsiffc.mosaic import Mosaic
+from hsiffc.leakage import model
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor, SensorParams
 from hsiffc.spectral import imec_4x4_visible, imec_5x5_nir, read_imec_xml
 

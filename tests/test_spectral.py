@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy import constants
 
 from hsiffc.errors import DataFormatError
-from hsiffc.mosaic import Mosaic
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.spectral import (DEFAULT_GRID, BandSet, Illumination, blackbody, cie_illuminant,
                              colorchecker_reflectances, electron_rate, fabry_perot_bands,
                              gaussian_responses, imec_4x4_visible, imec_5x5_nir, lamp,

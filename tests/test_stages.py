@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from hsiffc.calibrate import calibrate
-from hsiffc.dq import DQ
+from hsiffc.data.dq import DQ
 from hsiffc.errors import DataFormatError
-from hsiffc.ffc import uniformity_per_band
-from hsiffc.frame import Frame
+from hsiffc.flatfield.two_point import uniformity_per_band
+from hsiffc.data.frame import Frame
 from hsiffc.io import read_sweep
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import NotFittedError, Pipeline, check_stage, create, registry
@@ -227,7 +227,7 @@ def test_saved_pipeline_with_unknown_stage_name_is_refused(sample_frames, tmp_pa
 def test_raw_is_computed_once_and_follows_data_and_dark():
     """frame.raw is cached (read-only) and shared by frames made by replace() that keep the
     data and the dark; a frame with other data or another dark computes its own."""
-    from hsiffc.frame import Frame
+    from hsiffc.data.frame import Frame
 
     rng = np.random.default_rng(3)
     dark = rng.uniform(20, 40, (8, 12)).astype(np.float32)
@@ -259,8 +259,8 @@ def test_raw_is_computed_once_and_follows_data_and_dark():
 def test_from_raw_flags_full_scale_and_non_finite_counts_for_every_dtype(dtype):
     """Frame.from_raw: float32 data equal to the counts, SATURATED exactly where the count is
     at full scale; NaN/inf (float input only) become 0 DN with NONFINITE | DO_NOT_USE."""
-    from hsiffc.dq import DQ
-    from hsiffc.frame import Frame
+    from hsiffc.data.dq import DQ
+    from hsiffc.data.frame import Frame
 
     bits = 8 if dtype == np.uint8 else 12
     full = 2 ** bits - 1

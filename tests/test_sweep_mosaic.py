@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hsiffc import DQ, Mosaic, Sweep
-from hsiffc.dq import describe
+from hsiffc.data.dq import describe
 
 
 def test_mosaic_band_map_with_offset_and_rectangular_tiles():

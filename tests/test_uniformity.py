@@ -5,8 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hsiffc.ffc import (fixed_pattern_nonuniformity, fixed_pattern_variance, uniformity,
-                        uniformity_before_after)
+from hsiffc.flatfield.two_point import (
+    fixed_pattern_nonuniformity,
+    fixed_pattern_variance,
+    uniformity,
+    uniformity_before_after,
+)
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline, create
 
@@ -103,8 +107,8 @@ def test_uniformity_per_band_equals_the_per_band_numpy_definition(shape):
     100 np.std / np.mean over its good, finite pixels: NaN and inf left out, flagged pixels
     left out, NaN for a band with fewer than two usable pixels; on a mosaic map (summed by
     row phase) and on a plain array."""
-    from hsiffc.ffc import uniformity_per_band
-    from hsiffc.mosaic import Mosaic
+    from hsiffc.flatfield.two_point import uniformity_per_band
+    from hsiffc.data.mosaic import Mosaic
 
     rng = np.random.default_rng(11)
     img = rng.normal(300.0, 25.0, shape).astype(np.float32)

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hsiffc import model
+from hsiffc.leakage import model
 from hsiffc.calibrate import calibrate
-from hsiffc.dq import DQ
-from hsiffc.ffc import two_point_correct, uniformity_per_band
+from hsiffc.data.dq import DQ
+from hsiffc.flatfield.two_point import two_point_correct, uniformity_per_band
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
-from hsiffc.validity import AlphaTable, alpha_map, alpha_table, validity_flags
+from hsiffc.leakage.validity import AlphaTable, alpha_map, alpha_table, validity_flags
 
 CANDIDATES_MS = [6.45, 12.9, 19.35, 25.8, 32.25]
 TRAIN = PAPER_LIGHT_W_M2["training"]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from numba import njit
 
-from hsiffc import model
+from hsiffc.leakage import model
 from hsiffc.kernels import vmath
 
 D = Decimal

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hsiffc.atomic import atomic_write_text
+from hsiffc.files.atomic import atomic_write_text
 from hsiffc.diagnose import diagnose
 from hsiffc.diagnose.designs import simulated_sweep
 from hsiffc.diagnose.effects import add_effect

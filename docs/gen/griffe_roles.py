@@ -1,7 +1,7 @@
 """A griffe extension for the API pages: Sphinx roles in docstrings become inline code.
 
 The docstrings are numpydoc and sometimes name other objects with Sphinx roles
-(``:func:`hsiffc.model.response```); mkdocstrings renders Markdown, so without this the roles
+(``:func:`hsiffc.leakage.model.response```); mkdocstrings renders Markdown, so without this the roles
 would show literally. ``:role:`~a.b.c``` becomes `` `c` `` and ``:role:`a.b.c``` `` `a.b.c` ``.
 A reStructuredText literal-block marker (a paragraph ending in ``::`` before an indented block)
 becomes a single colon: the indented block is already a code block in Markdown.

@@ -1,5 +1,5 @@
 """Deferred commits: an output's fsync and rename on a background thread (see
-:func:`hsiffc.atomic.atomic_path`, ``defer=``), so that a batch's next file overlaps the disk."""
+:func:`hsiffc.files.atomic.atomic_path`, ``defer=``), so that a batch's next file overlaps the disk."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ __all__ = ["DeferredCommits"]
 
 
 class DeferredCommits:
-    """Runs the commits of :func:`hsiffc.atomic.atomic_path` (``defer=``) on one background
+    """Runs the commits of :func:`hsiffc.files.atomic.atomic_path` (``defer=``) on one background
     thread, in order.
 
     The commit waits for the disk (fsync of a finished file, its rename, fsync of the folder);

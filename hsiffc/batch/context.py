@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..calibrate.product import Calibration
 from ..stages import Pipeline, create
+from ..stages.defaults import default_pipeline as _default_pipeline
 from .plan import BatchError
 
 __all__ = ["CUBE_METHODS", "FFC_CHOICES", "Context", "Settings", "check_ffc", "context_for",
@@ -26,28 +27,12 @@ FFC_CHOICES = ("model", "none")
 
 def default_pipeline(calibration, *, threshold_percent: float = 12.0,
                      linearise: bool = False, ffc: str = "model") -> Pipeline:
-    """The pipeline ``hsiffc correct`` applies without ``--pipeline``: it needs no training frames.
-
-    ``dark`` (the calibration's dark level plus dark current times the exposure), ``mask``
-    (``alpha_mask``: alpha per pixel, LEAKAGE above ``threshold_percent``, OUT_OF_DOMAIN and the
-    calibration's pixel flags), then with ``ffc="model"`` (default) ``ffc``: ``model_ffc`` fitted
-    from the calibration alone (leakage inversion and the calibration's per-pixel responsivity:
-    a uniform scene gives a uniform frame, DN above dark on the band-mean scale). With
-    ``ffc="none"`` there is no flat-field step; ``linearise`` then adds ``linearise`` (the
-    leakage inversion without a flat field). ``model_ffc`` already inverts the leakage, so
-    ``linearise`` with ``ffc="model"`` is refused (BatchError). ``calibration`` is a saved
-    Calibration (or its path).
-    """
+    """The pipeline ``hsiffc correct`` applies without ``--pipeline``
+    (:func:`hsiffc.stages.defaults.default_pipeline`), after :func:`check_ffc` (BatchError for
+    an unknown ``ffc`` or ``linearise`` with ``ffc="model"``)."""
     check_ffc(ffc, linearise)
-    cal = calibration if isinstance(calibration, Calibration) else Calibration.load(calibration)
-    steps = [("dark", create("dark", calibration=cal).fit([])),
-             ("mask", create("alpha_mask", calibration=cal,
-                             threshold_percent=float(threshold_percent)).fit([]))]
-    if ffc == "model":
-        steps.append(("ffc", create("model_ffc", calibration=cal).fit([])))
-    elif linearise:
-        steps.append(("linearise", create("linearise", calibration=cal).fit([])))
-    return Pipeline(steps)
+    return _default_pipeline(calibration, threshold_percent=threshold_percent,
+                             linearise=linearise, ffc=ffc)
 
 
 CUBE_METHODS = ("nearest", "bilinear", "ppid", "tile")

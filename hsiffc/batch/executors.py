@@ -13,7 +13,7 @@ import socket
 import time
 from urllib.parse import urlparse
 
-from ..memory import reuse_freed_memory
+from .memory import reuse_freed_memory
 from .plan import BatchError
 from .commits import DeferredCommits
 from .task import correct_file, empty_result, settle
@@ -109,7 +109,7 @@ def local_cluster(workers: int):
 
 def correct_file_in_worker(job, settings, threads: int | None = None):
     """:func:`correct_file` in a Dask worker process, whose allocator is set up first
-    (:func:`hsiffc.memory.reuse_freed_memory`, once per process: a process-wide setting made
+    (:func:`hsiffc.batch.memory.reuse_freed_memory`, once per process: a process-wide setting made
     only where hsiffc owns the process, the CLI and its workers, never in a caller's), and
     whose kernels run on ``threads`` numba threads (so that workers x threads <= cores)."""
     reuse_freed_memory()

@@ -26,7 +26,7 @@ def open_input(path, overrides=(), limits=None):
     path : path-like
     overrides : iterable of (name, value)
         Metadata for files that do not carry it (fields of :class:`hsiffc.io.Overrides`).
-    limits : hsiffc.io.limits.ReadLimits, optional
+    limits : hsiffc.files.limits.ReadLimits, optional
         Size limits (default: io's documented defaults).
 
     Returns

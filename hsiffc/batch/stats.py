@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..ffc import uniformity_per_band
+from ..flatfield.two_point import uniformity_per_band
 
 __all__ = ["STATS_PIXELS", "FrameStats", "band_uniformity", "cube_uniformity", "mean_bands",
            "stats_rows"]
@@ -32,7 +32,7 @@ def stats_rows(shape, mosaic) -> np.ndarray:
 
 
 def band_uniformity(values, band, dq) -> list:
-    """Eq. (6) per band over the pixels without DQ bits (:func:`hsiffc.ffc.uniformity_per_band`),
+    """Eq. (6) per band over the pixels without DQ bits (:func:`hsiffc.flatfield.two_point.uniformity_per_band`),
     rounded to 4 significant digits; None where a band has no value."""
     u = uniformity_per_band(values, band, dq=dq)
     return [float(f"{x:.4g}") if np.isfinite(x) else None for x in u]

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..jsonsafe import json_safe
+from ..files.jsonsafe import json_safe
 from ..io.corrected import SUFFIX
 
 __all__ = ["BatchSummary"]

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..atomic import PART_SUFFIX, atomic_path
+from ..files.atomic import PART_SUFFIX, atomic_path
 from ..cubes.product import frame_unit
-from ..dq import DQ
+from ..data.dq import DQ
 from ..errors import DataFormatError, HsiffcError
-from ..frame import Frame
+from ..data.frame import Frame
 from ..io.corrected import (
     BackgroundWriter,
     CorrectedWriter,

@@ -5,10 +5,9 @@ compiled kernels run on numba's threads (one per core) while a reader and a writ
 overlap the I/O. Extra processes pay for themselves only when the batch is large enough:
 
 - a local Dask cluster costs :data:`STARTUP_S` seconds to start (processes, imports, kernels
-  loaded from the disk cache); on the bundled sample (4 files, 4 MB) ``--workers 4`` took
-  8.3 s against 1.6 s for one worker on 2 cores;
-- one process corrects about :data:`RATE_MB_S` MB of input a second (the batch benchmark:
-  19.4 frames/s of 2048 x 1088 16-bit frames, 4.5 MB each, on 2 cores).
+  loaded from the disk cache), many times the correction of a small input;
+- one process corrects about :data:`RATE_MB_S` MB of input a second (the batch benchmark's
+  rate on 2 cores, on the benchmarks page).
 
 So more than one process runs only when the input is large enough for two, even if each ran
 at that rate, to save more than the start-up: ``total MB >= 2 * STARTUP_S * RATE_MB_S``

@@ -21,7 +21,7 @@ The per-pixel fit is public for other analyses (``hsiffc.diagnose``): :func:`fit
 
 from __future__ import annotations
 
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from .joint import (
     B_GRID,
     DARK_MODELS,

@@ -13,7 +13,7 @@ and a dark current ``dc`` (DN/ms) measured from the dark samples.
 :func:`fit_pixels` runs the per-pixel kernel of :mod:`hsiffc.calibrate.pixelfit` (dark model, linear
 model, start values, Levenberg-Marquardt with bounds and a fallback to the linear model);
 :func:`model_and_jacobian` and :func:`predict` evaluate the model for per-pixel parameters
-``theta = (ln g, ln a, ln b, d)``. All build on :mod:`hsiffc.model`.
+``theta = (ln g, ln a, ln b, d)``. All build on :mod:`hsiffc.leakage.model`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import model
+from ..leakage import model
 from . import pixelfit, pixelsamples
 
 PRIOR_SIGMA = 3.0  # e-folds, on ln a and ln b

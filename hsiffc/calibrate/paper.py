@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import model
-from ..dq import DQ
+from ..leakage import model
+from ..data.dq import DQ
 from ..errors import DataFormatError
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from .product import Calibration
 from .samples import photon_transfer
 

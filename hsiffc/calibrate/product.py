@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..dark import dark_at_cached
+from ..data.dark import dark_at_cached
 from ..errors import CalibrationMismatchError, DataFormatError, ParameterError
-from ..mosaic import Mosaic
-from ..products import read_product, write_product
+from ..data.mosaic import Mosaic
+from ..data.products import read_product, write_product
 
 FORMAT = "hsiffc-calibration"
 FORMAT_VERSION = 1
@@ -135,7 +135,7 @@ class Calibration:
         """The calibration's ``flags`` OR-ed with ``other``, a read-only uint32 plane of the
         frame's shape that does not change (a fitted two-point FFC's flat flags): made once
         per such plane and kept while it lives, so that a fused front end reads one flag plane
-        instead of two (:func:`hsiffc.validity.subtract_dark_and_flag`).
+        instead of two (:func:`hsiffc.leakage.validity.subtract_dark_and_flag`).
 
         Returns
         -------
@@ -288,7 +288,7 @@ class Calibration:
                     lines.append(f"  {name:<20} median {q[1]:.4g} {unit} (5-95 %: {q[0]:.4g} to "
                                  f"{q[2]:.4g})")
         if "flags" in self.arrays:
-            from ..dq import DQ
+            from ..data.dq import DQ
 
             f = self.arrays["flags"]
             for bit in (DQ.NOT_CONVERGED, DQ.LEAK_UNCONSTRAINED, DQ.DO_NOT_USE):
@@ -369,7 +369,7 @@ class Calibration:
 
     # -- file I/O ------------------------------------------------------------------------------
     def save(self, path, *, overwrite: bool = False) -> Path:
-        """Write the calibration to ``path`` (.npz) atomically (:mod:`hsiffc.products`).
+        """Write the calibration to ``path`` (.npz) atomically (:mod:`hsiffc.data.products`).
 
         Parameters
         ----------

@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..errors import DataFormatError
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 
 
 @dataclass(frozen=True, eq=False)

@@ -14,10 +14,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from .. import model
-from ..dq import DQ
+from ..leakage import model
+from ..data.dq import DQ
 from ..errors import DataFormatError
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from . import pixelfit
 from .joint import B_GRID, MARGIN_GRID, run_kernel
 from .product import Calibration

@@ -2,7 +2,7 @@
 
 Sub-commands live in one module per group (:mod:`.data`, :mod:`.pipeline`, :mod:`.reports`), each
 with a ``register(sub)`` function. Each command runs under one write policy
-(:func:`hsiffc.atomic.write_policy`: ``--overwrite`` and the command's inputs, declared by the
+(:func:`hsiffc.files.atomic.write_policy`: ``--overwrite`` and the command's inputs, declared by the
 parser as ``input_args``; its outputs, ``output_args`` and ``output_dirs``, are checked before any
 work). Every expected error (input, output, parameter, environment) ends here, in one place:
 one line on stderr naming the file or parameter, the problem and the fix, exit status 2 (``--debug`` shows the traceback instead). Commands that process a batch return 1
@@ -19,9 +19,9 @@ import sys
 import warnings
 
 from .. import __version__
-from ..atomic import write_policy
+from ..files.atomic import write_policy
 from ..errors import HsiffcError
-from ..memory import reuse_freed_memory
+from ..batch.memory import reuse_freed_memory
 from . import cubes, data, emva1288, importer, pipeline, reflectance, reports, uniformity
 from .args import OneLineParser
 from .common import check_declared_outputs, declared, input_files
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
-    reuse_freed_memory()  # a frame's large arrays reuse the last frame's pages (hsiffc.memory)
+    reuse_freed_memory()  # a frame's large arrays reuse the last frame's pages (hsiffc.batch.memory)
     prefix = f"hsiffc {args.command}: error:"
     try:
         inputs = declared(args, "input_args")

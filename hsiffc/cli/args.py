@@ -48,7 +48,7 @@ class OneLineParser(argparse.ArgumentParser):
 
     def _suggestion(self, message: str) -> str:
         """``"; did you mean 'x'?"`` for a misspelt choice or option (difflib), else ""."""
-        from ..params import did_you_mean
+        from ..data.params import did_you_mean
 
         m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
         if m:

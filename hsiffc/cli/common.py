@@ -96,7 +96,7 @@ def check_declared_outputs(args) -> None:
     OutputError
         One of the outputs cannot be written under the write policy (the message names it).
     """
-    from ..atomic import check_output, check_output_folder
+    from ..files.atomic import check_output, check_output_folder
 
     seen = {}
     for path in declared(args, "output_args"):
@@ -185,8 +185,8 @@ def write_json(path: Path, doc) -> None:
     doc : dict or list
         JSON-able document (numpy values and paths converted; NaN and inf written as null).
     """
-    from ..atomic import atomic_write_text
-    from ..jsonsafe import json_safe
+    from ..files.atomic import atomic_write_text
+    from ..files.jsonsafe import json_safe
 
     # non-finite floats become null (JSON has no NaN); allow_nan=False proves none is left
     text = json.dumps(json_safe(doc), indent=2, default=json_default, allow_nan=False)

@@ -187,9 +187,9 @@ def _simulated_lamp(sensor, spec: str, irradiance_w_m2: float, vignetting: float
 
 
 def _check_simulated_size(args) -> None:
-    """Refuse a sweep larger than the read limits allow (hsiffc.io.limits: one frame's pixels,
+    """Refuse a sweep larger than the read limits allow (hsiffc.files.limits: one frame's pixels,
     and the bytes held at once, about 8 per pixel while simulating) before allocating it."""
-    from ..io.limits import default_limits
+    from ..files.limits import default_limits
 
     h, w = args.shape
     limits = default_limits()
@@ -206,7 +206,7 @@ def _check_simulated_size(args) -> None:
 
 def _cmd_simulate(args) -> int:
     from ..io import write_sweep
-    from ..mosaic import Mosaic
+    from ..data.mosaic import Mosaic
     from ..simulate import PAPER_LIGHT_W_M2, MosaicSensor
     from ..spectral import imec_4x4_visible, imec_5x5_nir
 
@@ -324,7 +324,7 @@ def _add_select(sub):
 def _cmd_select(args) -> int:
     from ..calibrate import Calibration
     from ..io import read_sweep
-    from ..validity import alpha_table
+    from ..leakage.validity import alpha_table
 
     sweep = read_sweep(args.sweep, overrides=input_overrides(args))
     cal = Calibration.load(args.calibration)

@@ -88,7 +88,7 @@ def read_training(args, inputs) -> list:
     """Training frames from ``inputs`` (``(path, fixed metadata)`` pairs, read with the
     command's input options), a summary of each printed; refuses inputs of other sensor sizes
     or mosaics than the first."""
-    from ..frame import Frame
+    from ..data.frame import Frame
     from ..io import read_sweep
 
     frames, first = [], None
@@ -280,7 +280,7 @@ def _exports(summary, fmt: str, *, overwrite: bool, compression=None) -> int:
 
 def _cmd_correct(args) -> int:
     from ..batch import correct_batch
-    from ..atomic import LOCK_NAME, check_output
+    from ..files.atomic import LOCK_NAME, check_output
     from ..batch.plan import discover_inputs, is_batch_output
 
     if args.pipeline is not None and (args.ffc is not None or args.linearise):

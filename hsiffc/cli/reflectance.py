@@ -187,7 +187,7 @@ def _add_check(acts):
 
 
 def _cmd_check(args) -> int:
-    from ..frame import Frame
+    from ..data.frame import Frame
     from ..io import read_sweep
     from ..reflectance import target_report
     from ..stages import Pipeline

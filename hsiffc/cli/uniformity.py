@@ -69,8 +69,8 @@ def _correction(args):
 def _cmd_uniformity(args) -> int:
     import numpy as np
 
-    from ..jsonsafe import json_safe
-    from ..frame import Frame
+    from ..files.jsonsafe import json_safe
+    from ..data.frame import Frame
     from ..io import read_sweep
     from ..reports.sweep_uniformity import (dark_frames_by_exposure, plot_uniformity,
                                             summarise, sweep_uniformity, to_json)
@@ -113,7 +113,7 @@ def _cmd_uniformity(args) -> int:
     if args.json is not None:
         write_json(args.json, json_safe(to_json(steps, methods, summary)))
     if args.plot:
-        from ..atomic import atomic_path
+        from ..files.atomic import atomic_path
 
         fig = plot_uniformity(steps, methods, title=str(args.sweep), ranges=ranges)
         with atomic_path(args.plot) as tmp:

@@ -2,7 +2,7 @@
 
 * :class:`Cube` - an ``(H, W, B)`` cube with its DQ and alpha, the bands' wavelengths, widths
   and mosaic positions, and its history; :meth:`Cube.from_frame` takes a reconstructed
-  :class:`~hsiffc.frame.Frame`, :meth:`Cube.sorted` orders the bands by wavelength.
+  :class:`~hsiffc.data.frame.Frame`, :meth:`Cube.sorted` orders the bands by wavelength.
 * :func:`write_cube` - one function for every format (:data:`FORMATS`): the hsiffc TIFF,
   ENVI (bands by wavelength, DQ as its own file), OME-TIFF (channels named by wavelength),
   netCDF and zarr (through xarray, optional). Every file carries the DQ bit table.

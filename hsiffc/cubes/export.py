@@ -43,7 +43,7 @@ def export_files(path, fmt: str, prov: dict) -> list[Path]:
 def cube_from_corrected(prov: dict, k: int, data, dq, alpha, *, source: str = "") -> Cube:
     """Frame ``k`` of a corrected file as a :class:`Cube`: the stored cube with the bands its
     provenance describes, or, for a mosaic frame, one spectrum per tile."""
-    from ..mosaic import Mosaic
+    from ..data.mosaic import Mosaic
     from ..reconstruct import reconstruct_alpha, tile_cube
     from ..stages.reconstruct import band_positions
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
-from ..dq import DQ
+from ..files.atomic import atomic_path
+from ..data.dq import DQ
 
 __all__ = ["quicklook"]
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..dq import DQ_DTYPE, as_dq
+from ..data.dq import DQ_DTYPE, as_dq
 
 __all__ = ["Cube", "default_bands"]
 
@@ -69,7 +69,7 @@ class Cube:
     data : (H, W, B) float32
         Values in :attr:`unit` (DN unless a stage changed the unit).
     dq : (H, W, B) uint32
-        :class:`hsiffc.dq.DQ` bits.
+        :class:`hsiffc.data.dq.DQ` bits.
     alpha : (H, W, B) float32 or None
         Leakage percentage (percent), None when the pipeline computed none.
     wavelengths_nm, fwhm_nm : tuple of B floats, or None
@@ -133,7 +133,7 @@ class Cube:
 
     @classmethod
     def from_frame(cls, frame) -> "Cube":
-        """The cube of a reconstructed :class:`~hsiffc.frame.Frame` (``frame.is_cube``), with
+        """The cube of a reconstructed :class:`~hsiffc.data.frame.Frame` (``frame.is_cube``), with
         the wavelengths, widths and positions the reconstruct stage recorded."""
         if not frame.is_cube:
             raise ValueError("this frame is a 2-D mosaic, not a cube: add a reconstruct stage "

@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from ..atomic import atomic_path
-from ..dq import TABLE_VERSION, table
+from ..files.atomic import atomic_path
+from ..data.dq import TABLE_VERSION, table
 from ..errors import DataFormatError, HsiffcError
-from ..jsonsafe import json_safe
+from ..files.jsonsafe import json_safe
 
 __all__ = ["FORMATS", "COMPRESSIONS", "format_for", "cube_files", "write_cube"]
 
@@ -99,7 +99,7 @@ def write_cube(cube, path, *, format: str | None = None, compression: str | None
     Parameters
     ----------
     cube : Cube or Frame
-        A :class:`~hsiffc.cubes.Cube` or a reconstructed :class:`~hsiffc.frame.Frame`.
+        A :class:`~hsiffc.cubes.Cube` or a reconstructed :class:`~hsiffc.data.frame.Frame`.
     path : str or Path
         The main file (its suffix chooses the format when ``format`` is None).
     format : {"tiff", "envi", "ome", "netcdf"}, optional

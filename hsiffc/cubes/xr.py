@@ -15,9 +15,9 @@ import json
 
 import numpy as np
 
-from ..dq import TABLE_VERSION, table
+from ..data.dq import TABLE_VERSION, table
 from ..errors import HsiffcError
-from ..jsonsafe import json_safe
+from ..files.jsonsafe import json_safe
 
 __all__ = ["require_xarray", "to_xarray"]
 
@@ -39,7 +39,7 @@ def dq_attrs() -> dict:
     return {"flag_masks": np.array([r["value"] for r in rows], np.uint32),
             "flag_meanings": " ".join(r["name"] for r in rows),
             "dq_bits": json.dumps(rows), "dq_table_version": TABLE_VERSION,
-            "long_name": "data-quality bits (hsiffc.dq.DQ)"}
+            "long_name": "data-quality bits (hsiffc.data.dq.DQ)"}
 
 
 def _text(value) -> str:
@@ -52,7 +52,7 @@ def to_xarray(cube, *, sort: bool = True):
     Parameters
     ----------
     cube : Cube or Frame
-        A :class:`~hsiffc.cubes.Cube`, or a reconstructed :class:`~hsiffc.frame.Frame`.
+        A :class:`~hsiffc.cubes.Cube`, or a reconstructed :class:`~hsiffc.data.frame.Frame`.
     sort : bool
         Order the bands by wavelength, ascending (default).
 

@@ -10,5 +10,5 @@
 - :mod:`.params` - parameter declarations and checks shared by stages and functions;
 - :mod:`.products` - the versioned product file (arrays + JSON manifest, no pickle).
 
-This layer imports only :mod:`hsiffc.errors`, :mod:`hsiffc._shared` and :mod:`hsiffc.kernels`.
+This layer imports only :mod:`hsiffc.errors`, :mod:`hsiffc.files` and :mod:`hsiffc.kernels`.
 """

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kernels.bands import band_sums
+from ..kernels.bands import band_sums
 from .mosaic import row_period
 from .params import validate_method
 
@@ -37,7 +37,7 @@ def band_layout(values, band_map, mask=None, mask_name: str = "good", *,
     -------
     band_map : ndarray
     period : int
-        :func:`hsiffc.mosaic.row_period` of the map (0 if unknown).
+        :func:`hsiffc.data.mosaic.row_period` of the map (0 if unknown).
     n_bands : int
         ``band_map.max() + 1``.
 

@@ -58,10 +58,10 @@ def as_dq(plane, name: str = "dq") -> np.ndarray:
         return a
     if a.dtype.kind not in "biu":
         raise ValueError(f"{name} must hold integer DQ bits (uint32), got dtype {a.dtype}; "
-                         f"build it with hsiffc.dq.empty_dq or from DQ flags")
+                         f"build it with hsiffc.data.dq.empty_dq or from DQ flags")
     if a.dtype.kind == "i" and a.size and a.min() < 0:
         raise ValueError(f"{name} holds negative values (min {a.min()}); DQ bits are unsigned: "
-                         "build it with hsiffc.dq.empty_dq or from DQ flags")
+                         "build it with hsiffc.data.dq.empty_dq or from DQ flags")
     if a.size and a.dtype.itemsize > 4 and a.max() > np.iinfo(DQ_DTYPE).max:
         raise ValueError(f"{name} holds values beyond 32 bits (max {a.max()}); DQ planes are "
                          "uint32")

@@ -57,7 +57,7 @@ class Frame:
     data : ndarray, float32
         DN (raw or corrected; never silently rescaled).
     dq : ndarray, uint32
-        :class:`hsiffc.dq.DQ` bits, same shape as ``data``.
+        :class:`hsiffc.data.dq.DQ` bits, same shape as ``data``.
     meta : mapping
         ``exposure_ms``, ``bit_depth``, ``mosaic`` (Mosaic or None), ``kind`` ("light"/"dark"),
         ``illumination``, ``wavelengths_nm`` (cubes), ``history`` (tuple of dicts, one per stage
@@ -215,11 +215,11 @@ class Frame:
         return out
 
     def dark_subtracted(self, dark, *, signal=None, **meta) -> "Frame":
-        """This frame less ``dark`` (DN, :func:`hsiffc.dark.subtract_dark`: float32, nothing
+        """This frame less ``dark`` (DN, :func:`hsiffc.data.dark.subtract_dark`: float32, nothing
         clipped), with ``dark_removed`` set and ``meta`` merged. Its :attr:`raw` is this
         frame's data itself: exact (no ``(raw - dark) + dark`` rounding) and not recomputed.
         ``signal`` is that difference when a fused pass already computed it
-        (:func:`hsiffc.validity.subtract_dark_and_flag`). Raises ValueError when a dark was
+        (:func:`hsiffc.leakage.validity.subtract_dark_and_flag`). Raises ValueError when a dark was
         removed already."""
         if self.dark_removed is not None:
             raise ValueError("this frame is already dark-subtracted; a pipeline should have one "
@@ -311,7 +311,7 @@ class Frame:
         table) and ``alpha``; history in the attributes (:func:`hsiffc.cubes.to_xarray`;
         needs xarray: ``pip install 'hsiffc[xarray]'``). Raises ValueError for a mosaic
         frame."""
-        from .cubes import to_xarray
+        from ..cubes import to_xarray
 
         return to_xarray(self, sort=sort)
 

@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import ParameterError
+from ..errors import ParameterError
 
 KINDS = ("number", "integer", "choice", "bool", "string", "path", "calibration")
 
@@ -95,9 +95,10 @@ class Param:
         if self.kind == "path":
             return isinstance(value, (str, Path))
         if self.kind == "calibration":
-            from .calibrate.product import Calibration
-
-            return isinstance(value, (str, Path, Calibration))
+            # a path, or a calibration object (hsiffc.calibrate.Calibration, recognised by its
+            # compatibility check: the data model does not import the layer above it)
+            return isinstance(value, (str, Path)) or callable(getattr(value,
+                                                                      "check_compatible", None))
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             return False
         if self.kind == "integer" and not float(value).is_integer():

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .jsonsafe import json_safe
-from .atomic import atomic_path
-from .errors import DataFormatError, HsiffcError
+from .. import __version__
+from ..files.jsonsafe import json_safe
+from ..files.atomic import atomic_path
+from ..errors import DataFormatError, HsiffcError
 
 
 MANIFEST = "manifest.json"
@@ -37,7 +37,7 @@ def write_product(path, *, format: str, format_version: int, manifest: dict, arr
         Product type and schema version, stored first in the manifest.
     manifest : dict
         Description: plain values, numpy scalars or arrays and paths (converted by
-        :func:`hsiffc.jsonsafe.json_safe`; non-finite floats become null).
+        :func:`hsiffc.files.jsonsafe.json_safe`; non-finite floats become null).
     arrays : dict of str to ndarray
         Names must not be ``manifest.json``.
     overwrite : bool
@@ -59,14 +59,14 @@ def write_product(path, *, format: str, format_version: int, manifest: dict, arr
 
 
 def read_product(path, *, format: str, format_version: int, remedy: str,
-                 limits=None) -> tuple[dict, dict]:
+                 limits=None, state_schema=None) -> tuple[dict, dict]:
     """Read and check a product file.
 
     Nothing is inflated before it is checked: the manifest (at most 64 MiB) is read first,
     then every array's ``.npy`` header (dtype, shape) is checked against the product's schema
     (:func:`check_product`: numeric dtypes, shapes consistent with each other and with the
     manifest, JSON types and list lengths, the size limits of
-    :class:`hsiffc.io.limits.ReadLimits`), and only then are the arrays read.
+    :class:`hsiffc.files.limits.ReadLimits`), and only then are the arrays read.
 
     Parameters
     ----------
@@ -76,7 +76,9 @@ def read_product(path, *, format: str, format_version: int, remedy: str,
     remedy : str
         How to make a good file (ends the "not found" and "unreadable" messages).
     limits : ReadLimits, optional
-        Size limits (default :func:`hsiffc.io.limits.default_limits`).
+        Size limits (default :func:`hsiffc.files.limits.default_limits`).
+    state_schema : callable, optional
+        Passed to :func:`check_product`.
 
     Returns
     -------
@@ -90,8 +92,8 @@ def read_product(path, *, format: str, format_version: int, remedy: str,
         a newer schema, or content that breaks the schema; one line naming the file and the
         field.
     """
-    from .atomic import require_regular_input
-    from .io.limits import default_limits
+    from ..files.atomic import require_regular_input
+    from ..files.limits import default_limits
 
     path = Path(path)
     if not path.exists():
@@ -106,7 +108,7 @@ def read_product(path, *, format: str, format_version: int, remedy: str,
                                       path=path)
             manifest = _manifest(zf, headers.pop(MANIFEST), path, format, format_version)
             check_product(format, manifest, {k: h[:2] for k, h in headers.items()}, path=path,
-                          limits=limits, remedy=remedy)
+                          limits=limits, remedy=remedy, state_schema=state_schema)
             arrays = {}
             for name, (_, _, member) in headers.items():
                 with zf.open(member) as fh:
@@ -152,7 +154,7 @@ def _npy_headers(zf, path, remedy: str) -> dict:
 
 
 def _manifest(zf, header, path, format: str, format_version: int) -> dict:
-    from .io.parsers import load_json
+    from ..files.parsers import load_json
 
     shape, dtype, info = header
     if dtype != np.uint8 or len(shape) != 1 or shape[0] > _MANIFEST_MAX:
@@ -311,9 +313,7 @@ def _check_calibration(dims: _Dims, where: str, manifest, headers: dict) -> None
     _check_arrays(dims, where, {k: (_NUMERIC, ("H", "W")) for k in headers}, headers, {})
 
 
-def _check_pipeline(dims: _Dims, manifest: dict, headers: dict) -> None:
-    from .stages import registry
-
+def _check_pipeline(dims: _Dims, manifest: dict, headers: dict, state_schema) -> None:
     steps = manifest.get("steps")
     if not isinstance(steps, list) or not steps:
         dims.fail("the manifest's field 'steps'", "is not a non-empty list")
@@ -343,11 +343,7 @@ def _check_pipeline(dims: _Dims, manifest: dict, headers: dict) -> None:
             if state:
                 dims.fail(f"{where} array {next(iter(state))!r}", "belongs to no fitted state")
             continue
-        try:
-            stage_cls = registry.get(spec["stage"])
-        except KeyError:
-            continue  # reported by Pipeline.load, naming the stage
-        schema = getattr(stage_cls, "state_schema", None) or STATE_SCHEMAS.get(spec["stage"])
+        schema = (state_schema or STATE_SCHEMAS.get)(spec["stage"])
         if schema is None:  # a plugin that declares nothing: numbers only (checked already)
             continue
         _check_fields(dims, f"{where} state", schema, spec["state"])
@@ -358,7 +354,7 @@ def _check_pipeline(dims: _Dims, manifest: dict, headers: dict) -> None:
 
 
 def check_product(format: str, manifest: dict, headers: dict, *, path, limits,
-                  remedy: str = "write it again with hsiffc") -> None:
+                  remedy: str = "write it again with hsiffc", state_schema=None) -> None:
     """The one schema check of what a product file holds, run on the manifest and the arrays'
     ``.npy`` headers before any array is read.
 
@@ -381,6 +377,10 @@ def check_product(format: str, manifest: dict, headers: dict, *, path, limits,
     limits : ReadLimits
     remedy : str
         How to make a good file (ends the messages).
+    state_schema : callable, optional
+        Stage name -> the schema of its fitted state, or None to check numbers only (the
+        pipeline passes its registry's lookup: a plugin stage's own ``state_schema``); default
+        :data:`STATE_SCHEMAS`.
 
     Raises
     ------
@@ -394,4 +394,4 @@ def check_product(format: str, manifest: dict, headers: dict, *, path, limits,
     if format == "hsiffc-calibration":
         _check_calibration(dims, "the calibration", manifest, headers)
     elif format == "hsiffc-pipeline":
-        _check_pipeline(dims, manifest, headers)
+        _check_pipeline(dims, manifest, headers, state_schema)

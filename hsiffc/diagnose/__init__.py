@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from ..errors import DataFormatError
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from . import design as ds
 from .bases import LeakageBase, LinearBase
 from .effects import ALIASES, EFFECTS, OUTSIDE, inject

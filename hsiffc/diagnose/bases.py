@@ -121,7 +121,7 @@ class LeakageBase(BaseModel):
         dc = super().measure_dc(y, t, r, valid, w, theta0)
         if not self.dark_current or theta0[:, 1].max() <= LINEAR_LN_A + 1:
             return dc
-        from .. import model as leakage_model
+        from ..leakage import model as leakage_model
 
         wd = np.where(valid & (np.broadcast_to(r, y.shape) == 0), w, 0.0)
         a, b = np.exp(theta0[:, 1:2]), np.exp(theta0[:, 2:3])

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..calibrate.samples import collect_samples, photon_transfer
 from ..errors import DataFormatError
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from .bases import dark_current_from_darks
 
 MIN_SEPARABLE = 0.02  # smallest fraction of an effect the base must leave separable

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, atomic_write_text
+from ..files.atomic import atomic_path, atomic_write_text
 from ..simulate import PAPER_LIGHT_W_M2, MosaicSensor, SensorParams
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 
 DESIGNS = ("mixed", "exposure", "light")
 
@@ -128,7 +128,7 @@ def write_emva1288(sweep: Sweep, folder, *, overwrite: bool = False) -> Path:
 
     Raises
     ------
-    hsiffc.atomic.OutputExistsError
+    hsiffc.files.atomic.OutputExistsError
         A file to write exists and ``overwrite`` is false.
     ValueError
         A light step has no photon count.

@@ -300,7 +300,7 @@ def truth_terms(sweep) -> dict:
     ValueError
         The sweep has no ``meta["truth"]``.
     """
-    from .. import model as leakage_model
+    from ..leakage import model as leakage_model
 
     truth = sweep.meta.get("truth")
     if truth is None:
@@ -353,7 +353,7 @@ def effect_term(sweep, name: str, size: float, *, seed: int = 0, in_well: bool =
     -------
     ndarray, (P, S), DN
     """
-    from .. import model as leakage_model
+    from ..leakage import model as leakage_model
 
     c = truth_terms(sweep) if terms is None else terms
     t, light = c["t"], c["light"]

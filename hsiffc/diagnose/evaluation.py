@@ -646,7 +646,7 @@ def write_page(page: Path, text: str) -> None:
     ValueError
         The page lacks the markers.
     """
-    from ..atomic import atomic_write_text
+    from ..files.atomic import atomic_write_text
 
     begin, end = "<!-- BEGIN evaluation -->", "<!-- END evaluation -->"
     doc = page.read_text()
@@ -706,7 +706,7 @@ def main(argv=None) -> int:
     text = markdown(summary, shared, how)
     print(text)
     if args.json:
-        from ..atomic import atomic_write_text
+        from ..files.atomic import atomic_write_text
         atomic_write_text(args.json, json.dumps({"summary": summary, "shared": shared,
                                                  "cases": results}, indent=1, default=str)
                           + "\n", overwrite=True)

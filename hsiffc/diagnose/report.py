@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, atomic_write_text
+from ..files.atomic import atomic_path, atomic_write_text
 from .effects import EFFECTS
 from .structure import bin_index
 

@@ -22,10 +22,10 @@ CMOS = "emva1288-cmos8-roi"
 
 def main(argv=None) -> int:
     """Parse ``argv``, compare, write the pages, print the table."""
-    from ..atomic import atomic_write_text, write_policy
+    from ..files.atomic import atomic_write_text, write_policy
     from ..errors import HsiffcError
     from ..io import read_emva1288
-    from ..jsonsafe import json_safe
+    from ..files.jsonsafe import json_safe
     from . import run_characterisation, write_report
     from .agreement import compare_with_reference, render_agreement
 

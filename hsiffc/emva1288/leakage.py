@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import model
+from ..leakage import model
 from ..errors import CalibrationMismatchError
 from .compute import LINEARITY_RANGE, _relative_fit, saturation_index
 

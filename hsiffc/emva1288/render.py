@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_write_text
-from ..jsonsafe import json_safe
+from ..files.atomic import atomic_write_text
+from ..files.jsonsafe import json_safe
 from ..reports.figures import save_figure
 from . import plot
 from .compute import FIGURES

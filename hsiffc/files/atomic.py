@@ -43,7 +43,7 @@ import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .errors import HsiffcError
+from ..errors import HsiffcError
 
 __all__ = ["FolderLockedError", "OutputError", "OutputExistsError", "WritePolicy",
            "atomic_path", "atomic_write_bytes", "atomic_write_text", "check_output",
@@ -98,7 +98,7 @@ def require_regular_input(path, *, what: str = "input") -> os.stat_result:
     DataFormatError
         Missing, or not a regular file; one line naming the file and what it is.
     """
-    from .errors import DataFormatError
+    from ..errors import DataFormatError
 
     try:
         st = os.stat(path)

@@ -1,4 +1,4 @@
-"""The lock that keeps two batch runs out of one output folder (see :mod:`hsiffc.atomic`)."""
+"""The lock that keeps two batch runs out of one output folder (see :mod:`hsiffc.files.atomic`)."""
 
 from __future__ import annotations
 
@@ -83,7 +83,7 @@ _RECORD_MAX = 4096  # a lock record (pid, host, start, command) is a few hundred
 def _open_lock(lock: Path) -> int:
     """Open (or create) the lock file without following a link, without blocking on a FIFO
     and without truncating anything; refuse any lock file that is not a regular file with one
-    name holding nothing but a lock record (:func:`hsiffc.atomic.require_private_file`)."""
+    name holding nothing but a lock record (:func:`hsiffc.files.atomic.require_private_file`)."""
     with contextlib.suppress(FileNotFoundError):
         st = os.lstat(lock)
         if stat.S_ISLNK(st.st_mode):

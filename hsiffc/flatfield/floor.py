@@ -1,13 +1,13 @@
 """The fixed-pattern floor a calibration sweep sets for the model-based flat field.
 
-A model-based correction (:mod:`hsiffc.model_ffc`) divides each pixel's linearised response by
+A model-based correction (:mod:`hsiffc.flatfield.model_based`) divides each pixel's linearised response by
 its fitted responsivity g after inverting the fitted leakage (a, b) from the fitted dark level.
 All of them come from one joint fit per pixel over the sweep, so their errors are correlated:
 on a typical sweep ln a and ln b are anticorrelated at -0.99 and more, since the bent samples
 fix the response where they are, not a and b separately. The calibration stores each
 parameter's sigma but not these correlations, and without them the error where leakage bends
 the response cannot be propagated (the sigmas alone overstate it many times, and leaving a and
-b out, as :func:`hsiffc.model_ffc.correction_uncertainty` does, understates it).
+b out, as :func:`hsiffc.flatfield.model_based.correction_uncertainty` does, understates it).
 
 This module computes that floor from the sweep's *design* instead: the Fisher information of
 the per-pixel model ``Y = response(t, g r + dc, a, b, d)`` over the sweep's steps (exposure t,
@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import model
+from ..leakage import model
 
 __all__ = ["PARAMETERS", "parameter_covariance", "sweep_floor"]
 
@@ -101,7 +101,7 @@ def parameter_covariance(exposure_ms, light_level, responsivity, a, b, dark, dar
 def sweep_floor(response, exposure_ms: float, covariance, a, b, dark, dark_current):
     """Smallest relative error (fraction, 1 sigma) of each pixel corrected from the sweep alone.
 
-    The corrected value is ``k(Y; a, b, dark + dc t) t / g`` (:func:`hsiffc.model_ffc.
+    The corrected value is ``k(Y; a, b, dark + dc t) t / g`` (:func:`hsiffc.flatfield.model_based.
     model_ffc_apply` with the sweep's factor); its gradient in (ln g, ln a, ln b, dark, dc)
     at the response Y, through the covariance of :func:`parameter_covariance`.
 

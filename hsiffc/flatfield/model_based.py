@@ -7,14 +7,14 @@ model, ``dY/dt = k - a e^{bY}`` with ``k = g r`` (responsivity g times the light
 r) from a fit over a whole sweep. The model-based correction uses it:
 
 1. invert the model per pixel: the light rate k that explains the response Y at exposure t,
-   starting from the dark level (:func:`hsiffc.model.invert_response`);
+   starting from the dark level (:func:`hsiffc.leakage.model.invert_response`);
 2. divide by the pixel's responsivity relative to its band's mean, ``g / mean_band(g)``;
 3. return ``k t mean_band(g) / g``: DN above dark on the band-mean scale, linear in the light,
    at the frame's exposure. A uniform scene gives a uniform frame at every level the model
    describes, and a spectrum keeps its shape however far leakage bent the raw response.
 
 The relative responsivity is estimated from all training data
-(:func:`hsiffc.model_flat.model_flat_fit`): the sweep fit's ``g`` (with its uncertainty
+(:func:`hsiffc.flatfield.model_flat.model_flat_fit`): the sweep fit's ``g`` (with its uncertainty
 ``sigma_ln_g``) and, where flat stacks are given (many frames at one level), each stack's own
 estimate ``k_flat / mean_band(k_flat)`` with its temporal noise. They are combined per pixel
 with inverse-variance weights in ln g. The spread of the difference between the two estimates
@@ -27,7 +27,7 @@ error of the combined factor and of the dark (:func:`correction_uncertainty`): o
 sensor of the tests model_ffc reaches 0.81-1.03 times it. Where leakage bends the response the
 correction rests on the sweep's fitted a and b, whose errors are strongly correlated with each
 other (about -0.998) and with g; the calibration stores per-parameter sigmas only, so that part
-of the floor cannot be computed from the calibration. :mod:`hsiffc.ffc_floor` computes it from
+of the floor cannot be computed from the calibration. :mod:`hsiffc.flatfield.floor` computes it from
 the sweep's design (the fit's Cramer-Rao bound with the full covariance): model_ffc is at
 0.95-1.11 times it at alpha 5.5-50 % (0.15-0.34 %, rising with alpha). Lowering it needs more
 information on a and b (more frames or light levels in the bent part of the sweep), not another
@@ -40,11 +40,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import model
-from .dq import DQ, DQ_DTYPE
-from .kernels.leakage import BLOCK
-from .kernels.modelffc import model_ffc_finish, model_ffc_kernel, pending_indices
-from .kernels.operands import flat_operands
+from ..leakage import model
+from ..data.dq import DQ, DQ_DTYPE
+from ..kernels.leakage import BLOCK
+from ..kernels.modelffc import model_ffc_finish, model_ffc_kernel, pending_indices
+from ..kernels.operands import flat_operands
 
 #: convergence tolerance (DN) of the leakage inversion inside the correction
 _TOL_DN = 1e-9
@@ -85,9 +85,9 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     dark : (H, W) array_like, DN
         Level the response starts from at t = 0 (a master dark, or the calibration's dark).
     gain : (H, W) array_like
-        :attr:`~hsiffc.model_flat.ModelFlat.gain`.
+        :attr:`~hsiffc.flatfield.model_flat.ModelFlat.gain`.
     gain_sweep : (H, W) array_like, optional
-        :attr:`~hsiffc.model_flat.ModelFlat.gain_sweep` (None: ``gain`` at every level).
+        :attr:`~hsiffc.flatfield.model_flat.ModelFlat.gain_sweep` (None: ``gain`` at every level).
     flat_alpha_percent : float
         Model alpha (percent) at which the flat stacks' share has gone to zero.
     dark_current : (H, W) array_like or float, DN/ms
@@ -161,7 +161,7 @@ def correction_uncertainty(response, exposure_ms: float, a, b, dark, sigma_ln_ga
     the linear range. Where leakage bends the response the errors of the fitted a and b add;
     they are not included (the calibration stores their sigmas but not their strong mutual
     correlation, and without it the propagated error is far too large): for that floor use
-    :func:`hsiffc.ffc_floor.sweep_floor` with the sweep's design.
+    :func:`hsiffc.flatfield.floor.sweep_floor` with the sweep's design.
 
     Parameters
     ----------
@@ -169,7 +169,7 @@ def correction_uncertainty(response, exposure_ms: float, a, b, dark, sigma_ln_ga
     exposure_ms : float, ms (> 0)
     a, b, dark : (H, W) array_like
     sigma_ln_gain : (H, W) array_like
-        :attr:`~hsiffc.model_flat.ModelFlat.sigma_ln_gain`.
+        :attr:`~hsiffc.flatfield.model_flat.ModelFlat.sigma_ln_gain`.
     sigma_dark_dn : (H, W) array_like or float
         The calibration's ``sigma_dark_dn``.
 

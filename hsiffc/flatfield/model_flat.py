@@ -1,7 +1,7 @@
 """The model-based flat field's training (array functions): each pixel's responsivity
 relative to its band's, combined from the sweep fit and from flat stacks
 (:func:`model_flat_fit`). The correction that uses it, and what limits both, are in
-:mod:`hsiffc.model_ffc`."""
+:mod:`hsiffc.flatfield.model_based`."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import model
-from .bandstats import band_reduce
-from .dq import DQ, DQ_DTYPE
+from ..leakage import model
+from ..data.bandstats import band_reduce
+from ..data.dq import DQ, DQ_DTYPE
 
 __all__ = ["UNUSABLE", "FlatStack", "ModelFlat", "flat_responsivity", "model_flat_fit",
            "relative_responsivity"]

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bandstats import band_reduce
-from .dq import DQ, DQ_DTYPE
+from ..data.bandstats import band_reduce
+from ..data.dq import DQ, DQ_DTYPE
 
 
 @dataclass(frozen=True)

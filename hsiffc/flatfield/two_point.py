@@ -13,16 +13,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bandstats import band_layout, band_reduce
-from .dark import subtract_dark
-from .dq import DQ, DQ_DTYPE
-from .kernels.bands import band_scale_kernel, band_sums, phase_scale_kernel, scale_kernel
-from .kernels.launch import PARALLEL_MIN
-from .kernels.operands import flat_operands
-from .mosaic import row_period
-from .params import validate_method
-from .uniformity import (FixedPattern, fixed_pattern_nonuniformity,  # noqa: F401 (re-export)
-                         fixed_pattern_variance, uniformity_before_after)
+from ..data.bandstats import band_layout, band_reduce
+from ..data.dark import subtract_dark
+from ..data.dq import DQ, DQ_DTYPE
+from ..kernels.bands import band_scale_kernel, band_sums, phase_scale_kernel, scale_kernel
+from ..kernels.launch import PARALLEL_MIN
+from ..kernels.operands import flat_operands
+from ..data.mosaic import row_period
+from ..data.params import validate_method
+from .uniformity import (
+    FixedPattern,
+    fixed_pattern_nonuniformity,
+    fixed_pattern_variance,
+    uniformity_before_after,
+)
 
 NORMALISATIONS = ("paper", "mean_gain")
 #: flat-frame DQ bits that make a flat pixel unusable (it gets gain 1.0 and NO_FLAT)
@@ -108,7 +112,7 @@ def paper_ratio(raw, flat_mean, *, band_map=None, good=None) -> np.ndarray:
 def means_ratio(test_mean, flat_mean) -> np.ndarray:
     """:func:`paper_ratio` from the test image's per-band mean ``Avg(L3)`` (DN, NaN where
     undefined) when it is known already (a fused pass takes it:
-    :func:`hsiffc.validity.subtract_dark_and_flag`)."""
+    :func:`hsiffc.leakage.validity.subtract_dark_and_flag`)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.asarray(test_mean, np.float64) / np.asarray(flat_mean, np.float64)
     return np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0).astype(np.float32)
@@ -138,7 +142,7 @@ def two_point_apply(signal, gain, scale=1.0, *, band_map=None, dq=None) -> np.nd
     dq : (H, W) uint32 ndarray, optional
         The result's DQ, updated in place: where the product is not finite in float32 (NaN
         in, or beyond the float32 range) the value is set to 0 DN and flagged NONFINITE |
-        DO_NOT_USE, as :meth:`hsiffc.frame.Frame.from_raw` does. Without it such values stay
+        DO_NOT_USE, as :meth:`hsiffc.data.frame.Frame.from_raw` does. Without it such values stay
         as they are.
     """
     if band_map is not None:

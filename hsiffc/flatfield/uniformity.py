@@ -1,6 +1,6 @@
 """Fixed-pattern non-uniformity with the temporal noise taken out (EMVA 1288 way).
 
-Eq. (6) of the paper, ``100 * std / mean`` of one frame (:func:`hsiffc.ffc.uniformity`), mixes
+Eq. (6) of the paper, ``100 * std / mean`` of one frame (:func:`hsiffc.flatfield.two_point.uniformity`), mixes
 the two kinds of non-uniformity a sensor has: the *fixed pattern* (each pixel answers the same
 light a little differently, the same in every frame: what a flat-field correction can remove)
 and the *temporal noise* (shot and read noise, different in every frame: no correction can
@@ -268,7 +268,7 @@ def uniformity_before_after(frames, pipeline, *, dark=None) -> dict:
 
     Parameters
     ----------
-    frames : list of :class:`hsiffc.frame.Frame`
+    frames : list of :class:`hsiffc.data.frame.Frame`
         At least 2 raw frames of one illumination step (same exposure and light).
     pipeline : fitted Pipeline or stage
         Anything with ``transform(frame) -> Frame``.

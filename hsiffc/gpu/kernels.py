@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..dq import DQ
+from ..data.dq import DQ
 from ..kernels.demosaic import EPS
 from ..kernels.inversion import invert_point
 from ..kernels.leakage import alpha_model_point, alpha_paper_point, leakage_bits
@@ -56,7 +56,7 @@ def correct(raw, dq_in, has_dq_in, raw_full, t, dark, a32, b32, pix, const_bits,
             out, alpha_out, dq_out):
     """One pixel per thread: dark, paper alpha and DQ (the mask), then with ``do_ffc`` the
     model FFC. ``raw`` is the frame as read (any real dtype); without ``dq_in`` its DQ is what
-    :meth:`hsiffc.frame.Frame.from_raw` gives (SATURATED at ``raw_full``, non-finite values
+    :meth:`hsiffc.data.frame.Frame.from_raw` gives (SATURATED at ``raw_full``, non-finite values
     read as 0 with NONFINITE | DO_NOT_USE)."""
     c, r = cuda.grid(2)  # x (fastest) along the row: coalesced
     if r >= out.shape[0] or c >= out.shape[1]:

@@ -23,7 +23,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from ..dq import DQ, DQ_DTYPE
+from ..data.dq import DQ, DQ_DTYPE
 from ..errors import ParameterError
 
 __all__ = ["DATA_DTYPES", "DQ_DTYPES", "check_dtypes", "clip_half", "fold_dq8", "pack_cpu",

@@ -18,9 +18,9 @@ from collections import OrderedDict
 
 import numpy as np
 
-from ..dq import DQ, DQ_DTYPE
+from ..data.dq import DQ, DQ_DTYPE
 from ..errors import ParameterError
-from ..frame import Frame
+from ..data.frame import Frame
 from ..kernels.lattice import lattice_arrays
 from ..kernels.operands import float_array
 from ..reconstruct.prepare import band_medians, prepare
@@ -35,8 +35,8 @@ from .pack import DATA_DTYPES, check_dtypes, pack_cpu
 __all__ = ["GpuPipeline", "StreamItem"]
 
 _BLOCK = (32, 8)  # threads per block (x along the row); GpuPipeline.block may change it
-_TOL_DN = 1e-9  # hsiffc.model_ffc's tolerance of the inversion
-_MAX_ITER = 60  # hsiffc.model.invert_response's
+_TOL_DN = 1e-9  # hsiffc.flatfield.model_based's tolerance of the inversion
+_MAX_ITER = 60  # hsiffc.leakage.model.invert_response's
 
 
 class StreamItem:
@@ -51,7 +51,7 @@ class StreamItem:
         self.data, self.dq, self.alpha, self.meta = data, dq, alpha, meta
 
     def to_frame(self) -> Frame:
-        """As a :class:`~hsiffc.frame.Frame` (float32 data, uint32 DQ)."""
+        """As a :class:`~hsiffc.data.frame.Frame` (float32 data, uint32 DQ)."""
         return Frame(self.data.astype(np.float32), self.dq.astype(DQ_DTYPE), self.meta,
                      alpha=self.alpha)
 
@@ -397,7 +397,7 @@ class GpuPipeline:
     def stream(self, frames, *, exposure_ms=None, bit_depth=None, mosaic=None,
                data_dtype: str = "float32", dq_dtype: str = "uint32", alpha: bool = False,
                copy: bool = True):
-        """Correct ``frames`` (an iterable of :class:`~hsiffc.frame.Frame` or of raw 2-D
+        """Correct ``frames`` (an iterable of :class:`~hsiffc.data.frame.Frame` or of raw 2-D
         arrays, which then need ``exposure_ms``, ``bit_depth`` and, for a cube, ``mosaic``)
         and yield one :class:`StreamItem` per frame, in order.
 

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..batch.context import default_pipeline
 from ..calibrate import calibrate
-from ..dq import DQ_DTYPE
-from ..frame import Frame
+from ..data.dq import DQ_DTYPE
+from ..data.frame import Frame
 from ..simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from ..stages import Pipeline, create
+from ..stages.defaults import default_pipeline
 
 __all__ = ["compare", "compare_matrix", "holed", "matrix_pipeline", "pipelines", "scene"]
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from .corrected import read_corrected
 from .emva import read_emva1288
-from .limits import ReadLimits, default_limits
+from ..files.limits import ReadLimits, default_limits
 from .metadata import MetadataConflictWarning, Overrides
 from .quirks import LayoutWarning
 from .readers import ACCEPTED
@@ -30,7 +30,7 @@ __all__ = ["open_source", "FrameSource", "FrameMeta", "Overrides", "ReadLimits",
 
 
 def write_cube(cube, path, **options):
-    """Write a reconstructed cube (a :class:`~hsiffc.frame.Frame` or
+    """Write a reconstructed cube (a :class:`~hsiffc.data.frame.Frame` or
     :class:`~hsiffc.cubes.Cube`) with its DQ and alpha as hsiffc TIFF, ENVI, OME-TIFF or
     netCDF, chosen by ``format=`` or the file name; see :func:`hsiffc.cubes.write_cube`.
 

@@ -8,7 +8,7 @@ File layout
   entries; pages may be compressed, ``"compression"``)::
 
       page 3k + 0   data   float32 (H, W)   corrected frame k (DN)
-      page 3k + 1   dq     uint32  (H, W)   hsiffc.dq.DQ bits of frame k
+      page 3k + 1   dq     uint32  (H, W)   hsiffc.data.dq.DQ bits of frame k
       page 3k + 2   alpha  float32 (H, W)   leakage percentage alpha of frame k (NaN when the
                                             pipeline computes no alpha: "alpha_computed": false)
 
@@ -51,7 +51,7 @@ import tifffile
 from ..errors import DataFormatError
 from .corrected_format import FORMAT, FORMAT_VERSION, PLANE_DTYPES, PLANES, SUFFIX
 from .corrected_writer import BackgroundWriter, CorrectedWriter
-from .parsers import load_json
+from ..files.parsers import load_json
 from .tiffpages import TiffLog
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "PLANES", "SUFFIX", "BackgroundWriter", "Corrected",

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from ..dq import TABLE_VERSION as DQ_TABLE_VERSION
-from ..dq import table as dq_table
-from ..jsonsafe import json_safe
+from ..data.dq import TABLE_VERSION as DQ_TABLE_VERSION
+from ..data.dq import table as dq_table
+from ..files.jsonsafe import json_safe
 from .corrected_format import FORMAT, FORMAT_VERSION, PLANE_DTYPES, PLANES
 
 __all__ = ["BackgroundWriter", "CorrectedWriter"]
@@ -36,7 +36,7 @@ def _dumps(doc: dict) -> str:
 class CorrectedWriter:
     """Write corrected frames or cubes page by page (one page per plane and frame) to ``path``.
 
-    ``path`` is normally the temporary file of :func:`hsiffc.atomic.atomic_path`; this class
+    ``path`` is normally the temporary file of :func:`hsiffc.files.atomic.atomic_path`; this class
     does not rename anything. Call :meth:`write` once per frame, then :meth:`finish` with the
     final provenance (it replaces the placeholder description and sets ``"status":
     "complete"``). Memory: one frame at a time (plus one NaN plane when alpha is missing).

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import DataFormatError
-from ..mosaic import Mosaic
-from ..sweep import FRAME_KINDS
+from ..data.mosaic import Mosaic
+from ..data.sweep import FRAME_KINDS
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "EXPOSURE_UNITS_MS", "MINIMAL_DOCUMENT",
            "exposure_to_ms", "parse_document", "document_fields", "is_hsiffc_document"]
@@ -106,7 +106,7 @@ def parse_document(description: str, path) -> dict:
     text = description.strip()
     if not text.startswith("{"):
         raise DataFormatError(f"plain TIFF without hsiffc metadata; {hint}", path=path)
-    from .parsers import load_json
+    from ..files.parsers import load_json
 
     doc = load_json(text, path=path, what="ImageDescription", hint=hint)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:

@@ -30,12 +30,12 @@ import numpy as np
 import tifffile
 
 from ..errors import DataFormatError
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from .document import EXPOSURE_UNITS_MS, exposure_to_ms
 from .emva_descriptor import (DEFAULT_DESCRIPTOR_NAME, emva_files, find_emva_descriptor,
                               has_emva_descriptor, image_path, parse_descriptor)
 from .layout import FileLayout
-from .limits import ReadLimits, default_limits
+from ..files.limits import ReadLimits, default_limits
 
 __all__ = ["read_emva1288", "open_emva1288", "find_emva_descriptor", "has_emva_descriptor",
            "emva_files", "DEFAULT_DESCRIPTOR_NAME"]
@@ -48,7 +48,7 @@ def _load_image(image: Path, descriptor: Path, lineno: int, shape: tuple) -> np.
     TIFF page) that it is one plane of the size the ``n`` line declares: the descriptor's size
     is what the limits were checked against, so an image claiming more is refused before any
     pixel is decoded."""
-    from ..atomic import require_regular_input
+    from ..files.atomic import require_regular_input
     from .images import decode_png, png_header
 
     where = f"line {lineno}: image {image}"

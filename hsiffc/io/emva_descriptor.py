@@ -134,7 +134,7 @@ def image_path(name: str) -> str:
 
 
 def parse_descriptor(descriptor: Path):
-    from ..atomic import require_regular_input
+    from ..files.atomic import require_regular_input
 
     require_regular_input(descriptor, what="EMVA 1288 descriptor")
     try:

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..errors import DataFormatError
 from .layout import FileLayout
-from .limits import ReadLimits, default_limits
+from ..files.limits import ReadLimits, default_limits
 
 __all__ = ["parse_envi_header", "open_envi", "read_envi", "envi_paths", "ENVI_DTYPES"]
 

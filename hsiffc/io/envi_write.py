@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
+from ..files.atomic import atomic_path
 from ..errors import DataFormatError
 from .envi import ENVI_DTYPES
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import DataFormatError
 from .layout import FileLayout
-from .limits import ReadLimits
+from ..files.limits import ReadLimits
 
 __all__ = ["open_fits"]
 

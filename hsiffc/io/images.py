@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import DataFormatError
 from .layout import FileLayout
-from .limits import ReadLimits
+from ..files.limits import ReadLimits
 
 __all__ = ["check_png_data", "decode_png", "open_png", "png_header"]
 

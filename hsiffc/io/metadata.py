@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataFormatError, HsiffcWarning
-from ..mosaic import Mosaic
-from ..sweep import FRAME_KINDS
+from ..data.mosaic import Mosaic
+from ..data.sweep import FRAME_KINDS
 from .layout import FileLayout, PER_FRAME_FIELDS
 
 __all__ = ["Overrides", "ActiveArea", "MetadataConflictWarning", "parse_mosaic",

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..errors import DataFormatError
 from .layout import FileLayout
-from .limits import ReadLimits
+from ..files.limits import ReadLimits
 
 __all__ = ["open_layout", "list_folder", "expand_inputs", "IMAGE_SUFFIXES", "ACCEPTED"]
 
@@ -68,7 +68,7 @@ def open_layout(path, limits: ReadLimits) -> FileLayout:
     DataFormatError
         Unreadable, truncated or unsupported file, or a header over the limits.
     """
-    from ..atomic import require_regular_input
+    from ..files.atomic import require_regular_input
 
     path = Path(path)
     if not path.exists():

@@ -139,7 +139,7 @@ class Sidecar:
     def __init__(self, path):
         self.path = Path(path)
         self.rules: list[tuple[str, dict]] = []
-        from ..atomic import require_regular_input
+        from ..files.atomic import require_regular_input
 
         require_regular_input(self.path, what="sidecar")  # missing, or a FIFO: never opened
         try:
@@ -152,7 +152,7 @@ class Sidecar:
             self._parse_toml(text)
 
     def _parse_toml(self, text):
-        from .parsers import load_toml
+        from ..files.parsers import load_toml
 
         doc = load_toml(text, path=self.path, what="sidecar", hint="see the sidecar format in "
                         "docs/formats-and-metadata.md")

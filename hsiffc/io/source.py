@@ -29,11 +29,11 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import DataFormatError
-from ..frame import Frame
-from ..sweep import Sweep
+from ..data.frame import Frame
+from ..data.sweep import Sweep
 from . import quirks
 from .layout import FileLayout, FrameMeta
-from .limits import ReadLimits, default_limits
+from ..files.limits import ReadLimits, default_limits
 from .metadata import Overrides, resolve_fields
 from .readers import expand_inputs, open_layout
 from .sidecar import Sidecar, find_sidecar
@@ -52,7 +52,7 @@ def open_source(inputs, *, limits: ReadLimits | None = None, overrides: Override
         Files of any supported format, folders (their image files, sorted by name, or the
         EMVA 1288 measurement they hold) or glob patterns (``"raw/*.tif"``).
     limits : ReadLimits, optional
-        Size limits (default :func:`~hsiffc.io.limits.default_limits`).
+        Size limits (default :func:`~hsiffc.files.limits.default_limits`).
     overrides : Overrides, optional
         Metadata from the command line; or give its fields as keywords: ``exposure_ms``,
         ``bit_depth``, ``kind``, ``mosaic``, ``illumination``, ``bit_shift``, ``sidecar``.
@@ -298,7 +298,7 @@ class FrameSource:
         return self.n_frames
 
     def frames(self) -> Iterator[Frame]:
-        """Every frame as a :class:`~hsiffc.frame.Frame` (float32 DN, DQ plane), streamed.
+        """Every frame as a :class:`~hsiffc.data.frame.Frame` (float32 DN, DQ plane), streamed.
 
         Yields
         ------

@@ -120,7 +120,7 @@ def attach_wavelengths(mosaic, layouts, resolved):
     Mosaic or None
         The mosaic with the band centres, or ``mosaic`` unchanged.
     """
-    from ..mosaic import Mosaic
+    from ..data.mosaic import Mosaic
 
     wl = layouts[0].meta.get("wavelengths_nm")
     m = mosaic

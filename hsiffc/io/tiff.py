@@ -51,13 +51,13 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from ..jsonsafe import json_safe
-from ..atomic import atomic_path
+from ..files.jsonsafe import json_safe
+from ..files.atomic import atomic_path
 from ..errors import DataFormatError
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from .document import (EXPOSURE_UNITS_MS, FORMAT_NAME, FORMAT_VERSION, exposure_to_ms,
                        parse_document)
-from .limits import default_limits
+from ..files.limits import default_limits
 from .tiffpages import TIFF_SUFFIXES, open_tiff
 
 __all__ = ["write_sweep", "read_sweep_tiff", "FORMAT_NAME", "FORMAT_VERSION", "EXPOSURE_UNITS_MS",
@@ -182,7 +182,7 @@ def read_sweep_tiff(path) -> Sweep:
         Missing file, not a TIFF, truncated file, no or invalid hsiffc metadata, per-frame list
         lengths that do not match the page count, pages of different shapes or dtypes, missing
         bit depth, integer data above ``2**bit_depth - 1``, or a header over the size limits
-        (:mod:`hsiffc.io.limits`). Each message names the file, the problem and the fix.
+        (:mod:`hsiffc.files.limits`). Each message names the file, the problem and the fix.
         NaN/inf in float frames are *not* an error here.
     """
     from .metadata import Overrides

@@ -3,7 +3,7 @@
 One page is one frame. The header (every page's IFD) is parsed once and checked before any
 pixel is decoded:
 
-* size: frame size, frame count and bytes against :class:`~hsiffc.io.limits.ReadLimits`;
+* size: frame size, frame count and bytes against :class:`~hsiffc.files.limits.ReadLimits`;
 * codec: a compression this Python cannot decode is named, with the package that provides it
   (``imagecodecs``), instead of a vague "cannot read";
 * structure: every page's IFD and strips must lie inside the file, the last page must not point
@@ -31,8 +31,8 @@ import tifffile
 from ..errors import DataFormatError
 from .document import document_fields, is_hsiffc_document, parse_document
 from .layout import FileLayout
-from .limits import ReadLimits
-from .parsers import load_json
+from ..files.limits import ReadLimits
+from ..files.parsers import load_json
 
 __all__ = ["open_tiff", "TIFF_SUFFIXES", "CORRECTED_MARK"]
 

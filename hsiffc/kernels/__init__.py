@@ -1,7 +1,7 @@
 """Compiled (numba) kernels behind the array functions.
 
 Each kernel *is* the implementation of a public function elsewhere (e.g.
-:func:`hsiffc.model.response` validates and broadcasts its arguments, then calls
+:func:`hsiffc.leakage.model.response` validates and broadcasts its arguments, then calls
 :func:`hsiffc.kernels.leakage.response_kernel`); there is no second, pure-numpy copy.
 
 Compilation: ``cache=True`` stores the machine code next to this package (or in numba's user

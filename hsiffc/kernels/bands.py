@@ -1,5 +1,5 @@
-"""Compiled per-band sums (the body of :func:`hsiffc.bandstats.band_reduce` for the mean) and
-the two-point apply product (the body of :func:`hsiffc.ffc.two_point_apply`).
+"""Compiled per-band sums (the body of :func:`hsiffc.data.bandstats.band_reduce` for the mean) and
+the two-point apply product (the body of :func:`hsiffc.flatfield.two_point.two_point_apply`).
 
 One pass over the frame reads the values in their own dtype (no float64 copy), the band map
 and the good mask, and accumulates a sum and a count per band in float64; row blocks run in
@@ -107,7 +107,7 @@ def band_sums(values, band_map, good, n_bands: int, row_period: int = 0):
     n_bands : int
     row_period : int
         ``p`` > 0 if rows ``y`` and ``y + p`` of ``band_map`` hold the same bands (see
-        :func:`hsiffc.mosaic.row_period`): the faster phase-row sum; 0 if unknown.
+        :func:`hsiffc.data.mosaic.row_period`): the faster phase-row sum; 0 if unknown.
 
     Returns
     -------

@@ -28,14 +28,9 @@ stays far below the data's noise. Budget: every value within 2**-22 (4 float32 u
 the frame's largest value of the same interpolation in float64, and, for bilinear, within 4
 ulps of the value itself; PPID subtracts the PPI and adds it back, so its error scales with
 the frame, not with a value near zero (tested against ``cv2.sepFilter2D`` in float64 on five
-layouts). Measured against the former float64 kernel (rounded once into the float32 cube) on
-frames of about 3000 DN with 20 % flagged, tiles 2 x 4, 3 x 3, 4 x 4 and 5 x 5: at most
-4.9e-4 DN, 1.5e-7 of the largest value; bilinear at most 4 ulps, median 0. The read noise is
-about 1 DN. The twice-wide (S2) estimates and the PPI-undefined values stay in float64.
-DQ, alpha and the NaN / DO_NOT_USE decisions equal the float64 kernel's (the benchmark frame in
-six method, flag and alpha combinations). Interpolation kernel, 2048 x 1088, two threads,
-median of 5, the former kernel in the same run: PPID with flags and alpha 51.7 -> 45.8 ms,
-bilinear with flags and alpha 50.6 -> 43.3 ms, bilinear without either 22.0 -> 16.1 ms.
+layouts), far below a sensor's read noise. The twice-wide (S2) estimates and the
+PPI-undefined values stay in float64, and DQ, alpha and the NaN / DO_NOT_USE decisions do not
+depend on the precision. The kernel's speed is on the benchmarks page.
 """
 
 from __future__ import annotations
@@ -43,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..dq import DQ
+from ..data.dq import DQ
 from .lattice import lattice_arrays, split_lattices, tent_sums, wide_column_sums
 from .launch import JIT_OPTIONS, Kernel
 

@@ -1,6 +1,6 @@
 """The leakage model's response with its derivatives, per point, for fits (numba).
 
-:func:`hsiffc.model.response_and_gradient` and the calibration's per-pixel fit
+:func:`hsiffc.leakage.model.response_and_gradient` and the calibration's per-pixel fit
 (:mod:`hsiffc.calibrate.lm`) evaluate the model through these functions. The closed form of
 :mod:`hsiffc.kernels.leakage` reads, with ``x = b k t`` and ``c = a e^{b d}`` (the leakage rate
 at the dark level, DN/ms)::
@@ -18,7 +18,7 @@ from ``w2 = L / Z``, the leakage term's share (``L`` the second term)::
 the safe range; :func:`response_gradient_point` then uses the log-domain form. (The fit's
 loop over a pixel's ~20 samples ends in a reduction, which LLVM does not vectorise without
 fastmath, so libm's scalar exp and log are the faster choice here.) Precision: float64, the
-response within 1e-9 DN of :func:`hsiffc.model.response` (tests).
+response within 1e-9 DN of :func:`hsiffc.leakage.model.response` (tests).
 """
 
 from __future__ import annotations

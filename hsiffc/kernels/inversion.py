@@ -26,7 +26,7 @@ import numpy as np
 from numba import njit, prange
 from numba.extending import overload
 
-from ..dq import DQ
+from ..data.dq import DQ
 from .launch import JIT_OPTIONS, Kernel
 from .leakage import BLOCK
 from .operands import at, part
@@ -138,7 +138,7 @@ def _setup(y, t, a, b, d, full_scale, vec):
 def invert_point(y, t, a, b, d, full_scale, k_max, tol_dn, max_iter):
     """Light rate k (DN/ms), DQ flags and iterations for one pixel (scalar code).
 
-    Semantics as :func:`hsiffc.model.invert_response`; a bracketed Halley iteration.
+    Semantics as :func:`hsiffc.leakage.model.invert_response`; a bracketed Halley iteration.
     """
     flags, _, target, beta, c_ok, c, eb, h0, x0 = _setup(y, t, a, b, d, full_scale, False)
     if flags & _NONFINITE:

@@ -7,7 +7,7 @@ size. The serial build gets its own name so that numba's disk cache keeps the tw
 
 Cache freshness: numba invalidates a cached kernel when *its own* source file changes, not
 when a function it inlined from another file does. Both builds are therefore named with a
-digest of every source they can inline (this package and :mod:`hsiffc.dq`), so editing any of
+digest of every source they can inline (this package and :mod:`hsiffc.data.dq`), so editing any of
 them compiles afresh instead of loading stale machine code.
 """
 
@@ -36,7 +36,7 @@ PARALLEL_OPTIONS = {"fusion": False}
 def _source_digest() -> str:
     here = Path(__file__).resolve().parent
     h = hashlib.sha256()
-    for path in sorted(here.glob("*.py")) + [here.parent / "dq.py"]:
+    for path in sorted(here.glob("*.py")) + [here.parent / "data" / "dq.py"]:
         h.update(path.name.encode())
         h.update(path.read_bytes())
     return h.hexdigest()[:12]

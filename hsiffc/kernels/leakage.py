@@ -1,6 +1,6 @@
 """Compiled per-pixel kernels of the leakage model ``dY/dt = k - a e^{bY}`` (paper eq. 2).
 
-These are *the* implementations behind :mod:`hsiffc.model` (its public functions validate and
+These are *the* implementations behind :mod:`hsiffc.leakage.model` (its public functions validate and
 broadcast, then call a kernel here; the inversion is in :mod:`hsiffc.kernels.inversion`); the
 per-point functions (``response_point``, ``alpha_paper_point``, ...) are public so that other
 compiled code (e.g. a per-pixel calibration fit) evaluates the model with exactly the same
@@ -15,19 +15,13 @@ Kernels run a ``prange`` loop over blocks of :data:`BLOCK` pixels, each a compil
 function: a branch-free loop (vectorised by LLVM, 4 doubles per instruction on AVX2) for the
 common case, then a second loop repairs the rare pixels it cannot (over/underflow: the
 log-domain form) while the block is in cache. (LLVM does not vectorise the same loop written
-directly in the ``prange`` body: the alpha and DQ kernel ran 5.5 ms there against 3.6 ms
-blocked on a 2048 x 1088 frame, 2 threads.)
+directly in the ``prange`` body.)
 
 The response's vector loops call the short, range-restricted exponentials and logarithm of
 :mod:`~hsiffc.kernels.vmath` (``exp_clamped``, ``expm1_clamped``, ``log_positive``: no
 special-value selects, degree-11 and fdlibm's 7-term polynomials; their results are screened
-by the ``ok`` test and repaired as before). Measured on a 2048 x 1088 frame (the benchmark's
-simulated sensor, t = 25 ms), one thread (``NUMBA_NUM_THREADS=1``), process CPU time, median
-of 15, the previous kernel compiled in the same run: 21.7 -> 15.5 ms (1.40 x); max difference
-2.3e-13 DN, and no change in the ulp errors against 50-digit arithmetic
-(``tests/test_vmath_short.py``). Where the time goes now (block in cache, one thread, 7.0
-ns/px): the exponentials' loop 3.2 ns, the logarithm's loop (with the divisions for q, the
-log and 1/b) 3.2 ns, the domain count and repair scan 0.6 ns.
+by the ``ok`` test and repaired; their ulp errors against 50-digit arithmetic are tested in
+``tests/test_vmath_short.py``).
 """
 
 from __future__ import annotations
@@ -35,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..dq import DQ
+from ..data.dq import DQ
 from .bands import ROWS, add_row, fold_block
 from .launch import JIT_OPTIONS, Kernel
 from .operands import at, part

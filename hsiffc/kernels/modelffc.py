@@ -1,11 +1,11 @@
 """Compiled kernel of the model-based flat-field correction
-(:func:`hsiffc.model_ffc.model_ffc_apply`).
+(:func:`hsiffc.flatfield.model_based.model_ffc_apply`).
 
 Per block of pixels: the vectorised rounds of the inversion
 (:func:`~hsiffc.kernels.inversion.invert_rounds`, which give k and the model alpha), then one
 pass for the blend of the two responsivity factors by alpha, the corrected value and its DQ
 bits. The pixels the rounds leave (non-finite input, zero light, extreme parameters) are
-inverted again by the compiled inversion (:func:`hsiffc.model.invert_response`, bracketed
+inverted again by the compiled inversion (:func:`hsiffc.leakage.model.invert_response`, bracketed
 scalar iteration) and corrected by :func:`model_ffc_finish` with the same
 :func:`correct_point`: the scalar iteration is not compiled a second time into this kernel (it
 would double its compile time). Everything in float64; outputs stored as float32 (DN,
@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..dq import DQ
+from ..data.dq import DQ
 from .launch import JIT_OPTIONS, Kernel
 from .inversion import PENDING, ROUNDS, invert_rounds
 from .leakage import BLOCK, alpha_model_point
@@ -151,7 +151,7 @@ def _finish_loop(idx, k, flags, y, t, a, b, d, base, log_ratio, dark_current, ha
                  flat_alpha, alpha_limit, below_tol, out, dq_out, alpha_out):
     """Correct the pixels ``idx`` (those :data:`PENDING` after :data:`model_ffc_kernel`)
     from their rates ``k`` and flags found by the bracketed scalar inversion
-    (:func:`hsiffc.model.invert_response` on those pixels), in parallel (on a bright frame
+    (:func:`hsiffc.leakage.model.invert_response` on those pixels), in parallel (on a bright frame
     they are the saturated pixels: not few). Operands as in the kernel (flat arrays of every
     pixel, or scalars)."""
     for m in prange(idx.shape[0]):

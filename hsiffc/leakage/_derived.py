@@ -3,18 +3,18 @@
 Where leakage balances the light (the dynamic saturation level ``ln(k/a)/b``), the leakage
 rate ``a e^{bY}`` at a response, the leakage percentage alpha of eq. (4) (with k from the model,
 or as the paper computes it from the signal over the exposure) and the exposure at which the
-model response reaches a given alpha. Units as in :mod:`hsiffc.model`: ``t_ms`` in ms, ``k`` and
+model response reaches a given alpha. Units as in :mod:`hsiffc.leakage.model`: ``t_ms`` in ms, ``k`` and
 ``a`` in DN/ms, ``b`` in 1/DN, responses and dark levels in raw DN, alpha in percent. Every
-function broadcasts over arrays of any shape. All are also importable from :mod:`hsiffc.model`.
+function broadcasts over arrays of any shape. All are also importable from :mod:`hsiffc.leakage.model`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .kernels import leakage
-from .kernels.operands import flat_operands
-from .model_numerics import as_float64, check_positive_b, log1mexp, log_or_neg_inf
+from ..kernels import leakage
+from ..kernels.operands import flat_operands
+from ._numerics import as_float64, check_positive_b, log1mexp, log_or_neg_inf
 
 __all__ = [
     "dynamic_saturation_level",
@@ -196,7 +196,7 @@ def exposure_at_leakage_percentage(alpha_percent, k, a, b, dark):
 
     Examples
     --------
-    >>> from hsiffc.model import response
+    >>> from hsiffc.leakage.model import response
     >>> k, a, b, d = 2.0, 2 * np.exp(-8.0), 0.01, 50.0
     >>> t = exposure_at_leakage_percentage(50.0, k, a, b, d)
     >>> round(float(leakage_percentage(response(t, k, a, b, d), k, a, b)), 6)

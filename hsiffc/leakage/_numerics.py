@@ -1,7 +1,7 @@
 """Small numerical helpers shared by the leakage-model modules.
 
-:mod:`hsiffc.model` (the closed-form response and its inversion) and
-:mod:`hsiffc.model_derived` (saturation level, leakage rate and percentage) both convert their
+:mod:`hsiffc.leakage.model` (the closed-form response and its inversion) and
+:mod:`hsiffc.leakage._derived` (saturation level, leakage rate and percentage) both convert their
 arguments to float64, take logarithms that map 0 to ``-inf`` quietly, need ``log(1 - e^{-x})``
 accurately and refuse a non-positive leakage exponent ``b``; those four pieces live here.
 """

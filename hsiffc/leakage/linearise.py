@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import model
-from .dq import DQ, DQ_DTYPE
+from ..data.dq import DQ, DQ_DTYPE
 from .validity import alpha_model
 
 
@@ -29,7 +29,7 @@ class Linearised:
         Inversion flags (BELOW_DARK, SATURATED, UNREACHABLE, NOT_CONVERGED) and LEAKAGE where
         the model alpha is over the limit or undefined.
     alpha : (H, W) float32, percent
-        Model alpha (:func:`hsiffc.validity.alpha_model`).
+        Model alpha (:func:`hsiffc.leakage.validity.alpha_model`).
     """
 
     light_rate: np.ndarray

@@ -26,7 +26,7 @@ the two.
 This module holds the response (closed form, the paper's eq. 3 and the linear eq. 1), its
 inversion, its gradient and the reference ODE solution. The quantities derived from the
 parameters (dynamic saturation level, leakage rate and percentage, exposure at a given
-percentage) are in :mod:`hsiffc.model_derived` and importable from here as well.
+percentage) are in :mod:`hsiffc.leakage._derived` and importable from here as well.
 """
 
 from __future__ import annotations
@@ -35,10 +35,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dq import DQ_DTYPE
-from .kernels import gradient, inversion, leakage
-from .kernels.operands import flat_operands
-from .model_derived import (
+from ..data.dq import DQ_DTYPE
+from ..kernels import gradient, inversion, leakage
+from ..kernels.operands import flat_operands
+from ._derived import (
     dynamic_saturation_level,
     exposure_at_leakage_percentage,
     leakage_percentage,
@@ -46,8 +46,15 @@ from .model_derived import (
     leakage_percentage_paper_into,
     leakage_rate,
 )
-from .model_numerics import (B_MESSAGE, NEGATIVE_MESSAGE, as_float64, check_positive_b,
-                             log1mexp, log_or_neg_inf, smallest)
+from ._numerics import (
+    B_MESSAGE,
+    NEGATIVE_MESSAGE,
+    as_float64,
+    check_positive_b,
+    log1mexp,
+    log_or_neg_inf,
+    smallest,
+)
 
 __all__ = [
     "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
@@ -224,7 +231,7 @@ class Inversion:
         admissible value (0 below the zero-light level, the rate reaching full scale for a clipped
         response, ``k_max`` beyond it) and must be read together with the flag.
     flags : ndarray of uint32
-        :class:`hsiffc.dq.DQ` bits: BELOW_DARK, SATURATED, UNREACHABLE, NONFINITE, NOT_CONVERGED.
+        :class:`hsiffc.data.dq.DQ` bits: BELOW_DARK, SATURATED, UNREACHABLE, NONFINITE, NOT_CONVERGED.
     iterations : int
         Largest number of iterations any pixel needed.
     """

@@ -11,14 +11,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import model
-from .bandstats import STATISTICS as BAND_STATISTICS
-from .bandstats import band_layout, band_mean, band_reduce
-from .dq import DQ, DQ_DTYPE
-from .kernels import leakage
-from .kernels.bands import block_arrays
-from .kernels.operands import flat_operands
-from .params import validate_method
-from .sweep import Sweep
+from ..data.bandstats import STATISTICS as BAND_STATISTICS
+from ..data.bandstats import band_layout, band_mean, band_reduce
+from ..data.dq import DQ, DQ_DTYPE
+from ..kernels import leakage
+from ..kernels.bands import block_arrays
+from ..kernels.operands import flat_operands
+from ..data.params import validate_method
+from ..data.sweep import Sweep
 
 ALPHA_METHODS = ("paper", "model")
 STATISTICS = BAND_STATISTICS
@@ -35,7 +35,7 @@ def alpha_paper(response, exposure_ms: float, a, b, dark) -> np.ndarray:
     """Leakage percentage of eq. (4) with k estimated as ``(Y - dark) / exposure`` (the paper).
 
     ``alpha = 100 a e^{bY} / ((Y - dark) / t)`` in percent, element-wise: the compiled kernel
-    of :func:`hsiffc.model.leakage_percentage_paper` (double precision, rounded once to float32).
+    of :func:`hsiffc.leakage.model.leakage_percentage_paper` (double precision, rounded once to float32).
 
     Parameters
     ----------
@@ -72,8 +72,8 @@ def alpha_model(response, exposure_ms: float, a, b, dark_dn, *, full_scale_dn=No
     a, b, dark_dn : (H, W) array_like
         Leakage amplitude (DN/ms), exponent (1/DN) and dark level at zero exposure (DN).
     full_scale_dn : float, optional
-    inversion : :class:`hsiffc.model.Inversion`, optional
-        The result of :func:`hsiffc.model.invert_response` on these arguments, if already made.
+    inversion : :class:`hsiffc.leakage.model.Inversion`, optional
+        The result of :func:`hsiffc.leakage.model.invert_response` on these arguments, if already made.
 
     Returns
     -------
@@ -93,7 +93,7 @@ def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_
     """alpha (computed when ``alpha`` is None: paper form) and DQ in one compiled pass; with
     ``with_signal`` also ``response - dark`` (float32), returned first. ``sums_by``: a 2-D
     frame's ``(band_map, row_period > 0, n_bands)``, checked by the caller; then the
-    :func:`~hsiffc.bandstats.band_reduce` mean of ``response`` over the pixels whose DQ is 0
+    :func:`~hsiffc.data.bandstats.band_reduce` mean of ``response`` over the pixels whose DQ is 0
     is returned last."""
     shape, (y, t, a_, b_, d) = flat_operands(
         response, exposure_ms, a, b, dark, names=("response", "exposure_ms", "a", "b", "dark"))
@@ -222,7 +222,7 @@ def _options(cal, exposure_ms, threshold_percent, dq) -> dict:
 def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
                            threshold_percent: float, dq=None, extra_dq=None, band_map=None,
                            n_bands: int | None = None):
-    """:func:`hsiffc.dark.subtract_dark` and :func:`validity_flags` (paper alpha, on the
+    """:func:`hsiffc.data.dark.subtract_dark` and :func:`validity_flags` (paper alpha, on the
     response ``frame`` with this ``dark`` under it) in one compiled pass over the pixels
     instead of two: the same values, bit for bit, as the two calls, with the planes read
     once.
@@ -241,9 +241,9 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
         and kept (:meth:`~hsiffc.calibrate.Calibration.flags_with`): the pass then reads one
         flag plane for both.
     band_map : (H, W) int array, optional
-        A mosaic's band map (:meth:`hsiffc.mosaic.Mosaic.band_map`, whose row period is
+        A mosaic's band map (:meth:`hsiffc.data.mosaic.Mosaic.band_map`, whose row period is
         known): the same pass then also takes the per-band mean of ``frame`` over the pixels
-        whose returned DQ is 0, as :func:`hsiffc.bandstats.band_reduce` gives it (bit for bit:
+        whose returned DQ is 0, as :func:`hsiffc.data.bandstats.band_reduce` gives it (bit for bit:
         the same sums in the same order). ``n_bands``: its length (default: the map's).
 
     Returns
@@ -350,7 +350,7 @@ def alpha_table_of(responses, exposures_ms, calibration, *, darks=None, band_map
     darks : (E, H, W) array_like, DN, optional
         The dark under each response (default: the calibrated dark at each exposure).
     band_map : (H, W) int array, optional
-    method, statistic : see :func:`alpha_map` and :func:`hsiffc.bandstats.band_reduce`
+    method, statistic : see :func:`alpha_map` and :func:`hsiffc.data.bandstats.band_reduce`
     wavelengths_nm : sequence of float, optional
 
     Returns
@@ -382,7 +382,7 @@ def alpha_table(sweep: Sweep, calibration, *, method: str = "paper",
     calibration : Calibration
         Of the same sensor (checked).
     method : "paper" or "model"
-    statistic : "median" or another :func:`hsiffc.bandstats.band_reduce` statistic
+    statistic : "median" or another :func:`hsiffc.data.bandstats.band_reduce` statistic
 
     Returns
     -------

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..dq import DQ_DTYPE
+from ..data.dq import DQ_DTYPE
 
 __all__ = ["apply_correction", "correction_support", "reconstruction_error",
            "reduce_over_support"]

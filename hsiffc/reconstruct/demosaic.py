@@ -7,10 +7,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..dq import DQ_DTYPE
+from ..data.dq import DQ_DTYPE
 from ..kernels.demosaic import interpolate_bands
-from ..mosaic import Mosaic
-from ..params import validate_method
+from ..data.mosaic import Mosaic
+from ..data.params import validate_method
 from .prepare import (Prepared, band_levels, band_medians, ppi_kernel, prepare,
                       pseudo_panchromatic, tile_starts)
 from .tiles import tile_alpha
@@ -154,7 +154,7 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
     Examples
     --------
     >>> import numpy as np
-    >>> from hsiffc.mosaic import Mosaic
+    >>> from hsiffc.data.mosaic import Mosaic
     >>> mosaic = Mosaic.square(2)                       # 2 x 2 tile, 4 bands
     >>> raw = np.tile(np.array([[10., 20.], [30., 40.]], np.float32), (4, 4))   # (8, 8) DN
     >>> cube, cube_dq = demosaic(raw, mosaic, method="bilinear")

@@ -8,12 +8,12 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from ..dq import DQ, DQ_DTYPE, as_dq
+from ..data.dq import DQ, DQ_DTYPE, as_dq
 from ..kernels.demosaic import EPS
 from ..kernels.lattice import band_samples, lattice_arrays
 from ..kernels.ppi import ppi_image
 from ..kernels.select import medians_of
-from ..mosaic import Mosaic
+from ..data.mosaic import Mosaic
 
 __all__ = ["EPS", "Prepared", "band_levels", "band_median", "band_medians", "periodic_index",
            "ppi_kernel", "prepare", "pseudo_panchromatic", "sep_filter", "tile_starts"]
@@ -195,7 +195,7 @@ def prepare(raw, mosaic, dq) -> Prepared:
         ``raw`` is not 2-D, or ``dq`` has another shape.
     """
     if not isinstance(mosaic, Mosaic):
-        raise TypeError(f"mosaic must be a hsiffc.mosaic.Mosaic, got {type(mosaic).__name__}")
+        raise TypeError(f"mosaic must be a hsiffc.data.mosaic.Mosaic, got {type(mosaic).__name__}")
     raw = np.asarray(raw)
     if raw.ndim != 2:
         raise ValueError(f"raw must be a 2-D mosaic frame (H, W), got shape {raw.shape}")

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..dq import DQ, DQ_DTYPE
-from ..mosaic import Mosaic
+from ..data.dq import DQ, DQ_DTYPE
+from ..data.mosaic import Mosaic
 from .prepare import EPS, prepare, sep_filter
 
 __all__ = ["tile_alpha", "tile_blocks", "tile_cube", "tile_grid", "tile_origin"]
@@ -113,7 +113,7 @@ def tile_cube(raw, mosaic: Mosaic, *, dq=None):
     Examples
     --------
     >>> import numpy as np
-    >>> from hsiffc.mosaic import Mosaic
+    >>> from hsiffc.data.mosaic import Mosaic
     >>> raw = np.tile(np.array([[10., 20.], [30., 40.]], np.float32), (3, 4))   # (6, 8)
     >>> cube, cube_dq = tile_cube(raw, Mosaic.square(2))
     >>> cube.shape, cube[0, 0].tolist()

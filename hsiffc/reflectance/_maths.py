@@ -11,7 +11,7 @@ where q is a rate that is proportional to the light. Two rates are offered:
   pixel the white panel's response is bent below the line (the leakage grows as ``e^{bY}``), so
   targets darker than the panel come out too bright.
 - ``"model"``: the light rate k recovered through the calibrated leakage model
-  (:func:`hsiffc.linearise.linearise`: the model ``dY/dt = k - a e^{bY}`` inverted per pixel).
+  (:func:`hsiffc.leakage.linearise.linearise`: the model ``dY/dt = k - a e^{bY}`` inverted per pixel).
   k is linear in the light at every level the model describes, so the ratio is right for dark
   and bright targets alike; the inversion's noise grows like ``1 / (1 - alpha)`` near dynamic
   saturation.
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..dq import DQ, DQ_DTYPE
+from ..data.dq import DQ, DQ_DTYPE
 
 __all__ = ["WhiteReference", "white_reference", "reflectance_factor", "band_median",
            "band_fraction"]

@@ -5,7 +5,7 @@ uniform. What a field user can check is a uniform target of known reflectance re
 scene (the white panel itself, or a grey card): per band, the mean reflectance against the
 target's value (an exposure, gain or leakage error shows here) and the uniformity of the
 reflectance over the target, with the temporal noise taken out when there are several frames
-(:func:`hsiffc.uniformity.fixed_pattern_nonuniformity`, the EMVA 1288 way), so that what is
+(:func:`hsiffc.flatfield.uniformity.fixed_pattern_nonuniformity`, the EMVA 1288 way), so that what is
 left is the pattern the reflectance product itself carries.
 """
 
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..uniformity import fixed_pattern_nonuniformity
+from ..flatfield.uniformity import fixed_pattern_nonuniformity
 
 __all__ = ["TargetReport", "target_report"]
 

@@ -3,7 +3,7 @@
 The sweep's light steps alternate between training and test: the calibration is fitted on the
 even light steps, all dark steps and the flat stack, and every correction is measured on the
 odd light steps (two frames each), with the fixed-pattern non-uniformity of
-:mod:`hsiffc.uniformity` (temporal noise removed). The raw figure subtracts the dark frames of
+:mod:`hsiffc.flatfield.uniformity` (temporal noise removed). The raw figure subtracts the dark frames of
 the step's own exposure and removes their temporal variance too (EMVA 1288 Release 4.0), so
 neither a dark's noise nor a modelled dark's error counts as the raw pattern.
 
@@ -37,12 +37,12 @@ import numpy as np
 
 from ..calibrate import calibrate
 from ..calibrate.flats import add_flat_stacks
-from ..dq import DQ
+from ..data.dq import DQ
 from ..errors import DataFormatError
-from ..frame import Frame
+from ..data.frame import Frame
 from ..io import read_sweep
 from ..stages import Pipeline, create
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from .sweep_uniformity import dark_frames_by_exposure, summarise, sweep_uniformity
 
 __all__ = ["FFCStudy", "run_ffc_study", "render_markdown", "to_dict", "write_ffc_study", "METHODS",
@@ -446,8 +446,8 @@ def write_ffc_study(emva_dir, outdir, *, calibration=None, goal_percent=None) ->
     import json
     from pathlib import Path
 
-    from ..jsonsafe import json_safe
-    from ..atomic import atomic_path, atomic_write_text
+    from ..files.jsonsafe import json_safe
+    from ..files.atomic import atomic_path, atomic_write_text
     from .sweep_uniformity import plot_uniformity
 
     res = run_ffc_study(emva_dir, calibration=calibration, goal_percent=goal_percent)

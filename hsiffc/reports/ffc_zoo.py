@@ -30,7 +30,7 @@ import numpy as np
 
 from ..simulate import MosaicSensor
 from ..simulate.params import SensorParams
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from .ffc_study import (RANGES_FRACTION, FFCStudy, cell, method_names, range_label,
                         run_ffc_study)
 
@@ -252,8 +252,8 @@ def zoo_json(results) -> dict:
 
 def main(argv=None) -> int:
     """Command line: run the zoo and write ``ffc_zoo.md`` and ``ffc_zoo.json`` into OUTDIR."""
-    from ..atomic import atomic_write_text
-    from ..jsonsafe import json_safe
+    from ..files.atomic import atomic_write_text
+    from ..files.jsonsafe import json_safe
 
     ap = argparse.ArgumentParser(prog="python3 -m hsiffc.reports.ffc_zoo",
                                  description=__doc__.split("\n\n")[0])

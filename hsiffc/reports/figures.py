@@ -11,7 +11,7 @@ from pathlib import Path
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..atomic import atomic_path
+from ..files.atomic import atomic_path
 
 __all__ = ["new_figure", "save_figure"]
 
@@ -65,7 +65,7 @@ def save_figure(fig, path, *, dpi: float = 90, tight: bool = True,
         Crop to the drawn content (``bbox_inches="tight"``).
     overwrite : bool, optional
         Replace an existing file (None: as the write policy in force says, see
-        :func:`hsiffc.atomic.write_policy`).
+        :func:`hsiffc.files.atomic.write_policy`).
 
     Returns
     -------

@@ -3,7 +3,7 @@
 Used by ``hsiffc uniformity`` and the FFC study (:mod:`hsiffc.reports.ffc_study`). For every
 light step with two or more frames: exposure, signal level (DN above dark), the fractions of
 clipped and flagged pixels, and per correction eq. (6) and the fixed-pattern non-uniformity of
-:mod:`hsiffc.uniformity` (temporal noise removed). All methods of a step are measured over the
+:mod:`hsiffc.flatfield.uniformity` (temporal noise removed). All methods of a step are measured over the
 same pixels: those with no DQ bit set in any raw or corrected frame of the step.
 """
 
@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..dq import DQ
-from ..uniformity import FixedPattern, fixed_pattern_nonuniformity
+from ..data.dq import DQ
+from ..flatfield.uniformity import FixedPattern, fixed_pattern_nonuniformity
 
 __all__ = ["SIGNAL_RANGES_DN", "signal_ranges_dn", "StepUniformity", "step_uniformity",
            "dark_frames_by_exposure",

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import model
-from ..mosaic import Mosaic
+from ..leakage import model
+from ..data.mosaic import Mosaic
 from ..spectral import BandSet, electron_rate, lamp, paper_8band
 
 __all__ = ["SensorParams", "Truth", "Capture", "PAPER_LIGHT_W_M2", "DEFAULT_BAND_BALANCE",
@@ -126,9 +126,9 @@ class Capture:
     bit_depth: int = 10
 
     def to_frames(self, kind: str | None = None) -> list:
-        """The frames as :class:`hsiffc.frame.Frame` objects (kind "light" or "dark": by
+        """The frames as :class:`hsiffc.data.frame.Frame` objects (kind "light" or "dark": by
         default "dark" when there was no light)."""
-        from ..frame import Frame
+        from ..data.frame import Frame
 
         kind = kind or ("light" if self.illumination else "dark")
         return [Frame.from_raw(f, exposure_ms=self.exposure_ms, bit_depth=self.bit_depth,

@@ -6,9 +6,9 @@ from dataclasses import asdict, replace
 
 import numpy as np
 
-from ..mosaic import Mosaic
+from ..data.mosaic import Mosaic
 from ..spectral import BandSet, Illumination, electron_rate, lamp
-from ..sweep import Sweep
+from ..data.sweep import Sweep
 from .params import PAPER_LIGHT_W_M2  # noqa: F401 (the examples use it)
 from .params import Capture, SensorParams, Truth, default_bands, default_mosaic
 

@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import DataFormatError
-from ..mosaic import Mosaic
+from ..data.mosaic import Mosaic
 from .grid import readonly
 from .bands import BandSet
 
@@ -214,7 +214,7 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
     """
     p = Path(path)
     rd = _Reader(p)
-    from ..atomic import require_regular_input
+    from ..files.atomic import require_regular_input
 
     if not p.exists():
         rd.fail("file not found (expected an IMEC sensor calibration .xml)")
@@ -275,7 +275,7 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
     if step <= 0 or end <= start:
         rd.fail(f"bad measurement range {start:g}-{end:g} nm at {step:g} nm")
     n_samples = _grid_count(start, end, step)
-    from ..io.limits import default_limits
+    from ..files.limits import default_limits
 
     limits = default_limits()
     limits.check_spectral_samples(path=p, field=f"<{w_ci if ci is not None else w_f}> "

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from ..params import Param
-from ..validity import ALPHA_METHODS, validity_flags
+from ..data.params import Param
+from ..leakage.validity import ALPHA_METHODS, validity_flags
 from .common import CALIBRATION, THRESHOLD
 from .base import Stage
 
@@ -11,7 +11,7 @@ from .base import Stage
 class AlphaMask(Stage):
     """Compute the leakage percentage alpha of every pixel and flag LEAKAGE above a threshold.
 
-    Runs :func:`hsiffc.validity.validity_flags` on the frame's raw response (``frame.raw``: the
+    Runs :func:`hsiffc.leakage.validity.validity_flags` on the frame's raw response (``frame.raw``: the
     data plus the dark a stage actually removed, since the leakage acts on the raw response);
     the dark under it is the one a dark stage removed, else the calibrated dark. The frame
     keeps its data; it gains an ``alpha`` plane (percent; ``inf`` where no light rate can be

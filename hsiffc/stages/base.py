@@ -17,7 +17,7 @@ import json
 import numpy as np
 
 from ..errors import HsiffcError
-from ..params import check_params, short_repr, unknown_parameters
+from ..data.params import check_params, short_repr, unknown_parameters
 
 
 class NotFittedError(HsiffcError, RuntimeError):
@@ -40,12 +40,12 @@ class Stage:
     name: str = ""
     #: True for filters with nothing to learn
     stateless: bool = False
-    #: frame states (:data:`hsiffc.frame.STATES`) the stage needs, adds and takes away; a
+    #: frame states (:data:`hsiffc.data.frame.STATES`) the stage needs, adds and takes away; a
     #: :class:`~hsiffc.stages.Pipeline` whose order breaks them fails when it is built
     requires: frozenset = frozenset()
     produces: frozenset = frozenset()
     removes: frozenset = frozenset()
-    #: declared parameters (name -> :class:`hsiffc.params.Param`), checked by
+    #: declared parameters (name -> :class:`hsiffc.data.params.Param`), checked by
     #: :meth:`validate_params` at fit and when a pipeline is built or loaded
     param_spec: dict = {}
 
@@ -100,7 +100,7 @@ class Stage:
 
     # -- fitting -------------------------------------------------------------------------------
     def fit(self, frames) -> "Stage":
-        """Learn from training frames (a list of :class:`hsiffc.frame.Frame`). Stateless stages
+        """Learn from training frames (a list of :class:`hsiffc.data.frame.Frame`). Stateless stages
         only check their parameters and mark themselves fitted."""
         self.validate_params()
         self.fitted_ = True
@@ -176,7 +176,7 @@ def check_stage(stage: Stage, train_frames, test_frame) -> None:
     """
     import io
 
-    from ..frame import Frame
+    from ..data.frame import Frame
 
     if "dark_subtracted" in stage.requires and "dark_subtracted" not in test_frame.state():
         from .dark import DarkSubtract

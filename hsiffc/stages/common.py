@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import math
 
-from ..frame import Frame
-from ..params import Param
+from ..data.frame import Frame
+from ..data.params import Param
 
 #: parameter declarations several stages share
 AVERAGE = Param("choice", choices=("median", "mean"))

@@ -1,13 +1,13 @@
-"""Dark subtraction with master darks matched to the exposure (wraps :mod:`hsiffc.dark`)."""
+"""Dark subtraction with master darks matched to the exposure (wraps :mod:`hsiffc.data.dark`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..dark import dark_at_cached, fit_dark_line
+from ..data.dark import dark_at_cached, fit_dark_line
 from ..errors import ParameterError
-from ..frame import stack_mean
-from ..params import Param
+from ..data.frame import stack_mean
+from ..data.params import Param
 from .common import AVERAGE, CALIBRATION, find_exposure, group_by_exposure
 from .base import Stage
 
@@ -81,7 +81,7 @@ class DarkSubtract(Stage):
 
     def transform(self, frame):
         """The frame less the dark matched to its exposure (DN in, DN out; ``dark_removed``
-        set; :meth:`hsiffc.frame.Frame.dark_subtracted`)."""
+        set; :meth:`hsiffc.data.frame.Frame.dark_subtracted`)."""
         self.check_is_fitted()
         dark, how = self.dark_for(frame.exposure_ms, frame.data.shape)
         return frame.dark_subtracted(dark, dark_source=how)

@@ -1,6 +1,6 @@
 """Flat-field correction stages: two-point (eq. 5) with alpha-selected training, polynomial.
 
-Both wrap the array functions of :mod:`hsiffc.ffc` and :mod:`hsiffc.polyffc` and work on
+Both wrap the array functions of :mod:`hsiffc.flatfield.two_point` and :mod:`hsiffc.flatfield.polynomial` and work on
 dark-subtracted frames (put a ``dark`` stage before them): they carry no dark handling of
 their own.
 """
@@ -11,14 +11,20 @@ import warnings
 
 import numpy as np
 
-from ..bandstats import band_reduce
-from ..dq import DQ_DTYPE
+from ..data.bandstats import band_reduce
+from ..data.dq import DQ_DTYPE
 from ..errors import HsiffcWarning, ParameterError
-from ..ffc import NORMALISATIONS, means_ratio, paper_ratio, two_point_apply, two_point_fit
-from ..frame import stack_mean
-from ..params import Param
-from ..polyffc import PolynomialFlat, polynomial_apply, polynomial_fit
-from ..validity import alpha_table_of
+from ..flatfield.two_point import (
+    NORMALISATIONS,
+    means_ratio,
+    paper_ratio,
+    two_point_apply,
+    two_point_fit,
+)
+from ..data.frame import stack_mean
+from ..data.params import Param
+from ..flatfield.polynomial import PolynomialFlat, polynomial_apply, polynomial_fit
+from ..leakage.validity import alpha_table_of
 from .common import AVERAGE, CALIBRATION, THRESHOLD, find_exposure, group_by_exposure
 from .base import Stage
 
@@ -46,7 +52,7 @@ class TwoPointFFC(Stage):
     threshold_percent : float
     normalisation : "paper" or "mean_gain"
         ``"paper"``: ``Avg(L3) (R3 - R1) / (R2 - R1)`` per band, Avg(L3) the mean raw response
-        of the test frame's good pixels (:func:`hsiffc.ffc.paper_scale`); ``"mean_gain"``:
+        of the test frame's good pixels (:func:`hsiffc.flatfield.two_point.paper_scale`); ``"mean_gain"``:
         ``(R3 - R1) mean(R2 - R1) / (R2 - R1)`` (DN).
     average : "median" or "mean" (for the flat stacks)
 
@@ -169,7 +175,7 @@ class TwoPointFFC(Stage):
 
 class PolynomialFFC(Stage):
     """Per-pixel polynomial flat-field correction over several flat levels
-    (:func:`hsiffc.polyffc.polynomial_fit` / :func:`~hsiffc.polyffc.polynomial_apply`).
+    (:func:`hsiffc.flatfield.polynomial.polynomial_fit` / :func:`~hsiffc.flatfield.polynomial.polynomial_apply`).
 
     One level per (exposure, illumination) of the training flats. Signals outside a pixel's
     trained range (with ``margin`` relative slack) continue along the end tangent and are

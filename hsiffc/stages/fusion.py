@@ -4,13 +4,12 @@ A pipeline runs its stages one after the other, and each reads and writes whole 
 the front end of a correction, dark subtraction, the alpha mask and the two-point FFC, the
 per-pixel work is a few operations on planes that each stage reads again; :class:`Pipeline`
 therefore hands such a run of stages to :func:`run_fused`, which does their per-pixel work in
-one pass (:func:`hsiffc.validity.subtract_dark_and_flag`, which with the two-point FFC's
+one pass (:func:`hsiffc.leakage.validity.subtract_dark_and_flag`, which with the two-point FFC's
 ``"paper"`` normalisation also takes the test frame's per-band level of eq. 5, the sums
-:func:`hsiffc.bandstats.band_reduce` would take, in its order) and then lets every stage finish
+:func:`hsiffc.data.bandstats.band_reduce` would take, in its order) and then lets every stage finish
 its frame as its own ``transform`` would. The result is the same frame, bit for bit, with the
 same history (``tests/test_fusion.py`` compares them on simulated and real data), in less time
-(the pipeline benchmark times both in turn on a 2048 x 1088 frame; ``docs/results/benchmarks.md``
-gives its last run's figures, e.g. 3.9 against 6.5 ms in the run of 2026-11-25 21:33 UTC).
+(the pipeline benchmark times both in turn; ``docs/results/benchmarks.md`` gives the figures).
 
 Only what the stages' own methods compute is computed here: a fused run calls the same
 array functions and kernels as the stages (one implementation of each correction).
@@ -20,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..dark import subtract_dark
-from ..validity import subtract_dark_and_flag
+from ..data.dark import subtract_dark
+from ..leakage.validity import subtract_dark_and_flag
 from .alpha import AlphaMask
 from .dark import DarkSubtract
 from .ffc import TwoPointFFC

@@ -1,10 +1,10 @@
-"""Leakage linearisation stage (beyond the paper): wraps :func:`hsiffc.linearise.linearise`."""
+"""Leakage linearisation stage (beyond the paper): wraps :func:`hsiffc.leakage.linearise.linearise`."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..linearise import linearise
+from ..leakage.linearise import linearise
 from .common import CALIBRATION, THRESHOLD
 from .base import Stage
 
@@ -16,7 +16,7 @@ class LeakageLinearise(Stage):
     explains the measured raw response (``frame.raw``) under the calibrated model. Pixels whose
     model alpha exceeds ``alpha_limit_percent`` are flagged LEAKAGE (their value is still the
     best estimate); responses the model cannot explain are flagged as
-    :func:`hsiffc.model.invert_response` says (BELOW_DARK, SATURATED, UNREACHABLE,
+    :func:`hsiffc.leakage.model.invert_response` says (BELOW_DARK, SATURATED, UNREACHABLE,
     NOT_CONVERGED).
 
     The output is the signal ``k t`` when a dark was removed, else the raw-scale ``d + k t``;

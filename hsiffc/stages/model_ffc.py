@@ -1,16 +1,16 @@
-"""Model-based flat-field correction stage: wraps :mod:`hsiffc.model_ffc`."""
+"""Model-based flat-field correction stage: wraps :mod:`hsiffc.flatfield.model_based`."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from ..calibrate.flats import combined_dark
-from ..dq import DQ_DTYPE
+from ..data.dq import DQ_DTYPE
 from ..errors import ParameterError
 from ..kernels.bits import or_into
-from ..model_ffc import log_gain_ratio, model_ffc_apply
-from ..model_flat import FlatStack, model_flat_fit
-from ..params import Param
+from ..flatfield.model_based import log_gain_ratio, model_ffc_apply
+from ..flatfield.model_flat import FlatStack, model_flat_fit
+from ..data.params import Param
 from .common import CALIBRATION, THRESHOLD
 from .base import Stage
 
@@ -52,7 +52,7 @@ class ModelFFC(Stage):
         Responses whose model alpha exceeds this are flagged LEAKAGE.
     flat_alpha_percent : float
         Model alpha at which the flat stacks' share of the factor has gone to zero (see
-        :func:`hsiffc.model_ffc.model_ffc_apply`).
+        :func:`hsiffc.flatfield.model_based.model_ffc_apply`).
     min_flat_frames : int
         Light frames of one step needed to count as a flat stack.
     """
@@ -122,7 +122,7 @@ class ModelFFC(Stage):
         return self
 
     def _log_ratio(self):
-        """:func:`~hsiffc.model_ffc.log_gain_ratio` of the fitted factors, computed once (kept
+        """:func:`~hsiffc.flatfield.model_based.log_gain_ratio` of the fitted factors, computed once (kept
         while they are the same arrays)."""
         if self.gain_sweep_ is None:
             return None

@@ -1,10 +1,10 @@
 """Whether a sequence of stages makes sense: each stage's ``requires`` against what the stages
-before it ``produce`` and ``remove`` (the frame states of :data:`hsiffc.frame.STATES`)."""
+before it ``produce`` and ``remove`` (the frame states of :data:`hsiffc.data.frame.STATES`)."""
 
 from __future__ import annotations
 
 from ..errors import ParameterError
-from ..frame import INPUT_STATE
+from ..data.frame import INPUT_STATE
 
 WORDS = {"mosaic": "2-D mosaic frames", "cube": "reconstructed cubes",
          "raw": "raw frames (no dark removed)", "dark_subtracted": "dark-subtracted frames",

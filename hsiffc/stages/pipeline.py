@@ -5,7 +5,7 @@ already fitted before it; ``transform(frame)`` runs them in order and records on
 per stage in ``frame.meta["history"]`` (stage, parameters, status) - in this one place, not in
 every stage. Building a pipeline checks every stage's parameters, the order of the stages
 (what each needs against what the ones before it give) and reads each calibration file once.
-A fitted pipeline saves to one versioned product file (:mod:`hsiffc.products`: arrays plus a
+A fitted pipeline saves to one versioned product file (:mod:`hsiffc.data.products`: arrays plus a
 JSON manifest, no pickle) and loads by registered stage names; a small TOML file describes one
 for the CLI. Calibrations are recorded by identity (and path, or embedded when they exist only
 in memory), so a pipeline built in a notebook saves and loads without saving anything first.
@@ -19,9 +19,9 @@ import numpy as np
 
 from ..calibrate.product import Calibration
 from ..errors import DataFormatError, HsiffcError, ParameterError
-from ..frame import Frame
-from ..params import did_you_mean
-from ..products import read_product, write_product
+from ..data.frame import Frame
+from ..data.params import did_you_mean
+from ..data.products import STATE_SCHEMAS, read_product, write_product
 from . import registry
 from .base import Stage
 from .fusion import fusable, run_fused
@@ -67,6 +67,17 @@ def _recorded(name, stage, frame: Frame) -> Frame:
     entry = {"step": name, "stage": stage.name or type(stage).__name__,
              "params": json_params(stage), "status": "ok"}
     return frame.replace(meta={"history": frame.history + (entry,)})
+
+
+def _state_schema(stage_name: str):
+    """The schema of a registered stage's fitted state: its own ``state_schema``, else the
+    built-in table (:data:`hsiffc.data.products.STATE_SCHEMAS`); None for an unknown stage
+    (Pipeline.load reports it, naming the stage)."""
+    try:
+        stage_cls = registry.get(stage_name)
+    except KeyError:
+        return None
+    return getattr(stage_cls, "state_schema", None) or STATE_SCHEMAS.get(stage_name)
 
 
 class Pipeline:
@@ -145,7 +156,7 @@ class Pipeline:
     def fit(self, frames) -> "Pipeline":
         """Fit every stage on ``frames`` (a list of Frames, or a Sweep) passed through the stages
         fitted before it."""
-        from ..sweep import Sweep
+        from ..data.sweep import Sweep
 
         current = Frame.list_from_sweep(frames) if isinstance(frames, Sweep) else list(frames)
         if not current:
@@ -240,7 +251,7 @@ class Pipeline:
             A stored parameter breaks the stage's declaration.
         """
         man, arrays = read_product(path, format=FORMAT, format_version=FORMAT_VERSION,
-                                   remedy=REMEDY)
+                                   remedy=REMEDY, state_schema=_state_schema)
         try:
             specs = man["steps"]
             if not isinstance(specs, list) or not specs:
@@ -269,8 +280,8 @@ class Pipeline:
             calibration = "cal.npz"      # paths are relative to the TOML file
             threshold_percent = 12
         """
-        from ..atomic import require_regular_input
-        from ..io.parsers import load_toml
+        from ..files.atomic import require_regular_input
+        from ..files.parsers import load_toml
 
         path = Path(path)
         require_regular_input(path, what="pipeline description")  # never a FIFO: it may block

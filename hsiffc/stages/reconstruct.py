@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from .. import reconstruct as rc
-from ..dq import DQ_DTYPE
+from ..data.dq import DQ_DTYPE
 from ..errors import ParameterError
-from ..params import Param
+from ..data.params import Param
 from .base import Stage
 
 RESOLUTIONS = ("full", "tile")
@@ -17,7 +17,7 @@ CORRECTIONS = (None, "imec", "derived")
 def band_positions(mosaic) -> list:
     """(row, col) of each band's first position in the mosaic tile, in band-index order.
 
-    >>> from hsiffc.mosaic import Mosaic
+    >>> from hsiffc.data.mosaic import Mosaic
     >>> band_positions(Mosaic.rectangular(2, 2))
     [[0, 0], [0, 1], [1, 0], [1, 1]]
     """

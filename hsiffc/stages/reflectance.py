@@ -17,11 +17,11 @@ import warnings
 
 import numpy as np
 
-from ..dq import DQ, DQ_DTYPE
+from ..data.dq import DQ, DQ_DTYPE
 from ..errors import CalibrationMismatchError, ParameterError
-from ..jsonsafe import json_safe
-from ..linearise import linearise
-from ..params import Param
+from ..files.jsonsafe import json_safe
+from ..leakage.linearise import linearise
+from ..data.params import Param
 from ..reflectance import (ExposureMismatchWarning, GainMismatchWarning,
                            SceneBrighterThanReferenceWarning, band_fraction, band_median,
                            panel_per_band, read_panel_spectrum, reference_warnings,

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from importlib.metadata import entry_points
 
 from ..errors import HsiffcWarning, UnknownStageError
-from ..params import did_you_mean, unknown_parameters
+from ..data.params import did_you_mean, unknown_parameters
 
 GROUP = "hsiffc.stages"
 

@@ -19,7 +19,7 @@ import json
 import logging
 from pathlib import Path
 
-from ...atomic import OutputError, atomic_write_text, check_output_folder
+from ...files.atomic import OutputError, atomic_write_text, check_output_folder
 from ..figures import save_figure
 from .compute import (SAMPLE_NAMES, SWEEP_NAME, DemoResult, check_samples, compute_demo,
                       demo_pipeline, fit_curve)

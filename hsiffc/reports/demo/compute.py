@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from ... import model
+from ...leakage import model
 from ...calibrate import calibrate
 from ...errors import DataFormatError
-from ...ffc import uniformity_per_band
-from ...frame import Frame
+from ...flatfield.two_point import uniformity_per_band
+from ...data.frame import Frame
 from ...io import read_sweep
 from ...stages import Pipeline, create
-from ...uniformity import fixed_pattern_nonuniformity
+from ...flatfield.uniformity import fixed_pattern_nonuniformity
 
 __all__ = ["SAMPLE_NAMES", "SWEEP_NAME", "THRESHOLD_PERCENT", "DemoResult", "check_samples",
            "compute_demo", "demo_pipeline", "fit_curve"]

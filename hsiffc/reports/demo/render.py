@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib import colormaps
 
-from ... import model
+from ...leakage import model
 from ..figures import new_figure
 
 __all__ = ["demo_figure", "render_text"]

@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ...atomic import atomic_write_text
+from ...files.atomic import atomic_write_text
 from ...calibrate import Calibration
 from ..figures import save_figure
 from .analysis import analyse_emva_leakage, fit_linear, sweep_steps_only

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ...atomic import write_policy
+from ...files.atomic import write_policy
 from ...errors import HsiffcError
 from ...io import read_emva1288
 from . import sweep_steps_only, write_emva_leakage_report

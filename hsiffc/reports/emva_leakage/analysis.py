@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...jsonsafe import json_safe
-from ... import __version__, model
+from ...files.jsonsafe import json_safe
+from ... import __version__
+from ...leakage import model
 from ...calibrate import Calibration, calibrate, collect_samples, photon_transfer
 from ...errors import CalibrationMismatchError, DataFormatError
 

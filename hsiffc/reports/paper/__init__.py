@@ -42,8 +42,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ... import __version__
-from ...jsonsafe import json_safe
-from ...atomic import atomic_write_text
+from ...files.jsonsafe import json_safe
+from ...files.atomic import atomic_write_text
 from ..figures import save_figure
 from .config import (CANDIDATES_MS, N_TEST_FRAMES, PAPER_VALUES, TEST_MS, THRESHOLD_PERCENT,
                      THRESHOLDS, find_emva_dir, parse_weights, spectral_angle_deg)

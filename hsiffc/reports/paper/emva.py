@@ -8,10 +8,10 @@ import time
 import numpy as np
 
 from ...calibrate import calibrate
-from ...ffc import two_point_correct, uniformity
+from ...flatfield.two_point import two_point_correct, uniformity
 from ...io import read_emva1288
-from ...uniformity import fixed_pattern_nonuniformity
-from ...validity import alpha_map
+from ...flatfield.uniformity import fixed_pattern_nonuniformity
+from ...leakage.validity import alpha_map
 from ..emva_leakage import sweep_steps_only
 from .config import (EMVA_MAX_CLIPPED, EMVA_MIN_SIGNAL_DN, EMVA_N_CANDIDATES, THRESHOLD_PERCENT,
                      select_longest)
@@ -32,7 +32,7 @@ def emva_ffc_levels(emva_dir, *, threshold=THRESHOLD_PERCENT,
     threshold.
 
     Beside eq. (6), which on a 2-frame mean is dominated by temporal noise, every test is also
-    measured by its fixed-pattern non-uniformity (:func:`hsiffc.uniformity.
+    measured by its fixed-pattern non-uniformity (:func:`hsiffc.flatfield.uniformity.
     fixed_pattern_nonuniformity`: the covariance of the step's two frames, each corrected
     alone, so the temporal noise does not count): ``raw_fpn_percent`` per test,
     ``fpn_percent`` (candidates x tests), ``mean_fpn_percent`` per candidate and

@@ -7,9 +7,9 @@ import time
 import numpy as np
 
 from ...calibrate import calibrate
-from ...frame import Frame
+from ...data.frame import Frame
 from ...simulate import PAPER_LIGHT_W_M2, MosaicSensor
-from ...validity import AlphaTable, alpha_table
+from ...leakage.validity import AlphaTable, alpha_table
 from .config import (CANDIDATES_MS, FIG4_LEVELS, GRID_MS, N_TEST_FRAMES, N_TRAIN_FRAMES,
                      SPECTRA_PEAK_K, TEST_MS, THRESHOLD_PERCENT, index_of, parse_weights)
 from .flatfield import ffc_improvement, spectra_data, tradeoff, training_stats

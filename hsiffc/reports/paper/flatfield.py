@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...ffc import uniformity_per_band
-from ...uniformity import fixed_pattern_nonuniformity
-from ...validity import alpha_table
+from ...flatfield.two_point import uniformity_per_band
+from ...flatfield.uniformity import fixed_pattern_nonuniformity
+from ...leakage.validity import alpha_table
 from ...stages import Pipeline, create
 from .config import GRID_MS, SPECTRA_MS, THRESHOLDS, select_longest, spectral_angle_deg
 
@@ -72,7 +72,7 @@ def ffc_improvement(training, tests, band_map, test_ms):
 
     Also the same with the raw test's non-uniformity taken after subtracting the dark at the test
     exposure, which removes the dark offset from eq. (6)'s denominator; and the fixed-pattern
-    non-uniformity (EMVA 1288, :func:`hsiffc.uniformity.fixed_pattern_nonuniformity`) of the
+    non-uniformity (EMVA 1288, :func:`hsiffc.flatfield.uniformity.fixed_pattern_nonuniformity`) of the
     test frames, raw (dark-subtracted) and corrected, which temporal noise does not blur.
     """
     darks_at_test = [f for f in training if f.kind == "dark" and np.isclose(f.exposure_ms, test_ms)]

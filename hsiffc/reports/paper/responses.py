@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ... import model
-from ...sweep import Sweep
+from ...leakage import model
+from ...data.sweep import Sweep
 from .config import FIG2_LAST_MS, FIG4_LEVELS, FIG5_EXPOSURES_MS, N_TRAIN_FRAMES, PAPER_VALUES
 
 __all__ = ["calibration_sweep", "fig2_data", "fig4_data", "fig5_data", "pick_pixel"]

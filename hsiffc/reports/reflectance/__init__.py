@@ -150,7 +150,7 @@ def run_emva_rows(emva_dir) -> dict:
     (no DQ bit) of the reflectance against that value, percent.
     """
     from ...calibrate import calibrate
-    from ...frame import Frame
+    from ...data.frame import Frame
     from ...io import read_emva1288
     from ...stages import Pipeline, create
     from ..emva_leakage.analysis import sweep_steps_only
@@ -376,8 +376,8 @@ def write_reflectance_study(outdir, *, seeds=EVAL_SEEDS, emva=()) -> list:
     files only under the caller's overwrite policy)."""
     from pathlib import Path
 
-    from ...atomic import atomic_write_text
-    from ...jsonsafe import json_safe
+    from ...files.atomic import atomic_write_text
+    from ...files.jsonsafe import json_safe
 
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)

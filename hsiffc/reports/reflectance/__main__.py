@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ...atomic import write_policy
+from ...files.atomic import write_policy
 from ...errors import HsiffcError
 from . import DEV_SEEDS, EVAL_SEEDS, write_reflectance_study
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hsiffc.dq import DQ
-from hsiffc.frame import Frame
-from hsiffc.mosaic import Mosaic
+from hsiffc.data.dq import DQ
+from hsiffc.data.frame import Frame
+from hsiffc.data.mosaic import Mosaic
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor, SensorParams
 from hsiffc.stages import NotFittedError, check_stage
 from hsiffc_hotpixel import HotPixelRepair, same_band_median, same_band_offsets

@@ -11,8 +11,8 @@ import warnings
 
 import numpy as np
 
-from hsiffc.dq import DQ, DQ_DTYPE
-from hsiffc.params import Param
+from hsiffc.data.dq import DQ, DQ_DTYPE
+from hsiffc.data.params import Param
 from hsiffc.stages import Stage
 
 __all__ = ["HotPixelRepair", "same_band_offsets", "same_band_median"]

@@ -1,0 +1,111 @@
+"""The layers of docs/architecture.md hold in the code: a folder imports only folders of its
+own layer or below (every import statement counts, those inside functions too)."""
+
+from __future__ import annotations
+
+import ast
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "hsiffc"
+PAGE = REPO / "docs" / "architecture.md"
+
+
+def layers() -> list[set[str]]:
+    """The layer table of the architecture page, bottom layer first."""
+    block = re.search(r"<!-- layers -->\s*```text\n(.*?)```", PAGE.read_text(), re.S)
+    assert block, f"{PAGE} has no layer table (a ```text block after <!-- layers -->)"
+    rows = []
+    for line in block.group(1).splitlines():
+        m = re.match(r"\s*(\d+)\s+(.*?)\s{2,}", line + "  ")
+        if m:
+            rows.append((int(m.group(1)), set(m.group(2).split())))
+    rows.sort()
+    return [names for _, names in rows]
+
+
+def unit(module: str) -> str:
+    """The folder (or top-level module) a dotted hsiffc module belongs to."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "hsiffc"
+
+
+def imports() -> list[tuple[str, str, str]]:
+    """(importing unit, imported unit, where) for every hsiffc import in the package."""
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(REPO).with_suffix("").parts
+        is_pkg = rel[-1] == "__init__"
+        module = ".".join(rel[:-1] if is_pkg else rel)
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = module.split(".") if is_pkg else module.split(".")[:-1]
+                    base = base[: len(base) - (node.level - 1)]
+                    target = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    target = node.module or ""
+                targets = ([f"hsiffc.{a.name}" for a in node.names] if target == "hsiffc"
+                           else [target])
+            elif isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            else:
+                continue
+            for t in targets:
+                if t.startswith("hsiffc."):
+                    found.append((unit(module), unit(t),
+                                  f"{path.relative_to(REPO)}:{node.lineno}"))
+    return found
+
+
+def test_every_folder_of_the_package_is_in_the_layer_table():
+    table = set().union(*layers())
+    units = {p.name if p.is_dir() else p.stem for p in PACKAGE.iterdir()
+             if (p.is_dir() and (p / "__init__.py").exists()) or p.suffix == ".py"}
+    units -= {"__init__", "py"}
+    assert units - table == set(), f"add these to the layer table of {PAGE.name}"
+    assert table - units == set(), f"the layer table of {PAGE.name} names what is not there"
+
+
+#: the upward imports the architecture page names, each with its reason
+EXCEPTIONS = {("data", "cubes", "hsiffc/data/frame.py"):
+              "Frame.to_xarray() converts a cube in hand (imported when called)"}
+
+
+def test_no_layer_imports_a_layer_above_it():
+    level = {name: i for i, names in enumerate(layers()) for name in names}
+    level["__version__"] = -1  # the package's version string
+    level["hsiffc"] = len(level)  # the package's face
+    upward = [f"{where}: {a} (layer {level[a]}) imports {b} "
+              f"(layer {level.get(b, 'not in the table')})"
+              for a, b, where in imports()
+              if a != b and level.get(b, 99) > level.get(a, -1)
+              and (a, b, where.split(":")[0]) not in EXCEPTIONS]
+    assert not upward, "\n".join(upward)
+
+
+def test_the_check_sees_an_upward_import(tmp_path, monkeypatch):
+    # the check itself can fail: a data-model module importing the CLI is caught
+    fake = tmp_path / "hsiffc" / "data"
+    fake.mkdir(parents=True)
+    (fake / "x.py").write_text("from ..cli import main\n")
+    here = sys.modules[__name__]
+    monkeypatch.setattr(here, "PACKAGE", tmp_path / "hsiffc")
+    monkeypatch.setattr(here, "REPO", tmp_path)
+    found = imports()
+    assert ("data", "cli", "hsiffc/data/x.py:1") in found
+
+
+@pytest.mark.parametrize("old, new", [("hsiffc.frame", "hsiffc.data.frame"),
+                                      ("hsiffc.model_ffc", "hsiffc.flatfield.model_based")])
+def test_moved_modules_keep_their_old_import_path(old, new):
+    import importlib
+
+    sys.modules.pop(old, None)
+    with pytest.warns(DeprecationWarning, match=new.replace(".", r"\.")):
+        moved = importlib.import_module(old)
+    assert moved is importlib.import_module(new)
