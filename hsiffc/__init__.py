@@ -14,8 +14,8 @@ from .data.dq import DQ
 from .data.mosaic import Mosaic
 from .data.sweep import Sweep
 
-from ._moved import install as _install_moved
+from . import _moved
 
-_install_moved()  # old module paths (hsiffc.data.frame, ...) keep working
+_moved.install()  # old module paths (hsiffc.frame, ...) keep working
 
 __all__ = ["DQ", "Mosaic", "Sweep", "__version__"]

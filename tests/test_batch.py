@@ -630,7 +630,7 @@ def test_size_limits_apply_before_any_decode_and_the_batch_carries_on(world, tmp
     assert not (tmp_path / "out" / "big.corrected.tif").exists()
 
 
-# -- ``hsiffc correct`` review fixes: ENVI outputs are never replaced behind the user's back no
+# -- ENVI outputs never replaced nor read back as inputs; --json never an output's name
 
 @pytest.fixture(scope="module")
 def small_world(tmp_path_factory):

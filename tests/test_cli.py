@@ -143,7 +143,7 @@ def test_uniformity_summary_ranges_follow_the_bit_depth(tmp_path, capsys):
     assert summary[0]["n_steps"] >= 2 and "20-120" in capsys.readouterr().out
 
 
-# -- CLI review fixes: mosaics are written width x height everywhere and checked against the
+# -- mosaics written width x height and checked against the calibration by every command
 
 @pytest.fixture(scope="module")
 def world(sample_cubes, tmp_path_factory):

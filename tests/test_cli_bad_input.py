@@ -205,7 +205,7 @@ def test_correct_never_writes_its_json_over_an_input_found_in_a_folder(data, tmp
     assert (raw / "a.tif").read_bytes() == before
 
 
-# -- Input review fixes: bad arguments and damaged or odd files give one clear line (exit 2 fro
+# -- bad arguments and damaged or odd files: one clear line, never an internal error
 
 def _one_line(capsys, *names) -> str:
     err = capsys.readouterr().err

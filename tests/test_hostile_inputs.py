@@ -22,16 +22,7 @@ import tifffile
 from hsiffc.cli import main
 from hsiffc.errors import DataFormatError
 from hsiffc.io import open_source
-
-
-def _one_line(capsys, *names) -> str:
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1, err
-    assert "Traceback" not in err and "internal error" not in err, err
-    for name in names:
-        assert name in lines[0], lines[0]
-    return lines[0]
+from test_cli_bad_input import _one_line  # the one checker of one-line errors
 
 
 def _digest(path) -> str:

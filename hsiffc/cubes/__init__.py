@@ -26,6 +26,6 @@ __all__ = ["Cube", "FORMATS", "default_bands", "format_for", "quicklook", "read_
 
 def quicklook(*args, **kwargs):
     """See :func:`hsiffc.cubes.look.quicklook` (imports matplotlib on first use)."""
-    from .look import quicklook as _quicklook
+    from . import look
 
-    return _quicklook(*args, **kwargs)
+    return look.quicklook(*args, **kwargs)

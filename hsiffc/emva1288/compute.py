@@ -226,7 +226,7 @@ def saturation_index(s2_y) -> int:
     return best_i
 
 
-def _relative_fit(x, y) -> tuple[float, float]:
+def relative_fit(x, y) -> tuple[float, float]:
     """Line ``y = a x + b`` minimising ``sum(((y - a x - b) / y)^2)`` (relative deviations)."""
     w = 1.0 / y
     sw2 = float((w * w).sum())
@@ -348,7 +348,7 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
     lo = int(np.flatnonzero(y >= LINEARITY_RANGE[0] * ysat).min())
     hi = int(np.flatnonzero(y <= LINEARITY_RANGE[1] * ysat).max())
     ll = slice(lo, hi + 1)
-    a_lin, b_lin = _relative_fit(u_p[ll], y[ll])
+    a_lin, b_lin = relative_fit(u_p[ll], y[ll])
     fit = a_lin * u_p + b_lin
     dev = 100.0 * (y - fit) / fit
 

@@ -50,7 +50,7 @@ import numpy as np
 
 from ..leakage import model
 from ..errors import CalibrationMismatchError
-from .compute import LINEARITY_RANGE, _relative_fit, saturation_index
+from .compute import LINEARITY_RANGE, relative_fit, saturation_index
 
 __all__ = ["leakage_effects", "predicted_temporal_variance", "ALPHA_LEVELS"]
 
@@ -70,7 +70,7 @@ def _pcts(v) -> dict:
 
 
 def _linearity_deviation(u_p, y, lo, hi) -> np.ndarray:
-    a, b = _relative_fit(u_p[lo:hi + 1], y[lo:hi + 1])
+    a, b = relative_fit(u_p[lo:hi + 1], y[lo:hi + 1])
     fit = a * u_p + b
     return 100.0 * (y - fit) / fit
 
