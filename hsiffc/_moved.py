@@ -41,6 +41,14 @@ MOVED = {
     'hsiffc.ffc_floor': 'hsiffc.flatfield.floor',
     'hsiffc.uniformity': 'hsiffc.flatfield.uniformity',
     'hsiffc.memory': 'hsiffc.batch.memory',
+    # one module per file format (hsiffc 0.2): the parts of a format merged into it
+    'hsiffc.io.corrected_format': 'hsiffc.io.corrected',
+    'hsiffc.io.corrected_writer': 'hsiffc.io.corrected',
+    'hsiffc.io.envi_write': 'hsiffc.io.envi',
+    'hsiffc.io.emva_descriptor': 'hsiffc.io.emva',
+    'hsiffc.io.sourcefacts': 'hsiffc.io.source',
+    'hsiffc.io.tiffpages': 'hsiffc.io.tiff',
+    'hsiffc.io.document': 'hsiffc.io.tiff',
 }
 
 

@@ -109,3 +109,26 @@ def test_moved_modules_keep_their_old_import_path(old, new):
     with pytest.warns(DeprecationWarning, match=new.replace(".", r"\.")):
         moved = importlib.import_module(old)
     assert moved is importlib.import_module(new)
+
+
+#: io modules merged into the module of their format, with names their old path exported
+MERGED_IO = {"hsiffc.io.corrected_format": ("hsiffc.io.corrected", ["FORMAT", "PLANE_DTYPES"]),
+             "hsiffc.io.corrected_writer": ("hsiffc.io.corrected", ["CorrectedWriter"]),
+             "hsiffc.io.envi_write": ("hsiffc.io.envi", ["write_envi", "corrected_to_envi"]),
+             "hsiffc.io.emva_descriptor": ("hsiffc.io.emva", ["parse_descriptor"]),
+             "hsiffc.io.sourcefacts": ("hsiffc.io.source", ["resolve_facts", "read_stored"]),
+             "hsiffc.io.tiffpages": ("hsiffc.io.tiff", ["open_tiff", "CORRECTED_MARK"]),
+             "hsiffc.io.document": ("hsiffc.io.tiff", ["parse_document", "MINIMAL_DOCUMENT"])}
+
+
+@pytest.mark.parametrize("old", sorted(MERGED_IO))
+def test_merged_io_modules_keep_their_old_import_path_and_names(old):
+    import importlib
+
+    new, names = MERGED_IO[old]
+    sys.modules.pop(old, None)
+    with pytest.warns(DeprecationWarning, match=new.replace(".", r"\.")):
+        moved = importlib.import_module(old)
+    assert moved is importlib.import_module(new)
+    assert not (PACKAGE / "io" / f"{old.rsplit('.', 1)[1]}.py").exists()
+    assert [n for n in names if not hasattr(moved, n)] == []

@@ -131,7 +131,7 @@ def test_files_found_in_a_folder_or_glob_input_are_never_written(files, tmp_path
 def test_the_data_file_beside_an_envi_header_input_is_never_written(files, tmp_path, capsys):
     import numpy as np
 
-    from hsiffc.io.envi_write import write_envi
+    from hsiffc.io.envi import write_envi
 
     header, data = write_envi(tmp_path / "cube.hdr", np.ones((6, 5, 4), np.uint16))
     assert data != header and data.stem == header.stem

@@ -11,7 +11,7 @@ import tifffile
 from hsiffc.errors import DataFormatError
 from hsiffc.io import FrameMeta, open_source, read_sweep, write_sweep
 from hsiffc.io.envi import parse_envi_header, read_envi
-from hsiffc.io.envi_write import write_envi
+from hsiffc.io.envi import write_envi
 from hsiffc.data.sweep import Sweep
 
 RNG = np.random.default_rng(7)

@@ -145,7 +145,7 @@ def write_cube(cube, path, *, format: str | None = None, compression: str | None
 
 
 def _write_tiff(cube, path, compression, description, overwrite) -> None:
-    from ..io.corrected_writer import CorrectedWriter
+    from ..io.corrected import CorrectedWriter
 
     doc = {**_document(cube), "format_note": description or "written by hsiffc.io.write_cube",
            "alpha_computed": cube.alpha is not None}
@@ -167,7 +167,7 @@ def _envi_dq_entries() -> dict:
 
 
 def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
-    from ..io.envi_write import write_envi
+    from ..io.envi import write_envi
 
     base = header.with_suffix("")
     bands = {"band names": cube.band_names()}

@@ -1,6 +1,6 @@
 """What a format reader knows about one file from its header, before any pixel is decoded.
 
-Every format module (:mod:`~hsiffc.io.tiffpages`, :mod:`~hsiffc.io.images`,
+Every format module (:mod:`~hsiffc.io.tiff`, :mod:`~hsiffc.io.images`,
 :mod:`~hsiffc.io.envi`, :mod:`~hsiffc.io.fits`, :mod:`~hsiffc.io.emva`) turns a path into a
 :class:`FileLayout`; :func:`hsiffc.io.open_source` checks the layouts against the size limits,
 resolves the metadata and streams the frames.

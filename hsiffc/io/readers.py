@@ -79,7 +79,7 @@ def open_layout(path, limits: ReadLimits) -> FileLayout:
     require_regular_input(path)  # a FIFO or device is refused before anything opens it
     suffix = path.suffix.lower()
     if suffix in TIFF:
-        from .tiffpages import open_tiff
+        from .tiff import open_tiff
         return open_tiff(path, limits)
     if suffix in PNG:
         from .images import open_png
