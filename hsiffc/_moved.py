@@ -49,6 +49,14 @@ MOVED = {
     'hsiffc.io.sourcefacts': 'hsiffc.io.source',
     'hsiffc.io.tiffpages': 'hsiffc.io.tiff',
     'hsiffc.io.document': 'hsiffc.io.tiff',
+    # the io package's plumbing, private behind hsiffc.io (hsiffc 0.2)
+    'hsiffc.io.layout': 'hsiffc.io._layout',
+    'hsiffc.io.quirks': 'hsiffc.io._quirks',
+    'hsiffc.io.readers': 'hsiffc.io._readers',
+    'hsiffc.io.metadata': 'hsiffc.io._metadata',
+    'hsiffc.io.sidecar': 'hsiffc.io._sidecar',
+    'hsiffc.io.fits': 'hsiffc.io._fits',
+    'hsiffc.io.images': 'hsiffc.io._images',
 }
 
 

@@ -101,7 +101,8 @@ def test_the_check_sees_an_upward_import(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("old, new", [("hsiffc.frame", "hsiffc.data.frame"),
-                                      ("hsiffc.model_ffc", "hsiffc.flatfield.model_based")])
+                                      ("hsiffc.model_ffc", "hsiffc.flatfield.model_based"),
+                                      ("hsiffc.io.metadata", "hsiffc.io._metadata")])
 def test_moved_modules_keep_their_old_import_path(old, new):
     import importlib
 

@@ -14,7 +14,7 @@ from dataclasses import replace
 import pytest
 from hsiffc.calibrate import calibrate
 from hsiffc.io import read_sweep, write_sweep
-from hsiffc.io.metadata import parse_mosaic
+from hsiffc.io._metadata import parse_mosaic
 from hsiffc.data.mosaic import Mosaic
 
 

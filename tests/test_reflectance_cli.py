@@ -31,7 +31,7 @@ def _capture(sensor, t, rho, n, seed, dark=False):
                           reflectance=np.full(n_l, rho), seed=seed).frames
 
 
-@pytest.mark.filterwarnings("ignore::hsiffc.io.metadata.MetadataConflictWarning")
+@pytest.mark.filterwarnings("ignore::hsiffc.io.MetadataConflictWarning")
 def test_plain_camera_tiffs_to_reflectance(tmp_path, capsys):
     sensor = _sensor()
     t = 12.0

@@ -14,7 +14,7 @@ from pathlib import Path, PurePath
 
 from ..errors import HsiffcError
 from ..io.corrected import SUFFIX
-from ..io.readers import IMAGE_SUFFIXES
+from ..io import IMAGE_SUFFIXES
 
 __all__ = ["BatchError", "Job", "discover_inputs", "is_batch_output", "output_name", "plan_jobs"]
 

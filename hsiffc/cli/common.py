@@ -56,7 +56,7 @@ def input_files(values) -> list:
     """
     from ..errors import DataFormatError
     from ..io.emva import emva_files, has_emva_descriptor
-    from ..io.readers import expand_inputs
+    from ..io import expand_inputs
 
     out: list[Path] = []
     for value in values:

@@ -17,16 +17,16 @@ from __future__ import annotations
 from .corrected import read_corrected
 from .emva import read_emva1288
 from ..files.limits import ReadLimits, default_limits
-from .metadata import MetadataConflictWarning, Overrides
-from .quirks import LayoutWarning
-from .readers import ACCEPTED
+from ._metadata import MetadataConflictWarning, Overrides
+from ._quirks import LayoutWarning
+from ._readers import ACCEPTED, IMAGE_SUFFIXES
 from .source import FrameMeta, FrameSource, expand_inputs, open_source
 from .tiff import TIFF_SUFFIXES, read_sweep_tiff, write_sweep
 
 __all__ = ["open_source", "FrameSource", "FrameMeta", "Overrides", "ReadLimits",
            "default_limits", "expand_inputs", "read_sweep", "read_sweep_tiff", "read_emva1288",
            "write_sweep", "read_corrected", "LayoutWarning", "MetadataConflictWarning",
-           "TIFF_SUFFIXES", "ACCEPTED", "write_cube"]
+           "TIFF_SUFFIXES", "IMAGE_SUFFIXES", "ACCEPTED", "write_cube"]
 
 
 def write_cube(cube, path, **options):

@@ -40,7 +40,7 @@ from ..data.sweep import Sweep
 from ..errors import DataFormatError
 from ..files.limits import ReadLimits, default_limits
 from .tiff import EXPOSURE_UNITS_MS, exposure_to_ms
-from .layout import FileLayout
+from ._layout import FileLayout
 
 __all__ = ["DEFAULT_DESCRIPTOR_NAME", "emva_files", "find_emva_descriptor", "has_emva_descriptor",
            "image_path", "parse_descriptor", "read_emva1288", "open_emva1288"]
@@ -255,7 +255,7 @@ def _load_image(image: Path, descriptor: Path, lineno: int, shape: tuple) -> np.
     is what the limits were checked against, so an image claiming more is refused before any
     pixel is decoded."""
     from ..files.atomic import require_regular_input
-    from .images import decode_png, png_header
+    from ._images import decode_png, png_header
 
     where = f"line {lineno}: image {image}"
     if not os.path.lexists(image):
@@ -334,7 +334,7 @@ def read_emva1288(path, *, exposure_unit: str = "ns", steps=None,
         beyond the bit depth. Messages name the descriptor, the line number and the image.
     """
     from .source import FrameSource
-    from .metadata import Overrides
+    from ._metadata import Overrides
 
     limits = default_limits()
     layout = open_emva1288(path, limits, exposure_unit=exposure_unit, steps=steps,
@@ -345,7 +345,7 @@ def read_emva1288(path, *, exposure_unit: str = "ns", steps=None,
 
 def open_emva1288(path, limits: ReadLimits, *, exposure_unit: str = "ns", steps=None,
                   max_frames_per_step: int | None = None) -> FileLayout:
-    """The :class:`~hsiffc.io.layout.FileLayout` of an EMVA 1288 measurement (see
+    """The :class:`~hsiffc.io._layout.FileLayout` of an EMVA 1288 measurement (see
     :func:`read_emva1288`); images are decoded one at a time when read.
 
     Parameters

@@ -40,7 +40,7 @@ import numpy as np
 from ..errors import DataFormatError
 from ..files.atomic import atomic_path
 from ..files.limits import ReadLimits, default_limits
-from .layout import FileLayout
+from ._layout import FileLayout
 
 __all__ = ["parse_envi_header", "open_envi", "read_envi", "envi_paths", "ENVI_DTYPES", "write_envi",
            "corrected_to_envi", "corrected_envi_names", "corrected_envi_files", "written_from"]

@@ -2,10 +2,9 @@
 
 A frame source is opened from a file, a folder, a glob or a list of them. It parses every
 header once, checks the size limits and the file structure, resolves the metadata of every
-frame (file, then sidecar, then options: :mod:`hsiffc.io.metadata`) and then knows, before any
-pixel is decoded, the number of frames, their shape, dtype, exposure, kind, bit depth and
-mosaic (resolved over all files: the helpers at the end of this module, below the frame
-source). Frames are decoded one at a time::
+frame (file, then sidecar, then options) and then knows, before any pixel is decoded, the
+number of frames, their shape, dtype, exposure, kind, bit depth and mosaic (resolved over all
+files: the helpers at the end of this module). Frames are decoded one at a time::
 
     from hsiffc.io import open_source
 
@@ -31,15 +30,15 @@ from typing import Iterator
 
 import numpy as np
 
-from . import quirks
+from . import _quirks
 from ..data.frame import Frame
 from ..data.sweep import Sweep
 from ..errors import DataFormatError
 from ..files.limits import ReadLimits, default_limits
-from .layout import FileLayout, FrameMeta
-from .metadata import Overrides, missing_field_error, missing_origin, resolve_fields
-from .readers import expand_inputs, open_layout
-from .sidecar import Sidecar, find_sidecar
+from ._layout import FileLayout, FrameMeta
+from ._metadata import Overrides, missing_field_error, missing_origin, resolve_fields
+from ._readers import expand_inputs, open_layout
+from ._sidecar import Sidecar, find_sidecar
 
 __all__ = ["open_source", "FrameSource", "FrameMeta", "expand_inputs"]
 
@@ -206,7 +205,7 @@ class FrameSource:
         return raw if peek else self._finish(raw, lay, k)
 
     def _finish(self, raw, lay, k):
-        raw = quirks.unshift(raw, self.bit_shift, lay.path, k)
+        raw = _quirks.unshift(raw, self.bit_shift, lay.path, k)
         if self.active_area is not None:
             raw = self.active_area.crop(raw)
         if raw.dtype.kind in "ui" and raw.size and int(raw.max()) > 2 ** self.bit_depth - 1:
@@ -433,7 +432,7 @@ def agree(name, values, layouts):
     name : str
         Field name (``"mosaic"``, ``"bit_depth"``, ...).
     values : list of (dict, dict)
-        Per file, the resolved ``(values, origins)`` of :func:`hsiffc.io.metadata.resolve_fields`.
+        Per file, the resolved ``(values, origins)`` of :func:`hsiffc.io._metadata.resolve_fields`.
     layouts : list of FileLayout
         The files, in the order of ``values``.
 
@@ -504,7 +503,7 @@ def resolve_facts(layouts, resolved, *, label: str, inspect: bool, n_frames: int
     layouts : list of FileLayout
         The files.
     resolved : list of (dict, dict)
-        Per file ``(values, origins)`` from :func:`hsiffc.io.metadata.resolve_fields`.
+        Per file ``(values, origins)`` from :func:`hsiffc.io._metadata.resolve_fields`.
     label : str
         Name of the source in messages.
     inspect : bool
@@ -548,7 +547,7 @@ def resolve_facts(layouts, resolved, *, label: str, inspect: bool, n_frames: int
     strict = any(lay.strict for lay in layouts)
     first = first_frame() if needs_peek and n_frames else None
     if shift is None and first is not None and dtype == np.uint16 and not strict:
-        shift = quirks.detect_left_aligned(first, bits)
+        shift = _quirks.detect_left_aligned(first, bits)
         if shift:
             notes.append(f"samples left-aligned in 16-bit words: shifted right by {shift} bits "
                          "(detected from the values; --bit-shift 0 turns this off)")
@@ -557,7 +556,7 @@ def resolve_facts(layouts, resolved, *, label: str, inspect: bool, n_frames: int
                 bits_origin = f"detected (left-aligned by {shift} bits)"
                 # stacklevel: here, FrameSource.__init__, open_source, its caller
                 warnings.warn(f"{label}: {notes[-1]}; bit depth {bits}",
-                              quirks.LayoutWarning, stacklevel=4)
+                              _quirks.LayoutWarning, stacklevel=4)
     bit_shift = int(shift or 0)
     if bit_shift and (dtype.kind not in "ui" or bit_shift >= 8 * dtype.itemsize):
         origin = resolved[0][1].get("bit_shift", "the bit shift")
@@ -575,10 +574,10 @@ def resolve_facts(layouts, resolved, *, label: str, inspect: bool, n_frames: int
         elif dtype.kind == "f":
             raise missing_field_error(label, "bit_depth")
         else:
-            bits = quirks.infer_bit_depth(dtype, label)
+            bits = _quirks.infer_bit_depth(dtype, label)
             bits_origin = f"dtype {dtype} (assumed; full scale may be wrong)"
     h, w = stored[:2]
-    active_area, (h, w), note = quirks.active_area_crop(active_area, (h, w), label)
+    active_area, (h, w), note = _quirks.active_area_crop(active_area, (h, w), label)
     if note:
         notes.append(note)
     if channels:
@@ -680,4 +679,4 @@ def read_stored(lay: FileLayout, k: int) -> np.ndarray:
     if raw.shape != lay.shape:
         raise DataFormatError(f"frame {k} decodes to shape {raw.shape} but the header says "
                               f"{lay.shape}; the file is damaged", path=lay.path)
-    return quirks.single_channel(raw, lay.path, k, lay.meta.get("channel_hint", ""))
+    return _quirks.single_channel(raw, lay.path, k, lay.meta.get("channel_hint", ""))

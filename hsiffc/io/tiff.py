@@ -84,7 +84,7 @@ from ..files.atomic import atomic_path
 from ..files.jsonsafe import json_safe
 from ..files.limits import ReadLimits, default_limits
 from ..files.parsers import load_json
-from .layout import FileLayout
+from ._layout import FileLayout
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "EXPOSURE_UNITS_MS", "MINIMAL_DOCUMENT",
            "exposure_to_ms", "parse_document", "document_fields", "is_hsiffc_document",
@@ -461,7 +461,7 @@ def read_sweep_tiff(path) -> Sweep:
         (:mod:`hsiffc.files.limits`). Each message names the file, the problem and the fix.
         NaN/inf in float frames are *not* an error here.
     """
-    from .metadata import Overrides
+    from ._metadata import Overrides
     from .source import FrameSource
 
     path = Path(path)

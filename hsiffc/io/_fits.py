@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataFormatError
-from .layout import FileLayout
+from ._layout import FileLayout
 from ..files.limits import ReadLimits
 
 __all__ = ["open_fits"]

@@ -7,7 +7,7 @@ CRC and the inflated image data are checked before the decoder sees them (so lib
 prints its own error lines), and an ``sBIT`` chunk, when present, gives the significant
 bits of the samples (e.g. 12 in a 16-bit PNG) as the bit depth. Palette PNGs are refused (they
 do not hold counts). Gray+alpha and RGB(A) PNGs give 4- or 3-channel frames that
-:mod:`hsiffc.io.quirks` reduces to one channel when the channels are equal.
+:mod:`hsiffc.io._quirks` reduces to one channel when the channels are equal.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataFormatError
-from .layout import FileLayout
+from ._layout import FileLayout
 from ..files.limits import ReadLimits
 
 __all__ = ["check_png_data", "decode_png", "open_png", "png_header"]

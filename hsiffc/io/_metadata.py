@@ -8,7 +8,7 @@ For every field (exposure, kind, illumination, bit depth, mosaic, bit shift, pho
    ``--exposure-ms``); the origin then names what it overrode (``hsiffc info`` shows it);
 2. the file itself (hsiffc JSON document, EMVA 1288 descriptor, ENVI header, FITS header,
    TIFF tags such as EXIF ``ExposureTime``);
-3. a sidecar next to the data (``hsiffc.toml`` / ``hsiffc.csv``, :mod:`hsiffc.io.sidecar`).
+3. a sidecar next to the data (``hsiffc.toml`` / ``hsiffc.csv``, :mod:`hsiffc.io._sidecar`).
 
 A sidecar value that disagrees with the file's is reported with a
 :class:`MetadataConflictWarning` (the file's own record wins; fix the file or the sidecar).
@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import DataFormatError, HsiffcWarning
 from ..data.mosaic import Mosaic
 from ..data.sweep import FRAME_KINDS
-from .layout import FileLayout, PER_FRAME_FIELDS
+from ._layout import FileLayout, PER_FRAME_FIELDS
 
 __all__ = ["Overrides", "ActiveArea", "MetadataConflictWarning", "parse_mosaic",
            "resolve_fields", "missing_field_error", "missing_origin", "HOW_TO_GIVE"]

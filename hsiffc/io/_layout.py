@@ -1,7 +1,7 @@
 """What a format reader knows about one file from its header, before any pixel is decoded.
 
-Every format module (:mod:`~hsiffc.io.tiff`, :mod:`~hsiffc.io.images`,
-:mod:`~hsiffc.io.envi`, :mod:`~hsiffc.io.fits`, :mod:`~hsiffc.io.emva`) turns a path into a
+Every format module (:mod:`~hsiffc.io.tiff`, :mod:`~hsiffc.io._images`,
+:mod:`~hsiffc.io.envi`, :mod:`~hsiffc.io._fits`, :mod:`~hsiffc.io.emva`) turns a path into a
 :class:`FileLayout`; :func:`hsiffc.io.open_source` checks the layouts against the size limits,
 resolves the metadata and streams the frames.
 """
@@ -16,7 +16,7 @@ import numpy as np
 
 __all__ = ["FileLayout", "FrameMeta", "FIELDS", "PER_FRAME_FIELDS"]
 
-#: Metadata fields a frame source resolves (see :mod:`hsiffc.io.metadata`).
+#: Metadata fields a frame source resolves (see :mod:`hsiffc.io._metadata`).
 FIELDS = ("exposure_ms", "kind", "illumination", "photons", "step", "bit_depth", "mosaic",
           "bit_shift")
 #: Fields that may differ from frame to frame (a scalar means "the same for every frame").

@@ -6,7 +6,7 @@ import glob as globmod
 from pathlib import Path
 
 from ..errors import DataFormatError
-from .layout import FileLayout
+from ._layout import FileLayout
 from ..files.limits import ReadLimits
 
 __all__ = ["open_layout", "list_folder", "expand_inputs", "IMAGE_SUFFIXES", "ACCEPTED"]
@@ -82,13 +82,13 @@ def open_layout(path, limits: ReadLimits) -> FileLayout:
         from .tiff import open_tiff
         return open_tiff(path, limits)
     if suffix in PNG:
-        from .images import open_png
+        from ._images import open_png
         return open_png(path, limits)
     if suffix in ENVI_HEADER or (suffix in ENVI_DATA and path.with_suffix(".hdr").is_file()):
         from .envi import open_envi
         return open_envi(path, limits)
     if suffix in FITS:
-        from .fits import open_fits
+        from ._fits import open_fits
         return open_fits(path, limits)
     if suffix == ".txt":
         from .emva import open_emva1288

@@ -169,7 +169,7 @@ def infer_bit_depth(dtype: np.dtype, path) -> int:
 
 def active_area_crop(area, shape: tuple[int, int], label):
     """How frames of ``shape`` (H, W) are cropped to a mosaic's active area (an IMEC sensor's
-    filter area, :class:`~hsiffc.io.metadata.ActiveArea`).
+    filter area, :class:`~hsiffc.io._metadata.ActiveArea`).
 
     Returns
     -------
