@@ -107,9 +107,9 @@ class Mosaic:
     def describe(self) -> str:
         """The tile as the command line writes it, width x height (``--mosaic``, sidecars):
         ``"4x2 (W x H)"`` for 2 rows of 4 columns; an IMEC or other descriptive name follows.
-        Stored names that look like a tile size are not repeated: before 2026-11 the simulator
-        named its 2 x 4 tile "2x4" (rows x columns) while ``--mosaic 2x4`` meant 2 wide, 4
-        high, so a name alone was ambiguous.
+        Stored names that look like a tile size are not repeated: files from earlier versions of
+        the simulator name its 2 x 4 tile "2x4" (rows x columns) while ``--mosaic 2x4`` means 2
+        wide, 4 high, so a name alone is ambiguous.
 
         >>> Mosaic.rectangular(2, 4).describe()
         '4x2 (W x H)'

@@ -91,8 +91,8 @@ def _band_sums_loop(values, band_map, good, has_good, period, sums, counts):
                         counts[blk, band] += 1
 
 
-#: Band sums do little per pixel (a 65536-pixel block of rows takes 0.05 ms on one thread):
-#: the parallel build only pays on frames of a megapixel and more.
+#: Band sums do little per pixel (a block of rows is a short job for one thread): the
+#: parallel build only pays on frames of a megapixel and more.
 _kernel = Kernel(_band_sums_loop, 0, parallel_min=1 << 20)
 
 

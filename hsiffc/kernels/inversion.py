@@ -283,8 +283,7 @@ def invert_rounds(y, t, a, b, d, full_scale, k_max, tol_dn, rounds, k_out, flags
     state = np.empty(STATE_ROWS * m)
     # The first round as three loops (set-up, first step, second step and check) through
     # block-sized buffers: in one loop its vector code has more values live than AVX2 has
-    # registers and spills them (the serial kernel on one thread, 2048 x 1088 frame: 66.9 ->
-    # 59.5 ms for the whole inversion, same bits).
+    # registers and spills them (the split gives the same bits).
     xs = np.empty(m)
     betas = np.empty(m)
     ebs = np.empty(m)

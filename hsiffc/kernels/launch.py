@@ -28,8 +28,8 @@ PARALLEL_MIN = 65536
 JIT_OPTIONS = {"cache": True, "fastmath": False, "error_model": "numpy"}
 #: Parallel options of the parallel builds: no loop fusion. numba fuses adjacent ``prange``
 #: loops of the same length, which merges a kernel's branch-free vector pass with its scalar
-#: repair pass, and the fused loop (with a call in it) is no longer vectorised: the closed-form
-#: response ran 4 x slower fused (measured on an AVX2 machine).
+#: repair pass, and the fused loop (with a call in it) is no longer vectorised, several times
+#: slower than the two loops apart.
 PARALLEL_OPTIONS = {"fusion": False}
 
 
@@ -67,7 +67,7 @@ class Kernel:
         Size from which the parallel build runs (default :data:`PARALLEL_MIN`). A kernel that
         does little per element may ask for more: a parallel region waits for its slowest
         thread, and on a busy machine (a batch's reader and writer threads) a thread that
-        lost its core can hold a 0.05 ms job for a whole time slice.
+        lost its core can hold a sub-millisecond job for a whole time slice.
     """
 
     def __init__(self, fn, size_arg: int, parallel_min: int = PARALLEL_MIN):

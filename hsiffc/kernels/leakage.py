@@ -122,16 +122,13 @@ def _response_block(t, k, a, b, d, out):
     """:func:`response_point` over one block: the vectorised fast form, then the log-domain
     form where it failed (NaN marks those), while the block is still in cache; returns how
     many inputs are outside the model's domain (t, k or a < 0; b <= 0; NaN not counted),
-    counted in a loop of its own (in the first one it slowed the vector code by 12 %).
+    counted in a loop of its own (in the first one it would slow the vector code).
 
     The fast form runs as two loops, the exponentials' half into a block-sized buffer, then
     the logarithm's half: in one loop the vector code has more values live than AVX2 has
-    registers and spills them (model.response on one thread, 2048 x 1088 frame: 26.5 -> 20.6
-    ms with the repair scan below skipped where nothing failed; same bits). The division q =
-    leak / e0 sits in the second loop, whose dependency chain was the shorter (measured equal
-    to or slightly faster than the first, block in cache). Three loops (the logarithm split
-    after its division) and the domain count fused into the second loop were measured too:
-    no gain (within 2 %) or 3 % slower."""
+    registers and spills them (the split gives the same bits; the repair scan below is skipped
+    where nothing failed). The division q = leak / e0 sits in the second loop, whose
+    dependency chain is the shorter."""
     n = out.shape[0]
     leaks = np.empty(n)
     e0s = np.empty(n)
@@ -194,7 +191,7 @@ def alpha_paper_point(y, t, a, b, d):
     finite for ``bY`` up to 1416; beyond, ``E`` is inf, so alpha is too). ``E`` comes from
     :func:`~hsiffc.kernels.vmath.exp_clamped` (1 ulp, one 2^n factor: a shorter chain than
     :func:`~hsiffc.kernels.vmath.exp`, whose two factors reach subnormal results alpha never
-    needs; the stored float32 alpha of the benchmark frame is the same with either).
+    needs; the stored float32 alpha is the same with either).
     """
     s = y - d
     x = 0.5 * b * y
@@ -259,7 +256,7 @@ def _alpha_flags_block(y, t, a, b, d, threshold, full_scale, const_bits, pix, dq
                        alpha_in, alpha_out, dq_out, signal_out):
     # The optional planes are None or arrays: numba compiles each combination with the
     # branches of the absent ones removed, so the loop has no conditional loads and
-    # vectorises (with run-time flags it did not: one thread, 2048 x 1088, 10-12 -> 7.5-8 ms).
+    # vectorises (with run-time flags it does not).
     for i in range(dq_out.shape[0]):
         yi = at(y, i)
         if signal_out is not None:  # np.subtract(y, d, dtype=float32): both rounded first

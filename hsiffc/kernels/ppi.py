@@ -146,7 +146,7 @@ def _neighbour_weight(dy, dx):
 @njit(**_JIT)
 def _add_neighbour(acc, wsum, r, f, wt):
     """``acc += g r`` and ``wsum += g`` with ``g = wt`` where ``f == 0``, else 0 (a function of
-    its own: the same loop inline was not vectorised and ran 3 x slower than the per-pixel
+    its own: the same loop inline is not vectorised and is slower than the per-pixel
     branches it replaces)."""
     for i in range(acc.shape[0]):
         g = usable_weight(wt, f[i])

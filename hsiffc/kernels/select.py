@@ -1,8 +1,8 @@
 """Medians of several sample sets in parallel (the band medians of a reconstruction).
 
-numpy's ``partition`` holds the GIL, so the band medians of a frame were taken one band after
-another: on a 16-core machine that serial part (about 3 ms a band on 2048 x 1088 frames)
-bounded how far the bilinear pipeline scaled with threads (issue 42). This kernel takes
+numpy's ``partition`` holds the GIL, so with it the band medians of a frame are taken one
+band after another, a serial part that bounds how far the bilinear pipeline scales with
+threads on a many-core machine. This kernel takes
 every set's median in its own thread (numba's ``np.partition`` of a copy), with the value of
 :func:`hsiffc.reconstruct.prepare._median_in_place`: the middle element, or for an even count
 the float32 mean of the two middle ones (``(lo + hi) / 2`` rounded to float32).

@@ -1,7 +1,7 @@
 """Elementary functions in double precision that LLVM can vectorise inside numba loops.
 
 numba lowers ``math.exp`` and friends to scalar libm calls, which keep a per-pixel loop from
-being vectorised (the libm call is 5-10 x slower than numpy's SIMD ufuncs on AVX-512). These
+being vectorised (a scalar libm call is several times slower than numpy's SIMD ufuncs). These
 versions are straight-line arithmetic (range reduction, a polynomial, an exponent bit
 trick), with selects instead of branches, so a loop that calls them runs 8 pixels per
 instruction (4 on AVX2). Accuracy (measured against numpy over the whole double range in
@@ -209,8 +209,7 @@ def logaddexp(u, v):
 # forms drop them and use shorter polynomials, for the same accuracy class (errors of the
 # approximations below 0.1 ulp, checked by tests/test_vmath_short.py against 50-digit decimal
 # arithmetic on a grid of 4000 points; the functions within 1 ulp, expm1 2, against numpy):
-# the response ran 1.40 x faster with them (one thread, 2048 x 1088 frame, process CPU time,
-# median of 15, the old kernel in the same run; the shorter polynomials' share about 6 %).
+# the response's chain of dependent operations is shorter with them.
 
 # e^r ~ 1 + r + r^2 p(r) on |r| <= 1.0001 ln 2 / 2, p of degree 9: a fit of p to
 # (e^r - 1 - r) / r^2 weighted by r^2 e^-r (one Remez step from 11 Chebyshev points, mpmath at

@@ -140,8 +140,7 @@ class Prepared:
 
     def samples_of(self, bands) -> list[np.ndarray]:
         """:meth:`band_samples` of each band in ``bands`` in one compiled pass (parallel over
-        the bands; on the benchmark frame 8 bands took 14 ms with numpy's strided
-        ``compress``, one band after another).
+        the bands, where numpy's strided ``compress`` takes one band after another).
 
         Parameters
         ----------
@@ -220,8 +219,8 @@ def _median_in_place(vals: np.ndarray) -> float:
     """``np.median(vals)`` (same value), partitioning ``vals`` itself instead of a copy.
 
     For an even count the lower middle value is the max of the lower part after one
-    partition: numpy's partition for two positions ran 8 x slower on band samples (2.5 against
-    0.3 ms for 200 000 float32 values)."""
+    partition: numpy's partition for two positions is several times slower on band
+    samples."""
     n = vals.size
     if n == 0:
         return 0.0
