@@ -263,7 +263,7 @@ class LeakageBase(BaseModel):
         lin = LinearBase(self.dark_current).start(y, t, r, valid, w, dc0)
         from_lin = self.from_linear(lin)
         try:
-            guess = initial_guess(y, t, r, valid, w, lin[:, 2])
+            guess = initial_guess(y, t, r, valid, w, lin[:, 2], b_grid=b_grid(y, valid))
             guess = np.column_stack([guess, lin[:, 2]])
         except (FloatingPointError, ValueError):
             guess = from_lin
@@ -273,5 +273,33 @@ class LeakageBase(BaseModel):
         better_b = self._cost(b, y, t, r, valid, w) < self._cost(a, y, t, r, valid, w)
         return np.where(better_b[:, None], b, a)
 
+
+def b_grid(y, valid):
+    """Start values of b (1/DN) for the fit, scaled to the sweep's signal span: ``b x span``
+    from 2 to 16 (the calibration's own grid is in absolute 1/DN, made for 10-bit data, and
+    misses the leakage of a 14-bit sensor by a factor of 10). Sharper bends are left out: a
+    bend just above the highest sample is a straight line below it, wins the start on cost and
+    leaves the fit where the leakage parameters have no gradient (the linear start covers
+    that case).
+
+    Parameters
+    ----------
+    y : ndarray, (P, S), DN
+        Step means.
+    valid : ndarray of bool, (P, S)
+        Samples to use.
+
+    Returns
+    -------
+    tuple of float, 1/DN
+    """
+    yv = np.where(valid, y, np.nan)
+    with np.errstate(invalid="ignore"):
+        span = np.nanmedian(np.nanmax(yv, axis=1) - np.nanmin(yv, axis=1))
+    span = float(span) if np.isfinite(span) and span > 0 else 1000.0
+    return tuple(float(v) / span for v in B_SPAN_GRID)
+
+
+B_SPAN_GRID = (2.0, 4.0, 8.0, 16.0)  # b x signal span tried as start values
 
 BASES = {"leakage": LeakageBase, "linear": LinearBase}
