@@ -22,7 +22,27 @@ DQ_DTYPE = np.uint32
 
 
 class DQ(enum.IntFlag):
-    """Named data-quality bits (their meanings: :data:`MEANINGS`, :func:`table`)."""
+    """Named data-quality bits: one uint32 plane per frame, one bit per reason.
+
+    A flagged pixel keeps its value and gains a bit; ``GOOD`` (0) is no bit set. Bits combine
+    with ``|`` and are tested with ``&``; :func:`mask` selects pixels by bit names, and
+    :data:`MEANINGS` and :func:`table` say what each bit means (every file hsiffc writes carries
+    that table).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from hsiffc import DQ
+    >>> from hsiffc.data.dq import describe, mask
+    >>> dq = np.zeros((2, 3), np.uint32)            # every pixel GOOD
+    >>> dq[0, 1] |= DQ.SATURATED | DQ.DO_NOT_USE
+    >>> int(dq[0, 1]), bool(dq[0, 1] & DQ.SATURATED), bool(dq[0, 1] & DQ.LEAKAGE)
+    (3, True, False)
+    >>> describe(int(dq[0, 1]))
+    ['DO_NOT_USE', 'SATURATED']
+    >>> int(mask(dq, "SATURATED").sum())            # pixels with that bit
+    1
+    """
 
     GOOD = 0
     DO_NOT_USE = 1 << 0

@@ -34,7 +34,7 @@ class Mosaic:
     >>> m = Mosaic.square(4)
     >>> m.n_bands, m.tile_shape
     (16, (4, 4))
-    >>> m.band_map((4, 8))[1, 5]
+    >>> int(m.band_map((4, 8))[1, 5])                  # band seen by row 1, column 5
     5
     """
 

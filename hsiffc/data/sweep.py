@@ -42,6 +42,24 @@ class Sweep:
         Where the frames came from (file path or "simulated").
     meta : dict
         Anything else (JSON-serialisable), e.g. the simulator's settings or the descriptor header.
+
+    Examples
+    --------
+    Two dark and two light frames of 2 x 3 pixels, read with a 12-bit ADC:
+
+    >>> import numpy as np
+    >>> from hsiffc import Sweep
+    >>> frames = np.arange(24, dtype=np.uint16).reshape(4, 2, 3) + 100
+    >>> sweep = Sweep(frames, exposure_ms=[10, 10, 20, 20],
+    ...               kind=["dark", "dark", "light", "light"], bit_depth=12)
+    >>> sweep.n_frames, sweep.frame_shape, sweep.full_scale_dn
+    (4, (2, 3), 4095)
+    >>> sweep.step.tolist()                  # consecutive frames with equal settings
+    [0, 0, 1, 1]
+    >>> sweep.light().exposure_ms.tolist()
+    [20.0, 20.0]
+    >>> print(sweep.summary())
+    4 frames (2 light, 2 dark) of 2 x 3 px, 12-bit, 2 steps, exposure 10-20 ms
     """
 
     data: np.ndarray

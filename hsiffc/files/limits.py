@@ -56,6 +56,24 @@ class ReadLimits:
         Decoded bytes held in memory at once.
     max_spectral_samples : int
         Samples of a wavelength grid a file declares.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, tifffile
+    >>> from pathlib import Path
+    >>> from hsiffc.errors import DataFormatError
+    >>> from hsiffc.io import ReadLimits, open_source
+    >>> ReadLimits().max_frames
+    1000000
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = Path(tmp.name) / "frames.tif"
+    >>> tifffile.imwrite(path, np.zeros((3, 4, 6), np.uint16), photometric="minisblack")
+    >>> try:
+    ...     open_source(path, limits=ReadLimits(max_frames=2), exposure_ms=1.0, bit_depth=12)
+    ... except DataFormatError as err:
+    ...     print(str(err).split(": ", 1)[1].split(";")[0])
+    the header states 3 frames, more than the limit of 2
+    >>> tmp.cleanup()
     """
 
     max_frame_pixels: int = 100_000_000
@@ -162,6 +180,15 @@ def default_limits() -> ReadLimits:
     ------
     DataFormatError
         An environment variable that is not a number.
+
+    Examples
+    --------
+    >>> import os
+    >>> from unittest import mock
+    >>> from hsiffc.io import default_limits
+    >>> with mock.patch.dict(os.environ, {"HSIFFC_MAX_FRAMES": "5000000"}):
+    ...     default_limits().max_frames
+    5000000
     """
     values = {}
     for name, env in _ENV.items():

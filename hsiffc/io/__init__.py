@@ -6,10 +6,32 @@
 * :func:`read_sweep` = ``open_source(...).to_sweep()``: a :class:`~hsiffc.Sweep` in memory.
 * :func:`write_sweep` writes a sweep as an hsiffc TIFF (atomically).
 * :func:`read_sweep_tiff` and :func:`read_emva1288` read the two self-describing formats with
-  their specific options.
+  their specific options; :func:`read_corrected` reads what ``hsiffc correct`` wrote and
+  :func:`write_cube` writes a reconstructed cube.
+* ``TIFF_SUFFIXES``, ``IMAGE_SUFFIXES`` (the file suffixes a folder is searched for) and
+  ``ACCEPTED`` (the inputs, in words, as error messages list them).
+
+The public modules behind this face are one per format or reader: :mod:`hsiffc.io.source` (the
+frame source), :mod:`hsiffc.io.tiff`, :mod:`hsiffc.io.corrected`, :mod:`hsiffc.io.envi` and
+:mod:`hsiffc.io.emva`; the modules whose names start with an underscore are plumbing whose
+API may change without notice.
 
 Formats, the metadata order, the sidecar format and the limits are documented in
 ``docs/formats-and-metadata.md``.
+
+Examples
+--------
+>>> import tempfile, numpy as np
+>>> from pathlib import Path
+>>> from hsiffc import Sweep
+>>> from hsiffc.io import read_sweep, write_sweep
+>>> tmp = tempfile.TemporaryDirectory()
+>>> sweep = Sweep(np.zeros((3, 4, 6), np.uint16), exposure_ms=[1.0, 2.0, 4.0], kind="light",
+...               bit_depth=12)
+>>> path = write_sweep(Path(tmp.name) / "sweep.tif", sweep)
+>>> read_sweep(path).exposure_ms.tolist()       # any supported input: file, folder or glob
+[1.0, 2.0, 4.0]
+>>> tmp.cleanup()
 """
 
 from __future__ import annotations
@@ -32,12 +54,35 @@ __all__ = ["open_source", "FrameSource", "FrameMeta", "Overrides", "ReadLimits",
 def write_cube(cube, path, **options):
     """Write a reconstructed cube (a :class:`~hsiffc.data.frame.Frame` or
     :class:`~hsiffc.cubes.Cube`) with its DQ and alpha as hsiffc TIFF, ENVI, OME-TIFF or
-    netCDF, chosen by ``format=`` or the file name; see :func:`hsiffc.cubes.write_cube`.
+    netCDF, chosen by ``format=`` or the file name.
+
+    Parameters
+    ----------
+    cube : Cube or Frame
+        The cube, (H, W, B) values with their DQ bits and alpha.
+    path : str or Path
+        The main file; its suffix chooses the format when ``format`` is not given.
+    **options
+        ``format``, ``compression``, ``overwrite``, ``description``, ``extra``: see
+        :func:`hsiffc.cubes.write_cube`.
 
     Returns
     -------
     list of Path
         The files written.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> from pathlib import Path
+    >>> from hsiffc.cubes import Cube
+    >>> from hsiffc.io import write_cube
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> cube = Cube(np.ones((4, 6, 3), np.float32), np.zeros((4, 6, 3), np.uint32),
+    ...             wavelengths_nm=(500.0, 600.0, 700.0))
+    >>> [p.name for p in write_cube(cube, Path(tmp.name) / "cube.hdr")]   # ENVI, by the suffix
+    ['cube.hdr', 'cube.img', 'cube.dq.hdr', 'cube.dq.img']
+    >>> tmp.cleanup()
     """
     from ..cubes import write_cube as _write_cube
 

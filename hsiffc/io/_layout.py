@@ -105,6 +105,20 @@ class FrameMeta:
         File the frame comes from.
     page : int
         Frame index inside that file.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, tifffile
+    >>> from pathlib import Path
+    >>> from hsiffc.io import open_source
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = Path(tmp.name) / "frames.tif"
+    >>> tifffile.imwrite(path, np.zeros((2, 4, 6), np.uint16), photometric="minisblack")
+    >>> with open_source(path, exposure_ms=5.0, bit_depth=12, kind="dark") as src:
+    ...     meta = src.frame_meta(1)
+    >>> meta.index, meta.exposure_ms, meta.kind, meta.page, Path(meta.path).name
+    (1, 5.0, 'dark', 1, 'frames.tif')
+    >>> tmp.cleanup()
     """
 
     index: int

@@ -48,7 +48,26 @@ _TILE = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
 
 
 class MetadataConflictWarning(HsiffcWarning):
-    """A sidecar disagrees with a value the file itself gives (the file wins)."""
+    """A sidecar disagrees with a value the file itself gives (the file wins).
+
+    Examples
+    --------
+    >>> import tempfile, warnings, numpy as np, tifffile
+    >>> from pathlib import Path
+    >>> from hsiffc.io import MetadataConflictWarning, open_source
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = Path(tmp.name) / "frame.tif"            # its EXIF ExposureTime tag: 1/100 s
+    >>> tifffile.imwrite(path, np.zeros((4, 6), np.uint16),
+    ...                  extratags=[(33434, 5, 1, (1, 100), True)])
+    >>> _ = (Path(tmp.name) / "hsiffc.toml").write_text("[defaults]\\nexposure_ms = 50.0\\n")
+    >>> with warnings.catch_warnings(record=True) as caught:
+    ...     warnings.simplefilter("always")
+    ...     with open_source(path, bit_depth=12) as src:
+    ...         exposure = src.exposure_ms.tolist()
+    >>> exposure, [w.category.__name__ for w in caught]       # the file wins
+    ([10.0], ['MetadataConflictWarning'])
+    >>> tmp.cleanup()
+    """
 
 
 @dataclass(frozen=True)
@@ -99,6 +118,20 @@ class Overrides:
         Right shift for data left-aligned in 16-bit words (0 turns detection off).
     sidecar : path, optional
         Sidecar to use instead of the ``hsiffc.toml``/``hsiffc.csv`` next to each file.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, tifffile
+    >>> from pathlib import Path
+    >>> from hsiffc.io import Overrides, open_source
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = Path(tmp.name) / "frames.tif"
+    >>> tifffile.imwrite(path, np.zeros((2, 8, 8), np.uint16), photometric="minisblack")
+    >>> given = Overrides(exposure_ms=20.0, bit_depth=10, mosaic="4x4")
+    >>> with open_source(path, overrides=given) as src:  # = open_source(path, exposure_ms=20.0, ...)
+    ...     src.exposure_ms.tolist(), src.mosaic.n_bands, src.origins["bit_depth"]
+    ([20.0, 20.0], 16, '--bit-depth')
+    >>> tmp.cleanup()
     """
 
     exposure_ms: float | None = None

@@ -28,7 +28,24 @@ __all__ = ["LayoutWarning", "single_channel", "detect_left_aligned", "unshift",
 
 
 class LayoutWarning(HsiffcWarning):
-    """A layout guess hsiffc made about a file (bit depth from the dtype, detected shift)."""
+    """A layout guess hsiffc made about a file (bit depth from the dtype, detected shift).
+
+    Examples
+    --------
+    >>> import tempfile, warnings, numpy as np, tifffile
+    >>> from pathlib import Path
+    >>> from hsiffc.io import LayoutWarning, open_source
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = Path(tmp.name) / "frames.tif"          # 16-bit words, no bit depth stated
+    >>> tifffile.imwrite(path, np.full((2, 4, 6), 1001, np.uint16), photometric="minisblack")
+    >>> with warnings.catch_warnings(record=True) as caught:
+    ...     warnings.simplefilter("always")
+    ...     with open_source(path, exposure_ms=1.0) as src:
+    ...         bits = src.bit_depth
+    >>> bits, [w.category.__name__ for w in caught]      # full scale taken from the dtype
+    (16, ['LayoutWarning'])
+    >>> tmp.cleanup()
+    """
 
 
 def single_channel(raw: np.ndarray, path, k: int, hint: str = "") -> np.ndarray:

@@ -110,6 +110,20 @@ def expand_inputs(inputs) -> list[Path]:
     -------
     list of Path
         Files in order (an empty list when nothing matches).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from hsiffc.io import expand_inputs
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> for name in ("b.tif", "a.tif", "notes.txt"):
+    ...     _ = (Path(tmp.name) / name).write_bytes(b"")
+    >>> [p.name for p in expand_inputs(tmp.name)]            # a folder: its image files by name
+    ['a.tif', 'b.tif']
+    >>> [p.name for p in expand_inputs(str(Path(tmp.name) / "b*.tif"))]   # a glob
+    ['b.tif']
+    >>> tmp.cleanup()
     """
     items = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
     out: list[Path] = []

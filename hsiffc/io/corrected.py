@@ -243,6 +243,23 @@ def read_corrected(path, frames=None) -> Corrected:
     -------
     Corrected
         ``data``, ``dq``, ``alpha`` as (N, H, W) arrays and ``provenance`` (dict).
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> from pathlib import Path
+    >>> from hsiffc.io import read_corrected
+    >>> from hsiffc.io.corrected import CorrectedWriter
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = Path(tmp.name) / "frames.corrected.tif"
+    >>> writer = CorrectedWriter(path, {"source": "example"}, n_frames=2, frame_shape=(4, 6))
+    >>> for k in range(2):
+    ...     writer.write(np.full((4, 6), 10.0 * k, np.float32), np.zeros((4, 6), np.uint32))
+    >>> _ = writer.finish()
+    >>> cube = read_corrected(path)
+    >>> cube.data.shape, cube.dq.dtype.name, float(cube.data[1, 0, 0]), cube.provenance["status"]
+    ((2, 4, 6), 'uint32', 10.0, 'complete')
+    >>> tmp.cleanup()
     """
     path = Path(path)
     with _open(path) as tf:

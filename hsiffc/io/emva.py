@@ -332,6 +332,25 @@ def read_emva1288(path, *, exposure_unit: str = "ns", steps=None,
         Missing descriptor, malformed line, image before any step, step without images, unknown
         bit depth, missing/unreadable/truncated image, image of the wrong size or with values
         beyond the bit depth. Messages name the descriptor, the line number and the image.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, tifffile
+    >>> from pathlib import Path
+    >>> from hsiffc.io import read_emva1288
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> folder = Path(tmp.name)
+    >>> lines = ["v 4.0", "n 12 6 4"]                    # 12-bit ADC, 6 x 4 px images
+    >>> for k, step in enumerate(["b 1000000 50.0", "d 1000000"]):   # exposure 1 ms in ns
+    ...     lines.append(step)
+    ...     for j in range(2):
+    ...         tifffile.imwrite(folder / f"s{k}_{j}.tif", np.full((4, 6), 200 - 150 * k, np.uint16))
+    ...         lines.append(f"i s{k}_{j}.tif")
+    >>> _ = (folder / "EMVA1288_Data.txt").write_text("\\n".join(lines) + "\\n")
+    >>> sweep = read_emva1288(folder)
+    >>> sweep.kind.tolist(), sweep.exposure_ms.tolist(), sweep.photons[:2].tolist(), sweep.bit_depth
+    (['light', 'light', 'dark', 'dark'], [1.0, 1.0, 1.0, 1.0], [50.0, 50.0], 12)
+    >>> tmp.cleanup()
     """
     from .source import FrameSource
     from ._metadata import Overrides

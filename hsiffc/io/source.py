@@ -143,6 +143,24 @@ class FrameSource:
         Fields no source gives (only with ``inspect=True``; otherwise missing ones raise).
     files : list of Path
     meta : dict
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np, tifffile
+    >>> from pathlib import Path
+    >>> from hsiffc.io import open_source
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = Path(tmp.name) / "frames.tif"                 # a plain TIFF: 2 frames of 4 x 6 px
+    >>> tifffile.imwrite(path, np.arange(48, dtype=np.uint16).reshape(2, 4, 6),
+    ...                  photometric="minisblack")
+    >>> with open_source(path, exposure_ms=5.0, bit_depth=12) as src:
+    ...     print(src.n_frames, src.frame_shape, src.dtype, src.bit_depth)
+    ...     first = src.read(0)                               # one frame, (H, W) in DN
+    ...     sweep = src.to_sweep()                            # or all of them
+    2 (4, 6) uint16 12
+    >>> int(first[1, 0]), sweep.data.shape
+    (6, (2, 4, 6))
+    >>> tmp.cleanup()
     """
 
     def __init__(self, layouts: list[FileLayout], overrides: Overrides, limits: ReadLimits,

@@ -52,18 +52,7 @@ The JSON document is checked by :func:`parse_document` (one error per problem na
 the key and the fix) and turned into the metadata fields of a frame source by
 :func:`document_fields` (exposure in milliseconds, kinds, bit depth, mosaic, ...).
 
-Examples
---------
-Write and read back a two-frame 10-bit sweep::
-
-    import numpy as np
-    from hsiffc import Sweep
-    from hsiffc.io import write_sweep, read_sweep_tiff
-
-    frames = np.zeros((2, 4, 6), dtype=np.uint16)
-    sweep = Sweep(frames, exposure_ms=[1.0, 2.0], kind="light", bit_depth=10)
-    write_sweep("sweep.tif", sweep)
-    again = read_sweep_tiff("sweep.tif")
+The examples of :func:`write_sweep` and :func:`read_sweep_tiff` write and read such files.
 """
 
 from __future__ import annotations
@@ -397,6 +386,23 @@ def write_sweep(path, sweep: Sweep, *, overwrite: bool = False, compression=None
     The file is written to a hidden temporary file in the same folder, flushed to disk
     (``fsync``) and renamed onto ``path`` with :func:`os.replace`, so ``path`` never holds a
     partial file; the temporary file is removed if anything fails.
+
+    Examples
+    --------
+    Write a two-frame 10-bit sweep and read it back:
+
+    >>> import tempfile, numpy as np
+    >>> from pathlib import Path
+    >>> from hsiffc import Sweep
+    >>> from hsiffc.io import read_sweep_tiff, write_sweep
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> sweep = Sweep(np.full((2, 4, 6), 300, np.uint16), exposure_ms=[1.0, 2.0], kind="light",
+    ...               bit_depth=10)
+    >>> path = write_sweep(Path(tmp.name) / "sweep.tif", sweep)
+    >>> again = read_sweep_tiff(path)
+    >>> again.exposure_ms.tolist(), again.bit_depth, bool((again.data == sweep.data).all())
+    ([1.0, 2.0], 10, True)
+    >>> tmp.cleanup()
     """
     path = Path(path)
     if not isinstance(sweep, Sweep):
@@ -460,6 +466,25 @@ def read_sweep_tiff(path) -> Sweep:
         bit depth, integer data above ``2**bit_depth - 1``, or a header over the size limits
         (:mod:`hsiffc.files.limits`). Each message names the file, the problem and the fix.
         NaN/inf in float frames are *not* an error here.
+
+    Examples
+    --------
+    Any TIFF writer makes an hsiffc TIFF: the frames as pages, the JSON document as the first
+    page's description (exposure here in microseconds):
+
+    >>> import json, tempfile, numpy as np, tifffile
+    >>> from pathlib import Path
+    >>> from hsiffc.io import read_sweep_tiff
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> path = Path(tmp.name) / "by_hand.tif"
+    >>> doc = {"format": "hsiffc", "exposure": [40000, 80000], "exposure_unit": "us",
+    ...        "bit_depth": 12}
+    >>> tifffile.imwrite(path, np.zeros((2, 4, 6), np.uint16), description=json.dumps(doc),
+    ...                  metadata=None)
+    >>> sweep = read_sweep_tiff(path)
+    >>> sweep.exposure_ms.tolist(), sweep.bit_depth, sweep.kind.tolist()
+    ([40.0, 80.0], 12, ['light', 'light'])
+    >>> tmp.cleanup()
     """
     from ._metadata import Overrides
     from .source import FrameSource
