@@ -160,7 +160,7 @@ def test_planes_that_are_not_dq_bits_or_real_counts_are_refused():
         demosaic(raw.astype(np.complex64), mosaic)
     with pytest.raises(ValueError, match="real counts"):
         Frame.from_raw(raw.astype(object), exposure_ms=1.0, bit_depth=10)
-    cube, _ = demosaic(raw, mosaic, dq=np.zeros((8, 8), np.int16))  # integers >= 0 are bits
+    cube, _, _ = demosaic(raw, mosaic, dq=np.zeros((8, 8), np.int16))  # integers >= 0 are bits
     assert np.isfinite(cube).all()
 
 

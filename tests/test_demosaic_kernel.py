@@ -144,7 +144,7 @@ def test_float32_interpolation_stays_within_its_error_budget(method, mosaic):
     scales with the frame, not with a value near zero)."""
     raw, dq, _ = _scene((61, 83), mosaic, 3, 0.2)
     raw *= np.float32(20.0)  # thousands of DN, where an ulp is about 1e-4 DN
-    cube, _ = demosaic(raw, mosaic, method=method, dq=dq)
+    cube, _, _ = demosaic(raw, mosaic, method=method, dq=dq)
     ref, _ = reference(raw, mosaic, dq, method, dtype=np.float64)
     err = np.abs(cube - ref)
     assert err.max() <= 2.0 ** -22 * np.abs(ref).max()
@@ -159,7 +159,7 @@ def test_a_band_without_any_usable_sample_takes_the_median_and_do_not_use():
     dq[mosaic.band_map(raw.shape) == 3] = DQ.HOT
     dq[:, :12][mosaic.band_map(raw.shape)[:, :12] == 5] = DQ.LEAKAGE
     for method in ("bilinear", "ppid"):
-        cube, cube_dq = demosaic(raw, mosaic, method=method, dq=dq)
+        cube, cube_dq, _ = demosaic(raw, mosaic, method=method, dq=dq)
         ref, ref_dq = reference(raw, mosaic, dq, method)
         assert np.allclose(cube, ref, rtol=2e-6, atol=1e-3)
         assert np.array_equal(cube_dq, ref_dq)

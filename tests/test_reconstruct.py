@@ -67,7 +67,7 @@ def test_flat_scene_is_exact_everywhere(method, name):
     m = MOSAICS[name]
     levels = np.random.default_rng(3).uniform(20.0, 300.0, m.n_bands)
     truth = np.broadcast_to(levels, (37, 53, m.n_bands))  # not a whole number of tiles
-    cube, cube_dq = demosaic(sample(truth, m), m, method=method)
+    cube, cube_dq, _ = demosaic(sample(truth, m), m, method=method)
     assert cube.shape == (37, 53, m.n_bands) and cube.dtype == np.float32
     assert cube_dq.shape == cube.shape and cube_dq.dtype == DQ_DTYPE
     np.testing.assert_allclose(cube, truth, rtol=2e-6)
@@ -85,14 +85,14 @@ def test_linear_ramps_are_exact_in_the_interior(name):
     b = 2 * max(m.tile_shape)
     own_slopes = (rng.uniform(50, 100, m.n_bands)
                   + (0.3 * y - 0.7 * x)[..., None] * rng.uniform(0.5, 1.5, m.n_bands))
-    cube, _ = demosaic(sample(own_slopes, m), m, method="bilinear")
+    cube, _, _ = demosaic(sample(own_slopes, m), m, method="bilinear")
     np.testing.assert_allclose(cube[b:-b, b:-b], own_slopes[b:-b, b:-b], rtol=1e-5)
     shared = (100.0 + 0.3 * y - 0.7 * x)[..., None] * rng.uniform(0.2, 2.0, m.n_bands)
-    cube, _ = demosaic(sample(shared, m), m, method="bilinear")
+    cube, _, _ = demosaic(sample(shared, m), m, method="bilinear")
     np.testing.assert_allclose(cube[b:-b, b:-b], shared[b:-b, b:-b], rtol=1e-5)
     # ppid: exact up to the band levels, estimated as medians over each band's own sites
     # (which sample the ramp at slightly shifted positions): ~1e-4
-    cube, _ = demosaic(sample(shared, m), m, method="ppid")
+    cube, _, _ = demosaic(sample(shared, m), m, method="ppid")
     np.testing.assert_allclose(cube[b:-b, b:-b], shared[b:-b, b:-b], rtol=1e-3)
 
 
@@ -103,7 +103,7 @@ def test_every_method_keeps_the_samples_at_their_own_sites(method, name):
     m = MOSAICS[name]
     truth = textured_scene((31, 42), m.n_bands, seed=5)
     raw = sample(truth, m)
-    cube, _ = demosaic(raw, m, method=method)
+    cube, _, _ = demosaic(raw, m, method=method)
     bm = m.band_map(raw.shape)
     own = np.take_along_axis(cube, bm[..., None], axis=2)[..., 0]
     np.testing.assert_allclose(own, raw, rtol=1e-5)
@@ -172,7 +172,7 @@ def test_flagged_samples_do_not_leak(method, name):
     m = MOSAICS[name]
     truth, raw, dq, sites = _wild_frame(m)
     before = raw.copy(), dq.copy()
-    cube, cube_dq = demosaic(raw, m, method=method, dq=dq)
+    cube, cube_dq, _ = demosaic(raw, m, method=method, dq=dq)
     assert np.array_equal(raw, before[0], equal_nan=True) and np.array_equal(dq, before[1])
     assert np.all(np.isfinite(cube))
     assert cube.max() < 1.2 * truth.max() and cube.min() > 0.5 * truth.min()
@@ -180,7 +180,7 @@ def test_flagged_samples_do_not_leak(method, name):
     # loss of one sample (no trace of the wild value, which would show as >> 1): measured up
     # to 0.19 for nearest, 0.13 bilinear (a lost corner makes the estimate one-sided),
     # 0.004 ppid
-    clean, _ = demosaic(sample(truth, m), m, method=method)
+    clean, _, _ = demosaic(sample(truth, m), m, method=method)
     scale = truth.mean(axis=(0, 1))
     bm = m.band_map(raw.shape)
     for y, x in sites[:2] + sites[4:]:
@@ -235,7 +235,7 @@ def test_no_source_at_all_gives_band_median_and_do_not_use(method):
     block[13:38, 10:35] = bm[13:38, 10:35] == 3  # band 3 in a block of 5 x 5 tiles
     dq[block] = DQ.SATURATED
     raw[dq != 0] = WILD
-    cube, cube_dq = demosaic(raw, m, method=method, dq=dq)
+    cube, cube_dq, _ = demosaic(raw, m, method=method, dq=dq)
     assert np.all(np.isfinite(cube))
     assert np.all(cube_dq[..., 7] & DQ_DTYPE(DQ.DO_NOT_USE))
     assert np.all(cube_dq[..., 7] & DQ_DTYPE(DQ.DEAD))
@@ -259,7 +259,7 @@ def test_random_layouts_and_flags_stay_finite(n, oy, ox, h, w, seed, frac):
     dq = np.where(rng.random((h, w)) < frac, DQ.HOT, 0).astype(DQ_DTYPE)
     raw[dq != 0] = rng.choice([np.nan, np.inf, -1e30, 1e30], int((dq != 0).sum()))
     for method in METHODS:
-        cube, cube_dq = demosaic(raw, m, method=method, dq=dq)
+        cube, cube_dq, _ = demosaic(raw, m, method=method, dq=dq)
         assert np.all(np.isfinite(cube))
         if method == "ppid":  # adds interpolated differences: may overshoot, but boundedly
             assert np.abs(cube).max() <= 5000
@@ -342,7 +342,7 @@ def test_apply_correction_with_the_imec_vendor_matrix(imec_xml):
     k = sensor.light_rate("lamp A", irradiance_w_m2=1.0)
     dq = np.zeros(k.shape, DQ_DTYPE)
     dq[20, 20] = DQ.HOT
-    cube, cube_dq = demosaic(k, m, method="ppid", dq=dq)
+    cube, cube_dq, _ = demosaic(k, m, method="ppid", dq=dq)
     virtual, vdq = apply_correction(cube, cal.correction_matrix, dq=cube_dq)
     assert virtual.shape == (40, 50, len(cal.virtual_wavelengths_nm))
     assert np.all(np.isfinite(virtual))

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..calibrate.product import Calibration
+from ..reconstruct import DEMOSAIC_METHODS
 from ..stages import Pipeline, create
 from ..stages.defaults import default_pipeline as _default_pipeline
 from .plan import BatchError
@@ -35,7 +36,9 @@ def default_pipeline(calibration, *, threshold_percent: float = 12.0,
                              linearise=linearise, ffc=ffc)
 
 
-CUBE_METHODS = ("nearest", "bilinear", "ppid", "tile")
+#: ``--cube`` choices: the demosaicking methods (:data:`hsiffc.reconstruct.DEMOSAIC_METHODS`)
+#: and "tile" (one spectrum per mosaic tile)
+CUBE_METHODS = (*DEMOSAIC_METHODS, "tile")
 
 
 def with_cube_step(pipe: Pipeline, method: str, correction=None, imec_xml=None) -> Pipeline:

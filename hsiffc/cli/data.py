@@ -233,6 +233,8 @@ def _cmd_simulate(args) -> int:
 
 
 def _add_calibrate(sub):
+    from ..calibrate import CALIBRATION_METHODS
+
     p = sub.add_parser(
         "calibrate", help="calibrate the leakage model of every pixel from a sweep",
         description="Fit k (responsivity), a, b and the dark level of every pixel from an "
@@ -241,7 +243,7 @@ def _add_calibrate(sub):
                    help="sweep: files of any supported format, folders or globs")
     add_input_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.npz)")
-    p.add_argument("--method", choices=("joint", "paper"), default="joint",
+    p.add_argument("--method", choices=tuple(CALIBRATION_METHODS), default="joint",
                    help="joint per-pixel fit (default) or the paper's procedure (several "
                         "illuminations)")
     p.add_argument("--full-well-dn", type=positive, default=None,

@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+from ..batch.context import CUBE_METHODS
 from ..errors import HsiffcError
 from .args import count, percent, real
 from .common import add_input_options, add_overwrite, input_overrides, write_json
@@ -175,10 +176,10 @@ def _add_correct(sub):
                         "their own files), ome (NAME.ome.tif, channels named by wavelength), "
                         "netcdf (NAME.nc through xarray: pip install 'hsiffc[xarray]'); mosaic "
                         "frames become one spectrum per tile. See the formats page")
-    p.add_argument("--cube", choices=("nearest", "bilinear", "ppid", "tile"), default=None,
-                   metavar="METHOD",
+    p.add_argument("--cube", choices=CUBE_METHODS, default=None, metavar="METHOD",
                    help="append a reconstruct step: write full-resolution (H, W, bands) cubes "
-                        "by METHOD (nearest, bilinear, ppid) or one spectrum per mosaic tile "
+                        f"by METHOD ({', '.join(CUBE_METHODS[:-1])}) or one spectrum per "
+                        "mosaic tile "
                         "(tile). A --pipeline whose last step reconstructs writes cubes without "
                         "it")
     p.add_argument("--cube-correction", choices=("imec", "derived"), default=None,

@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import HsiffcError
+from ..reconstruct import DEMOSAIC_METHODS
 from .args import count, percent, positive
 from .common import add_input_options, add_overwrite, input_overrides, write_json
 from .pipeline import read_training
 
-CUBE_METHODS = ("nearest", "bilinear", "ppid")
+CUBE_METHODS = tuple(DEMOSAIC_METHODS)
 
 
 def register(sub) -> None:

@@ -42,7 +42,8 @@ class Param:
     low, high : float, optional
         Range of a number or integer (inclusive unless ``low_open`` / ``high_open``).
     choices : tuple
-        Valid values of a ``"choice"`` parameter.
+        Valid values of a ``"choice"`` parameter (any iterable: a method registry gives its
+        names; kept as a tuple).
     optional : bool
         None is accepted.
     unit : str
@@ -61,6 +62,8 @@ class Param:
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ValueError(f"Param kind must be one of {KINDS}, got {self.kind!r}")
+        if not isinstance(self.choices, tuple):  # e.g. a registry: its names
+            object.__setattr__(self, "choices", tuple(self.choices))
 
     def describe(self) -> str:
         """What is valid, in words (used in the error message)."""

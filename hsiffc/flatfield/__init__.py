@@ -5,7 +5,13 @@
 - :mod:`.model_based` - the leakage-model-based correction and its uncertainty;
 - :mod:`.model_flat` - the model-based correction's training (responsivity per pixel);
 - :mod:`.floor` - the fixed-pattern floor a calibration sweep sets;
-- :mod:`.uniformity` - fixed-pattern non-uniformity figures.
+- :mod:`.uniformity` - fixed-pattern non-uniformity figures;
+- :mod:`.methods` - the family's registry :data:`FFC_METHODS`: every method behind one
+  signature, :func:`correct_flat`, returning one type, :class:`Corrected`.
 
 The stages in :mod:`hsiffc.stages` wrap these functions.
 """
+
+from .methods import FFC_METHODS, Corrected, FFCMethod, correct_flat
+
+__all__ = ["FFC_METHODS", "Corrected", "FFCMethod", "correct_flat"]

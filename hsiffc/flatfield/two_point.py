@@ -243,7 +243,31 @@ def two_point_correct(test, dark, flat, *, normalisation: str = "paper", band_ma
         raise ValueError(f"test {test.shape}, dark {dark.shape} and flat {flat.shape} must have "
                          "the same shape; use dark and flat frames of the same sensor region")
     ff = two_point_fit(subtract_dark(flat, dark), band_map=band_map, flat_dq=flat_dq)
-    out_dq = ff.dq if dq is None else ff.dq | np.asarray(dq, DQ_DTYPE)
+    return two_point_correct_with(test, dark, ff, normalisation=normalisation,
+                                  band_map=band_map, dq=dq)
+
+
+def two_point_correct_with(test, dark, ff: FlatField, *, normalisation: str = "paper",
+                           band_map=None, dq=None):
+    """Eq. (5) of ``test`` with a flat fitted already (:func:`two_point_fit`): the apply half
+    of :func:`two_point_correct`, and the ``"two_point"`` entry of
+    :data:`hsiffc.flatfield.FFC_METHODS`.
+
+    Parameters
+    ----------
+    test, dark : (H, W) arrays, DN
+        R(L3) and R(L1) of eq. (5).
+    ff : FlatField
+    normalisation, band_map, dq
+        As for :func:`two_point_correct`.
+
+    Returns
+    -------
+    corrected : (H, W) float32
+    dq : (H, W) uint32 (a new plane: ``ff.dq`` is not changed)
+    """
+    validate_method(normalisation, NORMALISATIONS, "two-point normalisation")
+    out_dq = np.array(ff.dq, DQ_DTYPE) if dq is None else ff.dq | np.asarray(dq, DQ_DTYPE)
     scale = 1.0
     if normalisation == "paper":
         scale = paper_scale(test, ff.flat_mean, band_map=band_map, good=out_dq == 0)

@@ -6,7 +6,9 @@ selects, per band, the longest candidate exposure whose alpha stays under a user
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -20,7 +22,6 @@ from ..kernels.operands import flat_operands
 from ..data.params import validate_method
 from ..data.sweep import Sweep
 
-ALPHA_METHODS = ("paper", "model")
 STATISTICS = BAND_STATISTICS
 
 #: "No alpha" (no light rate can be estimated: the signal is not positive) is ``+inf``
@@ -157,7 +158,7 @@ def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
         Raw response.
     exposure_ms : float
         Exposure time (ms).
-    calibration : Calibration
+    calibration : Calibration or PreparedCalibration
         Supplies a (DN/ms), b (1/DN), the dark level (DN) and dark current (DN/ms) per pixel.
     method : "paper" or "model"
     subtract_dark : bool
@@ -167,16 +168,86 @@ def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
     -------
     (H, W) float32 ndarray, percent
     """
-    validate_method(method, ALPHA_METHODS, "alpha method")
+    how = validate_method(method, ALPHA_METHODS, "alpha method")
     cal = calibration
     y = np.asarray(frame, np.float32)
     cal.check_compatible(frame_shape=y.shape, what="the frame")
-    if method == "model":
-        return alpha_model(y, exposure_ms, cal.a, cal.b, cal.dark,
-                           full_scale_dn=cal.domain.get("full_scale_dn"))
+    return how.alpha(y, exposure_ms, cal, dark=dark, subtract_dark=subtract_dark)
+
+
+def _paper_alpha(y, exposure_ms, cal, *, dark=None, subtract_dark=True):
+    """The "paper" entry's alpha (see :func:`alpha_map`)."""
+    prep = cal.prepare()
     if dark is None:
-        dark = cal.dark_at(exposure_ms) if subtract_dark else 0.0
-    return alpha_paper(y, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"), dark)
+        dark = prep.dark_at(exposure_ms) if subtract_dark else 0.0
+    return alpha_paper(y, exposure_ms, prep.a, prep.b, dark)
+
+
+def _model_alpha(y, exposure_ms, cal, *, dark=None, subtract_dark=True):
+    """The "model" entry's alpha (see :func:`alpha_map`; the calibrated dark, always)."""
+    cal = getattr(cal, "calibration", cal)  # in float64: a prepared one's plain calibration
+    return alpha_model(y, exposure_ms, cal.a, cal.b, cal.dark,
+                       full_scale_dn=cal.domain.get("full_scale_dn"))
+
+
+def _paper_flags(frame, exposure_ms, cal, *, dark, options):
+    """The "paper" entry's alpha and DQ: one compiled pass."""
+    y = np.asarray(frame, np.float32)
+    cal.check_compatible(frame_shape=y.shape, what="the frame")
+    prep = cal.prepare()
+    return _flags(None, y, exposure_ms, prep.a, prep.b,
+                  prep.dark_at(exposure_ms) if dark is None else dark, **options)
+
+
+def _model_flags(frame, exposure_ms, cal, *, dark, options):
+    """The "model" entry's alpha and DQ: the inversion, then :func:`leakage_dq`."""
+    alpha = alpha_map(frame, exposure_ms, cal, method="model", dark=dark)
+    return alpha, leakage_dq(alpha, frame, **options)
+
+
+@dataclass(frozen=True)
+class AlphaMethod:
+    """A registered definition of the leakage percentage alpha (eq. 4).
+
+    Attributes
+    ----------
+    summary : str
+        How the method estimates the light rate k, in one line.
+    alpha : callable
+        ``alpha(y, exposure_ms, calibration, *, dark=None, subtract_dark=True)`` -> (H, W)
+        float32 percent, ``y`` the frame as float32, already checked against the calibration
+        (the body of :func:`alpha_map`).
+    flags : callable
+        ``flags(frame, exposure_ms, calibration, *, dark, options)`` -> ``(alpha, dq)``,
+        ``options`` the DQ settings of :func:`leakage_dq` (the body of
+        :func:`validity_flags`).
+    """
+
+    summary: str
+    alpha: Callable
+    flags: Callable
+
+
+#: Registered alpha methods: name -> :class:`AlphaMethod`.
+#:
+#: Adding a method: write its ``alpha`` and ``flags`` functions with the signatures of
+#: :class:`AlphaMethod` and register them here; :func:`alpha_map`, :func:`validity_flags`,
+#: :func:`alpha_table_of` and the ``alpha_mask`` stage then take its name (looked up with
+#: :func:`~hsiffc.data.params.validate_method`: an unknown name is one line listing these).
+ALPHA_METHODS = {
+    "paper": AlphaMethod("k = (Y - dark) / t, as the paper estimates it (eq. 4)", _paper_alpha,
+                         _paper_flags),
+    "model": AlphaMethod("k from inverting the calibrated model dY/dt = k - a e^{bY}",
+                         _model_alpha, _model_flags),
+}
+
+
+class AlphaFlags(NamedTuple):
+    """What :func:`validity_flags` returns: ``alpha`` (H, W) float32 percent (:data:`NO_ALPHA`
+    where not computable) and ``dq`` (H, W) uint32."""
+
+    alpha: np.ndarray
+    dq: np.ndarray
 
 
 def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent: float,
@@ -187,7 +258,7 @@ def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent:
     ----------
     frame : (H, W) array_like, DN
     exposure_ms : float
-    calibration : Calibration
+    calibration : Calibration or PreparedCalibration
     threshold_percent : float
         alpha above this (percent) is flagged LEAKAGE.
     method : "paper" or "model"
@@ -199,29 +270,44 @@ def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent:
 
     Returns
     -------
-    alpha : (H, W) float32, percent (:data:`NO_ALPHA` where not computable)
-    dq : (H, W) uint32
+    AlphaFlags
+        ``(alpha, dq)``: alpha (H, W) float32 percent (:data:`NO_ALPHA` where not computable),
+        dq (H, W) uint32.
     """
-    cal = calibration
-    opts = _options(cal, exposure_ms, threshold_percent, dq)
-    if validate_method(method, ALPHA_METHODS, "alpha method") == "paper":  # one pass: alpha, DQ
-        y = np.asarray(frame, np.float32)
-        cal.check_compatible(frame_shape=y.shape, what="the frame")
-        return _flags(None, y, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"),
-                      cal.dark_at(exposure_ms) if dark is None else dark, **opts)
-    alpha = alpha_map(frame, exposure_ms, calibration, method=method, dark=dark)
-    return alpha, leakage_dq(alpha, frame, **opts)
+    opts = _options(calibration, exposure_ms, threshold_percent, dq)
+    how = validate_method(method, ALPHA_METHODS, "alpha method")
+    return AlphaFlags(*how.flags(frame, exposure_ms, calibration, dark=dark, options=opts))
 
 
 def _options(cal, exposure_ms, threshold_percent, dq) -> dict:
     return {"threshold_percent": threshold_percent, "full_scale_dn": cal.domain["full_scale_dn"],
             "in_domain": bool(cal.in_domain(exposure_ms)),
-            "pixel_flags": cal.arrays.get("flags"), "dq": dq}
+            "pixel_flags": cal.flags, "dq": dq}
+
+
+class DarkFlagged(NamedTuple):
+    """What :func:`subtract_dark_and_flag` returns.
+
+    Attributes
+    ----------
+    signal : (H, W) float32, DN
+        ``frame - dark``, nothing clipped.
+    alpha : (H, W) float32, percent
+    dq : (H, W) uint32
+    band_mean : (n_bands,) float64, DN, or None
+        The per-band mean of the frame over the pixels whose ``dq`` is 0 (NaN for a band
+        without one); None unless a ``band_map`` with a known row period was given.
+    """
+
+    signal: np.ndarray
+    alpha: np.ndarray
+    dq: np.ndarray
+    band_mean: np.ndarray | None
 
 
 def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
                            threshold_percent: float, dq=None, extra_dq=None, band_map=None,
-                           n_bands: int | None = None):
+                           n_bands: int | None = None) -> DarkFlagged:
     """:func:`hsiffc.data.dark.subtract_dark` and :func:`validity_flags` (paper alpha, on the
     response ``frame`` with this ``dark`` under it) in one compiled pass over the pixels
     instead of two: the same values, bit for bit, as the two calls, with the planes read
@@ -236,10 +322,10 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
     exposure_ms, calibration, threshold_percent, dq
         As for :func:`validity_flags`.
     extra_dq : (H, W) uint32, optional
-        More bits to merge into the returned DQ (e.g. a flat field's own flags). A read-only
-        plane (a fitted two-point FFC's flags are) is merged with the calibration's flags once
-        and kept (:meth:`~hsiffc.calibrate.Calibration.flags_with`): the pass then reads one
-        flag plane for both.
+        More bits to merge into the returned DQ (e.g. a flat field's own flags). A plane that
+        does not change is better merged once into a prepared calibration's flags
+        (:meth:`hsiffc.calibrate.prepared.PreparedCalibration.with_flags`, as a pipeline's
+        fused front end does): the pass then reads one flag plane for both.
     band_map : (H, W) int array, optional
         A mosaic's band map (:meth:`hsiffc.data.mosaic.Mosaic.band_map`, whose row period is
         known): the same pass then also takes the per-band mean of ``frame`` over the pixels
@@ -248,11 +334,9 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
 
     Returns
     -------
-    signal : (H, W) float32, DN (``frame - dark``, nothing clipped)
-    alpha : (H, W) float32, percent
-    dq : (H, W) uint32
-    band_mean : (n_bands,) float64, DN, NaN for a band without such a pixel; only with a
-        ``band_map`` whose row period is known (None for any other map)
+    DarkFlagged
+        ``(signal, alpha, dq, band_mean)``; ``band_mean`` is None unless ``band_map`` is given
+        and its row period is known.
     """
     cal = calibration
     y = np.asarray(frame, np.float32)
@@ -265,14 +349,11 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
         bm, period, n = band_layout(y, band_map, what="the frame")
         sums_by = (np.ascontiguousarray(bm, np.int64), period,
                    n if n_bands is None else int(n_bands)) if period else None
-    options = _options(cal, exposure_ms, threshold_percent, dq)
-    if (isinstance(extra_dq, np.ndarray) and not extra_dq.flags.writeable
-            and extra_dq.dtype == DQ_DTYPE and extra_dq.shape == y.shape
-            and options["pixel_flags"] is not None):  # fixed: both in one plane, kept
-        options["pixel_flags"], extra_dq = cal.flags_with(extra_dq), None
-    out = _flags(None, y, exposure_ms, cal.f32("a_dn_per_ms"), cal.f32("b_per_dn"), dark,
+    prep = cal.prepare()
+    options = _options(prep, exposure_ms, threshold_percent, dq)
+    out = _flags(None, y, exposure_ms, prep.a, prep.b, dark,
                  **options, extra_dq=extra_dq, with_signal=True, sums_by=sums_by)
-    return out if band_map is None or sums_by is not None else out + (None,)
+    return DarkFlagged(*out) if sums_by is not None else DarkFlagged(*out, None)
 
 
 @dataclass(frozen=True)
@@ -346,7 +427,7 @@ def alpha_table_of(responses, exposures_ms, calibration, *, darks=None, band_map
     responses : (E, H, W) array_like, DN
         Raw response at each exposure (e.g. the mean of its frames).
     exposures_ms : (E,) array_like, ms
-    calibration : Calibration
+    calibration : Calibration or PreparedCalibration
     darks : (E, H, W) array_like, DN, optional
         The dark under each response (default: the calibrated dark at each exposure).
     band_map : (H, W) int array, optional
@@ -379,7 +460,7 @@ def alpha_table(sweep: Sweep, calibration, *, method: str = "paper",
     ----------
     sweep : Sweep
         Light frames at the candidate exposures (darks are ignored).
-    calibration : Calibration
+    calibration : Calibration or PreparedCalibration
         Of the same sensor (checked).
     method : "paper" or "model"
     statistic : "median" or another :func:`hsiffc.data.bandstats.band_reduce` statistic

@@ -44,10 +44,11 @@ from __future__ import annotations
 
 from .correction import (apply_correction, correction_support, reconstruction_error,
                          reduce_over_support)
-from .demosaic import DEMOSAIC_METHODS, DemosaicMethod, demosaic, reconstruct_alpha
+from .demosaic import (DEMOSAIC_METHODS, DemosaicMethod, Demosaiced, demosaic,
+                       reconstruct_alpha)
 from .prepare import ppi_kernel
 from .tiles import tile_cube, tile_origin
 
-__all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "apply_correction", "correction_support",
-           "demosaic", "ppi_kernel", "reconstruct_alpha", "reconstruction_error",
-           "reduce_over_support", "tile_cube", "tile_origin"]
+__all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "Demosaiced", "apply_correction",
+           "correction_support", "demosaic", "ppi_kernel", "reconstruct_alpha",
+           "reconstruction_error", "reduce_over_support", "tile_cube", "tile_origin"]

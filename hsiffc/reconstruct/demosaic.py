@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -15,24 +17,92 @@ from .prepare import (Prepared, band_levels, band_medians, ppi_kernel, prepare,
                       pseudo_panchromatic, tile_starts)
 from .tiles import tile_alpha
 
-__all__ = ["DEMOSAIC_METHODS", "demosaic", "reconstruct_alpha"]
+__all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "Demosaiced", "demosaic", "reconstruct_alpha"]
+
+
+class Demosaiced(NamedTuple):
+    """What :func:`demosaic` returns, whatever the method.
+
+    Attributes
+    ----------
+    cube : (H, W, B) float32
+        Every band at every pixel, in the frame's unit (DN).
+    dq : (H, W, B) uint32
+        DQ of every band value.
+    alpha : (H, W, B) float32, percent, or None
+        The leakage percentage of every band value, when :func:`demosaic` was given the
+        frame's ``alpha``; None otherwise.
+    """
+
+    cube: np.ndarray
+    dq: np.ndarray
+    alpha: np.ndarray | None
 
 
 @dataclass(frozen=True)
 class DemosaicMethod:
-    """A registered demosaicing method: a one-line ``summary`` of what it does."""
+    """A registered demosaicking method: what :func:`demosaic` does differently for it.
+
+    The methods share one compiled pass (bilinear interpolation of every band on its sample
+    lattice, with the DQ rule of :mod:`hsiffc.reconstruct`); a method is what it adds to it.
+
+    Attributes
+    ----------
+    summary : str
+        What the method does, in one line (help texts, docs).
+    uses_ppi : bool
+        The pass interpolates ``band - PPI`` and adds the pseudo-panchromatic image back;
+        the alpha of a value is then the max over the PPI's window.
+    refine : callable, optional
+        ``refine(prepared, cube)``: overwrites values of the bilinear cube in place after the
+        pass (e.g. "nearest" puts each pixel's own-tile sample back).
+    """
 
     summary: str
+    uses_ppi: bool = False
+    refine: Callable | None = None
 
 
-#: Registered demosaicing methods: name -> :class:`DemosaicMethod`.
+def _nearest(p: Prepared, cube):
+    """Overwrite the bilinear cube with the band's sample(s) of each pixel's own tile (mean
+    if the band occurs more than once per tile) where one of them is usable; the bilinear
+    value stays where all are flagged or outside the frame (incomplete border tiles)."""
+    H, W = p.shape
+    ph, pw = p.period
+    oy, ox = p.mosaic.offset
+    rows0, cols0 = tile_starts(H, ph, oy), tile_starts(W, pw, ox)
+    for b in range(p.mosaic.n_bands):
+        acc = np.zeros(p.shape, np.float32)
+        cnt = np.zeros(p.shape, np.float32)
+        for r, c in zip(*np.nonzero(p.mosaic.pattern == b), strict=True):
+            sr, sc = rows0 + r, cols0 + c
+            vr, vc = (sr >= 0) & (sr < H), (sc >= 0) & (sc < W)
+            ir, ic = np.clip(sr, 0, H - 1), np.clip(sc, 0, W - 1)
+            valid = vr[:, None] & vc[None, :]
+            if p.any_flags:
+                valid &= p.good.take(ir, axis=0).take(ic, axis=1)
+            acc += np.where(valid, p.raw.take(ir, axis=0).take(ic, axis=1), np.float32(0))
+            cnt += valid
+        hit = cnt > 0
+        plane = cube[:, :, b]
+        plane[hit] = acc[hit] / cnt[hit]
+
+
+#: Registered demosaicking methods: name -> :class:`DemosaicMethod`.
+#:
+#: Adding a method: register a :class:`DemosaicMethod` here (what it changes in the shared
+#: pass); :func:`demosaic` looks the name up with
+#: :func:`~hsiffc.data.params.validate_method` and returns a :class:`Demosaiced` for every
+#: method. The ``reconstruct`` stage, ``hsiffc correct --cube`` and ``hsiffc reflectance fit
+#: --cube`` take their choices from this mapping.
 DEMOSAIC_METHODS = {
     "nearest": DemosaicMethod("block replication: each band copied from the same-band sample "
-                              "of the pixel's tile"),
+                              "of the pixel's tile", refine=_nearest),
     "bilinear": DemosaicMethod("per-band bilinear interpolation of the band's sub-grid "
                                "(normalised convolution with a separable tent kernel)"),
     "ppid": DemosaicMethod("pseudo-panchromatic image difference (Mihoubi et al., IEEE TCI "
-                           "2017): bilinear interpolation of band - PPI, plus the PPI"),
+                           "2017): bilinear interpolation of band - PPI, plus the PPI",
+                           uses_ppi=True),
 }
 
 
@@ -64,32 +134,8 @@ def _every_band(plane, n_bands):
     return np.broadcast_to(plane[:, :, None], plane.shape + (n_bands,))
 
 
-def _nearest(p: Prepared, cube):
-    """Overwrite the bilinear cube with the band's sample(s) of each pixel's own tile (mean
-    if the band occurs more than once per tile) where one of them is usable; the bilinear
-    value stays where all are flagged or outside the frame (incomplete border tiles)."""
-    H, W = p.shape
-    ph, pw = p.period
-    oy, ox = p.mosaic.offset
-    rows0, cols0 = tile_starts(H, ph, oy), tile_starts(W, pw, ox)
-    for b in range(p.mosaic.n_bands):
-        acc = np.zeros(p.shape, np.float32)
-        cnt = np.zeros(p.shape, np.float32)
-        for r, c in zip(*np.nonzero(p.mosaic.pattern == b), strict=True):
-            sr, sc = rows0 + r, cols0 + c
-            vr, vc = (sr >= 0) & (sr < H), (sc >= 0) & (sc < W)
-            ir, ic = np.clip(sr, 0, H - 1), np.clip(sc, 0, W - 1)
-            valid = vr[:, None] & vc[None, :]
-            if p.any_flags:
-                valid &= p.good.take(ir, axis=0).take(ic, axis=1)
-            acc += np.where(valid, p.raw.take(ir, axis=0).take(ic, axis=1), np.float32(0))
-            cnt += valid
-        hit = cnt > 0
-        plane = cube[:, :, b]
-        plane[hit] = acc[hit] / cnt[hit]
-
-
-def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=None):
+def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
+             alpha=None) -> Demosaiced:
     """Reconstruct every band at every pixel of a raw mosaic frame.
 
     Parameters
@@ -138,18 +184,26 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
         Raw DQ flags; non-zero samples are not used as sources (see the package docstring).
     alpha : (H, W) float32, optional
         The frame's leakage percentage; when given, its cube (as :func:`reconstruct_alpha`
-        with ``resolution="full"``) is computed in the same pass and returned third.
+        with ``resolution="full"``) is computed in the same pass.
 
     Returns
     -------
-    cube : (H, W, B) float32
-        Finite everywhere; band axis in band-index order.
-    cube_dq : (H, W, B) uint32
-        DQ of every band value, by the rule in the package docstring.
-    cube_alpha : (H, W, B) float32, only when ``alpha`` is given
-        For "ppid" one plane for every band (the PPI window's max): a read-only view that
-        repeats it along the band axis (``np.broadcast_to``); ``np.array(cube_alpha)`` gives
-        a writable copy.
+    Demosaiced
+        ``(cube, dq, alpha)``, for every method:
+
+        cube : (H, W, B) float32
+            Finite everywhere; band axis in band-index order.
+        dq : (H, W, B) uint32
+            DQ of every band value, by the rule in the package docstring.
+        alpha : (H, W, B) float32, or None when ``alpha`` is not given
+            For "ppid" one plane for every band (the PPI window's max): a read-only view that
+            repeats it along the band axis (``np.broadcast_to``); ``np.array(result.alpha)``
+            gives a writable copy.
+
+    Raises
+    ------
+    ParameterError
+        ``method`` is not one of :data:`DEMOSAIC_METHODS` (one line with the valid names).
 
     Examples
     --------
@@ -157,23 +211,23 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
     >>> from hsiffc.data.mosaic import Mosaic
     >>> mosaic = Mosaic.square(2)                       # 2 x 2 tile, 4 bands
     >>> raw = np.tile(np.array([[10., 20.], [30., 40.]], np.float32), (4, 4))   # (8, 8) DN
-    >>> cube, cube_dq = demosaic(raw, mosaic, method="bilinear")
-    >>> cube.shape, cube[3, 3].tolist(), int(cube_dq.max())     # a flat scene stays flat
-    ((8, 8, 4), [10.0, 20.0, 30.0, 40.0], 0)
+    >>> cube, cube_dq, cube_alpha = demosaic(raw, mosaic, method="bilinear")
+    >>> cube.shape, cube[3, 3].tolist(), int(cube_dq.max()), cube_alpha   # flat stays flat
+    ((8, 8, 4), [10.0, 20.0, 30.0, 40.0], 0, None)
     """
-    validate_method(method, DEMOSAIC_METHODS, "demosaic method")
+    how = validate_method(method, DEMOSAIC_METHODS, "demosaic method")
     p = prepare(raw, mosaic, dq)
     H, W = p.shape
     B = mosaic.n_bands
     ppi = ppi_ok = None
     levels = np.ones(B)
-    if method == "ppid":
+    if how.uses_ppi:
         levels = band_levels(p)
         ppi, ppi_ok = pseudo_panchromatic(p, levels)
     a = cube_alpha = None
     if alpha is not None:
         a = _alpha_plane(alpha, p.shape)
-        if method == "ppid":  # the window max: every band's alpha (the window holds S1)
+        if how.uses_ppi:  # the window max: every band's alpha (the window holds S1)
             a, cube_alpha = None, _every_band(_ppi_window_max(a, mosaic), B)
         else:
             cube_alpha = np.empty((H, W, B), np.float32)
@@ -188,9 +242,9 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None, alpha=No
         for y in np.flatnonzero(missing[:, b]):
             row = cube[y, :, b]
             row[np.isnan(row)] = med
-    if method == "nearest":
-        _nearest(p, cube)
-    return (cube, cube_dq) if alpha is None else (cube, cube_dq, cube_alpha)
+    if how.refine is not None:
+        how.refine(p, cube)
+    return Demosaiced(cube, cube_dq, cube_alpha)
 
 
 def reconstruct_alpha(alpha, mosaic: Mosaic, *, method: str = "bilinear",
@@ -229,4 +283,4 @@ def reconstruct_alpha(alpha, mosaic: Mosaic, *, method: str = "bilinear",
         return tile_alpha(_alpha_plane(a, a.shape), mosaic)
     if resolution != "full":
         raise ValueError(f"resolution must be 'full' or 'tile', got {resolution!r}")
-    return demosaic(np.zeros(a.shape, np.float32), mosaic, method=method, alpha=a)[2]
+    return demosaic(np.zeros(a.shape, np.float32), mosaic, method=method, alpha=a).alpha

@@ -152,10 +152,8 @@ class Reconstruct(Stage):
                              "this frame has none")
         alpha = None
         if self.resolution == "full":  # the cube's alpha comes from the same kernel pass
-            out = rc.demosaic(frame.data, mosaic, method=self.method, dq=frame.dq,
-                              alpha=frame.alpha)
-            cube, cube_dq = out[:2]
-            alpha = out[2] if frame.alpha is not None else None
+            cube, cube_dq, alpha = rc.demosaic(frame.data, mosaic, method=self.method,
+                                               dq=frame.dq, alpha=frame.alpha)
         else:
             cube, cube_dq = rc.tile_cube(frame.data, mosaic, dq=frame.dq)
             if frame.alpha is not None:
