@@ -22,7 +22,6 @@ from hsiffc.reconstruct.demosaic import _alpha_plane, _ppi_window_max
 from hsiffc.reconstruct.prepare import band_levels, prepare, pseudo_panchromatic
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline, create
-from hsiffc.stages.fusion import fused_pass
 
 SHAPE = (1088, 2048)
 TRAIN = PAPER_LIGHT_W_M2["training"]
@@ -140,15 +139,17 @@ def _ppid_parts(frame, repeat: int) -> dict:
 
 
 def _front_end_parts(front, frame, repeat: int) -> dict:
-    """The fused front end's parts alone, as :func:`hsiffc.stages.fusion.run_fused` runs
-    them: the pass of dark, alpha, DQ and the FFC's per-band test level (one kernel,
-    :func:`~hsiffc.stages.fusion.fused_pass`), and the two-point FFC's finish (the gain: one
-    more pass). The finish gets the same DQ plane every time: it only adds flags to it where a
-    value is not finite (idempotent), and a copy per call would be timed with it."""
+    """The fused front end's parts alone, as the pipeline's
+    :class:`~hsiffc.stages.fusion.FusedFrontEnd` runs them: the pass of dark, alpha, DQ and the
+    FFC's per-band test level (one kernel, :meth:`~hsiffc.stages.fusion.FusedFrontEnd.fused_pass`),
+    and the two-point FFC's finish (the gain: one more pass). The finish gets the same DQ plane
+    every time: it only adds flags to it where a value is not finite (idempotent), and a copy
+    per call would be timed with it."""
+    unit = front.plan.units[0]
     (_, dark), (_, mask), (_, ffc) = front.steps
-    *_, dq, test_mean = fused_pass(front.steps, frame)
+    *_, dq, test_mean = unit.fused_pass(frame, 3)
     masked = mask.transform(dark.transform(frame))
-    return {"dark_alpha_dq_pass": median_time(lambda: fused_pass(front.steps, frame),
+    return {"dark_alpha_dq_pass": median_time(lambda: unit.fused_pass(frame, 3),
                                               repeat=repeat) * 1e3,
             "ffc_finish": median_time(lambda: ffc.corrected(masked, dq, test_mean),
                                       repeat=repeat) * 1e3}
@@ -237,7 +238,7 @@ def main(quick: bool = False) -> dict:
     results["model_ffc_parallel_equals_serial"] = _parallel_equals_serial(default, test)
     f = test
     for name, stage in default.steps:
-        stage_ms[f"default_{name}"] = median_time(lambda s=stage, f=f: s.transform(f),
+        stage_ms[f"default_{name}"] = median_time(lambda s=stage.prepare(), f=f: s.transform(f),
                                                   repeat=repeat) * 1e3
         f = stage.transform(f)
     results["dark_mask_ffc_mpx_s"] = npx / t_front / 1e6
@@ -252,7 +253,8 @@ def main(quick: bool = False) -> dict:
     for name, stage in pipe.steps[:3] + [("cube_bilinear", create("reconstruct",
                                                                     method="bilinear")),
                                          ("cube_ppid", create("reconstruct", method="ppid"))]:
-        stage_ms[name] = median_time(lambda s=stage, f=frame: s.transform(f), repeat=repeat) * 1e3
+        stage_ms[name] = median_time(lambda s=stage.prepare(), f=frame: s.transform(f),
+                                     repeat=repeat) * 1e3
         if not name.startswith("cube"):
             frame = stage.transform(frame)
     # the cube's cost depends on the flagged samples (never sources: a value whose nearest

@@ -5,7 +5,6 @@ build) and on the real EMVA 1288 sweep."""
 
 from __future__ import annotations
 
-import gc
 import pickle
 
 import numpy as np
@@ -133,14 +132,15 @@ def test_the_fused_pass_takes_the_band_mean_band_reduce_gives():
         assert row_period(bm) > 0
         n = int(bm.max()) + 1
         *out, mean = subtract_dark_and_flag(*args, **kw, band_map=bm, n_bands=n + 1)
-        for x, y in zip(out, plain, strict=True):
+        for x, y in zip(out, plain[:3], strict=True):
             assert np.array_equal(x, y, equal_nan=True)
         good = plain[2] == 0
         assert 0 < np.count_nonzero(~good) < good.size
         assert np.array_equal(mean, band_reduce(raw, bm, good, n_bands=n + 1), equal_nan=True)
         assert np.isfinite(mean[:n]).all() and np.isnan(mean[n])
     # a map whose row period is not known gives no mean (the FFC then takes it itself)
-    assert subtract_dark_and_flag(*args, **kw, band_map=np.array(bm))[3] is None
+    assert plain.band_mean is None  # without a band map
+    assert subtract_dark_and_flag(*args, **kw, band_map=np.array(bm)).band_mean is None
     with pytest.raises(ValueError, match=r"band_map has shape \(2, 2\) but the frame has"):
         subtract_dark_and_flag(*args, **kw, band_map=np.zeros((2, 2), int))
 
@@ -187,8 +187,9 @@ def test_fused_front_end_on_the_real_emva_sweep(emva_dir):
 
 def test_fixed_flag_planes_are_read_once_merged_and_still_reach_the_dq(sim):
     """A fitted two-point FFC's flat flags are read-only, so the fused pass merges them with
-    the calibration's flags once (Calibration.flags_with) and reads one plane for both; the
-    frame stays the one the stages give one by one, flat flags included."""
+    the calibration's flags once (the plan's FusedFrontEnd: PreparedCalibration.with_flags)
+    and reads one plane for both; the frame stays the one the stages give one by one, flat
+    flags included."""
     s, cal, train = sim
     pipe = _pipe(cal, train)
     ffc = pipe.named_steps["ffc"]
@@ -204,24 +205,27 @@ def test_fixed_flag_planes_are_read_once_merged_and_still_reach_the_dq(sim):
     fused = pipe.transform(frame)
     _assert_same_frame(fused, _stage_by_stage(pipe, frame))
     assert np.all(fused.dq[3, :50] & DQ.NO_FLAT) and not np.any(fused.dq[4] & DQ.NO_FLAT)
-    merged = cal.flags_with(flat)
-    assert merged is cal.flags_with(flat) and not merged.flags.writeable  # made once, kept
-    # the kept result stays in this process: a pickled calibration drops it
+    front = pipe.plan.units[0]  # the plan was made again: the stage changed since the fit
+    assert isinstance(front, fusion.FusedFrontEnd)
+    assert repr(front) == "FusedFrontEnd(dark + mask + ffc)" and repr(front) in repr(pipe)
+    prepared = front.calibration_with_flat
+    assert prepared.merged_with is flat and not prepared.flags.flags.writeable
+    np.testing.assert_array_equal(prepared.flags,
+                                  np.asarray(cal.arrays["flags"], np.uint32) | flat)
+    plan = pipe.plan
+    pipe.transform(frame)
+    assert pipe.plan is plan  # made once, not per frame
+    # the calibration stays plain data (nothing kept on it): it pickles as it is
     again = pickle.loads(pickle.dumps(cal))
-    assert "_flags_with" not in again.__dict__
+    assert not [k for k in vars(again) if k.startswith("_")]
     np.testing.assert_array_equal(again.arrays["flags"], cal.arrays["flags"])
-    np.testing.assert_array_equal(merged, np.asarray(cal.arrays["flags"], np.uint32) | flat)
-    # a writable plane could change under the kept result: refused, and read as its own plane
+    # a writable plane could change under a merged one: refused, and read as its own plane
     writable = flat.copy()
     with pytest.raises(ValueError, match="read-only uint32 plane"):
-        cal.flags_with(writable)
+        front.calibration.with_flags(writable)
     ffc.dq_ = writable
     _assert_same_frame(pipe.transform(frame), fused)
-    key = id(flat)  # the kept result goes with its plane (no growing cache)
-    assert key in cal.__dict__["_flags_with"]
-    del flat, merged
-    gc.collect()
-    assert key not in cal.__dict__["_flags_with"]
+    assert pipe.plan.units[0].calibration_with_flat is None
 
 
 def test_a_loaded_two_point_ffc_has_fixed_flags(sim, tmp_path):

@@ -24,7 +24,9 @@ def test_pipeline_repr_is_a_line_per_step(demo_result):
     pipe = demo_result.pipeline
     text = repr(pipe)
     lines = text.splitlines()
-    assert len(lines) == len(pipe.steps) + 1 and lines[0].endswith("# fitted")
+    assert len(lines) == len(pipe.steps) + 1 and "# fitted" in lines[0]
+    # what runs: the fused front end by name, then the other steps (Pipeline.plan)
+    assert lines[0].endswith("# fitted; runs as FusedFrontEnd(dark + mask + ffc), cube")
     assert all(len(line) < 200 for line in lines) and "array(" not in text.replace(
         "array((", "")  # arrays only ever as array((shape) dtype)
     assert demo_result.calibration.identity in text

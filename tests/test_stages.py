@@ -224,8 +224,9 @@ def test_saved_pipeline_with_unknown_stage_name_is_refused(sample_frames, tmp_pa
         Pipeline.load(tmp_path / "evil.npz")
 
 
-def test_raw_is_computed_once_and_follows_data_and_dark():
-    """frame.raw is cached (read-only) and shared by frames made by replace() that keep the
+def test_raw_follows_data_and_dark():
+    """frame.raw is data + dark (read-only) for a frame built with a dark; the raw response a
+    dark stage keeps (Frame.raw_response) is shared by frames made by replace() that keep the
     data and the dark; a frame with other data or another dark computes its own."""
     from hsiffc.data.frame import Frame
 
@@ -235,19 +236,22 @@ def test_raw_is_computed_once_and_follows_data_and_dark():
     f = Frame.from_raw(raw, exposure_ms=10.0, bit_depth=10)
     f = f.replace(data=np.subtract(f.data, dark, dtype=np.float32), dark_removed=dark)
     r = f.raw
-    assert r is f.raw and not r.flags.writeable
+    assert not r.flags.writeable and f.raw_response is None
     assert np.array_equal(r, f.data + dark)
     kept = f.replace(dq=f.dq | 1, meta={"note": "x"})
-    assert kept.raw is r
+    assert np.array_equal(kept.raw, r)
     other = f.replace(data=f.data * 2)
-    assert other.raw is not r and np.array_equal(other.raw, f.data * 2 + dark)
+    assert np.array_equal(other.raw, f.data * 2 + dark)
     moved = f.replace(dark_removed=dark + 1)
     assert np.array_equal(moved.raw, f.data + dark + 1)
     # dark_subtracted (what the dark stage runs) keeps the input itself as the raw response:
     # exact, where data + dark can be an ulp off the input
     g = Frame.from_raw(raw + np.float32(0.3), exposure_ms=10.0, bit_depth=10)
     sub = g.dark_subtracted(dark, dark_source="test")
-    assert sub.raw is not g.data and np.array_equal(sub.raw, g.data)
+    assert sub.raw is sub.raw_response and sub.raw is not g.data
+    assert np.array_equal(sub.raw, g.data)
+    assert sub.replace(dq=sub.dq | 1).raw is sub.raw  # same data, same dark: the same plane
+    assert sub.replace(data=sub.data * 2).raw_response is None
     assert not sub.raw.flags.writeable and g.data.flags.writeable
     assert np.array_equal(sub.data, np.subtract(g.data, dark, dtype=np.float32))
     assert sub.dark_removed is dark and sub.meta["dark_source"] == "test"

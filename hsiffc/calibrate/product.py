@@ -11,14 +11,13 @@ from __future__ import annotations
 import datetime as _dt
 import functools
 import hashlib
-import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
-from ..data.dark import dark_at_cached
+from ..data.dark import dark_at
 from ..errors import CalibrationMismatchError, DataFormatError, ParameterError
 from ..data.mosaic import Mosaic
 from ..data.products import read_product, write_product
@@ -48,6 +47,14 @@ class Calibration:
         ``"joint"`` or ``"paper"``.
     fitted_on : dict
         Source, frame and step counts, illuminations, noise model.
+    path : str or None
+        Provenance, not content: the file it was loaded from or last saved to (:meth:`load`,
+        :meth:`save`; the one field :meth:`save` changes), None for a calibration that exists
+        only in memory. Not part of :attr:`identity`.
+
+    The calibration is plain data: what correcting a frame reads from it (float32 planes, the
+    flag plane, the dark line) is made once by :meth:`prepare` and held by whoever corrects
+    (a pipeline holds it in its plan).
     """
 
     arrays: dict
@@ -56,6 +63,7 @@ class Calibration:
     fitted_on: dict = field(default_factory=dict)
     created: str = ""
     hsiffc_version: str = __version__
+    path: str | None = field(default=None, compare=False)
 
     def __post_init__(self):
         missing = [k for k in REQUIRED if k not in self.arrays]
@@ -100,61 +108,27 @@ class Calibration:
         return self.arrays["dark_dn"]
 
     @property
+    def flags(self) -> np.ndarray | None:
+        """Per-pixel DQ flags (uint32, (H, W)) the fit set, or None."""
+        return self.arrays.get("flags")
+
+    @property
     def dark_current(self) -> np.ndarray:
         """Dark current per pixel, (H, W), DN/ms."""
         return self.arrays.get("dark_current_dn_per_ms", np.zeros(self.frame_shape))
 
-    def f32(self, name: str) -> np.ndarray:
-        """A float32 copy of one array, made once and kept (the hot path of correction works
-        in single precision). ``"dark_current_dn_per_ms"`` is zeros when absent.
-
-        Parameters
-        ----------
-        name : str
-            Array name, e.g. ``"dark_dn"`` or ``"b_per_dn"``.
+    def prepare(self):
+        """What correcting a frame reads from this calibration, made now: float32 leakage
+        planes, the flag plane and the dark line (:class:`~hsiffc.calibrate.prepared.PreparedCalibration`).
 
         Returns
         -------
-        ndarray of float32
-            (H, W), in the array's unit; shared, do not modify.
+        PreparedCalibration
+            Read-only planes; make it once and keep it where frames are corrected.
         """
-        cache = self.__dict__.setdefault("_f32", {})
-        if name not in cache:
-            src = self.dark_current if name == "dark_current_dn_per_ms" else self.arrays[name]
-            cache[name] = np.asarray(src, np.float32)
-        return cache[name]
+        from .prepared import PreparedCalibration
 
-    def __getstate__(self):
-        """Pickled (another process, a deep copy) without :meth:`flags_with`'s kept results:
-        they refer to planes of this process."""
-        state = dict(self.__dict__)
-        state.pop("_flags_with", None)
-        return state
-
-    def flags_with(self, other: np.ndarray) -> np.ndarray:
-        """The calibration's ``flags`` OR-ed with ``other``, a read-only uint32 plane of the
-        frame's shape that does not change (a fitted two-point FFC's flat flags): made once
-        per such plane and kept while it lives, so that a fused front end reads one flag plane
-        instead of two (:func:`hsiffc.leakage.validity.subtract_dark_and_flag`).
-
-        Returns
-        -------
-        ndarray of uint32
-            (H, W), read-only; shared.
-        """
-        if other.flags.writeable or other.dtype != np.uint32 or other.shape != self.frame_shape:
-            raise ValueError(f"flags_with needs a read-only uint32 plane of shape "
-                             f"{self.frame_shape} (one that cannot change under the kept "
-                             f"result), got {other.dtype} {other.shape}"
-                             + (", writable" if other.flags.writeable else ""))
-        cache = self.__dict__.setdefault("_flags_with", {})
-        key = id(other)
-        hit = cache.get(key)
-        if hit is None or hit[0]() is not other:
-            merged = np.bitwise_or(np.asarray(self.arrays["flags"], np.uint32), other)
-            merged.flags.writeable = False
-            hit = cache[key] = (weakref.ref(other, lambda _ref: cache.pop(key, None)), merged)
-        return hit[1]
+        return PreparedCalibration.of(self)
 
     def dark_at(self, exposure_ms: float) -> np.ndarray:
         """The calibrated dark (DN, float32, (H, W)) at one exposure: dark level plus dark
@@ -168,11 +142,10 @@ class Calibration:
         Returns
         -------
         ndarray of float32, DN
-            (H, W), read-only: the darks of the last few exposures are kept, since a batch
-            asks for the same exposure frame after frame.
+            (H, W), computed on each call (a prepared calibration keeps the darks of the last
+            few exposures: :meth:`prepare`).
         """
-        return dark_at_cached(self.__dict__.setdefault("_dark_at", {}), exposure_ms,
-                              self.f32("dark_dn"), self.f32("dark_current_dn_per_ms"))
+        return dark_at(float(exposure_ms), self.dark, self.dark_current)
 
     @property
     def frame_shape(self) -> tuple[int, int]:
@@ -201,11 +174,6 @@ class Calibration:
             h.update(name.encode())
             h.update(np.ascontiguousarray(self.arrays[name]).tobytes())
         return h.hexdigest()[:16]
-
-    @property
-    def path(self) -> str | None:
-        """The file this calibration was loaded from or saved to (None: only in memory)."""
-        return self.__dict__.get("_path")
 
     def reference(self) -> dict:
         """How pipelines and histories name this calibration.
@@ -392,7 +360,7 @@ class Calibration:
                if k not in ("format", "format_version")}
         path = write_product(path, format=FORMAT, format_version=FORMAT_VERSION, manifest=man,
                              arrays=self.arrays, overwrite=overwrite)
-        object.__setattr__(self, "_path", str(Path(path).resolve()))
+        object.__setattr__(self, "path", str(Path(path).resolve()))  # provenance (see above)
         return path
 
     @classmethod
@@ -418,9 +386,9 @@ class Calibration:
         try:
             cal = cls(arrays=arrays, domain=man["domain"], method=man["method"],
                       fitted_on=man.get("fitted_on", {}), created=man.get("created", ""),
-                      hsiffc_version=man.get("hsiffc_version", "?"))
+                      hsiffc_version=man.get("hsiffc_version", "?"),
+                      path=str(Path(path).resolve()))
         except (KeyError, ValueError, TypeError) as exc:
             raise DataFormatError(f"calibration is incomplete or inconsistent: {exc}",
                                   path=path) from exc
-        object.__setattr__(cal, "_path", str(Path(path).resolve()))
         return cal

@@ -70,17 +70,50 @@ def dark_at(exposure_ms: float, d0, slope) -> np.ndarray:
     return np.asarray(d0, np.float32) + np.asarray(slope, np.float32) * np.float32(exposure_ms)
 
 
-def dark_at_cached(cache: dict, exposure_ms: float, d0, slope, keep: int = 4) -> np.ndarray:
-    """:func:`dark_at`, kept in ``cache`` for the last ``keep`` exposures (a batch asks for
-    the same exposure frame after frame). The result is read-only; an entry is used only
-    while ``d0`` and ``slope`` are the very arrays it was computed from."""
-    key = float(exposure_ms)
-    hit = cache.get(key)
-    if hit is not None and hit[0] is d0 and hit[1] is slope:
-        return hit[2]
-    if key not in cache and len(cache) >= keep:
-        cache.pop(next(iter(cache)))
-    dark = dark_at(key, d0, slope)
-    dark.flags.writeable = False
-    cache[key] = (d0, slope, dark)
-    return dark
+class DarkLine:
+    """A dark that grows with the exposure, ``d0 + slope * t`` (:func:`dark_at`), as one object:
+    the two planes in float32 and the darks of the last :attr:`keep` exposures asked for, in
+    :attr:`recent` (a batch asks for the same exposure frame after frame).
+
+    Made once where a correction is prepared (a pipeline's dark stage, a prepared
+    calibration: :class:`hsiffc.calibrate.PreparedCalibration`) and held there in plain view.
+
+    Parameters
+    ----------
+    d0 : (H, W) array_like, DN
+        Dark level at zero exposure.
+    slope : (H, W) array_like, DN/ms
+        Dark current.
+    keep : int
+        How many exposures :attr:`recent` keeps (oldest dropped first).
+
+    Examples
+    --------
+    >>> line = DarkLine(np.array([[10.0]]), np.array([[0.5]]))
+    >>> line.at(4.0).tolist(), list(line.recent)
+    ([[12.0]], [4.0])
+    """
+
+    def __init__(self, d0, slope, keep: int = 4):
+        self.d0 = np.asarray(d0, np.float32)
+        self.slope = np.asarray(slope, np.float32)
+        self.keep = int(keep)
+        #: exposure (ms) -> its dark (read-only float32), the last :attr:`keep` asked for
+        self.recent: dict[float, np.ndarray] = {}
+
+    def __repr__(self) -> str:
+        return (f"<DarkLine {' x '.join(map(str, self.d0.shape))} px, darks kept at "
+                f"{sorted(self.recent)} ms>")
+
+    def at(self, exposure_ms: float) -> np.ndarray:
+        """The dark (DN, float32, read-only) at ``exposure_ms``: :func:`dark_at`, taken from
+        :attr:`recent` when this exposure was asked for lately."""
+        key = float(exposure_ms)
+        dark = self.recent.get(key)
+        if dark is None:
+            if len(self.recent) >= self.keep:
+                self.recent.pop(next(iter(self.recent)))
+            dark = dark_at(key, self.d0, self.slope)
+            dark.flags.writeable = False
+            self.recent[key] = dark
+        return dark

@@ -72,6 +72,11 @@ class Frame:
         The stage that made ``data`` something other than the sensor's response less
         ``dark_removed`` (a flat-field or a linearisation); None while the data still are the
         response. The raw response is then no longer available.
+    raw_response : (H, W) ndarray, float32, or None
+        The sensor's raw response kept by the stage that removed the dark
+        (:meth:`dark_subtracted`: the data before subtraction, read-only), so that :attr:`raw`
+        is exact and not recomputed; None: :attr:`raw` is ``data + dark_removed``. Frames made
+        by :meth:`replace` keep it while their data and dark stay the same.
 
     The state a stage needs (see :meth:`state`) is read from these typed fields, never from
     ``meta`` strings.
@@ -83,6 +88,7 @@ class Frame:
     alpha: np.ndarray | None = None
     dark_removed: np.ndarray | None = None
     corrected_by: str | None = None
+    raw_response: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         data = np.asarray(self.data)
@@ -101,6 +107,9 @@ class Frame:
                 raise ValueError(f"dark_removed has shape {dark.shape} but data has "
                                  f"{data.shape}; they must match")
             object.__setattr__(self, "dark_removed", dark)
+        if self.raw_response is not None and np.shape(self.raw_response) != data.shape:
+            raise ValueError(f"raw_response has shape {np.shape(self.raw_response)} but data "
+                             f"has {data.shape}; they must match")
         meta = dict(self.meta)
         _check_acquisition(meta)
         meta.setdefault("history", ())
@@ -209,10 +218,9 @@ class Frame:
             merged = dict(self.meta)
             merged.update(changes["meta"])
             changes["meta"] = merged
-        out = replace(self, **changes)
-        if "_raw" in self.__dict__ and not {"data", "dark_removed"} & changes.keys():
-            object.__setattr__(out, "_raw", self.__dict__["_raw"])  # same data, same dark
-        return out
+        if {"data", "dark_removed"} & changes.keys():  # another response: not the kept one
+            changes.setdefault("raw_response", None)
+        return replace(self, **changes)
 
     def dark_subtracted(self, dark, *, signal=None, **meta) -> "Frame":
         """This frame less ``dark`` (DN, :func:`hsiffc.data.dark.subtract_dark`: float32, nothing
@@ -225,12 +233,11 @@ class Frame:
             raise ValueError("this frame is already dark-subtracted; a pipeline should have one "
                              "dark stage")
         data = subtract_dark(self.data, dark) if signal is None else signal
-        out = self.replace(data=data, dark_removed=dark, meta=meta)
-        if not out.is_cube and self.corrected_by is None:
+        raw = None
+        if not self.is_cube and self.corrected_by is None:
             raw = self.data.view()
             raw.flags.writeable = False
-            object.__setattr__(out, "_raw", raw)
-        return out
+        return self.replace(data=data, dark_removed=dark, meta=meta, raw_response=raw)
 
     @property
     def exposure_ms(self) -> float:
@@ -287,9 +294,9 @@ class Frame:
     @property
     def raw(self) -> np.ndarray:
         """The sensor's raw response (DN, float32): ``data`` plus the dark that was actually
-        removed (computed once per frame and read-only; frames made by :meth:`replace` with
-        the same data and dark share it). Raises ValueError for a cube or once a stage changed
-        the data otherwise (``corrected_by``)."""
+        removed (:attr:`raw_response` where the dark stage kept it, else computed on each
+        call, read-only). Raises ValueError for a cube or once a stage changed the data
+        otherwise (``corrected_by``)."""
         if self.corrected_by is not None:
             raise ValueError(f"the data were changed by {self.corrected_by!r}: the raw response "
                              "is no longer available; run stages that need it before it")
@@ -298,12 +305,11 @@ class Frame:
                              "reconstruction")
         if self.dark_removed is None:
             return self.data
-        cached = self.__dict__.get("_raw")
-        if cached is None:  # computed once per frame (the mask and FFC stages both read it)
-            cached = self.data + self.dark_removed
-            cached.flags.writeable = False
-            object.__setattr__(self, "_raw", cached)
-        return cached
+        if self.raw_response is not None:
+            return self.raw_response
+        raw = self.data + self.dark_removed
+        raw.flags.writeable = False
+        return raw
 
     def to_xarray(self, *, sort: bool = True):
         """This reconstructed cube as an ``xarray.Dataset``: dims (y, x, band), coordinate

@@ -5,7 +5,7 @@ from __future__ import annotations
 from ..data.params import Param
 from ..leakage.validity import ALPHA_METHODS, validity_flags
 from .common import CALIBRATION, THRESHOLD
-from .base import Stage
+from .base import Prepared, Stage
 
 
 class AlphaMask(Stage):
@@ -32,7 +32,7 @@ class AlphaMask(Stage):
     requires = frozenset({"mosaic", "response"})
     produces = frozenset({"alpha"})
     param_spec = {"calibration": CALIBRATION, "threshold_percent": THRESHOLD,
-                  "method": Param("choice", choices=ALPHA_METHODS)}
+                  "method": Param("choice", choices=tuple(ALPHA_METHODS))}
 
     def __init__(self, *, calibration=None, threshold_percent: float = 12.0,
                  method: str = "paper"):
@@ -52,13 +52,20 @@ class AlphaMask(Stage):
         self.fitted_ = True
         return self
 
+    @property
+    def fuses_as(self):
+        """``"alpha_mask"`` with the paper's alpha (a fused front end computes it in its pass:
+        :mod:`hsiffc.stages.fusion`), else None."""
+        return "alpha_mask" if self.method == "paper" else None
+
+    def prepare(self) -> "PreparedAlphaMask":
+        """The calibration prepared (:meth:`hsiffc.calibrate.Calibration.prepare`)."""
+        self.check_is_fitted()
+        return PreparedAlphaMask(self, self.require_calibration().prepare())
+
     def transform(self, frame):
         """The frame with its alpha plane (percent) and LEAKAGE / OUT_OF_DOMAIN flags added."""
-        cal = self.calibration_for(frame)
-        alpha, dq = validity_flags(frame.raw, frame.exposure_ms, cal,
-                                   threshold_percent=float(self.threshold_percent),
-                                   method=self.method, dark=frame.dark_removed, dq=frame.dq)
-        return self.flagged(frame, alpha, dq)
+        return self.prepare().transform(frame)
 
     def calibration_for(self, frame):
         """The calibration, checked against ``frame`` (shape, bit depth, mosaic)."""
@@ -72,3 +79,30 @@ class AlphaMask(Stage):
         by a fused pass: :mod:`hsiffc.stages.fusion`)."""
         return frame.replace(dq=dq, alpha=alpha,
                              meta={"alpha_threshold_percent": float(self.threshold_percent)})
+
+
+class PreparedAlphaMask(Prepared):
+    """A fitted :class:`AlphaMask` made ready for frames.
+
+    Attributes
+    ----------
+    stage : AlphaMask
+    calibration : PreparedCalibration
+    """
+
+    __slots__ = ("calibration",)
+
+    def __init__(self, stage, calibration):
+        super().__init__(stage)
+        self.calibration = calibration
+
+    def transform(self, frame):
+        """:meth:`AlphaMask.transform`."""
+        st = self.stage
+        cal = self.calibration
+        cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
+                             mosaic=frame.mosaic, what="the frame")
+        alpha, dq = validity_flags(frame.raw, frame.exposure_ms, cal,
+                                   threshold_percent=float(st.threshold_percent),
+                                   method=st.method, dark=frame.dark_removed, dq=frame.dq)
+        return st.flagged(frame, alpha, dq)

@@ -4,7 +4,10 @@ A stage's ``__init__`` takes keyword-only parameters and stores them unchanged. 
 validates, learns, stores fitted attributes whose names end in ``_`` and returns ``self``.
 ``transform(frame)`` checks it is fitted, never mutates its input and returns a new Frame.
 Fitted state is saved without pickle: ``get_state()`` returns a JSON-safe dict and a dict of
-arrays; ``set_state(json, arrays)`` restores them.
+arrays; ``set_state(json, arrays)`` restores them. ``prepare()`` makes, once, what a fitted
+stage's per-frame work reads (float32 calibration planes, a dark line...): a :class:`Prepared`
+that a :class:`~hsiffc.stages.Pipeline` builds when it is built, fitted or loaded and holds in
+its plan; ``transform(frame)`` alone prepares on each call.
 """
 
 from __future__ import annotations
@@ -33,6 +36,30 @@ def _init_parameters(init) -> tuple[str, ...]:
                  if p.name != "self" and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD))
 
 
+class Prepared:
+    """A fitted stage made ready for frames: what its per-frame work reads, made once
+    (:meth:`Stage.prepare`). This base holds nothing more than the stage; stages with
+    something to prepare return a subclass (e.g. :class:`hsiffc.stages.dark.PreparedDark`).
+
+    Attributes
+    ----------
+    stage : Stage
+        The stage it was made from.
+    """
+
+    __slots__ = ("stage",)
+
+    def __init__(self, stage: "Stage"):
+        self.stage = stage
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} of {type(self.stage).__name__}>"
+
+    def transform(self, frame):
+        """The stage's transform of ``frame`` (a new Frame)."""
+        return self.stage.transform(frame)
+
+
 class Stage:
     """Base class of every pipeline stage."""
 
@@ -48,6 +75,10 @@ class Stage:
     #: declared parameters (name -> :class:`hsiffc.data.params.Param`), checked by
     #: :meth:`validate_params` at fit and when a pipeline is built or loaded
     param_spec: dict = {}
+    #: the part this stage plays in a fused front end (:class:`hsiffc.stages.fusion.FusedFrontEnd`:
+    #: ``"dark"``, ``"alpha_mask"``, ``"two_point_ffc"``), None for a stage that does not
+    #: fuse. A subclass that changes what ``transform`` computes sets it to None.
+    fuses_as: str | None = None
 
     # -- parameters ----------------------------------------------------------------------------
     @classmethod
@@ -119,6 +150,19 @@ class Stage:
     def transform(self, frame):  # pragma: no cover - abstract
         """A new, corrected Frame (the input is not modified)."""
         raise NotImplementedError
+
+    def prepare(self) -> Prepared:
+        """What the per-frame work of this fitted stage reads, made now (a :class:`Prepared`;
+        this base: the stage itself, nothing to make). A pipeline calls it once when it is
+        built, fitted or loaded and holds the result in its plan.
+
+        Raises
+        ------
+        NotFittedError
+            The stage is not fitted.
+        """
+        self.check_is_fitted()
+        return Prepared(self)
 
     # -- state without pickle ------------------------------------------------------------------
     def get_state(self) -> tuple[dict, dict]:

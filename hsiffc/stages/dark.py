@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..data.dark import dark_at_cached, fit_dark_line
+from ..data.dark import DarkLine, fit_dark_line
 from ..errors import ParameterError
 from ..data.frame import stack_mean
 from ..data.params import Param
 from .common import AVERAGE, CALIBRATION, find_exposure, group_by_exposure
-from .base import Stage
+from .base import Prepared, Stage
 
 MATCHES = ("exposure", "scale")
 
@@ -32,6 +32,7 @@ class DarkSubtract(Stage):
     """
 
     name = "dark"
+    fuses_as = "dark"
     requires = frozenset({"mosaic", "raw"})
     produces = frozenset({"dark_subtracted"})
     removes = frozenset({"raw"})
@@ -61,27 +62,63 @@ class DarkSubtract(Stage):
         self.fitted_ = True
         return self
 
-    def dark_for(self, exposure_ms: float, shape) -> tuple[np.ndarray, str]:
-        """The dark (DN, float32) subtracted at this exposure and how it was obtained."""
+    def prepare(self) -> "PreparedDark":
+        """The dark line through the masters and the prepared calibration, made now
+        (:class:`PreparedDark`)."""
         self.check_is_fitted()
-        e = find_exposure(self.exposures_ms_, exposure_ms) if self.match == "exposure" else None
-        if e is not None:
-            return self.masters_[self.exposures_ms_.index(e)], f"master at {e:g} ms"
-        if hasattr(self, "dark0_"):
-            return (dark_at_cached(self.__dict__.setdefault("_dark_cache", {}), exposure_ms,
-                                   self.dark0_, self.dark_slope_), "scaled (d0 + slope t)")
         cal = self.calibration_product()
-        if cal is not None:
-            cal.check_compatible(frame_shape=shape, what="the frame")
-            return cal.dark_at(exposure_ms), "calibration"
-        only = f" (only at {self.exposures_ms_[0]:g} ms)" if self.exposures_ms_ else ""
-        raise ParameterError(f"no master dark at {exposure_ms:g} ms{only} and nothing to scale "
-                         "with: record darks at this exposure or at two exposures, or give "
-                         "calibration=")
+        line = (DarkLine(self.dark0_, self.dark_slope_) if getattr(self, "dark0_", None)
+                is not None else None)
+        return PreparedDark(self, line, None if cal is None else cal.prepare())
+
+    def dark_for(self, exposure_ms: float, shape) -> tuple[np.ndarray, str]:
+        """The dark (DN, float32) subtracted at this exposure and how it was obtained
+        (:meth:`PreparedDark.dark_for`; prepared on each call)."""
+        return self.prepare().dark_for(exposure_ms, shape)
 
     def transform(self, frame):
         """The frame less the dark matched to its exposure (DN in, DN out; ``dark_removed``
         set; :meth:`hsiffc.data.frame.Frame.dark_subtracted`)."""
-        self.check_is_fitted()
+        return self.prepare().transform(frame)
+
+
+class PreparedDark(Prepared):
+    """A fitted :class:`DarkSubtract` made ready for frames.
+
+    Attributes
+    ----------
+    stage : DarkSubtract
+    line : DarkLine or None
+        ``d0 + slope t`` through the masters (two or more exposures), else None.
+    calibration : PreparedCalibration or None
+        The stage's calibration, prepared (its dark line where no master matches).
+    """
+
+    __slots__ = ("line", "calibration")
+
+    def __init__(self, stage, line, calibration):
+        super().__init__(stage)
+        self.line = line
+        self.calibration = calibration
+
+    def dark_for(self, exposure_ms: float, shape) -> tuple[np.ndarray, str]:
+        """The dark (DN, float32) subtracted at this exposure and how it was obtained."""
+        st = self.stage
+        e = find_exposure(st.exposures_ms_, exposure_ms) if st.match == "exposure" else None
+        if e is not None:
+            return st.masters_[st.exposures_ms_.index(e)], f"master at {e:g} ms"
+        if self.line is not None:
+            return self.line.at(exposure_ms), "scaled (d0 + slope t)"
+        cal = self.calibration
+        if cal is not None:
+            cal.check_compatible(frame_shape=shape, what="the frame")
+            return cal.dark_at(exposure_ms), "calibration"
+        only = f" (only at {st.exposures_ms_[0]:g} ms)" if st.exposures_ms_ else ""
+        raise ParameterError(f"no master dark at {exposure_ms:g} ms{only} and nothing to scale "
+                             "with: record darks at this exposure or at two exposures, or give "
+                             "calibration=")
+
+    def transform(self, frame):
+        """:meth:`DarkSubtract.transform`."""
         dark, how = self.dark_for(frame.exposure_ms, frame.data.shape)
         return frame.dark_subtracted(dark, dark_source=how)

@@ -62,6 +62,7 @@ class TwoPointFFC(Stage):
     """
 
     name = "two_point_ffc"
+    fuses_as = "two_point_ffc"
     removes = frozenset({"response"})
     param_spec = {"exposure_ms": Param("number", low=0, low_open=True, optional=True, unit="ms"),
                   "calibration": CALIBRATION, "threshold_percent": THRESHOLD,

@@ -6,7 +6,7 @@ import numpy as np
 
 from ..leakage.linearise import linearise
 from .common import CALIBRATION, THRESHOLD
-from .base import Stage
+from .base import Prepared, Stage
 
 
 class LeakageLinearise(Stage):
@@ -56,11 +56,37 @@ class LeakageLinearise(Stage):
                         alpha_limit_percent=float(self.alpha_limit_percent))
         return lin.light_rate, lin.dq, lin.alpha, cal
 
+    def prepare(self) -> "PreparedLinearise":
+        """The calibration prepared (its dark line:
+        :meth:`hsiffc.calibrate.Calibration.prepare`)."""
+        self.check_is_fitted()
+        return PreparedLinearise(self, self.require_calibration().prepare())
+
     def transform(self, frame):
         """The frame with each response replaced by ``k t`` (DN), the response without leakage."""
-        k, dq, _, cal = self.light_rate(frame)
+        return self.prepare().transform(frame)
+
+
+class PreparedLinearise(Prepared):
+    """A fitted :class:`LeakageLinearise` made ready for frames.
+
+    Attributes
+    ----------
+    stage : LeakageLinearise
+    calibration : PreparedCalibration
+    """
+
+    __slots__ = ("calibration",)
+
+    def __init__(self, stage, calibration):
+        super().__init__(stage)
+        self.calibration = calibration
+
+    def transform(self, frame):
+        """:meth:`LeakageLinearise.transform`."""
+        k, dq, _, _ = self.stage.light_rate(frame)
         signal = k * frame.exposure_ms
         if frame.dark_removed is None:
-            signal = signal + cal.dark_at(frame.exposure_ms)
+            signal = signal + self.calibration.dark_at(frame.exposure_ms)
         return frame.replace(data=signal.astype(np.float32), dq=frame.dq | dq,
-                             corrected_by=self.name)
+                             corrected_by=self.stage.name)

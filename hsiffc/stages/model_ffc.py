@@ -12,7 +12,7 @@ from ..flatfield.model_based import log_gain_ratio, model_ffc_apply
 from ..flatfield.model_flat import FlatStack, model_flat_fit
 from ..data.params import Param
 from .common import CALIBRATION, THRESHOLD
-from .base import Stage
+from .base import Prepared, Stage
 
 
 def flat_stacks(frames, min_frames: int):
@@ -78,10 +78,6 @@ class ModelFFC(Stage):
                              mosaic=frame.mosaic, what="the frame")
         return cal
 
-    def _dark(self, frame, cal):
-        return frame.dark_removed if frame.dark_removed is not None else cal.dark_at(
-            frame.exposure_ms)
-
     def fit(self, frames):
         self.validate_params()
         cal = self.require_calibration()
@@ -121,28 +117,50 @@ class ModelFFC(Stage):
         self.fitted_ = True
         return self
 
-    def _log_ratio(self):
-        """:func:`~hsiffc.flatfield.model_based.log_gain_ratio` of the fitted factors, computed once (kept
-        while they are the same arrays)."""
-        if self.gain_sweep_ is None:
-            return None
-        kept = self.__dict__.get("_log_ratio_of")
-        if kept is None or kept[0] is not self.gain_ or kept[1] is not self.gain_sweep_:
-            kept = (self.gain_, self.gain_sweep_, log_gain_ratio(self.gain_, self.gain_sweep_))
-            self.__dict__["_log_ratio_of"] = kept
-        return kept[2]
+    def prepare(self) -> "PreparedModelFFC":
+        """The calibration prepared and :func:`~hsiffc.flatfield.model_based.log_gain_ratio`
+        of the fitted factors, made now (:class:`PreparedModelFFC`)."""
+        self.check_is_fitted()
+        log_ratio = (None if self.gain_sweep_ is None else
+                     log_gain_ratio(self.gain_, self.gain_sweep_))
+        return PreparedModelFFC(self, self.require_calibration().prepare(), log_ratio)
 
     def transform(self, frame):
-        self.check_is_fitted()
-        cal = self._cal_for(frame)
-        dark = self._dark(frame, cal)
+        return self.prepare().transform(frame)
+
+
+class PreparedModelFFC(Prepared):
+    """A fitted :class:`ModelFFC` made ready for frames.
+
+    Attributes
+    ----------
+    stage : ModelFFC
+    calibration : PreparedCalibration
+        Its dark line gives the dark where no dark stage removed one.
+    log_ratio : (H, W) ndarray or None
+        ``ln(gain_ / gain_sweep_)`` (None without a sweep factor).
+    """
+
+    __slots__ = ("calibration", "log_ratio")
+
+    def __init__(self, stage, calibration, log_ratio):
+        super().__init__(stage)
+        self.calibration = calibration
+        self.log_ratio = log_ratio
+
+    def transform(self, frame):
+        """:meth:`ModelFFC.transform`."""
+        st = self.stage
+        cal = st._cal_for(frame)
+        dark = (frame.dark_removed if frame.dark_removed is not None else
+                self.calibration.dark_at(frame.exposure_ms))
         out, dq, _ = model_ffc_apply(
-            frame.raw, frame.exposure_ms, cal.a, cal.b, dark, self.gain_,
-            gain_sweep=self.gain_sweep_, flat_alpha_percent=float(self.flat_alpha_percent),
+            frame.raw, frame.exposure_ms, cal.a, cal.b, dark, st.gain_,
+            gain_sweep=st.gain_sweep_, flat_alpha_percent=float(st.flat_alpha_percent),
             full_scale_dn=2 ** frame.bit_depth - 1,
-            alpha_limit_percent=float(self.alpha_limit_percent), log_ratio=self._log_ratio())
+            alpha_limit_percent=float(st.alpha_limit_percent), log_ratio=self.log_ratio)
         # dq is this call's own array: merged in place, in parallel (hsiffc.kernels.bits)
-        or_into(dq, frame.dq, self.dq_.astype(DQ_DTYPE, copy=False))
+        or_into(dq, frame.dq, st.dq_.astype(DQ_DTYPE, copy=False))
         return frame.replace(data=out, dq=dq,
-                             dark_removed=np.asarray(dark, np.float32), corrected_by=self.name,
+                             dark_removed=np.asarray(dark, np.float32), corrected_by=st.name,
                              meta={"ffc": "model"})

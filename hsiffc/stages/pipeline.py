@@ -4,7 +4,10 @@
 already fitted before it; ``transform(frame)`` runs them in order and records one history entry
 per stage in ``frame.meta["history"]`` (stage, parameters, status) - in this one place, not in
 every stage. Building a pipeline checks every stage's parameters, the order of the stages
-(what each needs against what the ones before it give) and reads each calibration file once.
+(what each needs against what the ones before it give) and reads each calibration file once;
+a fitted pipeline (built from fitted stages, fitted or loaded) then makes its plan
+(:meth:`Pipeline.prepare`): each stage's prepared per-frame state and the fused front end,
+held in :attr:`Pipeline.plan`.
 A fitted pipeline saves to one versioned product file (:mod:`hsiffc.data.products`: arrays plus a
 JSON manifest, no pickle) and loads by registered stage names; a small TOML file describes one
 for the CLI. Calibrations are recorded by identity (and path, or embedded when they exist only
@@ -24,11 +27,12 @@ from ..data.params import did_you_mean
 from ..data.products import STATE_SCHEMAS, read_product, write_product
 from . import registry
 from .base import Stage
-from .fusion import fusable, run_fused
+from .fusion import FusedFrontEnd
 from .order import check_order
 
 FORMAT = "hsiffc-pipeline"
 FORMAT_VERSION = 2  # 2: calibrations as {"identity", "path"[, "embedded"]}; 1 (paths) still read
+_MISSING = object()
 REMEDY = "fit one with 'hsiffc fit DESCRIPTION.toml TRAINING... -o PIPELINE.npz'"
 
 
@@ -80,6 +84,59 @@ def _state_schema(stage_name: str):
     return getattr(stage_cls, "state_schema", None) or STATE_SCHEMAS.get(stage_name)
 
 
+def _made_from(steps) -> tuple:
+    """What a plan is made from: every stage and the objects its attributes hold (held, so
+    that :meth:`Plan.is_current` compares them by identity)."""
+    return tuple((stage, tuple(vars(stage).items())) for _, stage in steps)
+
+
+class Plan:
+    """How a fitted pipeline runs a frame, made once by :meth:`Pipeline.prepare`.
+
+    Attributes
+    ----------
+    units : tuple
+        In order: a :class:`~hsiffc.stages.fusion.FusedFrontEnd`, or a step
+        ``(name, stage, prepared)`` with the stage's :meth:`~hsiffc.stages.base.Stage.prepare`.
+    made_from : tuple
+        The stages and the objects they held when it was made: :meth:`Pipeline.transform`
+        makes the plan again when a stage was changed since (``set_params`` on a stage, a
+        stage fitted again: :meth:`is_current`).
+    """
+
+    def __init__(self, steps):
+        self.made_from = _made_from(steps)
+        prepared = [(name, stage, stage.prepare()) for name, stage in steps]
+        units, i = [], 0
+        while i < len(prepared):
+            front = FusedFrontEnd.starting(prepared[i:])
+            if front is not None:
+                units.append(front)
+                i += len(front.steps)
+            else:
+                units.append(prepared[i])
+                i += 1
+        self.units = tuple(units)
+
+    def is_current(self, steps) -> bool:
+        """Whether ``steps`` are the stages it was made from, holding the same objects."""
+        if len(steps) != len(self.made_from):
+            return False
+        for (stage, items), (_, now) in zip(self.made_from, steps):
+            attrs = vars(now)
+            if stage is not now or len(attrs) != len(items) or any(
+                    attrs.get(k, _MISSING) is not v for k, v in items):
+                return False
+        return True
+
+    def describe(self) -> str:
+        """The units in one line, e.g. ``FusedFrontEnd(dark + mask + ffc), cube``."""
+        return ", ".join(repr(u) if isinstance(u, FusedFrontEnd) else u[0] for u in self.units)
+
+    def __repr__(self) -> str:
+        return f"<Plan: {self.describe()}>"
+
+
 class Pipeline:
     """A sequence of named stages.
 
@@ -122,6 +179,10 @@ class Pipeline:
         for _, stage in steps:  # calibration files are read once, here
             stage.calibration_product()
         self.steps = steps
+        #: how a frame is run (:class:`Plan`), made by :meth:`prepare`; None until fitted
+        self.plan = None
+        if all(s.is_fitted() for _, s in steps):
+            self.prepare()
 
     @property
     def named_steps(self) -> dict:
@@ -131,7 +192,8 @@ class Pipeline:
     def __repr__(self):  # one line per step; calibrations and arrays by their key figures
         fitted = all(s.is_fitted() for _, s in self.steps)
         steps = ",\n".join(f"    ({n!r}, {s!r})" for n, s in self.steps)
-        return f"Pipeline([  # {'fitted' if fitted else 'not fitted'}\n{steps}])"
+        runs = f"; runs as {self.plan.describe()}" if fitted and self.plan is not None else ""
+        return f"Pipeline([  # {'fitted' if fitted else 'not fitted'}{runs}\n{steps}])"
 
     # -- parameters ----------------------------------------------------------------------------
     def get_params(self) -> dict:
@@ -150,7 +212,24 @@ class Pipeline:
             steps[name].set_params(**{param: value})
             steps[name].validate_params()
         check_order(self.steps)
+        if all(s.is_fitted() for _, s in self.steps):
+            self.prepare()
         return self
+
+    def prepare(self) -> Plan:
+        """Make, once, what running a frame needs: every stage's prepared per-frame state
+        (:meth:`hsiffc.stages.base.Stage.prepare`: prepared calibrations, dark lines...) and
+        the fused front end (:class:`~hsiffc.stages.fusion.FusedFrontEnd`) where the steps
+        make one. Called when a fitted pipeline is built or loaded, after :meth:`fit` and
+        :meth:`set_params`; the plan is kept in :attr:`plan`.
+
+        Raises
+        ------
+        NotFittedError
+            A stage is not fitted.
+        """
+        self.plan = Plan(self.steps)
+        return self.plan
 
     # -- fit / transform -----------------------------------------------------------------------
     def fit(self, frames) -> "Pipeline":
@@ -164,7 +243,9 @@ class Pipeline:
         for i, (name, stage) in enumerate(self.steps):
             stage.fit(current)
             if i < len(self.steps) - 1:
-                current = [stage.transform(f) for f in current]
+                prepared = stage.prepare()
+                current = [prepared.transform(f) for f in current]
+        self.prepare()
         return self
 
     def transform(self, frame: Frame, *, fuse: bool = True) -> Frame:
@@ -173,18 +254,17 @@ class Pipeline:
         With ``fuse`` (the default) a dark and an alpha mask in a row, and a two-point FFC
         after them, run as one pass over the pixels (:mod:`hsiffc.stages.fusion`): the same
         frame, bit for bit, in less time; ``fuse=False`` runs every stage's own
-        ``transform``."""
-        i = 0
-        while i < len(self.steps):
-            n = fusable(self.steps[i:], frame) if fuse else 0
-            if n:
-                frame = run_fused(self.steps[i:i + n], frame, _recorded)
-                i += n
-                continue
-            name, stage = self.steps[i]
-            stage.check_is_fitted()
-            frame = _recorded(name, stage, stage.transform(frame))
-            i += 1
+        ``transform``. Both run the stages as prepared in :attr:`plan` (made again first
+        where a stage was changed since it was made)."""
+        plan = self.plan
+        if plan is None or not plan.is_current(self.steps):
+            plan = self.prepare()
+        for unit in plan.units:
+            if isinstance(unit, FusedFrontEnd):
+                frame = unit.run(frame, _recorded, fuse=fuse)
+            else:
+                name, stage, prepared = unit
+                frame = _recorded(name, stage, prepared.transform(frame))
         return frame
 
     def fit_transform(self, frames, test: Frame) -> Frame:
