@@ -106,11 +106,28 @@ def paired(a: Fitted, b: Fitted, valid_ho):
     return float(d.mean()), float(d.std() / np.sqrt(max(d.size, 1)))
 
 
+def _gauge(trial: Fitted, x, steps, data: Data):
+    """Step-factor patterns the base model absorbs: for each base parameter, its Jacobian
+    column over the effect's column, per step (median over the pixels). The factors of a
+    per-step effect fitted jointly with the base are free along these (a constant is taken by
+    the gain, one over the signal by the dark level, smooth bends by the leakage), so they
+    are nuisance regressors of the trend test, not a trend."""
+    _, jac, _ = context(trial.state.base, trial.state.theta, data)
+    ok = data.valid[:, steps] & (np.abs(x[:, steps]) > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(ok[..., None], jac[:, steps, :] / x[:, steps, None], np.nan)
+        g = np.nanmedian(ratio, axis=0)  # (n_steps, n_params)
+    g = g[:, np.all(np.isfinite(g), axis=0) & (np.ptp(np.nan_to_num(g), axis=0) > 0)]
+    return g
+
+
 def step_trend(trial: Fitted, name: str, data: Data):
     """Do the fitted per-step factors of effect ``name`` trend with exposure, signal, light
-    rate or acquisition order? A per-step light error is random from step to step; factors
-    that follow a smooth function of the step are the signature of a smooth misfit of the
-    model, which one free factor per step absorbs.
+    rate, acquisition order or the previous step's signal? A per-step light error is random
+    from step to step; factors that follow a smooth function of the step are the signature of
+    a smooth misfit of the model (or of a lag longer than one step), which one free factor per
+    step absorbs. The patterns the base model's own parameters absorb (:func:`_gauge`) are
+    taken out of the factors first: they are not determined by the data.
 
     Parameters
     ----------
@@ -135,27 +152,46 @@ def step_trend(trial: Fitted, name: str, data: Data):
         return None
     f = theta[steps]
     se2 = 1.0 / den[steps]
-    sig = np.array([np.median(ctx.signal[data.valid[:, s], s]) if data.valid[:, s].any() else 0
-                    for s in steps]) / data.full_scale
+
+    def step_median(v):
+        return np.array([np.median(v[data.valid[:, s], s]) if data.valid[:, s].any() else 0.0
+                         for s in steps])
+    sig = step_median(ctx.signal) / data.full_scale
+    with np.errstate(invalid="ignore", divide="ignore"):
+        prev = step_median(np.where(ctx.signal > 0, ctx.prev_signal / ctx.signal, 0.0))
     regs = {"exposure": np.log(data.t[steps]), "signal": sig, "signal^2": sig ** 2,
             "light rate": np.log(np.maximum(data.r[steps], 1e-12)),
-            "acquisition order": data.order[steps]}
-    cols = [v for v in regs.values() if np.ptp(v) > 1e-9 * (np.abs(v).max() + 1e-300)]
-    if not cols:
+            "acquisition order": data.order[steps],
+            "the previous step's signal (a lag)": prev}
+    regs = {k: v for k, v in regs.items() if np.ptp(v) > 1e-9 * (np.abs(v).max() + 1e-300)}
+    if not regs:
         return None
-    X = np.column_stack([np.ones(steps.size)] + [(c - c.mean()) / c.std() for c in cols])
-    q = X.shape[1] - 1
-    if steps.size - q - 1 < 4:
-        X, q = X[:, :3], min(q, 2)
+    gauge = _gauge(trial, x, steps, data)
     scatter2 = max(float(np.var(f)) - float(np.mean(se2)), 0.0)
     wt = 1.0 / (se2 + scatter2 + 1e-300)
     sw = np.sqrt(wt)
+
+    def std(c):
+        return (c - c.mean()) / c.std()
+    G = np.column_stack([np.ones(steps.size)] + [std(c) for c in gauge.T])
+    n_g = np.linalg.matrix_rank(G * sw[:, None])
+    if steps.size - n_g < MIN_TREND_STEPS // 2:  # the base absorbs nearly every pattern
+        G = G[:, :1]
+        n_g = 1
+    # factors less what the base absorbs (weighted least squares on the gauge patterns)
+    fg = f - G @ np.linalg.lstsq(G * sw[:, None], f * sw, rcond=None)[0]
+    X = np.column_stack([G] + [std(c) for c in regs.values()])
+    q = np.linalg.matrix_rank(X * sw[:, None]) - n_g
+    if steps.size - n_g - q < 4:
+        X = X[:, :n_g + 2]
+        q = np.linalg.matrix_rank(X * sw[:, None]) - n_g
+    dof = steps.size - n_g - q
+    if q < 1 or dof < 1:
+        return None
     full = np.linalg.lstsq(X * sw[:, None], f * sw, rcond=None)
     rss1 = float(((f - X @ full[0]) ** 2 * wt).sum())
-    mean = float((f * wt).sum() / wt.sum())
-    rss0 = float(((f - mean) ** 2 * wt).sum())
-    dof = steps.size - q - 1
-    if rss1 <= 0 or dof < 1:
+    rss0 = float((fg ** 2 * wt).sum())
+    if rss1 <= 0:
         return None
     fstat = ((rss0 - rss1) / q) / (rss1 / dof)
     p_poly = float(stats.f.sf(fstat, q, dof))
@@ -163,10 +199,9 @@ def step_trend(trial: Fitted, name: str, data: Data):
     # little from one step to the next. Robust ratio of successive differences to the spread
     # (medians: one odd step does not hide a trend), against random orders of the same
     # factors (permutation test); Bonferroni over the orderings
-    names = [k for k, v in regs.items() if np.ptp(v) > 1e-9 * (np.abs(v).max() + 1e-300)
-             and k != "signal^2"]
+    names = [k for k in regs if k != "signal^2"]
     n = steps.size
-    fc = (f - np.median(f)) * sw
+    fc = (fg - np.median(fg)) * sw
     perm = np.argsort(np.random.default_rng(0).random((N_PERMUTATIONS, n)), axis=1)
 
     def ratio(v):  # v: (..., n)
@@ -184,11 +219,11 @@ def step_trend(trial: Fitted, name: str, data: Data):
     if p >= TREND_P:
         return None
     if p_poly < p_vn:  # which single regressor follows the factors best (for the report)
-        r2 = [abs(np.corrcoef(regs[k], f)[0, 1]) if np.ptp(f) > 0 else 0.0 for k in names]
+        r2 = [abs(np.corrcoef(regs[k], fg)[0, 1]) if np.ptp(fg) > 0 else 0.0 for k in names]
         by = names[int(np.argmax(r2))]
     return (f"its step factors follow {by} smoothly (p = {p:.2g} against factors independent "
-            "from step to step): a smooth misfit of the model, not a random light error per "
-            "step")
+            "from step to step, beyond what the base model absorbs): a smooth misfit of the "
+            "model, not a random light error per step")
 
 
 def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_light: int,
