@@ -108,16 +108,19 @@ class FrameMeta:
 
     Examples
     --------
-    >>> import tempfile, numpy as np, tifffile
+    The metadata an hsiffc TIFF records per frame come back with each frame:
+
+    >>> import tempfile, numpy as np
     >>> from pathlib import Path
-    >>> from hsiffc.io import open_source
+    >>> from hsiffc import Sweep
+    >>> from hsiffc.io import open_source, write_sweep
     >>> tmp = tempfile.TemporaryDirectory()
-    >>> path = Path(tmp.name) / "frames.tif"
-    >>> tifffile.imwrite(path, np.zeros((2, 4, 6), np.uint16), photometric="minisblack")
-    >>> with open_source(path, exposure_ms=5.0, bit_depth=12, kind="dark") as src:
-    ...     meta = src.frame_meta(1)
-    >>> meta.index, meta.exposure_ms, meta.kind, meta.page, Path(meta.path).name
-    (1, 5.0, 'dark', 1, 'frames.tif')
+    >>> frames = Sweep(np.zeros((2, 4, 6), np.uint16), exposure_ms=[5.0, 5.0],
+    ...                kind=["light", "dark"], bit_depth=12)
+    >>> with open_source(write_sweep(Path(tmp.name) / "sweep.tif", frames)) as src:
+    ...     metas = [meta for _, meta in src]
+    >>> [(m.index, m.kind, m.exposure_ms, m.page) for m in metas]
+    [(0, 'light', 5.0, 0), (1, 'dark', 5.0, 1)]
     >>> tmp.cleanup()
     """
 
