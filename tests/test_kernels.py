@@ -290,8 +290,9 @@ def test_alpha_and_flags_in_one_pass_equal_the_numpy_rule():
     alpha = np.empty(n, np.float32)
     dq = np.empty(n, np.uint32)
     for build in (leakage.alpha_flags_kernel.parallel, leakage.alpha_flags_kernel.serial):
-        build(y, 25.0, a, b, d, 12.0, 1023.0, int(DQ.OUT_OF_DOMAIN), pix, dq_in, None, None,
-              alpha, dq, None)
+        build(leakage.PixelModel(y, 25.0, a, b, d),
+              leakage.FlagRule(12.0, 1023.0, int(DQ.OUT_OF_DOMAIN)),
+              leakage.FlagPlanes(pix, dq_in, None), leakage.FlagOutputs(None, alpha, dq, None))
         ref_alpha = numpy_alpha_paper(y, 25.0, a, b, d).astype(np.float32)
         assert np.allclose(alpha, ref_alpha, rtol=1e-6)
         ref = np.zeros(n, np.uint32)  # the former numpy rule

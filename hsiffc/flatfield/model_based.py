@@ -43,7 +43,8 @@ import numpy as np
 from ..leakage import model
 from ..data.dq import DQ, DQ_DTYPE
 from ..kernels.leakage import BLOCK
-from ..kernels.modelffc import model_ffc_finish, model_ffc_kernel, pending_indices
+from ..kernels.modelffc import (CorrectionLimits, CorrectionOutputs, Factors, PixelModel,
+                                model_ffc_finish, model_ffc_kernel, pending_indices)
 from ..kernels.operands import flat_operands
 
 #: convergence tolerance (DN) of the leakage inversion inside the correction
@@ -139,14 +140,16 @@ def model_ffc_apply(response, exposure_ms: float, a, b, dark, gain, *, gain_swee
     alpha = np.empty(shape, np.float32)
     flat = (out.reshape(-1), dq.reshape(-1), alpha.reshape(-1))
     left = np.zeros(max(1, -(-out.size // BLOCK)), np.int64)
-    if model_ffc_kernel(*ops, has_sweep, full_scale, *limits, _TOL_DN, *flat, left):
+    # the kernels' operands in named groups (hsiffc.kernels.modelffc)
+    groups = (PixelModel(*ops[:5]), Factors(*ops[5:], has_sweep),
+              CorrectionLimits(full_scale, *limits, _TOL_DN), CorrectionOutputs(*flat))
+    if model_ffc_kernel(*groups, left):
         # what the vector steps left (scanned in the blocks that have some): the bracketed
         # inversion, then the same step
         idx = pending_indices(flat[1], left)
         y, t, a_, b_, d = (v if isinstance(v, float) else v[idx] for v in ops[:5])
         inv = model.invert_response(y, t, a_, b_, d, full_scale=full_scale_dn, tol_dn=_TOL_DN)
-        model_ffc_finish(idx, np.atleast_1d(inv.k), np.atleast_1d(inv.flags), *ops,
-                         has_sweep, *limits, *flat)
+        model_ffc_finish(idx, np.atleast_1d(inv.k), np.atleast_1d(inv.flags), *groups)
     return out, dq, alpha
 
 

@@ -14,6 +14,7 @@ them compiles afresh instead of loading stale machine code.
 from __future__ import annotations
 
 import hashlib
+import operator
 import types
 from pathlib import Path
 
@@ -61,8 +62,9 @@ class Kernel:
     ----------
     fn : function
         The loop (``prange`` over blocks or elements).
-    size_arg : int
-        Index of the argument whose ``.size`` decides (usually the output array).
+    size_arg : int or (int, int)
+        Index of the argument whose ``.size`` decides (usually the output array); ``(i, j)``:
+        member ``j`` of argument ``i`` (a kernel that takes its operands as named tuples).
     parallel_min : int
         Size from which the parallel build runs (default :data:`PARALLEL_MIN`). A kernel that
         does little per element may ask for more: a parallel region waits for its slowest
@@ -75,10 +77,12 @@ class Kernel:
             _renamed(fn, "_" + SOURCE_DIGEST))
         self.serial = njit(**JIT_OPTIONS)(_renamed(fn, "_serial_" + SOURCE_DIGEST))
         self.size_arg = size_arg
+        self._sized = (operator.itemgetter(size_arg) if isinstance(size_arg, int) else
+                       lambda args, i=size_arg[0], j=size_arg[1]: args[i][j])
         self.parallel_min = int(parallel_min)
         self.__doc__ = fn.__doc__
         self.__name__ = fn.__name__
 
     def __call__(self, *args):
-        big = args[self.size_arg].size >= self.parallel_min
+        big = self._sized(args).size >= self.parallel_min
         return (self.parallel if big else self.serial)(*args)

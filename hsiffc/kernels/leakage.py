@@ -26,6 +26,8 @@ by the ``ok`` test and repaired; their ulp errors against 50-digit arithmetic ar
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange
 
@@ -35,7 +37,8 @@ from .launch import JIT_OPTIONS, Kernel
 from .operands import at, part
 from .vmath import exp, exp_clamped, expm1, expm1_clamped, log, log_positive, logaddexp
 
-__all__ = ["BLOCK", "alpha_flags_kernel", "alpha_flags_sums_kernel", "alpha_model_kernel",
+__all__ = ["BLOCK", "BandSums", "FlagOutputs", "FlagPlanes", "FlagRule", "PixelModel",
+           "alpha_flags_kernel", "alpha_flags_sums_kernel", "alpha_model_kernel",
            "alpha_model_point", "alpha_paper_kernel", "alpha_paper_point", "leakage_bits",
            "response_fast", "response_kernel", "response_point", "response_robust"]
 
@@ -242,6 +245,56 @@ alpha_paper_kernel = Kernel(_alpha_paper_loop, 5)
 
 
 # -- validity flags ---------------------------------------------------------------------------
+# The kernels take their operands in named groups (numba types a named tuple per combination
+# of its members' types, None included); each kernel unpacks them and hands every block to
+# its block function as separate arguments: numba removes the branches of a None operand only
+# where it is an argument, and that keeps the block loop free of conditional loads.
+
+class PixelModel(NamedTuple):
+    """Per-pixel operands of the leakage model: flat arrays of every pixel or scalars
+    (:func:`~hsiffc.kernels.operands.flat_operands`)."""
+
+    y: object  #: response, DN
+    t: object  #: exposure, ms
+    a: object  #: leakage amplitude, DN/ms
+    b: object  #: leakage exponent, 1/DN
+    d: object  #: dark under the response, DN
+
+
+class FlagRule(NamedTuple):
+    """How the validity flags are set (:func:`leakage_bits`)."""
+
+    threshold: float  #: alpha (percent) over which LEAKAGE is set
+    full_scale: float  #: response (DN) from which SATURATED is set
+    const_bits: int  #: bits every pixel gets (OUT_OF_DOMAIN)
+
+
+class FlagPlanes(NamedTuple):
+    """DQ planes OR-ed into the result: flat uint32 arrays, or None where absent."""
+
+    pix: object  #: the calibration's pixel flags
+    dq_in: object  #: the frame's DQ so far
+    extra: object  #: more bits (a flat field's own)
+
+
+class FlagOutputs(NamedTuple):
+    """Where a validity pass reads alpha from or writes it to, and writes DQ and signal: flat
+    arrays; exactly one of ``alpha_in`` and ``alpha_out`` is None, ``signal`` may be."""
+
+    alpha_in: object  #: float32 alpha (percent) given
+    alpha_out: object  #: float32 alpha (percent) computed here
+    dq: object  #: uint32 DQ
+    signal: object  #: float32 ``y - d``, or None
+
+
+class BandSums(NamedTuple):
+    """The per-band sums a validity pass also takes (:func:`alpha_flags_sums_kernel`)."""
+
+    band_map: object  #: (H, W) int64 band index
+    period: int  #: the band map's row period (> 0)
+    sums: object  #: (blocks, bands) float64, written
+    counts: object  #: (blocks, bands) int64, written
+
 
 @njit(**_INL)
 def leakage_bits(alpha, y, threshold, full_scale):
@@ -277,14 +330,16 @@ def _alpha_flags_block(y, t, a, b, d, threshold, full_scale, const_bits, pix, dq
         dq_out[i] = bits
 
 
-def _alpha_flags_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, dq_in, extra,
-                      alpha_in, alpha_out, dq_out, signal_out):
-    """Paper alpha into ``alpha_out`` (or, given ``alpha_in``, alpha read from it) and the
-    DQ of every pixel: :func:`leakage_bits` | ``const_bits`` | ``pix`` | ``dq_in`` |
-    ``extra``; with ``signal_out``, also ``y - d`` in float32 (the dark subtraction of the
-    same pixels, in the same pass); per block of :data:`BLOCK`. ``pix``, ``dq_in``,
-    ``extra`` and ``signal_out`` may be None; exactly one of ``alpha_in`` and ``alpha_out``
-    is None."""
+def _alpha_flags_loop(model, rule, planes, outputs):
+    """Paper alpha into ``outputs.alpha_out`` (or, given ``outputs.alpha_in``, alpha read
+    from it) and the DQ of every pixel: :func:`leakage_bits` | ``const_bits`` | the
+    ``planes``; with ``outputs.signal``, also ``y - d`` in float32 (the dark subtraction of
+    the same pixels, in the same pass); per block of :data:`BLOCK`. Operands:
+    :class:`PixelModel`, :class:`FlagRule`, :class:`FlagPlanes`, :class:`FlagOutputs`."""
+    y, t, a, b, d = model
+    threshold, full_scale, const_bits = rule
+    pix, dq_in, extra = planes
+    alpha_in, alpha_out, dq_out, signal_out = outputs
     n = dq_out.shape[0]
     for blk in prange((n + BLOCK - 1) // BLOCK):
         i0 = blk * BLOCK
@@ -296,23 +351,28 @@ def _alpha_flags_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, dq_
                            part(signal_out, i0, i1))
 
 
-alpha_flags_kernel = Kernel(_alpha_flags_loop, 13)
+alpha_flags_kernel = Kernel(_alpha_flags_loop, (3, 2))
 
 
 _SUB = 4  # rows per call of the block function in _alpha_flags_sums_loop
 
 
-def _alpha_flags_sums_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix, dq_in, extra,
-                           alpha_out, dq_out, signal_out, band_map, period, sums, counts):
-    """:func:`_alpha_flags_loop` (alpha computed) over a 2-D frame given as flat operands
-    (rows of ``band_map.shape[1]`` pixels) by blocks of :data:`~hsiffc.kernels.bands.ROWS`
-    rows, which also adds each row's finite ``y`` at the pixels whose DQ comes out 0 into
-    ``sums/counts[block, band]``: the partial sums of
+def _alpha_flags_sums_loop(model, rule, planes, outputs, by_band):
+    """:func:`_alpha_flags_loop` (alpha computed: ``outputs.alpha_in`` is None) over a 2-D
+    frame given as flat operands (rows of ``band_map.shape[1]`` pixels) by blocks of
+    :data:`~hsiffc.kernels.bands.ROWS` rows, which also adds each row's finite ``y`` at the
+    pixels whose DQ comes out 0 into ``sums/counts[block, band]`` (``by_band``, a
+    :class:`BandSums`): the partial sums of
     :func:`~hsiffc.kernels.bands.band_sums` of ``y`` with ``good = dq == 0`` and row period
     ``period`` (> 0), the same values added in the same order
     (:func:`~hsiffc.kernels.bands.add_row`, :func:`~hsiffc.kernels.bands.fold_block`). A
     two-point FFC's eq. (5) level of the test frame thus comes out of this pass instead of a
     second pass over the frame."""
+    y, t, a, b, d = model
+    threshold, full_scale, const_bits = rule
+    pix, dq_in, extra = planes
+    alpha_out, dq_out, signal_out = outputs.alpha_out, outputs.dq, outputs.signal
+    band_map, period, sums, counts = by_band
     H, W = band_map.shape
     for blk in prange((H + ROWS - 1) // ROWS):
         y0 = blk * ROWS
@@ -336,4 +396,4 @@ def _alpha_flags_sums_loop(y, t, a, b, d, threshold, full_scale, const_bits, pix
                    counts[blk])
 
 
-alpha_flags_sums_kernel = Kernel(_alpha_flags_sums_loop, 12)
+alpha_flags_sums_kernel = Kernel(_alpha_flags_sums_loop, (3, 2))

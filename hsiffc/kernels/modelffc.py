@@ -14,17 +14,20 @@ percent).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange
 
 from ..data.dq import DQ
 from .launch import JIT_OPTIONS, Kernel
 from .inversion import PENDING, ROUNDS, invert_rounds
-from .leakage import BLOCK, alpha_model_point
+from .leakage import BLOCK, PixelModel, alpha_model_point
 from .operands import at, part
 from .vmath import exp
 
-__all__ = ["correct_point", "model_ffc_finish", "model_ffc_kernel", "pending_indices"]
+__all__ = ["CorrectionLimits", "CorrectionOutputs", "Factors", "PixelModel", "correct_point",
+           "model_ffc_finish", "model_ffc_kernel", "pending_indices"]
 
 _INL = {**JIT_OPTIONS, "cache": False, "inline": "always"}
 _F32_MAX = float(np.finfo(np.float32).max)
@@ -34,6 +37,35 @@ _F32_OVERFLOW = 2.0 ** 128 - 2.0 ** 103
 _BELOW_DARK = int(DQ.BELOW_DARK)
 _LEAKAGE = int(DQ.LEAKAGE)
 _BAD = int(DQ.NONFINITE | DQ.DO_NOT_USE)
+
+
+class Factors(NamedTuple):
+    """The responsivity factors of :func:`correct_point`: flat arrays of every pixel or
+    scalars (:func:`~hsiffc.kernels.operands.flat_operands`), and ``has_sweep``."""
+
+    base: object  #: ``g_sweep`` (with ``has_sweep``), else the factor itself
+    log_ratio: object  #: ``ln(g_flat / g_sweep)`` (0.0 without a sweep factor)
+    dark_current: object  #: DN/ms
+    has_sweep: bool
+
+
+class CorrectionLimits(NamedTuple):
+    """The scalars of the correction (:func:`correct_point`, the inversion's rounds)."""
+
+    full_scale: float  #: DN (inf: none)
+    flat_alpha: float  #: model alpha (percent) at which the flat's share is gone
+    alpha_limit: float  #: model alpha (percent) over which LEAKAGE is set
+    below_tol: float  #: DN under the dark before BELOW_DARK is set
+    tol_dn: float  #: the inversion's tolerance, DN
+
+
+class CorrectionOutputs(NamedTuple):
+    """Flat arrays the correction writes: ``out`` float32 DN, ``dq`` uint32, ``alpha``
+    float32 percent."""
+
+    out: object
+    dq: object
+    alpha: object
 
 
 @njit(**_INL)
@@ -92,14 +124,17 @@ def _model_ffc_block(y, t, a, b, d, base, log_ratio, dark_current, has_sweep, fu
     return left
 
 
-def _model_ffc_loop(y, t, a, b, d, base, log_ratio, dark_current, has_sweep, full_scale,
-                    flat_alpha, alpha_limit, below_tol, tol_dn, out, dq_out, alpha_out,
-                    block_left):
-    """:func:`correct_point` of every pixel into ``out`` (float32 DN), ``dq_out`` (uint32) and
-    ``alpha_out`` (float32 percent); operands flat arrays or scalars (see ``at``), per block
-    of :data:`~hsiffc.kernels.leakage.BLOCK` pixels. Pixels the vectorised rounds leave are
-    marked :data:`PENDING` in ``dq_out`` for :func:`model_ffc_finish`; returns how many, and
-    ``block_left[block]`` says how many in each block (only those blocks are scanned)."""
+def _model_ffc_loop(model, factors, limits, outputs, block_left):
+    """:func:`correct_point` of every pixel into ``outputs`` (:class:`CorrectionOutputs`);
+    operands :class:`~hsiffc.kernels.leakage.PixelModel`, :class:`Factors` and
+    :class:`CorrectionLimits`, per block of :data:`~hsiffc.kernels.leakage.BLOCK` pixels.
+    Pixels the vectorised rounds leave are marked :data:`PENDING` in ``outputs.dq`` for
+    :func:`model_ffc_finish`; returns how many, and ``block_left[block]`` says how many in
+    each block (only those blocks are scanned)."""
+    y, t, a, b, d = model
+    base, log_ratio, dark_current, has_sweep = factors
+    full_scale, flat_alpha, alpha_limit, below_tol, tol_dn = limits
+    out, dq_out, alpha_out = outputs
     n = out.shape[0]
     pending = 0
     for blk in prange((n + BLOCK - 1) // BLOCK):
@@ -115,7 +150,7 @@ def _model_ffc_loop(y, t, a, b, d, base, log_ratio, dark_current, has_sweep, ful
     return pending
 
 
-model_ffc_kernel = Kernel(_model_ffc_loop, 14)
+model_ffc_kernel = Kernel(_model_ffc_loop, (3, 0))
 
 
 def _pending_loop(dq, block_left, block, idx):
@@ -147,13 +182,16 @@ def pending_indices(dq, block_left) -> np.ndarray:
     return idx
 
 
-def _finish_loop(idx, k, flags, y, t, a, b, d, base, log_ratio, dark_current, has_sweep,
-                 flat_alpha, alpha_limit, below_tol, out, dq_out, alpha_out):
+def _finish_loop(idx, k, flags, model, factors, limits, outputs):
     """Correct the pixels ``idx`` (those :data:`PENDING` after :data:`model_ffc_kernel`)
     from their rates ``k`` and flags found by the bracketed scalar inversion
     (:func:`hsiffc.leakage.model.invert_response` on those pixels), in parallel (on a bright frame
     they are the saturated pixels: not few). Operands as in the kernel (flat arrays of every
     pixel, or scalars)."""
+    y, t, a, b, d = model
+    base, log_ratio, dark_current, has_sweep = factors
+    flat_alpha, alpha_limit, below_tol = limits.flat_alpha, limits.alpha_limit, limits.below_tol
+    out, dq_out, alpha_out = outputs
     for m in prange(idx.shape[0]):
         j = idx[m]
         yj = at(y, j)

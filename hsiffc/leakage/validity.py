@@ -113,15 +113,18 @@ def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_
     signal = np.empty(shape, np.float32) if with_signal else None
     const = 0 if in_domain else int(DQ.OUT_OF_DOMAIN)
     flat = (lambda v: None if v is None else v.reshape(-1))
-    args = (y, t, a_, b_, d, float(threshold_percent), float(full_scale_dn), const,
-            plane(pixel_flags), plane(dq), plane(extra_dq))
+    groups = (leakage.PixelModel(y, t, a_, b_, d),
+              leakage.FlagRule(float(threshold_percent), float(full_scale_dn), const),
+              leakage.FlagPlanes(plane(pixel_flags), plane(dq), plane(extra_dq)))
     if sums_by is None:
-        leakage.alpha_flags_kernel(*args, given, flat(alpha), out.reshape(-1), flat(signal))
+        leakage.alpha_flags_kernel(*groups, leakage.FlagOutputs(given, flat(alpha),
+                                                                out.reshape(-1), flat(signal)))
         return (signal, alpha, out) if with_signal else (alpha, out)
     band_map, period, n_bands = sums_by
     sums, counts = block_arrays(shape[0], n_bands)
-    leakage.alpha_flags_sums_kernel(*args, flat(alpha), out.reshape(-1), flat(signal),
-                                    band_map, period, sums, counts)
+    leakage.alpha_flags_sums_kernel(
+        *groups, leakage.FlagOutputs(None, flat(alpha), out.reshape(-1), flat(signal)),
+        leakage.BandSums(band_map, period, sums, counts))
     return signal, alpha, out, band_mean(sums.sum(axis=0), counts.sum(axis=0))
 
 
@@ -160,7 +163,8 @@ def alpha_map(frame, exposure_ms: float, calibration, *, method: str = "paper",
         Exposure time (ms).
     calibration : Calibration or PreparedCalibration
         Supplies a (DN/ms), b (1/DN), the dark level (DN) and dark current (DN/ms) per pixel.
-    method : "paper" or "model"
+    method : str
+        One of :data:`ALPHA_METHODS` ("paper", "model").
     subtract_dark : bool
         Paper method only: subtract the calibrated dark before dividing by the exposure.
 
@@ -261,7 +265,8 @@ def validity_flags(frame, exposure_ms: float, calibration, *, threshold_percent:
     calibration : Calibration or PreparedCalibration
     threshold_percent : float
         alpha above this (percent) is flagged LEAKAGE.
-    method : "paper" or "model"
+    method : str
+        One of :data:`ALPHA_METHODS` ("paper", "model").
     dark : float or (H, W) array_like, DN, optional
         See :func:`alpha_map`.
     dq : (H, W) uint32, optional
@@ -462,7 +467,8 @@ def alpha_table(sweep: Sweep, calibration, *, method: str = "paper",
         Light frames at the candidate exposures (darks are ignored).
     calibration : Calibration or PreparedCalibration
         Of the same sensor (checked).
-    method : "paper" or "model"
+    method : str
+        One of :data:`ALPHA_METHODS` ("paper", "model").
     statistic : "median" or another :func:`hsiffc.data.bandstats.band_reduce` statistic
 
     Returns
