@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -91,8 +92,15 @@ sensor, cal, raw = selfcheck.scene(shape, n_exposures=8)
 frame = Frame.from_raw(raw, exposure_ms=16.125, bit_depth=10, mosaic=sensor.mosaic)
 holed = selfcheck.holed(frame)
 pipes = selfcheck.pipelines(cal)
+more = selfcheck.more_pipelines(sensor, cal)
 out = {}
 for name in sys.argv[1].split(","):
+    if name in more:  # two-point FFC + nearest on the holed frame; PPID on a block so large
+        pipe = more[name]  # that the PPI is undefined at its centre
+        test = selfcheck.hollow(frame) if "ppid" in name else holed
+        out[name + (" hollow" if "ppid" in name else " holed")] = selfcheck.compare(
+            pipe, pipe.to("cuda"), test)
+        continue
     pipe = pipes[name]
     g = pipe.to("cuda")
     out[name + " holed"] = selfcheck.compare(pipe, g, holed)
@@ -109,6 +117,21 @@ for name in sys.argv[1].split(","):
         out[name + " raw float16"] = bool(np.array_equal(item.data, d) and np.array_equal(item.dq, q))
         item, = pipe.stream([raw], **opts)
         out[name + " cpu stream"] = bool(np.array_equal(item.data, d))
+if len(sys.argv) <= 3:  # PPID's band levels: numpy's pairwise mean, for several band counts
+    from hsiffc.gpu import cuda_module, kernels
+    cuda = cuda_module()
+    rng = np.random.default_rng(1)
+    same = []
+    for n in (1, 3, 8, 13, 25, 32):
+        for med in (rng.uniform(1, 900, n).astype(np.float32),
+                    np.r_[rng.uniform(1, 9, n - 1), -1.0][:n].astype(np.float32)):
+            lv, inv = np.zeros(n), np.zeros(n, np.float32)
+            kernels.band_levels[1, 1](med, lv, inv)
+            m = med.astype(np.float64)
+            want = (m / m.mean() if np.all(m > 0) else np.ones(n))
+            same.append(bool(np.array_equal(lv, want)
+                             and np.array_equal(inv, (1.0 / want).astype(np.float32))))
+    out["band levels"] = same
 if len(sys.argv) <= 3:  # the spectral correction matrix after the cube
     from hsiffc.stages import Pipeline
     pipe = selfcheck.matrix_pipeline(Pipeline(pipes["mask+bilinear"].steps[:2]))
@@ -145,10 +168,14 @@ def _assert_equal(res: dict) -> None:
 
 def test_simulated_gpu_cube_equals_cpu():
     """Dark + alpha mask + bilinear cube on a frame with a block of DEAD pixels (the
-    twice-wide tent and the band medians on the device), also streamed in compact types, and
-    with a spectral correction matrix after the cube (within float32 rounding of its terms:
-    BLAS sums in another order)."""
-    _assert_equal(_simulate("mask+bilinear", "12x16"))
+    twice-wide tent and the band medians on the device, found only because values need
+    them, and filled there), also streamed in compact types, and with a spectral correction
+    matrix after the cube (within float32 rounding of its terms: BLAS sums in another
+    order); the two-point FFC (eq. 5's band levels summed on the device) with a nearest cube;
+    PPID (band levels, PPI, its alpha window, the PPI-undefined fallback) on a larger block;
+    the band levels' mean against numpy's for 1 to 32 bands. All bit for bit in the
+    simulator (its arithmetic is the CPU's)."""
+    _assert_equal(_simulate("mask+bilinear,two_point+nearest,mask+ppid", "12x16"))
 
 
 @pytest.mark.slow
@@ -184,12 +211,13 @@ def test_plan_refuses_steps_the_gpu_does_not_run_in_one_line():
     from hsiffc.stages import Pipeline, create
 
     dark, mask = ("dark", create("dark")), ("mask", create("alpha_mask"))
-    cases = {"ppid": [dark, mask, ("cube", create("reconstruct", method="ppid"))],
-             "two_point_ffc": [dark, mask, ("ffc", create("two_point_ffc"))],
+    cases = {"resolution='tile'": [dark, mask, ("cube", create("reconstruct",
+                                                               resolution="tile"))],
+             "polynomial_ffc": [dark, mask, ("ffc", create("polynomial_ffc"))],
              "step 'mask' is not dark": [mask]}
     for word, steps in cases.items():
-        with pytest.raises(ParameterError) as err:
-            plan(Pipeline(steps))
+        with pytest.raises(ParameterError) as err:  # plan reads only .steps (a Pipeline
+            plan(SimpleNamespace(steps=steps))  # would refuse the unfitted stages first)
         assert word in str(err.value) and "\n" not in str(err.value)
         assert "device='cpu'" in str(err.value)
 
@@ -233,3 +261,65 @@ def test_simulated_gpu_stream_edges():
     assert run.returncode == 0, run.stderr[-3000:]
     res = json.loads([x for x in run.stdout.splitlines() if x.startswith("RESULT ")][-1][7:])
     _assert_equal(res)
+
+
+_BATCH = r"""
+import json, sys
+from dataclasses import replace
+from pathlib import Path
+import numpy as np
+from hsiffc.batch import correct_batch
+from hsiffc.gpu import selfcheck
+from hsiffc.gpu.pipeline import GpuPipeline
+from hsiffc.io import read_corrected, write_sweep
+from hsiffc.simulate import PAPER_LIGHT_W_M2
+GpuPipeline.block = (8, 4)
+tmp = Path(sys.argv[1])
+sensor, cal, _ = selfcheck.scene((12, 16), n_exposures=8)
+cal_path = cal.save(tmp / "cal.npz")
+cube = sensor.sweep([16.125], "lamp B", irradiance_w_m2=PAPER_LIGHT_W_M2["test"], n_frames=2,
+                    darks=False, seed=5)
+write_sweep(tmp / "in" / "f.tif", replace(cube, meta={}))
+out, got = {}, {}
+for dev in ("cpu", "cuda"):
+    s = correct_batch([tmp / "in"], tmp / dev, cal_path, ffc="none", cube="bilinear",
+                      device=dev, hash_inputs=False)
+    out[dev + " done"] = s.exit_status == 0 and len(s.done) == 1
+    got[dev] = read_corrected(tmp / dev / "f.corrected.tif")
+c, g = got["cpu"], got["cuda"]
+out["cube shape"] = list(c.data.shape) == [2, 12, 16, 8]
+out["equal"] = [bool(np.array_equal(c.data, g.data)), bool(np.array_equal(c.dq, g.dq)),
+                bool(np.array_equal(c.alpha, g.alpha))]
+out["device recorded"] = g.provenance["pipeline"]["device"] == "cuda"
+print("RESULT " + json.dumps(out))
+"""
+
+
+def test_simulated_batch_device_cuda_writes_the_cpu_outputs(tmp_path):
+    """hsiffc correct's batch with device='cuda' (dark + alpha mask + bilinear cube, two
+    frames) writes the outputs the CPU writes, bit for bit in the simulator, and records the
+    device in the provenance."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    run = subprocess.run([sys.executable, "-c", _BATCH, str(tmp_path)], capture_output=True,
+                         text=True, env=env, cwd=REPO, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    res = json.loads([x for x in run.stdout.splitlines() if x.startswith("RESULT ")][-1][7:])
+    _assert_equal(res)
+
+
+def test_batch_device_cuda_refusals_are_one_line(tmp_path):
+    """Without a GPU, --device cuda names what is missing; with one (or the simulator), a
+    batch on several processes is refused before anything is read."""
+    from hsiffc.batch import BatchError, correct_batch
+
+    x = tmp_path / "x.tif"
+    with pytest.raises(BatchError, match="--device must be cpu or cuda"):
+        correct_batch([x], tmp_path / "o", tmp_path / "c.npz", device="tpu")
+    if not gpu.available():
+        with pytest.raises(gpu.GpuUnavailableError) as err:
+            correct_batch([x], tmp_path / "o", tmp_path / "c.npz", device="cuda", workers=2)
+        assert "\n" not in str(err.value) and str(err.value).startswith("--device cuda: ")
+    else:
+        with pytest.raises(BatchError, match="drop --workers"):
+            correct_batch([x], tmp_path / "o", tmp_path / "c.npz", device="cuda", workers=2)
+    assert not (tmp_path / "o").exists()

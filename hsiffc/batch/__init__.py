@@ -50,7 +50,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                   overrides: dict | None = None, observer=None,
                   wait_s: float = 0.0, cube: str | None = None,
                   cube_correction: str | None = None, imec_xml=None,
-                  compression: str | None = None) -> BatchSummary:
+                  compression: str | None = None, device: str = "cpu") -> BatchSummary:
     """Correct every input (files, folders, globs) into ``outdir``; see ``hsiffc correct``.
 
     Parameters
@@ -104,6 +104,10 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         The sensor's IMEC calibration XML (for ``cube_correction``).
     compression : {"zlib", "zstd", "lzma"}, optional
         TIFF compression of the outputs' pages (imagecodecs; default none).
+    device : {"cpu", "cuda"}
+        ``"cuda"``: the pipeline runs on the GPU (:mod:`hsiffc.gpu`, one process); refused in
+        one line, before anything is read, without numba-cuda or a GPU, with ``workers`` above
+        1 or a ``scheduler``, or for a step the GPU does not run.
 
     Returns
     -------
@@ -119,6 +123,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
     """
     t0 = time.perf_counter()
     workers = _check_options(nan, workers, scheduler, threshold_percent)
+    _check_device(device, workers, scheduler)
     check_ffc(ffc, bool(linearise) and pipeline is None)
     if calibration is None and pipeline is None:
         raise BatchError("give --calibration (for the default pipeline) or --pipeline (a fitted "
@@ -134,7 +139,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                         overrides=_overrides(overrides), cube=cube,
                         cube_correction=cube_correction,
                         imec_xml=None if imec_xml is None else str(Path(imec_xml).resolve()),
-                        compression=_compression(compression))
+                        compression=_compression(compression), device=device)
     if settings.imec_xml and not Path(settings.imec_xml).is_file():
         raise BatchError(f"{imec_xml}: IMEC calibration XML not found")
     if settings.pipeline and not Path(settings.pipeline).is_file():
@@ -164,6 +169,21 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                         ignored,
                         execution={"scheduler": scheduler} if plan is None else plan.to_dict()
                         | {"text": plan.describe()})
+
+
+def _check_device(device, workers: int, scheduler) -> None:
+    """BatchError for an unknown device or a GPU batch on several processes;
+    :class:`hsiffc.gpu.GpuUnavailableError` (one line: what is missing) without one."""
+    if device not in ("cpu", "cuda"):
+        raise BatchError(f"--device must be cpu or cuda, got {device!r}")
+    if device == "cpu":
+        return
+    from ..gpu import require
+
+    require("--device cuda")
+    if workers > 1 or scheduler:
+        raise BatchError("--device cuda runs the batch in this process, on one GPU: drop "
+                         f"{'--scheduler' if scheduler else '--workers'}")
 
 
 def _sizes(jobs) -> list[int]:

@@ -125,6 +125,9 @@ class Settings:
     imec_xml: str | None = None
     #: TIFF compression of the outputs (None, "zlib", "zstd", "lzma")
     compression: str | None = None
+    #: where the pipeline runs: "cpu", or "cuda" (:mod:`hsiffc.gpu`; the same frames within
+    #: its stated float32 tolerance, so not part of the outputs' fingerprint)
+    device: str = "cpu"
 
 
 @dataclass
@@ -145,7 +148,7 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
     ``calibration`` when it is already loaded)."""
     key = (settings.calibration, settings.calibration_identity, settings.pipeline,
            settings.threshold_percent, settings.linearise, settings.ffc, settings.overrides,
-           settings.cube, settings.cube_correction, settings.imec_xml)
+           settings.cube, settings.cube_correction, settings.imec_xml, settings.device)
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         cal = calibration
@@ -181,6 +184,11 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
             basis, sort_keys=True).encode()).hexdigest()[:16]
         info["alpha_computed"] = any(s["stage"] == "alpha_mask" for s in steps)
         info["cube"] = bool(steps) and steps[-1]["stage"] == "reconstruct"
+        info["device"] = settings.device
+        if settings.device != "cpu":  # refuses, in one line, a step the device cannot run
+            from ..gpu import to_device
+
+            pipe = to_device(pipe, settings.device)
         ctx = Context(cal, identity, pipe, info)
         if len(_CONTEXTS) > 4:
             _CONTEXTS.clear()

@@ -145,8 +145,10 @@ def _add_correct(sub):
                    help="with --ffc none: add leakage linearisation (model_ffc already "
                         "inverts the leakage)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
-                   help="cuda: check for the GPU path (hsiffc[gpu]: numba-cuda and an NVIDIA "
-                        "GPU); a missing part is named in one line (default: cpu)")
+                   help="cuda: run the pipeline on an NVIDIA GPU (hsiffc[gpu]: numba-cuda; "
+                        "dark, alpha mask, model or two-point FFC, nearest/bilinear/ppid "
+                        "cubes, the correction matrix), in one process; a missing part is "
+                        "named in one line (default: cpu)")
     p.add_argument("--workers", type=count, default=1,
                    help="at most this many worker processes on this machine (Dask local "
                         "cluster; default 1: in this process). Fewer are used where the input "
@@ -300,12 +302,6 @@ def _cmd_correct(args) -> int:
         # an input found in a folder or glob
         check_output(args.json, overwrite=args.overwrite,
                      inputs=[path for path, _ in discover_inputs(args.inputs)[0]])
-    if args.device == "cuda":  # hsiffc.gpu: one line naming what is missing
-        from ..gpu import require
-
-        require("--device cuda")
-        raise HsiffcError("--device cuda: the GPU is usable, but the batch runner does not "
-                          "run on it yet; use Pipeline.to('cuda') in Python, or --device cpu")
     if args.cube_correction is not None and args.cube is None:
         raise HsiffcError("--cube-correction applies to the cubes of --cube METHOD; add --cube")
     if args.format == "netcdf":  # checked before any file is corrected
@@ -324,7 +320,8 @@ def _cmd_correct(args) -> int:
                                 overrides=vars(input_overrides(args)),
                                 observer=Progress() if show else None, cube=args.cube,
                                 cube_correction=args.cube_correction,
-                                imec_xml=args.imec_xml, compression=compression)
+                                imec_xml=args.imec_xml, compression=compression,
+                                device=args.device)
     except KeyboardInterrupt:
         print("hsiffc correct: interrupted; finished outputs are kept (no partial file is left "
               "under a final name): run the same command again to resume", file=sys.stderr)

@@ -116,14 +116,25 @@ def _finite_alpha(a):
 
 @cuda.jit
 def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw,
-             mode, fold, medians, has_medians, cube, cube_dq, cube_alpha, missing):
+             mode, fold, medians, has_medians, cube, cube_dq, cube_alpha, missing, miss_list,
+             near, pat_r, pat_c, pat_start, oy, ox, use_ppi, ppi, ppi_ok, levels, alpha_win):
     """Band ``i mod B`` at pixel (y, ``i // B``), one thread per cube value (consecutive
     threads write consecutive values): :mod:`hsiffc.kernels.demosaic`'s bilinear value, its DQ
     and (``has_alpha``) its alpha. Where the twice-wide support holds no usable sample either,
     the value is ``medians[band]`` (``has_medians``) or NaN; both with DO_NOT_USE. Without
     medians, ``missing[0]`` counts such values and ``missing[1 + band]`` marks their bands:
     the caller then takes the band medians of the frame (:func:`hsiffc.reconstruct.prepare.
-    band_medians`, as the CPU path) and runs the kernel again with them."""
+    band_medians`, as the CPU path) and runs the kernel again with them; ``miss_list`` gets
+    the flat index ``(y W + x) B + band`` of each such value (while it has room), for
+    :data:`fill_missing` to fill on the device.
+
+    ``near``: "nearest" (:func:`hsiffc.reconstruct.demosaic`'s block replication): the value
+    becomes the float32 mean of the band's usable samples in the pixel's own tile (pattern
+    positions ``pat_r/pat_c``, band ``b``'s at ``pat_start[b]:pat_start[b + 1]``, tiles from
+    the offset ``oy, ox``) where it has one; DQ and alpha stay bilinear's, as on the CPU.
+    ``use_ppi``: PPID (:mod:`hsiffc.kernels.demosaic` with a PPI): the tent interpolates
+    ``v - level ppi`` and adds ``level ppi`` back (``levels`` (B,) float64), the plain bilinear value (float64 sums) where the PPI is undefined, and the
+    alpha is ``alpha_win`` (the PPI window's max, :data:`window_max`) in every band."""
     i, y = cuda.grid(2)
     H = data.shape[0]
     W = data.shape[1]
@@ -136,6 +147,8 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
     den = np.float32(0.0)
     amax = _NEG
     own = np.uint32(0)
+    level = levels[band] if use_ppi else 0.0
+    lev = np.float32(level)  # the CPU kernel's float32 level of its lattice pass
     for j in range(lat_start[band], lat_start[band + 1]):
         ry0 = y - ((y - lat_r[j]) % ph)
         wy1 = (y - ry0) / ph
@@ -163,9 +176,14 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
             if has_dq:
                 g0 = w0 if dq[r0, xs] == 0 else np.float32(0.0)
                 g1 = w1 if dq[r1, xs] == 0 else np.float32(0.0)
-            num += wx * (g0 * data[r0, xs] + g1 * data[r1, xs])
+            v0 = data[r0, xs]
+            v1 = data[r1, xs]
+            if use_ppi:  # float32, as the CPU kernel's lattice pass
+                v0 = v0 - lev * ppi[r0, xs]
+                v1 = v1 - lev * ppi[r1, xs]
+            num += wx * (g0 * v0 + g1 * v1)
             den += wx * (g0 + g1)
-            if has_alpha:
+            if has_alpha and not use_ppi:
                 if w0 > 0.0:
                     amax = max(amax, _finite_alpha(alpha[r0, xs]))
                 if w1 > 0.0:
@@ -173,9 +191,18 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
         if has_dq and lat_r[j] == y % ph and p == 0:
             own = dq[y, x]
     bits = own
-    value = np.float64(num / den) if den > 0.0 else np.nan
+    value = np.nan
+    if den > 0.0:
+        v32 = num / den
+        if use_ppi:
+            v32 = v32 + lev * ppi[y, x]
+        value = np.float64(v32)
+    if use_ppi and has_dq and den > EPS and not ppi_ok[y, x]:
+        value = _tent1(data, dq, y, x, lat_r, lat_c, lat_start[band], lat_start[band + 1],
+                       ph, pw)  # PPI undefined: the plain bilinear value (float64 sums)
     if has_dq and not den > EPS:  # S1 holds no usable sample: S2, and S1's flags
         n2 = 0.0
+        p2 = 0.0
         d2 = 0.0
         for j in range(lat_start[band], lat_start[band + 1]):
             ry0 = y - ((y - lat_r[j]) % ph)
@@ -187,6 +214,7 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
                     continue
                 s1_col = tj == 1 or (tj == 2 and x != xs0)
                 col_v = 0.0
+                col_p = 0.0
                 col_w = 0.0
                 for ti in range(4):
                     ys = ry0 + (ti - 1) * ph
@@ -198,22 +226,99 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
                         bits |= f
                     if f == 0:
                         col_v += wy * np.float64(data[ys, xs])
+                        if use_ppi:
+                            col_p += wy * (np.float64(data[ys, xs])
+                                           - level * np.float64(ppi[ys, xs]))
                         col_w += wy
                 n2 += wx * col_v
+                p2 += wx * col_p
                 d2 += wx * col_w
         if d2 <= EPS:
             bits |= _DNU
-            if has_medians:
-                value = np.float64(medians[band])
-            else:
-                value = np.nan
-                cuda.atomic.add(missing, 0, 1)
-                missing[1 + band] = 1
+            value = np.float64(medians[band]) if has_medians else np.nan
+        elif use_ppi and ppi_ok[y, x]:
+            value = p2 / d2 + level * np.float64(ppi[y, x])
         else:
             value = n2 / d2
+    if near:  # the band's usable samples in the pixel's own tile, where it has one
+        acc = np.float32(0.0)
+        cnt = np.float32(0.0)
+        t0y = y - ((y - oy) % ph)
+        t0x = x - ((x - ox) % pw)
+        for j in range(pat_start[band], pat_start[band + 1]):
+            sy = t0y + pat_r[j]
+            sx = t0x + pat_c[j]
+            if sy >= 0 and sy < H and sx >= 0 and sx < W and dq[sy, sx] == 0:
+                acc += data[sy, sx]
+                cnt += np.float32(1.0)
+        if cnt > 0.0:
+            value = np.float64(acc / cnt)
+    if not (value == value) and not has_medians:  # to fill with the band's median
+        k = cuda.atomic.add(missing, 0, 1)
+        missing[1 + band] = 1
+        if k < miss_list.shape[0]:
+            miss_list[k] = (y * W + x) * B + band
     _store(cube, cube_dq, y, x, band, value, np.int64(bits), mode, fold)
-    if has_alpha:
+    if use_ppi:
+        if has_alpha:
+            cube_alpha[y, x, band] = alpha_win[y, x]
+    elif has_alpha:
         cube_alpha[y, x, band] = amax if amax > _NEG else np.float32(0.0)
+
+
+@cuda.jit(device=True)
+def _tent1(data, dq, y, x, lat_r, lat_c, j0, j1, ph, pw):
+    """:func:`hsiffc.kernels.lattice.tent_sums` with ``m = 1`` (S1), its ``r / d``: the plain
+    bilinear value in float64, the terms in its order."""
+    H = data.shape[0]
+    W = data.shape[1]
+    r = 0.0
+    d = 0.0
+    for j in range(j0, j1):
+        ry = y - ((y - lat_r[j]) % ph)
+        cx = x - ((x - lat_c[j]) % pw)
+        for t in range(2):
+            ys = ry + t * ph
+            wy = 1.0 - abs(y - ys) / ph
+            if ys < 0 or ys >= H or wy <= 0.0:
+                continue
+            for u in range(2):
+                xs = cx + u * pw
+                wx = 1.0 - abs(x - xs) / pw
+                if xs < 0 or xs >= W or wx <= 0.0:
+                    continue
+                if dq[ys, xs] == 0:
+                    w = wy * wx
+                    r += w * np.float64(data[ys, xs])
+                    d += w
+    return r / d
+
+
+@cuda.jit
+def fill_missing(missing, miss_list, medians, mode, cube, cube_dq):
+    """The values :data:`bilinear` listed (no usable sample within twice the tile): the band's
+    median (:data:`median_mean`), stored in the stream's output type with what storing it
+    flags (bits 0-7 only, so a folded uint8 DQ takes them as they are). A grid-stride loop:
+    nothing to do costs one read per block."""
+    n = min(missing[0], miss_list.shape[0])
+    B = cube.shape[2]
+    W = cube.shape[1]
+    start, step = cuda.grid(1), cuda.gridsize(1)
+    for i in range(start, n, step):
+        code = miss_list[i]
+        band = code % B
+        px = code // B
+        y = px // W
+        x = px - y * W
+        v = np.float64(medians[band])
+        extra = 0
+        if mode == 1:
+            v, extra = clip_half(v)
+        elif mode == 2:
+            v, extra = round_u16(v)
+        cube[y, x, band] = v
+        if extra != 0:
+            cube_dq[y, x, band] |= extra
 
 
 @cuda.jit
@@ -257,10 +362,15 @@ def _key(bits):
 
 
 @cuda.jit
-def median_hist(bits, dq, phase_band, ph, pw, prefix, mask, shift, first, hist):
+def median_hist(bits, dq, phase_band, ph, pw, prefix, mask, shift, first, hist, need):
     """Per band and rank, the histogram of the next 4 key bits of the usable samples whose
     higher bits equal the rank's ``prefix`` (``mask``: the bits known; every sample on the
-    ``first`` pass), block-local first."""
+    ``first`` pass), block-local first. Nothing is done unless ``need[0]`` (the count of
+    values to fill, or 1 where the medians are always needed: PPID's band levels), so the
+    exact medians cost a bilinear cube only on the frames that use them. Rows in a
+    grid-stride loop: a block flushes its histogram once for many rows."""
+    if need[0] == 0:
+        return
     local = cuda.shared.array(shape=(MAX_BANDS, _RANKS, _BINS), dtype=np.int32)
     tid = cuda.threadIdx.x + cuda.threadIdx.y * cuda.blockDim.x
     nthreads = cuda.blockDim.x * cuda.blockDim.y
@@ -268,14 +378,18 @@ def median_hist(bits, dq, phase_band, ph, pw, prefix, mask, shift, first, hist):
     for t in range(tid, B * _RANKS * _BINS, nthreads):
         local[t // (_RANKS * _BINS), (t // _BINS) % _RANKS, t % _BINS] = 0
     cuda.syncthreads()
-    x, y = cuda.grid(2)
-    if y < bits.shape[0] and x < bits.shape[1] and dq[y, x] == 0:
-        band = phase_band[(y % ph) * pw + (x % pw)]
-        if band >= 0:
-            key = _key(bits[y, x])
-            for r in range(_RANKS):
-                if first or (key & mask) == prefix[band, r]:
-                    cuda.atomic.add(local, (band, r, (key >> shift) & np.uint32(0xF)), 1)
+    x, y0 = cuda.grid(2)
+    ystep = cuda.gridDim.y * cuda.blockDim.y
+    if x < bits.shape[1]:
+        for y in range(y0, bits.shape[0], ystep):
+            if dq[y, x] != 0:
+                continue
+            band = phase_band[(y % ph) * pw + (x % pw)]
+            if band >= 0:
+                key = _key(bits[y, x])
+                for r in range(_RANKS):
+                    if first or (key & mask) == prefix[band, r]:
+                        cuda.atomic.add(local, (band, r, (key >> shift) & np.uint32(0xF)), 1)
     cuda.syncthreads()
     for t in range(tid, B * _RANKS * _BINS, nthreads):
         b = t // (_RANKS * _BINS)
@@ -370,3 +484,199 @@ def correction_matrix(cube, cube_dq, cube_alpha, has_alpha, coef, support, mode,
     _store(out, out_dq, y, x, v, np.float64(acc), np.int64(bits), mode, fold)
     if has_alpha:
         out_alpha[y, x, v] = amax if amax > _NEG else np.float32(0.0)
+
+
+# -- PPID: band levels, the pseudo-panchromatic image, the alpha window -----------------------
+@cuda.jit
+def band_levels(medians, levels, inv_level):
+    """:func:`hsiffc.reconstruct.prepare.band_levels` from the band medians (one thread): each
+    median over their mean (numpy's pairwise sum of up to 128 values, in its order), or all
+    ones where a median is not positive or not finite; ``inv_level`` the float32 of
+    ``1 / level`` (:func:`~hsiffc.reconstruct.prepare.pseudo_panchromatic`)."""
+    if cuda.grid(1) != 0:
+        return
+    n = medians.shape[0]
+    ok = True
+    for b in range(n):
+        m = np.float64(medians[b])
+        if not (abs(m) < np.inf) or not m > 0.0:
+            ok = False
+    if n < 8:
+        total = -0.0
+        for b in range(n):
+            total += np.float64(medians[b])
+    else:  # numpy's blocked pairwise sum (n <= 128: one block of eight accumulators)
+        r0 = np.float64(medians[0])
+        r1 = np.float64(medians[1])
+        r2 = np.float64(medians[2])
+        r3 = np.float64(medians[3])
+        r4 = np.float64(medians[4])
+        r5 = np.float64(medians[5])
+        r6 = np.float64(medians[6])
+        r7 = np.float64(medians[7])
+        i = 8
+        while i < n - (n % 8):
+            r0 += np.float64(medians[i])
+            r1 += np.float64(medians[i + 1])
+            r2 += np.float64(medians[i + 2])
+            r3 += np.float64(medians[i + 3])
+            r4 += np.float64(medians[i + 4])
+            r5 += np.float64(medians[i + 5])
+            r6 += np.float64(medians[i + 6])
+            r7 += np.float64(medians[i + 7])
+            i += 8
+        total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            total += np.float64(medians[i])
+            i += 1
+    mean = total / n
+    for b in range(n):
+        lv = np.float64(medians[b]) / mean if ok else 1.0
+        levels[b] = lv
+        inv_level[b] = np.float32(1.0 / lv)
+
+
+@cuda.jit
+def ppi_values(data, dq, band_of, inv_level, vals, wts):
+    """The PPI's input (:func:`hsiffc.kernels.ppi._ppi_rows`, first pass): each sample over
+    its band's level (float32); a flagged one as the tent-weighted mean of its usable
+    same-band neighbours one tile away (1/4 diagonal, 1/2 straight, float64, in
+    :func:`~hsiffc.kernels.ppi.neighbour_offsets`' order) over its level, weight 0 where it
+    has none."""
+    x, y = cuda.grid(2)
+    H = data.shape[0]
+    W = data.shape[1]
+    if y >= H or x >= W:
+        return
+    ph = band_of.shape[0]
+    pw = band_of.shape[1]
+    inv = inv_level[band_of[y % ph, x % pw]]
+    if dq[y, x] == 0:
+        vals[y, x] = data[y, x] * inv
+        wts[y, x] = np.float32(1.0)
+        return
+    acc = 0.0
+    wsum = 0.0
+    for ty in range(3):
+        for tx in range(3):
+            if ty == 1 and tx == 1:
+                continue
+            dy = (ty - 1) * ph
+            dx = (tx - 1) * pw
+            ny = y + dy
+            nx = x + dx
+            if ny < 0 or ny >= H or nx < 0 or nx >= W:
+                continue
+            g = (0.25 if (dy != 0 and dx != 0) else 0.5) if dq[ny, nx] == 0 else 0.0
+            acc += g * np.float64(data[ny, nx])
+            wsum += g
+    if wsum > 0.0:
+        vals[y, x] = np.float32(acc / wsum) * inv
+        wts[y, x] = np.float32(1.0)
+    else:
+        vals[y, x] = np.float32(0.0)
+        wts[y, x] = np.float32(0.0)
+
+
+@cuda.jit
+def ppi_window(vals, wts, rows, cols, kx, ky, ppi, ok):
+    """The PPI (:func:`hsiffc.kernels.ppi._window_block`): the separable window sums of
+    ``vals`` and ``wts`` (float64, each in the order of a loop over its taps; rows and columns
+    beyond the frame mapped back by whole tiles through ``rows``/``cols``), their ratio where
+    the weight exceeds 1e-6 (``ok``), else 0."""
+    x, y = cuda.grid(2)
+    if y >= ppi.shape[0] or x >= ppi.shape[1]:
+        return
+    n = 0.0
+    d = 0.0
+    for ty in range(ky.shape[0]):
+        r = rows[y + ty]
+        hn = 0.0
+        hd = 0.0
+        for tx in range(kx.shape[0]):
+            c = cols[x + tx]
+            hn += kx[tx] * np.float64(vals[r, c])
+            hd += kx[tx] * np.float64(wts[r, c])
+        n += ky[ty] * hn
+        d += ky[ty] * hd
+    good = d > 1e-6
+    ppi[y, x] = np.float32(n / d) if good else np.float32(0.0)
+    ok[y, x] = 1 if good else 0
+
+
+@cuda.jit
+def window_max(alpha, my, mx, out):
+    """The max of ``alpha`` over the ``(2 my + 1) x (2 mx + 1)`` window centred on each
+    pixel, edges replicated (``cv2.dilate`` with ``BORDER_REPLICATE``: PPID's alpha); a
+    non-finite alpha counts as the largest float32."""
+    x, y = cuda.grid(2)
+    H = alpha.shape[0]
+    W = alpha.shape[1]
+    if y >= H or x >= W:
+        return
+    m = _NEG
+    for yy in range(y - my, y + my + 1):
+        r = min(max(yy, 0), H - 1)
+        for xx in range(x - mx, x + mx + 1):
+            c = min(max(xx, 0), W - 1)
+            m = max(m, _finite_alpha(alpha[r, c]))
+    out[y, x] = m
+
+
+# -- two-point FFC (eq. 5) ----------------------------------------------------------------------
+@cuda.jit
+def band_sums(raw, dq, band, sums, counts):
+    """Per band, the sum (float64) and count of the raw values ``float32(raw)`` of the pixels
+    whose DQ is 0: the test level ``Avg(L3)`` of eq. (5), as
+    :func:`hsiffc.leakage.validity.subtract_dark_and_flag` takes it (sums of integer DN are
+    exact in any order). Block-local sums first, one atomic add per block and band."""
+    s_sum = cuda.shared.array(MAX_BANDS, dtype=np.float64)
+    s_cnt = cuda.shared.array(MAX_BANDS, dtype=np.int64)
+    tid = cuda.threadIdx.x + cuda.threadIdx.y * cuda.blockDim.x
+    nthreads = cuda.blockDim.x * cuda.blockDim.y
+    B = sums.shape[0]
+    for t in range(tid, B, nthreads):
+        s_sum[t] = 0.0
+        s_cnt[t] = 0
+    cuda.syncthreads()
+    x, y0 = cuda.grid(2)
+    ystep = cuda.gridDim.y * cuda.blockDim.y
+    if x < raw.shape[1]:
+        for y in range(y0, raw.shape[0], ystep):
+            if dq[y, x] == 0:
+                b = band[y, x]
+                cuda.atomic.add(s_sum, b, np.float64(np.float32(raw[y, x])))
+                cuda.atomic.add(s_cnt, b, 1)
+    cuda.syncthreads()
+    for t in range(tid, B, nthreads):
+        if s_cnt[t] != 0:
+            cuda.atomic.add(sums, t, s_sum[t])
+            cuda.atomic.add(counts, t, s_cnt[t])
+
+
+@cuda.jit
+def two_point_ratio(sums, counts, flat_mean, ratio):
+    """Eq. (5)'s factor per band (:func:`hsiffc.flatfield.two_point.means_ratio`): the test
+    level over the flat's mean, float32; 1 where it is not a positive finite number."""
+    b = cuda.grid(1)
+    if b < ratio.shape[0]:
+        n = counts[b]
+        mean = sums[b] / n if n > 0 else np.nan
+        r = mean / flat_mean[b]
+        ratio[b] = np.float32(r) if (abs(r) < np.inf and r > 0.0) else np.float32(1.0)
+
+
+@cuda.jit
+def two_point_apply(frame, dq, gain, ratio, band):
+    """``frame = signal * gain * ratio[band]`` in place (float64 products stored as float32,
+    :func:`hsiffc.flatfield.two_point.two_point_apply`); a product that is not finite is
+    stored as 0 with NONFINITE | DO_NOT_USE."""
+    x, y = cuda.grid(2)
+    if y < frame.shape[0] and x < frame.shape[1]:
+        o = np.float32(np.float64(frame[y, x]) * np.float64(gain[y, x])
+                       * np.float64(ratio[band[y, x]]))
+        if abs(o) < np.inf:
+            frame[y, x] = o
+        else:
+            frame[y, x] = np.float32(0.0)
+            dq[y, x] |= _BAD_INPUT

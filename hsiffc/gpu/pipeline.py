@@ -1,15 +1,18 @@
 """A fitted pipeline on the GPU: :class:`GpuPipeline` (``Pipeline.to("cuda")``).
 
-Runs on the device: ``dark`` + ``alpha_mask`` (paper alpha) [+ ``model_ffc``]
-[+ ``reconstruct`` with ``method="bilinear"``, ``resolution="full"``, with or without a
-spectral correction matrix (``correction="imec"`` or ``"derived"``)].
+Runs on the device: ``dark`` + ``alpha_mask`` (paper alpha) [+ ``model_ffc`` or
+``two_point_ffc``] [+ ``reconstruct`` with ``method`` "nearest", "bilinear" or "ppid",
+``resolution="full"``, with or without a spectral correction matrix (``correction="imec"``
+or ``"derived"``)].
 Other stages are refused at construction with one line naming the step. Calibration planes go
 to the device once; the dark of each exposure once (the dark stage's own
 :meth:`~hsiffc.stages.dark.DarkSubtract.dark_for`, so it is the CPU's plane).
 
 Frames the kernels do not take are corrected by the CPU pipeline instead, the same frame:
-an exposure of 0 ms (the model FFC's special case), and a cube with values whose twice-wide
-support holds no usable sample (the band-median fill).
+an exposure of 0 ms (the model FFC's special case). Values of a cube whose twice-wide
+support holds no usable sample take the exact band median (the CPU's fill): found on the
+device only for the frames that have such values (PPID's band levels need the medians of
+every frame), or on the host for more than :data:`~hsiffc.gpu.kernels.MAX_BANDS` bands.
 """
 
 from __future__ import annotations
@@ -23,9 +26,10 @@ from ..errors import ParameterError
 from ..data.frame import Frame
 from ..kernels.lattice import lattice_arrays
 from ..kernels.operands import float_array
-from ..reconstruct.prepare import band_medians, prepare
+from ..reconstruct.prepare import band_medians, periodic_index, ppi_kernel, prepare
 from ..stages.alpha import AlphaMask
 from ..stages.dark import DarkSubtract
+from ..stages.ffc import TwoPointFFC
 from ..stages.model_ffc import ModelFFC
 from ..stages.pipeline import json_params
 from ..stages.reconstruct import Reconstruct
@@ -65,24 +69,24 @@ def plan(pipeline):
     """``(dark, mask, ffc or None, reconstruct or None)`` of a pipeline the GPU runs, with
     their step names; ParameterError naming the first step it cannot run."""
     steps = list(pipeline.steps)
-    kinds = [(DarkSubtract, "dark"), (AlphaMask, "alpha_mask"), (ModelFFC, "model_ffc"),
-             (Reconstruct, "reconstruct")]
+    kinds = [((DarkSubtract,), "dark"), ((AlphaMask,), "alpha_mask"),
+             ((ModelFFC, TwoPointFFC), "ffc"), ((Reconstruct,), "reconstruct")]
     found = {}
     i = 0
     for cls, key in kinds:
-        if i < len(steps) and type(steps[i][1]) is cls:
+        if i < len(steps) and type(steps[i][1]) in cls:
             found[key] = steps[i]
             i += 1
         elif key in ("dark", "alpha_mask"):
             name = steps[i][0] if i < len(steps) else "(none)"
-            raise ParameterError(f"device='cuda' runs dark, alpha_mask[, model_ffc]"
-                                 f"[, reconstruct]; step {name!r} is not {key}: run this "
-                                 "pipeline with device='cpu'")
+            raise ParameterError(f"device='cuda' runs dark, alpha_mask[, model_ffc or "
+                                 f"two_point_ffc][, reconstruct]; step {name!r} is not {key}: "
+                                 "run this pipeline with device='cpu'")
     if i < len(steps):
         name, stage = steps[i]
         raise ParameterError(f"step {name!r} ({stage.name}) does not run on the GPU (it runs "
-                             "dark, alpha_mask, model_ffc and bilinear reconstruct); run this "
-                             "pipeline with device='cpu'")
+                             "dark, alpha_mask, model_ffc or two_point_ffc, and reconstruct "
+                             "at full resolution); run this pipeline with device='cpu'")
     mask = found["alpha_mask"][1]
     if mask.method != "paper":
         raise ParameterError(f"step {found['alpha_mask'][0]!r}: the GPU computes the paper "
@@ -90,14 +94,18 @@ def plan(pipeline):
     rec = found.get("reconstruct")
     if rec is not None:
         r = rec[1]
-        if r.method != "bilinear" or r.resolution != "full":
-            raise ParameterError(f"step {rec[0]!r}: the GPU reconstructs method='bilinear', "
-                                 "resolution='full' (with or without a correction matrix); "
-                                 f"got method={r.method!r}, resolution={r.resolution!r}: use "
-                                 "device='cpu'")
+        if r.method not in GPU_METHODS or r.resolution != "full":
+            raise ParameterError(f"step {rec[0]!r}: the GPU reconstructs method "
+                                 f"{', '.join(GPU_METHODS)} at resolution='full' (with or "
+                                 f"without a correction matrix); got method={r.method!r}, "
+                                 f"resolution={r.resolution!r}: use device='cpu'")
     for _, stage in steps:
         stage.check_is_fitted()
-    return found["dark"], found["alpha_mask"], found.get("model_ffc"), rec
+    return found["dark"], found["alpha_mask"], found.get("ffc"), rec
+
+
+#: the reconstruction methods the GPU runs (at full resolution)
+GPU_METHODS = ("nearest", "bilinear", "ppid")
 
 
 def _phase_band(lattices, period) -> np.ndarray:
@@ -169,16 +177,39 @@ class GpuPipeline:
         pix = np.zeros(shape, DQ_DTYPE)
         if cal.arrays.get("flags") is not None:
             pix |= np.asarray(cal.arrays["flags"], DQ_DTYPE)
-        p = {"cal": cal, "a32": dev(cal.f32("a_dn_per_ms")), "b32": dev(cal.f32("b_per_dn"))}
+        prep = cal.prepare()  # the float32 planes the CPU's fused pass reads
+        p = {"cal": cal, "a32": dev(prep.a), "b32": dev(prep.b)}
         one = dev(np.zeros((1, 1), np.float32))
-        if self.ffc is not None:
+        p["two_point"] = None
+        if self.ffc is not None and type(self.ffc[1]) is TwoPointFFC:
+            ffc = self.ffc[1]
+            if ffc.gain_.shape != tuple(shape):
+                raise ValueError(f"frame shape {tuple(shape)} differs from the flat's "
+                                 f"{ffc.gain_.shape}")
+            pix |= np.asarray(ffc.dq_, DQ_DTYPE)
+            band_map = probe.band_map()
+            paper = ffc.normalisation == "paper"
+            flat_mean = ffc.band_flat_mean(band_map) if paper else np.ones(1)
+            n = len(flat_mean) if paper else int(band_map.max()) + 1
+            if paper and n > self.k.MAX_BANDS:
+                raise ValueError(f"the two-point FFC on the GPU takes up to "
+                                 f"{self.k.MAX_BANDS} bands; this one has {n}: use "
+                                 "device='cpu'")
+            p["two_point"] = {"paper": paper, "n": n,
+                              "gain": dev(np.asarray(ffc.gain_, np.float32)),
+                              "band": dev(np.asarray(band_map, np.int32)),
+                              "flat_mean": dev(np.asarray(flat_mean, np.float64)),
+                              "ones": dev(np.ones(n, np.float32))}
+            p.update(a=one, b=one, base=one, log_ratio=one, has_sweep=False)
+        elif self.ffc is not None:
             ffc = self.ffc[1]
             cal_f = ffc._cal_for(probe)
             pix |= np.asarray(ffc.dq_, DQ_DTYPE)
             has_sweep = ffc.gain_sweep_ is not None
             p.update(a=dev(float_array(cal_f.a)), b=dev(float_array(cal_f.b)),
                      base=dev(float_array(ffc.gain_sweep_ if has_sweep else ffc.gain_)),
-                     log_ratio=dev(float_array(ffc._log_ratio())) if has_sweep else one,
+                     log_ratio=(dev(float_array(ffc.prepare().log_ratio)) if has_sweep
+                                else one),
                      has_sweep=has_sweep)
         else:
             p.update(a=one, b=one, base=one, log_ratio=one, has_sweep=False)
@@ -192,7 +223,28 @@ class GpuPipeline:
             p.update(lat_r=dev(lat_r), lat_c=dev(lat_c), lat_start=dev(lat_start),
                      period=tuple(int(v) for v in mosaic.tile_shape), n_bands=len(lat),
                      no_medians=dev(np.zeros(1, np.float32)),
+                     always=dev(np.ones(1, np.int64)),
                      phase_band=dev(_phase_band(lat, mosaic.tile_shape)))
+            method = self.rec[1].method
+            pos = [np.argwhere(np.asarray(mosaic.pattern) == b) for b in range(len(lat))]
+            p.update(method=method, offset=tuple(int(v) for v in mosaic.offset),
+                     pat_r=dev(np.array([r for q in pos for r, _ in q] or [0], np.int64)),
+                     pat_c=dev(np.array([c for q in pos for _, c in q] or [0], np.int64)),
+                     pat_start=dev(np.cumsum([0] + [len(q) for q in pos]).astype(np.int64)))
+            if method == "ppid":
+                if len(lat) > self.k.MAX_BANDS:
+                    raise ValueError(f"PPID on the GPU takes up to {self.k.MAX_BANDS} bands "
+                                     f"(its band levels are found on the device); this mosaic "
+                                     f"has {len(lat)}: use device='cpu'")
+                ph, pw = p["period"]
+                kx, ky = ppi_kernel(pw), ppi_kernel(ph)
+                H, W = shape
+                p.update(band_of=dev(np.ascontiguousarray(mosaic.band_map((ph, pw)),
+                                                          np.int64)),
+                         rows=dev(periodic_index(H, ph, ky.size // 2).astype(np.int64)),
+                         cols=dev(periodic_index(W, pw, kx.size // 2).astype(np.int64)),
+                         kx=dev(np.asarray(kx, np.float64)), ky=dev(np.asarray(ky, np.float64)),
+                         win=((2 * ph - 1 + ky.size - 1) // 2, (2 * pw - 1 + kx.size - 1) // 2))
             rec = self.rec[1]
             if rec.correction is not None:  # the matrix as the CPU's float32 product
                 m = np.asarray(rec.matrix_, np.float64)  # takes it (transposed)
@@ -215,29 +267,74 @@ class GpuPipeline:
         grid = ((W + bx - 1) // bx, (H + by - 1) // by)
         ffc = self.ffc[1] if self.ffc is not None else None
         const = 0 if cal.in_domain(exposure_ms) else int(DQ.OUT_OF_DOMAIN)
+        do_model = ffc is not None and planes["two_point"] is None
         self.k.correct[grid, self.block, stream](
             d_raw, d_dq, has_dq, float(2 ** int(bit_depth) - 1), float(exposure_ms), d_dark,
             planes["a32"], planes["b32"], planes["pix"], const, float(mask.threshold_percent),
-            float(cal.domain["full_scale_dn"]), ffc is not None, planes["a"], planes["b"],
+            float(cal.domain["full_scale_dn"]), do_model, planes["a"], planes["b"],
             planes["base"], planes["log_ratio"], planes["has_sweep"], 0.0,
             float(2 ** int(bit_depth) - 1),
-            float(ffc.flat_alpha_percent) if ffc else 0.0,
-            float(ffc.alpha_limit_percent) if ffc else 0.0, 1.0, _TOL_DN, _MAX_ITER,
+            float(ffc.flat_alpha_percent) if do_model else 0.0,
+            float(ffc.alpha_limit_percent) if do_model else 0.0, 1.0, _TOL_DN, _MAX_ITER,
             bufs["frame"], bufs["alpha"], bufs["fdq"])
+        if planes["two_point"] is not None:
+            self._two_point(planes["two_point"], d_raw, bufs, grid, stream)
         if self.rec is None:
             self.k.pack2d[grid, self.block, stream](bufs["frame"], bufs["fdq"], mode, fold,
                                                 bufs["out"], bufs["out_dq"])
             return
-        bufs["missing"].copy_to_device(np.zeros(planes["n_bands"] + 1, np.int64),
-                                       stream=stream)
-        medians = self._medians(planes, bufs, stream)
-        if "coef" not in planes:
-            self._bilinear(planes, bufs, mode, fold, with_alpha, medians, stream)
-            return
-        cube = {**bufs, "out": bufs["cube"], "out_dq": bufs["cube_dq"],
-                "out_alpha": bufs["cube_alpha"]}
-        self._bilinear(planes, cube, 0, False, with_alpha, medians, stream)
-        self._matrix(planes, bufs, mode, fold, with_alpha, stream)
+        bufs["missing"].copy_to_device(bufs["zeros"], stream=stream)
+        ppid = planes["method"] == "ppid"
+        medians = self._medians(planes, bufs, stream, always=ppid) if ppid else None
+        if ppid:
+            self._ppi(planes, bufs, medians, with_alpha, grid, stream)
+        cube = bufs if "coef" not in planes else {
+            **bufs, "out": bufs["cube"], "out_dq": bufs["cube_dq"],
+            "out_alpha": bufs["cube_alpha"]}
+        m, f = (mode, fold) if "coef" not in planes else (0, False)
+        self._bilinear(planes, cube, m, f, with_alpha, medians, stream)
+        if medians is None:  # the fill: medians only where a value was listed
+            medians = self._medians(planes, bufs, stream)
+            if medians is not None:
+                self.k.fill_missing[32, 128, stream](bufs["missing"], bufs["miss_list"],
+                                                      medians, m, cube["out"], cube["out_dq"])
+        if "coef" in planes:
+            self._matrix(planes, bufs, mode, fold, with_alpha, stream)
+
+    def _two_point(self, tp, d_raw, bufs, grid, stream):
+        """Eq. (5) on the corrected frame in place: the test level per band (``"paper"``),
+        its ratio to the flat's, the product; DQ already holds the flat's flags."""
+        k = self.k
+        ratio = tp["ones"]
+        if tp["paper"]:
+            bufs["tp_sums"].copy_to_device(bufs["tp_zero_f"], stream=stream)
+            bufs["tp_counts"].copy_to_device(bufs["tp_zero_i"], stream=stream)
+            k.band_sums[self._strided(grid), self.block, stream](
+                d_raw, bufs["fdq"], tp["band"], bufs["tp_sums"], bufs["tp_counts"])
+            k.two_point_ratio[1, k.MAX_BANDS, stream](bufs["tp_sums"], bufs["tp_counts"],
+                                                      tp["flat_mean"], bufs["tp_ratio"])
+            ratio = bufs["tp_ratio"]
+        k.two_point_apply[grid, self.block, stream](bufs["frame"], bufs["fdq"], tp["gain"],
+                                                    ratio, tp["band"])
+
+    @staticmethod
+    def _strided(grid):
+        """A grid for the kernels that loop over rows (grid-stride): every column, at most
+        64 blocks down (a block then flushes its partial sums once for many rows)."""
+        return (grid[0], min(grid[1], 64))
+
+    def _ppi(self, planes, bufs, medians, with_alpha, grid, stream):
+        """PPID's band levels, pseudo-panchromatic image and (``with_alpha``) alpha window."""
+        k = self.k
+        k.band_levels[1, 1, stream](medians, bufs["levels"], bufs["inv_level"])
+        k.ppi_values[grid, self.block, stream](bufs["frame"], bufs["fdq"], planes["band_of"],
+                                              bufs["inv_level"], bufs["vals"], bufs["wts"])
+        k.ppi_window[grid, self.block, stream](bufs["vals"], bufs["wts"], planes["rows"],
+                                              planes["cols"], planes["kx"], planes["ky"],
+                                              bufs["ppi"], bufs["ppi_ok"])
+        if with_alpha:
+            my, mx = planes["win"]
+            k.window_max[grid, self.block, stream](bufs["alpha"], my, mx, bufs["alpha_win"])
 
     def _matrix(self, planes, bufs, mode, fold, with_alpha, stream):
         H, W = bufs["frame"].shape
@@ -248,23 +345,25 @@ class GpuPipeline:
             bufs["cube"], bufs["cube_dq"], bufs["cube_alpha"], with_alpha, planes["coef"],
             planes["support"], mode, fold, bufs["out"], bufs["out_dq"], bufs["out_alpha"])
 
-    def _medians(self, planes, bufs, stream):
+    def _medians(self, planes, bufs, stream, always=False):
         """The band medians of the corrected frame on the device (:func:`hsiffc.gpu.kernels.
         median_hist` ...), or None for more bands than the kernels take (then a cube with
-        values to fill goes through :meth:`_fill`)."""
+        values to fill goes through :meth:`_fill`). Unless ``always``, the passes do nothing
+        on a frame whose cube listed no value to fill."""
         k, B = self.k, planes["n_bands"]
         if B > k.MAX_BANDS:
             return None
         H, W = bufs["frame"].shape
         ph, pw = planes["period"]
         bx, by = self.block
-        grid = ((W + bx - 1) // bx, (H + by - 1) // by)
+        grid = self._strided(((W + bx - 1) // bx, (H + by - 1) // by))
         bits = bufs["frame"].view(np.uint32)
+        need = planes["always"] if always else bufs["missing"]
         for n, shift in enumerate(k.DIGIT_SHIFTS):
             mask = (0xFFFFFFFF << (shift + 4)) & 0xFFFFFFFF
             k.median_hist[grid, self.block, stream](bits, bufs["fdq"], planes["phase_band"], ph,
-                                                pw, bufs["prefix"], mask, shift, n == 0,
-                                                bufs["hist"])
+                                                    pw, bufs["prefix"], mask, shift, n == 0,
+                                                    bufs["hist"], need)
             k.median_select[B, 2, stream](bufs["hist"], bufs["prefix"], bufs["rank"],
                                           bufs["count"], shift, n == 0)
         k.median_finish[1, k.MAX_BANDS, stream](bufs["prefix"], bufs["count"],
@@ -279,11 +378,23 @@ class GpuPipeline:
         ph, pw = planes["period"]
         bx, by = self.block
         grid = ((W * B + bx - 1) // bx, (H + by - 1) // by)
+        ppid = planes["method"] == "ppid"
+        oy, ox = planes["offset"]
         self.k.bilinear[grid, self.block, stream](
             bufs["frame"], bufs["fdq"], True, bufs["alpha"], with_alpha, planes["lat_r"],
             planes["lat_c"], planes["lat_start"], ph, pw, mode, fold,
             planes["no_medians"] if medians is None else medians, medians is not None,
-            bufs["out"], bufs["out_dq"], bufs["out_alpha"], bufs["missing"])
+            bufs["out"], bufs["out_dq"], bufs["out_alpha"], bufs["missing"], bufs["miss_list"],
+            planes["method"] == "nearest", planes["pat_r"], planes["pat_c"],
+            planes["pat_start"], oy, ox, ppid, bufs["ppi"], bufs["ppi_ok"], bufs["levels"],
+            bufs["alpha_win"])
+
+    def _host_fill(self, slot) -> bool:
+        """Whether the cube has values to fill that the device did not: more than
+        :data:`~hsiffc.gpu.kernels.MAX_BANDS` bands, or more values than its list holds."""
+        n = int(slot["host"]["missing"][0])
+        return n > 0 and (slot["planes"]["n_bands"] > self.k.MAX_BANDS
+                          or n > slot["dev"]["miss_list"].shape[0])
 
     def _fill(self, slot):
         """A cube with values whose wide support has no usable sample: the band medians of
@@ -335,6 +446,26 @@ class GpuPipeline:
                        cube_dq=cuda.device_array((H, W, n_bands), DQ_DTYPE),
                        cube_alpha=cuda.device_array((H, W, n_bands) if with_alpha
                                                     else (1, 1, 1), np.float32))
+        empty = cuda.pinned_array
+        tp = planes.get("two_point")
+        if tp is not None and tp["paper"]:
+            n = tp["n"]
+            dev.update(tp_sums=cuda.device_array(n, np.float64),
+                       tp_counts=cuda.device_array(n, np.int64),
+                       tp_ratio=cuda.device_array(n, np.float32),
+                       tp_zero_f=np.zeros(n, np.float64), tp_zero_i=np.zeros(n, np.int64))
+        ppid = planes.get("method") == "ppid"
+        dev.update(ppi=cuda.device_array(shape if ppid else (1, 1), np.float32),
+                   ppi_ok=cuda.device_array(shape if ppid else (1, 1), np.uint8),
+                   vals=cuda.device_array(shape if ppid else (1, 1), np.float32),
+                   wts=cuda.device_array(shape if ppid else (1, 1), np.float32),
+                   alpha_win=cuda.device_array(shape if ppid and with_alpha else (1, 1),
+                                               np.float32),
+                   levels=cuda.device_array(max(n_bands, 1), np.float64),
+                   inv_level=cuda.device_array(max(n_bands, 1), np.float32),
+                   zeros=np.zeros(n_bands + 1, np.int64),
+                   miss_list=cuda.device_array(max(1024, H * W // 8) if self.rec is not None
+                                               else 1, np.int64))
         if self.rec is not None:
             nb = max(n_bands, 1)
             dev.update(hist=cuda.to_device(np.zeros((nb, 2, 16), np.int32)),
@@ -343,7 +474,6 @@ class GpuPipeline:
                        count=cuda.device_array(nb, np.int64),
                        sel_bits=cuda.device_array((nb, 2), np.uint32),
                        medians=cuda.device_array(nb, np.float32))
-        empty = cuda.pinned_array
         host = {"out": empty(out_shape, data_dtype), "out_dq": empty(out_shape, dq_dtype),
                 "missing": empty(n_bands + 1, np.int64),
                 "alpha": empty(a_shape if self.rec is not None else
@@ -359,7 +489,11 @@ class GpuPipeline:
         meta["alpha_threshold_percent"] = float(self.mask[1].threshold_percent)
         hist.append(_entry(*self.mask))
         if self.ffc is not None:
-            meta["ffc"] = "model"
+            ffc = self.ffc[1]
+            if type(ffc) is TwoPointFFC:
+                meta.update(ffc="two_point", ffc_training_ms=ffc.selected_ms_)
+            else:
+                meta["ffc"] = "model"
             hist.append(_entry(*self.ffc))
         if self.rec is not None:
             meta.update(self._rec_meta(meta.get("mosaic"), meta.get("bit_depth", 16)))
@@ -386,7 +520,9 @@ class GpuPipeline:
 
     def transform(self, frame: Frame) -> Frame:
         """The CPU pipeline's frame for ``frame``, computed on the GPU."""
-        item, done = next(iter(self._run([frame], {"alpha": True, "copy": True})))
+        slots = self.__dict__.setdefault("_transform_slots", [None, None])  # kept: a batch
+        item, done = next(iter(self._run([frame], {"alpha": True, "copy": True},  # calls
+                                         slots)))  # this once per frame
         if done is not None:
             return done
         return Frame(item.data, item.dq, item.meta, alpha=item.alpha,
@@ -413,8 +549,9 @@ class GpuPipeline:
         for item, _ in self._run(frames, opts):
             yield item
 
-    def _run(self, frames, opts):
-        """:meth:`stream`'s items, each with the CPU pipeline's frame where that made it."""
+    def _run(self, frames, opts, slots=None):
+        """:meth:`stream`'s items, each with the CPU pipeline's frame where that made it
+        (``slots``: buffers to reuse, from an earlier call)."""
         exposure_ms, bit_depth, mosaic = (opts.get(k) for k in ("exposure_ms", "bit_depth",
                                                                   "mosaic"))
         alpha, copy = bool(opts.get("alpha", False)), bool(opts.get("copy", True))
@@ -422,7 +559,7 @@ class GpuPipeline:
                                             opts.get("dq_dtype", "uint32"))
         mode, fold = DATA_DTYPES.index(data_dtype), dq_dtype == "uint8"
         cuda = self.cuda
-        slots = [None, None]
+        slots = [None, None] if slots is None else slots
         pending = [None, None]
         i = 0
         for item in frames:
@@ -445,7 +582,8 @@ class GpuPipeline:
                               (data_dtype, dq_dtype, alpha))
                 i += 1
                 continue
-            key = (raw.shape, raw.dtype.str, dq_in is not None)
+            key = (raw.shape, raw.dtype.str, dq_in is not None, data_dtype, dq_dtype, alpha,
+                   id(mos))
             slot = slots[s]
             if slot is None or slot["key"] != key:
                 planes, _ = self._const(raw.shape, exp, bd, mos)
@@ -485,7 +623,7 @@ class GpuPipeline:
         if where == "gpu":
             slot["stream"].synchronize()
             host = slot["host"]
-            if self.rec is not None and int(host["missing"][0]):
+            if self.rec is not None and self._host_fill(slot):
                 self._fill(slot)
             pick = (lambda a: a.copy()) if copy else (lambda a: a)
             alpha = pick(host["alpha"]) if slot["alpha"] else None

@@ -16,7 +16,8 @@ from ..simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from ..stages import Pipeline, create
 from ..stages.defaults import default_pipeline
 
-__all__ = ["compare", "compare_matrix", "holed", "matrix_pipeline", "pipelines", "scene"]
+__all__ = ["compare", "compare_matrix", "holed", "hollow", "matrix_pipeline", "more_pipelines", "pipelines",
+           "scene"]
 
 
 def scene(shape, *, seed: int = 0, n_exposures: int = 12):
@@ -39,6 +40,24 @@ def pipelines(cal) -> dict:
     front = Pipeline(base.steps[:2])
     return {"correct": base, "correct+bilinear": Pipeline(base.steps + [("cube", cube)]),
             "mask+bilinear": Pipeline(front.steps + [("cube", cube)])}
+
+
+def more_pipelines(sensor, cal, *, seed: int = 0) -> dict:
+    """The other pipelines the GPU runs: dark + mask + two-point FFC (fitted on flats of
+    ``sensor`` at two exposures, each band's chosen by alpha), it with a nearest cube, and
+    PPID cubes after the mask alone and after the default correction."""
+    from ..data.frame import Frame as _Frame
+
+    base = default_pipeline(cal)
+    front = Pipeline(base.steps[:2])
+    flats = _Frame.list_from_sweep(sensor.sweep([8.0, 16.0], "lamp A",
+                                                irradiance_w_m2=PAPER_LIGHT_W_M2["training"],
+                                                n_frames=2, seed=seed + 7))
+    two = Pipeline(front.steps + [("ffc", create("two_point_ffc", calibration=cal))]).fit(flats)
+    cube = (lambda m: ("cube", create("reconstruct", method=m).fit([])))  # noqa: E731
+    return {"two_point": two, "two_point+nearest": Pipeline(two.steps + [cube("nearest")]),
+            "mask+ppid": Pipeline(front.steps + [cube("ppid")]),
+            "correct+ppid": Pipeline(base.steps + [cube("ppid")])}
 
 
 def _ulps(a, b, scale):
@@ -78,6 +97,18 @@ def holed(frame: Frame, *, seed: int = 0) -> Frame:
     H, W = dq.shape
     dq[H // 3:H // 3 + 6, W // 3:W // 3 + 10] |= DQ_DTYPE(8)  # DEAD
     dq[rng.random(dq.shape) < 0.02] |= DQ_DTYPE(16)  # HOT
+    return frame.replace(dq=dq)
+
+
+def hollow(frame: Frame) -> Frame:
+    """``frame`` with a DEAD block of 7 rows x 13 columns around its centre: for a 2 x 4
+    mosaic the PPI is undefined at the centre (its window and every neighbour one tile away
+    are flagged), where PPID takes the twice-wide tent's plain value; values around it have
+    no usable sample within twice the tile (the band-median fill)."""
+    dq = frame.dq.copy()
+    H, W = dq.shape
+    y, x = H // 2, W // 2 - 1
+    dq[max(y - 3, 0):y + 4, max(x - 6, 0):x + 7] |= DQ_DTYPE(8)  # DEAD
     return frame.replace(dq=dq)
 
 
