@@ -1,8 +1,7 @@
 """DQ planes merged in parallel: ``dst |= a | b`` over whole frames.
 
-numpy's in-place ``|=`` runs on one thread; on 2048 x 1088 uint32 planes two of them were a
-serial millisecond or more per frame in the model FFC stage, part of what kept the default
-correction from scaling with threads (issue 42).
+numpy's in-place ``|=`` runs on one thread: a serial part of every frame of the model FFC
+stage that keeps the default correction from scaling with threads.
 """
 
 from __future__ import annotations

@@ -175,8 +175,8 @@ pending_kernel = Kernel(_pending_loop, 0)
 
 def pending_indices(dq, block_left) -> np.ndarray:
     """Indices of the :data:`PENDING` pixels of a :data:`model_ffc_kernel` result, in one
-    compiled pass over the blocks that hold some (was a Python loop over those blocks: a
-    serial part that kept the correction from scaling with threads, issue 42)."""
+    compiled pass over the blocks that hold some (a Python loop over them would be a serial
+    part that keeps the correction from scaling with threads)."""
     idx = np.empty(int(block_left.sum()), np.int64)
     pending_kernel(dq, block_left, BLOCK, idx)
     return idx
