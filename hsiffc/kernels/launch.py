@@ -5,6 +5,15 @@ kernel spends on a few pixels, and tests and scalar calls are mostly tiny. :clas
 compiles the same loop twice (``prange`` runs as ``range`` in the serial build) and picks by
 size. The serial build gets its own name so that numba's disk cache keeps the two apart.
 
+Threads sized to the work: from ``parallel_min`` elements the parallel build runs on one
+thread per ``parallel_min // 2`` elements (the share of each of two threads where two start
+to pay), at most numba's thread count of the calling thread (``numba.set_num_threads``,
+which a batch worker sets to ``cores // workers``). So a 256 x 256 frame runs on 2 threads
+of a 16-core machine, not 16 that each wait for the slowest to start for 4096 pixels.
+Where two threads start to beat one is measured by ``benchmarks/gpu.py`` (its
+``cpu_crossover`` section); :data:`PARALLEL_MIN` is twice the cheapest kernel's crossover
+there, a margin for a busy machine, where a parallel region waits for its slowest thread.
+
 Cache freshness: numba invalidates a cached kernel when *its own* source file changes, not
 when a function it inlined from another file does. Both builds are therefore named with a
 digest of every source they can inline (this package and :mod:`hsiffc.data.dq`), so editing any of
@@ -18,7 +27,7 @@ import operator
 import types
 from pathlib import Path
 
-from numba import njit
+from numba import get_num_threads, njit, set_num_threads
 
 __all__ = ["JIT_OPTIONS", "Kernel", "PARALLEL_MIN", "PARALLEL_OPTIONS", "SOURCE_DIGEST"]
 
@@ -83,6 +92,23 @@ class Kernel:
         self.__doc__ = fn.__doc__
         self.__name__ = fn.__name__
 
+    def threads(self, size: int) -> int:
+        """Threads a call on ``size`` elements runs on: 1 (the serial build) below
+        ``parallel_min``, from there one per ``parallel_min // 2`` elements, at most the
+        calling thread's numba thread count."""
+        if size < self.parallel_min:
+            return 1
+        return min(get_num_threads(), max(2, size // max(1, self.parallel_min // 2)))
+
     def __call__(self, *args):
-        big = self._sized(args).size >= self.parallel_min
-        return (self.parallel if big else self.serial)(*args)
+        n = self.threads(self._sized(args).size)
+        if n <= 1:
+            return self.serial(*args)
+        have = get_num_threads()
+        if n >= have:
+            return self.parallel(*args)
+        set_num_threads(n)  # this thread's count only (numba keeps it per thread)
+        try:
+            return self.parallel(*args)
+        finally:
+            set_num_threads(have)
