@@ -6,6 +6,8 @@ the valid names. A method added to a registry without a case here fails
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 import pytest
 
@@ -180,6 +182,8 @@ def test_every_calibration_method_returns_a_calibration(calibrations):
     for method, cal in calibrations.items():
         assert type(cal) is Calibration and cal.method == method
         assert cal.a.shape == SHAPE
+        how = CALIBRATION_METHODS[method]  # what the command line passes it, it takes
+        assert how.reports_progress == ("progress" in inspect.signature(how.fit).parameters)
 
 
 def test_unknown_calibration_method_is_one_line(sensor):

@@ -78,10 +78,13 @@ class CalibrationMethod:
         What the method fits, in one line.
     fit : callable
         ``fit(sweep, **kwargs) -> Calibration``: the method's own keywords after the sweep.
+    reports_progress : bool
+        ``fit`` takes ``progress=`` (a callable told the rows done, for a status line).
     """
 
     summary: str
     fit: Callable[..., Calibration]
+    reports_progress: bool = False
 
 
 #: Registered calibration methods: name -> :class:`CalibrationMethod`.
@@ -92,7 +95,8 @@ class CalibrationMethod:
 #: ones and the closest) and ``hsiffc calibrate --method`` takes its choices from here.
 CALIBRATION_METHODS = {
     "joint": CalibrationMethod("one weighted per-pixel fit of responsivity, a, b and the dark "
-                               "model over the whole sweep", calibrate_joint),
+                               "model over the whole sweep", calibrate_joint,
+                               reports_progress=True),
     "paper": CalibrationMethod("the paper's section III.C: k per illumination, a and b from "
                                "the dynamic saturation levels", calibrate_paper),
 }

@@ -257,7 +257,7 @@ def _add_calibrate(sub):
 
 
 def _cmd_calibrate(args) -> int:
-    from ..calibrate import calibrate
+    from ..calibrate import CALIBRATION_METHODS, calibrate
     from ..io import read_sweep
 
     sweep = full = read_sweep(args.sweep, overrides=input_overrides(args))
@@ -266,7 +266,8 @@ def _cmd_calibrate(args) -> int:
     print(sweep.summary())
     if args.output.suffix != ".npz":
         raise HsiffcError(f"{args.output}: the calibration file must end in .npz; rename it")
-    extra = {} if args.method == "paper" else {"progress": _rows_done}  # on the status line
+    extra = ({"progress": _rows_done}  # on the status line
+             if CALIBRATION_METHODS[args.method].reports_progress else {})
     cal = calibrate(sweep, method=args.method, full_well_dn=args.full_well_dn, **extra)
     if args.steps == "sweep" and full.meta.get("spatial_steps"):
         # the EMVA 1288 flat stack: folded into the responsivity map, not a sample of the fit
