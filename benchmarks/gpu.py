@@ -8,8 +8,17 @@ a run stopped by a time limit still leaves what it measured)::
 
     python3 benchmarks/gpu.py --out DIR [--shape 1088 2048] [--frames 60] [--quick]
 
-Without a usable GPU the GPU sections record why and the CPU sections still run. Frames of
-the simulator's 8-band 2 x 4 mosaic sensor (:class:`hsiffc.simulate.MosaicSensor`).
+Sections: ``gpu_device_only`` (every pipeline the GPU runs, kernels alone; the target is
+the default correction + bilinear cube at >= 2 Gpx/s), ``gpu_stream`` (raw in, cube out in
+host memory; target >= 380 Mpx/s), ``equality`` (the GPU's frames against the CPU's, on a
+clean frame, one with DEAD and HOT pixels, and for PPID one whose PPI is undefined
+somewhere), ``cpu_threads`` (the CPU pipelines at 1, 2, 4, 8, 16 numba threads and their
+parallel efficiency) and ``cpu_crossover`` (where a kernel's parallel build starts to beat
+its serial one). Without a usable GPU the GPU sections record why and the CPU sections
+still run. ``--smoke`` runs every section once on a 12 x 16 frame: with
+``NUMBA_ENABLE_CUDASIM=1`` in numba's CUDA simulator, which checks the script end to end
+without a GPU (exit 1 if a section failed). Frames of the simulator's 8-band 2 x 4 mosaic
+sensor (:class:`hsiffc.simulate.MosaicSensor`).
 """
 
 from __future__ import annotations
@@ -130,7 +139,14 @@ def render_page(run: dict, before: dict | None, run_name: str, before_name: str 
               "DQ values that differ | alpha values that differ | history and metadata |",
               "|---|---|---|---|---|---|"]
     for key, r in eq.items():
-        if "data_ulps_of_value" in r:
+        if not isinstance(r, dict):
+            continue
+        if "err_in_eps_of_terms" in r:
+            lines.append(f"| {key} | {int(np.prod(r['shape']))} | "
+                         f"{r['err_in_eps_of_terms']:.1f} float32 eps of the terms | "
+                         f"{r['dq_differ']} | {r['alpha_differ']} | "
+                         f"{'equal' if r['history_equal'] and r['meta_equal'] else 'differ'} |")
+        elif "data_ulps_of_value" in r:
             n = int(np.prod(r["shape"]))
             lines.append(f"| {key} | {n} | {r['data_ulps_of_value']:.0f} | {r['dq_differ']} | "
                          f"{r.get('alpha_differ', '-')} | "
@@ -167,6 +183,82 @@ def render_page(run: dict, before: dict | None, run_name: str, before_name: str 
     return "\n".join(lines)
 
 
+def efficiency(rows: dict) -> dict:
+    """Parallel efficiency ``rate(n) / (n rate(1))`` of each CPU pipeline at each thread
+    count of :func:`main`'s ``cpu_threads`` rows (the targets: the default correction and
+    the bilinear pipeline at >= 60 % from 1 to 8 threads)."""
+    out = {}
+    one = rows.get("1", {})
+    for n, row in rows.items():
+        if not (isinstance(row, dict) and n.isdigit()):
+            continue
+        out[n] = {k: round(v["mpx_s"] / one[k]["mpx_s"] / int(n), 3)
+                  for k, v in row.items() if "mpx_s" in v and k in one}
+    return out
+
+
+def _threading_layer(numba) -> str:
+    try:
+        return numba.threading_layer()
+    except ValueError:  # not started yet: start it with a parallel call
+        from hsiffc.kernels.bands import scale_kernel
+        o = np.empty(1 << 17, np.float32)
+        scale_kernel.parallel(o, o, 1.0, o)
+        return numba.threading_layer()
+
+
+def crossover(sizes=(4096, 8192, 16384, 32768, 65536, 131072, 262144, 1048576),
+              repeat: int = 7) -> dict:
+    """Serial against parallel build of two kernels (:class:`hsiffc.kernels.launch.Kernel`)
+    at each size, on every numba thread and on 2: where the parallel build starts to pay is
+    the threshold :data:`hsiffc.kernels.launch.PARALLEL_MIN` (and the work per thread of
+    :func:`hsiffc.kernels.launch.threads_for`). ``scale``: ``signal * gain * scale`` (memory
+    bound, the cheapest per-pixel kernel); ``alpha``: the paper alpha (an exp and a log per
+    pixel). Best of ``repeat`` calls (the least disturbed by other processes)."""
+    import numba
+
+    from hsiffc.kernels.bands import scale_kernel
+    from hsiffc.kernels.leakage import alpha_paper_kernel
+
+    rng = np.random.default_rng(0)
+    out = {}
+    nmax = numba.config.NUMBA_NUM_THREADS
+    for n in sorted({2, nmax}):
+        if n > nmax:
+            continue
+        numba.set_num_threads(n)
+        rows = {}
+        for size in sizes:
+            sig = rng.uniform(0, 900, size).astype(np.float32)
+            gain = rng.uniform(0.9, 1.1, size).astype(np.float32)
+            a = rng.uniform(1e-4, 1e-3, size).astype(np.float32)
+            b = rng.uniform(1e-3, 3e-3, size).astype(np.float32)
+            o = np.empty(size, np.float32)
+            work = {"scale": (scale_kernel, (sig, gain, 1.0, o)),
+                    "alpha": (alpha_paper_kernel, (sig + 60, 16.0, a, b, 60.0, o))}
+            row = {}
+            for name, (k, args) in work.items():
+                for build in ("serial", "parallel"):
+                    fn = getattr(k, build)
+                    fn(*args)
+                    best = min(_timed(fn, args) for _ in range(repeat))
+                    row[f"{name} {build} us"] = round(best * 1e6, 2)
+            rows[str(size)] = row
+        pays = {}
+        for name in ("scale", "alpha"):
+            pays[name] = next((int(z) for z, r in rows.items()
+                               if r[f"{name} parallel us"] < r[f"{name} serial us"]), None)
+        out[f"{n} threads"] = {"sizes": rows, "parallel pays from": pays}
+    numba.set_num_threads(nmax)
+    return out
+
+
+def _timed(fn, args) -> float:
+    t = time.perf_counter()
+    fn(*args)
+    return time.perf_counter() - t
+
+
 def main() -> int:
     if "--page" in sys.argv:
         ap = argparse.ArgumentParser()
@@ -187,7 +279,13 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--threads", nargs="*", type=int, default=[1, 2, 4, 8, 16])
     ap.add_argument("--skip-cpu", action="store_true")
+    ap.add_argument("--smoke", action="store_true",
+                    help="every section once on a 12 x 16 frame (with NUMBA_ENABLE_CUDASIM=1: "
+                         "in numba's CUDA simulator), to check the script end to end; exit 1 "
+                         "if a section failed")
     args = ap.parse_args()
+    if args.smoke:
+        args.shape, args.frames, args.threads, args.quick = [12, 16], 2, [1, 2], True
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     shape = tuple(args.shape)
@@ -198,13 +296,19 @@ def main() -> int:
     from hsiffc import gpu
     from hsiffc.data.frame import Frame
     from hsiffc.gpu import selfcheck
+    from hsiffc.stages import Pipeline
+
+    if args.smoke:
+        from hsiffc.gpu.pipeline import GpuPipeline
+        GpuPipeline.block = (8, 4)  # the simulator runs every thread in Python
 
     @section(out, "environment")
     def _():
         env = {"python": sys.version.split()[0], "numpy": np.__version__,
                "numba": numba.__version__, "cpus": os.cpu_count(),
                "machine": platform.machine(), "shape": list(shape),
-               "numba_threads_default": numba.config.NUMBA_NUM_THREADS}
+               "numba_threads_default": numba.config.NUMBA_NUM_THREADS,
+               "numba_threading_layer": _threading_layer(numba), "smoke": args.smoke}
         try:
             env["nvidia_smi"] = subprocess.run(
                 ["nvidia-smi", "--query-gpu=name,memory.total,driver_version,clocks.sm",
@@ -214,6 +318,7 @@ def main() -> int:
             env["nvidia_smi"] = f"unavailable: {exc}"
         env["gpu_available"] = gpu.available()
         env["gpu_why_not"] = gpu.why_unavailable()
+        env["gpu_simulated"] = gpu.simulated()
         cuda = gpu.cuda_module()
         if cuda is not None:
             import numba_cuda
@@ -227,54 +332,72 @@ def main() -> int:
     t0 = time.perf_counter()
     sensor, cal, raw = selfcheck.scene(shape)
     pipes = selfcheck.pipelines(cal)
+    pipes.update(selfcheck.more_pipelines(sensor, cal))
+    pipes["mask+bilinear+matrix"] = selfcheck.matrix_pipeline(
+        Pipeline(pipes["mask+bilinear"].steps[:2]))
     frame = Frame.from_raw(raw, exposure_ms=16.125, bit_depth=10, mosaic=sensor.mosaic)
+    holed = selfcheck.holed(frame)
     RESULTS["scene_s"] = round(time.perf_counter() - t0, 1)
     # a few different frames for the stream (no cache effects from one frame)
     raws = [raw] + [sensor.capture(16.125, "lamp B", irradiance_w_m2=0.5 + 0.1 * i,
                                    seed=20 + i).frames[0] for i in range(3)]
     ok = gpu.available()
+    reps, per_rep = (1, 1) if args.smoke else (5, 20)
 
     if ok:
         @section(out, "gpu_device_only")
         def _():
+            """Kernels alone (frame already on the device, nothing copied back): every
+            pipeline the GPU runs; "... holed": the frame with DEAD pixels, whose cube
+            needs the band-median fill (the device's exact select runs)."""
             cuda = gpu.cuda_module()
             res = {}
-            for name in ("correct", "correct+bilinear"):
+            work = ["correct", "correct+bilinear", "correct+bilinear holed", "mask+bilinear",
+                    "two_point", "two_point+nearest", "correct+ppid",
+                    "mask+bilinear+matrix"]
+            for key in work:
+                name, _, variant = key.partition(" ")
                 g = pipes[name].to("cuda")
+                f = holed if variant == "holed" else frame
                 planes, _ = g._const(shape, 16.125, 10, sensor.mosaic)
                 dev, _ = g._buffers(shape, planes, np.float32, np.uint32, False)
-                d_raw = cuda.to_device(raw)
-                d_dq = cuda.device_array((1, 1), np.uint32)
+                d_raw = cuda.to_device(np.ascontiguousarray(f.data))
+                d_dq = cuda.to_device(np.ascontiguousarray(f.dq))
                 st = cuda.stream()
 
-                def run(n):
+                def run(n, g=g, dev=dev, d_raw=d_raw, d_dq=d_dq, st=st):
                     for _ in range(n):
-                        g._launch(d_raw, d_dq, False, shape, 16.125, 10, sensor.mosaic, dev,
+                        g._launch(d_raw, d_dq, True, shape, 16.125, 10, sensor.mosaic, dev,
                                   0, False, False, st)
                     st.synchronize()
-                run(3)  # compile and warm up
-                reps = []
-                for _ in range(5):
+                run(1 if args.smoke else 3)  # compile and warm up
+                times = []
+                for _ in range(reps):
                     t = time.perf_counter()
-                    run(20)
-                    reps.append((time.perf_counter() - t) / 20)
-                s = statistics.median(reps)
-                res[name] = {"ms_per_frame": s * 1e3, "mpx_s": npx / s / 1e6,
-                             "all_ms": [r * 1e3 for r in reps]}
+                    run(per_rep)
+                    times.append((time.perf_counter() - t) / per_rep)
+                sec = statistics.median(times)
+                res[key] = {"ms_per_frame": sec * 1e3, "mpx_s": npx / sec / 1e6,
+                            "all_ms": [r * 1e3 for r in times]}
+                if key == "correct+bilinear":
+                    res[key]["target_mpx_s"] = 2000
+                    res[key]["met"] = res[key]["mpx_s"] >= 2000
             return res
 
         @section(out, "gpu_stream")
         def _():
+            """Raw frames in, cubes out in host memory (GpuPipeline.stream)."""
             res = {}
             n = args.frames
-            for name in ("correct+bilinear", "correct"):
+            for name in ("correct+bilinear", "correct", "correct+ppid", "two_point+nearest"):
                 g = pipes[name].to("cuda")
                 for dd, qd, copy, alpha in (("float32", "uint32", False, False),
                                             ("float16", "uint8", False, False),
                                             ("uint16", "uint8", False, False),
                                             ("float32", "uint32", True, False),
                                             ("float32", "uint32", False, True)):
-                    if name == "correct" and (dd, copy, alpha) != ("float32", False, False):
+                    if name != "correct+bilinear" and (dd, copy, alpha) != ("float32", False,
+                                                                          False):
                         continue
                     frames = (raws[i % len(raws)] for i in range(n + 4))
                     it = g.stream(frames, exposure_ms=16.125, bit_depth=10,
@@ -286,21 +409,33 @@ def main() -> int:
                     k = 0
                     for item in it:
                         k += 1
-                    s = (time.perf_counter() - t) / k
+                    sec = (time.perf_counter() - t) / k
                     key = f"{name} {dd}/{qd}" + (" copy" if copy else "") + \
                         (" +alpha" if alpha else "")
-                    res[key] = {"ms_per_frame": s * 1e3, "mpx_s": npx / s / 1e6,
-                                "frames_s": 1 / s, "out_mb": item.data.nbytes / 1e6
+                    res[key] = {"ms_per_frame": sec * 1e3, "mpx_s": npx / sec / 1e6,
+                                "frames_s": 1 / sec, "out_mb": item.data.nbytes / 1e6
                                 + item.dq.nbytes / 1e6}
+                    if key == "correct+bilinear float32/uint32":
+                        res[key]["target_mpx_s"] = 380
+                        res[key]["met"] = res[key]["mpx_s"] >= 380
             return res
 
         @section(out, "equality")
         def _():
+            """The GPU's frames against the CPU's on the same frames (stated tolerance: 2
+            float32 ulps of the value for frames, 4 for cubes, 4 float32 eps of the terms
+            after a correction matrix; DQ and alpha equal)."""
             res = {}
-            holed = selfcheck.holed(frame)
+            hollow = selfcheck.hollow(frame)
             for name, pipe in pipes.items():
-                res[name] = selfcheck.compare(pipe, pipe.to("cuda"), frame)
-                res[name + " holed"] = selfcheck.compare(pipe, pipe.to("cuda"), holed)
+                g = pipe.to("cuda")
+                if name.endswith("matrix"):
+                    res[name + " holed"] = selfcheck.compare_matrix(pipe, g, holed)
+                    continue
+                res[name] = selfcheck.compare(pipe, g, frame)
+                res[name + " holed"] = selfcheck.compare(pipe, g, holed)
+                if "ppid" in name:
+                    res[name + " hollow"] = selfcheck.compare(pipe, g, hollow)
             # compact types: the device's packing against pack_cpu of the CPU frame
             from hsiffc.gpu.pack import pack_cpu
             pipe = pipes["correct+bilinear"]
@@ -312,14 +447,22 @@ def main() -> int:
                 res[f"pack {dd}/{qd}"] = {"max_abs_diff": float(diff.max()),
                                           "values_differ": int(np.count_nonzero(diff)),
                                           "dq_differ": int(np.count_nonzero(q != item.dq))}
+            res["within tolerance"] = all(
+                r.get("data_ulps_of_value", 0) <= (4 if len(r["shape"]) == 3 else 2)
+                and r.get("err_in_eps_of_terms", 0) <= 4 and r["dq_differ"] == 0
+                and r.get("alpha_differ", 0) == 0 for r in res.values()
+                if isinstance(r, dict) and "shape" in r)
             return res
 
     if not args.skip_cpu:
         @section(out, "cpu_threads")
         def _():
+            """The CPU pipelines at each numba thread count, and the parallel efficiency
+            against one thread (target: >= 60 % from 1 to 8 threads for the default
+            correction and the bilinear pipeline)."""
             from hsiffc.calibrate import calibrate
             from hsiffc.simulate import PAPER_LIGHT_W_M2
-            from hsiffc.stages import Pipeline, create
+            from hsiffc.stages import create
             res = {}
             train = Frame.list_from_sweep(sensor.sweep([19.35, 25.8], "lamp A",
                                                        irradiance_w_m2=PAPER_LIGHT_W_M2[
@@ -346,15 +489,23 @@ def main() -> int:
                 numba.set_num_threads(n)
                 row = {}
                 for name, p in work.items():
-                    s = median_time(lambda: p.transform(frame), repeat=3 if args.quick else 5)
-                    row[name] = {"ms": s * 1e3, "mpx_s": npx / s / 1e6}
+                    sec = median_time(lambda p=p: p.transform(frame),
+                                      repeat=1 if args.smoke else (3 if args.quick else 5))
+                    row[name] = {"ms": sec * 1e3, "mpx_s": npx / sec / 1e6}
                 t = time.perf_counter()
                 calibrate(sweep)
                 row["calibrate 20 exposures"] = {"s": time.perf_counter() - t}
                 res[str(n)] = row
                 save(out)
             numba.set_num_threads(maxt)
+            res["efficiency"] = efficiency(res)
             return res
+
+        @section(out, "cpu_crossover")
+        def _():
+            return crossover(sizes=(4096, 65536) if args.smoke else
+                             (4096, 8192, 16384, 32768, 65536, 131072, 262144, 1048576),
+                             repeat=2 if args.smoke else 7)
 
     # the text summary
     lines = [f"hsiffc GPU benchmark, frames {shape[1]} x {shape[0]} ({npx / 1e6:.2f} Mpx)"]
@@ -369,14 +520,26 @@ def main() -> int:
                              f"{r['mpx_s']:9.1f} Mpx/s")
     for name, r in RESULTS.get("equality", {}).items():
         lines.append(f"equality {name}: {r}")
+    if "gpu_device_only" not in RESULTS:
+        lines.append(f"GPU sections not run: {env.get('gpu_why_not')}")
     for n, row in RESULTS.get("cpu_threads", {}).items():
         if isinstance(row, dict) and "front end" in row:
             lines.append(f"cpu {n:>2} threads: " + ", ".join(
                 f"{k} {v['mpx_s']:.0f} Mpx/s" if "mpx_s" in v else f"{k} {v['s']:.2f} s"
                 for k, v in row.items()))
+    for n, row in RESULTS.get("cpu_threads", {}).get("efficiency", {}).items():
+        lines.append(f"cpu efficiency at {n:>2} threads: " + ", ".join(
+            f"{k} {v * 100:.0f} %" for k, v in row.items()))
+    for n, r in RESULTS.get("cpu_crossover", {}).items():
+        if isinstance(r, dict) and "parallel pays from" in r:
+            lines.append(f"parallel build pays from ({n}): {r['parallel pays from']}")
+    failed = [k for k, v in RESULTS.items() if isinstance(v, dict) and "error" in v]
+    if failed:
+        lines.append("FAILED sections: " + ", ".join(f"{k} ({RESULTS[k]['error'][:200]})"
+                                                      for k in failed))
     (out / "gpu_bench.txt").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
-    return 0
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -323,3 +323,21 @@ def test_batch_device_cuda_refusals_are_one_line(tmp_path):
         with pytest.raises(BatchError, match="drop --workers"):
             correct_batch([x], tmp_path / "o", tmp_path / "c.npz", device="cuda", workers=2)
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_benchmark_script_runs_end_to_end_in_the_simulator(tmp_path):
+    """benchmarks/gpu.py --smoke, the one script a GPU session runs, goes through every
+    section on a 12 x 16 frame in numba's CUDA simulator (minutes: every simulated thread
+    runs in Python), and its equality section finds the GPU within tolerance."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    run = subprocess.run([sys.executable, str(REPO / "benchmarks" / "gpu.py"), "--out",
+                          str(tmp_path), "--smoke"], capture_output=True, text=True, env=env,
+                         cwd=tmp_path, timeout=3000)
+    assert run.returncode == 0, (run.stdout[-2000:], run.stderr[-2000:])
+    res = json.loads((tmp_path / "gpu_bench.json").read_text())
+    for key in ("gpu_device_only", "gpu_stream", "equality", "cpu_threads", "cpu_crossover"):
+        assert key in res and "error" not in res[key], key
+    assert res["equality"]["within tolerance"] is True
+    assert {"correct+bilinear", "two_point+nearest", "correct+ppid"} <= set(res["gpu_device_only"])
+    assert set(res["cpu_threads"]["efficiency"]) == {"1", "2"}
