@@ -226,3 +226,11 @@ def test_subtract_dark_and_flag_has_one_return_type(calibrations, sensor):
         np.testing.assert_array_equal(res.dq, plain.dq)
     assert plain.band_mean is None and unknown_period.band_mean is None
     assert with_mean.band_mean.shape == (sensor.mosaic.n_bands,)
+    # the alpha of the one pass is the alpha of the methods that say so (a fused front end
+    # stands in for their alpha mask)
+    one_pass = [name for name, how in ALPHA_METHODS.items() if how.one_pass]
+    assert one_pass == ["paper"]
+    for name in one_pass:
+        alone = validity_flags(frame, 30.0, cal, threshold_percent=12.0, method=name, dark=dark)
+        np.testing.assert_array_equal(plain.alpha, alone.alpha)
+        np.testing.assert_array_equal(plain.dq, alone.dq)

@@ -225,11 +225,15 @@ class AlphaMethod:
         ``flags(frame, exposure_ms, calibration, *, dark, options)`` -> ``(alpha, dq)``,
         ``options`` the DQ settings of :func:`leakage_dq` (the body of
         :func:`validity_flags`).
+    one_pass : bool
+        :func:`subtract_dark_and_flag` computes this alpha (in its one pass with the dark
+        subtraction), so a fused front end can stand in for the alpha mask.
     """
 
     summary: str
     alpha: Callable
     flags: Callable
+    one_pass: bool = False
 
 
 #: Registered alpha methods: name -> :class:`AlphaMethod`.
@@ -240,7 +244,7 @@ class AlphaMethod:
 #: :func:`~hsiffc.data.params.validate_method`: an unknown name is one line listing these).
 ALPHA_METHODS = {
     "paper": AlphaMethod("k = (Y - dark) / t, as the paper estimates it (eq. 4)", _paper_alpha,
-                         _paper_flags),
+                         _paper_flags, one_pass=True),
     "model": AlphaMethod("k from inverting the calibrated model dY/dt = k - a e^{bY}",
                          _model_alpha, _model_flags),
 }
