@@ -186,6 +186,43 @@ def test_pipeline_history_save_load_and_params(sample_frames, sample_cal, tmp_pa
         p.set_params(ffc__colour=1)
 
 
+def test_a_fitted_pipeline_holds_its_prepared_plan(sample_frames, sample_cal, tmp_path):
+    """What a frame needs is made once, when the pipeline is fitted, built or loaded, and
+    held in plain view (Pipeline.plan: the fused front end by name, each stage's prepared
+    state); a stage changed behind the pipeline's back gets a new plan; the stages and the
+    calibration keep nothing on themselves."""
+    from hsiffc.calibrate.prepared import PreparedCalibration
+    from hsiffc.stages.fusion import FusedFrontEnd
+
+    train, test = sample_frames
+    p = Pipeline([("dark", create("dark")),
+                  ("mask", create("alpha_mask", calibration=str(sample_cal))),
+                  ("lin", create("linearise", calibration=str(sample_cal)))])
+    assert p.plan is None and "runs as" not in repr(p)  # not fitted: nothing to prepare
+    plan = p.fit(train).plan
+    front, (name, stage, prepared) = plan.units
+    assert isinstance(front, FusedFrontEnd) and repr(front) == "FusedFrontEnd(dark + mask)"
+    assert name == "lin" and isinstance(prepared.calibration, PreparedCalibration)
+    assert "# fitted; runs as FusedFrontEnd(dark + mask), lin" in repr(p)
+    attrs = {name: dict(vars(s)) for name, s in p.steps}
+    out = p.transform(test[-1])  # 32.25 ms under lamp B: some leakage
+    p.transform(test[0])
+    assert p.plan is plan  # one plan for every frame
+    assert {name: dict(vars(s)) for name, s in p.steps} == attrs  # nothing kept on a stage
+    cal = front.calibration.calibration
+    assert not [k for k in vars(cal) if k.startswith("_")]  # nor on the calibration
+    masked = p.steps[1][1].transform(p.steps[0][1].transform(test[0]))
+    assert np.array_equal(prepared.transform(masked).data, stage.transform(masked).data)
+    p.named_steps["mask"].set_params(threshold_percent=1.0)  # behind the pipeline's back
+    again = p.transform(test[-1])
+    assert p.plan is not plan
+    assert (np.count_nonzero(again.dq & int(DQ.LEAKAGE))
+            > np.count_nonzero(out.dq & int(DQ.LEAKAGE)))
+    loaded = Pipeline.load(p.save(tmp_path / "p.npz"))  # prepared when loaded
+    assert loaded.plan is not None and loaded.plan.describe() == p.plan.describe()
+    assert np.array_equal(loaded.transform(test[-1]).dq, again.dq)
+
+
 def test_pipeline_from_toml_resolves_paths_and_names(sample_frames, sample_cal, tmp_path):
     toml = tmp_path / "pipe.toml"
     toml.write_text(f'''

@@ -47,7 +47,7 @@ def _add_uniformity(sub):
 
 
 def _correction(args):
-    """The corrections to measure (name -> fitted pipeline or stage) and the calibration."""
+    """The corrections to measure (name -> fitted pipeline or prepared stage) and the calibration."""
     from ..calibrate import Calibration
     from ..stages import Pipeline, create
 
@@ -62,7 +62,7 @@ def _correction(args):
                               "pipeline that keeps mosaic frames (H, W)")
         return {"pipeline": pipe}, cal
     if cal is not None:
-        return {"model_ffc": create("model_ffc", calibration=cal).fit([])}, cal
+        return {"model_ffc": create("model_ffc", calibration=cal).fit([]).prepare()}, cal
     return {}, cal
 
 
@@ -87,7 +87,8 @@ def _cmd_uniformity(args) -> int:
 
         stage = create("dark", match="scale", average="mean",
                        calibration=cal).fit(dark_frames)
-        dark_for = (lambda t: stage.dark_for(t, sweep.frame_shape)[0])
+        prepared = stage.prepare()  # its dark line, made once
+        dark_for = (lambda t: prepared.dark_for(t, sweep.frame_shape)[0])
         if len(stage.exposures_ms_) == 1 and cal is None:
             only = stage.exposures_ms_[0]
             if any(not np.isclose(f.exposure_ms, only, rtol=1e-6, atol=0.0)

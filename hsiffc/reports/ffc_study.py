@@ -200,7 +200,8 @@ def run_ffc_study(source, *, calibration=None, goal_percent: float | None = None
         by_step.setdefault(f.meta["step"], []).append(f)
     dark_frames = [f for s in darks for f in by_step[s]]
     dark_stage = _dark_stage(dark_frames)
-    dark_for = (lambda t: dark_stage.dark_for(t, sweep.frame_shape)[0])
+    dark_prepared = dark_stage.prepare()  # its dark line, made once
+    dark_for = (lambda t: dark_prepared.dark_for(t, sweep.frame_shape)[0])
     sat = saturation_level(sweep, even + odd, dark_for)
     level = {s: float(np.mean([f.data.mean() for f in by_step[s]])
                       - dark_for(by_step[s][0].exposure_ms).mean()) for s in train_light}

@@ -5,7 +5,7 @@ from __future__ import annotations
 from ..data.params import Param
 from ..leakage.validity import ALPHA_METHODS, validity_flags
 from .common import CALIBRATION, THRESHOLD
-from .base import Prepared, Stage
+from .base import PreparedWithCalibration, Stage
 
 
 class AlphaMask(Stage):
@@ -54,9 +54,11 @@ class AlphaMask(Stage):
 
     @property
     def fuses_as(self):
-        """``"alpha_mask"`` with the paper's alpha (a fused front end computes it in its pass:
-        :mod:`hsiffc.stages.fusion`), else None."""
-        return "alpha_mask" if self.method == "paper" else None
+        """``"alpha_mask"`` with an alpha a fused front end computes in its pass (the paper's:
+        :attr:`hsiffc.leakage.validity.AlphaMethod.one_pass`; :mod:`hsiffc.stages.fusion`),
+        else None."""
+        how = ALPHA_METHODS.get(self.method)
+        return "alpha_mask" if how is not None and how.one_pass else None
 
     def prepare(self) -> "PreparedAlphaMask":
         """The calibration prepared (:meth:`hsiffc.calibrate.Calibration.prepare`)."""
@@ -81,20 +83,11 @@ class AlphaMask(Stage):
                              meta={"alpha_threshold_percent": float(self.threshold_percent)})
 
 
-class PreparedAlphaMask(Prepared):
-    """A fitted :class:`AlphaMask` made ready for frames.
+class PreparedAlphaMask(PreparedWithCalibration):
+    """A fitted :class:`AlphaMask` made ready for frames (``calibration``: its calibration,
+    prepared)."""
 
-    Attributes
-    ----------
-    stage : AlphaMask
-    calibration : PreparedCalibration
-    """
-
-    __slots__ = ("calibration",)
-
-    def __init__(self, stage, calibration):
-        super().__init__(stage)
-        self.calibration = calibration
+    __slots__ = ()
 
     def transform(self, frame):
         """:meth:`AlphaMask.transform`."""

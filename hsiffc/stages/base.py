@@ -60,6 +60,23 @@ class Prepared:
         return self.stage.transform(frame)
 
 
+class PreparedWithCalibration(Prepared):
+    """A :class:`Prepared` that also holds the stage's calibration, prepared
+    (:meth:`hsiffc.calibrate.Calibration.prepare`; None where the stage has none).
+
+    Attributes
+    ----------
+    stage : Stage
+    calibration : PreparedCalibration or None
+    """
+
+    __slots__ = ("calibration",)
+
+    def __init__(self, stage: "Stage", calibration):
+        super().__init__(stage)
+        self.calibration = calibration
+
+
 class Stage:
     """Base class of every pipeline stage."""
 

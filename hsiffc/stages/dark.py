@@ -9,7 +9,7 @@ from ..errors import ParameterError
 from ..data.frame import stack_mean
 from ..data.params import Param
 from .common import AVERAGE, CALIBRATION, find_exposure, group_by_exposure
-from .base import Prepared, Stage
+from .base import PreparedWithCalibration, Stage
 
 MATCHES = ("exposure", "scale")
 
@@ -82,7 +82,7 @@ class DarkSubtract(Stage):
         return self.prepare().transform(frame)
 
 
-class PreparedDark(Prepared):
+class PreparedDark(PreparedWithCalibration):
     """A fitted :class:`DarkSubtract` made ready for frames.
 
     Attributes
@@ -94,12 +94,11 @@ class PreparedDark(Prepared):
         The stage's calibration, prepared (its dark line where no master matches).
     """
 
-    __slots__ = ("line", "calibration")
+    __slots__ = ("line",)
 
     def __init__(self, stage, line, calibration):
-        super().__init__(stage)
+        super().__init__(stage, calibration)
         self.line = line
-        self.calibration = calibration
 
     def dark_for(self, exposure_ms: float, shape) -> tuple[np.ndarray, str]:
         """The dark (DN, float32) subtracted at this exposure and how it was obtained."""

@@ -6,7 +6,7 @@ import numpy as np
 
 from ..leakage.linearise import linearise
 from .common import CALIBRATION, THRESHOLD
-from .base import Prepared, Stage
+from .base import PreparedWithCalibration, Stage
 
 
 class LeakageLinearise(Stage):
@@ -67,20 +67,11 @@ class LeakageLinearise(Stage):
         return self.prepare().transform(frame)
 
 
-class PreparedLinearise(Prepared):
-    """A fitted :class:`LeakageLinearise` made ready for frames.
+class PreparedLinearise(PreparedWithCalibration):
+    """A fitted :class:`LeakageLinearise` made ready for frames (``calibration``: its calibration,
+    prepared)."""
 
-    Attributes
-    ----------
-    stage : LeakageLinearise
-    calibration : PreparedCalibration
-    """
-
-    __slots__ = ("calibration",)
-
-    def __init__(self, stage, calibration):
-        super().__init__(stage)
-        self.calibration = calibration
+    __slots__ = ()
 
     def transform(self, frame):
         """:meth:`LeakageLinearise.transform`."""

@@ -12,7 +12,7 @@ from ..flatfield.model_based import log_gain_ratio, model_ffc_apply
 from ..flatfield.model_flat import FlatStack, model_flat_fit
 from ..data.params import Param
 from .common import CALIBRATION, THRESHOLD
-from .base import Prepared, Stage
+from .base import PreparedWithCalibration, Stage
 
 
 def flat_stacks(frames, min_frames: int):
@@ -129,7 +129,7 @@ class ModelFFC(Stage):
         return self.prepare().transform(frame)
 
 
-class PreparedModelFFC(Prepared):
+class PreparedModelFFC(PreparedWithCalibration):
     """A fitted :class:`ModelFFC` made ready for frames.
 
     Attributes
@@ -141,11 +141,10 @@ class PreparedModelFFC(Prepared):
         ``ln(gain_ / gain_sweep_)`` (None without a sweep factor).
     """
 
-    __slots__ = ("calibration", "log_ratio")
+    __slots__ = ("log_ratio",)
 
     def __init__(self, stage, calibration, log_ratio):
-        super().__init__(stage)
-        self.calibration = calibration
+        super().__init__(stage, calibration)
         self.log_ratio = log_ratio
 
     def transform(self, frame):

@@ -26,7 +26,7 @@ from ..reflectance import (ExposureMismatchWarning, GainMismatchWarning,
                            SceneBrighterThanReferenceWarning, band_fraction, band_median,
                            panel_per_band, read_panel_spectrum, reference_warnings,
                            reflectance_factor, scene_brightness, white_reference)
-from .base import Stage
+from .base import PreparedWithCalibration, Stage
 from .common import AVERAGE, CALIBRATION, THRESHOLD
 
 METHODS = ("auto", "model", "ratio")
@@ -164,8 +164,9 @@ class Reflectance(Stage):
         return frozenset({"dark_subtracted"})
 
     # -- rates ---------------------------------------------------------------------------------
-    def _rate(self, frame, method: str):
-        """(rate, dq, alpha or None, signal in DN above dark) of one frame."""
+    def _rate(self, frame, method: str, prepared=None):
+        """(rate, dq, alpha or None, signal in DN above dark) of one frame (``prepared``: the
+        calibration prepared, whose dark line gives the dark where no stage removed one)."""
         t = frame.exposure_ms
         if not t > 0:
             raise ParameterError(f"reflectance: a frame at exposure {t:g} ms integrates no "
@@ -184,7 +185,8 @@ class Reflectance(Stage):
         lin = linearise(raw, t, cal.a, cal.b, dark, current,
                         full_scale_dn=2 ** frame.bit_depth - 1,
                         alpha_limit_percent=float(self.alpha_limit_percent))
-        signal = raw - (dark if frame.dark_removed is not None else cal.dark_at(t))
+        signal = raw - (dark if frame.dark_removed is not None else
+                        (prepared or cal).dark_at(t))
         return lin.light_rate, lin.dq, lin.alpha, signal
 
     # -- fit -----------------------------------------------------------------------------------
@@ -301,7 +303,7 @@ class Reflectance(Stage):
         seen = self.__dict__.setdefault("_warned", set())
         if key not in seen:
             seen.add(key)
-            warnings.warn(text, category, stacklevel=4)
+            warnings.warn(text, category, stacklevel=5)  # past _transform and Prepared.transform
 
     def reference_index(self, exposure_ms: float) -> int:
         """Index of the reference used for a scene at ``exposure_ms``: the same exposure, else
@@ -310,9 +312,18 @@ class Reflectance(Stage):
         exps = np.asarray(self.white_exposures_ms_, float)
         return int(np.argmin(np.abs(np.log(exps / max(exposure_ms, 1e-300)))))
 
+    def prepare(self) -> "PreparedReflectance":
+        """The calibration prepared (None for the ratio method): :class:`PreparedReflectance`."""
+        self.check_is_fitted()
+        cal = self.calibration_product() if self.method_ == "model" else None
+        return PreparedReflectance(self, None if cal is None else cal.prepare())
+
     def transform(self, frame):
         """The frame's reflectance factor per value (float32) with the reference's flags."""
-        self.check_is_fitted()
+        return self.prepare().transform(frame)
+
+    def _transform(self, frame, prepared):
+        """:meth:`transform` with the calibration ``prepared`` (:meth:`prepare`)."""
         t = frame.exposure_ms
         j = self.reference_index(t)
         white = self.white_rate_[j]
@@ -321,7 +332,7 @@ class Reflectance(Stage):
                 f"reflectance: the frame has shape {frame.data.shape} but the white reference "
                 f"{white.shape}; fit the reference on frames of the scenes' size and stage "
                 "(mosaic or cube)")
-        rate, dq_model, _, _ = self._rate(frame, self.method_)
+        rate, dq_model, _, _ = self._rate(frame, self.method_, prepared)
         bands, _, _ = frame_bands(frame)
         panel = np.asarray(self.panel_, np.float64)[bands]
         out = reflectance_factor(rate, white, panel)
@@ -365,3 +376,14 @@ class Reflectance(Stage):
                     "and settings", SceneBrighterThanReferenceWarning)
         return frame.replace(data=out, dq=dq, corrected_by=self.name,
                              meta={"units": "reflectance factor", "reflectance": info})
+
+
+class PreparedReflectance(PreparedWithCalibration):
+    """A fitted :class:`Reflectance` made ready for frames (``calibration``: its calibration,
+    prepared)."""
+
+    __slots__ = ()
+
+    def transform(self, frame):
+        """:meth:`Reflectance.transform`."""
+        return self.stage._transform(frame, self.calibration)
