@@ -295,10 +295,11 @@ print("RESULT " + json.dumps(out))
 """
 
 
+@pytest.mark.slow
 def test_simulated_batch_device_cuda_writes_the_cpu_outputs(tmp_path):
     """hsiffc correct's batch with device='cuda' (dark + alpha mask + bilinear cube, two
     frames) writes the outputs the CPU writes, bit for bit in the simulator, and records the
-    device in the provenance."""
+    device in the provenance (slow: 30 s; the default run checks the wiring below)."""
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
     run = subprocess.run([sys.executable, "-c", _BATCH, str(tmp_path)], capture_output=True,
                          text=True, env=env, cwd=REPO, timeout=900)
@@ -341,3 +342,37 @@ def test_benchmark_script_runs_end_to_end_in_the_simulator(tmp_path):
     assert res["equality"]["within tolerance"] is True
     assert {"correct+bilinear", "two_point+nearest", "correct+ppid"} <= set(res["gpu_device_only"])
     assert set(res["cpu_threads"]["efficiency"]) == {"1", "2"}
+
+
+def test_batch_device_cuda_runs_the_pipeline_moved_to_the_device(monkeypatch, demo_result,
+                                                                sample_cubes, tmp_path):
+    """The batch's wiring without a GPU: with device='cuda' every frame goes through the
+    pipeline hsiffc.gpu.to_device returns (here a stand-in that records the frames and
+    corrects on the CPU), and the provenance names the device."""
+    import hsiffc.gpu as gpu_pkg
+    from hsiffc.batch import correct_batch
+    from hsiffc.batch.context import _CONTEXTS
+    from hsiffc.io import read_corrected
+
+    seen = []
+
+    class Moved:
+        def __init__(self, pipe):
+            self.pipe = pipe
+
+        def transform(self, frame):
+            seen.append(frame.data.shape)
+            return self.pipe.transform(frame)
+
+    monkeypatch.setattr(gpu_pkg, "require", lambda what="--device cuda": None)
+    monkeypatch.setattr(gpu_pkg, "to_device",
+                        lambda pipe, device: Moved(pipe) if device == "cuda" else pipe)
+    _CONTEXTS.clear()
+    cal = demo_result.calibration.save(tmp_path / "cal.npz")
+    summary = correct_batch([sample_cubes / "test_2200K.tif"], tmp_path / "out", cal,
+                            ffc="none", device="cuda", hash_inputs=False)
+    _CONTEXTS.clear()
+    assert summary.exit_status == 0 and len(summary.done) == 1
+    out = read_corrected(summary.done[0]["output"])
+    assert len(seen) == out.data.shape[0] > 0
+    assert out.provenance["pipeline"]["device"] == "cuda"
