@@ -769,3 +769,29 @@ def test_local_workers_keep_dask_chatter_off_stderr(small_world, tmp_path):
     assert run.returncode == 0, run.stderr
     assert "2 files: 2 done" in run.stdout
     assert "INFO" not in run.stderr and "distributed" not in run.stderr, run.stderr
+
+
+def test_closing_the_local_cluster_keeps_the_nannys_kill_warning_off(caplog):
+    # at load 10 the real run printed "WARNING distributed.nanny: Worker process still alive
+    # after 4.0 seconds, killing" twice: shutdown of hsiffc's own workers, nothing to act on
+    import logging
+
+    from hsiffc.batch.executors import close_quietly
+
+    class Cluster:
+        closed = False
+
+        def close(self):
+            logging.getLogger("distributed.nanny").warning("Worker process still alive")
+            logging.getLogger("distributed.scheduler").warning("a scheduler warning")
+            self.closed = True
+
+    cluster = Cluster()
+    nanny = logging.getLogger("distributed.nanny")
+    level = nanny.level
+    with caplog.at_level(logging.WARNING):
+        close_quietly(cluster)
+    assert cluster.closed
+    assert "still alive" not in caplog.text
+    assert "a scheduler warning" in caplog.text  # only the nanny's shutdown line is muted
+    assert nanny.level == level
