@@ -387,9 +387,14 @@ def median_hist(bits, dq, phase_band, ph, pw, prefix, mask, shift, first, hist, 
             band = phase_band[(y % ph) * pw + (x % pw)]
             if band >= 0:
                 key = _key(bits[y, x])
-                for r in range(_RANKS):
-                    if first or (key & mask) == prefix[band, r]:
-                        cuda.atomic.add(local, (band, r, (key >> shift) & np.uint32(0xF)), 1)
+                digit = (key >> shift) & np.uint32(0xF)
+                if first or prefix[band, 0] == prefix[band, 1]:  # one histogram for both
+                    if first or (key & mask) == prefix[band, 0]:  # ranks while they agree
+                        cuda.atomic.add(local, (band, 0, digit), 1)
+                else:
+                    for r in range(_RANKS):
+                        if (key & mask) == prefix[band, r]:
+                            cuda.atomic.add(local, (band, r, digit), 1)
     cuda.syncthreads()
     for t in range(tid, B * _RANKS * _BINS, nthreads):
         b = t // (_RANKS * _BINS)
@@ -402,30 +407,39 @@ def median_hist(bits, dq, phase_band, ph, pw, prefix, mask, shift, first, hist, 
 @cuda.jit
 def median_select(hist, prefix, rank, count, shift, first):
     """One thread per (band, rank): the bin holding the rank (the count and the ranks set on
-    the first pass), appended to the prefix; the histogram zeroed for the next pass."""
+    the first pass), appended to the prefix; the histogram zeroed for the next pass. While
+    the two ranks' prefixes agree (always for an odd count, and on the first passes)
+    :data:`median_hist` fills one histogram, row 0, for both (half the atomic adds)."""
     b = cuda.blockIdx.x
     r = cuda.threadIdx.x
-    if b >= hist.shape[0] or r >= _RANKS:
-        return
-    if first:  # every sample in both ranks' histograms: each thread counts its own
-        n = 0
+    active = b < hist.shape[0] and r < _RANKS
+    same = True
+    if active:
+        same = first or prefix[b, 0] == prefix[b, 1]
+    cuda.syncthreads()  # both threads read the prefixes before either changes its own
+    if active:
+        src = 0 if same else r
+        if first:  # every sample in the histogram: each thread counts it
+            n = 0
+            for i in range(_BINS):
+                n += hist[b, src, i]
+            if r == 0:
+                count[b] = n
+            rank[b, r] = n // 2 - 1 if (r == 0 and n % 2 == 0) else n // 2
+            prefix[b, r] = 0
+        k = rank[b, r]
         for i in range(_BINS):
-            n += hist[b, r, i]
-        if r == 0:
-            count[b] = n
-        rank[b, r] = n // 2 - 1 if (r == 0 and n % 2 == 0) else n // 2
-        prefix[b, r] = 0
-    k = rank[b, r]
-    for i in range(_BINS):
-        c = hist[b, r, i]
-        if k >= 0 and k < c:
-            prefix[b, r] |= np.uint32(i) << shift
-            rank[b, r] = k
-            k = -1
-        elif k >= 0:
-            k -= c
-    for i in range(_BINS):
-        hist[b, r, i] = 0
+            c = hist[b, src, i]
+            if k >= 0 and k < c:
+                prefix[b, r] |= np.uint32(i) << shift
+                rank[b, r] = k
+                k = -1
+            elif k >= 0:
+                k -= c
+    cuda.syncthreads()  # both have read row 0 before it is zeroed
+    if active:
+        for i in range(_BINS):
+            hist[b, r, i] = 0
 
 
 @cuda.jit

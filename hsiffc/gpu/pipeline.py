@@ -118,6 +118,14 @@ def _phase_band(lattices, period) -> np.ndarray:
     return table
 
 
+def _pinned_zeros(cuda, n, dtype):
+    """Zeros in pinned host memory: the per-frame reset of a counter is an asynchronous copy
+    on the frame's stream."""
+    a = cuda.pinned_array(n, dtype)
+    a[:] = 0
+    return a
+
+
 class GpuPipeline:
     """A fitted :class:`~hsiffc.stages.Pipeline` run on an NVIDIA GPU (see the module).
 
@@ -453,7 +461,8 @@ class GpuPipeline:
             dev.update(tp_sums=cuda.device_array(n, np.float64),
                        tp_counts=cuda.device_array(n, np.int64),
                        tp_ratio=cuda.device_array(n, np.float32),
-                       tp_zero_f=np.zeros(n, np.float64), tp_zero_i=np.zeros(n, np.int64))
+                       tp_zero_f=_pinned_zeros(cuda, n, np.float64),
+                       tp_zero_i=_pinned_zeros(cuda, n, np.int64))
         ppid = planes.get("method") == "ppid"
         dev.update(ppi=cuda.device_array(shape if ppid else (1, 1), np.float32),
                    ppi_ok=cuda.device_array(shape if ppid else (1, 1), np.uint8),
@@ -463,7 +472,7 @@ class GpuPipeline:
                                                np.float32),
                    levels=cuda.device_array(max(n_bands, 1), np.float64),
                    inv_level=cuda.device_array(max(n_bands, 1), np.float32),
-                   zeros=np.zeros(n_bands + 1, np.int64),
+                   zeros=_pinned_zeros(cuda, n_bands + 1, np.int64),
                    miss_list=cuda.device_array(max(1024, H * W // 8) if self.rec is not None
                                                else 1, np.int64))
         if self.rec is not None:
