@@ -393,3 +393,116 @@ def test_batch_device_cuda_runs_the_pipeline_moved_to_the_device(monkeypatch, de
     out = read_corrected(summary.done[0]["output"])
     assert len(seen) == out.data.shape[0] > 0
     assert out.provenance["pipeline"]["device"] == "cuda"
+
+
+_CAPTURE = r"""
+import json, sys
+import numpy as np
+from hsiffc.data.frame import Frame
+from hsiffc.gpu import selfcheck, kernels
+from hsiffc.gpu.pipeline import GpuPipeline
+from hsiffc.stages import Pipeline
+GpuPipeline.block = (8, 4)
+seen = {}
+
+def desc(a):
+    if hasattr(a, "_ary"):
+        a = a._ary
+    if isinstance(a, np.ndarray):
+        return ["array", a.dtype.str, a.ndim, "C" if a.flags.c_contiguous else "A"]
+    if isinstance(a, (bool, np.bool_)):
+        return ["bool"]
+    if isinstance(a, (int, np.integer)):
+        return ["int", np.asarray(a).dtype.str if isinstance(a, np.integer) else "<i8"]
+    if isinstance(a, (float, np.floating)):
+        return ["float", np.asarray(a).dtype.str if isinstance(a, np.floating) else "<f8"]
+    return ["other", repr(type(a))]
+
+class Spy:
+    def __init__(self, name, k):
+        self.name, self.k = name, k
+    def __getitem__(self, cfg):
+        launch = self.k[cfg]
+        def run(*args):
+            seen.setdefault(self.name, set()).add(json.dumps([desc(a) for a in args]))
+            return launch(*args)
+        return run
+
+for name in ["correct", "bilinear", "pack2d", "median_hist", "median_select", "median_finish",
+             "median_mean", "correction_matrix", "fill_missing", "band_levels", "ppi_values",
+             "ppi_window", "window_max", "band_sums", "two_point_ratio", "two_point_apply"]:
+    setattr(kernels, name, Spy(name, getattr(kernels, name)))
+shape = (12, 16)
+sensor, cal, raw = selfcheck.scene(shape, n_exposures=8)
+frame = Frame.from_raw(raw, exposure_ms=16.125, bit_depth=10, mosaic=sensor.mosaic)
+holed = selfcheck.holed(frame)
+pipes = selfcheck.pipelines(cal)
+pipes.update(selfcheck.more_pipelines(sensor, cal))
+pipes["matrix"] = selfcheck.matrix_pipeline(Pipeline(pipes["mask+bilinear"].steps[:2]))
+for name, pipe in pipes.items():
+    if name.startswith("correct"):
+        continue  # model FFC: slow in the simulator; its types are those of mask+...
+    g = pipe.to("cuda")
+    for dd, qd, al in (("float32", "uint32", True), ("float16", "uint8", False), ("uint16", "uint8", False)):
+        list(g.stream([holed], data_dtype=dd, dq_dtype=qd, alpha=al))
+json.dump({k: sorted(v) for k, v in seen.items()}, open(sys.argv[1], "w"), indent=0)
+print({k: len(v) for k, v in seen.items()})
+"""
+
+_COMPILE = r"""
+import json, sys, time
+import numpy as np
+from hsiffc.gpu import cuda_module
+cuda = cuda_module()
+from numba import types
+from numba.np.numpy_support import from_dtype
+from hsiffc.gpu import kernels
+sigs = json.load(open(sys.argv[1]))
+def ty(d):
+    if d[0] == "array":
+        return types.Array(from_dtype(np.dtype(d[1])), d[2], d[3])
+    if d[0] == "bool":
+        return types.boolean
+    if d[0] in ("int", "float"):
+        return from_dtype(np.dtype(d[1]))
+    raise TypeError(d)
+bad = 0
+for name, lst in sigs.items():
+    fn = getattr(kernels, name).py_func
+    for s in lst:
+        sig = tuple(ty(d) for d in json.loads(s))
+        t = time.time()
+        try:
+            ptx, _ = cuda.compile_ptx(fn, sig, cc=(9, 0))
+            print(f"ok  {name} ({time.time() - t:.1f} s, {len(ptx)} chars)", flush=True)
+        except Exception as e:
+            bad += 1
+            print(f"ERR {name}: {type(e).__name__}: {str(e)[:1500]}", flush=True)
+sys.exit(1 if bad else 0)
+"""
+
+
+@pytest.mark.slow
+def test_kernels_compile_for_sm90_with_the_types_the_pipeline_passes(tmp_path):
+    """Every kernel launch of the GPU pipelines (all output types, two-point, nearest, PPID,
+    the matrix; recorded in the simulator) compiles to PTX for compute capability 9.0 (H100,
+    H200) with NVVM, without a GPU. 'correct' is left out: it calls the CPU's scalar model
+    functions, whose device compilation needs a driver (it ran on the H200)."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    sigs = tmp_path / "sigs.json"
+    run = subprocess.run([sys.executable, "-c", _CAPTURE, str(sigs)], capture_output=True,
+                         text=True, env=env, cwd=REPO, timeout=1800)
+    assert run.returncode == 0, run.stderr[-3000:]
+    launches = json.loads(sigs.read_text())
+    assert {"bilinear", "ppi_window", "two_point_apply", "fill_missing"} <= set(launches)
+    launches.pop("correct", None)
+    sigs.write_text(json.dumps(launches))
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_ENABLE_CUDASIM"}
+    probe = subprocess.run([sys.executable, "-c", "import numpy as np; np.row_stack = "
+                            "np.vstack; from numba.cuda.cudadrv import nvvm; "
+                            "assert nvvm.is_available()"], env=env, capture_output=True)
+    if probe.returncode:
+        pytest.skip("NVVM (the CUDA toolkit's compiler library) is not installed here")
+    run = subprocess.run([sys.executable, "-c", _COMPILE, str(sigs)], capture_output=True,
+                         text=True, env=env, cwd=REPO, timeout=1800)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]

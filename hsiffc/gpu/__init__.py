@@ -1,9 +1,10 @@
 """The correction on an NVIDIA GPU (optional extra ``hsiffc[gpu]``).
 
 ``Pipeline.to("cuda")`` returns a :class:`~hsiffc.gpu.pipeline.GpuPipeline` for a fitted
-pipeline of the default correction: ``dark``, ``alpha_mask`` (paper alpha, DQ) and optionally
-``model_ffc`` and ``reconstruct`` (bilinear, full resolution, optionally with the spectral
-correction matrix, e.g. IMEC's). Its
+pipeline of ``dark``, ``alpha_mask`` (paper alpha, DQ) and optionally ``model_ffc`` or
+``two_point_ffc`` and ``reconstruct`` (nearest, bilinear or PPID at full resolution,
+optionally with the spectral correction matrix, e.g. IMEC's); ``hsiffc correct --device
+cuda`` runs a batch through it. Its
 ``transform`` gives the same frame as the CPU pipeline (within the float32 tolerance stated in
 :mod:`hsiffc.gpu.kernels`); its ``stream`` overlaps upload, compute and download for live
 frames. Stages it does not run on the device are refused with one line naming the step.
@@ -13,8 +14,11 @@ built from (:func:`hsiffc.kernels.inversion.invert_point`,
 :func:`hsiffc.kernels.modelffc.correct_point`, :func:`hsiffc.kernels.leakage.alpha_paper_point`
 ...): numba compiles one Python source for both targets, so there is no second copy of the
 physics, and numba's CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``) runs the same kernels on the
-CPU, which is how CI tests them without a GPU. CuPy (present on the GPU machine) would need the
-model rewritten in CUDA C. See ``docs/results/gpu.md`` for the measurements.
+CPU, which is how CI tests them without a GPU. Where the CPU kernels work on whole rows (the
+interpolation, the PPI, the band levels), the GPU kernels take the same terms in the same
+order per value, and the tests hold them equal to the CPU's in the simulator. CuPy (present on the GPU machine) would need the
+model rewritten in CUDA C. See ``docs/guide/gpu.md`` for what runs where and
+``docs/results/gpu.md`` for the measurements.
 
 Without numba-cuda or a GPU :func:`require` raises :class:`GpuUnavailableError` with one line
 saying what is missing.

@@ -7,8 +7,12 @@ the CPU: the dark subtraction, :func:`~hsiffc.kernels.leakage.alpha_paper_point`
 :func:`~hsiffc.kernels.modelffc.correct_point` - the same numba functions, compiled for the
 GPU. :data:`bilinear` evaluates the normalised convolution of
 :mod:`hsiffc.kernels.demosaic` per output value (the tent of S1 in float32, the twice-wide S2
-where S1 holds no usable sample in float64, DQ and alpha by the same rules) and stores the
-cube in the stream's output types (:mod:`hsiffc.gpu.pack`).
+where S1 holds no usable sample in float64, DQ and alpha by the same rules; "nearest" and
+PPID as options of the same kernel) and stores the cube in the stream's output types
+(:mod:`hsiffc.gpu.pack`). :data:`band_sums`, :data:`two_point_ratio` and
+:data:`two_point_apply` are the two-point FFC; :data:`band_levels`, :data:`ppi_values`,
+:data:`ppi_window` and :data:`window_max` PPID's levels, pseudo-panchromatic image and alpha;
+the ``median_*`` kernels the exact band medians and :data:`fill_missing` the fill.
 
 Tolerance against the CPU path (tests/test_gpu.py in the simulator, benchmarks/gpu.py on the
 device): DQ equal bit for bit; the corrected frame within 2 float32 ulps (the CPU takes most
@@ -16,7 +20,8 @@ pixels through the vectorised Halley rounds of
 :func:`~hsiffc.kernels.inversion.invert_rounds`, the GPU every pixel through the bracketed
 scalar iteration: both stop within 1e-9 DN of the root); the cube within 4 float32 ulps of
 the frame's largest value (the CPU sums a pixel's tent in another order, and the GPU compiler
-may fuse multiply-adds).
+may fuse multiply-adds). The two-point FFC's test level is a float64 sum in another order:
+exact for integer DN; for non-integer frames its factor may differ by one float32 ulp.
 """
 
 from __future__ import annotations
@@ -266,7 +271,7 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
         cube_alpha[y, x, band] = amax if amax > _NEG else np.float32(0.0)
 
 
-@cuda.jit(device=True)
+@cuda.jit(device=True, inline=True)
 def _tent1(data, dq, y, x, lat_r, lat_c, j0, j1, ph, pw):
     """:func:`hsiffc.kernels.lattice.tent_sums` with ``m = 1`` (S1), its ``r / d``: the plain
     bilinear value in float64, the terms in its order."""
