@@ -120,9 +120,17 @@ def render_page(run: dict, before: dict | None, run_name: str, before_name: str 
     lines.append(f"| device alone, correction only | {dev['correct']['ms_per_frame']:.3f} | "
                  f"{dev['correct']['mpx_s']:.0f} | - |")
     d = dev[cb]
-    lines.append(f"| device alone, correction + bilinear cube (with the band-median pass) | "
+    lazy = cb + " holed" in dev  # runs since the fill's medians are found only where needed
+    lines.append(f"| device alone, correction + bilinear cube "
+                 f"({'no value to fill' if lazy else 'with the band-median pass'}) | "
                  f"{d['ms_per_frame']:.3f} | {d['mpx_s']:.0f} | >= 2000: "
                  f"{'met' if d['mpx_s'] >= 2000 else 'not met'} |")
+    for key, r in dev.items():  # the other pipelines (runs since they were added)
+        if key not in ("correct", cb) and isinstance(r, dict) and "mpx_s" in r:
+            what = (f"{cb}, DEAD and HOT pixels (the exact band medians and the fill)"
+                    if key == cb + " holed" else key)
+            lines.append(f"| device alone, {what} | {r['ms_per_frame']:.3f} | "
+                         f"{r['mpx_s']:.0f} | - |")
     for key, r in stream.items():
         target = ""
         if key.startswith(cb + " "):
@@ -163,6 +171,13 @@ def render_page(run: dict, before: dict | None, run_name: str, before_name: str 
               "float16 or uint16 (the compact rows).", "",
               "## CPU threads (numba.set_num_threads), same machine", "",
               "After the CPU changes (this code):", ""] + _cpu_table(run["cpu_threads"])
+    cross = run.get("cpu_crossover")
+    if isinstance(cross, dict) and "error" not in cross:
+        lines += ["", "Where a kernel's parallel build beats its serial one (elements; best "
+                  "of 7 calls; `scale`: signal x gain x scale, `alpha`: the paper alpha):", ""]
+        for n, r in cross.items():
+            lines.append(f"- {n}: " + ", ".join(f"{k} from {v if v else 'never'}"
+                                                  for k, v in r["parallel pays from"].items()))
     if before is not None:
         lines += ["", "Before them (first machine start, the same script):", ""]
         lines += _cpu_table(before["cpu_threads"])
