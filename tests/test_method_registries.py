@@ -7,6 +7,7 @@ the valid names. A method added to a registry without a case here fails
 from __future__ import annotations
 
 import inspect
+import warnings
 
 import numpy as np
 import pytest
@@ -24,6 +25,8 @@ from hsiffc.flatfield.two_point import two_point_correct, two_point_fit
 from hsiffc.leakage.validity import (ALPHA_METHODS, AlphaFlags, DarkFlagged, alpha_map,
                                      subtract_dark_and_flag, validity_flags)
 from hsiffc.reconstruct import DEMOSAIC_METHODS, Demosaiced, demosaic
+from hsiffc.reflectance import (REFLECTANCE_METHODS, Rates, reflectance_factor,
+                                resolve_method)
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 
 SHAPE = (8, 8)
@@ -234,3 +237,76 @@ def test_subtract_dark_and_flag_has_one_return_type(calibrations, sensor):
         alone = validity_flags(frame, 30.0, cal, threshold_percent=12.0, method=name, dark=dark)
         np.testing.assert_array_equal(plain.alpha, alone.alpha)
         np.testing.assert_array_equal(plain.dq, alone.dq)
+
+
+# -- reflectance ------------------------------------------------------------------------------
+
+def _reflectance_case(method):
+    """(whether the case gives a calibration, what the method runs as, the public array
+    function whose rate it must give on a dark-subtracted frame) for ``method``."""
+    from hsiffc.leakage.linearise import linearise
+
+    def ratio(frame, cal):
+        return frame.signal / np.float32(frame.exposure_ms)
+
+    def model(frame, cal):
+        return linearise(frame.raw, frame.exposure_ms, cal.a, cal.b, frame.dark_removed, 0.0,
+                         full_scale_dn=2 ** frame.bit_depth - 1,
+                         alpha_limit_percent=90.0).light_rate
+
+    return {"auto": (True, "model", model), "model": (True, "model", model),
+            "ratio": (False, "ratio", ratio)}.get(method)
+
+
+def test_every_reflectance_method_has_a_case():
+    assert all(_reflectance_case(m) is not None for m in REFLECTANCE_METHODS)
+
+
+@pytest.mark.parametrize("method", list(REFLECTANCE_METHODS))
+def test_every_reflectance_method_divides_its_registered_rate(calibrations, sensor, method):
+    """The reflectance stage runs the method the registry resolves it to, and its output is
+    that method's rate (the same numbers as the public array function behind it) over the
+    white reference's, times the panel."""
+    from hsiffc.stages import Pipeline, create
+
+    with_cal, runs_as, reference = _reflectance_case(method)
+    cal = calibrations["joint"] if with_cal else None
+    assert resolve_method(method, with_cal) == runs_as
+    whites = sensor.capture(30.0, "lamp A", irradiance_w_m2=TRAIN / 4, n_frames=3,
+                            seed=5).to_frames()
+    darks = sensor.capture(30.0, None, n_frames=3, seed=6).to_frames()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a tiny reference: its checks warn, not tested here
+        pipe = Pipeline([("dark", create("dark")),
+                         ("refl", create("reflectance", panel=0.9, calibration=cal,
+                                         method=method))]).fit(whites + darks)
+        out = pipe.transform(whites[0])
+    stage = pipe.named_steps["refl"]
+    how = REFLECTANCE_METHODS[runs_as]
+    assert stage.method_ == runs_as and stage.requires == how.requires
+    assert how.leakage_aware == with_cal
+    scene = pipe.named_steps["dark"].transform(whites[0])
+    rates = how.rate(scene, cal, prepared=None, alpha_limit_percent=90.0)
+    assert type(rates) is Rates and (rates.alpha is None) == (not how.leakage_aware)
+    np.testing.assert_array_equal(rates.rate, reference(scene, cal))
+    expected = reflectance_factor(rates.rate, stage.white_rate_[0], 0.9)
+    good = out.dq == 0
+    assert good.any()
+    np.testing.assert_array_equal(out.data[good], expected[good])
+
+
+def test_unknown_reflectance_method_is_one_line():
+    _one_line_error(lambda: resolve_method("rato", calibrated=False), REFLECTANCE_METHODS,
+                    "ratio")
+
+
+def test_reflectance_choices_come_from_the_registry():
+    from hsiffc.cli import build_parser
+    from hsiffc.stages.reflectance import Reflectance
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.choices and "reflectance" in a.choices)
+    acts = next(a for a in sub.choices["reflectance"]._actions if a.choices and "fit" in a.choices)
+    method = next(a for a in acts.choices["fit"]._actions if a.dest == "method")
+    assert tuple(method.choices) == tuple(REFLECTANCE_METHODS)
+    assert Reflectance.param_spec["method"].choices == tuple(REFLECTANCE_METHODS)

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import HsiffcError
 from ..reconstruct import DEMOSAIC_METHODS
+from ..reflectance import REFLECTANCE_METHODS, resolve_method
 from .args import count, percent, positive
 from .common import add_input_options, add_overwrite, input_overrides, write_json
 from .pipeline import read_training
@@ -67,10 +68,12 @@ def _add_fit(acts):
     p.add_argument("--calibration", type=Path, default=None,
                    help="leakage calibration (.npz from 'hsiffc calibrate'): reflectance from "
                         "the light rates the model recovers (leakage-aware)")
-    p.add_argument("--method", choices=("auto", "model", "ratio"), default="auto",
-                   help="model: light rates through the leakage model (needs --calibration); "
-                        "ratio: DN above dark per ms; auto (default): model with a "
-                        "calibration, else ratio")
+    default = "auto"
+    p.add_argument("--method", choices=tuple(REFLECTANCE_METHODS), default=default,
+                   help="; ".join(f"{name}: {how.summary}"
+                                  + (" (needs --calibration)" if how.leakage_aware else "")
+                                  + (" (default)" if name == default else "")
+                                  for name, how in REFLECTANCE_METHODS.items()))
     p.add_argument("--cube", choices=CUBE_METHODS, default=None,
                    help="reconstruct cubes before the reflectance (with the model: the "
                         "leakage is inverted per pixel first, by a linearise step)")
@@ -95,12 +98,13 @@ def build_pipeline(args):
                                              else list(args.panel))
     cal = None if args.calibration is None else str(args.calibration)
     method = args.method
-    if method == "model" and cal is None:
-        raise HsiffcError("--method model needs --calibration (the leakage calibration from "
-                          "'hsiffc calibrate')")
+    if REFLECTANCE_METHODS[method].leakage_aware and cal is None:
+        raise HsiffcError(f"--method {method} needs --calibration (the leakage calibration "
+                          "from 'hsiffc calibrate')")
     steps = [("dark", create("dark"))]
     if args.cube is not None:
-        if cal is not None and method != "ratio":  # the model inverts mosaic pixels
+        if cal is not None and REFLECTANCE_METHODS[resolve_method(method, True)].leakage_aware:
+            # the model inverts mosaic pixels: a linearise step, then a plain ratio of cubes
             steps.append(("linearise", create("linearise", calibration=cal)))
         steps.append(("cube", create("reconstruct", method=args.cube)))
         method, cal = "ratio", None
@@ -122,8 +126,7 @@ def _cmd_fit(args) -> int:
     pipe.fit(frames)
     pipe.save(args.output, overwrite=args.overwrite)
     stage = pipe.named_steps["reflectance"]
-    how = {"model": "light rates through the leakage model",
-           "ratio": "DN above dark per ms"}[stage.method_]
+    how = REFLECTANCE_METHODS[stage.method_].summary
     if "linearise" in pipe.named_steps:
         how = "light rates through the leakage model (linearise step), then cubes"
     print(f"reflectance from {how}; panel {_values(stage.panel_)} ({stage.panel_source_})")

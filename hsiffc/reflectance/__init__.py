@@ -5,8 +5,10 @@ scene divided by a white panel of known reflectance, both less the dark, band by
 leaky sensor the response is not linear in the light, so a bright panel and a darker scene are
 not related by one gain per pixel: the reflectance is computed from the light rates recovered
 through the calibrated leakage model (``method="model"``), or, without a calibration, from DN
-less dark per ms (``method="ratio"``). The :class:`~hsiffc.stages.reflectance.Reflectance`
-stage wraps these functions.
+less dark per ms (``method="ratio"``); ``"auto"`` is the model with a calibration, else the
+ratio. The methods are registered in :data:`REFLECTANCE_METHODS` (what each divides, whether it
+needs a calibration; :func:`resolve_method` says what ``"auto"`` runs as). The
+:class:`~hsiffc.stages.reflectance.Reflectance` stage wraps these functions.
 
 The checks (:func:`reference_warnings`, :func:`scene_brightness` and the warnings) catch what a
 field campaign gets wrong with a white reference. Every check returns its figures per band
@@ -39,10 +41,12 @@ from ._checks import (ExposureMismatchWarning, GainMismatchWarning, ReferenceLea
                       WhiteReferenceTooDarkWarning, reference_warnings, scene_brightness)
 from ._maths import (WhiteReference, band_fraction, band_median, reflectance_factor,
                      white_reference)
+from ._methods import REFLECTANCE_METHODS, Rates, ReflectanceMethod, resolve_method
 from ._panel import panel_per_band, read_panel_spectrum
 from ._target import TargetReport, target_report
 
-__all__ = ["WhiteReference", "white_reference", "reflectance_factor", "band_median",
+__all__ = ["REFLECTANCE_METHODS", "ReflectanceMethod", "Rates", "resolve_method",
+           "WhiteReference", "white_reference", "reflectance_factor", "band_median",
            "band_fraction", "panel_per_band", "read_panel_spectrum", "TargetReport",
            "target_report", "reference_warnings", "scene_brightness", "ReflectanceWarning",
            "WhiteReferenceTooDarkWarning", "ReferenceSaturatedWarning",

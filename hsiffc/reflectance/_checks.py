@@ -9,6 +9,7 @@ import warnings
 import numpy as np
 
 from ..errors import HsiffcWarning
+from ._methods import REFLECTANCE_METHODS
 
 __all__ = ["ReflectanceWarning", "WhiteReferenceTooDarkWarning", "ReferenceSaturatedWarning",
            "ReferenceLeakageWarning", "TooFewReferenceFramesWarning",
@@ -76,7 +77,8 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
     min_level_fraction, min_snr, precision_percent, max_saturated_percent,
     reference_alpha_percent : float
         Thresholds (the stage's parameters).
-    method : "model" or "ratio"
+    method : str
+        The method that ran (:func:`hsiffc.reflectance.resolve_method`), e.g. "model".
 
     Returns
     -------
@@ -152,7 +154,7 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
         if hit:
             hit = _worst(alpha, hit, lowest=False)
             i0 = hit[0]
-            if method == "ratio":
+            if not REFLECTANCE_METHODS[method].leakage_aware:  # a plain ratio
                 cost = (f"its response lost {loss[i0]:.1f} % of its charge to leakage in band "
                         f"{i0 + 1}, so a plain ratio overestimates dark targets by up to "
                         f"{100 * loss[i0] / max(100 - loss[i0], 1e-9):.1f} %: use the "

@@ -20,16 +20,16 @@ import numpy as np
 from ..data.dq import DQ, DQ_DTYPE
 from ..errors import CalibrationMismatchError, ParameterError
 from ..files.jsonsafe import json_safe
-from ..leakage.linearise import linearise
 from ..data.params import Param
-from ..reflectance import (ExposureMismatchWarning, GainMismatchWarning,
+from ..reflectance import (REFLECTANCE_METHODS, ExposureMismatchWarning, GainMismatchWarning,
                            SceneBrighterThanReferenceWarning, band_fraction, band_median,
                            panel_per_band, read_panel_spectrum, reference_warnings,
-                           reflectance_factor, scene_brightness, white_reference)
+                           reflectance_factor, resolve_method, scene_brightness,
+                           white_reference)
 from .base import PreparedWithCalibration, Stage
 from .common import AVERAGE, CALIBRATION, THRESHOLD
 
-METHODS = ("auto", "model", "ratio")
+METHODS = tuple(REFLECTANCE_METHODS)  # the names (kept)
 FRACTION = Param("number", low=0, low_open=True, high=1)
 POSITIVE = Param("number", low=0, low_open=True)
 
@@ -81,7 +81,8 @@ class Reflectance(Stage):
         bands' wavelengths; instead of ``panel``.
     calibration : path or Calibration, optional
         Leakage calibration; with it ``"auto"`` is ``"model"``.
-    method : "auto", "model" or "ratio"
+    method : str
+        One of :data:`hsiffc.reflectance.REFLECTANCE_METHODS` ("auto", "model", "ratio").
     average : "mean" or "median"
         How the reference frames are averaged.
     alpha_limit_percent : float
@@ -107,7 +108,7 @@ class Reflectance(Stage):
     name = "reflectance"
     removes = frozenset({"response"})
     param_spec = {"panel_file": Param("path", optional=True), "calibration": CALIBRATION,
-                  "method": Param("choice", choices=METHODS), "average": AVERAGE,
+                  "method": Param("choice", choices=REFLECTANCE_METHODS), "average": AVERAGE,
                   "alpha_limit_percent": THRESHOLD, "reference_alpha_percent": THRESHOLD,
                   "min_reference_level": FRACTION, "min_reference_snr": POSITIVE,
                   "precision_percent": THRESHOLD, "max_saturated_percent": THRESHOLD,
@@ -146,22 +147,19 @@ class Reflectance(Stage):
                                  "or a list with one per band")
         if p is not None and self.panel_file is not None:
             raise ParameterError("reflectance: give panel= or panel_file=, not both")
-        if self.method == "model" and self.calibration is None:
+        if REFLECTANCE_METHODS[self.method].leakage_aware and self.calibration is None:
             raise ParameterError("reflectance: method='model' needs calibration= (the leakage "
                                  "calibration from 'hsiffc calibrate'); or use method='ratio'")
 
     @property
     def method_used(self) -> str:
-        """``"model"`` or ``"ratio"`` (what ``"auto"`` resolves to)."""
-        if self.method == "auto":
-            return "model" if self.calibration is not None else "ratio"
-        return self.method
+        """The method that runs: ``"model"`` or ``"ratio"`` (what ``"auto"`` resolves to,
+        :func:`hsiffc.reflectance.resolve_method`)."""
+        return resolve_method(self.method, self.calibration is not None)
 
     @property
     def requires(self):  # the model inverts the raw response of mosaic pixels
-        if self.method_used == "model":
-            return frozenset({"mosaic", "response"})
-        return frozenset({"dark_subtracted"})
+        return REFLECTANCE_METHODS[self.method_used].requires
 
     # -- rates ---------------------------------------------------------------------------------
     def _rate(self, frame, method: str, prepared=None):
@@ -171,23 +169,9 @@ class Reflectance(Stage):
         if not t > 0:
             raise ParameterError(f"reflectance: a frame at exposure {t:g} ms integrates no "
                                  "light; give frames with an exposure > 0 ms")
-        if method == "ratio":
-            signal = frame.signal
-            return signal / np.float32(t), None, None, signal
-        cal = self.require_calibration()
-        cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
-                             mosaic=frame.mosaic, what="the frame")
-        if frame.dark_removed is not None:
-            dark, current = frame.dark_removed, 0.0
-        else:
-            dark, current = cal.dark, cal.dark_current
-        raw = frame.raw
-        lin = linearise(raw, t, cal.a, cal.b, dark, current,
-                        full_scale_dn=2 ** frame.bit_depth - 1,
-                        alpha_limit_percent=float(self.alpha_limit_percent))
-        signal = raw - (dark if frame.dark_removed is not None else
-                        (prepared or cal).dark_at(t))
-        return lin.light_rate, lin.dq, lin.alpha, signal
+        how = REFLECTANCE_METHODS[method]
+        return how.rate(frame, self.require_calibration() if how.leakage_aware else None,
+                        prepared=prepared, alpha_limit_percent=float(self.alpha_limit_percent))
 
     # -- fit -----------------------------------------------------------------------------------
     def fit(self, frames):
@@ -259,7 +243,7 @@ class Reflectance(Stage):
         f0 = stack[0]
         full = 2.0 ** f0.bit_depth - 1
         dark = f0.dark_removed
-        if dark is None and method == "model":
+        if dark is None and REFLECTANCE_METHODS[method].leakage_aware:
             dark = self.require_calibration().dark_at(f0.exposure_ms)
         dark_level = float(np.median(dark)) if dark is not None else 0.0
         level = band_median(signal, bands, n_bands)
@@ -285,7 +269,7 @@ class Reflectance(Stage):
                 np.var([f.data for f in darks], axis=0, ddof=1), bands, n_bands).tolist()
         cal = self.calibration_product()
         if cal is not None and not f0.is_cube and f0.corrected_by is None:
-            if method == "model":
+            if REFLECTANCE_METHODS[method].leakage_aware:
                 alpha = np.mean([p[2] for p in per], axis=0)
                 k = ref.rate
             else:  # the ratio method with a calibration at hand: say what leakage costs it
@@ -315,7 +299,8 @@ class Reflectance(Stage):
     def prepare(self) -> "PreparedReflectance":
         """The calibration prepared (None for the ratio method): :class:`PreparedReflectance`."""
         self.check_is_fitted()
-        cal = self.calibration_product() if self.method_ == "model" else None
+        cal = (self.calibration_product() if REFLECTANCE_METHODS[self.method_].leakage_aware
+               else None)
         return PreparedReflectance(self, None if cal is None else cal.prepare())
 
     def transform(self, frame):
@@ -346,7 +331,7 @@ class Reflectance(Stage):
                 "exposure_scale": scale}
         if abs(scale - 1) > 1e-6:
             how = ("light rates of the leakage model, valid within the calibration's exposure "
-                   "range" if self.method_ == "model" else
+                   "range" if REFLECTANCE_METHODS[self.method_].leakage_aware else
                    "a linear response and a dark matched to each exposure")
             self._warn_once(("exposure", t),
                             f"reflectance: scene at {t:g} ms, white reference at {t_ref:g} ms: "
