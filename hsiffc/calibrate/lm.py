@@ -24,8 +24,8 @@ from ..kernels.gradient import response_gradient_fast, response_gradient_point
 #: Options of the numba functions that run once or more per pixel on arrays their caller owns
 #: (they allocate nothing): compiled without numba's reference counting (``_nrt=False``), so
 #: that a call does not increment and decrement the count of every array argument with atomic
-#: instructions (with ~200 such pairs per pixel they took a quarter of the fit's time, and
-#: more when the threads share the arrays). Allocating, or returning an array, fails to
+#: instructions (a pixel's fit makes hundreds of such calls, and the atomic updates contend
+#: when the threads share the arrays). Allocating, or returning an array, fails to
 #: compile here: keep those in the calling kernel.
 LOCALS_ONLY = {"cache": True, "error_model": "numpy", "_nrt": False}
 B_MIN, B_MAX = 1e-6, 1.0  # bounds of b, 1/DN

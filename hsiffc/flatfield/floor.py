@@ -18,10 +18,9 @@ at a response Y it is the smallest relative error of a corrected pixel any fit o
 reach: the fixed-pattern floor, per pixel, where the correction rests on the sweep alone (model
 alpha above ``flat_alpha_percent``; below it a flat stack can lower it further).
 
-On the simulated sensor of ``tests/test_model_ffc.py`` (3 light levels x 20 exposures, 4 frames
-per step) model_ffc's fixed pattern is 0.95-1.11 times this floor at model alpha 5.5-50 %
-(0.15-0.34 %; two-point FFC from a 50-frame flat: 0.31-0.82 %): it reaches the floor, and the
-floor rises with alpha because the sweep pins a and b only through its few bent samples.
+On a simulated sensor model_ffc's fixed pattern reaches this floor and does not beat it
+(``tests/test_model_ffc.py`` checks both), where a two-point FFC stays well above it; the floor
+rises with alpha because the sweep pins a and b only through its few bent samples.
 
 The arrays are (H, W, 5, 5) float64: use a crop or a pixel subset of large sensors.
 """

@@ -23,17 +23,16 @@ variance, so a flat stack is never outweighed by a model that does not match it 
 level.
 
 What limits it. Where the response is linear (model alpha up to ``flat_alpha_percent``) the
-error of the combined factor and of the dark (:func:`correction_uncertainty`): on the simulated
-sensor of the tests model_ffc reaches 0.81-1.03 times it. Where leakage bends the response the
+error of the combined factor and of the dark (:func:`correction_uncertainty`), which model_ffc
+reaches on the simulated sensor of the tests. Where leakage bends the response the
 correction rests on the sweep's fitted a and b, whose errors are strongly correlated with each
 other (about -0.998) and with g; the calibration stores per-parameter sigmas only, so that part
 of the floor cannot be computed from the calibration. :mod:`hsiffc.flatfield.floor` computes it from
-the sweep's design (the fit's Cramer-Rao bound with the full covariance): model_ffc is at
-0.95-1.11 times it at alpha 5.5-50 % (0.15-0.34 %, rising with alpha). Lowering it needs more
-information on a and b (more frames or light levels in the bent part of the sweep), not another
-estimator: shrinking each pixel's a and b towards its band's (tried) halves their errors but
-moves the model away from the samples, raising the fixed pattern in most bands above alpha
-10 % (up to 2.7 times).
+the sweep's design (the fit's Cramer-Rao bound with the full covariance); model_ffc reaches it
+too, and it rises with alpha. Lowering it needs more information on a and b (more frames or
+light levels in the bent part of the sweep), not another estimator: shrinking each pixel's a
+and b towards its band's makes their errors smaller but moves the model away from the samples,
+which raises the fixed pattern where leakage bends the response.
 """
 
 from __future__ import annotations

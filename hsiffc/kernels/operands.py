@@ -33,7 +33,7 @@ def flat_operands(*values, names=None):
     already has the full size, else a broadcast copy. Smaller results (the serial build) get
     every operand as a float64 array of the full size: copies that cost nothing at that size,
     and one compiled specialisation per kernel instead of one per mix of scalars, float32 and
-    float64 (numba compiles each mix anew, 5-30 s apiece for the leakage kernels). Every array
+    float64 (numba compiles each mix anew, and a leakage kernel's compile is long). Every array
     operand is a read-only view (:func:`read_only`). Kernels index operands with :func:`at`.
     """
     arrays = [float_array(v) for v in values]
