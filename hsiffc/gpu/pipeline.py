@@ -266,7 +266,12 @@ class GpuPipeline:
 
     # -- one frame ----------------------------------------------------------------------------
     def _launch(self, d_raw, d_dq, has_dq, shape, exposure_ms, bit_depth, mosaic, bufs,
-                mode, fold, with_alpha, stream):
+                mode, fold, with_alpha, stream, eager_fill=False):
+        """Queue the kernels of one frame on ``stream``. A cube's values with no usable
+        sample within twice the tile are left NaN and listed, and filled by
+        :meth:`_fill_device` once the frame's count is back on the host (no launch on the
+        frames that have none); ``eager_fill`` queues the fill's passes at once instead,
+        each doing nothing unless a value was listed (the device-only benchmark)."""
         planes, (d_dark, _, _) = self._const(shape, exposure_ms, bit_depth, mosaic)
         cal = planes["cal"]
         mask = self.mask[1]
@@ -301,13 +306,32 @@ class GpuPipeline:
             "out_alpha": bufs["cube_alpha"]}
         m, f = (mode, fold) if "coef" not in planes else (0, False)
         self._bilinear(planes, cube, m, f, with_alpha, medians, stream)
-        if medians is None:  # the fill: medians only where a value was listed
-            medians = self._medians(planes, bufs, stream)
-            if medians is not None:
-                self.k.fill_missing[32, 128, stream](bufs["missing"], bufs["miss_list"],
-                                                      medians, m, cube["out"], cube["out_dq"])
+        if medians is None and eager_fill:
+            self._fill_missing(planes, bufs, cube, m, stream)
         if "coef" in planes:
             self._matrix(planes, bufs, mode, fold, with_alpha, stream)
+
+    def _fill_missing(self, planes, bufs, cube, mode, stream):
+        """The listed values of ``cube`` (its ``out`` and ``out_dq``) filled with the exact
+        band medians, found on the device (passes that do nothing if none was listed)."""
+        medians = self._medians(planes, bufs, stream)
+        if medians is not None:
+            self.k.fill_missing[32, 128, stream](bufs["missing"], bufs["miss_list"], medians,
+                                                 mode, cube["out"], cube["out_dq"])
+
+    def _fill_device(self, slot):
+        """A frame whose cube listed values to fill (the count is on the host): the band
+        medians and the fill on the device, the correction matrix again if there is one, the
+        output downloaded again (synchronous: such frames are rare)."""
+        dev, st, planes = slot["dev"], slot["stream"], slot["planes"]
+        if "coef" in planes:
+            cube = {**dev, "out": dev["cube"], "out_dq": dev["cube_dq"]}
+            self._fill_missing(planes, dev, cube, 0, st)
+            self._matrix(planes, dev, slot["mode"], slot["fold"], slot["alpha"], st)
+        else:
+            self._fill_missing(planes, dev, dev, slot["mode"], st)
+        self._download(slot)
+        st.synchronize()
 
     def _two_point(self, tp, d_raw, bufs, grid, stream):
         """Eq. (5) on the corrected frame in place: the test level per band (``"paper"``),
@@ -634,6 +658,8 @@ class GpuPipeline:
             host = slot["host"]
             if self.rec is not None and self._host_fill(slot):
                 self._fill(slot)
+            elif self.rec is not None and int(host["missing"][0]):
+                self._fill_device(slot)
             pick = (lambda a: a.copy()) if copy else (lambda a: a)
             alpha = pick(host["alpha"]) if slot["alpha"] else None
             return StreamItem(pick(host["out"]), pick(host["out_dq"]), alpha, meta), None
