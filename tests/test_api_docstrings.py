@@ -1,8 +1,8 @@
 """The public API's docstrings: numpydoc with an Examples section whose examples run.
 
-The public API is what ``hsiffc`` and its io face export (``__all__``). Each class or function
-there has an Examples section; its examples run here with the globals of the module that
-defines it, as ``--doctest-modules`` runs them."""
+The public API is what ``hsiffc`` and its io and files faces export (``__all__``). Each class
+or function there has an Examples section; its examples run here with the globals of the
+module that defines it, as ``--doctest-modules`` runs them."""
 
 from __future__ import annotations
 
@@ -14,13 +14,14 @@ import pytest
 from griffe import Docstring
 
 import hsiffc
+import hsiffc.files
 import hsiffc.io
 
 
 def public_objects() -> list[tuple[str, object]]:
     """(name, object) of every class and function the package faces export."""
     found = []
-    for face in (hsiffc, hsiffc.io):
+    for face in (hsiffc, hsiffc.io, hsiffc.files):
         for name in face.__all__:
             obj = getattr(face, name)
             if inspect.isclass(obj) or inspect.isfunction(obj):
@@ -34,7 +35,8 @@ PUBLIC = public_objects()
 def test_the_faces_export_what_the_api_promises():
     names = {name for name, _ in PUBLIC}
     assert {"hsiffc.Sweep", "hsiffc.DQ", "hsiffc.io.open_source", "hsiffc.io.read_corrected",
-            "hsiffc.io.write_cube"} <= names
+            "hsiffc.io.write_cube", "hsiffc.files.atomic_path",
+            "hsiffc.files.folder_lock"} <= names
     # the values without a docstring of their own are described in the face's docstring
     values = [n for n in hsiffc.io.__all__ if not callable(getattr(hsiffc.io, n))]
     assert values and [n for n in values if n not in hsiffc.io.__doc__] == []

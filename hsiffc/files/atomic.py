@@ -45,20 +45,45 @@ from pathlib import Path
 
 from ..errors import HsiffcError
 
-__all__ = ["FolderLockedError", "OutputError", "OutputExistsError", "WritePolicy",
+__all__ = ["OutputError", "OutputExistsError", "WritePolicy",
            "atomic_path", "atomic_write_bytes", "atomic_write_text", "check_output",
-           "check_output_folder", "current_policy", "file_kind", "folder_lock",
+           "check_output_folder", "current_policy", "file_kind",
            "protect_inputs", "require_regular_input", "require_private_file", "write_policy"]
 
 PART_SUFFIX = ".part"
 
 
 class OutputError(HsiffcError, OSError):
-    """An output file cannot or must not be written (the message says why and what to do)."""
+    """An output file cannot or must not be written (the message says why and what to do).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> try:
+    ...     check_output(tempfile.mkdtemp())          # a folder is not a file name
+    ... except OutputError as exc:
+    ...     print(str(exc).split(": ", 1)[1])
+    is a folder; give a file name (the folder was left as it was)
+    """
 
 
 class OutputExistsError(OutputError, FileExistsError):
-    """The output exists and replacing it was not asked for."""
+    """The output exists and replacing it was not asked for.
+
+    Also a :class:`FileExistsError`, so code that catches that one catches it too.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> out = Path(tempfile.mkdtemp()) / "notes.txt"
+    >>> _ = out.write_text("kept")                    # a file hsiffc did not write
+    >>> try:
+    ...     check_output(out)
+    ... except FileExistsError as exc:
+    ...     print(type(exc).__name__, out.read_text())
+    OutputExistsError kept
+    """
 
 
 # -- file kinds: the one place that says whether a path is a regular file we may touch --------
@@ -204,6 +229,26 @@ def write_policy(*, overwrite: bool = False, inputs=()):
         Writes that do not say ``overwrite=`` themselves replace existing files.
     inputs : iterable of path-like
         The command's inputs: no write inside the block may replace them.
+
+    Examples
+    --------
+    A tool that reads ``raw.txt`` and writes ``notes.txt``, replacing old notes but never its
+    input:
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> raw, notes = folder / "raw.txt", folder / "notes.txt"
+    >>> _ = raw.write_text("data"); _ = notes.write_text("old notes")
+    >>> with write_policy(overwrite=True, inputs=[raw]):
+    ...     atomic_write_text(notes, "new notes")     # replaced: overwrite is the default here
+    ...     try:
+    ...         atomic_write_text(raw, "oops", overwrite=True)
+    ...     except OutputError:
+    ...         print("refused:", raw.read_text())
+    refused: data
+    >>> notes.read_text()
+    'new notes'
     """
     policy = WritePolicy(overwrite=bool(overwrite))
     policy.protect(inputs)
@@ -264,6 +309,21 @@ def check_output(path, *, overwrite: bool | None = None, inputs=()) -> Path:
         ``overwrite``).
     OutputExistsError
         ``path`` exists and ``overwrite`` is false.
+
+    Examples
+    --------
+    Check every output name before the work starts, so that a refusal costs nothing:
+
+    >>> import tempfile
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> check_output(folder / "cube.tif").name
+    'cube.tif'
+    >>> _ = (folder / "old.tif").write_bytes(b"")
+    >>> try:
+    ...     check_output(folder / "old.tif")
+    ... except OutputExistsError:
+    ...     print("exists: pass overwrite=True to replace it")
+    exists: pass overwrite=True to replace it
     """
     path = Path(path)
     policy = current_policy()
@@ -374,6 +434,22 @@ def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None):
         See :func:`check_output`.
     OSError
         Writing failed (permission, disk full, ...); it names ``path``.
+
+    Examples
+    --------
+    Any writer that takes a file name (numpy, tifffile, matplotlib ...) writes the temporary
+    file; the final name appears only when the block ends without an error:
+
+    >>> import tempfile
+    >>> import numpy as np
+    >>> out = Path(tempfile.mkdtemp()) / "offsets.npy"
+    >>> with atomic_path(out) as tmp:
+    ...     with open(tmp, "wb") as f:
+    ...         np.save(f, np.arange(3))
+    ...     print(out.exists())                       # not yet at the final name
+    False
+    >>> np.load(out).tolist()
+    [0, 1, 2]
     """
     path = Path(path)
     inputs = list(inputs)
@@ -444,13 +520,32 @@ def _fsync_folder(folder: Path) -> None:
 
 
 def atomic_write_text(path, text: str, *, overwrite: bool | None = None, inputs=()) -> None:
-    """Write ``text`` to ``path`` atomically (UTF-8); rules of :func:`atomic_path`."""
+    """Write ``text`` to ``path`` atomically (UTF-8); rules of :func:`atomic_path`.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> out = Path(tempfile.mkdtemp()) / "report.md"
+    >>> atomic_write_text(out, "# Report")
+    >>> atomic_write_text(out, "# Report, updated")    # this process wrote it: allowed
+    >>> out.read_text()
+    '# Report, updated'
+    """
     with atomic_path(path, overwrite=overwrite, inputs=inputs) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
 
 
 def atomic_write_bytes(path, data: bytes, *, overwrite: bool | None = None, inputs=()) -> None:
-    """Write ``data`` to ``path`` atomically; rules of :func:`atomic_path`."""
+    """Write ``data`` to ``path`` atomically; rules of :func:`atomic_path`.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> out = Path(tempfile.mkdtemp()) / "frame.raw"
+    >>> atomic_write_bytes(out, b"P5 2 1 255 ")
+    >>> out.read_bytes()
+    b'P5 2 1 255 '
+    """
     with atomic_path(path, overwrite=overwrite, inputs=inputs) as tmp:
         Path(tmp).write_bytes(data)
 
@@ -490,5 +585,6 @@ def check_output_folder(folder, *, overwrite: bool | None = None, inputs=()) -> 
     return folder
 
 
-# the batch folder lock lives beside the writer (re-exported: one place to import output rules)
+# the folder lock, importable from here too (its documented place: hsiffc.files.folderlock,
+# or the package face hsiffc.files)
 from .folderlock import LOCK_NAME, FolderLockedError, folder_lock  # noqa: E402,F401

@@ -18,7 +18,20 @@ LOCK_NAME = ".hsiffc.lock"
 
 
 class FolderLockedError(OutputError):
-    """Another run holds the lock of an output folder."""
+    """Another run holds the lock of an output folder.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> folder = tempfile.mkdtemp()
+    >>> with folder_lock(folder):
+    ...     try:
+    ...         with folder_lock(folder, what="my-tool"):
+    ...             pass
+    ...     except FolderLockedError as exc:
+    ...         print("another", str(exc).split("another ", 1)[1].split(" run")[0], "run")
+    another my-tool run
+    """
 
 
 @contextlib.contextmanager
@@ -43,6 +56,18 @@ def folder_lock(folder, *, wait_s: float = 0.0, what: str = "hsiffc"):
         ``.hsiffc.lock`` is not a lock file hsiffc made: a symbolic or hard link (e.g. to an
         input), a FIFO, device or folder, or a file holding anything but a lock record. It is
         refused without being written (never truncated).
+
+    Examples
+    --------
+    A tool that writes many files into one folder keeps a second run of itself (or of
+    ``hsiffc correct``) out while it works:
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> out = Path(tempfile.mkdtemp()) / "cubes"
+    >>> with folder_lock(out, what="my-tool") as holder:
+    ...     print(holder["command"], (out / LOCK_NAME).exists())
+    my-tool True
     """
     import fcntl
 
