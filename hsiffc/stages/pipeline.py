@@ -181,8 +181,7 @@ class Pipeline:
         self.steps = steps
         #: how a frame is run (:class:`Plan`), made by :meth:`prepare`; None until fitted
         self.plan = None
-        if all(s.is_fitted() for _, s in steps):
-            self.prepare()
+        self._prepare_if_fitted()
 
     @property
     def named_steps(self) -> dict:
@@ -212,9 +211,19 @@ class Pipeline:
             steps[name].set_params(**{param: value})
             steps[name].validate_params()
         check_order(self.steps)
-        if all(s.is_fitted() for _, s in self.steps):
-            self.prepare()
+        self._prepare_if_fitted()
         return self
+
+    def _prepare_if_fitted(self) -> None:
+        """:meth:`prepare` where every stage is fitted. A stage that cannot prepare yet (a
+        stateless one without its calibration) leaves :attr:`plan` None: :meth:`transform`
+        then makes it and raises that stage's error, as it would without a plan."""
+        self.plan = None
+        if all(s.is_fitted() for _, s in self.steps):
+            try:
+                self.prepare()
+            except HsiffcError:
+                self.plan = None
 
     def prepare(self) -> Plan:
         """Make, once, what running a frame needs: every stage's prepared per-frame state
