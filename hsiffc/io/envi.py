@@ -409,6 +409,8 @@ def corrected_envi_names(path, n_frames: int) -> list[Path]:
     (without suffix): ``NAME`` for one frame, ``NAME_f0000``, ``NAME_f0001``, ... for several;
     each frame's files are ``NAME.hdr``, ``NAME.img``, ``NAME.dq.hdr`` and ``NAME.dq.img``.
 
+    Examples
+    --------
     >>> [p.name for p in corrected_envi_names("a.corrected.tif", 2)]
     ['a.corrected_f0000', 'a.corrected_f0001']
     """

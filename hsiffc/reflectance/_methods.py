@@ -73,7 +73,7 @@ def _ratio_rate(frame, calibration=None, *, prepared=None, alpha_limit_percent=N
 
 
 def _model_rate(frame, calibration, *, prepared=None, alpha_limit_percent: float) -> Rates:
-    """The light rate k, the leakage model inverted per pixel (:func:`hsiffc.leakage.linearise`)."""
+    """The light rate k: the leakage model inverted per pixel (:mod:`hsiffc.leakage.linearise`)."""
     from ..leakage.linearise import linearise
 
     cal, t = calibration, frame.exposure_ms
