@@ -15,6 +15,16 @@ SAMPLE_CUBES = REPO / "sample_cubes"
 TOOL_CACHES = frozenset({".pytest_cache", ".hypothesis", "__pycache__"})
 
 
+#: at most this many test processes for ``-n auto`` (the README's test command): each compiles
+#: the kernels it needs that no other has cached yet and holds its own frames
+MAX_TEST_WORKERS = 4
+
+
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: one test process per core, at most :data:`MAX_TEST_WORKERS`."""
+    return max(1, min(os.cpu_count() or 1, MAX_TEST_WORKERS))
+
+
 def _names(folder: Path) -> set[str]:
     """The names in ``folder`` (top level only: cheap enough to take around every test;
     ``.ci/run`` checks the whole tree with ``git status``)."""
