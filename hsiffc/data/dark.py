@@ -76,7 +76,8 @@ class DarkLine:
     :attr:`recent` (a batch asks for the same exposure frame after frame).
 
     Made once where a correction is prepared (a pipeline's dark stage, a prepared
-    calibration: :class:`hsiffc.calibrate.PreparedCalibration`) and held there in plain view.
+    calibration: :class:`hsiffc.calibrate.prepared.PreparedCalibration`) and held there in
+    plain view.
 
     Parameters
     ----------
