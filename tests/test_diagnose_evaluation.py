@@ -118,6 +118,36 @@ def test_unexplained_follows_the_systematic_error_left():
     _honest(out)
 
 
+def test_leakage_start_values_follow_the_signal_span_and_no_pixel_falls_below_dark():
+    from hsiffc.diagnose.bases import B_SPAN_GRID, LeakageBase, b_grid
+
+    y = np.array([[100.0, 1100.0, 8100.0], [100.0, 1100.0, 8100.0]])
+    valid = np.ones_like(y, bool)
+    # b x span over the grid, for the span of the data and up to full scale (14-bit)
+    grid = b_grid(y, valid, full_scale=16383.0)
+    assert min(grid) == pytest.approx(B_SPAN_GRID[0] / (16383.0 - 100.0))
+    assert max(grid) == pytest.approx(B_SPAN_GRID[-1] / 8000.0)
+    # a leaky pixel in the dark stays at its dark level (the leakage model alone would drain it)
+    base = LeakageBase(False)
+    theta = np.array([[np.log(2.0), np.log(0.05), np.log(0.02), 50.0, 0.0]])
+    t, r = np.array([10.0, 100.0, 10.0]), np.array([0.0, 0.0, 1.0])
+    m, jac, _, dydt, _ = base.evaluate(theta, t, r)
+    assert m[0, :2].tolist() == [50.0, 50.0] and m[0, 2] > 50.0
+    assert jac[0, 0].tolist() == [0.0, 0.0, 0.0, 1.0] and dydt[0, 0] == 0.0
+    np.testing.assert_array_equal(base.predict(theta, t, r), m)
+
+
+def test_quantisation_bias_of_quiet_integer_samples():
+    from hsiffc.diagnose.design import quantisation_bias
+
+    v = np.array([0.0, 0.005, 0.02, 0.05, 0.1, 0.3, 5.0])
+    bias = quantisation_bias(v)
+    assert bias[0] == pytest.approx(1 / 12, rel=0.01)  # all rounding, no noise
+    assert np.all(np.diff(bias) < 0) and bias[-1] < 1e-12  # noisy samples: none
+    assert quantisation_bias(4 * v, quantum=2.0) == pytest.approx(4 * bias)
+    assert not quantisation_bias(v, quantum=0.0).any()
+
+
 def test_generator_is_seeded_and_split_in_halves():
     assert ev.case_spec(5) == ev.case_spec(5)
     assert ev.case_spec(5) != ev.case_spec(7)

@@ -181,6 +181,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     n_fit_samples = float(np.median(valid.sum(axis=1)))
     base = (LeakageBase(use_dc) if n_fit_samples >= LeakageBase.n_core + use_dc + 3
             else LinearBase(use_dc))
+    base.full_scale = fs
     if base.name == "linear":
         des.notes.append(f"{n_fit_samples:.0f} fit samples per pixel (median): too few for the "
                          "leakage model (4 parameters), the base is a linear response")
@@ -202,7 +203,11 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                 prev_index=prev_index, light=light, full_scale=fs, frame_gap=smp["frame_gap"])
     if smp["pairs"]:
         var_step = ds.noise_pairs(smp, valid & valid_ho)  # one frame, per step
-        noise2 = np.broadcast_to(var_step[None, :] / smp["n_ho"][None, :], y.shape)
+        # integer raw data: the rounding bias of a quiet pixel is in the held-out error but
+        # not in the frame pairs
+        quantum = 1.0 if np.issubdtype(sub.data.dtype, np.integer) else 0.0
+        noise2 = np.broadcast_to((var_step / smp["n_ho"] + ds.quantisation_bias(
+            var_step, quantum))[None, :], y.shape)
     else:  # no frame pairs: the noise from the spread of the held-out residual across pixels
         m = base.predict(theta, t, r)
         pv = _prediction_variance(base, theta, data)

@@ -35,6 +35,7 @@ __all__ = [
     "weighted_line",
 ]
 
+REFINE_ITER = 8  # Levenberg-Marquardt steps on the model that stays above the dark level
 LINEAR_LN_A = -60.0  # ln a (DN/ms) of a leakage parameter set that is a straight line in practice
 LINEAR_LN_B = float(np.log(0.01))
 
@@ -50,6 +51,7 @@ class LeakageBase(BaseModel):
 
     name = "leakage"
     n_core = 4
+    full_scale = None  # DN, set by diagnose: scales the start values of b (:func:`b_grid`)
     describe = "leakage model dY/dt = k - a exp(bY), per pixel (k, a, b, d)"
 
     def evaluate(self, theta, t, r):
@@ -71,10 +73,11 @@ class LeakageBase(BaseModel):
         """
         dc = theta[:, 4:5]
         m, jac = model_and_jacobian(theta[:, :4], t, r, dc)
+        m, jac, low = _at_least_dark(theta, m, self.with_dc(jac, t))
         kl = np.broadcast_to(np.exp(theta[:, 0:1]) * r, m.shape)
         with np.errstate(over="ignore"):
             leak = np.exp(np.minimum(theta[:, 1:2] + np.exp(theta[:, 2:3]) * m, 700.0))
-        return m, self.with_dc(jac, t), kl, kl + dc - leak, jac[..., 0]
+        return m, jac, kl, np.where(low, 0.0, kl + dc - leak), jac[..., 0]
 
     def predict(self, theta, t, r):
         """Model response (P, S) in DN.
@@ -92,7 +95,7 @@ class LeakageBase(BaseModel):
         -------
         ndarray, (P, S), DN
         """
-        return predict(theta[:, :4], t, r, theta[:, 4:5])
+        return np.maximum(predict(theta[:, :4], t, r, theta[:, 4:5]), theta[:, 3:4])
 
     def dark(self, theta):
         """Dark level (P, 1) in DN.
@@ -130,7 +133,7 @@ class LeakageBase(BaseModel):
 
         def cost_and_model(rate):
             with np.errstate(over="ignore", invalid="ignore"):
-                m = leakage_model.response(tt, rate[:, None], a, b, d)
+                m = np.maximum(leakage_model.response(tt, rate[:, None], a, b, d), d)
             c = (wd * np.where(wd > 0, y - m, 0.0) ** 2).sum(axis=1)
             return np.where(np.isfinite(c), c, np.inf), m
 
@@ -155,6 +158,39 @@ class LeakageBase(BaseModel):
         res = np.where(valid, y - self.predict(theta, t, r), 0.0)
         c = (w * res * res).sum(axis=1)
         return np.where(np.isfinite(c), c, np.inf)
+
+    def _refine(self, theta, y, t, r, valid, w, n_iter=REFINE_ITER):
+        """Levenberg-Marquardt steps (all pixels at once) on the model that never falls below
+        the dark level, from the calibration kernel's fit (whose model lets a dark sample leak
+        below the level the pixel was reset to)."""
+        th = theta.copy()
+        ww = np.where(valid, w, 0.0)
+        cost = self._cost(th, y, t, r, valid, w)
+        lam = np.full(len(th), 1e-3)
+        eye = np.eye(4)
+        for _ in range(n_iter):
+            m, jac, _, _, _ = self.evaluate(th, t, r)
+            jac = jac[..., :4]
+            res = np.where(valid, y - m, 0.0)
+            a = np.matmul((jac * ww[..., None]).transpose(0, 2, 1), jac)
+            g = (jac * (ww * res)[..., None]).sum(axis=1)
+            diag = np.einsum("pii->pi", a)
+            damp = a + lam[:, None, None] * (diag[:, :, None] * eye + 1e-12 * eye)
+            with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+                try:
+                    step = np.linalg.solve(damp, g[..., None])[..., 0]
+                except np.linalg.LinAlgError:
+                    break
+            trial = th.copy()
+            trial[:, :4] += np.where(np.isfinite(step), step, 0.0)
+            trial[:, 1] = np.clip(trial[:, 1], 2 * LINEAR_LN_A, 50.0)
+            trial[:, 2] = np.clip(trial[:, 2], np.log(1e-6), 0.0)  # b in the kernel's bounds
+            c = self._cost(trial, y, t, r, valid, w)
+            better = c < cost
+            th = np.where(better[:, None], trial, th)
+            cost = np.where(better, c, cost)
+            lam = np.where(better, lam / 3.0, lam * 5.0)
+        return th
 
     def from_linear(self, lin):
         """Leakage parameters that reproduce a linear fit (leakage switched off).
@@ -202,6 +238,7 @@ class LeakageBase(BaseModel):
         with np.errstate(divide="ignore", invalid="ignore"):
             theta = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark, dc])
         theta = np.where(np.all(np.isfinite(theta), axis=1)[:, None], theta, theta0)
+        theta = self._refine(theta, y, t, r, valid, w)
         # never worse than where it started (a diverging pixel keeps its start)
         worse = self._cost(theta, y, t, r, valid, w) > self._cost(theta0, y, t, r, valid, w)
         return np.where(worse[:, None], theta0, theta)
@@ -263,7 +300,7 @@ class LeakageBase(BaseModel):
         lin = LinearBase(self.dark_current).start(y, t, r, valid, w, dc0)
         from_lin = self.from_linear(lin)
         try:
-            guess = initial_guess(y, t, r, valid, w, lin[:, 2], b_grid=b_grid(y, valid))
+            guess = initial_guess(y, t, r, valid, w, lin[:, 2], b_grid=b_grid(y, valid, self.full_scale))
             guess = np.column_stack([guess, lin[:, 2]])
         except (FloatingPointError, ValueError):
             guess = from_lin
@@ -274,7 +311,21 @@ class LeakageBase(BaseModel):
         return np.where(better_b[:, None], b, a)
 
 
-def b_grid(y, valid):
+def _at_least_dark(theta, m, jac):
+    """A pixel never falls below the level it was reset to: where the leakage at the dark level
+    exceeds the light (and dark current) rate, as in the dark frames of a leaky pixel, the
+    response stays at the dark level (the model alone would leak below it). Returns the model,
+    its Jacobian (only the dark level acts there) and the mask of those samples."""
+    d = theta[:, 3:4]
+    low = m < d
+    if not low.any():
+        return m, jac, low
+    jac = np.where(low[..., None], 0.0, jac)
+    jac[..., 3] = np.where(low, 1.0, jac[..., 3])
+    return np.where(low, d, m), jac, low
+
+
+def b_grid(y, valid, full_scale=None):
     """Start values of b (1/DN) for the fit, scaled to the sweep's signal span: ``b x span``
     from 2 to 16 (the calibration's own grid is in absolute 1/DN, made for 10-bit data, and
     misses the leakage of a 14-bit sensor by a factor of 10). Sharper bends are left out: a
@@ -288,6 +339,9 @@ def b_grid(y, valid):
         Step means.
     valid : ndarray of bool, (P, S)
         Samples to use.
+    full_scale : float, optional, DN
+        The ADC's full scale: the grid is also scaled to the range from the darkest sample to
+        it (a sweep whose light stays low sees the leakage of a pixel far from saturation).
 
     Returns
     -------
@@ -295,9 +349,12 @@ def b_grid(y, valid):
     """
     yv = np.where(valid, y, np.nan)
     with np.errstate(invalid="ignore"):
-        span = np.nanmedian(np.nanmax(yv, axis=1) - np.nanmin(yv, axis=1))
-    span = float(span) if np.isfinite(span) and span > 0 else 1000.0
-    return tuple(float(v) / span for v in B_SPAN_GRID)
+        low = np.nanmedian(np.nanmin(yv, axis=1))
+        spans = [np.nanmedian(np.nanmax(yv, axis=1)) - low]
+    if full_scale is not None:
+        spans.append(full_scale - low)
+    spans = [float(s) for s in spans if np.isfinite(s) and s > 0] or [1000.0]
+    return tuple(sorted({float(v) / s for s in spans for v in B_SPAN_GRID}))
 
 
 B_SPAN_GRID = (2.0, 4.0, 8.0, 16.0)  # b x signal span tried as start values

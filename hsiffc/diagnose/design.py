@@ -9,6 +9,7 @@ model must predict steps it has not seen.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -302,6 +303,49 @@ def noise_pairs(smp, valid):
     return np.where(valid, pair, 0).sum(0) / np.maximum(valid.sum(0), 1)
 
 
+def quantisation_bias(var_pair, quantum=1.0):
+    """Variance (S,) in DN^2 that quantisation adds to a held-out sample but the frame pairs do
+    not show: with a temporal noise much below the quantum, both frames of a step fall on the
+    same code, and the rounding error is a bias of that pixel and step, not noise.
+
+    For a Gaussian noise sigma and a level uniform within the quantum q, the bias
+    ``E[Q(x)] - mu`` has the variance ``m(sigma) = q^2 sum_k exp(-4 pi^2 k^2 sigma^2 / q^2) /
+    (2 pi^2 k^2)`` (q^2 / 12 at sigma = 0, nothing at sigma >~ 0.4 q), and the frame pairs
+    measure ``sigma^2 + q^2 / 12 - m(sigma)``; sigma is solved from that per step.
+
+    Parameters
+    ----------
+    var_pair : ndarray, (S,), DN^2
+        From :func:`noise_pairs`.
+    quantum : float, DN
+        Step of the recorded values (1 for integer raw data; 0: not quantised).
+
+    Returns
+    -------
+    ndarray, (S,), DN^2
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> quantisation_bias(np.array([0.0, 100.0])).round(3).tolist()
+    [0.083, 0.0]
+    """
+    v = np.asarray(var_pair, float)
+    if quantum <= 0:
+        return np.zeros_like(v)
+    pair, bias = _quantisation_table()
+    return quantum ** 2 * np.interp(np.maximum(v, 0.0) / quantum ** 2, pair, bias)
+
+
+@functools.lru_cache(maxsize=1)
+def _quantisation_table():
+    """(pair variance, bias variance) in units of the quantum squared, sigma from 0 to 2."""
+    s2 = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 400)])
+    k = np.arange(1, 401)[:, None]
+    bias = (np.exp(-4 * np.pi ** 2 * k ** 2 * s2[None, :]) / (2 * np.pi ** 2 * k ** 2)).sum(0)
+    return s2 + 1.0 / 12 - bias, bias  # the pair variance grows with sigma
+
+
 def noise_from_spread(res_ho, valid_ho, signal, pred_var, n_frames):
     """Temporal variance of one frame per step (S,) without frame pairs: per held-out step, the
     robust spread across pixels of the held-out residual (a linear trend in signal removed; a
@@ -369,7 +413,16 @@ def frame_variance(sub, smp):
     Returns
     -------
     callable or None
-        ``variance(signal_dn)`` in DN^2 (:meth:`hsiffc.calibrate.PhotonTransfer.variance`).
+        ``variance(signal_dn)`` in DN^2 (:meth:`hsiffc.calibrate.PhotonTransfer.variance`,
+        plus :func:`quantisation_bias` for integer raw data).
     """
     ptc = photon_transfer(sub) if smp["pairs"] else None
-    return None if ptc is None else ptc.variance
+    if ptc is None:
+        return None
+    if not np.issubdtype(sub.data.dtype, np.integer):
+        return ptc.variance
+
+    def variance(signal):  # integer data: the rounding bias of quiet samples too
+        v = np.asarray(ptc.variance(signal), float)
+        return v + quantisation_bias(v.ravel()).reshape(v.shape)
+    return variance

@@ -303,7 +303,12 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                                f"{best[1]['name']} is kept as the more parsimonious (BIC "
                                f"{best[0].bic:.6g} against {trial.bic:.6g})")})
         chosen = best[0].names
-        current = evaluate(fitpredict(chosen, data, current.state), chosen, data, n_pix, n_light)
+        full = fitpredict(chosen, data, current.state)
+        # the next round's trials each get a linearised base step from this fit: so does the
+        # model they are measured against (a base fit short of its optimum would credit that
+        # step to whichever effect is tried next)
+        current = evaluate(fitpredict(chosen, data, full, quick=True), chosen, data, n_pix,
+                           n_light)
     return current
 
 
