@@ -45,3 +45,8 @@ class CalibrationMismatchError(HsiffcError, ValueError):
 
 class HsiffcWarning(UserWarning):
     """Base class of hsiffc warnings (a library never prints; it warns)."""
+
+
+class MissingMosaicWarning(HsiffcWarning):
+    """A frame gives no mosaic layout but its calibration has one: corrected pixel by pixel,
+    per-band figures over the whole frame as one band."""

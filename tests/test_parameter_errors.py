@@ -3,6 +3,8 @@ frame that does not fit its calibration. One test per message."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import tifffile
 
@@ -100,6 +102,24 @@ def test_frame_of_another_mosaic_shape_or_depth_is_refused_with_both_values(demo
         with pytest.raises(HsiffcError, match="does not fit calibration") as info:
             stage.transform(frame)
         assert message in str(info.value)
+
+
+@pytest.mark.parametrize("stages", [("alpha_mask",), ("linearise",)])
+def test_frame_without_a_mosaic_on_a_mosaic_calibration_is_warned_in_python(demo_result, stages):
+    # the batch said so for a file; a frame built in Python went through silently
+    from hsiffc.data.frame import Frame
+    from hsiffc.errors import MissingMosaicWarning
+
+    cal = demo_result.calibration
+    pipe = Pipeline([(name, create(name, calibration=cal)) for name in stages])
+    raw = cal.dark + 50.0
+    said = re.escape(f"is for {cal.mosaic.describe()}, {cal.mosaic.n_bands} bands")
+    with pytest.warns(MissingMosaicWarning,
+                      match=f"gives no mosaic layout but calibration .* {said}"):
+        pipe.transform(Frame.from_raw(raw, exposure_ms=10.0, bit_depth=cal.bit_depth))
+    # with its layout, nothing to say (the suite turns hsiffc warnings into errors)
+    pipe.transform(Frame.from_raw(raw, exposure_ms=10.0, bit_depth=cal.bit_depth,
+                                  mosaic=cal.mosaic))
 
 
 def test_file_without_a_mosaic_corrected_with_a_mosaic_calibration_is_warned(

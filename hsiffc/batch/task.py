@@ -13,6 +13,7 @@ import os
 import queue
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ from .. import __version__
 from ..files.atomic import PART_SUFFIX, atomic_path
 from ..cubes.product import frame_unit
 from ..data.dq import DQ
-from ..errors import DataFormatError, HsiffcError
+from ..errors import DataFormatError, HsiffcError, MissingMosaicWarning
 from ..data.frame import Frame
 from ..io.corrected import (
     BackgroundWriter,
@@ -148,6 +149,7 @@ def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame,
     path = Path(job.input)
     st = os.stat(path)
     hasher = Background(sha256_file, path) if settings.hash_inputs else None
+    said_once = False
     try:
         with open_input(path, settings.overrides) as src:
             if ctx.calibration is not None:
@@ -155,14 +157,18 @@ def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame,
                                                  bit_depth=src.bit_depth, mosaic=src.mosaic,
                                                  what=path.name)
                 if src.mosaic is None and ctx.calibration.mosaic is not None:
+                    said_once = True  # the stages would say it again for every frame
                     res["warnings"].append(
                         "the file gives no mosaic layout but the calibration is for "
                         f"{ctx.calibration.mosaic.describe()}, {ctx.calibration.mosaic.n_bands} "
                         "bands: corrected pixel by pixel, its "
                         "per-band figures are for the whole frame as one band; give the "
                         "layout (--mosaic, or a sidecar hsiffc.toml) to get them by band")
-            stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st, hasher=hasher,
-                        commits=commits)
+            with warnings.catch_warnings():
+                if said_once:
+                    warnings.simplefilter("ignore", MissingMosaicWarning)
+                stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st,
+                            hasher=hasher, commits=commits)
     finally:
         if hasher is not None:
             hasher.wait(raise_error=False)

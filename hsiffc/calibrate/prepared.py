@@ -141,3 +141,7 @@ class PreparedCalibration:
     def check_compatible(self, data=None, **facts) -> None:
         """:meth:`hsiffc.calibrate.Calibration.check_compatible`."""
         self.calibration.check_compatible(data, **facts)
+
+    def check_frame(self, frame, what: str = "the frame") -> None:
+        """:meth:`hsiffc.calibrate.Calibration.check_frame`."""
+        self.calibration.check_frame(frame, what)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as _dt
 import functools
 import hashlib
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,7 +19,8 @@ import numpy as np
 
 from .. import __version__
 from ..data.dark import dark_at
-from ..errors import CalibrationMismatchError, DataFormatError, ParameterError
+from ..errors import (CalibrationMismatchError, DataFormatError, MissingMosaicWarning,
+                      ParameterError)
 from ..data.mosaic import Mosaic
 from ..data.products import read_product, write_product
 
@@ -317,6 +319,52 @@ class Calibration:
                 f"{what} does not fit calibration {self.identity} "
                 f"(fitted on {self.fitted_on.get('source', '?')}): " + "; ".join(problems)
                 + ". Calibrate this sensor configuration (hsiffc calibrate) or use its calibration.")
+
+    def check_frame(self, frame, what: str = "the frame") -> None:
+        """Check one frame against this calibration: what every stage that applies it asks.
+
+        Raises :class:`CalibrationMismatchError` as :meth:`check_compatible` does (frame
+        shape, bit depth, mosaic), and warns when the
+        frame gives no mosaic layout but the calibration has one
+        (:class:`hsiffc.errors.MissingMosaicWarning`): the correction still runs
+        pixel by pixel, but every per-band figure treats the frame as one band.
+
+        Parameters
+        ----------
+        frame : Frame
+            A 2-D frame (``data`` (H, W), ``bit_depth``, ``mosaic``).
+        what : str
+            How the messages name the frame.
+
+        Examples
+        --------
+        >>> import warnings
+        >>> import numpy as np
+        >>> from hsiffc.data.frame import Frame
+        >>> from hsiffc.calibrate import calibrate
+        >>> from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
+        >>> sweep = MosaicSensor((8, 8), seed=0).sweep(
+        ...     np.geomspace(2.0, 400.0, 12), "lamp A", n_frames=2, seed=1,
+        ...     irradiance_w_m2=PAPER_LIGHT_W_M2["training"] / 4)
+        >>> cal = calibrate(sweep)
+        >>> raw = np.full((8, 8), 100, np.uint16)
+        >>> cal.check_frame(Frame.from_raw(raw, exposure_ms=10, bit_depth=cal.bit_depth,
+        ...                                mosaic=cal.mosaic))      # fits: nothing happens
+        >>> with warnings.catch_warnings(record=True) as seen:
+        ...     warnings.simplefilter("always")
+        ...     cal.check_frame(Frame.from_raw(raw, exposure_ms=10, bit_depth=cal.bit_depth))
+        >>> "no mosaic layout" in str(seen[0].message)
+        True
+        """
+        self.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
+                              mosaic=frame.mosaic, what=what)
+        if frame.mosaic is None and self.mosaic is not None:
+            warnings.warn(
+                f"{what} gives no mosaic layout but calibration {self.identity} is for "
+                f"{self.mosaic.describe()}, {self.mosaic.n_bands} bands: corrected pixel by "
+                "pixel, every per-band figure treats it as one band; give the frame its layout "
+                "(Frame(..., mosaic=cal.mosaic) or frame.replace(mosaic=cal.mosaic))",
+                MissingMosaicWarning, stacklevel=3)
 
     def in_domain(self, exposure_ms) -> np.ndarray:
         """True where an exposure lies inside the calibrated exposure range.

@@ -77,8 +77,7 @@ def _model_rate(frame, calibration, *, prepared=None, alpha_limit_percent: float
     from ..leakage.linearise import linearise
 
     cal, t = calibration, frame.exposure_ms
-    cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
-                         mosaic=frame.mosaic, what="the frame")
+    cal.check_frame(frame)
     if frame.dark_removed is not None:
         dark, current = frame.dark_removed, 0.0
     else:

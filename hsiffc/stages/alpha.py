@@ -46,8 +46,7 @@ class AlphaMask(Stage):
         cal = self.require_calibration()
         for f in frames:
             if not f.is_cube:
-                cal.check_compatible(frame_shape=f.data.shape, bit_depth=f.bit_depth,
-                                     mosaic=f.mosaic, what="a training frame")
+                cal.check_frame(f, what="a training frame")
                 break
         self.fitted_ = True
         return self
@@ -72,8 +71,7 @@ class AlphaMask(Stage):
     def calibration_for(self, frame):
         """The calibration, checked against ``frame`` (shape, bit depth, mosaic)."""
         cal = self.require_calibration()
-        cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
-                             mosaic=frame.mosaic, what="the frame")
+        cal.check_frame(frame)
         return cal
 
     def flagged(self, frame, alpha, dq):
@@ -93,8 +91,7 @@ class PreparedAlphaMask(PreparedWithCalibration):
         """:meth:`AlphaMask.transform`."""
         st = self.stage
         cal = self.calibration
-        cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
-                             mosaic=frame.mosaic, what="the frame")
+        cal.check_frame(frame)
         alpha, dq = validity_flags(frame.raw, frame.exposure_ms, cal,
                                    threshold_percent=float(st.threshold_percent),
                                    method=st.method, dark=frame.dark_removed, dq=frame.dq)

@@ -121,9 +121,7 @@ class FusedFrontEnd:
         plane, how = dark.dark_for(frame.exposure_ms, frame.data.shape)
         if np.shape(plane) != frame.data.shape:
             subtract_dark(frame.data, plane)  # raises the dark stage's own error
-        self.calibration.check_compatible(frame_shape=frame.data.shape,
-                                          bit_depth=frame.bit_depth, mosaic=frame.mosaic,
-                                          what="the frame")
+        self.calibration.check_frame(frame)
         cal, extra_dq, band_map, n_bands = self.calibration, None, None, None
         if ffc is not None:
             if self.calibration_with_flat is not None:

@@ -49,8 +49,7 @@ class LeakageLinearise(Stage):
         """Per-pixel light rate k (DN/ms), DQ flags and model alpha of a frame, and the
         calibration used."""
         cal = self.require_calibration()
-        cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
-                             mosaic=frame.mosaic, what="the frame")
+        cal.check_frame(frame)
         lin = linearise(frame.raw, frame.exposure_ms, cal.a, cal.b, cal.dark, cal.dark_current,
                         full_scale_dn=2 ** frame.bit_depth - 1,
                         alpha_limit_percent=float(self.alpha_limit_percent))

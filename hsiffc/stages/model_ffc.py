@@ -74,8 +74,7 @@ class ModelFFC(Stage):
 
     def _cal_for(self, frame):
         cal = self.require_calibration()
-        cal.check_compatible(frame_shape=frame.data.shape, bit_depth=frame.bit_depth,
-                             mosaic=frame.mosaic, what="the frame")
+        cal.check_frame(frame)
         return cal
 
     def fit(self, frames):
