@@ -167,15 +167,25 @@ def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None
     w, nfr, gain, read_var = _weight_args(w, n_frames, noise, s_count)
     out_f = np.empty((p_count, 13))
     out_i = np.empty((p_count, 3), np.int32)
+    samples, steps, noise_model = _sample_groups(y, valid, w, nfr, gain, read_var, t, r, light,
+                                                 dark)
     pixelfit.fit_block(
-        np.ascontiguousarray(y, np.float64), np.ascontiguousarray(valid, np.bool_),
-        np.ascontiguousarray(w, np.float64), np.ascontiguousarray(nfr, np.float64),
-        float(gain), float(read_var), np.ascontiguousarray(t, np.float64),
-        np.ascontiguousarray(r, np.float64), np.ascontiguousarray(light, np.bool_),
-        np.ascontiguousarray(dark, np.bool_), bool(merge_darks), estimate, dc_in,
-        dark_model == "additive", b_starts, np.atleast_1d(np.asarray(margins, np.float64)), th0,
-        float(prior_sigma), int(max_iter), float(tol), bool(fallback), out_f, out_i)
+        samples, steps, noise_model,
+        pixelfit.DarkModel(bool(merge_darks), estimate, dc_in, dark_model == "additive"),
+        pixelfit.Starts(b_starts, np.atleast_1d(np.asarray(margins, np.float64)), th0),
+        pixelfit.FitControl(float(prior_sigma), int(max_iter), float(tol), bool(fallback)),
+        pixelfit.FitOutputs(out_f, out_i))
     return _to_fit(out_f, out_i)
+
+
+def _sample_groups(y, valid, w, nfr, gain, read_var, t, r, light, dark):
+    """The kernels' sample operands, contiguous and typed: (:class:`~.pixelsamples.SweepSamples`,
+    :class:`~.pixelsamples.Steps`, :class:`~.pixelsamples.Noise`)."""
+    f64 = (lambda a: np.ascontiguousarray(a, np.float64))
+    flag = (lambda a: np.ascontiguousarray(a, np.bool_))
+    return (pixelsamples.SweepSamples(f64(y), flag(valid), f64(w)),
+            pixelsamples.Steps(f64(t), f64(r), flag(light), flag(dark), f64(nfr)),
+            pixelsamples.Noise(float(gain), float(read_var)))
 
 
 def prepared_samples(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None,
@@ -194,11 +204,8 @@ def prepared_samples(y, valid, t, r, light, dark, *, w=None, n_frames=None, nois
     out_w = np.empty((p_count, s_count))
     out_d = np.empty((p_count, 4))
     pixelsamples.pixel_samples(
-        np.ascontiguousarray(y, np.float64), np.ascontiguousarray(valid, np.bool_),
-        np.ascontiguousarray(w, np.float64), np.ascontiguousarray(nfr, np.float64),
-        float(gain), float(read_var), np.ascontiguousarray(t, np.float64),
-        np.ascontiguousarray(light, np.bool_), np.ascontiguousarray(dark, np.bool_), estimate,
-        dc_in, out_y, out_w, out_d)
+        *_sample_groups(y, valid, w, nfr, gain, read_var, t, r, light, dark),
+        estimate, dc_in, pixelsamples.SampleOutputs(out_y, out_w, out_d))
     return {"y": out_y, "w": out_w, "dark_weight": out_d[:, 0], "dark_t_ms": out_d[:, 1],
             "dark_dn": out_d[:, 2], "dark_current": out_d[:, 3]}
 

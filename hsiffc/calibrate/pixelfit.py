@@ -17,9 +17,16 @@ Per pixel, in locals only (no (samples x pixels) temporaries):
 5. **Levenberg-Marquardt** (:mod:`hsiffc.calibrate.lm`) with bounds on every parameter.
 6. **Fallback**: where the leakage fit does not converge or fits worse than the linear model,
    the linear model is used (a = 0); each pixel gets a status code saying which and why.
+
+:func:`fit_block` takes its operands in named groups (:class:`~.pixelsamples.SweepSamples`,
+:class:`~.pixelsamples.Steps`, :class:`~.pixelsamples.Noise`, :class:`DarkModel`,
+:class:`Starts`, :class:`FitControl`, :class:`FitOutputs`) and hands each pixel its per-block
+scratch arrays as a :class:`Workspace`.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -60,11 +67,72 @@ F_THETA, F_SIGMA, F_DC, F_CHI2, F_CHI2_LIN, F_RMS, F_RREF = 0, 4, 8, 9, 10, 11, 
 I_N, I_STATUS, I_ITER = 0, 1, 2
 
 
+class DarkModel(NamedTuple):
+    """How the dark samples and the dark current enter the fit."""
+
+    merge: bool  #: the dark samples enter the light fit as one (their weighted mean)
+    estimate_dc: bool  #: dark current from the dark samples' line, else ``dc_in``
+    dc_in: object  #: (P,) float64 dark current, DN/ms (read unless ``estimate_dc``)
+    additive: bool  #: dark current added after the leakage, else to the light rate
+
+
+class Starts(NamedTuple):
+    """Start values of the leakage model."""
+
+    b_starts: object  #: float64 start values of b, 1/DN
+    margins: object  #: float64 saturation margins above the highest sample, in 1/b
+    theta0: object  #: (P, 4) float64 start values instead, or (0, 4)
+
+
+class FitControl(NamedTuple):
+    """The Levenberg-Marquardt fit's settings."""
+
+    prior_sigma: float  #: width of the prior on the saturation level and ln b
+    max_iter: int  #: iterations (0: start values only)
+    tol: float  #: relative cost change at convergence
+    fallback: bool  #: the linear model (a = 0) where the leakage fit fails
+
+
+class FitOutputs(NamedTuple):
+    """Filled in place: ``out_f`` (P, 13) float64 and ``out_i`` (P, 3) int32 (columns
+    ``F_*`` and ``I_*``)."""
+
+    out_f: object
+    out_i: object
+
+
+class Workspace(NamedTuple):
+    """Scratch arrays of one parallel task (a block of pixels fitted one after the other)."""
+
+    yq: object  #: (S + 1,) the fit's samples: levels, weights, exposures, rates
+    wq: object
+    tq: object
+    rq: object
+    buf: object  #: (5, S + 1)
+    h: object  #: (4, 4) normal matrix
+    gv: object  #: (4,) gradient
+    hn: object  #: (4, 4)
+    step: object  #: (4,)
+    ph: object  #: (4,) parameters
+    trial: object  #: (4,)
+    prior: object  #: (4,)
+    cov: object  #: (4, 4)
+    scratch: object  #: (4, 5)
+    lo: object  #: (4,) bounds
+    hi: object  #: (4,)
+
+
 @njit(**LOCALS_ONLY)
-def _fit_pixel(p, yp, wp, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, estimate_dc, dc_given, additive,
-               b_starts, margins, theta0, prior_sigma, max_iter, tol, fallback, weights_given,
-               nfr, gain, read_var, out_f, out_i, h, gv, hn, step, ph, trial, prior, cov,
-               scratch, lo, hi):
+def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, control, outputs,
+               work):
+    t, r, light, dark, nfr = steps
+    gain, read_var = noise
+    merge, estimate_dc, dc_in, additive = darks
+    dc_given = dc_in[p]
+    b_starts, margins, theta0 = starts
+    prior_sigma, max_iter, tol, fallback = control
+    out_f, out_i = outputs
+    yq, wq, tq, rq, buf, h, gv, hn, step, ph, trial, prior, cov, scratch, lo, hi = work
     n = t.size
     (nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max) = dark_line(
         yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr, gain, read_var)
@@ -259,39 +327,38 @@ def _fit_pixel(p, yp, wp, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge, 
 
 
 @njit(**LOCALS_ONLY)
-def _fit_range(p0, p1, ty, tw, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge,
-               estimate_dc, dc_in, additive, b_starts, margins, theta0, prior_sigma, max_iter,
-               tol, fallback, weights_given, nfr, gain, read_var, out_f, out_i, h, gv, hn, step,
-               ph, trial, prior, cov, scratch, lo, hi):
+def _fit_range(p0, p1, ty, tw, steps, infit, weights_given, noise, darks, starts, control,
+               outputs, work):
     """Pixels ``p0:p1`` one after the other (their samples in the rows of ``ty``, ``tw``)."""
     for p in range(p0, p1):
-        _fit_pixel(p, ty[p - p0], tw[p - p0], yq, wq, tq, rq, buf, t, r, light, dark, infit,
-                   merge, estimate_dc, dc_in[p], additive, b_starts, margins, theta0,
-                   prior_sigma, max_iter, tol, fallback, weights_given, nfr, gain, read_var,
-                   out_f, out_i, h, gv, hn, step, ph, trial, prior, cov, scratch, lo, hi)
+        _fit_pixel(p, ty[p - p0], tw[p - p0], steps, infit, weights_given, noise, darks, starts,
+                   control, outputs, work)
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estimate_dc, dc_in,
-              additive, b_starts, margins, theta0, prior_sigma, max_iter, tol, fallback, out_f,
-              out_i):
-    """Fit every pixel (column) of ``y`` (S, P) in parallel; see the module docstring.
+def fit_block(samples, steps, noise, darks, starts, control, outputs):
+    """Fit every pixel (column) of ``samples.y`` (S, P) in parallel; see the module docstring.
 
-    ``valid`` (S, P) marks usable samples; ``w`` (S, P) gives their weights (1 / variance,
-    DN^-2), or is (0, 0) to use the noise model ``nfr / (gain * signal + read_var)`` (``nfr``
-    (S,) frames per step; ``gain`` DN/e-, ``read_var`` DN^2). ``t``, ``r``, ``light``,
-    ``dark`` (S,): exposure (ms), relative light rate, sample kind. ``merge`` replaces the dark
-    samples by their weighted mean in the fit. ``dc_in`` (P,) is the dark current (DN/ms)
-    unless ``estimate_dc``; ``additive`` adds it after the leakage instead of to the light rate.
+    ``samples`` (:class:`~.pixelsamples.SweepSamples`): ``valid`` (S, P) marks usable samples;
+    ``w`` (S, P) gives their weights (1 / variance, DN^-2), or is (0, 0) to use the noise model
+    ``nfr / (gain * signal + read_var)`` (``steps.nfr`` (S,) frames per step; ``noise``
+    :class:`~.pixelsamples.Noise`). ``steps`` (:class:`~.pixelsamples.Steps`): ``t``, ``r``,
+    ``light``, ``dark`` (S,): exposure (ms), relative light rate, sample kind. ``darks``
+    (:class:`DarkModel`): ``merge`` replaces the dark samples by their weighted mean in the
+    fit; ``dc_in`` (P,) is the dark current (DN/ms) unless ``estimate_dc``; ``additive`` adds
+    it after the leakage instead of to the light rate. ``starts`` (:class:`Starts`):
     ``b_starts``, ``margins``: start values of b (1/DN) and of the saturation margin above the
-    highest sample (in 1/b); ``theta0`` (P, 4) start values instead, or (0, 4). Outputs are
-    filled in place: ``out_f`` (P, 13) float64 (theta 4, sigma 4, dc, chi2, chi2 of the linear
-    model, RMS, highest light rate of the fitted samples) and ``out_i`` (P, 3) int32 (valid
-    samples, status, iterations).
+    highest sample (in 1/b); ``theta0`` (P, 4) start values instead, or (0, 4). ``control``:
+    :class:`FitControl`. Outputs (:class:`FitOutputs`) are filled in place: ``out_f`` (P, 13)
+    float64 (theta 4, sigma 4, dc, chi2, chi2 of the linear model, RMS, highest light rate of
+    the fitted samples) and ``out_i`` (P, 3) int32 (valid samples, status, iterations).
     """
+    y, valid, w = samples
+    t, _, light, dark, nfr = steps
+    read_var = noise.read_var
     npx = y.shape[1]
     n = t.size
-    infit = light | (dark & (not merge))
+    infit = light | (dark & (not darks.merge))
     weights_given = w.shape[0] > 0
     nblocks = (npx + BLOCK - 1) // BLOCK
     for blk in prange(nblocks):
@@ -300,26 +367,12 @@ def fit_block(y, valid, w, nfr, gain, read_var, t, r, light, dark, merge, estima
         ty = np.empty((BLOCK, n))
         tw = np.empty((BLOCK, n))
         gather(p0, p1, y, valid, w, nfr, read_var, light, dark, ty, tw)
-        yq = np.empty(n + 1)
-        wq = np.empty(n + 1)
-        tq = np.empty(n + 1)
-        rq = np.empty(n + 1)
-        buf = np.empty((5, n + 1))
-        h = np.empty((4, 4))
-        hn = np.empty((4, 4))
-        cov = np.empty((4, 4))
-        scratch = np.empty((4, 5))
-        gv = np.empty(4)
-        step = np.empty(4)
-        ph = np.empty(4)
-        trial = np.empty(4)
-        prior = np.empty(4)
-        lo = np.empty(4)
-        hi = np.empty(4)
-        _fit_range(p0, p1, ty, tw, yq, wq, tq, rq, buf, t, r, light, dark, infit, merge,
-                   estimate_dc, dc_in, additive, b_starts, margins, theta0, prior_sigma,
-                   max_iter, tol, fallback, weights_given, nfr, gain, read_var, out_f, out_i, h,
-                   gv, hn, step, ph, trial, prior, cov, scratch, lo, hi)
+        work = Workspace(np.empty(n + 1), np.empty(n + 1), np.empty(n + 1), np.empty(n + 1),
+                         np.empty((5, n + 1)), np.empty((4, 4)), np.empty(4), np.empty((4, 4)),
+                         np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty((4, 4)),
+                         np.empty((4, 5)), np.empty(4), np.empty(4))
+        _fit_range(p0, p1, ty, tw, steps, infit, weights_given, noise, darks, starts, control,
+                   outputs, work)
 
 
 

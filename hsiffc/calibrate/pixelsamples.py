@@ -5,9 +5,15 @@ the (S, P) inputs row by row); :func:`dark_line` fits a pixel's dark line and se
 noise-model weights of its light samples (:func:`light_weights`). The per-pixel fit
 (:mod:`hsiffc.calibrate.pixelfit`) calls them pixel by pixel; :func:`pixel_samples` returns what
 they prepare, for comparisons with other fitters.
+
+The kernels take their operands in named groups (:class:`SweepSamples`, :class:`Steps`,
+:class:`Noise`; numba types a named tuple per combination of its members' types); the compiled
+per-pixel functions they call keep separate arguments.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -15,6 +21,39 @@ from numba import njit, prange
 from .lm import LOCALS_ONLY
 
 BLOCK = 128  # pixels per parallel task
+
+
+class SweepSamples(NamedTuple):
+    """Every pixel's samples, one row per step (all C-contiguous)."""
+
+    y: object  #: (S, P) float64 step means, DN
+    valid: object  #: (S, P) bool, usable samples
+    w: object  #: (S, P) float64 weights (1 / variance, DN^-2), or (0, 0): the noise model's
+
+
+class Steps(NamedTuple):
+    """What each step is: (S,) arrays."""
+
+    t: object  #: float64 exposure, ms
+    r: object  #: float64 relative light rate (0 for darks)
+    light: object  #: bool, a light step
+    dark: object  #: bool, a dark step
+    nfr: object  #: float64 frames averaged into the step mean
+
+
+class Noise(NamedTuple):
+    """The photon-transfer noise model ``var = gain * signal + read_var`` (per frame)."""
+
+    gain: float  #: DN/e-
+    read_var: float  #: DN^2
+
+
+class SampleOutputs(NamedTuple):
+    """What :func:`pixel_samples` writes."""
+
+    y: object  #: (P, S) float64 step means, DN
+    w: object  #: (P, S) float64 weights (0: left out)
+    dark: object  #: (P, 4) float64 summed dark weight, mean dark exposure and level, dc
 
 
 @njit(**LOCALS_ONLY)
@@ -98,11 +137,16 @@ def dark_line(yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr,
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def pixel_samples(y, valid, w, nfr, gain, read_var, t, light, dark, estimate_dc, dc_in, out_y,
-                  out_w, out_dark):
-    """The samples each pixel's fit sees, as :func:`hsiffc.calibrate.pixelfit.fit_block` prepares them: step means
-    ``out_y`` and weights ``out_w`` (P, S; weight 0 = left out) and ``out_dark`` (P, 4): summed
-    dark weight, weighted mean dark exposure (ms) and level (DN), dark current (DN/ms)."""
+def pixel_samples(samples, steps, noise, estimate_dc, dc_in, outputs):
+    """The samples each pixel's fit sees, as :func:`hsiffc.calibrate.pixelfit.fit_block`
+    prepares them (:class:`SweepSamples`, :class:`Steps`, :class:`Noise`; ``dc_in`` (P,) the
+    dark current, DN/ms, unless ``estimate_dc``), into ``outputs`` (:class:`SampleOutputs`):
+    step means and weights (P, S; weight 0 = left out) and, per pixel, the summed dark weight,
+    weighted mean dark exposure (ms) and level (DN), dark current (DN/ms)."""
+    y, valid, w = samples
+    t, _, light, dark, nfr = steps
+    gain, read_var = noise
+    out_y, out_w, out_dark = outputs
     npx = y.shape[1]
     weights_given = w.shape[0] > 0
     for blk in prange((npx + BLOCK - 1) // BLOCK):
