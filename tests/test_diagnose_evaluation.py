@@ -179,18 +179,22 @@ def test_effect_sizes_are_in_units_of_the_detection_limit():
 
 #: a fixed sample of the development half (the fastest cases of its first 15 seeds): a light
 #: sweep with per-step light errors at 2x, a clean 8-bit light sweep, a within-step light
-#: change at 10x on an exposure sweep at several light rates, a clean mixed 10-bit sweep
-SAMPLE = (2, 8, 26, 28)
+#: change at 10x on an exposure sweep at several light rates, a clean mixed 10-bit sweep; and
+#: two that failed before: random per-step light errors at 10x on a mixed sweep without darks
+#: (their factors trended only along what the base absorbs), a clean leaky 14-bit sensor driven
+#: near its dynamic saturation (the base fit stayed linear and a readout nonlinearity was
+#: selected)
+SAMPLE = (2, 8, 26, 28, 36, 42)
 
 
 def test_fixed_sample_of_the_generator():
     results = ev.run(SAMPLE)
     summary = ev.summarise(results)
     kinds = [r["truth"]["kind"] for r in results]
-    assert kinds == ["single", "clean", "single", "clean"]
+    assert kinds == ["single", "clean", "single", "clean", "single", "clean"]
     assert [r["right"] for r in results] == [True] * len(SAMPLE), [
         (r["case"]["seed"], r["truth"], r["found"]["selected"]) for r in results]
-    assert summary["scores"]["false_alarm_clean"] == {"fraction": 0.0, "right": 0, "n": 2}
+    assert summary["scores"]["false_alarm_clean"] == {"fraction": 0.0, "right": 0, "n": 3}
     assert summary["n_cases"] == len(SAMPLE)
     text = ev.markdown(summary, [], "how")
     assert "Confusion matrix" in text and "| clean |" in text
@@ -219,9 +223,9 @@ def test_full_evaluation_half(tmp_path):
     assert ev.main(["--half", "eval", "--cases", "240", "--json", str(out)]) == 0
     summary = json.loads(out.read_text())["summary"]
     sc = summary["scores"]
-    assert sc["named_right_5x"]["fraction"] >= 0.6
-    assert sc["false_alarm_clean"]["fraction"] <= 0.35
-    assert sc["outside_unexplained"]["fraction"] >= 0.8
+    assert sc["named_right_5x"]["fraction"] >= 0.75
+    assert sc["false_alarm_clean"]["fraction"] <= 0.3
+    assert sc["outside_unexplained"]["fraction"] >= 0.7
     page = (Path(__file__).resolve().parents[1] / "docs" / "diagnose.md").read_text()
     published = page.split("<!-- BEGIN evaluation -->")[1].split("<!-- END evaluation -->")[0]
     table = ev.markdown(summary, [], "how").split("Shared data sets")[0]

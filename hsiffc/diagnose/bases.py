@@ -163,6 +163,16 @@ class LeakageBase(BaseModel):
         """Levenberg-Marquardt steps (all pixels at once) on the model that never falls below
         the dark level, from the calibration kernel's fit (whose model lets a dark sample leak
         below the level the pixel was reset to)."""
+        # only pixels with a fit sample below the dark level: elsewhere the kernel's model is
+        # this one, and its fit already the optimum
+        raw = predict(theta[:, :4], t, r, theta[:, 4:5])
+        rows = np.flatnonzero((valid & (raw < theta[:, 3:4])).any(axis=1))
+        if rows.size == 0:
+            return theta
+        if rows.size < len(theta):
+            out = theta.copy()
+            out[rows] = self._refine(theta[rows], y[rows], t, r, valid[rows], w[rows], n_iter)
+            return out
         th = theta.copy()
         ww = np.where(valid, w, 0.0)
         cost = self._cost(th, y, t, r, valid, w)

@@ -25,7 +25,9 @@ RULE = (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} stand
         f"{MIN_EXPLAINED:g} of the current systematic error (which must itself exceed "
         f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2); a per-step effect only when its step factors "
         f"show no trend with exposure, signal, light rate or acquisition order (F-test p >= "
-        f"{TREND_P:g}); among those the lowest BIC")
+        f"{TREND_P:g}); among those the lowest BIC, except a within-step effect whose held-out "
+        f"error is lower than the BIC choice's by more than {TIE_SIGMAS:g} standard errors (the "
+        "fit-half BIC does not see it)")
 
 
 @dataclass
@@ -287,6 +289,13 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         # among those that pass, the most parsimonious (lowest BIC): a per-step effect predicts
         # the held-out frame of its own step and would otherwise absorb what is common to a step
         best = min(passed, key=lambda p: p[0].bic)
+        # a within-step effect changes only the held-out half, which the fit-half BIC cannot
+        # see: it is chosen instead when its held-out error is measurably lower
+        for trial, entry in passed:
+            if EFFECTS[entry["name"]].scope == "pair" and trial is not best[0]:
+                gain, se = paired(best[0], trial, data.valid_ho)
+                if gain > TIE_SIGMAS * se:
+                    best = (trial, entry)
         best[1]["selected_in_round"] = True
         if ambiguous is not None:
             for trial, entry in passed:
