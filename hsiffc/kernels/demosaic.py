@@ -35,6 +35,8 @@ depend on the precision. The kernel's speed is on the benchmarks page.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange
 
@@ -42,7 +44,8 @@ from ..data.dq import DQ
 from .lattice import lattice_arrays, split_lattices, tent_sums, wide_column_sums
 from .launch import JIT_OPTIONS, Kernel
 
-__all__ = ["EPS", "interpolate_bands"]
+__all__ = ["EPS", "CubeOutputs", "LatticeLayout", "LatticePlanes", "MosaicPlanes",
+           "interpolate_bands"]
 
 #: Weight sums at or below this are "no source" (the smallest real weight is 1 / (4 ph pw)).
 EPS = 1e-6
@@ -51,6 +54,53 @@ _NEG = np.float32(-np.inf)
 _ZERO = np.float32(0.0)
 _ROWS = 8  # output rows per parallel task (one set of row buffers each)
 _JIT = {**JIT_OPTIONS, "cache": False}
+
+
+# The kernel takes its operands in named groups (numba types a named tuple per combination of
+# its members' types) and hands every block to its block function as separate arguments, as
+# the leakage kernels do. Absent planes are size-1 placeholders with a flag saying so.
+
+class MosaicPlanes(NamedTuple):
+    """The frame's planes the interpolation reads: (H, W) arrays."""
+
+    raw: object  #: float32 values, finite
+    dq: object  #: uint32 DQ (read where ``has_dq``)
+    has_dq: bool
+    alpha: object  #: float32 alpha (read where ``has_alpha``)
+    has_alpha: bool
+    ppi: object  #: float32 pseudo-panchromatic image (read where ``use_ppi``)
+    ppi_ok: object  #: bool, where the PPI is defined
+    use_ppi: bool  #: PPID: interpolate ``value - level * ppi``, add ``level * ppi`` back
+    levels: object  #: (B,) float64 PPI scale of each band
+
+
+class LatticeLayout(NamedTuple):
+    """Where each band's samples are (:func:`~hsiffc.kernels.lattice.lattice_arrays`)."""
+
+    lat_r: object  #: (L,) int64 first sample row of each lattice (0 <= r < ph)
+    lat_c: object  #: (L,) int64 first sample column (0 <= c < pw)
+    lat_start: object  #: (B + 1,) int64: band b's lattices are lat_start[b]:lat_start[b + 1]
+    col_left: object  #: (L, W) int64 lattice column at or left of each x (may be -1)
+    ph: int  #: tile rows
+    pw: int  #: tile columns
+
+
+class LatticePlanes(NamedTuple):
+    """The frame as one plane per lattice (:data:`~hsiffc.kernels.lattice.split_lattices`),
+    (L, ceil(H / ph), ceil(W / pw)); size-1 placeholders without flags."""
+
+    raw: object  #: float32
+    dq: object  #: uint32
+    ppi: object  #: float32
+
+
+class CubeOutputs(NamedTuple):
+    """What the interpolation writes."""
+
+    cube: object  #: (H, W, B) float32
+    dq: object  #: (H, W, B) uint32, every value written
+    alpha: object  #: (H, W, B) float32, or a size-1 placeholder
+    missing_rows: object  #: (H, B) bool, rows and bands with values left NaN
 
 
 @njit(**_JIT)
@@ -321,11 +371,10 @@ def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok,
     return missing
 
 
-def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok,
-                      use_ppi, levels, lat_r, lat_c, lat_start, col_left, ph, pw,
-                      cube, cube_dq, cube_alpha, missing_rows, lr, lf, lp):
+def _interpolate_rows(planes, layout, lattice_planes, outputs):
     """Fill ``cube`` (H, W, B), ``cube_dq`` (every value: each row is zeroed, then its flags
-    are set) and, where present, ``cube_alpha``.
+    are set) and, where present, ``cube_alpha`` (``outputs``, :class:`CubeOutputs`) from
+    :class:`MosaicPlanes`, :class:`LatticeLayout` and :class:`LatticePlanes`.
 
     ``lat_r/lat_c`` are the first sample row/column (0 <= r < ph, 0 <= c < pw, offset
     included) of each pattern position; those of band b are ``lat_start[b]:lat_start[b+1]``.
@@ -342,6 +391,10 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok,
     planes of raw, DQ and PPI (:data:`~hsiffc.kernels.lattice.split_lattices`), read only
     with flags (size-1 placeholders otherwise).
     """
+    raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok, use_ppi, levels = planes
+    lat_r, lat_c, lat_start, col_left, ph, pw = layout
+    lr, lf, lp = lattice_planes
+    cube, cube_dq, cube_alpha, missing_rows = outputs
     H = raw.shape[0]
     B = lat_start.shape[0] - 1
     n_lat = np.int64(1)  # not a literal 1: see below
@@ -357,7 +410,7 @@ def _interpolate_rows(raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok,
     return missing
 
 
-_interpolate = Kernel(_interpolate_rows, 0)
+_interpolate = Kernel(_interpolate_rows, (0, 0))
 
 
 def interpolate_bands(raw, dq, alpha, ppi, ppi_ok, levels, lattices, period,
@@ -400,14 +453,17 @@ def interpolate_bands(raw, dq, alpha, ppi, ppi_ok, levels, lattices, period,
         split_lattices(raw, dq, dummy_f if ppi is None else ppi, ppi is not None, lat_r, lat_c,
                        ph, pw, lr, lf, lp)
     _interpolate(
-        raw, np.zeros((1, 1), np.uint32) if dq is None else dq, dq is not None,
-        dummy_f if alpha is None else alpha, alpha is not None,
-        dummy_f if ppi is None else ppi,
-        np.ones((1, 1), np.bool_) if ppi_ok is None else ppi_ok, ppi is not None,
-        np.asarray(levels, np.float64), lat_r, lat_c, lat_start,
-        (np.arange(W)[None, :] - lat_c[:, None]) // pw, ph, pw,
-        cube, cube_dq, np.zeros((1, 1, 1), np.float32) if cube_alpha is None else cube_alpha,
-        missing_rows, lr, lf, lp)
+        MosaicPlanes(raw, np.zeros((1, 1), np.uint32) if dq is None else dq, dq is not None,
+                     dummy_f if alpha is None else alpha, alpha is not None,
+                     dummy_f if ppi is None else ppi,
+                     np.ones((1, 1), np.bool_) if ppi_ok is None else ppi_ok, ppi is not None,
+                     np.asarray(levels, np.float64)),
+        LatticeLayout(lat_r, lat_c, lat_start, (np.arange(W)[None, :] - lat_c[:, None]) // pw,
+                      ph, pw),
+        LatticePlanes(lr, lf, lp),
+        CubeOutputs(cube, cube_dq,
+                    np.zeros((1, 1, 1), np.float32) if cube_alpha is None else cube_alpha,
+                    missing_rows))
     for b, lattice in enumerate(lattices):  # a frame smaller than the tile may hold no sample
         if not any(r < H and c < W for r, c in lattice):  # of a band at all (the kernel
             cube[:, :, b] = np.nan  # marks missing values only where a sample is flagged)
