@@ -1,7 +1,7 @@
 """Diagnose benchmark: ``hsiffc diagnose`` on a 100-step sweep, 2 frames per step, 128 x 256 px
 (issue 14 target: under 10 s).
 
-The sweep is simulated (the EMVA 1288-like "mixed" design of :mod:`hsiffc.diagnose.designs`:
+The sweep is simulated (the EMVA 1288-like "mixed" design of :mod:`hsiffc.diagnose.simulated`:
 50 light steps with shuffled exposures 2-200 ms and changing light, each followed by a dark
 step) and written as an hsiffc TIFF sweep; the command reads it and diagnoses 2048 pixels
 (the default). Reported: median wall time of the whole command (read + diagnose) and of
@@ -25,7 +25,7 @@ from hsiffc.calibrate import fit_pixels, initial_guess
 from hsiffc.calibrate.samples import collect_samples
 from hsiffc.cli import main as cli
 from hsiffc.diagnose import diagnose
-from hsiffc.diagnose.designs import simulated_sweep
+from hsiffc.diagnose.simulated import simulated_sweep
 from hsiffc.io import read_sweep, write_sweep
 
 SHAPE = (128, 256)

@@ -49,6 +49,10 @@ MOVED = {
     'hsiffc.io.sourcefacts': 'hsiffc.io.source',
     'hsiffc.io.tiffpages': 'hsiffc.io.tiff',
     'hsiffc.io.document': 'hsiffc.io.tiff',
+    # diagnose's two base models in one module (hsiffc 0.2)
+    'hsiffc.diagnose.linearbase': 'hsiffc.diagnose.bases',
+    # simulated sweeps of users' designs, apart from design (what a sweep's design allows)
+    'hsiffc.diagnose.designs': 'hsiffc.diagnose.simulated',
     # the io package's plumbing, private behind hsiffc.io (hsiffc 0.2)
     'hsiffc.io.layout': 'hsiffc.io._layout',
     'hsiffc.io.quirks': 'hsiffc.io._quirks',

@@ -143,7 +143,7 @@ def test_the_data_file_beside_an_envi_header_input_is_never_written(files, tmp_p
 
 @pytest.mark.parametrize("given", ["folder", "descriptor"])
 def test_the_images_of_an_emva_measurement_input_are_never_written(tmp_path, capsys, given):
-    from hsiffc.diagnose.designs import simulated_sweep, write_emva1288
+    from hsiffc.diagnose.simulated import simulated_sweep, write_emva1288
     from hsiffc.io.emva import emva_files
 
     folder = tmp_path / "emva"

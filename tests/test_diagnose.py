@@ -13,7 +13,7 @@ import pytest
 
 from hsiffc.cli import main
 from hsiffc.diagnose import EFFECTS, diagnose
-from hsiffc.diagnose.designs import simulated_sweep, write_emva1288
+from hsiffc.diagnose.simulated import simulated_sweep, write_emva1288
 from hsiffc.diagnose.effects import add_effect
 from hsiffc.errors import DataFormatError
 from hsiffc.simulate import PAPER_LIGHT_W_M2

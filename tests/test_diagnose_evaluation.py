@@ -14,7 +14,7 @@ import pytest
 
 from hsiffc.diagnose import diagnose
 from hsiffc.diagnose import evaluation as ev
-from hsiffc.diagnose.designs import simulated_sweep
+from hsiffc.diagnose.simulated import simulated_sweep
 from hsiffc.diagnose.effects import add_effect, add_term, effect_term, truth_terms
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor, SensorParams
 

@@ -4,7 +4,7 @@
     python3 docs/gen/diagnose_figures.py [--quick]
 
 Detection limits: each library effect is injected into the simulated EMVA 1288-like sweep
-(``hsiffc.diagnose.designs.simulated_sweep("mixed")``, seeds 1 and 2; dark_current into the
+(``hsiffc.diagnose.simulated.simulated_sweep("mixed")``, seeds 1 and 2; dark_current into the
 same design without dark frames, since with darks it is part of the base) at a ladder of sizes;
 the limit is the smallest size at which diagnose selects that effect first on both seeds.
 Designs: clean data of every design (what is selected, what is skipped and why). Real data:
@@ -24,7 +24,7 @@ import numpy as np
 
 from hsiffc.files.atomic import atomic_write_text
 from hsiffc.diagnose import diagnose
-from hsiffc.diagnose.designs import simulated_sweep
+from hsiffc.diagnose.simulated import simulated_sweep
 from hsiffc.diagnose.effects import add_effect
 
 DOC = Path(__file__).resolve().parents[1] / "diagnose.md"

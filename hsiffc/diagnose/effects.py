@@ -434,7 +434,7 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = 
 
     Examples
     --------
-    >>> from hsiffc.diagnose.designs import simulated_sweep
+    >>> from hsiffc.diagnose.simulated import simulated_sweep
     >>> sweep = simulated_sweep("exposure", shape=(4, 4), n_steps=6, seed=3)
     >>> lagged = add_effect(sweep, "image_lag", 0.05)
     >>> lagged.data.shape == sweep.data.shape, bool((lagged.data != sweep.data).any())

@@ -143,7 +143,7 @@ def write_emva1288(sweep: Sweep, folder, *, overwrite: bool = False) -> Path:
                          "in EMVA 1288 format")
     dtype = np.uint8 if sweep.bit_depth <= 8 else np.uint16
     h, w = sweep.frame_shape
-    lines = ["# simulated by hsiffc (hsiffc.diagnose.designs.write_emva1288)",
+    lines = ["# simulated by hsiffc (hsiffc.diagnose.simulated.write_emva1288)",
              f"# {sweep.summary()}", "v 3.0", f"n {sweep.bit_depth} {w} {h}"]
     (folder / "images").mkdir(parents=True, exist_ok=True)
     for i, s in enumerate(sweep.steps()):
