@@ -14,8 +14,9 @@ from .data.dq import DQ
 from .data.mosaic import Mosaic
 from .data.sweep import Sweep
 
-from . import _moved
+from ._moved import install
 
-_moved.install()  # old module paths (hsiffc.frame, ...) keep working
+install()  # old module paths (hsiffc.frame, ...) keep working
+del install
 
 __all__ = ["DQ", "Mosaic", "Sweep", "__version__"]

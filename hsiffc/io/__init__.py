@@ -84,9 +84,9 @@ def write_cube(cube, path, **options):
     ['cube.hdr', 'cube.img', 'cube.dq.hdr', 'cube.dq.img']
     >>> tmp.cleanup()
     """
-    from ..cubes import write_cube as _write_cube
+    from .. import cubes
 
-    return _write_cube(cube, path, **options)
+    return cubes.write_cube(cube, path, **options)
 
 
 def read_sweep(path, **options):

@@ -30,7 +30,8 @@ from typing import Iterator
 
 import numpy as np
 
-from . import _quirks
+from ._quirks import (LayoutWarning, active_area_crop, detect_left_aligned, infer_bit_depth,
+                      single_channel, unshift)
 from ..data.frame import Frame
 from ..data.sweep import Sweep
 from ..errors import DataFormatError
@@ -223,7 +224,7 @@ class FrameSource:
         return raw if peek else self._finish(raw, lay, k)
 
     def _finish(self, raw, lay, k):
-        raw = _quirks.unshift(raw, self.bit_shift, lay.path, k)
+        raw = unshift(raw, self.bit_shift, lay.path, k)
         if self.active_area is not None:
             raw = self.active_area.crop(raw)
         if raw.dtype.kind in "ui" and raw.size and int(raw.max()) > 2 ** self.bit_depth - 1:
@@ -565,7 +566,7 @@ def resolve_facts(layouts, resolved, *, label: str, inspect: bool, n_frames: int
     strict = any(lay.strict for lay in layouts)
     first = first_frame() if needs_peek and n_frames else None
     if shift is None and first is not None and dtype == np.uint16 and not strict:
-        shift = _quirks.detect_left_aligned(first, bits)
+        shift = detect_left_aligned(first, bits)
         if shift:
             notes.append(f"samples left-aligned in 16-bit words: shifted right by {shift} bits "
                          "(detected from the values; --bit-shift 0 turns this off)")
@@ -574,7 +575,7 @@ def resolve_facts(layouts, resolved, *, label: str, inspect: bool, n_frames: int
                 bits_origin = f"detected (left-aligned by {shift} bits)"
                 # stacklevel: here, FrameSource.__init__, open_source, its caller
                 warnings.warn(f"{label}: {notes[-1]}; bit depth {bits}",
-                              _quirks.LayoutWarning, stacklevel=4)
+                              LayoutWarning, stacklevel=4)
     bit_shift = int(shift or 0)
     if bit_shift and (dtype.kind not in "ui" or bit_shift >= 8 * dtype.itemsize):
         origin = resolved[0][1].get("bit_shift", "the bit shift")
@@ -592,10 +593,10 @@ def resolve_facts(layouts, resolved, *, label: str, inspect: bool, n_frames: int
         elif dtype.kind == "f":
             raise missing_field_error(label, "bit_depth")
         else:
-            bits = _quirks.infer_bit_depth(dtype, label)
+            bits = infer_bit_depth(dtype, label)
             bits_origin = f"dtype {dtype} (assumed; full scale may be wrong)"
     h, w = stored[:2]
-    active_area, (h, w), note = _quirks.active_area_crop(active_area, (h, w), label)
+    active_area, (h, w), note = active_area_crop(active_area, (h, w), label)
     if note:
         notes.append(note)
     if channels:
@@ -697,4 +698,4 @@ def read_stored(lay: FileLayout, k: int) -> np.ndarray:
     if raw.shape != lay.shape:
         raise DataFormatError(f"frame {k} decodes to shape {raw.shape} but the header says "
                               f"{lay.shape}; the file is damaged", path=lay.path)
-    return _quirks.single_channel(raw, lay.path, k, lay.meta.get("channel_hint", ""))
+    return single_channel(raw, lay.path, k, lay.meta.get("channel_hint", ""))
