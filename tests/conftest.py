@@ -66,6 +66,12 @@ def emva_dir() -> Path:
 
 
 @pytest.fixture(scope="session")
+def shared_set():
+    """``get(name)``: the folder of a data set in ../shared/data (skips when absent)."""
+    return lambda name: _require(SHARED_DATA / name, f"the {name} set")
+
+
+@pytest.fixture(scope="session")
 def imec_xml() -> Path:
     """The real IMEC 5x5 sensor calibration XML (skips when absent)."""
     return _require(SHARED_DATA / "imec-ssm5x5" / "CMV2K-SSM5x5-600_875-5.5.9.2.xml",

@@ -21,11 +21,11 @@ import numpy as np
 from ..errors import DataFormatError
 from ..data.sweep import Sweep
 from . import design as ds
-from .bases import LeakageBase, LinearBase
+from .bases import LeakageBase, LinearBase, SharedLeakageBase
 from .effects import ALIASES, EFFECTS, OUTSIDE, inject
 from .fitting import (Data, State, context, describe_params, fitpredict, gram, projector,
                       refit_base, separable_fraction)
-from .select import RULE, evaluate, greedy, leakage_check
+from .select import RULE, equally_good, evaluate, greedy, leakage_check
 from .structure import groupings, structure
 
 __all__ = ["diagnose", "EFFECTS", "OUTSIDE", "inject", "list_effects"]
@@ -158,6 +158,11 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                 "held-out data. Record more light steps", sweep)
     y, y_ho, t, r = smp["y"], smp["y_ho"], smp["t"], smp["r"]
     fs = float(sweep.full_scale_dn)
+    if smp["clip_dn"] is not None:  # the data clip below the ADC's full scale
+        fs = smp["clip_dn"]
+        des.notes.append(f"the frames clip at {fs:g} DN, below the ADC's full scale "
+                         f"({sweep.full_scale_dn} DN): a full well that fills first; steps with "
+                         "a frame there are left out and the clip acts as full scale")
     kind = smp["kind"]
     light = kind == "light"
     n_fit = smp["n_fit"]
@@ -237,10 +242,23 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                    label=base.name, ambiguous=ambiguous)
     leakage = {"verdict": "not tested", "reason": "the base model is linear"}
     if base.name == "leakage":
+        # the same model with one leakage shape for the sensor (two parameters a pixel fewer):
+        # kept when it explains the sweep as well with fewer parameters. Not tried next to a
+        # per-pixel nonlinearity, which says that the bend differs from pixel to pixel
+        if "pixel_nonlinearity" not in final.names:
+            shared = SharedLeakageBase(use_dc)
+            shared.full_scale = fs
+            sh_state = State(shared, shared.start(y, t, r, valid, w, per_pixel=theta))
+            sh_base = evaluate(refit_base(y, data, sh_state), [], data, n_pix, n_light)
+            sh_final = (evaluate(fitpredict(final.names, data, sh_state), final.names, data,
+                                 n_pix, n_light) if final.names else sh_base)
+            if sh_final.bic < final.bic and equally_good(final, sh_final, data.valid_ho,
+                                                         noise_floor):
+                final, base_fit = sh_final, sh_base
         lin = LinearBase(use_dc)
         lin_state = State(lin, lin.start(y, t, r, valid, w))
-        lin_state.prediction = lin.predict(lin_state.theta, t, r)
-        lin_fit = evaluate(lin_state, [], data, n_pix, n_light)
+        # the same linearised base step as the leakage bases and every trial fit get
+        lin_fit = evaluate(refit_base(y, data, lin_state), [], data, n_pix, n_light)
         skipped_lin, testable_lin, weak_lin = _identifiable(names, lin, lin_state.theta, data,
                                                             des, dark_desc)
         ambiguous_lin: list = []

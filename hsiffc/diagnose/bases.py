@@ -34,10 +34,13 @@ __all__ = [
     "BaseModel",
     "LeakageBase",
     "LinearBase",
+    "SharedLeakageBase",
     "dark_current_from_darks",
     "weighted_line",
 ]
 
+SHARED_MAX_ITER = 12  # accepted steps of one shared fit at most (it starts warm in the search)
+SHARED_TOL = 1e-2  # fall of the weighted cost (chi-square units) that ends the shared fit
 REFINE_ITER = 8  # Levenberg-Marquardt steps on the model that stays above the dark level
 LINEAR_LN_A = -60.0  # ln a (DN/ms) of a leakage parameter set that is a straight line in practice
 LINEAR_LN_B = float(np.log(0.01))
@@ -114,6 +117,7 @@ class BaseModel:
     """
 
     n_core = 0
+    n_shared = 0  # parameters shared by all pixels
 
     def __init__(self, dark_current: bool):
         self.dark_current = bool(dark_current)
@@ -620,6 +624,186 @@ class LeakageBase(BaseModel):
         return np.where(better_b[:, None], b, a)
 
 
+class SharedLeakageBase(LeakageBase):
+    """The leakage model with one leakage shape for the whole sensor: a and b shared by every
+    pixel, gain and dark level per pixel; theta (P, 5) as :class:`LeakageBase`, with the
+    columns ln a and ln b equal in every row.
+
+    Two parameters a pixel and two in all: as many as a linear response (g, dark per pixel)
+    with a readout nonlinearity shared by the sensor, so that the two explanations of a bent
+    response are compared on one footing (the per-pixel leakage model pays two parameters a
+    pixel more for the same bend). Fitted jointly by Levenberg-Marquardt on the Schur
+    complement: the per-pixel (ln g, dark) blocks are eliminated, the shared (ln a, ln b) step
+    solved on the reduced 2 x 2 system.
+
+    Parameters
+    ----------
+    dark_current : bool
+        Whether the dark current ``dc`` (DN/ms) is fitted (from the dark samples) or held.
+    """
+
+    name = "shared leakage"
+    n_core = 2
+    n_shared = 2
+    describe = ("leakage model dY/dt = k - a exp(bY) with a and b shared by all pixels, per "
+                "pixel (k, d)")
+    _PIXEL = [0, 3]
+    _SHARED = [1, 2]
+
+    def evaluate(self, theta, t, r):
+        """As :meth:`LeakageBase.evaluate`, with the Jacobian of the per-pixel parameters only
+        (ln g, dark, and the dark current when fitted): the shared ones are two for the whole
+        sensor and absorb nothing of one pixel."""
+        m, jac, kl, dydt, dydlng = super().evaluate(theta, t, r)
+        keep = self._PIXEL + ([4] if self.dark_current else [])
+        return m, jac[..., keep], kl, dydt, dydlng
+
+    def _step(self, th, y, t, r, ww, lam, y_ref):
+        """One damped Gauss-Newton step of all parameters (Schur complement on the shared).
+        The shared step is taken in (ln L, ln b), L = a exp(b y_ref) the leakage rate at the
+        level ``y_ref`` of the highest samples: ln a and ln b are nearly collinear there."""
+        m, jac, _, _, _ = LeakageBase.evaluate(self, th, t, r)
+        res = np.where(ww > 0, y - m, 0.0)
+        jp = jac[..., self._PIXEL]
+        b_ref = np.exp(th[0, 2]) * y_ref
+        js = np.stack([jac[..., 1], jac[..., 2] - b_ref * jac[..., 1]], axis=-1)
+        jpw = (jp * ww[..., None]).transpose(0, 2, 1)
+        jsw = js * ww[..., None]
+        a, b = np.matmul(jpw, jp), np.matmul(jpw, js)
+        c = jsw.reshape(-1, 2).T @ js.reshape(-1, 2)
+        gp = np.matmul(jpw, res[..., None])[..., 0]
+        gs = res.reshape(-1) @ jsw.reshape(-1, 2)
+        eye = np.eye(2)
+        a = a + (lam * np.einsum("pii->pi", a) + 1e-12)[:, :, None] * eye
+        c = c + (lam * np.diag(c) + 1e-12) * eye
+        det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+        det = np.where(np.abs(det) > 0, det, np.inf)  # a pixel without samples does not move
+        ainv = np.stack([np.stack([a[:, 1, 1], -a[:, 0, 1]], -1),
+                         np.stack([-a[:, 1, 0], a[:, 0, 0]], -1)], 1) / det[:, None, None]
+        bt_ainv = np.matmul(b.transpose(0, 2, 1), ainv)
+        reduced = c - np.matmul(bt_ainv, b).sum(axis=0)
+        rhs = gs - np.matmul(bt_ainv, gp[..., None]).sum(axis=0)[:, 0]
+        try:
+            ds = np.linalg.solve(reduced, rhs)
+        except np.linalg.LinAlgError:
+            ds = np.zeros(2)
+        dp = np.matmul(ainv, (gp - b @ ds)[..., None])[..., 0]
+        trial = th.copy()
+        trial[:, self._PIXEL] += np.where(np.isfinite(dp), dp, 0.0)
+        if np.all(np.isfinite(ds)):
+            ln_l = th[0, 1] + b_ref + ds[0]
+            trial[:, 2] = th[0, 2] + ds[1]
+            trial[:, 1] = ln_l - np.exp(np.clip(trial[0, 2], -50.0, 0.0)) * y_ref
+        trial[:, 1] = np.clip(trial[:, 1], 2 * LINEAR_LN_A, 50.0)
+        trial[:, 2] = np.clip(trial[:, 2], np.log(1e-6), 0.0)
+        return trial
+
+    def _total(self, theta, y, t, r, valid, w):
+        return float(self._cost(theta, y, t, r, valid, w).sum())
+
+    def fit(self, y, t, r, valid, w, theta0, max_iter=15):
+        """Joint Levenberg-Marquardt from ``theta0`` (its ln a and ln b columns are replaced by
+        their medians); the total cost never ends above where it started.
+
+        Parameters
+        ----------
+        y : ndarray, (P, S), DN
+            Step means of P pixels at S samples.
+        t : ndarray, (S,), ms
+            Exposure of each sample.
+        r : ndarray, (S,)
+            Relative light rate of each sample (0 for darks).
+        valid : ndarray of bool, (P, S)
+            Samples to use.
+        w : ndarray, (P, S)
+            Weights (inverse variances, 1/DN^2).
+        theta0 : ndarray, (P, 5)
+            Start.
+        max_iter : int
+            Accepted steps at most (twice as many tried).
+
+        Returns
+        -------
+        ndarray, (P, 5)
+        """
+        max_iter = min(max_iter, SHARED_MAX_ITER)
+        th = np.array(theta0, float)
+        th[:, 1:3] = np.median(th[:, 1:3], axis=0)
+        th[:, 4] = self.measure_dc(y, t, r, valid, w, th)
+        ww = np.where(valid, w, 0.0)
+        with np.errstate(invalid="ignore"):
+            y_ref = float(np.nanmedian(np.nanmax(np.where(valid, y, np.nan), axis=1)))
+        y_ref = y_ref if np.isfinite(y_ref) else 0.0
+        cost, lam, accepted = self._total(th, y, t, r, valid, w), 1e-3, 0
+        for _ in range(2 * max_iter):
+            with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+                trial = self._step(th, y, t, r, ww, lam, y_ref)
+            c = self._total(trial, y, t, r, valid, w)
+            if np.isfinite(c) and c < cost:
+                done = cost - c < max(1e-7 * cost, SHARED_TOL)
+                th, cost, lam, accepted = trial, c, lam / 3.0, accepted + 1
+                if done or accepted >= max_iter:
+                    break
+            else:
+                lam *= 5.0
+                if lam > 1e8:
+                    break
+        return th
+
+    def restart(self, y, t, r, valid, w, theta_warm, max_iter=15):
+        """Refit from the warm parameters and from fresh starts; the better in total.
+
+        Parameters and result as :meth:`LeakageBase.restart`.
+        """
+        warm = self.fit(y, t, r, valid, w, theta_warm, max_iter=max_iter)
+        fresh = self.start(y, t, r, valid, w, theta_warm[:, -1], per_pixel=theta_warm)
+        better = self._total(fresh, y, t, r, valid, w) < self._total(warm, y, t, r, valid, w)
+        return fresh if better else warm
+
+    def start(self, y, t, r, valid, w, dc0=None, max_iter=40, per_pixel=None):
+        """Fit from the median of the per-pixel leakage fit (over the pixels that leak; where
+        none does, from each start value of b of :func:`b_grid`) and from the straight line;
+        the best in total.
+
+        Parameters
+        ----------
+        y, t, r, valid, w, dc0, max_iter
+            As :meth:`LeakageBase.start`.
+        per_pixel : ndarray, (P, 5), optional
+            A per-pixel leakage fit of the same samples (fitted here when not given).
+
+        Returns
+        -------
+        ndarray, (P, 5)
+        """
+        if per_pixel is None:
+            per_pixel = LeakageBase.start(self, y, t, r, valid, w, dc0, max_iter=max_iter)
+        lin = LinearBase(self.dark_current).start(y, t, r, valid, w, dc0)
+        base = self.from_linear(lin)
+        starts = [base]
+        leaks = per_pixel[:, 1] > LINEAR_LN_A + 1
+        if leaks.any():
+            s = per_pixel.copy()
+            s[:, 1:3] = np.median(per_pixel[leaks][:, 1:3], axis=0)
+            starts.append(s)
+        # a and b that put the leakage at each b's start at the highest samples' level
+        yv = np.where(valid, y, np.nan)
+        with np.errstate(invalid="ignore"):
+            top = float(np.nanmedian(np.nanmax(yv, axis=1)))
+            k_top = float(np.nanmedian(np.exp(per_pixel[:, 0]) * np.nanmax(
+                np.where(valid, np.broadcast_to(r, y.shape), np.nan), axis=1)))
+        if not leaks.any() and np.isfinite(top) and np.isfinite(k_top) and k_top > 0:
+            for bv in b_grid(y, valid, self.full_scale):
+                s = base.copy()
+                s[:, 2] = np.log(bv)
+                s[:, 1] = np.log(0.3 * k_top) - bv * top
+                starts.append(s)
+        # a few steps from each start, then the best one to convergence
+        fits = [self.fit(y, t, r, valid, w, s, max_iter=4) for s in starts]
+        costs = [self._total(f, y, t, r, valid, w) for f in fits]
+        return self.fit(y, t, r, valid, w, fits[int(np.argmin(costs))], max_iter=max_iter)
+
+
 def _at_least_dark(theta, m, jac):
     """A pixel never falls below the level it was reset to: where the leakage at the dark level
     exceeds the light (and dark current) rate, as in the dark frames of a leaky pixel, the
@@ -668,4 +852,4 @@ def b_grid(y, valid, full_scale=None):
 
 B_SPAN_GRID = (2.0, 4.0, 8.0, 16.0)  # b x signal span tried as start values
 
-BASES = {"leakage": LeakageBase, "linear": LinearBase}
+BASES = {"leakage": LeakageBase, "shared leakage": SharedLeakageBase, "linear": LinearBase}

@@ -84,6 +84,56 @@ def subset(sweep: Sweep, max_pixels: int, seed: int):
     return sub, rr, cc, band
 
 
+CLIP_WIDTH_DN = 2  # values within this many DN of the highest count as one clip level
+CLIP_BELOW_DN = 10  # ... against the values this many DN below them
+
+
+def clip_level(sub: Sweep):
+    """A hard clip below the ADC's full scale (a full well that fills before the ADC does):
+    the lowest of the top ``CLIP_WIDTH_DN`` values of the light frames when the values pile up
+    there (more of them than in the ``CLIP_BELOW_DN`` DN below, as a clip does and the smooth
+    top of a response, dynamic saturation included, does not); None otherwise, for float data
+    and where the highest value is the ADC's full scale (clipped there anyway).
+
+    Parameters
+    ----------
+    sub : Sweep
+        Raw frames (N, H, W) in DN.
+
+    Returns
+    -------
+    float or None, DN
+        Frame values at or above it are clipped.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from hsiffc.data.sweep import Sweep
+    >>> rng = np.random.default_rng(0)
+    >>> level = np.linspace(100, 4100, 20)[:, None, None]
+    >>> frames = np.minimum(level + rng.normal(0, 5, (20, 1, 64)), 4001).round()
+    >>> sweep = Sweep(frames.astype(np.uint16), exposure_ms=np.linspace(1, 20, 20),
+    ...               step=np.arange(20), bit_depth=12)
+    >>> clip_level(sweep)
+    4000.0
+    """
+    if not np.issubdtype(sub.data.dtype, np.integer):
+        return None
+    light = np.asarray(sub.kind) == "light"
+    if not light.any():
+        return None
+    v = sub.data[light].reshape(-1)
+    top = int(v.max())
+    if top >= sub.full_scale_dn:
+        return None
+    near = int(np.count_nonzero(v > top - CLIP_WIDTH_DN))
+    below = int(np.count_nonzero((v <= top - CLIP_WIDTH_DN)
+                                 & (v > top - CLIP_WIDTH_DN - CLIP_BELOW_DN)))
+    if near >= max(20, 0.001 * v.size) and near > below:
+        return float(top - CLIP_WIDTH_DN + 1)
+    return None
+
+
 def _pair_split(sweep: Sweep):
     fit_idx, ho_idx, gap = [], [], []
     for s in sweep.steps():
@@ -108,7 +158,8 @@ def samples(sub: Sweep, full_well_dn=None):
     -------
     dict
         y, y_ho (P, S) DN, valid, valid_ho (P, S), t (ms), r, kind, step (S,), n_fit, n_ho
-        (S,) frames per sample, pairs (bool), frame_gap, held_out (description), usable (S,).
+        (S,) frames per sample, pairs (bool), frame_gap, held_out (description), usable (S,),
+        clip_dn (:func:`clip_level`, DN, or None).
     """
     counts = np.array([(sub.step == s).sum() for s in sub.steps()])
     pairs = bool(np.all(counts >= 2))
@@ -132,8 +183,15 @@ def samples(sub: Sweep, full_well_dn=None):
                    n_fit=sf.n_frames, n_ho=sf.n_frames, frame_gap=0.0,
                    held_out=("alternate steps of each kind in acquisition order (some steps have "
                              "one frame, so frame pairs cannot be held out)"))
+    clip = clip_level(sub)
+    if clip is not None:  # a step with a frame at the clip is not a valid sample
+        at = np.zeros((len(sf.step), sub.data.shape[-1]), bool)
+        for i, st in enumerate(sf.step):
+            at[i] = (sub.data[sub.step == st].reshape(-1, sub.data.shape[-1]) >= clip).any(0)
+        out["valid"] &= ~at.T
+        out["valid_ho"] &= ~at.T
     usable = sf.usable_step
-    out.update(t=np.where(usable, sf.exposure_ms, 1.0), r=np.where(usable, np.nan_to_num(sf.rate),
+    out.update(clip_dn=clip, t=np.where(usable, sf.exposure_ms, 1.0), r=np.where(usable, np.nan_to_num(sf.rate),
                                                                   0.0),
                kind=sf.kind, step=sf.step, usable=usable, pairs=pairs)
     out["valid"] &= usable[None, :]
