@@ -7,9 +7,12 @@ measures every error on the held-out half (see :mod:`hsiffc.diagnose.design`). I
 candidate effect of :mod:`hsiffc.diagnose.effects` jointly with the base model
 (:mod:`hsiffc.diagnose.fitting`), skips with a stated reason each effect the design cannot
 identify, and adds effects greedily while one beats the current model by more than the noise
-allows (:mod:`hsiffc.diagnose.select`). It then asks whether the bending of the response is
-leakage at all or a readout nonlinearity, and reports structure left in the held-out residual
-that no candidate explains as ``unexplained``.
+allows (:mod:`hsiffc.diagnose.select`). It refits the selected model with one leakage shape
+for the sensor (:class:`~hsiffc.diagnose.bases.SharedLeakageBase`) and keeps it where it is as
+good with fewer parameters, then asks whether the bending of the response is leakage at all or
+a readout nonlinearity, and reports structure left in the held-out residual that no candidate
+explains as ``unexplained``. Frames that clip below the ADC's full scale
+(:func:`~hsiffc.diagnose.design.clip_level`) are left out.
 """
 
 from __future__ import annotations

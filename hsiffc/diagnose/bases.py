@@ -1,12 +1,16 @@
 """The base models diagnose fits per pixel before any candidate effect.
 
-Two families share one interface (``start``, ``fit``, ``evaluate``):
+Three share one interface (``start``, ``fit``, ``evaluate``):
 
 - :class:`LeakageBase`, the paper's model ``dY/dt = k - a e^{bY}`` with ``k = g r + dc``:
   per pixel (ln g, ln a, ln b, dark), fitted with the calibration's public fit
   (:func:`hsiffc.calibrate.fit_pixels`) from two starts (the calibration's own and the linear
   model's), keeping the better one per pixel, so the leakage base never fits worse than a
   straight line on the same samples;
+- :class:`SharedLeakageBase`, the same model with one leakage shape for the sensor: a and b
+  shared by every pixel, (ln g, dark) per pixel, fitted jointly (Levenberg-Marquardt on the
+  Schur complement of the per-pixel blocks): as many parameters as a linear response with a
+  readout nonlinearity shared by the sensor, the alternative it is compared with;
 - :class:`LinearBase`, ``Y = dark + (g r + dc) t``: per pixel (g, dark), solved in closed form
   by :func:`weighted_line`.
 

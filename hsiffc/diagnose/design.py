@@ -113,7 +113,7 @@ def clip_level(sub: Sweep):
     >>> level = np.linspace(100, 4100, 20)[:, None, None]
     >>> frames = np.minimum(level + rng.normal(0, 5, (20, 1, 64)), 4001).round()
     >>> sweep = Sweep(frames.astype(np.uint16), exposure_ms=np.linspace(1, 20, 20),
-    ...               step=np.arange(20), bit_depth=12)
+    ...               kind=np.full(20, "light"), bit_depth=12, step=np.arange(20))
     >>> clip_level(sweep)
     4000.0
     """
