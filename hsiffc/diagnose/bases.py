@@ -709,26 +709,8 @@ class SharedLeakageBase(LeakageBase):
         """Joint Levenberg-Marquardt from ``theta0`` (its ln a and ln b columns are replaced by
         their medians); the total cost never ends above where it started.
 
-        Parameters
-        ----------
-        y : ndarray, (P, S), DN
-            Step means of P pixels at S samples.
-        t : ndarray, (S,), ms
-            Exposure of each sample.
-        r : ndarray, (S,)
-            Relative light rate of each sample (0 for darks).
-        valid : ndarray of bool, (P, S)
-            Samples to use.
-        w : ndarray, (P, S)
-            Weights (inverse variances, 1/DN^2).
-        theta0 : ndarray, (P, 5)
-            Start.
-        max_iter : int
-            Accepted steps at most (twice as many tried).
-
-        Returns
-        -------
-        ndarray, (P, 5)
+        Parameters and result as :meth:`LeakageBase.fit`; ``max_iter`` counts accepted steps
+        (at most ``SHARED_MAX_ITER``, twice as many tried).
         """
         max_iter = min(max_iter, SHARED_MAX_ITER)
         th = np.array(theta0, float)
