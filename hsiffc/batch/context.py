@@ -14,7 +14,7 @@ from pathlib import Path
 from ..calibrate.product import Calibration
 from ..reconstruct import DEMOSAIC_METHODS
 from ..stages import Pipeline, create
-from ..stages.defaults import default_pipeline as _default_pipeline
+from ..stages import defaults
 from .plan import BatchError
 
 __all__ = ["CUBE_METHODS", "FFC_CHOICES", "Context", "Settings", "check_ffc", "context_for",
@@ -32,8 +32,8 @@ def default_pipeline(calibration, *, threshold_percent: float = 12.0,
     (:func:`hsiffc.stages.defaults.default_pipeline`), after :func:`check_ffc` (BatchError for
     an unknown ``ffc`` or ``linearise`` with ``ffc="model"``)."""
     check_ffc(ffc, linearise)
-    return _default_pipeline(calibration, threshold_percent=threshold_percent,
-                             linearise=linearise, ffc=ffc)
+    return defaults.default_pipeline(calibration, threshold_percent=threshold_percent,
+                                     linearise=linearise, ffc=ffc)
 
 
 #: ``--cube`` choices: the demosaicking methods (:data:`hsiffc.reconstruct.DEMOSAIC_METHODS`)
