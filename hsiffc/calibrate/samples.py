@@ -111,7 +111,8 @@ def relative_light_rate(sweep_steps: dict, *, light_rate=None) -> tuple[np.ndarr
 
 
 def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_rate=None,
-                    rows: slice | None = None, dtype=np.float32) -> Samples:
+                    rows: slice | None = None, dtype=np.float32,
+                    clip_dn: float | None = None) -> Samples:
     """Step means and validity of every pixel (optionally of a band of ``rows`` only).
 
     Parameters
@@ -126,6 +127,9 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         Rows of the frame to sample (default: all).
     dtype : numpy dtype
         Of the step means: float32, or float64 for a fit that computes in float64.
+    clip_dn : float, optional, DN
+        Frame values at or above it are clipped (default: the ADC's full scale; lower where
+        the data clip first, e.g. a full well that fills before the ADC).
 
     Returns
     -------
@@ -148,8 +152,8 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     sel = np.zeros((len(steps), max(f.size for f in frames_of)), np.int64)
     for i, f in enumerate(frames_of):
         sel[i, :f.size] = f
-    _step_means(sweep.data, sel, np.array([f.size for f in frames_of]), r0, r1, float(fs),
-                means, clipped)
+    _step_means(sweep.data, sel, np.array([f.size for f in frames_of]), r0, r1,
+                float(fs if clip_dn is None else clip_dn), means, clipped)
     for i, f in enumerate(frames_of):
         n_frames[i] = f.size
         exposure[i] = sweep.exposure_ms[f[0]]

@@ -717,8 +717,7 @@ class SharedLeakageBase(LeakageBase):
         th[:, 1:3] = np.median(th[:, 1:3], axis=0)
         th[:, 4] = self.measure_dc(y, t, r, valid, w, th)
         ww = np.where(valid, w, 0.0)
-        with np.errstate(invalid="ignore"):
-            y_ref = float(np.nanmedian(np.nanmax(np.where(valid, y, np.nan), axis=1)))
+        y_ref = _top_level(y, valid)
         y_ref = y_ref if np.isfinite(y_ref) else 0.0
         cost, lam, accepted = self._total(th, y, t, r, valid, w), 1e-3, 0
         for _ in range(2 * max_iter):
@@ -772,14 +771,14 @@ class SharedLeakageBase(LeakageBase):
             s = per_pixel.copy()
             s[:, 1:3] = np.median(per_pixel[leaks][:, 1:3], axis=0)
             starts.append(s)
-        # a and b that put the leakage at each b's start at the highest samples' level
-        yv = np.where(valid, y, np.nan)
-        with np.errstate(invalid="ignore"):
-            top = float(np.nanmedian(np.nanmax(yv, axis=1)))
-            k_top = float(np.nanmedian(np.exp(per_pixel[:, 0]) * np.nanmax(
-                np.where(valid, np.broadcast_to(r, y.shape), np.nan), axis=1)))
-        if not leaks.any() and np.isfinite(top) and np.isfinite(k_top) and k_top > 0:
-            for bv in b_grid(y, valid, self.full_scale):
+        else:  # a and b that put the leakage at each b's start at the highest samples' level
+            top = _top_level(y, valid)
+            with np.errstate(invalid="ignore"):
+                k_top = float(np.nanmedian(np.exp(per_pixel[:, 0]) * np.nanmax(
+                    np.where(valid, np.broadcast_to(r, y.shape), np.nan), axis=1)))
+            usable = np.isfinite(top) and np.isfinite(k_top) and k_top > 0
+            bvs = b_grid(y, valid, self.full_scale) if usable else ()
+            for bv in bvs:
                 s = base.copy()
                 s[:, 2] = np.log(bv)
                 s[:, 1] = np.log(0.3 * k_top) - bv * top
@@ -788,6 +787,12 @@ class SharedLeakageBase(LeakageBase):
         fits = [self.fit(y, t, r, valid, w, s, max_iter=4) for s in starts]
         costs = [self._total(f, y, t, r, valid, w) for f in fits]
         return self.fit(y, t, r, valid, w, fits[int(np.argmin(costs))], max_iter=max_iter)
+
+
+def _top_level(y, valid) -> float:
+    """The median pixel's highest valid sample (DN; nan where no pixel has one)."""
+    with np.errstate(invalid="ignore"):
+        return float(np.nanmedian(np.nanmax(np.where(valid, y, np.nan), axis=1)))
 
 
 def _at_least_dark(theta, m, jac):

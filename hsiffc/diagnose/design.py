@@ -163,16 +163,17 @@ def samples(sub: Sweep, full_well_dn=None):
     """
     counts = np.array([(sub.step == s).sum() for s in sub.steps()])
     pairs = bool(np.all(counts >= 2))
+    clip = clip_level(sub)  # a step with a frame at the clip is not a valid sample
     if pairs:
         fit_sw, ho_sw, gap = _pair_split(sub)
-        sf = collect_samples(fit_sw, full_well_dn=full_well_dn)
-        sh = collect_samples(ho_sw, full_well_dn=full_well_dn)
+        sf = collect_samples(fit_sw, full_well_dn=full_well_dn, clip_dn=clip)
+        sh = collect_samples(ho_sw, full_well_dn=full_well_dn, clip_dn=clip)
         valid = (sf.valid & sh.valid).T
         out = dict(y=sf.y.T.astype(np.float64), y_ho=sh.y.T.astype(np.float64), valid=valid,
                    valid_ho=valid.copy(), n_fit=sf.n_frames, n_ho=sh.n_frames, frame_gap=gap,
                    held_out="second frame of every step (the first fits the model)")
     else:
-        sf = collect_samples(sub, full_well_dn=full_well_dn)
+        sf = collect_samples(sub, full_well_dn=full_well_dn, clip_dn=clip)
         fit_col = np.zeros(len(sf.step), bool)
         for kind in ("light", "dark"):
             cols = np.flatnonzero((sf.kind == kind) & sf.usable_step)
@@ -183,17 +184,10 @@ def samples(sub: Sweep, full_well_dn=None):
                    n_fit=sf.n_frames, n_ho=sf.n_frames, frame_gap=0.0,
                    held_out=("alternate steps of each kind in acquisition order (some steps have "
                              "one frame, so frame pairs cannot be held out)"))
-    clip = clip_level(sub)
-    if clip is not None:  # a step with a frame at the clip is not a valid sample
-        at = np.zeros((len(sf.step), sub.data.shape[-1]), bool)
-        for i, st in enumerate(sf.step):
-            at[i] = (sub.data[sub.step == st].reshape(-1, sub.data.shape[-1]) >= clip).any(0)
-        out["valid"] &= ~at.T
-        out["valid_ho"] &= ~at.T
     usable = sf.usable_step
-    out.update(clip_dn=clip, t=np.where(usable, sf.exposure_ms, 1.0), r=np.where(usable, np.nan_to_num(sf.rate),
-                                                                  0.0),
-               kind=sf.kind, step=sf.step, usable=usable, pairs=pairs)
+    out.update(t=np.where(usable, sf.exposure_ms, 1.0),
+               r=np.where(usable, np.nan_to_num(sf.rate), 0.0),
+               kind=sf.kind, step=sf.step, usable=usable, pairs=pairs, clip_dn=clip)
     out["valid"] &= usable[None, :]
     out["valid_ho"] &= usable[None, :]
     return out

@@ -82,7 +82,8 @@ def evaluate(state: State, names, data: Data, n_pix: int, n_light: int) -> Fitte
     res = np.where(vh, data.y_ho - state.prediction - state.ho_extra, 0.0)
     res_fit = np.where(vf, data.y - state.prediction, 0.0)
     n_ho, n_fit = max(int(vh.sum()), 1), max(int(vf.sum()), 1)
-    k = state.base.n_params * n_pix + state.base.n_shared + sum(EFFECTS[n].n_params(n_pix, n_light) for n in names)
+    k = (state.base.n_params * n_pix + state.base.n_shared
+         + sum(EFFECTS[n].n_params(n_pix, n_light) for n in names))
     rss_w = float((data.w * res_fit ** 2).sum())
     bic = n_fit * np.log(max(rss_w, 1e-300) / n_fit) + k * np.log(n_fit)
     mse = float((res ** 2).sum() / n_ho)
