@@ -332,3 +332,59 @@ def test_linear_reference_simulations_stay_linear(name, shared_set):
     assert out["base_model"].startswith("linear"), out["leakage"]
     assert out["selected_effects"] == [] and not out["unexplained"], out["candidates"]
     _honest(out)
+
+
+def test_pixels_x_steps_pattern_against_what_the_fit_itself_leaves():
+    """The leading singular value of the residual finds a gain step on every other group of
+    four columns from the middle of the acquisition (column bins of eight columns and step
+    means both average it out); per-pixel parameter errors leave such a pattern too, and
+    against the reference of another draw of them nothing is found."""
+    from hsiffc.diagnose.structure import LOW_RANK, groupings, low_rank, structure
+
+    rng = np.random.default_rng(5)
+    p, s = 1024, 40
+    valid = np.ones((p, s), bool)
+    sd = np.full(s, 2.0)
+    cols = np.arange(p) % 64
+    jump = np.where((cols // 4) % 2 == 1, 1.0, -1.0)[:, None] * (np.arange(s) >= s // 2)
+    res = sd * rng.standard_normal((p, s)) + 1.0 * jump  # RMS 0.35 of the noise
+    groups = groupings(valid, np.tile(np.linspace(10, 900, s), (p, 1)), np.ones(s, bool),
+                       np.arange(p) // 64, cols, np.zeros(p, int))
+    findings, flag = structure(res, valid, groups, 2.0, sd=sd)
+    by = {f["grouping"]: f for f in findings}
+    assert flag and by[LOW_RANK]["significant"]
+    assert not any(f["significant"] for g, f in by.items() if g != LOW_RANK)
+    assert by[LOW_RANK]["structured_rms_dn"] == pytest.approx(np.sqrt(0.5), rel=0.25)
+
+    def fit_errors():  # per-pixel gain errors times the signal over the steps
+        return (sd * rng.standard_normal((p, s))
+                + 2.0 * rng.standard_normal((p, 1)) * np.linspace(0.1, 1.0, s)[None, :])
+    alone = low_rank(fit_errors(), valid, sd)
+    assert alone["p_value"] < 1e-6  # a pattern, but the fit's own
+    ref = low_rank(fit_errors(), valid, sd)["chi2"]
+    against = low_rank(fit_errors(), valid, sd, null_chi2=ref)
+    assert against["p_value"] > 1e-6 and against["structured_rms_dn"] < 0.2 * 2.0
+
+
+def test_a_lag_absorbed_by_a_nuisance_is_still_unexplained():
+    """Dev seed 202: image lag over several steps on a linear sensor's light sweep. A per-step
+    offset drift absorbs most of it, the binned tests see nothing, the pixels x steps pattern
+    of the residual does."""
+    r = ev.run_case(202)
+    assert r["truth"]["kind"] == "outside" and r["truth"]["effects"][0]["name"] == "slow_lag"
+    assert r["found"]["unexplained"] and r["right"], r["found"]
+
+
+def test_the_rounding_of_a_quiet_integer_sensor_is_in_the_null():
+    """Dev seed 56: a clean 8-bit leaky sensor with 0.03 DN of read noise. Its frames round
+    to codes the pixels of a step share; the null simulates the ADC's rounding, so that is not
+    reported as structure."""
+    from hsiffc.diagnose.design import noise_before_rounding
+
+    v = np.array([0.0, 0.05, 1 / 12, 0.3, 50.0])
+    s2 = noise_before_rounding(v)
+    assert np.all(np.diff(s2) > 0) and s2[0] == 0 and s2[-1] == pytest.approx(50 - 1 / 12)
+    assert np.array_equal(noise_before_rounding(v, quantum=0.0), v)
+    r = ev.run_case(56)
+    assert r["truth"]["kind"] == "clean" and r["case"]["bit_depth"] == 8
+    assert not r["found"]["unexplained"] and r["found"]["selected"] == [], r["found"]

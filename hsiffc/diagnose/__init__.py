@@ -209,11 +209,11 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     prev_index[by_order[1:]] = by_order[:-1]
     data = Data(y=y, y_ho=y_ho, t=t, r=r, valid=valid, valid_ho=valid_ho, w=w, order=order,
                 prev_index=prev_index, light=light, full_scale=fs, frame_gap=smp["frame_gap"])
+    quantum = 1.0 if np.issubdtype(sub.data.dtype, np.integer) else 0.0  # DN
     if smp["pairs"]:
         var_step = ds.noise_pairs(smp, valid & valid_ho)  # one frame, per step
         # integer raw data: the rounding bias of a quiet pixel is in the held-out error but
         # not in the frame pairs
-        quantum = 1.0 if np.issubdtype(sub.data.dtype, np.integer) else 0.0
         noise2 = np.broadcast_to((var_step / smp["n_ho"] + ds.quantisation_bias(
             var_step, quantum))[None, :], y.shape)
     else:  # no frame pairs: the noise from the spread of the held-out residual across pixels
@@ -244,6 +244,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     final = greedy(base_fit, testable, data, noise_floor, n_pix, n_light, candidates,
                    label=base.name, ambiguous=ambiguous)
     leakage = {"verdict": "not tested", "reason": "the base model is linear"}
+    per_pixel = None  # the per-pixel leakage model, where one shape for the sensor replaced it
     if base.name == "leakage":
         # the same model with one leakage shape for the sensor (two parameters a pixel fewer):
         # kept when it explains the sweep as well with fewer parameters. Not tried next to a
@@ -257,6 +258,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                                  n_pix, n_light) if final.names else sh_base)
             if sh_final.bic < final.bic and equally_good(final, sh_final, data.valid_ho,
                                                          noise_floor):
+                per_pixel = (final, base_fit)
                 final, base_fit = sh_final, sh_base
         lin = LinearBase(use_dc)
         lin_state = State(lin, lin.start(y, t, r, valid, w))
@@ -271,40 +273,70 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
             skipped, weak, ambiguous = skipped_lin, weak_lin, ambiguous_lin
         if leakage["verdict"] == "cannot tell":
             ambiguous.append({"effects": leakage["models"], "reason": leakage["reason"]})
+    # the frames' noise before rounding: integer data are simulated as the ADC records them,
+    # so the rounding bias of quiet pixels (common to the pixels of a step) is in the null
+    sigma_step = np.sqrt(ds.noise_before_rounding(var_step, quantum if smp["pairs"] else 0.0))
+
+    def simulate_frames(level, n_frames, rng):
+        """The mean of ``n_frames`` simulated frames per step around ``level`` (P, S)."""
+        if quantum <= 0 or not smp["pairs"]:
+            return level + sigma_step / np.sqrt(n_frames) * rng.standard_normal(level.shape)
+        total = np.zeros(level.shape)
+        for k in range(int(n_frames.max())):
+            frame = np.round((level + sigma_step * rng.standard_normal(level.shape)) / quantum)
+            total += np.where(k < n_frames, frame * quantum, 0.0)
+        return total / np.maximum(n_frames, 1)
+
+    def residual_check(fitted):
+        """Structure left in the held-out residual of a fitted model, against what the model
+        itself leaves: simulate it with the measured noise, refit, and measure the same
+        residual structure (parametric bootstrap, 2 draws)."""
+        cur = fitted.state
+        ctx = context(cur.base, cur.theta, data)[2]
+        groups = groupings(valid_ho, ctx.signal, light, rows, cols, band)
+        # the model's own fit noise (its base may be less well determined next to an effect)
+        pv = _prediction_variance(cur.base, cur.theta, data, cur)
+        sd_sample = np.sqrt(noise2 + pv)  # noise of each held-out sample, DN
+        rng = np.random.default_rng(seed + 1)
+        null = {}
+        for _ in range(2):
+            y_sim = simulate_frames(cur.prediction, n_fit, rng)
+            y_sim_ho = simulate_frames(cur.prediction + cur.ho_extra, smp["n_ho"], rng)
+            if not smp["pairs"]:
+                y_sim_ho = y_sim
+            sim_data = Data(**{**data.__dict__, "y": y_sim, "y_ho": y_sim_ho})
+            sim = (fitpredict(fitted.names, sim_data, cur, quick=True) if fitted.names
+                   else refit_base(y_sim, sim_data, cur))
+            sim_res = np.where(valid_ho, y_sim_ho - sim.prediction - sim.ho_extra, 0.0)
+            for f in structure(sim_res, valid_ho, groups, noise_floor, sd=sd_sample)[0]:
+                null[f["grouping"]] = max(null.get(f["grouping"], 0.0), f["null_statistic"])
+        findings, structured = structure(fitted.res, valid_ho, groups, noise_floor, null=null,
+                                         sd=sd_sample)
+        return ctx, groups, pv, sd_sample, null, findings, structured
+
+    ctx, groups, pv_final, sd_sample, null, findings, structured = residual_check(final)
+    if structured and per_pixel is not None and final.state.base.name == "shared leakage":
+        # one leakage shape is as good on the held-out error, but leaves a pattern over the
+        # pixels: the per-pixel model is kept where it leaves none
+        alt = residual_check(per_pixel[0])
+        if not alt[-1]:
+            final, base_fit = per_pixel
+            ctx, groups, pv_final, sd_sample, null, findings, structured = alt
+            leakage["shape"] = (
+                "per pixel: one leakage shape for the sensor fits the held-out error as well "
+                "with fewer parameters, but leaves a pattern over the pixels in the residual "
+                "that the per-pixel model does not")
     current = final.state
     selected = final.names
     skipped = _with_weak(skipped, weak, selected)
-
-    m_final, _, ctx = context(current.base, current.theta, data)
-    groups = groupings(valid_ho, ctx.signal, light, rows, cols, band)
-    # what a correct model leaves: simulate the final model with the measured noise, refit,
-    # and measure the same residual structure (parametric bootstrap, 2 draws)
-    rng = np.random.default_rng(seed + 1)
-    null = {}
-    for _ in range(2):
-        sd_fit = np.sqrt(var_step[None, :] / n_fit[None, :])
-        sd_ho = np.sqrt(var_step[None, :] / smp["n_ho"][None, :])
-        y_sim = current.prediction + sd_fit * rng.standard_normal(y.shape)
-        y_sim_ho = (current.prediction + current.ho_extra
-                    + sd_ho * rng.standard_normal(y.shape))
-        if not smp["pairs"]:
-            y_sim_ho = y_sim
-        sim_data = Data(**{**data.__dict__, "y": y_sim, "y_ho": y_sim_ho})
-        sim = (fitpredict(selected, sim_data, current, quick=True) if selected
-               else refit_base(y_sim, sim_data, current))
-        sim_res = np.where(valid_ho, y_sim_ho - sim.prediction - sim.ho_extra, 0.0)
-        for f in structure(sim_res, valid_ho, groups, noise_floor)[0]:
-            null[f["grouping"]] = max(null.get(f["grouping"], 0.0), f["structured_rms_dn"])
-    findings, structured = structure(final.res, valid_ho, groups, noise_floor, null=null)
-    findings_before, _ = structure(base_fit.res, valid_ho, groups, noise_floor, null=null)
+    findings_before, _ = structure(base_fit.res, valid_ho, groups, noise_floor, null=null,
+                                   sd=sd_sample)
 
     def figs(mse, floor):
         rms = float(np.sqrt(mse))
         return {"rms_dn": rms, "noise_floor_dn": floor,
                 "systematic_rms_dn": float(np.sqrt(max(rms ** 2 - floor ** 2, 0.0)))}
 
-    # the final model's own fit noise (its base may be less well determined next to an effect)
-    pv_final = _prediction_variance(current.base, current.theta, data, current)
     floor_after = float(np.sqrt(np.mean((noise2 + pv_final)[valid_ho])))
 
     after = figs(final.mse, floor_after)

@@ -389,6 +389,39 @@ def quantisation_bias(var_pair, quantum=1.0):
     return quantum ** 2 * np.interp(np.maximum(v, 0.0) / quantum ** 2, pair, bias)
 
 
+def noise_before_rounding(var_pair, quantum=1.0):
+    """Variance (S,) in DN^2 of the temporal noise before the ADC rounds it: the sigma^2 that
+    :func:`quantisation_bias` solves from the frame pairs (``var_pair`` itself when the data
+    are not quantised). Simulating a frame as ``round(level + sigma * N(0, 1))`` reproduces
+    both the pairs' variance and the rounding bias of a quiet pixel.
+
+    Parameters
+    ----------
+    var_pair : ndarray, (S,), DN^2
+        From :func:`noise_pairs`.
+    quantum : float, DN
+        Step of the recorded values (0: not quantised).
+
+    Returns
+    -------
+    ndarray, (S,), DN^2
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> noise_before_rounding(np.array([0.0, 1 / 12, 100.0])).round(3).tolist()
+    [0.0, 0.022, 99.917]
+    """
+    v = np.asarray(var_pair, float)
+    if quantum <= 0:
+        return v.copy()
+    pair, _ = _quantisation_table()
+    s2 = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 400)])
+    q2 = quantum ** 2
+    x = np.maximum(v, 0.0) / q2
+    return q2 * np.where(x <= pair[-1], np.interp(x, pair, s2), x - 1.0 / 12)
+
+
 @functools.lru_cache(maxsize=1)
 def _quantisation_table():
     """(pair variance, bias variance) in units of the quantum squared, sigma from 0 to 2."""
