@@ -388,3 +388,24 @@ def test_the_rounding_of_a_quiet_integer_sensor_is_in_the_null():
     r = ev.run_case(56)
     assert r["truth"]["kind"] == "clean" and r["case"]["bit_depth"] == 8
     assert not r["found"]["unexplained"] and r["found"]["selected"] == [], r["found"]
+
+
+def test_frames_at_the_adc_lowest_code_are_clipped_samples():
+    """A frame at 0 DN has its noise cut off below: the step mean is biased upward. Diagnose
+    leaves such samples out as it does those at full scale (integer data); the calibration's
+    sampling keeps them unless asked (``floor_dn``)."""
+    from hsiffc.calibrate.samples import collect_samples
+
+    sw = simulated_sweep("exposure", seed=4, shape=(8, 8), n_steps=6, leak_rate_dn_per_ms=1e-9)
+    data = sw.data.copy()
+    data[0, 2, 3] = 0
+    low = replace(sw, data=data)
+    step0 = list(low.steps()).index(low.step[0])
+    plain = collect_samples(low).clipped
+    assert not plain[step0, 2 * 8 + 3]
+    got = collect_samples(low, floor_dn=0.0)
+    assert got.clipped[step0, 2 * 8 + 3] and got.clipped.sum() == plain.sum() + 1
+    # dev seed 270: a 16-bit sensor with an offset drift 100x its detection limit, whose
+    # darks drift below 0 DN; before, the clipped darks brought two effects beside it
+    r = ev.run_case(270)
+    assert r["truth"]["effects"][0]["name"] == "offset_drift" and r["right"], r["found"]

@@ -112,7 +112,7 @@ def relative_light_rate(sweep_steps: dict, *, light_rate=None) -> tuple[np.ndarr
 
 def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_rate=None,
                     rows: slice | None = None, dtype=np.float32,
-                    clip_dn: float | None = None) -> Samples:
+                    clip_dn: float | None = None, floor_dn: float | None = None) -> Samples:
     """Step means and validity of every pixel (optionally of a band of ``rows`` only).
 
     Parameters
@@ -130,6 +130,9 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     clip_dn : float, optional, DN
         Frame values at or above it are clipped (default: the ADC's full scale; lower where
         the data clip first, e.g. a full well that fills before the ADC).
+    floor_dn : float, optional, DN
+        Frame values at or below it are clipped too (the ADC's lowest code, 0 DN, where a low
+        black level or a negative offset drift cuts the noise off; default: no floor).
 
     Returns
     -------
@@ -153,7 +156,8 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     for i, f in enumerate(frames_of):
         sel[i, :f.size] = f
     _step_means(sweep.data, sel, np.array([f.size for f in frames_of]), r0, r1,
-                float(fs if clip_dn is None else clip_dn), means, clipped)
+                float(fs if clip_dn is None else clip_dn),
+                float(-np.inf if floor_dn is None else floor_dn), means, clipped)
     for i, f in enumerate(frames_of):
         n_frames[i] = f.size
         exposure[i] = sweep.exposure_ms[f[0]]
@@ -248,9 +252,10 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _step_means(data, sel, nsel, r0, r1, fs, means, clipped):
-    """Per step s, the mean (in the dtype of ``means``) over its frames ``sel[s, :nsel[s]]`` of rows ``r0:r1`` of
-    ``data`` (N, H, W), and whether any of them is at or above ``fs``; outputs (S, P)."""
+def _step_means(data, sel, nsel, r0, r1, fs, floor, means, clipped):
+    """Per step s, the mean (in the dtype of ``means``) over its frames ``sel[s, :nsel[s]]`` of
+    rows ``r0:r1`` of ``data`` (N, H, W), and whether any of them is at or above ``fs`` or at
+    or below ``floor``; outputs (S, P)."""
     w = data.shape[2]
     for rr in prange(r1 - r0):
         r = r0 + rr
@@ -262,7 +267,7 @@ def _step_means(data, sel, nsel, r0, r1, fs, means, clipped):
                 for j in range(nsel[s]):
                     v = np.float64(data[sel[s, j], r, c])
                     acc += v
-                    clip |= v >= fs
+                    clip |= (v >= fs) | (v <= floor)
                 means[s, rr * w + c] = acc * inv
                 clipped[s, rr * w + c] = clip
 

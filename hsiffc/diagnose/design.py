@@ -164,16 +164,18 @@ def samples(sub: Sweep, full_well_dn=None):
     counts = np.array([(sub.step == s).sum() for s in sub.steps()])
     pairs = bool(np.all(counts >= 2))
     clip = clip_level(sub)  # a step with a frame at the clip is not a valid sample
+    # nor one with a frame at the ADC's lowest code: the noise below it is cut off
+    floor = 0.0 if np.issubdtype(sub.data.dtype, np.unsignedinteger) else None
     if pairs:
         fit_sw, ho_sw, gap = _pair_split(sub)
-        sf = collect_samples(fit_sw, full_well_dn=full_well_dn, clip_dn=clip)
-        sh = collect_samples(ho_sw, full_well_dn=full_well_dn, clip_dn=clip)
+        sf = collect_samples(fit_sw, full_well_dn=full_well_dn, clip_dn=clip, floor_dn=floor)
+        sh = collect_samples(ho_sw, full_well_dn=full_well_dn, clip_dn=clip, floor_dn=floor)
         valid = (sf.valid & sh.valid).T
         out = dict(y=sf.y.T.astype(np.float64), y_ho=sh.y.T.astype(np.float64), valid=valid,
                    valid_ho=valid.copy(), n_fit=sf.n_frames, n_ho=sh.n_frames, frame_gap=gap,
                    held_out="second frame of every step (the first fits the model)")
     else:
-        sf = collect_samples(sub, full_well_dn=full_well_dn, clip_dn=clip)
+        sf = collect_samples(sub, full_well_dn=full_well_dn, clip_dn=clip, floor_dn=floor)
         fit_col = np.zeros(len(sf.step), bool)
         for kind in ("light", "dark"):
             cols = np.flatnonzero((sf.kind == kind) & sf.usable_step)
