@@ -25,9 +25,10 @@ RULE = (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} stand
         f"{MIN_EXPLAINED:g} of the current systematic error (which must itself exceed "
         f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2); a per-step effect only when its step factors "
         f"show no trend with exposure, signal, light rate or acquisition order (F-test p >= "
-        f"{TREND_P:g}); among those the lowest BIC, except a within-step effect whose held-out "
-        f"error is lower than the BIC choice's by more than {TIE_SIGMAS:g} standard errors (the "
-        "fit-half BIC does not see it)")
+        f"{TREND_P:g}); a within-step effect only when the frame differences show its "
+        f"coefficient at {SELECT_SIGMAS:g} standard errors; among those the lowest BIC, except a "
+        f"within-step effect whose held-out error is lower than the BIC choice's by more than "
+        f"{TIE_SIGMAS:g} standard errors (the fit-half BIC does not see it)")
 
 
 @dataclass
@@ -229,6 +230,48 @@ def step_trend(trial: Fitted, name: str, data: Data):
             "model, not a random light error per step")
 
 
+def pair_evidence(trial: Fitted, name: str, data: Data):
+    """Do the frame differences themselves show the within-step effect ``name``? Its one
+    coefficient is fitted on them (the second frame of a step minus the first), so they are
+    its only evidence: the held-out gain can also come from a coefficient that is noise times
+    a misfit of the base model that follows the effect's column, which the paired standard
+    error does not count. Accepted where the coefficient is ``SELECT_SIGMAS`` standard errors
+    from zero (the standard error from the scatter of the frame differences about the fit).
+
+    Parameters
+    ----------
+    trial : Fitted
+        A model with the within-step effect.
+    name : str
+        The effect.
+    data : Data
+        The samples.
+
+    Returns
+    -------
+    str or None
+        Why the effect is not shown (with the figure), or None.
+    """
+    _, _, ctx = context(trial.state.base, trial.state.theta, data)
+    x = EFFECTS[name].columns(ctx)[..., 0] * data.frame_gap
+    ok = data.valid & data.valid_ho & data.light[None, :] & np.isfinite(x)
+    if not ok.any():
+        return "no step has both frames valid"
+    d = (data.y_ho - data.y)[ok]
+    xv, wv = x[ok], data.w[ok]
+    den = float((wv * xv * xv).sum())
+    if den <= 0:
+        return "its column is zero on every valid step"
+    c = float((wv * xv * d).sum()) / den
+    scale = float((wv * (d - c * xv) ** 2).sum()) / max(d.size - 1, 1)
+    z = abs(c) / np.sqrt(scale / den)
+    if z >= SELECT_SIGMAS:
+        return None
+    return (f"the frame differences show it at {z:.2g} standard errors only (needs "
+            f"{SELECT_SIGMAS:g}): its held-out gain comes from a misfit of the model, not from a "
+            "change within the step")
+
+
 def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_light: int,
            candidates: list, label: str, ambiguous: list | None = None) -> Fitted:
     """Add effects while one beats the current model by more than the noise allows.
@@ -278,6 +321,11 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                      and current.mse - noise_floor ** 2 > floor2
                      and gain > SELECT_SIGMAS * se and gain > floor2
                      and gain > MIN_EXPLAINED * systematic2)
+            if beats and EFFECTS[name].scope == "pair":
+                weak_pair = pair_evidence(trial, name, data)
+                if weak_pair:
+                    entry["rejected"] = weak_pair
+                    beats = False
             if beats and EFFECTS[name].scope == "step":
                 trend = step_trend(trial, name, data)
                 if trend:
