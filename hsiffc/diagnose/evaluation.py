@@ -26,8 +26,8 @@ the evaluation half (only scored). :func:`run` diagnoses the cases, :func:`summa
 them (named right, false alarms, out-of-library reported as unexplained, a confusion matrix)
 and :func:`markdown` renders the tables of the diagnose docs page::
 
-    python3 -m hsiffc.diagnose.evaluation --half eval --cases 240 --json eval.json
-    python3 -m hsiffc.diagnose.evaluation --half eval --cases 240 --page docs/diagnose.md
+    python3 -m hsiffc.diagnose.evaluation --half eval --cases 480 --json eval.json
+    python3 -m hsiffc.diagnose.evaluation --half eval --cases 480 --page docs/diagnose.md
 
 The second form also diagnoses the sweeps of ``../shared/data`` (one row each) and writes the
 tables between ``<!-- BEGIN evaluation -->`` and ``<!-- END evaluation -->`` of the page.
@@ -674,7 +674,8 @@ def main(argv=None) -> int:
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--half", choices=("dev", "eval", "all"), default="dev",
                     help="which half of the seeds (default dev: tune on dev, score eval)")
-    ap.add_argument("--cases", type=int, default=240, help="seeds 0 .. CASES-1 (default 240)")
+    ap.add_argument("--cases", type=int, default=480,
+                    help="seeds 0 .. CASES-1 (default 480: 240 per half)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--json", type=Path, help="write every case and the summary here")
     ap.add_argument("--page", type=Path, help="write the tables into this Markdown page")
