@@ -387,7 +387,7 @@ def quantisation_bias(var_pair, quantum=1.0):
     v = np.asarray(var_pair, float)
     if quantum <= 0:
         return np.zeros_like(v)
-    pair, bias = _quantisation_table()
+    pair, bias, _ = _quantisation_table()
     return quantum ** 2 * np.interp(np.maximum(v, 0.0) / quantum ** 2, pair, bias)
 
 
@@ -417,8 +417,7 @@ def noise_before_rounding(var_pair, quantum=1.0):
     v = np.asarray(var_pair, float)
     if quantum <= 0:
         return v.copy()
-    pair, _ = _quantisation_table()
-    s2 = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 400)])
+    pair, _, s2 = _quantisation_table()
     q2 = quantum ** 2
     x = np.maximum(v, 0.0) / q2
     return q2 * np.where(x <= pair[-1], np.interp(x, pair, s2), x - 1.0 / 12)
@@ -426,11 +425,12 @@ def noise_before_rounding(var_pair, quantum=1.0):
 
 @functools.lru_cache(maxsize=1)
 def _quantisation_table():
-    """(pair variance, bias variance) in units of the quantum squared, sigma from 0 to 2."""
+    """(pair variance, bias variance, sigma^2) in units of the quantum squared, sigma from 0
+    to 2."""
     s2 = np.concatenate([[0.0], np.geomspace(1e-6, 4.0, 400)])
     k = np.arange(1, 401)[:, None]
     bias = (np.exp(-4 * np.pi ** 2 * k ** 2 * s2[None, :]) / (2 * np.pi ** 2 * k ** 2)).sum(0)
-    return s2 + 1.0 / 12 - bias, bias  # the pair variance grows with sigma
+    return s2 + 1.0 / 12 - bias, bias, s2  # the pair variance grows with sigma
 
 
 def noise_from_spread(res_ho, valid_ho, signal, pred_var, n_frames):
