@@ -307,18 +307,21 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
             skipped, weak, ambiguous = skipped_lin, weak_lin, ambiguous_lin
         if leakage["verdict"] == "cannot tell":
             ambiguous.append({"effects": leakage["models"], "reason": leakage["reason"]})
-    # the frames' noise before rounding: integer data are simulated as the ADC records them,
-    # so the rounding bias of quiet pixels (common to the pixels of a step) is in the null
-    sigma_step = np.sqrt(ds.noise_before_rounding(var_step, quantum if smp["pairs"] else 0.0))
+    # the frames' noise before rounding: integer data with frame pairs are simulated as the
+    # ADC records them, so the rounding bias of quiet pixels (common to the pixels of a step)
+    # is in the null
+    sim_quantum = quantum if smp["pairs"] else 0.0
+    sigma_step = np.sqrt(ds.noise_before_rounding(var_step, sim_quantum))
 
     def simulate_frames(level, n_frames, rng):
         """The mean of ``n_frames`` simulated frames per step around ``level`` (P, S)."""
-        if quantum <= 0 or not smp["pairs"]:
+        if sim_quantum <= 0:
             return level + sigma_step / np.sqrt(n_frames) * rng.standard_normal(level.shape)
         total = np.zeros(level.shape)
         for k in range(int(n_frames.max())):
-            frame = np.round((level + sigma_step * rng.standard_normal(level.shape)) / quantum)
-            total += np.where(k < n_frames, frame * quantum, 0.0)
+            frame = np.round((level + sigma_step * rng.standard_normal(level.shape))
+                             / sim_quantum)
+            total += np.where(k < n_frames, frame * sim_quantum, 0.0)
         return total / np.maximum(n_frames, 1)
 
     def residual_check(fitted):

@@ -5,7 +5,7 @@ base model's Jacobian (:func:`projector`: what the base parameters cannot absorb
 of a candidate effect that stays separable from the base on a design
 (:func:`separable_fraction`); the least-squares fit of one effect on a residual, jointly with
 the base or not (:func:`fit_effect`), and of a within-step effect on the frame differences
-(:func:`fit_pair_effect`). All are re-exported by :mod:`hsiffc.diagnose.fitting`.
+(:func:`fit_pair_effect`, on what :func:`pair_regression` sets up). All are re-exported by :mod:`hsiffc.diagnose.fitting`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ from scipy import linalg
 if TYPE_CHECKING:
     from .fitting import Data
 
-__all__ = ["fit_effect", "fit_pair_effect", "gram", "projector", "separable_fraction"]
+__all__ = ["fit_effect", "fit_pair_effect", "gram", "pair_regression", "projector",
+           "separable_fraction"]
 
 
 def gram(a, w, b):
@@ -155,6 +156,29 @@ def fit_effect(effect, ctx, res, w, project=None):
     return theta, x * theta[None, :]
 
 
+def pair_regression(effect, ctx, data: Data):
+    """What a within-step effect is fitted on: its column times the frame gap ``x`` (P, S),
+    the light samples valid in both halves ``ok`` (P, S) and the frame differences ``d``
+    (held-out minus fit half, DN; 0 outside ``ok``).
+
+    Parameters
+    ----------
+    effect : Effect
+        A within-step ("pair") effect.
+    ctx : Context
+        Base model on the data.
+    data : Data
+        The samples.
+
+    Returns
+    -------
+    x, ok, d : ndarray, (P, S)
+    """
+    x = effect.columns(ctx)[..., 0] * data.frame_gap
+    ok = data.valid & data.valid_ho & data.light[None, :]
+    return x, ok, np.where(ok, data.y_ho - data.y, 0.0)
+
+
 def fit_pair_effect(effect, ctx, data: Data, prediction):
     """A within-step effect (the held-out frames differ from the fit frames of the same step),
     fitted on the frame differences by two-fold cross-fitting over pixels: the parameter applied
@@ -179,9 +203,7 @@ def fit_pair_effect(effect, ctx, data: Data, prediction):
     prediction : ndarray, (P, S), DN
         What the effect adds to the held-out half.
     """
-    x = effect.columns(ctx)[..., 0] * data.frame_gap
-    ok = data.valid & data.valid_ho & data.light[None, :]
-    d = np.where(ok, data.y_ho - data.y, 0.0)
+    x, ok, d = pair_regression(effect, ctx, data)
     wx = np.where(ok, data.w, 0.0)
     half = (np.arange(x.shape[0]) % 2).astype(bool)
     coef = np.zeros(x.shape[0])

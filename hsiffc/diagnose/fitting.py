@@ -19,12 +19,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .effectfit import fit_effect, fit_pair_effect, gram, projector, separable_fraction
+from .effectfit import (fit_effect, fit_pair_effect, gram, pair_regression, projector,
+                        separable_fraction)
 from .effects import EFFECTS, Context
 
 __all__ = ["BIG_EFFECT", "MAX_ROUNDS", "ROUND_TOL", "Data", "State", "context", "cost",
-           "describe_params", "fit_effect", "fit_pair_effect", "fitpredict", "gram", "projector",
-           "refit_base", "separable_fraction"]
+           "describe_params", "fit_effect", "fit_pair_effect", "fitpredict", "gram",
+           "pair_regression", "projector", "refit_base", "separable_fraction"]
 
 
 MAX_ROUNDS = 16

@@ -10,7 +10,7 @@ import numpy as np
 from scipy import stats
 
 from .effects import EFFECTS
-from .fitting import Data, State, context, describe_params, fitpredict
+from .fitting import Data, State, context, describe_params, fitpredict, pair_regression
 
 SELECT_SIGMAS = 5.0  # held-out improvement needed, in standard errors of the paired difference
 MIN_GAIN_OF_NOISE = 0.08  # ... and at least this fraction of the noise floor, as an RMS
@@ -253,12 +253,11 @@ def pair_evidence(trial: Fitted, name: str, data: Data):
         Why the effect is not shown (with the figure), or None.
     """
     _, _, ctx = context(trial.state.base, trial.state.theta, data)
-    x = EFFECTS[name].columns(ctx)[..., 0] * data.frame_gap
-    ok = data.valid & data.valid_ho & data.light[None, :] & np.isfinite(x)
+    x, ok, d = pair_regression(EFFECTS[name], ctx, data)
+    ok &= np.isfinite(x)
     if not ok.any():
         return "no step has both frames valid"
-    d = (data.y_ho - data.y)[ok]
-    xv, wv = x[ok], data.w[ok]
+    d, xv, wv = d[ok], x[ok], data.w[ok]
     den = float((wv * xv * xv).sum())
     if den <= 0:
         return "its column is zero on every valid step"
