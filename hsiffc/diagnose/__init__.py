@@ -279,20 +279,15 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
             skipped, weak, ambiguous = pp_skipped, pp_weak, pp_ambiguous
         else:
             per_pixel = (pp_final, pp_fit)
-    if (final.state.base.name == "leakage" and final.names
-            and "pixel_nonlinearity" not in final.names):
+    if final.state.base.name == "leakage" and "pixel_nonlinearity" not in final.names:
         # the selected model with one leakage shape, kept when it explains the sweep as well
         # with fewer parameters. Not tried next to a per-pixel nonlinearity, which says that
         # the bend differs from pixel to pixel
-        sh_final = evaluate(fitpredict(final.names, data, sh_state), final.names, data, n_pix,
-                            n_light)
+        sh_final = (evaluate(fitpredict(final.names, data, sh_state), final.names, data, n_pix,
+                             n_light) if final.names else sh_fit)
         if sh_final.bic < final.bic and equally_good(final, sh_final, valid_ho, noise_floor):
             per_pixel = (final, base_fit)
             final, base_fit = sh_final, sh_fit
-    elif final.state.base.name == "leakage" and sh_fit.bic < final.bic and equally_good(
-            final, sh_fit, valid_ho, noise_floor):
-        per_pixel = (final, base_fit)
-        final, base_fit = sh_fit, sh_fit
     if base.name in ("leakage", "shared leakage"):
         lin = LinearBase(use_dc)
         lin_state = State(lin, lin.start(y, t, r, valid, w))
