@@ -89,20 +89,49 @@ def _cpu_table(rows: dict) -> list[str]:
     return out
 
 
-def render_page(run: dict, before: dict | None, run_name: str, before_name: str | None) -> str:
-    """The results page (docs/results/gpu.md) from this script's JSON outputs."""
+#: the outputs docs/results/gpu.md is rendered from (docs/results/gpu/): the GPU run of this
+#: code, the runs of the cube kernel's history (file, what the kernel was then), the CPU runs
+#: on the same machine (two starts of it: their spread is the machine's), and the earlier
+#: runs on an H200 (before and after that session's CPU changes)
+PAGE_RUNS = {
+    "gpu": "run5_h100.json",
+    "kernel": [("run2.json", "H200: one thread per value, its band and pixel from i // B, "
+                "the band-median passes queued on every frame"),
+               ("run3_h100.json", "H100: the band-median passes only on frames with values "
+                "to fill"),
+               ("run4_h100.json", "H100: blocks of (bands, pixels, rows) threads, the phases "
+                "and weights from tables (no integer division)"),
+               ("run5_h100.json", "H100: and at most 64 registers a thread")],
+    "cpu": ["run3_h100.json", "run4_h100.json"],
+    "earlier": ["run1_before.json", "run2.json"],
+}
+
+
+def _ms(run: dict, key: str) -> str:
+    r = run.get("gpu_device_only", {}).get(key)
+    return f"{r['ms_per_frame']:.3f}" if isinstance(r, dict) else "-"
+
+
+def render_page(runs: dict) -> str:
+    """The results page (docs/results/gpu.md) from this script's JSON outputs: ``runs``
+    maps each file :data:`PAGE_RUNS` names to its contents."""
+    run = runs[PAGE_RUNS["gpu"]]
     env = run["environment"]
     dev, stream, eq = run["gpu_device_only"], run["gpu_stream"], run["equality"]
     cb = "correct+bilinear"
+    cpu_envs = [runs[f]["environment"] for f in PAGE_RUNS["cpu"]]
     lines = [STAMP, "", "# GPU and CPU scaling of the live correction", "",
              f"Measured by `python3 benchmarks/gpu.py --out DIR --quick --frames 60` on "
              f"{env.get('device')} ({env.get('nvidia_smi')}), {env.get('cpus')} CPU cores; "
              f"Python {env.get('python')}, numpy {env.get('numpy')}, numba {env.get('numba')}, "
              f"numba-cuda {env.get('numba_cuda')}; frames {env['shape'][1]} x "
-             f"{env['shape'][0]} of the simulator's 8-band 2 x 4 mosaic sensor. Outputs: "
-             f"`docs/results/gpu/{run_name}`" + (f"; the run before the CPU changes: "
-                                                 f"`docs/results/gpu/{before_name}`"
-                                                 if before_name else "") + ".",
+             f"{env['shape'][0]} of the simulator's 8-band 2 x 4 mosaic sensor. The GPU "
+             f"figures are `docs/results/gpu/{PAGE_RUNS['gpu']}` (this code, `--skip-cpu`); "
+             f"the CPU figures are two full runs on the same kind of machine, "
+             + " and ".join(f"`docs/results/gpu/{f}`" for f in PAGE_RUNS["cpu"])
+             + " (the same CPU code in both; "
+             + ", ".join(f"{e.get('device')}, {e.get('cpus')} cores" for e in cpu_envs)
+             + ").",
              "", "## Toolchain: numba-cuda", "",
              "The GPU kernels (`hsiffc/gpu/kernels.py`) are numba-cuda kernels that call the "
              "CPU kernels' own scalar functions (`invert_point`, `correct_point`, "
@@ -113,19 +142,16 @@ def render_page(run: dict, before: dict | None, run_name: str, before_name: str 
              "in CUDA C, a second copy to keep equal. On the GPU machine's own Python "
              "(numpy 2.5.2) `from numba import cuda` failed because numba-cuda registers "
              "`np.row_stack`, which numpy 2.5 removed: `hsiffc.gpu.cuda_module` gives numpy "
-             "its old alias (`vstack`) before the import, and the machine's own numba-cuda "
-             "then compiled every kernel for the H200.", "",
+             "its old alias (`vstack`) before the import, and numba-cuda then compiled every "
+             "kernel for the H200 and the H100.", "",
              "## GPU (default correction + bilinear cube)", "",
              "| what | ms per frame | Mpx/s | target |", "|---|---|---|---|"]
     lines.append(f"| device alone, correction only | {dev['correct']['ms_per_frame']:.3f} | "
                  f"{dev['correct']['mpx_s']:.0f} | - |")
     d = dev[cb]
-    lazy = cb + " holed" in dev  # runs since the fill's medians are found only where needed
-    lines.append(f"| device alone, correction + bilinear cube "
-                 f"({'no value to fill' if lazy else 'with the band-median pass'}) | "
-                 f"{d['ms_per_frame']:.3f} | {d['mpx_s']:.0f} | >= 2000: "
-                 f"{'met' if d['mpx_s'] >= 2000 else 'not met'} |")
-    for key, r in dev.items():  # the other pipelines (runs since they were added)
+    lines.append(f"| device alone, correction + bilinear cube | {d['ms_per_frame']:.3f} | "
+                 f"{d['mpx_s']:.0f} | >= 2000: {'met' if d['mpx_s'] >= 2000 else 'not met'} |")
+    for key, r in dev.items():
         if key not in ("correct", cb) and isinstance(r, dict) and "mpx_s" in r:
             what = (f"{cb}, DEAD and HOT pixels (the exact band medians and the fill)"
                     if key == cb + " holed" else key)
@@ -137,12 +163,45 @@ def render_page(run: dict, before: dict | None, run_name: str, before_name: str 
             target = f">= 380: {'met' if r['mpx_s'] >= 380 else 'not met'}"
         lines.append(f"| stream, raw in, {key} out in host memory | {r['ms_per_frame']:.3f} | "
                      f"{r['mpx_s']:.0f} | {target} |")
+    f32 = stream[cb + " float32/uint32"]
+    small = stream[cb + " uint16/uint8"]
+    h200 = runs["run2.json"]["gpu_stream"][cb + " float32/uint32"]
     lines += ["", "`stream` overlaps upload, kernels and download on two CUDA streams with "
               "pinned buffers; `copy` means each item is copied out of the pinned buffer "
               "into new host memory (the default, safe to keep); without it the item is a "
               "view valid until the item after next is asked for (the live mode). The copy "
-              "into fresh pages is what makes `copy` slow here.", "",
-              "## Equality with the CPU path (same frames)", "",
+              "into fresh pages is what makes `copy` slow here. The copy back bounds the "
+              f"stream: a float32 cube with uint32 DQ is {f32['out_mb']:.0f} MB a frame, "
+              f"{f32['out_mb'] / f32['ms_per_frame']:.1f} GB/s at {f32['mpx_s']:.0f} Mpx/s on "
+              f"this H100 machine against {h200['mpx_s']:.0f} Mpx/s on the H200 machine "
+              "(run2); uint16 data with uint8 DQ "
+              f"({small['out_mb']:.0f} MB) reach {small['mpx_s']:.0f} Mpx/s here.", "",
+              "## The cube kernel, run by run", "",
+              "Device alone, ms per frame (the kernels of one frame queued 20 times, median "
+              "of 5 repeats):", "",
+              "| run | what the cube kernel was | correct | correct+bilinear | "
+              "mask+bilinear | correct+ppid | two_point+nearest |",
+              "|---|---|---|---|---|---|---|"]
+    for fname, what in PAGE_RUNS["kernel"]:
+        r = runs[fname]
+        lines.append(f"| `{fname}` | {what} | " + " | ".join(
+            _ms(r, k) for k in ("correct", cb, "mask+bilinear", "correct+ppid",
+                                "two_point+nearest")) + " |")
+    lines += ["", "What the profile of the cube kernel showed (`docs/results/gpu/"
+              "bilinear_h100.txt`: Nsight Compute on the H100, the kernel with the phase "
+              "tables and no register cap): 106 registers a thread, which allowed 2 blocks "
+              "of 256 threads per multiprocessor, 25 % theoretical occupancy (18 % achieved); "
+              "14 of 32 threads of a warp active on average (the branches of the rare paths "
+              "and of each band's place in the tile); the memory system 9 % busy, the issue "
+              "slots 46 %. The kernel is bound by latency and instruction issue, not by "
+              "memory. A register cap trades occupancy against spills: 80 registers 1.26 ms, "
+              "64 registers 1.16 ms, 48 registers 1.63 ms, against 1.66 ms without a cap "
+              "(CUDA events, the kernel alone, values and DQ bit-equal: "
+              "`python3 benchmarks/gpu_registers.py`); the kernel ships with 64. What is "
+              "left to the 2 Gpx/s target (1.11 ms for the correction and the cube): moving "
+              "the rare paths (the twice-wide S2 tent, nearest, PPID) out of the common "
+              "kernel, so that it needs fewer registers without a cap and diverges less.",
+              "", "## Equality with the CPU path (same frames)", "",
               "| pipeline | values | largest difference, float32 ulps of the value | "
               "DQ values that differ | alpha values that differ | history and metadata |",
               "|---|---|---|---|---|---|"]
@@ -167,35 +226,45 @@ def render_page(run: dict, before: dict | None, run_name: str, before_name: str 
               "pixels through vectorised Halley rounds, the GPU through the bracketed scalar "
               "iteration; the GPU compiler fuses multiply-adds). 'holed' adds a block of DEAD "
               "pixels and 2 % HOT ones (values bridged by the twice-wide tent and the "
-              "band-median fill). A value 1-2 ulps apart can round to the other side in "
-              "float16 or uint16 (the compact rows).", "",
-              "## CPU threads (numba.set_num_threads), same machine", "",
-              "After the CPU changes (this code):", ""] + _cpu_table(run["cpu_threads"])
-    cross = run.get("cpu_crossover")
-    if isinstance(cross, dict) and "error" not in cross:
-        lines += ["", "Where a kernel's parallel build beats its serial one (elements; best "
-                  "of 7 calls; `scale`: signal x gain x scale, `alpha`: the paper alpha):", ""]
-        for n, r in cross.items():
-            lines.append(f"- {n}: " + ", ".join(f"{k} from {v if v else 'never'}"
-                                                  for k, v in r["parallel pays from"].items()))
-    if before is not None:
-        lines += ["", "Before them (first machine start, the same script):", ""]
-        lines += _cpu_table(before["cpu_threads"])
-    lines += ["", "The two runs were two starts of the machine; the unchanged fused front end "
-              "ran at a different single-thread speed on each (231 against 170 Mpx/s), so "
-              "the efficiencies of the second run rest on single-thread figures that look "
-              "low: compare the 8- and 16-thread rows across runs. What changed: the model "
-              "FFC's pending (saturated) pixels are gathered and finished in parallel and its "
-              "DQ merged by one parallel pass (default correction 113 -> 141 Mpx/s at 8 "
-              "threads, 162 -> 195 at 16); the band medians of the cube's fill run one band "
-              "per thread (no measurable gain for the bilinear pipeline). Not established by "
-              "measurement: the front end moves about 34 bytes per pixel (raw, dark, a, b, "
-              "flags and gain in; data, alpha and DQ out), about 48 GB/s at 1409 Mpx/s, which "
-              "is where one socket's memory bandwidth flattens it beyond 8 threads; the cube "
-              "pipelines write three fresh 71 MB cubes per frame here (this script does not "
-              "reuse freed memory as `hsiffc correct` does), whose page faults are a likely "
-              "serial part left.", ""]
+              "band-median fill); 'hollow' a frame whose PPI is undefined in places (PPID's "
+              "plain bilinear fallback). A value 1-2 ulps apart can round to the other side "
+              "in float16 or uint16 (the compact rows).", "",
+              "## CPU threads (numba.set_num_threads), same machine", ""]
+    for fname in PAGE_RUNS["cpu"]:
+        lines += [f"`{fname}`:", ""] + _cpu_table(runs[fname]["cpu_threads"]) + [""]
+        cross = runs[fname].get("cpu_crossover")
+        if isinstance(cross, dict) and "error" not in cross:
+            lines += ["Where a kernel's parallel build beats its serial one (elements; best "
+                      "of 7 calls; `scale`: signal x gain x scale, `alpha`: the paper alpha): "
+                      + "; ".join(f"{n}: " + ", ".join(
+                          f"{k} from {v if v else 'never'}"
+                          for k, v in r["parallel pays from"].items())
+                          for n, r in cross.items()) + ".", ""]
+    a, b = (runs[f]["cpu_threads"] for f in PAGE_RUNS["cpu"])
+    dc = "default correct"
+    lines += [f"The same code on two starts of the machine: one thread ran the default "
+              f"correction at {a['1'][dc]['mpx_s']:.0f} and {b['1'][dc]['mpx_s']:.0f} Mpx/s, "
+              f"eight threads at {a['8'][dc]['mpx_s']:.0f} and {b['8'][dc]['mpx_s']:.0f}; the "
+              "efficiency from 1 to 8 threads moves with the single-thread figure, so the "
+              "60 % target for the default correction and the bilinear pipeline is met on one "
+              "start and not on the other. The front end (dark, alpha mask, two-point FFC) "
+              "stops gaining beyond 8 threads on both: it moves about 34 bytes a pixel "
+              "(raw, dark, a, b, flags and gain in; data, alpha and DQ out), about 45 GB/s "
+              "at 1300 Mpx/s, the memory bandwidth that such a machine gives one process "
+              "(not established by a counter: the machine has no perf).", "",
+              "Earlier runs on an H200 machine (16 cores), before and after that session's CPU "
+              "changes (the model FFC's pending pixels finished in parallel, its DQ merged in "
+              "one pass):", ""]
+    for fname in PAGE_RUNS["earlier"]:
+        lines += [f"`{fname}`:", ""] + _cpu_table(runs[fname]["cpu_threads"]) + [""]
     return "\n".join(lines)
+
+
+def page_runs(folder: Path) -> dict:
+    """Every file :data:`PAGE_RUNS` names, read from ``folder``."""
+    names = {PAGE_RUNS["gpu"], *PAGE_RUNS["cpu"], *PAGE_RUNS["earlier"],
+             *(f for f, _ in PAGE_RUNS["kernel"])}
+    return {n: json.loads((folder / n).read_text()) for n in sorted(names)}
 
 
 def efficiency(rows: dict) -> dict:
@@ -278,14 +347,11 @@ def main() -> int:
     if "--page" in sys.argv:
         ap = argparse.ArgumentParser()
         ap.add_argument("--page", required=True)
-        ap.add_argument("--run", required=True)
-        ap.add_argument("--before")
+        ap.add_argument("--runs", default=str(Path(__file__).resolve().parent.parent
+                                              / "docs" / "results" / "gpu"),
+                        help="the folder of the JSON outputs PAGE_RUNS names")
         a = ap.parse_args()
-        run = json.loads(Path(a.run).read_text())
-        before = json.loads(Path(a.before).read_text()) if a.before else None
-        text = render_page(run, before, Path(a.run).name,
-                           Path(a.before).name if a.before else None)
-        Path(a.page).write_text(text)
+        Path(a.page).write_text(render_page(page_runs(Path(a.runs))))
         return 0
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", required=True)

@@ -211,15 +211,15 @@ def test_results_page_is_what_the_benchmark_measured():
     spec = importlib.util.spec_from_file_location("bench_gpu", REPO / "benchmarks" / "gpu.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    res = REPO / "docs" / "results" / "gpu"
-    run = json.loads((res / "run2.json").read_text())
-    before = json.loads((res / "run1_before.json").read_text())
-    page = mod.render_page(run, before, "run2.json", "run1_before.json")
-    assert (REPO / "docs" / "results" / "gpu.md").read_text() == page, (
+    runs = mod.page_runs(REPO / "docs" / "results" / "gpu")
+    assert (REPO / "docs" / "results" / "gpu.md").read_text() == mod.render_page(runs), (
         "docs/results/gpu.md is stale or edited: python3 benchmarks/gpu.py --page "
-        "docs/results/gpu.md --run docs/results/gpu/run2.json --before "
-        "docs/results/gpu/run1_before.json")
-    assert run["environment"]["device"] and "H200" in run["environment"]["nvidia_smi"]
+        "docs/results/gpu.md")
+    gpu_run = runs[mod.PAGE_RUNS["gpu"]]
+    assert "H100" in gpu_run["environment"]["nvidia_smi"]
+    assert gpu_run["equality"]["within tolerance"] is True
+    for name in mod.PAGE_RUNS["cpu"]:  # full runs: every thread count measured
+        assert {"1", "2", "4", "8", "16"} <= set(runs[name]["cpu_threads"])
 
 
 def test_plan_refuses_steps_the_gpu_does_not_run_in_one_line():

@@ -113,18 +113,40 @@ def _store(cube, cube_dq, y, x, b, v, bits, mode, fold):
 
 
 @cuda.jit(device=True, inline=True)
+def _wrap(d, p):
+    """``d mod p`` for ``-p < d < p``, without a division."""
+    return d + p if d < 0 else d
+
+
+@cuda.jit(device=True, inline=True)
 def _finite_alpha(a):
     """Non-finite alpha counts as the largest float32 (as :func:`hsiffc.reconstruct.demosaic`
     reads the alpha plane)."""
     return a if abs(a) < np.inf else np.float32(_F32_MAX)
 
 
-@cuda.jit
+def _register_capped(fn):
+    """``cuda.jit`` with at most 64 registers a thread: unbounded, :data:`bilinear` took 106
+    (its rare branches: the twice-wide S2, "nearest", PPID), which left 25 % occupancy; with
+    the cap it ran 1.66 -> 1.16 ms per 2048 x 1088 x 8 cube on an H100, values bit-equal
+    (docs/results/gpu.md). Numba's CUDA simulator takes no cap."""
+    try:
+        return cuda.jit(max_registers=64)(fn)
+    except TypeError:
+        return cuda.jit(fn)
+
+
+@_register_capped
 def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw,
              mode, fold, medians, has_medians, cube, cube_dq, cube_alpha, missing, miss_list,
-             near, pat_r, pat_c, pat_start, oy, ox, use_ppi, ppi, ppi_ok, levels, alpha_win):
-    """Band ``i mod B`` at pixel (y, ``i // B``), one thread per cube value (consecutive
-    threads write consecutive values): :mod:`hsiffc.kernels.demosaic`'s bilinear value, its DQ
+             near, pat_r, pat_c, pat_start, oy, ox, use_ppi, ppi, ppi_ok, levels, alpha_win,
+             ymod, xmod, wy_of, wx_of):
+    """One thread per cube value, launched as blocks of (B, pixels, rows) threads: band
+    ``threadIdx.x`` of a pixel, so consecutive threads write consecutive values, and no integer
+    division on the common path (64-bit on the GPU, it was most of the kernel's time): the
+    phases come from the tables ``ymod`` (``y % ph``) and ``xmod`` (``x % pw``), the weights
+    from ``wy_of[d] = d / ph`` and ``wx_of[d] = d / pw``, the same float64 quotients.
+    :mod:`hsiffc.kernels.demosaic`'s bilinear value, its DQ
     and (``has_alpha``) its alpha. Where the twice-wide support holds no usable sample either,
     the value is ``medians[band]`` (``has_medians``) or NaN; both with DO_NOT_USE. Without
     medians, ``missing[0]`` counts such values and ``missing[1 + band]`` marks their bands:
@@ -140,14 +162,16 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
     ``use_ppi``: PPID (:mod:`hsiffc.kernels.demosaic` with a PPI): the tent interpolates
     ``v - level ppi`` and adds ``level ppi`` back (``levels`` (B,) float64), the plain bilinear value (float64 sums) where the PPI is undefined, and the
     alpha is ``alpha_win`` (the PPI window's max, :data:`window_max`) in every band."""
-    i, y = cuda.grid(2)
+    band = cuda.threadIdx.x
+    x = cuda.blockIdx.x * cuda.blockDim.y + cuda.threadIdx.y
+    y = cuda.blockIdx.y * cuda.blockDim.z + cuda.threadIdx.z
     H = data.shape[0]
     W = data.shape[1]
     B = lat_start.shape[0] - 1
-    x = i // B
-    band = i - x * B
-    if y >= H or x >= W:
+    if y >= H or x >= W or band >= B:
         return
+    qy = ymod[y]
+    qa = xmod[x]
     num = np.float32(0.0)
     den = np.float32(0.0)
     amax = _NEG
@@ -155,8 +179,9 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
     level = levels[band] if use_ppi else 0.0
     lev = np.float32(level)  # the CPU kernel's float32 level of its lattice pass
     for j in range(lat_start[band], lat_start[band + 1]):
-        ry0 = y - ((y - lat_r[j]) % ph)
-        wy1 = (y - ry0) / ph
+        dy = _wrap(qy - lat_r[j], ph)  # (y - lat_r[j]) % ph
+        ry0 = y - dy
+        wy1 = wy_of[dy]
         ry1 = ry0 + ph
         w0 = np.float32((1.0 - wy1) if ry0 >= 0 else 0.0)
         w1 = np.float32(wy1 if ry1 < H else 0.0)
@@ -165,11 +190,10 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
         if r0 >= H:
             continue
         c0 = lat_c[j]
-        qa = x % pw
         s = 0 if qa >= c0 else 1
         p = qa - c0 + s * pw
-        wr = np.float32(p / pw)
-        wl = np.float32(1.0 - p / pw)
+        wr = np.float32(wx_of[p])
+        wl = np.float32(1.0 - wx_of[p])
         xl = x - p
         for side in range(2):
             xs = xl + side * pw
@@ -193,7 +217,7 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
                     amax = max(amax, _finite_alpha(alpha[r0, xs]))
                 if w1 > 0.0:
                     amax = max(amax, _finite_alpha(alpha[r1, xs]))
-        if has_dq and lat_r[j] == y % ph and p == 0:
+        if has_dq and lat_r[j] == qy and p == 0:
             own = dq[y, x]
     bits = own
     value = np.nan
@@ -248,8 +272,8 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
     if near:  # the band's usable samples in the pixel's own tile, where it has one
         acc = np.float32(0.0)
         cnt = np.float32(0.0)
-        t0y = y - ((y - oy) % ph)
-        t0x = x - ((x - ox) % pw)
+        t0y = y - _wrap(qy - oy, ph)  # oy, ox in [0, ph), [0, pw)
+        t0x = x - _wrap(qa - ox, pw)
         for j in range(pat_start[band], pat_start[band + 1]):
             sy = t0y + pat_r[j]
             sx = t0x + pat_c[j]
@@ -477,19 +501,19 @@ def median_mean(values, count, medians):
 def correction_matrix(cube, cube_dq, cube_alpha, has_alpha, coef, support, mode, fold, out,
                       out_dq, out_alpha):
     """The spectral correction matrix per pixel (:func:`hsiffc.reconstruct.apply_correction`),
-    one thread per virtual value: ``sum_b coef[b, v] cube[b]`` in float32 (``coef`` the
+    one thread per virtual value (blocks of (V, pixels, rows) threads): ``sum_b coef[b, v] cube[b]`` in float32 (``coef`` the
     matrix transposed, as the CPU's float32 product takes it; the sum's order differs from
     BLAS's, so the value agrees within float32 rounding of the terms), the OR of the DQ and
     the max of the alpha of the bands in the row's ``support`` (0 where it has none), stored
     in the stream's output types."""
-    i, y = cuda.grid(2)
+    v = cuda.threadIdx.x  # blocks of (V, pixels, rows) threads, as :data:`bilinear`
+    x = cuda.blockIdx.x * cuda.blockDim.y + cuda.threadIdx.y
+    y = cuda.blockIdx.y * cuda.blockDim.z + cuda.threadIdx.z
     H = cube.shape[0]
     W = cube.shape[1]
     B = cube.shape[2]
     V = coef.shape[1]
-    x = i // V
-    v = i - x * V
-    if y >= H or x >= W:
+    if y >= H or x >= W or v >= V:
         return
     acc = np.float32(0.0)
     bits = np.uint32(0)

@@ -228,14 +228,22 @@ class GpuPipeline:
                                  "this frame has none")
             lat = prepare(np.zeros(shape, np.float32), mosaic, None).lattices()
             lat_r, lat_c, lat_start = lattice_arrays(lat)
+            ph, pw = (int(v) for v in mosaic.tile_shape)
+            H, W = shape
             p.update(lat_r=dev(lat_r), lat_c=dev(lat_c), lat_start=dev(lat_start),
-                     period=tuple(int(v) for v in mosaic.tile_shape), n_bands=len(lat),
+                     period=(ph, pw), n_bands=len(lat),
+                     # the cube kernel's phases and weights (no division on the device)
+                     ymod=dev(np.arange(H, dtype=np.int64) % ph),
+                     xmod=dev(np.arange(W, dtype=np.int64) % pw),
+                     wy_of=dev(np.arange(ph, dtype=np.float64) / ph),
+                     wx_of=dev(np.arange(pw, dtype=np.float64) / pw),
                      no_medians=dev(np.zeros(1, np.float32)),
                      always=dev(np.ones(1, np.int64)),
                      phase_band=dev(_phase_band(lat, mosaic.tile_shape)))
             method = self.rec[1].method
             pos = [np.argwhere(np.asarray(mosaic.pattern) == b) for b in range(len(lat))]
-            p.update(method=method, offset=tuple(int(v) for v in mosaic.offset),
+            p.update(method=method, offset=(int(mosaic.offset[0]) % ph,
+                                            int(mosaic.offset[1]) % pw),
                      pat_r=dev(np.array([r for q in pos for r, _ in q] or [0], np.int64)),
                      pat_c=dev(np.array([c for q in pos for _, c in q] or [0], np.int64)),
                      pat_start=dev(np.cumsum([0] + [len(q) for q in pos]).astype(np.int64)))
@@ -368,12 +376,19 @@ class GpuPipeline:
             my, mx = planes["win"]
             k.window_max[grid, self.block, stream](bufs["alpha"], my, mx, bufs["alpha_win"])
 
-    def _matrix(self, planes, bufs, mode, fold, with_alpha, stream):
-        H, W = bufs["frame"].shape
-        V = planes["n_virtual"]
+    def _per_value(self, shape, n):
+        """Grid and block of the kernels with one thread per value of an (H, W, n) cube:
+        blocks of (n, pixels, rows) threads, about as many pixels as ``block`` has threads
+        along the row (at least one), its rows down (fewer where n is large)."""
+        H, W = shape
         bx, by = self.block
-        grid = ((W * V + bx - 1) // bx, (H + by - 1) // by)
-        self.k.correction_matrix[grid, self.block, stream](
+        px = max(1, bx // n)
+        rows = max(1, min(by, 1024 // (n * px)))
+        return ((W + px - 1) // px, (H + rows - 1) // rows), (n, px, rows)
+
+    def _matrix(self, planes, bufs, mode, fold, with_alpha, stream):
+        grid, block = self._per_value(bufs["frame"].shape, planes["n_virtual"])
+        self.k.correction_matrix[grid, block, stream](
             bufs["cube"], bufs["cube_dq"], bufs["cube_alpha"], with_alpha, planes["coef"],
             planes["support"], mode, fold, bufs["out"], bufs["out_dq"], bufs["out_alpha"])
 
@@ -405,21 +420,19 @@ class GpuPipeline:
         return bufs["medians"]
 
     def _bilinear(self, planes, bufs, mode, fold, with_alpha, medians, stream):
-        H, W = bufs["frame"].shape
-        B = planes["n_bands"]
         ph, pw = planes["period"]
-        bx, by = self.block
-        grid = ((W * B + bx - 1) // bx, (H + by - 1) // by)
+        grid, block = self._per_value(bufs["frame"].shape, planes["n_bands"])
         ppid = planes["method"] == "ppid"
         oy, ox = planes["offset"]
-        self.k.bilinear[grid, self.block, stream](
+        self.k.bilinear[grid, block, stream](
             bufs["frame"], bufs["fdq"], True, bufs["alpha"], with_alpha, planes["lat_r"],
             planes["lat_c"], planes["lat_start"], ph, pw, mode, fold,
             planes["no_medians"] if medians is None else medians, medians is not None,
             bufs["out"], bufs["out_dq"], bufs["out_alpha"], bufs["missing"], bufs["miss_list"],
             planes["method"] == "nearest", planes["pat_r"], planes["pat_c"],
             planes["pat_start"], oy, ox, ppid, bufs["ppi"], bufs["ppi_ok"], bufs["levels"],
-            bufs["alpha_win"])
+            bufs["alpha_win"], planes["ymod"], planes["xmod"], planes["wy_of"],
+            planes["wx_of"])
 
     def _host_fill(self, slot) -> bool:
         """Whether the cube has values to fill that the device did not: more than
