@@ -7,7 +7,9 @@ measures every error on the held-out half (see :mod:`hsiffc.diagnose.design`). I
 candidate effect of :mod:`hsiffc.diagnose.effects` jointly with the base model
 (:mod:`hsiffc.diagnose.fitting`), skips with a stated reason each effect the design cannot
 identify, and adds effects greedily while one beats the current model by more than the noise
-allows (:mod:`hsiffc.diagnose.select`). The search starts from the leakage model with one
+allows, then drops any that no longer beats the model of the others by that rule
+(:mod:`hsiffc.diagnose.select`); once a light change between the frames of a step is selected,
+the noise floor is measured on the frame differences less what it predicts. The search starts from the leakage model with one
 shape for the sensor (:class:`~hsiffc.diagnose.bases.SharedLeakageBase`) where the per-pixel
 one predicts the held-out data measurably worse, and is run from both then; otherwise it
 refits the selected model with one shape and keeps it where it is as good with fewer
@@ -32,13 +34,12 @@ from .bases import LeakageBase, LinearBase, SharedLeakageBase
 from .effects import ALIASES, EFFECTS, OUTSIDE, inject
 from .fitting import (Data, State, context, describe_params, fitpredict, gram, projector,
                       refit_base, separable_fraction)
-from .select import RULE, equally_good, evaluate, greedy, leakage_check
+from .select import RULE, UNEXPLAINED_OF_FLOOR, equally_good, evaluate, greedy, leakage_check
 from .structure import groupings, structure
 
 __all__ = ["diagnose", "EFFECTS", "OUTSIDE", "inject", "list_effects"]
 
 MIN_LIGHT_STEPS = 4
-UNEXPLAINED_OF_FLOOR = 0.5  # systematic RMS left above this fraction of the noise: unexplained
 
 
 def _unexplained_reason(structured, too_big, after, floor):
@@ -230,6 +231,30 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         theta = base.fit(y, t, r, valid, w, theta, max_iter=40)
         noise2 = var1 / smp["n_ho"][None, :]
         var_step = np.median(var1, axis=0)
+
+    def var_step_of(state):
+        """The noise of one frame per step (S,) for a model: the frame differences it is
+        measured on hold a within-step effect too (a light that changes between the frames of
+        a step), so with one in the model it is measured on them less what it predicts."""
+        extra = state.ho_extra
+        if not smp["pairs"] or np.ndim(extra) == 0:
+            return var_step
+        return ds.noise_pairs({**smp, "y_ho": smp["y_ho"] - extra}, valid & valid_ho)
+
+    def noise2_of(state):
+        """The noise variance (P, S) of each held-out sample for a model (see above)."""
+        if state.ho_extra is None or np.ndim(state.ho_extra) == 0 or not smp["pairs"]:
+            return noise2
+        vs = var_step_of(state)
+        return np.broadcast_to((vs / smp["n_ho"] + ds.quantisation_bias(vs, quantum))[None, :],
+                               y.shape)
+
+    def refloor(fitted, floor):
+        """The noise floor ``floor`` of the start model, for ``fitted`` (see above)."""
+        if np.ndim(fitted.state.ho_extra) == 0:
+            return floor
+        less = float(np.mean((noise2 - noise2_of(fitted.state))[valid_ho]))
+        return float(np.sqrt(max(floor ** 2 - less, 1e-12 * floor ** 2)))
     # the base alone gets the linearised (Gauss-Newton) step every candidate's trial fit makes,
     # so a base fit short of its optimum does not credit that step to whichever effect is tried
     start = refit_base(y, data, State(base, theta))
@@ -262,7 +287,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     candidates: list = []
     ambiguous: list = []
     final = greedy(base_fit, testable, data, noise_floor, n_pix, n_light, candidates,
-                   label=base.name, ambiguous=ambiguous)
+                   label=base.name, ambiguous=ambiguous, refloor=refloor)
     leakage = {"verdict": "not tested", "reason": "the base model is linear"}
     per_pixel = None  # the per-pixel leakage model, where one shape for the sensor replaced it
     if per_pixel_start is not None:
@@ -273,7 +298,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                                                          dark_desc)
         pp_ambiguous: list = []
         pp_final = greedy(pp_fit, pp_testable, data, pp_floor, n_pix, n_light, candidates,
-                          label=pp_base.name, ambiguous=pp_ambiguous)
+                          label=pp_base.name, ambiguous=pp_ambiguous, refloor=refloor)
         if not equally_good(pp_final, final, valid_ho, pp_floor):
             final, base_fit, noise_floor = pp_final, pp_fit, pp_floor
             skipped, weak, ambiguous = pp_skipped, pp_weak, pp_ambiguous
@@ -297,7 +322,8 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                                                             des, dark_desc)
         ambiguous_lin: list = []
         final, leakage = leakage_check(final, lin_fit, testable_lin, data, noise_floor, n_pix,
-                                       n_light, des, candidates, ambiguous_lin)
+                                       n_light, des, candidates, ambiguous_lin,
+                                       refloor=refloor)
         if final.state.base.name == "linear":
             skipped, weak, ambiguous = skipped_lin, weak_lin, ambiguous_lin
         if leakage["verdict"] == "cannot tell":
@@ -306,9 +332,8 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     # ADC records them, so the rounding bias of quiet pixels (common to the pixels of a step)
     # is in the null
     sim_quantum = quantum if smp["pairs"] else 0.0
-    sigma_step = np.sqrt(ds.noise_before_rounding(var_step, sim_quantum))
 
-    def simulate_frames(level, n_frames, rng):
+    def simulate_frames(level, n_frames, rng, sigma_step):
         """The mean of ``n_frames`` simulated frames per step around ``level`` (P, S)."""
         if sim_quantum <= 0:
             return level + sigma_step / np.sqrt(n_frames) * rng.standard_normal(level.shape)
@@ -328,12 +353,14 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         groups = groupings(valid_ho, ctx.signal, light, rows, cols, band)
         # the model's own fit noise (its base may be less well determined next to an effect)
         pv = _prediction_variance(cur.base, cur.theta, data, cur)
-        sd_sample = np.sqrt(noise2 + pv)  # noise of each held-out sample, DN
+        sd_sample = np.sqrt(noise2_of(cur) + pv)  # noise of each held-out sample, DN
+        sigma_step = np.sqrt(ds.noise_before_rounding(var_step_of(cur), sim_quantum))
         rng = np.random.default_rng(seed + 1)
         null = {}
         for _ in range(2):
-            y_sim = simulate_frames(cur.prediction, n_fit, rng)
-            y_sim_ho = simulate_frames(cur.prediction + cur.ho_extra, smp["n_ho"], rng)
+            y_sim = simulate_frames(cur.prediction, n_fit, rng, sigma_step)
+            y_sim_ho = simulate_frames(cur.prediction + cur.ho_extra, smp["n_ho"], rng,
+                                       sigma_step)
             if not smp["pairs"]:
                 y_sim_ho = y_sim
             sim_data = Data(**{**data.__dict__, "y": y_sim, "y_ho": y_sim_ho})
@@ -369,7 +396,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         return {"rms_dn": rms, "noise_floor_dn": floor,
                 "systematic_rms_dn": float(np.sqrt(max(rms ** 2 - floor ** 2, 0.0)))}
 
-    floor_after = float(np.sqrt(np.mean((noise2 + pv_final)[valid_ho])))
+    floor_after = float(np.sqrt(np.mean((noise2_of(current) + pv_final)[valid_ho])))
 
     after = figs(final.mse, floor_after)
     # honest verdict: systematic error left above half the noise floor is unexplained, whatever

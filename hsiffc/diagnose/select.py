@@ -19,6 +19,7 @@ TIE_SIGMAS = 2.0  # two models whose held-out errors differ by less are equally 
 TREND_P = 5e-3  # per-step factors that trend with exposure, signal or order (F-test p below)
 MIN_TREND_STEPS = 8  # fewer light steps: the trend test is not made
 N_PERMUTATIONS = 4000  # random orders of the step factors in the trend test
+UNEXPLAINED_OF_FLOOR = 0.5  # systematic RMS left above this fraction of the noise: unexplained
 
 RULE = (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} standard errors of the "
         f"paired difference, by more than ({MIN_GAIN_OF_NOISE:g} x noise floor)^2 and by more than "
@@ -28,7 +29,8 @@ RULE = (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} stand
         f"{TREND_P:g}); a within-step effect only when the frame differences show its "
         f"coefficient at {SELECT_SIGMAS:g} standard errors; among those the lowest BIC, except a "
         f"within-step effect whose held-out error is lower than the BIC choice's by more than "
-        f"{TIE_SIGMAS:g} standard errors (the fit-half BIC does not see it)")
+        f"{TIE_SIGMAS:g} standard errors (the fit-half BIC does not see it); then each selected "
+        f"effect must still pass that rule next to the others (backward step)")
 
 
 @dataclass
@@ -272,7 +274,8 @@ def pair_evidence(trial: Fitted, name: str, data: Data):
 
 
 def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_light: int,
-           candidates: list, label: str, ambiguous: list | None = None) -> Fitted:
+           candidates: list, label: str, ambiguous: list | None = None,
+           refloor=None) -> Fitted:
     """Add effects while one beats the current model by more than the noise allows.
 
     Parameters
@@ -291,12 +294,18 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         Filled with one dict per candidate tried (the report's table).
     label : str
         Which selection this is (for the table).
+    ambiguous : list, optional
+        Filled with the ties between candidates of a round.
+    refloor : callable, optional
+        ``refloor(fitted, noise_floor)``: the noise floor for a model with a within-step
+        effect, whose frame differences (where the noise is measured) hold that effect too.
 
     Returns
     -------
     Fitted
         The selected model.
     """
+    floor0 = noise_floor
     current = start
     for round_ in range(len(names)):
         passed = []
@@ -315,21 +324,7 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                      "params": describe_params(name, trial.state.effects[name][0]),
                      "selected_in_round": False}
             candidates.append(entry)
-            floor2 = (MIN_GAIN_OF_NOISE * noise_floor) ** 2
-            beats = (np.isfinite(trial.mse) and np.isfinite(trial.bic)
-                     and current.mse - noise_floor ** 2 > floor2
-                     and gain > SELECT_SIGMAS * se and gain > floor2
-                     and gain > MIN_EXPLAINED * systematic2)
-            if beats and EFFECTS[name].scope == "pair":
-                weak_pair = pair_evidence(trial, name, data)
-                if weak_pair:
-                    entry["rejected"] = weak_pair
-                    beats = False
-            if beats and EFFECTS[name].scope == "step":
-                trend = step_trend(trial, name, data)
-                if trend:
-                    entry["rejected"] = trend
-                    beats = False
+            beats = _beats(current, trial, name, gain, se, data, noise_floor, entry)
             if beats:
                 passed.append((trial, entry))
         if not passed:
@@ -366,6 +361,129 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         # step to whichever effect is tried next)
         current = evaluate(fitpredict(chosen, data, full, quick=True), chosen, data, n_pix,
                            n_light)
+        if refloor is not None:
+            noise_floor = refloor(current, floor0)
+    return backward(current, start, data, floor0, n_pix, n_light, candidates, label, refloor)
+
+
+def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, data: Data,
+           noise_floor: float, entry: dict) -> bool:
+    """Does ``trial`` (``current`` + effect ``name``) beat ``current`` by more than the noise
+    allows: a held-out gain of ``SELECT_SIGMAS`` paired standard errors, above the floor and
+    a fraction of the systematic error left, and (per step) factors without a trend or
+    (within a step) the frame differences' own evidence? ``entry["rejected"]`` says why not,
+    where one of the last two refuses it."""
+    systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
+    floor2 = (MIN_GAIN_OF_NOISE * noise_floor) ** 2
+    beats = bool(np.isfinite(trial.mse) and np.isfinite(trial.bic)
+                 and current.mse - noise_floor ** 2 > floor2
+                 and gain > SELECT_SIGMAS * se and gain > floor2
+                 and gain > MIN_EXPLAINED * systematic2)
+    if beats and EFFECTS[name].scope == "pair":
+        weak_pair = pair_evidence(trial, name, data)
+        if weak_pair:
+            entry["rejected"] = weak_pair
+            beats = False
+    if beats and EFFECTS[name].scope == "step":
+        trend = step_trend(trial, name, data)
+        if trend:
+            entry["rejected"] = trend
+            beats = False
+    return beats
+
+
+def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_pix: int,
+             n_light: int, candidates: list, label: str, refloor=None) -> Fitted:
+    """The backward step of the search: each selected effect must still beat the model of the
+    others by the rule that let it in (:func:`_beats`), now that they are all there. An effect
+    chosen early can be made unnecessary by one chosen later (a per-step light error that
+    absorbed part of a smooth misfit before the smooth effect was in). Of those that fail, one
+    is dropped, and the rest checked again: first one refused for what it is (per-step factors
+    that now follow a trend, a within-step effect the frame differences do not show), and of
+    those the one whose removal leaves the lowest BIC: two effects that can stand in for each
+    other each look unneeded next to the other, and the forward search too keeps the most
+    parsimonious of the models that pass. Each effect is judged as the forward search judged
+    it: added back to the model of the others by a quick fit. Where the effect to drop is a
+    smooth one and a per-step effect of the model shows a trend without it, the per-step
+    effect was standing in for it: the per-step effect is dropped instead where the model
+    explains the data without it (systematic error within ``UNEXPLAINED_OF_FLOOR`` of the
+    floor), and both are kept otherwise.
+
+    Parameters
+    ----------
+    current : Fitted
+        The model the forward search selected.
+    start : Fitted
+        The model it started from (the others are refitted from there, as the forward
+        search fits each model).
+    data, noise_floor, n_pix, n_light, candidates, label, refloor
+        As for :func:`greedy` (``noise_floor`` that of its start); ``candidates`` gets an
+        entry for each effect dropped.
+
+    Returns
+    -------
+    Fitted
+        The model with only effects that each beat the others.
+    """
+    while len(current.names) > 1:
+        failing, reduced = [], {}
+        for name in current.names:
+            rest = [n for n in current.names if n != name]
+            full = fitpredict(rest, data, start.state)
+            without = evaluate(fitpredict(rest, data, full, quick=True), rest, data, n_pix,
+                               n_light)
+            # the effect added back as the forward search adds one (a quick fit from the model
+            # without it), so that it is judged by the rule that let it in
+            back = evaluate(fitpredict(current.names, data, without.state, quick=True),
+                            current.names, data, n_pix, n_light)
+            reduced[name] = without
+            gain, se = paired(without, back, data.valid_ho)
+            floor = noise_floor if refloor is None else refloor(without, noise_floor)
+            entry = {"name": name, "base": label, "round": "backward",
+                     "heldout_rms_dn": float(np.sqrt(back.mse)),
+                     "criterion": back.bic, "criterion_name": "BIC (fit half, weighted)",
+                     "heldout_mse_gain_dn2": gain, "gain_standard_error_dn2": se,
+                     "explained_fraction_of_systematic": float(
+                         gain / max(without.mse - floor ** 2, 1e-12)),
+                     "params": describe_params(name, current.state.effects[name][0]),
+                     "selected_in_round": False}
+            if not _beats(without, back, name, gain, se, data, floor, entry):
+                # refused for what it is (step factors with a trend, a within-step effect the
+                # frame differences do not show) before refused for its size; then the one
+                # whose removal leaves the most parsimonious model
+                failing.append(((0 if "rejected" in entry else 1, without.bic), name, entry))
+        drop = None
+        for _, name, entry in sorted(failing, key=lambda f: f[0]):
+            stand_in = None
+            if EFFECTS[name].scope != "step":
+                stand_in = next((o for o in reduced[name].names if EFFECTS[o].scope == "step"
+                                 and step_trend(reduced[name], o, data)), None)
+            if stand_in is None:
+                drop = (reduced[name], {**entry, "rejected": entry.get("rejected", (
+                    "the other selected effects leave it nothing to explain beyond the "
+                    "noise (backward step)"))})
+                break
+            # a per-step effect follows any smooth misfit with its free factor per step, and
+            # it does so here once the smooth effect is gone: the smooth effect is kept, and
+            # the per-step one goes where the model explains the data without it
+            without = reduced[stand_in]
+            floor = noise_floor if refloor is None else refloor(without, noise_floor)
+            if without.mse - floor ** 2 <= (UNEXPLAINED_OF_FLOOR * floor) ** 2:
+                gain, se = paired(without, current, data.valid_ho)
+                drop = (without, {**entry, "name": stand_in, "heldout_mse_gain_dn2": gain,
+                                  "gain_standard_error_dn2": se,
+                                  "explained_fraction_of_systematic": float(
+                                      gain / max(without.mse - floor ** 2, 1e-12)),
+                                  "params": describe_params(
+                                      stand_in, current.state.effects[stand_in][0]),
+                                  "rejected": (f"it stands in for {name} only: without that, "
+                                               "its step factors follow a trend (backward "
+                                               "step)")})
+                break
+        if drop is None:
+            break
+        current = drop[0]
+        candidates.append(drop[1])
     return current
 
 
@@ -390,7 +508,8 @@ def equally_good(a: Fitted, b: Fitted, valid_ho, noise_floor) -> bool:
 
 
 def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_floor, n_pix,
-                  n_light, design, candidates, ambiguous=None) -> tuple[Fitted, dict]:
+                  n_light, design, candidates, ambiguous=None,
+                  refloor=None) -> tuple[Fitted, dict]:
     """Is the bending of the response leakage? Compare the leakage model (with its selected
     effects) to a linear response with a readout nonlinearity (signal only) and its own
     selected effects; keep the simpler one where both are equally good on held-out data.
@@ -415,6 +534,8 @@ def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_f
         Filled with the candidates tried.
     ambiguous : list, optional
         Filled with the ties of the linear model's own selection.
+    refloor : callable, optional
+        As for :func:`greedy`.
 
     Returns
     -------
@@ -446,7 +567,7 @@ def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_f
                        f"{gain / max(se, 1e-300):.0f} standard errors); {why_design}"))
         return leak, out
     linear = greedy(linear_start, names, data, noise_floor, n_pix, n_light, candidates,
-                    label="linear", ambiguous=ambiguous)
+                    label="linear", ambiguous=ambiguous, refloor=refloor)
     if not equally_good(leak, linear, data.valid_ho, noise_floor):
         linear = alt  # the greedy search stopped short of a model known to be as good
     what = f"a linear response with {', '.join(linear.names) or 'no effect'}"
