@@ -9,16 +9,16 @@ candidate effect of :mod:`hsiffc.diagnose.effects` jointly with the base model
 identify, and adds effects greedily while one beats the current model by more than the noise
 allows, then drops any that no longer beats the model of the others by that rule
 (:mod:`hsiffc.diagnose.select`); once a light change between the frames of a step is selected,
-the noise floor is measured on the frame differences less what it predicts. The search starts from the leakage model with one
-shape for the sensor (:class:`~hsiffc.diagnose.bases.SharedLeakageBase`) where the per-pixel
-one predicts the held-out data measurably worse, and is run from both then; otherwise it
-refits the selected model with one shape and keeps it where it is as good with fewer
-parameters. It then asks whether the bending of the response is leakage at all or a readout
-nonlinearity, and reports structure left in the held-out residual that no candidate explains
-as ``unexplained`` (binned, and as a pattern over the pixels times one over the steps,
-against what the model leaves on data simulated from itself). Frames that clip below the
-ADC's full scale (:func:`~hsiffc.diagnose.design.clip_level`) or sit at its lowest code are
-left out.
+the noise floor is measured on the frame differences less what it predicts. The search starts
+from the leakage model with one shape for the sensor
+(:class:`~hsiffc.diagnose.bases.SharedLeakageBase`) where the per-pixel one predicts the
+held-out data measurably worse, and is run from both then; otherwise it refits the selected
+model with one shape and keeps it where it is as good with fewer parameters. It then asks
+whether the bending of the response is leakage at all or a readout nonlinearity, and reports
+structure left in the held-out residual that no candidate explains as ``unexplained`` (binned,
+and as a pattern over the pixels times one over the steps, against what the model leaves on
+data simulated from itself). Frames that clip below the ADC's full scale
+(:func:`~hsiffc.diagnose.design.clip_level`) or sit at its lowest code are left out.
 """
 
 from __future__ import annotations
@@ -243,9 +243,9 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
 
     def noise2_of(state):
         """The noise variance (P, S) of each held-out sample for a model (see above)."""
-        if state.ho_extra is None or np.ndim(state.ho_extra) == 0 or not smp["pairs"]:
-            return noise2
         vs = var_step_of(state)
+        if vs is var_step:
+            return noise2
         return np.broadcast_to((vs / smp["n_ho"] + ds.quantisation_bias(vs, quantum))[None, :],
                                y.shape)
 

@@ -470,7 +470,9 @@ def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_p
             floor = noise_floor if refloor is None else refloor(without, noise_floor)
             if without.mse - floor ** 2 <= (UNEXPLAINED_OF_FLOOR * floor) ** 2:
                 gain, se = paired(without, current, data.valid_ho)
-                drop = (without, {**entry, "name": stand_in, "heldout_mse_gain_dn2": gain,
+                drop = (without, {**entry, "name": stand_in, "heldout_rms_dn": float(
+                                      np.sqrt(current.mse)), "criterion": current.bic,
+                                  "heldout_mse_gain_dn2": gain,
                                   "gain_standard_error_dn2": se,
                                   "explained_fraction_of_systematic": float(
                                       gain / max(without.mse - floor ** 2, 1e-12)),
