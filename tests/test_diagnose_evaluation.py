@@ -435,7 +435,13 @@ def test_the_noise_floor_leaves_out_a_selected_within_step_effect():
     step and a readout compression. The noise is measured on the frame differences, which hold
     the light change too: once ``frame_light_change`` is selected, the floor is measured on
     the differences less what it predicts. With the inflated floor the compression was taken
-    for noise and the verdict was 'unexplained' beside 0 DN of systematic error."""
+    for noise and the verdict was 'unexplained' beside 0 DN of systematic error.
+
+    The same sweep has the backward step drop a per-step effect standing in for a smooth one:
+    the forward search adds ``illumination_error`` after the compression (its small factors
+    pass the trend test while the compression is there); next to it the compression looks
+    unneeded, but without the compression its factors follow the signal, so it is the one
+    dropped."""
     sw, truth = ev.build_case(ev.case_spec(864))
     assert {e["name"] for e in truth["effects"]} == {"frame_light_change",
                                                      "readout_nonlinearity"}
@@ -446,16 +452,6 @@ def test_the_noise_floor_leaves_out_a_selected_within_step_effect():
     # the floor measured on the raw differences, by more than the fit noise can explain
     assert out["after"]["noise_floor_dn"] < 0.9 * out["noise_floor_dn"]
     _honest(out)
-
-
-def test_a_per_step_effect_standing_in_for_a_smooth_one_is_dropped():
-    """The same sweep: the forward search adds ``illumination_error`` after the compression
-    (its small factors pass the trend test while the compression is there). The backward step
-    finds the compression unneeded next to it; without the compression, though, its factors
-    follow the signal: it was standing in for it, and it is the one dropped."""
-    sw, _ = ev.build_case(ev.case_spec(864))
-    out = diagnose(sw, max_pixels=ev.MAX_PIXELS, seed=864)
     dropped = [c for c in out["candidates"] if c["round"] == "backward"]
     assert any(c["name"] == "illumination_error" and "stands in for readout_nonlinearity"
                in c["rejected"] for c in dropped), dropped
-    assert "illumination_error" not in out["selected_effects"]
