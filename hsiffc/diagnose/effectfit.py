@@ -5,7 +5,8 @@ base model's Jacobian (:func:`projector`: what the base parameters cannot absorb
 of a candidate effect that stays separable from the base on a design
 (:func:`separable_fraction`); the least-squares fit of one effect on a residual, jointly with
 the base or not (:func:`fit_effect`), and of a within-step effect on the frame differences
-(:func:`fit_pair_effect`, on what :func:`pair_regression` sets up). All are re-exported by :mod:`hsiffc.diagnose.fitting`.
+(:func:`fit_pair_effect`, on what :func:`pair_regression` sets up). All are re-exported by
+:mod:`hsiffc.diagnose.fitting`.
 """
 
 from __future__ import annotations

@@ -126,10 +126,10 @@ def _finite_alpha(a):
 
 
 def _register_capped(fn):
-    """``cuda.jit`` with at most 64 registers a thread: unbounded, :data:`bilinear` took 106
-    (its rare branches: the twice-wide S2, "nearest", PPID), which left 25 % occupancy; with
-    the cap it ran 1.66 -> 1.16 ms per 2048 x 1088 x 8 cube on an H100, values bit-equal
-    (docs/results/gpu.md). Numba's CUDA simulator takes no cap."""
+    """``cuda.jit`` with at most 64 registers a thread: unbounded, the rare branches of
+    :data:`bilinear` (the twice-wide S2, "nearest", PPID) take registers every thread pays for
+    in occupancy. The cap changes no value; it was chosen by ``benchmarks/gpu_registers.py``
+    (measurements: docs/results/gpu.md). Numba's CUDA simulator takes no cap."""
     try:
         return cuda.jit(max_registers=64)(fn)
     except TypeError:
@@ -143,25 +143,25 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
              ymod, xmod, wy_of, wx_of):
     """One thread per cube value, launched as blocks of (B, pixels, rows) threads: band
     ``threadIdx.x`` of a pixel, so consecutive threads write consecutive values, and no integer
-    division on the common path (64-bit on the GPU, it was most of the kernel's time): the
-    phases come from the tables ``ymod`` (``y % ph``) and ``xmod`` (``x % pw``), the weights
-    from ``wy_of[d] = d / ph`` and ``wx_of[d] = d / pw``, the same float64 quotients.
-    :mod:`hsiffc.kernels.demosaic`'s bilinear value, its DQ
-    and (``has_alpha``) its alpha. Where the twice-wide support holds no usable sample either,
-    the value is ``medians[band]`` (``has_medians``) or NaN; both with DO_NOT_USE. Without
-    medians, ``missing[0]`` counts such values and ``missing[1 + band]`` marks their bands:
-    the caller then takes the band medians of the frame (:func:`hsiffc.reconstruct.prepare.
-    band_medians`, as the CPU path) and runs the kernel again with them; ``miss_list`` gets
-    the flat index ``(y W + x) B + band`` of each such value (while it has room), for
-    :data:`fill_missing` to fill on the device.
+    division on the common path (64-bit integer division is slow on the GPU): the phases come
+    from the tables ``ymod`` (``y % ph``) and ``xmod`` (``x % pw``), the weights from
+    ``wy_of[d] = d / ph`` and ``wx_of[d] = d / pw``, the same float64 quotients.
+    :mod:`hsiffc.kernels.demosaic`'s bilinear value, its DQ and (``has_alpha``) its alpha.
+    Where the twice-wide support holds no usable sample either, the value is ``medians[band]``
+    (``has_medians``) or NaN; both with DO_NOT_USE. Without medians, ``missing[0]`` counts such
+    values and ``missing[1 + band]`` marks their bands: the caller then takes the band medians
+    of the frame (:func:`hsiffc.reconstruct.prepare.band_medians`, as the CPU path) and runs
+    the kernel again with them; ``miss_list`` gets the flat index ``(y W + x) B + band`` of
+    each such value (while it has room), for :data:`fill_missing` to fill on the device.
 
     ``near``: "nearest" (:func:`hsiffc.reconstruct.demosaic`'s block replication): the value
     becomes the float32 mean of the band's usable samples in the pixel's own tile (pattern
     positions ``pat_r/pat_c``, band ``b``'s at ``pat_start[b]:pat_start[b + 1]``, tiles from
     the offset ``oy, ox``) where it has one; DQ and alpha stay bilinear's, as on the CPU.
     ``use_ppi``: PPID (:mod:`hsiffc.kernels.demosaic` with a PPI): the tent interpolates
-    ``v - level ppi`` and adds ``level ppi`` back (``levels`` (B,) float64), the plain bilinear value (float64 sums) where the PPI is undefined, and the
-    alpha is ``alpha_win`` (the PPI window's max, :data:`window_max`) in every band."""
+    ``v - level ppi`` and adds ``level ppi`` back (``levels`` (B,) float64), the plain bilinear
+    value (float64 sums) where the PPI is undefined, and the alpha is ``alpha_win`` (the PPI
+    window's max, :data:`window_max`) in every band."""
     band = cuda.threadIdx.x
     x = cuda.blockIdx.x * cuda.blockDim.y + cuda.threadIdx.y
     y = cuda.blockIdx.y * cuda.blockDim.z + cuda.threadIdx.z
@@ -501,11 +501,11 @@ def median_mean(values, count, medians):
 def correction_matrix(cube, cube_dq, cube_alpha, has_alpha, coef, support, mode, fold, out,
                       out_dq, out_alpha):
     """The spectral correction matrix per pixel (:func:`hsiffc.reconstruct.apply_correction`),
-    one thread per virtual value (blocks of (V, pixels, rows) threads): ``sum_b coef[b, v] cube[b]`` in float32 (``coef`` the
-    matrix transposed, as the CPU's float32 product takes it; the sum's order differs from
-    BLAS's, so the value agrees within float32 rounding of the terms), the OR of the DQ and
-    the max of the alpha of the bands in the row's ``support`` (0 where it has none), stored
-    in the stream's output types."""
+    one thread per virtual value (blocks of (V, pixels, rows) threads): ``sum_b coef[b, v]
+    cube[b]`` in float32 (``coef`` the matrix transposed, as the CPU's float32 product takes
+    it; the sum's order differs from BLAS's, so the value agrees within float32 rounding of
+    the terms), the OR of the DQ and the max of the alpha of the bands in the row's
+    ``support`` (0 where it has none), stored in the stream's output types."""
     v = cuda.threadIdx.x  # blocks of (V, pixels, rows) threads, as :data:`bilinear`
     x = cuda.blockIdx.x * cuda.blockDim.y + cuda.threadIdx.y
     y = cuda.blockIdx.y * cuda.blockDim.z + cuda.threadIdx.z

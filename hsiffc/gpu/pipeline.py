@@ -252,9 +252,7 @@ class GpuPipeline:
                     raise ValueError(f"PPID on the GPU takes up to {self.k.MAX_BANDS} bands "
                                      f"(its band levels are found on the device); this mosaic "
                                      f"has {len(lat)}: use device='cpu'")
-                ph, pw = p["period"]
                 kx, ky = ppi_kernel(pw), ppi_kernel(ph)
-                H, W = shape
                 p.update(band_of=dev(np.ascontiguousarray(mosaic.band_map((ph, pw)),
                                                           np.int64)),
                          rows=dev(periodic_index(H, ph, ky.size // 2).astype(np.int64)),
