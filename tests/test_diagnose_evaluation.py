@@ -224,9 +224,10 @@ def test_full_evaluation_half(tmp_path):
     assert ev.main(["--half", "eval", "--cases", "480", "--jobs", "2", "--json", str(out)]) == 0
     summary = json.loads(out.read_text())["summary"]
     sc = summary["scores"]
-    assert sc["named_right_5x"]["fraction"] >= 0.85
+    # the goals of issue 38, met since the sensor-wide rival of a per-step winner
+    for name in ("named_right_5x", "outside_unexplained"):
+        assert sc[name]["fraction"] >= ev.GOALS[name], (name, sc[name])
     assert sc["false_alarm_clean"]["fraction"] <= ev.GOALS["false_alarm_clean"]
-    assert sc["outside_unexplained"]["fraction"] >= 0.88
     page = (Path(__file__).resolve().parents[1] / "docs" / "diagnose.md").read_text()
     published = page.split("<!-- BEGIN evaluation -->")[1].split("<!-- END evaluation -->")[0]
     table = ev.markdown(summary, [], "how").split("Shared data sets")[0]
@@ -455,3 +456,44 @@ def test_the_noise_floor_leaves_out_a_selected_within_step_effect():
     dropped = [c for c in out["candidates"] if c["round"] == "backward"]
     assert any(c["name"] == "illumination_error" and "stands in for readout_nonlinearity"
                in c["rejected"] for c in dropped), dropped
+
+
+def test_a_sensor_wide_effect_beats_a_per_step_stand_in():
+    """Dev seed 570: an exposure offset (5x its detection limit) on an 8-bit leaky sensor, mixed
+    design, no darks. With one leakage shape for the sensor, the quick trial fit found half the
+    offset and a held-out error worse than without it; ``illumination_error`` (a factor
+    ``1 + t0 / t`` a step) won the round. Fitted to convergence, the offset predicts the
+    held-out data as well with one parameter: it is chosen, and the tie is reported."""
+    sw, truth = ev.build_case(ev.case_spec(570))
+    assert [e["name"] for e in truth["effects"]] == ["exposure_offset"]
+    out = diagnose(sw, max_pixels=ev.MAX_PIXELS, seed=570)
+    assert out["selected_effects"] == ["exposure_offset"], out["selected_effects"]
+    t0 = out["effects"][0]["params"]["t0_ms"]
+    assert t0 == pytest.approx(truth["effects"][0]["size"], rel=0.15)
+    rivals = [c for c in out["candidates"] if "rival" in c.get("fit", "")]
+    assert any(c["name"] == "exposure_offset" and c["selected_in_round"] for c in rivals)
+    assert any(set(a["effects"]) == {"exposure_offset", "illumination_error"}
+               for a in out["ambiguous"]), out["ambiguous"]
+    _honest(out)
+
+
+def test_a_linear_model_that_predicts_better_is_kept_whatever_the_bic():
+    """Dev seed 846: a per-pixel quadratic nonlinearity (5x) on a linear 14-bit sensor. A
+    linear response with ``pixel_nonlinearity`` predicts the held-out data 8 standard errors
+    better than the leakage model with one shape for the sensor, which has the lower BIC (two
+    parameters a pixel against three); the leakage model was kept as 'cannot tell'."""
+    r = ev.run_case(846)
+    assert r["truth"]["effects"][0]["name"] == "pixel_nonlinearity"
+    assert r["found"]["selected"] == ["pixel_nonlinearity"] and r["right"], r["found"]
+
+
+def test_step_factors_of_a_drift_or_a_lag_over_several_steps_are_a_trend():
+    """The trend test looks at the factors times the signal in acquisition order (dev seed
+    1066: an offset drift at 5x on a mixed design, whose factors look random) and at the signal
+    of the steps before (dev seed 982: an image lag decaying over several steps, outside the
+    library, which ``illumination_error`` absorbed)."""
+    r = ev.run_case(1066)
+    assert r["truth"]["effects"][0]["name"] == "offset_drift" and r["right"], r["found"]
+    r = ev.run_case(982)
+    assert r["truth"]["effects"][0]["name"] == "slow_lag"
+    assert "illumination_error" not in r["found"]["selected"] and r["right"], r["found"]

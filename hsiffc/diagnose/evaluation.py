@@ -376,6 +376,11 @@ def run_case(seed: int) -> dict:
                  "dark_current_in_base": "dark current" in out["dark_model"]["model"],
                  "noise_floor_dn": out["noise_floor_dn"],
                  "systematic_after_dn": out["after"]["systematic_rms_dn"],
+                 # what each test of the residual found: grouping, structured and null RMS
+                 # (DN), p-value, significant
+                 "structure": [[f["grouping"], f["structured_rms_dn"],
+                                f["null_structured_rms_dn"], f["p_value"], f["significant"]]
+                               for f in out["residual_structure_after"]],
                  "refused": None}
     except DataFormatError as exc:
         found = {"selected": [], "unexplained": False, "ambiguous": [], "base": "",

@@ -18,18 +18,22 @@ MIN_EXPLAINED = 0.5  # ... and at least this fraction of the current systematic 
 TIE_SIGMAS = 2.0  # two models whose held-out errors differ by less are equally good
 TREND_P = 5e-3  # per-step factors that trend with exposure, signal or order (F-test p below)
 MIN_TREND_STEPS = 8  # fewer light steps: the trend test is not made
-N_PERMUTATIONS = 4000  # random orders of the step factors in the trend test
+N_PERMUTATIONS = 8000  # random orders of the step factors in the trend test
+LAG_STEPS = 3.0  # decay (steps) of the trend test's regressor for a lag over several frames
 UNEXPLAINED_OF_FLOOR = 0.5  # systematic RMS left above this fraction of the noise: unexplained
 
 RULE = (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} standard errors of the "
         f"paired difference, by more than ({MIN_GAIN_OF_NOISE:g} x noise floor)^2 and by more than "
         f"{MIN_EXPLAINED:g} of the current systematic error (which must itself exceed "
         f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2); a per-step effect only when its step factors "
-        f"show no trend with exposure, signal, light rate or acquisition order (F-test p >= "
+        f"show no trend with exposure, signal, light rate, acquisition order or the signal of "
+        f"the steps before, and their product with the signal no drift (p >= "
         f"{TREND_P:g}); a within-step effect only when the frame differences show its "
         f"coefficient at {SELECT_SIGMAS:g} standard errors; among those the lowest BIC, except a "
         f"within-step effect whose held-out error is lower than the BIC choice's by more than "
-        f"{TIE_SIGMAS:g} standard errors (the fit-half BIC does not see it); then each selected "
+        f"{TIE_SIGMAS:g} standard errors (the fit-half BIC does not see it), and a sensor-wide "
+        f"effect that passes the rule and predicts the held-out data as well as a per-step "
+        f"effect that won (both fitted to convergence); then each selected "
         f"effect must still pass that rule next to the others (backward step)")
 
 
@@ -127,13 +131,30 @@ def _gauge(trial: Fitted, x, steps, data: Data):
     return g
 
 
+def _earlier_signal(signal, prev_index, n_back: int = 10):
+    """Signal of the steps before each step (acquisition order), weighted ``exp(-(j - 1) /
+    LAG_STEPS)`` for the ``j``-th step back: what a lag over several frames carries in."""
+    out = np.zeros_like(signal)
+    idx = np.asarray(prev_index).copy()
+    for j in range(n_back):
+        ok = idx >= 0
+        if not ok.any():
+            break
+        out[:, ok] += np.exp(-j / LAG_STEPS) * signal[:, idx[ok]]
+        idx = np.where(ok, prev_index[np.maximum(idx, 0)], -1)
+    return out
+
+
 def step_trend(trial: Fitted, name: str, data: Data):
     """Do the fitted per-step factors of effect ``name`` trend with exposure, signal, light
-    rate, acquisition order or the previous step's signal? A per-step light error is random
-    from step to step; factors that follow a smooth function of the step are the signature of
-    a smooth misfit of the model (or of a lag longer than one step), which one free factor per
-    step absorbs. The patterns the base model's own parameters absorb (:func:`_gauge`) are
-    taken out of the factors first: they are not determined by the data.
+    rate, acquisition order, the previous step's signal or that of the steps before (a lag
+    over several frames), or do the factors times the step's signal drift with acquisition
+    order (an offset drift, whose factors look random where the signal jumps from step to
+    step)? A per-step light error is random from step to step; factors that follow a smooth
+    function of the step are the signature of a smooth misfit of the model (or of a lag longer
+    than one step), which one free factor per step absorbs. The patterns the base model's own
+    parameters absorb (:func:`_gauge`) are taken out of the factors first: they are not
+    determined by the data.
 
     Parameters
     ----------
@@ -163,12 +184,16 @@ def step_trend(trial: Fitted, name: str, data: Data):
         return np.array([np.median(v[data.valid[:, s], s]) if data.valid[:, s].any() else 0.0
                          for s in steps])
     sig = step_median(ctx.signal) / data.full_scale
+    earlier = _earlier_signal(ctx.signal, data.prev_index)
     with np.errstate(invalid="ignore", divide="ignore"):
         prev = step_median(np.where(ctx.signal > 0, ctx.prev_signal / ctx.signal, 0.0))
+        several = step_median(np.where(ctx.signal > 0, earlier / ctx.signal, 0.0))
     regs = {"exposure": np.log(data.t[steps]), "signal": sig, "signal^2": sig ** 2,
             "light rate": np.log(np.maximum(data.r[steps], 1e-12)),
             "acquisition order": data.order[steps],
-            "the previous step's signal (a lag)": prev}
+            "the previous step's signal (a lag)": prev,
+            f"the signal of the steps before (a lag decaying over {LAG_STEPS:g} steps)":
+                several}
     regs = {k: v for k, v in regs.items() if np.ptp(v) > 1e-9 * (np.abs(v).max() + 1e-300)}
     if not regs:
         return None
@@ -214,11 +239,24 @@ def step_trend(trial: Fitted, name: str, data: Data):
         return (np.median(np.diff(v, axis=-1) ** 2, axis=-1)
                 / np.maximum(np.median((v - np.median(v, axis=-1, keepdims=True)) ** 2,
                                        axis=-1), 1e-300))
-    null = ratio(fc[perm])
+    # and the factors times the step's signal (DN) in acquisition order: an offset that
+    # drifts is smooth there, its factors are not (drift over a signal that jumps from step to
+    # step in a mixed design). The null permutes the factors, not the products: the signal
+    # itself may be smooth in acquisition order. What the base absorbs is taken out of the
+    # products (the gauge patterns times the signal: an offset goes into the dark level)
+    gs = G * sig[:, None]
+    off_gauge = np.eye(n) - gs @ np.linalg.pinv(gs)
+    orderings = [(k, np.argsort(regs[k], kind="stable"), None) for k in names]
+    if "acquisition order" in regs and "signal" in regs:
+        orderings.append(("an offset drifting with acquisition order (the factors times the "
+                          "signal)", np.argsort(regs["acquisition order"], kind="stable"),
+                          ((fg * sig) @ off_gauge.T, (fg[perm] * sig) @ off_gauge.T)))
+    null_fc = ratio(fc[perm])
     p_vn, by = 1.0, names[0] if names else "signal"
-    for k in names:
-        r_k = ratio(fc[np.argsort(regs[k], kind="stable")])
-        pk = (1 + np.sum(null <= r_k)) / (1 + N_PERMUTATIONS) * len(names)
+    for k, idx, v in orderings:
+        r_k, null = ((ratio(fc[idx]), null_fc) if v is None else
+                     (ratio(v[0][idx]), ratio(v[1][:, idx])))
+        pk = (1 + np.sum(null <= r_k)) / (1 + N_PERMUTATIONS) * len(orderings)
         if pk < p_vn:
             p_vn, by = float(pk), k
     p = min(2 * p_poly, 2 * p_vn)
@@ -314,17 +352,8 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                 continue
             trial = evaluate(fitpredict(current.names + [name], data, current.state, quick=True),
                              current.names + [name], data, n_pix, n_light)
-            gain, se = paired(current, trial, data.valid_ho)
-            systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
-            entry = {"name": name, "base": label, "round": round_ + 1,
-                     "heldout_rms_dn": float(np.sqrt(trial.mse)), "criterion": trial.bic,
-                     "criterion_name": "BIC (fit half, weighted)",
-                     "heldout_mse_gain_dn2": gain, "gain_standard_error_dn2": se,
-                     "explained_fraction_of_systematic": float(gain / systematic2),
-                     "params": describe_params(name, trial.state.effects[name][0]),
-                     "selected_in_round": False}
+            entry, beats = _tried(current, trial, name, data, noise_floor, label, round_)
             candidates.append(entry)
-            beats = _beats(current, trial, name, gain, se, data, noise_floor, entry)
             if beats:
                 passed.append((trial, entry))
         if not passed:
@@ -339,6 +368,9 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                 gain, se = paired(best[0], trial, data.valid_ho)
                 if gain > TIE_SIGMAS * se:
                     best = (trial, entry)
+        if EFFECTS[best[1]["name"]].scope == "step":
+            best = _sensor_wide_rival(current, best, names, data, noise_floor, n_pix, n_light,
+                                      candidates, label, round_, ambiguous)
         best[1]["selected_in_round"] = True
         if ambiguous is not None:
             for trial, entry in passed:
@@ -347,6 +379,9 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                     continue
                 if not equally_good(trial, best[0], data.valid_ho, noise_floor):
                     continue
+                pair = {best[1]["name"], entry["name"]}
+                if any(set(a["effects"]) == pair for a in ambiguous):
+                    continue  # reported already (a sensor-wide rival's tie)
                 ambiguous.append({
                     "effects": [best[1]["name"], entry["name"]],
                     "reason": (f"both fit the held-out data equally well (held-out RMS "
@@ -364,6 +399,68 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         if refloor is not None:
             noise_floor = refloor(current, floor0)
     return backward(current, start, data, floor0, n_pix, n_light, candidates, label, refloor)
+
+
+def _tried(current: Fitted, trial: Fitted, name: str, data: Data, noise_floor: float,
+           label: str, round_: int) -> tuple[dict, bool]:
+    """The report's entry for ``trial`` (``current`` + effect ``name``) and whether it beats
+    ``current`` (:func:`_beats`)."""
+    gain, se = paired(current, trial, data.valid_ho)
+    systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
+    entry = {"name": name, "base": label, "round": round_ + 1,
+             "heldout_rms_dn": float(np.sqrt(trial.mse)), "criterion": trial.bic,
+             "criterion_name": "BIC (fit half, weighted)",
+             "heldout_mse_gain_dn2": gain, "gain_standard_error_dn2": se,
+             "explained_fraction_of_systematic": float(gain / systematic2),
+             "params": describe_params(name, trial.state.effects[name][0]),
+             "selected_in_round": False}
+    return entry, _beats(current, trial, name, gain, se, data, noise_floor, entry)
+
+
+def _sensor_wide_rival(current: Fitted, best: tuple, names, data: Data, noise_floor: float,
+                       n_pix: int, n_light: int, candidates: list, label: str, round_: int,
+                       ambiguous: list | None) -> tuple:
+    """A per-step effect (one free factor a step) won the round: is there an effect shared by
+    the sensor (a few parameters) that explains the held-out data as well, each fitted to
+    convergence? One factor a step absorbs whatever the model misses smoothly (an exposure
+    offset is a factor ``1 + t0 / t`` a step), and the quick trial fit, one linearised step of
+    the base, can leave a nonlinear sensor-wide effect short of its fit (a leakage shape
+    shared by the pixels moves with it). Such a rival, where it passes the selection rule
+    itself, is the more parsimonious explanation and is chosen instead; where the per-step
+    effect is as good too, the tie is reported.
+
+    Returns
+    -------
+    tuple
+        ``(trial, entry)`` of the round's choice.
+    """
+    step_name = best[1]["name"]
+    chosen = current.names + [step_name]
+    step_full = evaluate(fitpredict(chosen, data, current.state), chosen, data, n_pix, n_light)
+    rivals = []
+    for name in names:
+        if name in current.names or EFFECTS[name].scope != "global":
+            continue
+        trial = evaluate(fitpredict(current.names + [name], data, current.state),
+                         current.names + [name], data, n_pix, n_light)
+        entry, beats = _tried(current, trial, name, data, noise_floor, label, round_)
+        entry["fit"] = f"to convergence, as a rival of {step_name}"
+        candidates.append(entry)
+        if beats and equally_good(step_full, trial, data.valid_ho, noise_floor):
+            rivals.append((trial, entry))
+    if not rivals:
+        return best
+    rival = min(rivals, key=lambda p: p[0].mse)
+    if ambiguous is not None and equally_good(rival[0], step_full, data.valid_ho, noise_floor):
+        k = rival[0].n_params - current.n_params
+        ambiguous.append({
+            "effects": [rival[1]["name"], step_name],
+            "reason": (f"both fit the held-out data equally well (held-out RMS "
+                       f"{np.sqrt(rival[0].mse):.4g} and {np.sqrt(step_full.mse):.4g} DN, each "
+                       f"fitted to convergence); {rival[1]['name']} ({k} parameter"
+                       f"{'s' if k > 1 else ''}) is kept as the more parsimonious than a factor "
+                       f"for every step")})
+    return rival
 
 
 def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, data: Data,
@@ -577,19 +674,26 @@ def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_f
                      " + ".join(["linear base"] + linear.names)]
     out.update(heldout_rms_leakage_dn=float(np.sqrt(leak.mse)),
                heldout_rms_without_dn=float(np.sqrt(linear.mse)))
-    if linear.bic >= leak.bic:
+    # the held-out error first: where the linear model predicts better by the margin that
+    # selects an effect, it is kept whatever the BIC says
+    leak_worse = not equally_good(linear, leak, data.valid_ho, noise_floor)
+    gain, se = paired(leak, linear, data.valid_ho)
+    if linear.bic >= leak.bic and not gain > SELECT_SIGMAS * se:
         out.update(verdict="cannot tell", reason=(
             f"{what} fits the held-out data as well, but not more simply (BIC); {why_design}; "
             "the leakage model is kept"))
         return leak, out
-    leak_worse = not equally_good(linear, leak, data.valid_ho, noise_floor)
     bends = rn in linear.names  # else there is no bending for leakage to explain
     verdict = ("not needed" if (leak_worse or design.rate_at_equal_signal or not bends)
                else "cannot tell")
+    how = (f"better than the leakage model ({np.sqrt(linear.mse):.4g} against "
+           f"{np.sqrt(leak.mse):.4g} DN, {gain / max(se, 1e-300):.0f} standard errors)"
+           if linear.bic >= leak.bic else
+           f"as well as the leakage model ({np.sqrt(linear.mse):.4g} against "
+           f"{np.sqrt(leak.mse):.4g} DN) with fewer parameters (BIC {linear.bic:.6g} against "
+           f"{leak.bic:.6g})")
     out.update(verdict=verdict, reason=(
-        f"{what} fits the held-out data as well as the leakage model "
-        f"({np.sqrt(linear.mse):.4g} against {np.sqrt(leak.mse):.4g} DN) with fewer parameters "
-        f"(BIC {linear.bic:.6g} against {leak.bic:.6g}); {why_design}"
+        f"{what} fits the held-out data {how}; {why_design}"
         + ("" if verdict == "not needed" else
            "; the simpler model is kept and the bending is not blamed on leakage")))
     return linear, out
