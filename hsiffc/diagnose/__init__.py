@@ -241,9 +241,10 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
             return var_step
         return ds.noise_pairs({**smp, "y_ho": smp["y_ho"] - extra}, valid & valid_ho)
 
-    def noise2_of(state):
-        """The noise variance (P, S) of each held-out sample for a model (see above)."""
-        vs = var_step_of(state)
+    def noise2_of(state, vs=None):
+        """The noise variance (P, S) of each held-out sample for a model (see above);
+        ``vs``: its :func:`var_step_of`, where already measured."""
+        vs = var_step_of(state) if vs is None else vs
         if vs is var_step:
             return noise2
         return np.broadcast_to((vs / smp["n_ho"] + ds.quantisation_bias(vs, quantum))[None, :],
@@ -353,8 +354,10 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         groups = groupings(valid_ho, ctx.signal, light, rows, cols, band)
         # the model's own fit noise (its base may be less well determined next to an effect)
         pv = _prediction_variance(cur.base, cur.theta, data, cur)
-        sd_sample = np.sqrt(noise2_of(cur) + pv)  # noise of each held-out sample, DN
-        sigma_step = np.sqrt(ds.noise_before_rounding(var_step_of(cur), sim_quantum))
+        vs = var_step_of(cur)
+        var_sample = noise2_of(cur, vs) + pv
+        sd_sample = np.sqrt(var_sample)  # noise of each held-out sample, DN
+        sigma_step = np.sqrt(ds.noise_before_rounding(vs, sim_quantum))
         rng = np.random.default_rng(seed + 1)
         null = {}
         for _ in range(2):
@@ -371,16 +374,16 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                 null[f["grouping"]] = max(null.get(f["grouping"], 0.0), f["null_statistic"])
         findings, structured = structure(fitted.res, valid_ho, groups, noise_floor, null=null,
                                          sd=sd_sample)
-        return ctx, groups, pv, sd_sample, null, findings, structured
+        return ctx, groups, var_sample, sd_sample, null, findings, structured
 
-    ctx, groups, pv_final, sd_sample, null, findings, structured = residual_check(final)
+    ctx, groups, var_sample, sd_sample, null, findings, structured = residual_check(final)
     if structured and per_pixel is not None and final.state.base.name == "shared leakage":
         # one leakage shape is as good on the held-out error, but leaves a pattern over the
         # pixels: the per-pixel model is kept where it leaves none
         alt = residual_check(per_pixel[0])
         if not alt[-1]:
             final, base_fit = per_pixel
-            ctx, groups, pv_final, sd_sample, null, findings, structured = alt
+            ctx, groups, var_sample, sd_sample, null, findings, structured = alt
             leakage["shape"] = (
                 "per pixel: one leakage shape for the sensor fits the held-out error as well "
                 "with fewer parameters, but leaves a pattern over the pixels in the residual "
@@ -396,7 +399,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         return {"rms_dn": rms, "noise_floor_dn": floor,
                 "systematic_rms_dn": float(np.sqrt(max(rms ** 2 - floor ** 2, 0.0)))}
 
-    floor_after = float(np.sqrt(np.mean((noise2_of(current) + pv_final)[valid_ho])))
+    floor_after = float(np.sqrt(np.mean(var_sample[valid_ho])))
 
     after = figs(final.mse, floor_after)
     # honest verdict: systematic error left above half the noise floor is unexplained, whatever

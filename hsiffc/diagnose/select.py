@@ -368,9 +368,10 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                 gain, se = paired(best[0], trial, data.valid_ho)
                 if gain > TIE_SIGMAS * se:
                     best = (trial, entry)
+        full = None  # the round's choice fitted to convergence, where already fitted
         if EFFECTS[best[1]["name"]].scope == "step":
-            best = _sensor_wide_rival(current, best, names, data, noise_floor, n_pix, n_light,
-                                      candidates, label, round_, ambiguous)
+            best, full = _sensor_wide_rival(current, best, names, data, noise_floor, n_pix,
+                                            n_light, candidates, label, round_, ambiguous)
         best[1]["selected_in_round"] = True
         if ambiguous is not None:
             for trial, entry in passed:
@@ -390,7 +391,8 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
                                f"{best[1]['name']} is kept as the more parsimonious (BIC "
                                f"{best[0].bic:.6g} against {trial.bic:.6g})")})
         chosen = best[0].names
-        full = fitpredict(chosen, data, current.state)
+        if full is None:
+            full = fitpredict(chosen, data, current.state)
         # the next round's trials each get a linearised base step from this fit: so does the
         # model they are measured against (a base fit short of its optimum would credit that
         # step to whichever effect is tried next)
@@ -406,15 +408,24 @@ def _tried(current: Fitted, trial: Fitted, name: str, data: Data, noise_floor: f
     """The report's entry for ``trial`` (``current`` + effect ``name``) and whether it beats
     ``current`` (:func:`_beats`)."""
     gain, se = paired(current, trial, data.valid_ho)
-    systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
-    entry = {"name": name, "base": label, "round": round_ + 1,
-             "heldout_rms_dn": float(np.sqrt(trial.mse)), "criterion": trial.bic,
-             "criterion_name": "BIC (fit half, weighted)",
-             "heldout_mse_gain_dn2": gain, "gain_standard_error_dn2": se,
-             "explained_fraction_of_systematic": float(gain / systematic2),
-             "params": describe_params(name, trial.state.effects[name][0]),
-             "selected_in_round": False}
+    entry = _entry(name, label, round_ + 1, trial, gain, se,
+                   max(current.mse - noise_floor ** 2, 1e-12),
+                   describe_params(name, trial.state.effects[name][0]))
     return entry, _beats(current, trial, name, gain, se, data, noise_floor, entry)
+
+
+def _entry(name: str, label: str, round_, model: Fitted, gain: float, se: float,
+           systematic2: float, params: dict) -> dict:
+    """A row of the report's candidate table: effect ``name`` tried in ``round_`` of the
+    search from base ``label`` gave ``model``, whose held-out mean squared error is ``gain``
+    (standard error ``se``) below that of the model without it, whose systematic error
+    (squared) was ``systematic2``."""
+    return {"name": name, "base": label, "round": round_,
+            "heldout_rms_dn": float(np.sqrt(model.mse)), "criterion": model.bic,
+            "criterion_name": "BIC (fit half, weighted)",
+            "heldout_mse_gain_dn2": gain, "gain_standard_error_dn2": se,
+            "explained_fraction_of_systematic": float(gain / systematic2),
+            "params": params, "selected_in_round": False}
 
 
 def _sensor_wide_rival(current: Fitted, best: tuple, names, data: Data, noise_floor: float,
@@ -431,8 +442,10 @@ def _sensor_wide_rival(current: Fitted, best: tuple, names, data: Data, noise_fl
 
     Returns
     -------
-    tuple
+    choice : tuple
         ``(trial, entry)`` of the round's choice.
+    state : State
+        That choice fitted to convergence (for the next round to start from).
     """
     step_name = best[1]["name"]
     chosen = current.names + [step_name]
@@ -449,7 +462,7 @@ def _sensor_wide_rival(current: Fitted, best: tuple, names, data: Data, noise_fl
         if beats and equally_good(step_full, trial, data.valid_ho, noise_floor):
             rivals.append((trial, entry))
     if not rivals:
-        return best
+        return best, step_full.state
     rival = min(rivals, key=lambda p: p[0].mse)
     if ambiguous is not None and equally_good(rival[0], step_full, data.valid_ho, noise_floor):
         k = rival[0].n_params - current.n_params
@@ -460,7 +473,7 @@ def _sensor_wide_rival(current: Fitted, best: tuple, names, data: Data, noise_fl
                        f"fitted to convergence); {rival[1]['name']} ({k} parameter"
                        f"{'s' if k > 1 else ''}) is kept as the more parsimonious than a factor "
                        f"for every step")})
-    return rival
+    return rival, rival[0].state
 
 
 def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, data: Data,
@@ -536,14 +549,9 @@ def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_p
             reduced[name] = without
             gain, se = paired(without, back, data.valid_ho)
             floor = noise_floor if refloor is None else refloor(without, noise_floor)
-            entry = {"name": name, "base": label, "round": "backward",
-                     "heldout_rms_dn": float(np.sqrt(back.mse)),
-                     "criterion": back.bic, "criterion_name": "BIC (fit half, weighted)",
-                     "heldout_mse_gain_dn2": gain, "gain_standard_error_dn2": se,
-                     "explained_fraction_of_systematic": float(
-                         gain / max(without.mse - floor ** 2, 1e-12)),
-                     "params": describe_params(name, current.state.effects[name][0]),
-                     "selected_in_round": False}
+            entry = _entry(name, label, "backward", back, gain, se,
+                           max(without.mse - floor ** 2, 1e-12),
+                           describe_params(name, current.state.effects[name][0]))
             if not _beats(without, back, name, gain, se, data, floor, entry):
                 # refused for what it is (step factors with a trend, a within-step effect the
                 # frame differences do not show) before refused for its size; then the one
@@ -567,14 +575,10 @@ def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_p
             floor = noise_floor if refloor is None else refloor(without, noise_floor)
             if without.mse - floor ** 2 <= (UNEXPLAINED_OF_FLOOR * floor) ** 2:
                 gain, se = paired(without, current, data.valid_ho)
-                drop = (without, {**entry, "name": stand_in, "heldout_rms_dn": float(
-                                      np.sqrt(current.mse)), "criterion": current.bic,
-                                  "heldout_mse_gain_dn2": gain,
-                                  "gain_standard_error_dn2": se,
-                                  "explained_fraction_of_systematic": float(
-                                      gain / max(without.mse - floor ** 2, 1e-12)),
-                                  "params": describe_params(
-                                      stand_in, current.state.effects[stand_in][0]),
+                drop = (without, {**_entry(stand_in, label, "backward", current, gain, se,
+                                           max(without.mse - floor ** 2, 1e-12),
+                                           describe_params(
+                                               stand_in, current.state.effects[stand_in][0])),
                                   "rejected": (f"it stands in for {name} only: without that, "
                                                "its step factors follow a trend (backward "
                                                "step)")})
