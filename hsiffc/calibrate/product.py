@@ -269,7 +269,14 @@ class Calibration:
             lines.append(f"  {n} px ({100 * n / n_px:.2f} %): {reason}")
         dark = self.fitted_on.get("dark_model")
         if dark:
-            lines.append(f"  dark model: {dark.get('description', dark.get('model'))}")
+            lines.append(f"  dark model: {dark.get('description', dark.get('model'))}"
+                         + (f", dark level from {dark['dark_from']}" if "dark_from" in dark
+                            else ""))
+        t0 = self.fitted_on.get("exposure_offset_ms")
+        if t0:
+            lines.append(f"  exposure offset: light collected for t {'+' if t0 > 0 else '-'} "
+                         f"{abs(t0):.4g} ms")
+        lines += _choice_lines(self.fitted_on.get("model_choice"))
         return "\n".join(lines)
 
     # -- validation ----------------------------------------------------------------------------
@@ -440,3 +447,18 @@ class Calibration:
             raise DataFormatError(f"calibration is incomplete or inconsistent: {exc}",
                                   path=path) from exc
         return cal
+
+
+def _choice_lines(choice) -> list:
+    """The summary's lines on the model each band kept (:mod:`hsiffc.calibrate.choice`)."""
+    if not choice:
+        return []
+    if not choice.get("bands"):
+        return [f"  model: leakage where the sweep determines it ({choice.get('reason', '')})"]
+    lines = ["  model kept per band, by held-out fixed-pattern non-uniformity (% on "
+             f"{len(choice['held_out_steps'])} light steps the fit did not see):"]
+    for row in choice["bands"]:
+        errs = ", ".join(f"{name} {value:.3f}" for name, value in
+                         row["held_out_fpn_percent"].items())
+        lines.append(f"    band {row['band'] + 1}: {row['kept']} ({errs})")
+    return lines

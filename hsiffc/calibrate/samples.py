@@ -251,6 +251,173 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
                           n_steps_used=int(light.sum()))
 
 
+def kernel_samples(smp: Samples, ptc: PhotonTransfer | None, *, dark_weight: float = 1.0,
+                   exposure_offset_ms: float = 0.0) -> dict:
+    """Arguments of :func:`hsiffc.calibrate.joint.run_kernel` for a chunk of samples: (S, P)
+    step means and validity, the per-step arrays and the photon-transfer noise model.
+
+    Parameters
+    ----------
+    smp : Samples
+        Step means of a chunk of pixels (:func:`hsiffc.calibrate.collect_samples`).
+    ptc : PhotonTransfer or None
+        Noise model for the weights (None: unit read variance).
+    dark_weight : float
+        Factor on the weight of the dark samples: :data:`DARK_PIN` pins each pixel's dark
+        level to its dark frames (the fit's intercept is then the dark frames' line, not the
+        light response's extrapolation).
+    exposure_offset_ms : float, ms
+        Added to the exposure of every light sample: the light is collected for ``t + t0``
+        (a shutter or transfer offset, :func:`exposure_offset`). A light step whose
+        ``t + t0`` is not positive is left out.
+
+    Returns
+    -------
+    dict
+        ``y``, ``valid`` (S, P); ``t`` (ms), ``r``, ``light``, ``dark``, ``n_frames`` (S,);
+        ``noise`` (gain DN/e-, read variance DN^2) or None.
+    """
+    usable = smp.usable_step
+    r = np.where(usable, np.nan_to_num(smp.rate), 0.0)
+    light = usable & (smp.kind == "light") & (r > 0)
+    t_light = smp.exposure_ms + exposure_offset_ms
+    light &= t_light > 0
+    t = np.where(light, t_light, np.where(usable, smp.exposure_ms, 0.0))
+    dark = usable & (smp.kind == "dark")
+    n_frames = smp.n_frames * np.where(dark, float(dark_weight), 1.0)
+    return {"y": smp.y, "valid": smp.valid, "t": t, "r": np.where(light | dark, r, 0.0),
+            "light": light, "dark": dark, "n_frames": n_frames,
+            "noise": None if ptc is None else (ptc.gain_dn_per_e, ptc.read_var_dn2)}
+
+
+def exposure_offset(ks: dict, *, max_fraction: float = 0.5, min_sigmas: float = 3.0) -> dict:
+    """The sensor's exposure offset ``t0`` (ms): light collected for ``t + t0``.
+
+    CCDs, global and mechanical shutters collect light for a time that differs from the
+    nominal exposure by a fixed amount, so the light response does not start at the dark
+    level: ``Y - D(t) = G r (t + t0)``. Per light step, the mean signal above each pixel's
+    dark line (its dark frames) over the pixels; a weighted least-squares fit of
+    ``G r t + H r`` through the steps below ``max_fraction`` of the highest signal (relative
+    errors: weights ``1 / S^2``; a term in the dose squared takes up a response that starts to
+    bend, from leakage or a compression, so that a bend is not read as an offset) gives
+    ``t0 = H / G``. It is kept where the sweep has four or
+    more exposures there and ``|t0|`` exceeds ``min_sigmas`` standard errors; otherwise 0 (a
+    light sweep at one exposure cannot tell an offset from the responsivity, and needs
+    none).
+
+    Parameters
+    ----------
+    ks : dict
+        :func:`kernel_samples` of a sample of pixels (with dark samples).
+
+    Returns
+    -------
+    dict
+        ``exposure_offset_ms`` (0 where not measurable), ``sigma_ms``, ``n_steps``, ``used``
+        (bool) and ``reason``.
+    """
+    out = {"exposure_offset_ms": 0.0, "sigma_ms": float("nan"), "n_steps": 0, "used": False}
+    y, valid, t, r = ks["y"], ks["valid"], ks["t"], ks["r"]
+    dark, light = ks["dark"], ks["light"]
+    if not dark.any():
+        return {**out, "reason": "no dark frames: the offset cannot be told from the dark"}
+    dark_line = _dark_lines(y, valid, t, dark)
+    signal = []
+    for s in np.flatnonzero(light):
+        ok = valid[s]
+        if ok.mean() < 0.9:
+            continue
+        signal.append((s, float(np.mean(y[s, ok] - dark_line(t[s])[ok]))))
+    if len(signal) < 3:
+        return {**out, "reason": "fewer than 3 unclipped light steps"}
+    idx, level = (np.array(v) for v in zip(*signal))
+    keep = (level > 0) & (level <= max_fraction * level.max())
+    idx, level = idx[keep], level[keep]
+    if np.unique(np.round(t[idx], 9)).size < 4:
+        return {**out, "reason": "fewer than 4 exposures in the lower half of the sweep"}
+    dose = r[idx] * t[idx]
+    x = np.column_stack([dose, r[idx], (dose / dose.max()) ** 2])
+    w = 1.0 / level ** 2
+    xtw = x.T * w
+    try:
+        cov = np.linalg.inv(xtw @ x)
+    except np.linalg.LinAlgError:
+        return {**out, "reason": "exposure and light rate not separable"}
+    coef = cov @ (xtw @ level)
+    res = level - x @ coef
+    s2 = float((w * res ** 2).sum() / max(idx.size - 3, 1))
+    cov = cov[:2, :2]
+    g, h = (float(v) for v in coef[:2])
+    if not g > 0:
+        return {**out, "reason": "no positive response"}
+    t0 = h / g
+    # standard error of H / G by the delta method
+    jac = np.array([-h / g ** 2, 1.0 / g])
+    se = float(np.sqrt(max(jac @ (cov * s2) @ jac, 0.0)))
+    out.update(sigma_ms=se, n_steps=int(idx.size))
+    if abs(t0) > min_sigmas * se and abs(t0) < 0.5 * float(t[idx].max()):
+        return {**out, "exposure_offset_ms": t0, "used": True,
+                "reason": f"measured at {abs(t0) / se:.1f} standard errors"}
+    return {**out, "reason": f"not significant ({t0:.3g} +- {se:.2g} ms)"}
+
+
+def _dark_lines(y, valid, t, dark):
+    """Per pixel, the dark level at exposure t (DN): a least-squares line through the dark
+    samples where they span two or more exposures, else their mean. Returns a function of
+    t giving (P,) arrays."""
+    use = valid & dark[:, None]
+    n = use.sum(axis=0)
+    tt = np.where(use, t[:, None], 0.0)
+    yy = np.where(use, y, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tm, ym = tt.sum(0) / n, yy.sum(0) / n
+        if np.unique(t[dark]).size >= 2:
+            slope = (np.where(use, (tt - tm) * (yy - ym), 0).sum(0)
+                     / np.where(use, (tt - tm) ** 2, 0).sum(0))
+            slope = np.where(np.isfinite(slope), slope, 0.0)
+        else:
+            slope = np.zeros_like(ym)
+    return lambda ti: ym + slope * (ti - tm)
+
+
+def linear_fit(ks: dict, dark, dark_current, *, exposure_offset_ms: float = 0.0) -> tuple:
+    """Per pixel, the linear response through the pixel's dark line: ``Y - (d + dc t) =
+    g r (t + t0)``, weighted least squares over its valid light samples (weights from the
+    photon-transfer noise model, as the joint fit's).
+
+    Parameters
+    ----------
+    ks : dict
+        :func:`kernel_samples` of the pixels (light exposures already ``t + t0``).
+    dark, dark_current : (P,) array_like
+        The dark line (DN, DN/ms) at the nominal exposure.
+    exposure_offset_ms : float
+        The ``t0`` in ``ks``'s light exposures (taken off for the dark line).
+
+    Returns
+    -------
+    g : (P,) float64
+        Responsivity, DN/ms per unit of relative light rate (NaN without a light sample).
+    sigma_ln_g : (P,) float64
+        Its 1-sigma relative error (scaled by the fit's reduced chi-square where above 1).
+    """
+    sel = ks["valid"] & ks["light"][:, None]
+    t_eff = ks["t"][:, None]
+    u = ks["r"][:, None] * t_eff
+    z = ks["y"] - (np.asarray(dark, np.float64)[None, :]
+                   + np.asarray(dark_current, np.float64)[None, :] * (t_eff - exposure_offset_ms))
+    gain, read_var = ks["noise"] if ks["noise"] is not None else (0.0, 1.0)
+    w = np.where(sel, ks["n_frames"][:, None] / (gain * np.maximum(z, 0.0) + read_var), 0.0)
+    wuu = (w * u * u).sum(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = (w * u * z).sum(axis=0) / wuu
+        chi2 = (w * (z - g * u) ** 2).sum(axis=0)
+        over = np.maximum(chi2 / np.maximum(sel.sum(axis=0) - 1, 1), 1.0)
+        sigma = np.sqrt(over / wuu) / g
+    ok = (wuu > 0) & (g > 0)
+    return np.where(ok, g, np.nan), np.where(ok & np.isfinite(sigma), sigma, np.inf)
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def _step_means(data, sel, nsel, r0, r1, fs, floor, means, clipped):
     """Per step s, the mean (in the dtype of ``means``) over its frames ``sel[s, :nsel[s]]`` of

@@ -16,18 +16,21 @@ import numpy as np
 
 from ..leakage import model
 from ..data.dq import DQ
-from ..errors import DataFormatError
+from ..errors import DataFormatError, ParameterError
 from ..data.sweep import Sweep
-from . import pixelfit
-from .joint import B_GRID, MARGIN_GRID, run_kernel
+from . import choice, pixelfit
+from .joint import B_GRID, run_kernel
 from .product import Calibration
-from .samples import PhotonTransfer, Samples, collect_samples, photon_transfer
+from .samples import (PhotonTransfer, Samples, collect_samples, exposure_offset, kernel_samples,
+                      linear_fit, photon_transfer)
 
 log = logging.getLogger(__name__)
 
 N_PILOT = 4096
 MIN_LIGHT_DOSES = 3
 DO_NOT_USE_STATUS = (pixelfit.TOO_FEW,) + pixelfit.NO_FIT
+#: weight factor on the dark samples that pins each pixel's dark level to its dark frames
+DARK_PIN = 1e4
 
 
 def check_design(sweep: Sweep, light_rate=None) -> None:
@@ -84,32 +87,6 @@ def _light_doses(sweep: Sweep, light_rate=None) -> np.ndarray:
     return np.unique(np.round(dose / dose.max(), 9)) if dose.size else dose
 
 
-def kernel_samples(smp: Samples, ptc: PhotonTransfer | None) -> dict:
-    """Arguments of :func:`hsiffc.calibrate.joint.run_kernel` for a chunk of samples: (S, P)
-    step means and validity, the per-step arrays and the photon-transfer noise model.
-
-    Parameters
-    ----------
-    smp : Samples
-        Step means of a chunk of pixels (:func:`hsiffc.calibrate.collect_samples`).
-    ptc : PhotonTransfer or None
-        Noise model for the weights (None: unit read variance).
-
-    Returns
-    -------
-    dict
-        ``y``, ``valid`` (S, P); ``t`` (ms), ``r``, ``light``, ``dark``, ``n_frames`` (S,);
-        ``noise`` (gain DN/e-, read variance DN^2) or None.
-    """
-    usable = smp.usable_step
-    t = np.where(usable, smp.exposure_ms, 0.0)
-    r = np.where(usable, np.nan_to_num(smp.rate), 0.0)
-    return {"y": smp.y, "valid": smp.valid, "t": t, "r": r,
-            "light": usable & (smp.kind == "light") & (r > 0),
-            "dark": usable & (smp.kind == "dark"), "n_frames": smp.n_frames,
-            "noise": None if ptc is None else (ptc.gain_dn_per_e, ptc.read_var_dn2)}
-
-
 def _dark_slopes(ks) -> np.ndarray:
     """Per-pixel least-squares slope (DN/ms) of the valid dark samples against exposure, not
     clipped at 0 (the pilot's test of whether the sensor has a dark current at all)."""
@@ -124,9 +101,10 @@ def _dark_slopes(ks) -> np.ndarray:
     return slope[np.isfinite(slope)]
 
 
-def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model, seed=0):
+def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model, seed=0,
+           dark_weight=1.0, offset="auto"):
     """Sensor-wide choices on a random sample of pixels: dark current used or not, dark model,
-    start value of b. Returns (use_dc, dark_model, b0, report dict)."""
+    start value of b, exposure offset. Returns (use_dc, dark_model, b0, t0, report dict)."""
     h, w = sweep.frame_shape
     n = h * w
     rng = np.random.default_rng(seed)
@@ -138,6 +116,14 @@ def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model
     ks = kernel_samples(smp, ptc)
     dark_exposures = np.unique(smp.exposure_ms[(smp.kind == "dark") & smp.usable_step])
     report = {"n_pilot_pixels": int(idx.size), "n_dark_exposures": int(dark_exposures.size)}
+    if offset == "auto":
+        report["exposure_offset"] = exposure_offset(ks)
+        t0 = report["exposure_offset"]["exposure_offset_ms"]
+    else:
+        t0 = float(offset or 0.0)
+        report["exposure_offset"] = {"exposure_offset_ms": t0, "used": bool(t0),
+                                     "reason": "given"}
+    ks = kernel_samples(smp, ptc, dark_weight=dark_weight, exposure_offset_ms=t0)
     use_dc = False
     if dark_current is True or (dark_current == "auto" and dark_exposures.size >= 2):
         dc = _dark_slopes(ks)
@@ -169,13 +155,25 @@ def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model
         margin = np.median((fit.b * (sat - ymax))[good])
         starts = (float(np.median(fit.b[good])), float(margin))
     report["start_b_per_dn_and_margin"] = starts
-    return use_dc, chosen, starts, report
+    return use_dc, chosen, starts, t0, report
 
 
 def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_rate=None,
                     dark_current: bool | str = "auto", dark_model: str = "auto",
-                    rows_per_chunk: int | None = None, progress=None) -> Calibration:
-    """Joint per-pixel fit of responsivity, a, b and the dark model from one sweep.
+                    dark_from: str = "frames", exposure_offset_ms="auto", flats=None,
+                    choose: bool = True, rows_per_chunk: int | None = None,
+                    progress=None) -> Calibration:
+    """Joint per-pixel fit of responsivity, a, b and the dark model from one sweep, with each
+    band's model chosen by held-out prediction.
+
+    Every per-pixel parameter is earned from the data that determine it best: the dark level
+    of each pixel from its dark frames (``dark_from="frames"``: the dark samples pin it; the
+    light response does not set it), a light response that does not start at the dark level
+    as one exposure offset for the sensor (:func:`~hsiffc.calibrate.samples.exposure_offset`),
+    leakage a and b only where the sweep determines them, and per band the simplest model
+    that predicts held-out light steps as well as the richer ones
+    (:mod:`hsiffc.calibrate.choice`; ``fitted_on["model_choice"]`` records what was kept and
+    every candidate's held-out error).
 
     Parameters
     ----------
@@ -191,6 +189,19 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     dark_model : "auto", "in_well" or "additive"
         Whether the dark current fills the well with the signal (and leaks with it) or adds to
         the response after it; "auto" picks the one that fits a pilot sample of pixels better.
+    dark_from : "frames" or "fit"
+        The dark level from the dark frames (default, where the sweep has them), or a free
+        parameter of each pixel's fit (the intercept of its light response; before 0.9).
+    exposure_offset_ms : "auto" or float, ms
+        Light collected for ``t + t0``: "auto" measures ``t0`` on the sweep (0 where it is not
+        significant), a number sets it.
+    flats : Sweep, optional
+        Flat stacks and the dark frames of their exposure: the stack two-point becomes a
+        candidate of the model choice (fold them into the calibration afterwards with
+        :func:`hsiffc.calibrate.flats.add_flat_stacks`).
+    choose : bool
+        Choose each band's model by held-out prediction (default); False keeps the leakage
+        model wherever the sweep determines it.
     rows_per_chunk : int, optional
         Rows fitted at once (memory is bounded by rows x width x steps).
     progress : callable, optional
@@ -199,8 +210,10 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     Returns
     -------
     Calibration
-        With per-pixel ``fit_status`` (see :data:`hsiffc.calibrate.pixelfit.STATUS_REASONS`) and, in
-        ``fitted_on``, the counts per reason and the dark model used.
+        With per-pixel ``fit_status`` (see :data:`hsiffc.calibrate.pixelfit.STATUS_REASONS`),
+        ``model_kept`` (code of :data:`hsiffc.calibrate.choice.CANDIDATES`) and, in
+        ``fitted_on``, the counts per reason, the dark model, the exposure offset and the
+        model choice.
 
     Raises
     ------
@@ -209,10 +222,20 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         enough valid samples.
     """
     check_design(sweep, light_rate)
+    if dark_from not in ("frames", "fit"):
+        raise ParameterError(f"dark_from must be 'frames' or 'fit', got {dark_from!r}")
     h, w = sweep.frame_shape
     ptc = photon_transfer(sweep)
-    use_dc, dmodel, starts, pilot = _pilot(sweep, ptc, full_well_dn, light_rate, dark_current,
-                                       dark_model)
+    pin = DARK_PIN if dark_from == "frames" and sweep.is_dark.any() else 1.0
+    use_dc, dmodel, starts, t0, pilot = _pilot(sweep, ptc, full_well_dn, light_rate,
+                                               dark_current, dark_model, dark_weight=pin,
+                                               offset=exposure_offset_ms)
+    settings = choice.FitSettings(ptc, full_well_dn, use_dc, dmodel, starts, t0, pin)
+    chosen = (choice.choose_models(sweep, settings, flats=flats, light_rate=light_rate)
+              if choose else None)
+    band_map = (sweep.mosaic.band_map(sweep.frame_shape) if sweep.mosaic is not None
+                else np.zeros(sweep.frame_shape, np.int64))
+    codes = choice.kept_codes(chosen, band_map)
     n_steps = len(sweep.steps())
     rows_per_chunk = rows_per_chunk or max(1, (1 << 21) // (w * n_steps))
     out = {name: np.zeros((h, w), np.float32) for name in (
@@ -221,27 +244,32 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         "saturation_ref_dn")}
     counts = {name: np.zeros((h, w), np.int32) for name in ("n_valid", "n_clipped", "n_full_well")}
     status = np.zeros((h, w), np.uint8)
+    linear = np.zeros((h, w), bool)
     info = None
     for r0 in range(0, h, rows_per_chunk):
         rows = slice(r0, min(h, r0 + rows_per_chunk))
         smp = collect_samples(sweep, full_well_dn=full_well_dn, light_rate=light_rate, rows=rows,
                               dtype=np.float64)  # the kernel's precision: no conversion pass
         info = info or smp
-        ks = kernel_samples(smp, ptc)
-        fit = run_kernel(**ks, dark_current="estimate" if use_dc else None, dark_model=dmodel,
-                         b_start=starts[0] if starts else B_GRID,
-                         margins=(starts[1],) if starts else MARGIN_GRID)
+        fit, ks = settings.fit(smp)
+        kept = choice.candidate_parameters(fit, ks, settings, codes[rows].ravel())
         shape = (rows.stop - rows.start, w)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            sat = np.where(fit.a > 0, model.dynamic_saturation_level(
-                np.maximum(fit.g * fit.r_ref, 1e-300), np.maximum(fit.a, 1e-300), fit.b), np.inf)
-        for name, v in (("responsivity", fit.g), ("a_dn_per_ms", fit.a), ("b_per_dn", fit.b),
-                        ("dark_dn", fit.dark), ("dark_current_dn_per_ms", fit.dark_current),
-                        ("sigma_ln_g", fit.sigma[:, 0]), ("sigma_ln_a", fit.sigma[:, 1]),
-                        ("sigma_ln_b", fit.sigma[:, 2]), ("sigma_dark_dn", fit.sigma[:, 3]),
+            sat = np.where(kept["a"] > 0, model.dynamic_saturation_level(
+                np.maximum(fit.g * fit.r_ref, 1e-300), np.maximum(kept["a"], 1e-300), fit.b),
+                np.inf)
+        lin = kept["linear"]
+        for name, v in (("responsivity", kept["responsivity"]), ("a_dn_per_ms", kept["a"]),
+                        ("b_per_dn", fit.b), ("dark_dn", fit.dark),
+                        ("dark_current_dn_per_ms", fit.dark_current),
+                        ("sigma_ln_g", kept["sigma_ln_g"]),
+                        ("sigma_ln_a", fit.sigma[:, 1]),
+                        ("sigma_ln_b", fit.sigma[:, 2]),
+                        ("sigma_dark_dn", fit.sigma[:, 3] * np.sqrt(pin)),
                         ("rms_dn", fit.rms_dn), ("chi2_red", fit.chi2_red),
                         ("saturation_ref_dn", sat)):
             out[name][rows] = v.reshape(shape)
+        linear[rows] = lin.reshape(shape)
         usable = smp.usable_step
         counts["n_valid"][rows] = fit.n_valid.reshape(shape)
         counts["n_clipped"][rows] = smp.clipped[usable].sum(axis=0, dtype=np.int32).reshape(shape)
@@ -251,11 +279,14 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         status[rows] = fit.status.reshape(shape)
         if progress:
             progress(rows.stop, h)
-    flags = _flags(status, out["sigma_ln_b"])
+    flags = choice.calibration_flags(status, out["sigma_ln_b"],
+                                     codes == choice.CODES["pixel_leakage"])
     _refuse_if_nothing_fitted(sweep, status, counts)
     _fill_unusable(out, status)
     light_ok = info.usable_step & (info.kind == "light")
-    arrays = {**out, **counts, "flags": flags, "fit_status": status}
+    arrays = {**out, **counts, "flags": flags, "fit_status": status,
+              "model_kept": np.where(linear & (codes == choice.CODES["pixel_leakage"]),
+                                     choice.CODES["linear"], codes).astype(np.uint8)}
     if info.rate_unit.startswith("1 ="):
         arrays["k_ref_dn_per_ms"] = out["responsivity"]
     fitted = _fitted_on(sweep, info, ptc, full_well_dn)
@@ -267,19 +298,15 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                         + ("filling the well with the signal (it leaks with it)"
                            if dmodel == "in_well" else "added to the response after leakage")
                         if use_dc else "a constant dark level per pixel"),
+        "dark_from": "dark frames" if pin > 1 else "each pixel's fit",
         **pilot}
+    fitted["exposure_offset_ms"] = float(t0)
+    fitted["model_choice"] = chosen or {"bands": None, "reason": (
+        "not asked" if not choose else "too few light steps or no dark frames to compare "
+        "models on held-out steps: the leakage model where the sweep determines it")}
     log.info("calibrated %d x %d px: %s", w, h, fitted["fit_status"])
     return Calibration(arrays=arrays, domain=_domain(sweep, info, info.rate[light_ok]),
                        method="joint", fitted_on=fitted)
-
-
-def _flags(status, sigma_ln_b) -> np.ndarray:
-    flags = np.zeros(status.shape, np.uint32)
-    linear = (status == pixelfit.LINEAR_WORSE) | (status == pixelfit.LINEAR_NOT_CONVERGED)
-    flags[status == pixelfit.LINEAR_NOT_CONVERGED] |= np.uint32(DQ.NOT_CONVERGED)
-    flags[linear | ~(sigma_ln_b < 0.5)] |= np.uint32(DQ.LEAK_UNCONSTRAINED)
-    flags[np.isin(status, DO_NOT_USE_STATUS)] |= np.uint32(DQ.DO_NOT_USE)
-    return flags
 
 
 def _refuse_if_nothing_fitted(sweep, status, counts) -> None:

@@ -268,12 +268,16 @@ def _cmd_calibrate(args) -> int:
         raise HsiffcError(f"{args.output}: the calibration file must end in .npz; rename it")
     extra = ({"progress": _rows_done}  # on the status line
              if CALIBRATION_METHODS[args.method].reports_progress else {})
+    stacks = (full.select(np.isin(full.step, full.meta["spatial_steps"]))
+              if args.steps == "sweep" and full.meta.get("spatial_steps") else None)
+    if args.method == "joint":  # the stack two-point is one of the models compared
+        extra["flats"] = stacks
     cal = calibrate(sweep, method=args.method, full_well_dn=args.full_well_dn, **extra)
-    if args.steps == "sweep" and full.meta.get("spatial_steps"):
+    if stacks is not None:
         # the EMVA 1288 flat stack: folded into the responsivity map, not a sample of the fit
         from ..calibrate.flats import add_flat_stacks
 
-        cal = add_flat_stacks(cal, full.select(np.isin(full.step, full.meta["spatial_steps"])))
+        cal = add_flat_stacks(cal, stacks)
         for s in cal.fitted_on.get("flat_stacks", []):
             print(f"  flat stack: step {s['step']}, {s['n_frames']} frames at "
                   f"{s['exposure_ms']:g} ms, {s['level_dn']:.0f} DN above dark ({s['dark']} "

@@ -189,11 +189,12 @@ def run_ffc_study(source, *, calibration=None, goal_percent: float | None = None
     train_light = even + ([flat_step] if flat_step is not None else [])
     if calibration is None:
         log.info("calibrating on %d even light steps and %d dark steps", len(even), len(darks))
+        stacks = (None if flat_step is None else
+                  sweep.select(np.isin(sweep.step, [flat_step] + darks)))
         calibration = calibrate(sweep.select(np.isin(sweep.step, even + darks)),
-                                **(calibrate_kwargs or {}))
-        if flat_step is not None:  # as hsiffc calibrate does: the stack in the calibration
-            calibration = add_flat_stacks(
-                calibration, sweep.select(np.isin(sweep.step, [flat_step] + darks)))
+                                **{"flats": stacks, **(calibrate_kwargs or {})})
+        if stacks is not None:  # as hsiffc calibrate does: the stack in the calibration
+            calibration = add_flat_stacks(calibration, stacks)
     frames = Frame.list_from_sweep(sweep)
     by_step: dict = {}
     for f in frames:
