@@ -5,6 +5,7 @@ hsiffc's simulator, one sensor per seed, and every effect they claim is in their
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from dataclasses import replace
@@ -194,3 +195,34 @@ def test_the_ffc_study_runs_on_a_case_with_and_without_a_flat_stack(seed):
         assert set(row["methods"]) <= expected
     assert set().union(*(row["methods"] for row in res.summary)) == expected
     assert {"model_at_most_raw", "failures"} <= set(res.goals)
+
+
+def test_the_zoo_gives_the_independent_sensors_rows_and_a_summary_row_of_their_own():
+    from hsiffc.reports import ffc_zoo
+
+    results = ffc_zoo.run_zoo(seeds=(), indep_seeds=(2006,))
+    (name, res), = results
+    assert name == ind.indep_case(2006).label and ffc_zoo.sensor_group(name) == "independent"
+    # a simulated sensor beside it (the same study under another name: rendering only)
+    zoo = [("simulated, seed 5: stand-in", res)] + results
+    page = ffc_zoo.render_zoo(zoo, half="dev")
+    summary = page.split("| sensor | rule |")[0]
+    assert "| simulated, 1 sensors (development half; median) |" in summary
+    assert "| independent, 1 sensors (development half; median) |" in summary
+    assert f"## {name}" in page and re.search(r"\d of 1 independent sensors", page)
+    doc = ffc_zoo.zoo_json(zoo, half="dev")
+    assert doc["half"] == "dev"
+    assert [s["group"] for s in doc["sensors"]] == ["simulated", "independent"]
+
+
+@pytest.mark.parametrize("half, seeds, indep", [
+    ("dev", "DEV_SEEDS", ind.INDEP_DEV_SEEDS[:2]),
+    ("eval", "EVAL_SEEDS", ind.INDEP_EVAL_SEEDS[:2])])
+def test_half_picks_both_grids_seeds(tmp_path, monkeypatch, half, seeds, indep):
+    from hsiffc.reports import ffc_zoo
+
+    called = {}
+    monkeypatch.setattr(ffc_zoo, "run_zoo", lambda **kw: called.update(kw) or [])
+    assert ffc_zoo.main([str(tmp_path), "--half", half, "--seeds", "2"]) == 0
+    assert tuple(called["seeds"]) == getattr(ffc_zoo, seeds)[:2]
+    assert tuple(called["indep_seeds"]) == indep
