@@ -13,7 +13,8 @@ The signal chain of one pixel, in order:
 1. **Light.** The photo-electrons a frame collects have the mean
    ``k x level x r x (t + t0)``: ``level`` the relative light, ``t`` the nominal exposure,
    ``r`` the pixel's response (its mosaic band's responsivity, 0.5-1 of the brightest band,
-   x a smooth vignetting of 2-8 % at the corners, x 1 + PRNU of 0.3-1.5 %, normal).
+   x a smooth fall-off of the light of 0-2 % at the corners, as EMVA 1288's uniform
+   illumination allows, x 1 + PRNU of 0.3-1.5 %, normal).
 2. **Exposure offset** ``t0`` (exposure sweeps only): the light is collected for the nominal
    exposure plus ``t0`` of either sign (0.02-0.15 ms on a sweep whose longest exposure is
    10-17 ms), as a mechanical or global shutter or a CCD's transfer does. The light response
@@ -34,18 +35,19 @@ The signal chain of one pixel, in order:
    reach (the sense node, the CCD's store): it adds to the response *after* the compression
    and does not leak. Its rate per pixel is log-normal (spread 0.3-0.8 in log), its mean sets
    0.5-3 % of full scale at the longest exposure; Poisson in electrons.
-8. **Read noise** (3-15 electrons, normal), **quantisation** to the bit depth (8, 10, 12 or
-   14) and **clipping**: at the ADC's full scale, or at one code 85-95 % of it (the analog
-   chain's limit, as the EMVA 1288 reference simulator and hsiffc's zoo do).
+8. **Read noise** (3-15 electrons, normal; 5-30 on the CCD-like sensors), **quantisation**
+   to the bit depth (8, 10, 12 or 14) and **clipping**: at the ADC's full scale, or at one
+   code 85-95 % of it (the analog chain's limit, as the EMVA 1288 reference simulator and
+   hsiffc's zoo do).
 
 Each seed's sensor (:func:`indep_case`) has a primary effect that cycles with the seed
 (:data:`PRIMARY_EFFECTS`: an exposure offset, smear, a dark signal outside the photodiode, a
 common nonlinearity, a CCD-like linear sensor with a large dark level), secondary effects
-drawn with probability 0.3 each, a bit depth, noise, a mosaic (none, 4 x 4 or 5 x 5) and a
-design: an exposure sweep (one light) or a light sweep (one exposure), 30-40 light steps of 2
-or 4 frames from about 2 % of saturation to past it, each with as many dark frames at its
-exposure (EMVA 1288), and on half the cases a flat stack of 20-50 frames near half saturation
-with a dark stack at its exposure. The seeds split into a development half
+drawn with probability 0.3 each, a bit depth, noise, a mosaic (none on 3 in 5, else 4 x 4 or
+5 x 5) and a design: an exposure sweep (one light) or a light sweep (one exposure), 30-40
+light steps of 2 or 4 frames from about 2 % of saturation to past it, each with as many dark
+frames at its exposure (EMVA 1288), and on half the cases a flat stack of 20-50 frames near
+half saturation with a dark stack at its exposure. The seeds split into a development half
 (:data:`INDEP_DEV_SEEDS`: tune on these) and an evaluation half (:data:`INDEP_EVAL_SEEDS`:
 publish these); both cover every primary effect, both frame counts, with and without stacks.
 
@@ -272,11 +274,11 @@ def indep_case(seed: int, *, shape: tuple = (96, 128)) -> IndepCase:
                                   else max(2.0, rng.uniform(0.01, 0.04) * fs)), 1),
         dsnu_dn=round(float(rng.uniform(0.5, 3.0) if ccd
                             else max(0.3, rng.uniform(0.001, 0.003) * fs)), 2),
-        read_noise_e=round(float(rng.uniform(5.0, 15.0) if ccd else rng.uniform(3.0, 15.0)), 1),
+        read_noise_e=round(float(rng.uniform(5.0, 30.0) if ccd else rng.uniform(3.0, 15.0)), 1),
         full_well_e=round(_FULL_WELL_E[bits] * float(rng.uniform(0.5, 1.5)), -1),
         prnu=round(float(rng.uniform(0.003, 0.015)), 4),
         clip_fraction=(1.0 if rng.random() < 0.5 else round(float(rng.uniform(0.85, 0.95)), 3)),
-        mosaic_tile=int(rng.choice([0, 4, 5])), shape=tuple(shape))
+        mosaic_tile=int(rng.choice([0, 0, 0, 4, 5])), shape=tuple(shape))
     _draw_effect(primary, rng, case, sign=1.0 if alternate else -1.0)
     # secondary effects: a CCD-like sensor stays linear (offset and smear only)
     secondary = PRIMARY_EFFECTS[:2] if ccd else PRIMARY_EFFECTS[:4]
@@ -296,7 +298,7 @@ def _compress(v, case: IndepCase):
 
 
 def _response_map(case: IndepCase, rng) -> np.ndarray:
-    """Each pixel's relative response: band responsivity x vignetting x (1 + PRNU)."""
+    """Each pixel's relative response: band responsivity x fall-off x (1 + PRNU)."""
     h, w = case.shape
     band = np.ones(case.shape)
     if case.mosaic_tile:
@@ -304,8 +306,8 @@ def _response_map(case: IndepCase, rng) -> np.ndarray:
         band = rng.uniform(0.5, 1.0, case.mosaic_tile ** 2)[bands]
         band /= band.max()
     y, x = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
-    vignetting = 1.0 - rng.uniform(0.02, 0.08) * (x ** 2 + y ** 2) / 2.0
-    return band * vignetting * (1.0 + case.prnu * rng.standard_normal(case.shape))
+    falloff = 1.0 - rng.uniform(0.0, 0.02) * (x ** 2 + y ** 2) / 2.0
+    return band * falloff * (1.0 + case.prnu * rng.standard_normal(case.shape))
 
 
 def _light_scale(case: IndepCase, response, t_eff: float) -> float:
