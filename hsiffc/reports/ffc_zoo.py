@@ -3,8 +3,9 @@
 The FFC study (:mod:`hsiffc.reports.ffc_study`) runs on any EMVA 1288-style sweep. The zoo runs
 it on
 
-* every EMVA 1288 set in ``../shared/data`` (the real 8-bit CMOS, and the two sets of the
-  EMVA 1288 reference implementation's simulator), each its own row,
+* every EMVA 1288 set in ``../shared/data`` (the real 8-bit CMOS, the two sets of the
+  EMVA 1288 reference implementation's simulator, and the two sets of an independent
+  generator with an exposure offset and a common nonlinearity), each its own row,
 * a seeded grid of hsiffc's simulated sensors (:func:`zoo_case`): linear or strongly leaking,
   8/10/12/16 bit, read noise 0.5-5 DN, with or without dark current, full well at or below the
   ADC's full scale, exposure or light sweeps. Seeds split the grid into a development half
@@ -59,7 +60,8 @@ DEV_SEEDS = tuple(range(0, 16))
 EVAL_SEEDS = tuple(range(1000, 1016))
 #: the shared EMVA 1288 sets and a sensor-specific goal (percent from 12 % of saturation up)
 SHARED_SETS = {"emva1288-cmos8-roi": 0.3, "emva1288-refsim-linear12-exposure": None,
-               "emva1288-refsim-linear10-light": None}
+               "emva1288-refsim-linear10-light": None, "indep-ccd12-offset": None,
+               "indep-cmos10-light-nonlinear": None}
 BIT_DEPTHS = (8, 10, 12, 16)
 #: the zoo's groups of seeded sensors, each one summary row (their labels start with the name)
 GROUPS = ("simulated", "independent")
