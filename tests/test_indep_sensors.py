@@ -200,7 +200,7 @@ def test_the_ffc_study_runs_on_a_case_with_and_without_a_flat_stack(seed):
 def test_the_zoo_gives_the_independent_sensors_rows_and_a_summary_row_of_their_own():
     from hsiffc.reports import ffc_zoo
 
-    results = ffc_zoo.run_zoo(seeds=(), indep_seeds=(2006,))
+    results = ffc_zoo.run_zoo(seeds=(), indep_seeds=(2006,), designs=())
     (name, res), = results
     assert name == ind.indep_case(2006).label and ffc_zoo.sensor_group(name) == "independent"
     # a simulated sensor beside it (the same study under another name: rendering only)
@@ -226,3 +226,15 @@ def test_half_picks_both_grids_seeds(tmp_path, monkeypatch, half, seeds, indep):
     assert ffc_zoo.main([str(tmp_path), "--half", half, "--seeds", "2"]) == 0
     assert tuple(called["seeds"]) == getattr(ffc_zoo, seeds)[:2]
     assert tuple(called["indep_seeds"]) == indep
+
+
+def test_the_fixed_designs_have_the_designs_of_issue_50_s_sensors():
+    ccd, ref = (ind.DESIGN_CASES[n] for n in ("ccd12-exposure-offset",
+                                              "refsim12-light-nonlinear"))
+    assert ccd.label.startswith("independent, design ccd12-exposure-offset: CCD-like")
+    assert (ccd.bit_depth, ccd.light_sweep, ccd.stack_frames) == (12, False, 50)
+    assert ccd.exposure_offset_ms > 0 and not ccd.nonlinearity
+    assert (ref.bit_depth, ref.light_sweep, ref.nonlinearity) == (12, True, 0.02)
+    assert not ref.exposure_offset_ms and not ref.smear_ms and not ref.outside_dark_dn
+    sweep = ind.indep_sweep(replace(ccd, shape=SMALL, n_steps=8, stack_frames=4))
+    assert sweep.source.startswith("independent, design ccd12-exposure-offset: ")

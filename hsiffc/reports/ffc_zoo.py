@@ -20,6 +20,10 @@ it on
   what the model gets wrong; these sensors can. Their seeds split into halves too
   (:data:`~hsiffc.reports.indep_sensors.INDEP_DEV_SEEDS`,
   :data:`~hsiffc.reports.indep_sensors.INDEP_EVAL_SEEDS`); ``--half`` picks both grids' half.
+  Two independent sensors of fixed design, rows in both halves
+  (:data:`~hsiffc.reports.indep_sensors.DESIGN_CASES`), have the designs of the two sensors
+  issue 50 judges by: a 12-bit CCD's exposure sweep with an exposure offset and 50-frame
+  stacks, and a 12-bit light sweep with a 2 % common nonlinearity.
 
 Every sensor gets one table (raw, 2-frame and stack two-point, model_ffc, per range of
 saturation) and the rule of :func:`hsiffc.reports.ffc_study.check_rule`; the page's summary
@@ -46,7 +50,7 @@ from ..simulate.params import SensorParams
 from ..data.sweep import Sweep
 from .ffc_study import (RANGES_FRACTION, FFCStudy, cell, method_names, range_label,
                         run_ffc_study)
-from .indep_sensors import INDEP_DEV_SEEDS, INDEP_EVAL_SEEDS, indep_case, indep_sweep
+from .indep_sensors import DESIGN_CASES, INDEP_DEV_SEEDS, INDEP_EVAL_SEEDS, indep_case, indep_sweep
 
 __all__ = ["RANGES_FRACTION", "ZooCase", "zoo_case", "zoo_sweep", "run_zoo", "render_zoo",
            "zoo_json", "DEV_SEEDS", "EVAL_SEEDS", "SHARED_SETS", "GROUPS", "HALF_NAMES",
@@ -180,10 +184,10 @@ def _next(steps) -> int:
     return (steps[-1] + 1) if steps else 0
 
 
-def run_zoo(*, seeds=EVAL_SEEDS, indep_seeds=INDEP_EVAL_SEEDS, shared: Path | None = None,
-            progress=None) -> list:
-    """The study on every shared set found under ``shared``, every simulated seed and every
-    independent seed.
+def run_zoo(*, seeds=EVAL_SEEDS, indep_seeds=INDEP_EVAL_SEEDS, designs=tuple(DESIGN_CASES),
+            shared: Path | None = None, progress=None) -> list:
+    """The study on every shared set found under ``shared``, every simulated seed, every
+    independent seed and every independent design.
 
     Parameters
     ----------
@@ -191,6 +195,9 @@ def run_zoo(*, seeds=EVAL_SEEDS, indep_seeds=INDEP_EVAL_SEEDS, shared: Path | No
         Seeds of hsiffc's simulated sensors (:func:`zoo_case`).
     indep_seeds : sequence of int
         Seeds of the independent sensors (:func:`hsiffc.reports.indep_sensors.indep_case`).
+    designs : sequence of str
+        Names of the independent sensors of fixed design
+        (:data:`hsiffc.reports.indep_sensors.DESIGN_CASES`; in both halves).
     shared : Path, optional
         Folder of the shared EMVA 1288 sets; a set that is missing is left out (with a log
         line).
@@ -211,7 +218,8 @@ def run_zoo(*, seeds=EVAL_SEEDS, indep_seeds=INDEP_EVAL_SEEDS, shared: Path | No
             else:
                 log.warning("%s not found: left out of the zoo", folder)
     sources += [(c.label, lambda c=c: zoo_sweep(c), None) for c in map(zoo_case, seeds)]
-    sources += [(c.label, lambda c=c: indep_sweep(c), None) for c in map(indep_case, indep_seeds)]
+    sources += [(c.label, lambda c=c: indep_sweep(c), None)
+                for c in [indep_case(s) for s in indep_seeds] + [DESIGN_CASES[d] for d in designs]]
     out = []
     for name, source, goal in sources:
         t0 = time.perf_counter()
