@@ -348,7 +348,8 @@ def indep_sweep(case: IndepCase) -> Sweep:
     """An EMVA 1288-style sweep of the case's sensor.
 
     ``case.n_steps`` light steps of ``case.frames_per_step`` frames from about 2 % of
-    saturation to past it, each followed by as many dark frames at its exposure; then, with
+    saturation to past it (saturation of the brightest pixels, the 99th percentile of the
+    response: on a mosaic the dimmer bands stay below the clip), each followed by as many dark frames at its exposure; then, with
     ``case.stack_frames``, a flat stack near half saturation and a dark stack at its exposure
     (``meta["spatial_steps"]``; the others in ``meta["sweep_steps"]``). ``photons`` of a light
     frame is its relative light dose, light level x nominal exposure (EMVA 1288's photons per
@@ -397,11 +398,11 @@ def indep_sweep(case: IndepCase) -> Sweep:
     blocks, exposure, kind, photons = [], [], [], []
 
     def add(t: float, level: float, n: int) -> None:
-        for k_, lvl in (("light", level), ("dark", 0.0)):
+        for what, lvl in (("light", level), ("dark", 0.0)):
             blocks.append(frames(t, lvl, n))
             exposure.extend([t] * n)
-            kind.extend([k_] * n)
-            photons.extend([level * t if k_ == "light" else np.nan] * n)
+            kind.extend([what] * n)
+            photons.extend([lvl * t if lvl else np.nan] * n)
 
     for fraction in np.linspace(*_STEP_FRACTIONS, case.n_steps):
         add(*nominal(float(fraction)), case.frames_per_step)
