@@ -338,23 +338,15 @@ def _ffc_study_table() -> list[str]:
 
 
 def _ffc_zoo_table() -> list[str]:
-    """The zoo table: per sensor (the shared sets, then the simulated evaluation half pooled),
-    raw, stack two-point and model_ffc over 12-40 / 40-80 / 80-100 % of saturation."""
+    """The zoo table: per sensor (the shared sets, then the simulated and the independent
+    sensors of the evaluation half, each group pooled), raw, stack two-point and model_ffc over
+    12-40 / 40-80 / 80-100 % of saturation."""
+    from hsiffc.reports.ffc_zoo import (GROUPS, HALF_NAMES, format_figures, median_figures,
+                                        range_figures, sensor_group)
+
     s = _load("ffc-zoo", "ffc_zoo.json")
     if not s or not s.get("sensors"):
         return []
-
-    def figs(sensor, method):
-        out = []
-        for row in sensor["summary"][1:]:
-            m = row["methods"].get(method)
-            out.append(None if m is None else ("below noise" if m.get("below_noise") else
-                                               m["fpn_percent_median"]))
-        return out
-
-    def fmt(values):
-        return " / ".join("-" if v is None else v if isinstance(v, str) else f"{v:.2f}"
-                          for v in values) + " %"
 
     def met(sensor):
         return not sensor["goals"]["failures"]
@@ -366,8 +358,6 @@ def _ffc_zoo_table() -> list[str]:
                     key=lambda x: float(x.split()[0]))
         return "met" + (f" (higher within the noise at {', '.join(at)})" if at else "")
 
-    shared = [x for x in s["sensors"] if not x["name"].startswith("simulated")]
-    sim = [x for x in s["sensors"] if x["name"].startswith("simulated")]
     lines = ["**Flat-field correction on a zoo of sensors.** Fixed-pattern non-uniformity "
              "(EMVA 1288: temporal noise of the light and dark frames removed; lower is better) "
              "over 12-40 / 40-80 / 80-100 % of saturation, on light steps no correction saw "
@@ -376,20 +366,22 @@ def _ffc_zoo_table() -> list[str]:
              "(beyond twice the standard error); on the real CMOS also <= 0.3 %:", "",
              "| sensor | raw | two-point, flat = stack | `model_ffc` | rule |",
              "|---|---|---|---|---|"]
-    for x in shared:
-        lines.append(f"| {x['name']} | {fmt(figs(x, 'raw'))} | "
-                     f"{fmt(figs(x, 'two_point_stack'))} | {fmt(figs(x, 'model_ffc'))} | "
-                     f"{verdict(x)} |")
-    if sim:
-        def med(method):
-            cols = [[v for v in c if isinstance(v, float)]
-                    for c in zip(*[figs(x, method) for x in sim])]
-            return [float(np.median(c)) if c else None for c in cols]
-        lines.append(f"| simulated, {len(sim)} sensors (evaluation half; median) | "
-                     f"{fmt(med('raw'))} | {fmt(med('two_point_stack'))} | "
-                     f"{fmt(med('model_ffc'))} | met on {sum(map(met, sim))} of {len(sim)} "
-                     f"({sum(bool(x['goals'].get('unresolved')) for x in sim)} of them higher "
-                     "within the noise in a range) |")
+    for x in s["sensors"]:
+        if sensor_group(x["name"]) == "shared":
+            lines.append(f"| {x['name']} | " + " | ".join(
+                format_figures(range_figures(x["summary"][1:], m))
+                for m in ("raw", "two_point_stack", "model_ffc")) + f" | {verdict(x)} |")
+    half = HALF_NAMES[s.get("half", "eval")]
+    for g in GROUPS:
+        members = [x for x in s["sensors"] if sensor_group(x["name"]) == g]
+        if not members:
+            continue
+        med = [format_figures(median_figures([x["summary"][1:] for x in members], m))
+               for m in ("raw", "two_point_stack", "model_ffc")]
+        lines.append(f"| {g}, {len(members)} sensors ({half} half; median) | "
+                     + " | ".join(med) + f" | met on {sum(map(met, members))} of "
+                     f"{len(members)} ({sum(bool(x['goals'].get('unresolved')) for x in members)}"
+                     " of them higher within the noise in a range) |")
     lines += ["", "Every sensor's table (2-12 % too, the 2-frame flat, `hsiffc correct`'s "
               "default): [the zoo](docs/results/ffc-zoo.md); the real CMOS in detail: "
               "[real-data FFC study](docs/results/ffc-study.md)."]

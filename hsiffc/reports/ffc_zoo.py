@@ -3,15 +3,32 @@
 The FFC study (:mod:`hsiffc.reports.ffc_study`) runs on any EMVA 1288-style sweep. The zoo runs
 it on
 
-* every EMVA 1288 set in ``../shared/data`` (the real 8-bit CMOS, and the two sets of the
-  EMVA 1288 reference implementation's simulator), each its own row, and
+* every EMVA 1288 set in ``../shared/data`` (the real 8-bit CMOS, the two sets of the
+  EMVA 1288 reference implementation's simulator, and the two sets of an independent
+  generator with an exposure offset and a common nonlinearity), each its own row,
 * a seeded grid of hsiffc's simulated sensors (:func:`zoo_case`): linear or strongly leaking,
   8/10/12/16 bit, read noise 0.5-5 DN, with or without dark current, full well at or below the
   ADC's full scale, exposure or light sweeps. Seeds split the grid into a development half
-  (:data:`DEV_SEEDS`: tune on these) and an evaluation half (:data:`EVAL_SEEDS`: publish these).
+  (:data:`DEV_SEEDS`: tune on these) and an evaluation half (:data:`EVAL_SEEDS`: publish these),
+  and
+* independent sensors (:mod:`hsiffc.reports.indep_sensors`), generated with numpy alone, not with
+  hsiffc's simulator, from physics the leakage model leaves out: exposure offsets of either
+  sign, frame-transfer smear, a dark signal outside the photodiode, a readout nonlinearity
+  common to all pixels, CCD-like linear sensors with a large dark level; 2 or 4 frames per
+  step, with or without a flat stack. The simulator shares the model's assumptions (a dark
+  level equal to the light response's intercept, leakage as the only bend), so it cannot show
+  what the model gets wrong; these sensors can. Their seeds split into halves too
+  (:data:`~hsiffc.reports.indep_sensors.INDEP_DEV_SEEDS`,
+  :data:`~hsiffc.reports.indep_sensors.INDEP_EVAL_SEEDS`); ``--half`` picks both grids' half.
+  Two independent sensors of fixed design, rows in both halves
+  (:data:`~hsiffc.reports.indep_sensors.DESIGN_CASES`), have the designs of the two sensors
+  issue 50 judges by: a 12-bit CCD's exposure sweep with an exposure offset and 50-frame
+  stacks, and a 12-bit light sweep with a 2 % common nonlinearity.
 
 Every sensor gets one table (raw, 2-frame and stack two-point, model_ffc, per range of
-saturation) and the rule of :func:`hsiffc.reports.ffc_study.check_rule`.
+saturation) and the rule of :func:`hsiffc.reports.ffc_study.check_rule`; the page's summary
+gives each shared set its own row and the simulated and the independent sensors one row each
+(the median over the group's sensors).
 
     python3 -m hsiffc.reports.ffc_zoo OUTDIR [--half eval|dev] [--shared ../shared/data]
 """
@@ -33,9 +50,12 @@ from ..simulate.params import SensorParams
 from ..data.sweep import Sweep
 from .ffc_study import (RANGES_FRACTION, FFCStudy, cell, method_names, range_label,
                         run_ffc_study)
+from .indep_sensors import DESIGN_CASES, INDEP_DEV_SEEDS, INDEP_EVAL_SEEDS, indep_case, indep_sweep
 
-__all__ = ["RANGES_FRACTION", "ZooCase", "zoo_case", "zoo_sweep", "run_zoo", "render_zoo", "DEV_SEEDS",
-           "EVAL_SEEDS", "SHARED_SETS", "main"]
+__all__ = ["RANGES_FRACTION", "ZooCase", "zoo_case", "zoo_sweep", "run_zoo", "render_zoo",
+           "zoo_json", "DEV_SEEDS", "EVAL_SEEDS", "SHARED_SETS", "GROUPS", "HALF_NAMES",
+           "sensor_group", "range_figures", "median_figures", "format_figures", "rule_verdict",
+           "main"]
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +64,13 @@ DEV_SEEDS = tuple(range(0, 16))
 EVAL_SEEDS = tuple(range(1000, 1016))
 #: the shared EMVA 1288 sets and a sensor-specific goal (percent from 12 % of saturation up)
 SHARED_SETS = {"emva1288-cmos8-roi": 0.3, "emva1288-refsim-linear12-exposure": None,
-               "emva1288-refsim-linear10-light": None}
+               "emva1288-refsim-linear10-light": None, "indep-ccd12-offset": None,
+               "indep-cmos10-light-nonlinear": None}
 BIT_DEPTHS = (8, 10, 12, 16)
+#: the zoo's groups of seeded sensors, each one summary row (their labels start with the name)
+GROUPS = ("simulated", "independent")
+#: the halves as the pages name them
+HALF_NAMES = {"eval": "evaluation", "dev": "development"}
 
 
 @dataclass(frozen=True)
@@ -159,32 +184,60 @@ def _next(steps) -> int:
     return (steps[-1] + 1) if steps else 0
 
 
-def run_zoo(*, seeds=EVAL_SEEDS, shared: Path | None = None, progress=None) -> list:
-    """The study on every shared set found under ``shared`` and every simulated seed.
+def run_zoo(*, seeds=EVAL_SEEDS, indep_seeds=INDEP_EVAL_SEEDS, designs=tuple(DESIGN_CASES),
+            shared: Path | None = None, progress=None) -> list:
+    """The study on every shared set found under ``shared``, every simulated seed, every
+    independent seed and every independent design.
 
-    Returns a list of ``(name, FFCStudy)``; a shared set that is missing is left out (with a
-    log line)."""
-    out = []
+    Parameters
+    ----------
+    seeds : sequence of int
+        Seeds of hsiffc's simulated sensors (:func:`zoo_case`).
+    indep_seeds : sequence of int
+        Seeds of the independent sensors (:func:`hsiffc.reports.indep_sensors.indep_case`).
+    designs : sequence of str
+        Names of the independent sensors of fixed design
+        (:data:`hsiffc.reports.indep_sensors.DESIGN_CASES`; in both halves).
+    shared : Path, optional
+        Folder of the shared EMVA 1288 sets; a set that is missing is left out (with a log
+        line).
+    progress : callable, optional
+        Called with ``(name, seconds)`` after each sensor.
+
+    Returns
+    -------
+    list
+        ``(name, FFCStudy)`` per sensor: the shared sets, the simulated, the independent.
+    """
+    sources = []
     if shared is not None:
         for name, goal in SHARED_SETS.items():
             folder = Path(shared) / name
-            if not folder.exists():
+            if folder.exists():
+                sources.append((name, folder, goal))
+            else:
                 log.warning("%s not found: left out of the zoo", folder)
-                continue
-            t0 = time.perf_counter()
-            out.append((name, run_ffc_study(folder, goal_percent=goal)))
-            if progress:
-                progress(name, time.perf_counter() - t0)
-    for seed in seeds:
-        case = zoo_case(seed)
+    sources += [(c.label, lambda c=c: zoo_sweep(c), None) for c in map(zoo_case, seeds)]
+    sources += [(c.label, lambda c=c: indep_sweep(c), None)
+                for c in [indep_case(s) for s in indep_seeds] + [DESIGN_CASES[d] for d in designs]]
+    out = []
+    for name, source, goal in sources:
         t0 = time.perf_counter()
-        out.append((case.label, run_ffc_study(zoo_sweep(case))))
+        out.append((name, run_ffc_study(source() if callable(source) else source,
+                                        goal_percent=goal)))
         if progress:
-            progress(case.label, time.perf_counter() - t0)
+            progress(name, time.perf_counter() - t0)
     return out
 
 
-def _rule_cell(res: FFCStudy) -> str:
+def sensor_group(name: str) -> str:
+    """The group of a zoo sensor: one of :data:`GROUPS`, or ``"shared"`` (a shared set)."""
+    return next((g for g in GROUPS if name.startswith(g)), "shared")
+
+
+def rule_verdict(res: FFCStudy) -> str:
+    """The rule on one sensor as a table cell: ``**met**`` (with the ranges where model_ffc is
+    higher within twice the standard error) or ``**broken**: `` and the failures."""
     g = res.goals
     ok = g["model_at_most_raw"] and g["model_within_10_percent_of_stack_two_point"] and all(
         v for k, v in g.items() if k.startswith("model_at_most_") and isinstance(v, bool))
@@ -196,8 +249,57 @@ def _rule_cell(res: FFCStudy) -> str:
                         "twice the standard error)" if unresolved else "")
 
 
+def range_figures(summary, method: str) -> list:
+    """Per row of a study's summary: the median percent of ``method``, ``"below noise"``, or
+    None where the method is not in the row."""
+    out = []
+    for row in summary:
+        m = row["methods"].get(method)
+        out.append(None if m is None else ("below noise" if m.get("below_noise") else
+                                           m["fpn_percent_median"]))
+    return out
+
+
+def median_figures(summaries, method: str) -> list:
+    """Per range: the median over the sensors' :func:`range_figures` that are numbers (None
+    where no sensor has one); ``summaries``: one summary (list of rows) per sensor."""
+    cols = [[v for v in c if isinstance(v, float)]
+            for c in zip(*[range_figures(s, method) for s in summaries])]
+    return [float(np.median(c)) if c else None for c in cols]
+
+
+def format_figures(values) -> str:
+    """``0.31 / below noise / - %``: figures of the ranges in one cell."""
+    return " / ".join("-" if v is None else v if isinstance(v, str) else f"{v:.2f}"
+                      for v in values) + " %"
+
+
+def _summary_table(results, half: str) -> list[str]:
+    """The page's summary: each shared set its own row, each group of :data:`GROUPS` one row
+    (the median over its sensors), raw / stack two-point / model_ffc per range."""
+    ranges = " / ".join(f"{100 * lo:g}-{100 * hi:g}" for lo, hi in RANGES_FRACTION)
+    lines = [f"| sensors | raw ({ranges} % of saturation) | two-point, flat = stack | "
+             "model_ffc | rule met |", "|---|---|---|---|---|"]
+    methods = ("raw", "two_point_stack", "model_ffc")
+    for name, res in results:
+        if sensor_group(name) == "shared":
+            lines.append(f"| {name} | " + " | ".join(format_figures(range_figures(
+                res.summary, m)) for m in methods) + f" | {rule_verdict(res)} |")
+    for group in GROUPS:
+        members = [res for name, res in results if sensor_group(name) == group]
+        if not members:
+            continue
+        n_met = sum(rule_verdict(r).startswith("**met**") for r in members)
+        lines.append(f"| {group}, {len(members)} sensors ({HALF_NAMES[half]} half; median) | "
+                     + " | ".join(format_figures(median_figures([r.summary for r in members],
+                                                                m)) for m in methods)
+                     + f" | {n_met} of {len(members)} |")
+    return lines
+
+
 def render_zoo(results, *, half: str = "eval") -> str:
-    """The zoo as Markdown: a summary of the rule per sensor, then one table per sensor."""
+    """The zoo as Markdown: a summary per group of sensors and the rule per sensor, then one
+    table per sensor."""
     cols = ("raw", "two_point_2frame", "two_point_stack", "model_ffc", "model_ffc_calibration")
     lines = ["# Flat-field correction on a zoo of sensors (held out)", "",
              "Every sensor: calibrated on the even light steps and the darks of its sweep, "
@@ -208,15 +310,26 @@ def render_zoo(results, *, half: str = "eval") -> str:
              "the stack two-point from 12 % of saturation up (a difference within twice the "
              "standard error does not count: the frames cannot resolve it); on the real CMOS "
              "also at or below 0.3 % from 12 % up. The simulated sensors are the "
-             f"**{half}** half of the seeded grid (`hsiffc.reports.ffc_zoo`).", "",
-             "| sensor | rule |", "|---|---|"]
+             f"**{half}** half of the seeded grid of hsiffc's simulator "
+             "(`hsiffc.reports.ffc_zoo`); the independent sensors the same half of a generator "
+             "that does not use hsiffc's simulator, with physics the leakage model leaves out "
+             "(exposure offsets, frame-transfer smear, a dark signal outside the photodiode, a "
+             "common readout nonlinearity, CCD-like sensors with a large dark level; "
+             "`hsiffc.reports.indep_sensors`). A sensor without a flat stack has no stack "
+             "two-point: the rule compares it with raw only.", ""]
+    lines += _summary_table(results, half) + ["", "| sensor | rule |", "|---|---|"]
     for name, res in results:
-        lines.append(f"| {name} | {_rule_cell(res)} |")
-    n_ok = sum(_rule_cell(r).startswith("**met**") for _, r in results)
-    n_res = sum(_rule_cell(r) == "**met**" for _, r in results)
-    lines += ["", f"Rule met on {n_ok} of {len(results)} sensors; on {n_res} of them with no "
-              "range where model_ffc is higher than raw or 1.1 x the stack two-point even within "
-              "the noise. Where it is higher within the noise (mostly 2-12 % of saturation on "
+        lines.append(f"| {name} | {rule_verdict(res)} |")
+    counts = []
+    for group in ("shared",) + GROUPS:
+        verdicts = [rule_verdict(r) for n, r in results if sensor_group(n) == group]
+        if verdicts:
+            counts.append(f"{sum(v.startswith('**met**') for v in verdicts)} of "
+                          f"{len(verdicts)} {group} sensors (on "
+                          f"{sum(v == '**met**' for v in verdicts)} of them resolved everywhere)")
+    lines += ["", "Rule met on " + ", ".join(counts) + ". Resolved everywhere: no range where "
+              "model_ffc is higher than raw or 1.1 x the stack two-point even within the noise. "
+              "Where it is higher within the noise (mostly 2-12 % of saturation on "
               "8- and 10-bit sensors with read noise of several DN), the held-out steps (one "
               "per range there, 12 288 pixels, two frames) cannot resolve the difference: the "
               "raw figure subtracts the dark frames of the step's exposure and removes their "
@@ -238,15 +351,17 @@ def render_zoo(results, *, half: str = "eval") -> str:
             cells = [cell(row["methods"].get(c), se=True) for c in cols if c in names]
             lines.append(f"| {range_label(row)} | {row['n_steps']} | " + " | ".join(cells)
                          + " |")
-        lines += ["", f"Rule: {_rule_cell(res)}.", ""]
+        lines += ["", f"Rule: {rule_verdict(res)}.", ""]
     return "\n".join(lines) + "\n"
 
 
-def zoo_json(results) -> dict:
-    """JSON-safe: per sensor its summary rows, saturation and rule."""
-    return {"sensors": [{"name": name, "summary": res.summary, "saturation": res.saturation,
-                         "goals": res.goals, "flat_2frame": res.flat_2frame,
-                         "flat_stack": res.flat_stack, "goal_percent": res.goal_percent}
+def zoo_json(results, *, half: str = "eval") -> dict:
+    """JSON-safe: the half, and per sensor its group, summary rows, saturation and rule."""
+    return {"half": half,
+            "sensors": [{"name": name, "group": sensor_group(name), "summary": res.summary,
+                         "saturation": res.saturation, "goals": res.goals,
+                         "flat_2frame": res.flat_2frame, "flat_stack": res.flat_stack,
+                         "goal_percent": res.goal_percent}
                         for name, res in results]}
 
 
@@ -259,22 +374,25 @@ def main(argv=None) -> int:
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("outdir", type=Path)
     ap.add_argument("--half", choices=("eval", "dev"), default="eval",
-                    help="which half of the simulated grid (publish eval; tune on dev)")
+                    help="which half of the simulated and the independent sensors (publish "
+                    "eval; tune on dev)")
     ap.add_argument("--shared", type=Path, default=Path("../shared/data"),
                     help="folder of the shared EMVA 1288 sets (missing sets are left out)")
     ap.add_argument("--seeds", type=int, default=None,
-                    help="only the first N seeds of the half (a quick look)")
+                    help="only the first N seeds of each grid's half (a quick look)")
     args = ap.parse_args(argv)
-    seeds = EVAL_SEEDS if args.half == "eval" else DEV_SEEDS
-    seeds = seeds[:args.seeds] if args.seeds else seeds
-    results = run_zoo(seeds=seeds, shared=args.shared,
+    seeds, indep = ((EVAL_SEEDS, INDEP_EVAL_SEEDS) if args.half == "eval"
+                    else (DEV_SEEDS, INDEP_DEV_SEEDS))
+    if args.seeds:
+        seeds, indep = seeds[:args.seeds], indep[:args.seeds]
+    results = run_zoo(seeds=seeds, indep_seeds=indep, shared=args.shared,
                       progress=lambda n, s: print(f"{n}: {s:.1f} s", flush=True))
     args.outdir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.outdir / "ffc_zoo.md", render_zoo(results, half=args.half))
     atomic_write_text(args.outdir / "ffc_zoo.json",
-                      json.dumps(json_safe(zoo_json(results)), indent=1) + "\n")
+                      json.dumps(json_safe(zoo_json(results, half=args.half)), indent=1) + "\n")
     for name, res in results:
-        print(f"{name}: {_rule_cell(res)}")
+        print(f"{name}: {rule_verdict(res)}")
     return 0
 
 
