@@ -175,11 +175,18 @@ def test_light_sweep_at_fixed_exposure_calibrates():
     assert np.median(np.abs(cal.dark - truth.dark_dn)) < 0.5
 
 
-def test_fixed_exposure_sweep_that_never_saturates_reports_leakage_unconstrained():
+def test_fixed_exposure_sweep_that_never_saturates_keeps_the_linear_response():
+    """A light sweep that never bends cannot determine a and b: every band keeps a linear
+    model (chosen on held-out steps), no pixel is inverted through a leakage it did not earn,
+    and the per-pixel leakage fit, where asked for, says the leakage is unconstrained."""
     sweep = _emva_like(seed=2, exposures=np.full(30, 5.0), levels=np.geomspace(0.05, 3.0, 30))
     cal = calibrate(sweep)
-    assert _flag_fraction(cal, DQ.LEAK_UNCONSTRAINED) > 0.9
+    kept = {b["kept"] for b in cal.fitted_on["model_choice"]["bands"]}
+    assert kept <= {"linear", "two_point_stack"}, cal.fitted_on["model_choice"]
+    assert (cal.a == 0).all() and _flag_fraction(cal, DQ.LEAK_UNCONSTRAINED) == 0
     assert _flag_fraction(cal, DQ.NOT_CONVERGED) == 0
+    forced = calibrate(sweep, choose=False)
+    assert _flag_fraction(forced, DQ.LEAK_UNCONSTRAINED) > 0.9
     truth = sweep.meta["truth"]
     assert np.median(np.abs(cal["responsivity"] / truth.k_dn_per_ms - 1)) < 0.02
 

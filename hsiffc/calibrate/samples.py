@@ -380,6 +380,38 @@ def _dark_lines(y, valid, t, dark):
     return lambda ti: ym + slope * (ti - tm)
 
 
+def dark_sigma(ks: dict, *, dark_current: bool, dark_weight: float = 1.0) -> np.ndarray:
+    """Per pixel, the 1-sigma error (DN) of the dark level measured by its dark frames: the
+    intercept of the weighted line through the dark samples (or their weighted mean without a
+    dark current), each step mean weighted by its frames over the read variance.
+
+    Parameters
+    ----------
+    ks : dict
+        :func:`kernel_samples` of the pixels.
+    dark_current : bool
+        Whether the dark line has a slope (the dark current).
+    dark_weight : float
+        The factor ``ks``'s dark frame counts carry (divided out).
+
+    Returns
+    -------
+    (P,) float64 (inf without a dark sample)
+    """
+    read_var = ks["noise"][1] if ks["noise"] is not None else 1.0
+    use = ks["valid"] & ks["dark"][:, None]
+    w = np.where(use, (ks["n_frames"] / dark_weight / read_var)[:, None], 0.0)
+    t = ks["t"][:, None]
+    sw, swt, swtt = w.sum(0), (w * t).sum(0), (w * t * t).sum(0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if dark_current:
+            den = sw * swtt - swt ** 2
+            var = np.where(den > 1e-12 * sw * swtt, swtt / den, 1.0 / sw)
+        else:
+            var = 1.0 / sw
+    return np.where(sw > 0, np.sqrt(var), np.inf)
+
+
 def linear_fit(ks: dict, dark, dark_current, *, exposure_offset_ms: float = 0.0) -> tuple:
     """Per pixel, the linear response through the pixel's dark line: ``Y - (d + dc t) =
     g r (t + t0)``, weighted least squares over its valid light samples (weights from the

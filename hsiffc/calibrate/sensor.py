@@ -21,8 +21,8 @@ from ..data.sweep import Sweep
 from . import choice, pixelfit
 from .joint import B_GRID, run_kernel
 from .product import Calibration
-from .samples import (PhotonTransfer, Samples, collect_samples, exposure_offset, kernel_samples,
-                      linear_fit, photon_transfer)
+from .samples import (PhotonTransfer, Samples, collect_samples, dark_sigma, exposure_offset,
+                      kernel_samples, linear_fit, photon_transfer)
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +30,7 @@ N_PILOT = 4096
 MIN_LIGHT_DOSES = 3
 DO_NOT_USE_STATUS = (pixelfit.TOO_FEW,) + pixelfit.NO_FIT
 #: weight factor on the dark samples that pins each pixel's dark level to its dark frames
-DARK_PIN = 1e4
+DARK_PIN = 1e2
 
 
 def check_design(sweep: Sweep, light_rate=None) -> None:
@@ -265,7 +265,8 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                         ("sigma_ln_g", kept["sigma_ln_g"]),
                         ("sigma_ln_a", fit.sigma[:, 1]),
                         ("sigma_ln_b", fit.sigma[:, 2]),
-                        ("sigma_dark_dn", fit.sigma[:, 3] * np.sqrt(pin)),
+                        ("sigma_dark_dn", fit.sigma[:, 3] if pin == 1 else
+                         dark_sigma(ks, dark_current=use_dc, dark_weight=pin)),
                         ("rms_dn", fit.rms_dn), ("chi2_red", fit.chi2_red),
                         ("saturation_ref_dn", sat)):
             out[name][rows] = v.reshape(shape)
