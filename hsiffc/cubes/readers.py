@@ -103,6 +103,19 @@ def read_cube(path, *, frame: int = 0) -> Cube:
     Returns
     -------
     Cube
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from hsiffc.io import write_cube
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> cube = Cube(np.ones((4, 6, 3), np.float32), np.zeros((4, 6, 3), np.uint32),
+    ...             wavelengths_nm=(500.0, 600.0, 700.0))
+    >>> paths = write_cube(cube, Path(tmp.name) / "cube.hdr")
+    >>> back = read_cube(paths[0])
+    >>> back.data.shape, [float(w) for w in back.wavelengths_nm]
+    ((4, 6, 3), [500.0, 600.0, 700.0])
+    >>> tmp.cleanup()
     """
     path = Path(path)
     if not path.exists():
