@@ -6,17 +6,20 @@ used (``import hsiffc`` itself imports no numerical code and compiles nothing):
 
 * reading: :func:`read_sweep`, :func:`open_source` (any supported format), :func:`read_cube`
   (a cube file hsiffc wrote, back with its wavelengths and DQ);
-* calibrating: :func:`calibrate` (a :class:`Sweep` -> a per-pixel calibration);
+* calibrating: ``calibrate(sweep)`` (a :class:`Sweep` -> a per-pixel calibration);
 * correcting: :class:`Pipeline` of stages made by :func:`create`, applied to a :class:`Frame`;
 * the data model: :class:`Frame`, :class:`Sweep`, :class:`Mosaic`, and :class:`DQ` (the flags
   of every sample).
 
-``hsiffc.calibrate`` is the function even once the package of the same name is imported (its
-modules are imported by their path: ``from hsiffc.calibrate import Calibration``).
+``hsiffc.calibrate`` is the package of that name, callable as its function
+(``hsiffc.calibrate(sweep)`` is ``hsiffc.calibrate.calibrate(sweep)``), so that its modules are
+imported by their path as before (``from hsiffc.calibrate import Calibration``).
 
 >>> import hsiffc
 >>> callable(hsiffc.calibrate), hsiffc.Frame.__module__
 (True, 'hsiffc.data.frame')
+>>> hsiffc.calibrate.Calibration.__module__
+'hsiffc.calibrate.product'
 """
 
 import importlib as _importlib
@@ -72,24 +75,45 @@ def __dir__() -> list[str]:
     return sorted(__all__)
 
 
+class _CallablePackage(_types.ModuleType):
+    """The module type of the package :mod:`hsiffc.calibrate` once the face has handed it out:
+    the package, callable as its function ``calibrate`` (everything else unchanged)."""
+
+    def __call__(self, *args, **kwargs):
+        return self.calibrate(*args, **kwargs)
+
+    @property
+    def __signature__(self):
+        import inspect
+
+        return inspect.signature(self.calibrate)
+
+
 class _Face(_types.ModuleType):
-    """The package's module type: importing the package ``hsiffc.calibrate`` sets the attribute
-    ``calibrate`` of its parent to the package, which would hide the function of the face
-    (after any command or module had imported it). Here the attribute stays the function; any
-    other value set (a test's stand-in) is kept."""
+    """The package's module type. ``hsiffc.calibrate`` is both a package and, on the face, the
+    function that calibrates; importing the package sets the attribute to it whatever the face
+    held. So the attribute is the package itself, made callable as its function: ``import
+    hsiffc.calibrate.joint as j``, ``mock.patch("hsiffc.calibrate....")`` and
+    ``hsiffc.calibrate(sweep)`` all work, whichever came first. Any other value set (a test's
+    stand-in) is kept until the package or nothing is set again."""
 
     @property
     def calibrate(self):
-        """:func:`hsiffc.calibrate.calibrate` (or what was set in its place)."""
-        fn = self.__dict__.get("_calibrate")
-        if fn is None:
-            fn = _importlib.import_module("hsiffc.calibrate").calibrate
-            self.__dict__["_calibrate"] = fn
-        return fn
+        """The package :mod:`hsiffc.calibrate`, callable as
+        :func:`hsiffc.calibrate.calibrate` (or what was set in its place)."""
+        stand_in = self.__dict__.get("_calibrate")
+        if stand_in is not None:
+            return stand_in
+        package = _importlib.import_module("hsiffc.calibrate")
+        if not isinstance(package, _CallablePackage):
+            package.__class__ = _CallablePackage
+        return package
 
     @calibrate.setter
     def calibrate(self, value):
-        if not isinstance(value, _types.ModuleType):  # the import system's setattr is ignored
+        if isinstance(value, _types.ModuleType):  # the package (the import system, an undo)
+            self.__dict__.pop("_calibrate", None)
+        else:
             self.__dict__["_calibrate"] = value
 
     @calibrate.deleter

@@ -79,7 +79,6 @@ def test_dir_shows_the_face_and_nothing_it_imported():
                                           ("Frame", "hsiffc.data.frame"),
                                           ("read_sweep", "hsiffc.io"), ("open_source", "hsiffc.io"),
                                           ("read_cube", "hsiffc.cubes"),
-                                          ("calibrate", "hsiffc.calibrate"),
                                           ("Pipeline", "hsiffc.stages"),
                                           ("create", "hsiffc.stages")])
 def test_each_name_of_the_face_is_the_object_of_its_module(name, module):
@@ -88,22 +87,40 @@ def test_each_name_of_the_face_is_the_object_of_its_module(name, module):
     assert scope["got"] is getattr(importlib.import_module(module), name)
 
 
-def test_calibrate_stays_the_function_once_its_package_is_imported():
-    import hsiffc.calibrate.joint  # noqa: F401 (sets the attribute of the package on hsiffc)
-    from hsiffc.calibrate import calibrate
+def test_calibrate_is_its_package_callable_as_its_function(sample_cubes):
+    import inspect
+    from unittest import mock
 
-    assert hsiffc.calibrate is calibrate and callable(hsiffc.calibrate)
+    import hsiffc.calibrate.joint as joint  # the package's modules import by their path
+
+    package = sys.modules["hsiffc.calibrate"]
+    assert hsiffc.calibrate is package and joint is sys.modules["hsiffc.calibrate.joint"]
+    exec("from hsiffc import calibrate as got", scope := {})
+    assert scope["got"] is package
+    assert inspect.signature(hsiffc.calibrate) == inspect.signature(package.calibrate)
+    with mock.patch("hsiffc.calibrate.calibrate", return_value="patched") as fake:
+        assert hsiffc.calibrate("a sweep", method="paper") == "patched"  # calls the function
+    fake.assert_called_once_with("a sweep", method="paper")
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         hsiffc.nope  # noqa: B018
+
+
+def test_calibrate_is_the_callable_package_whichever_is_imported_first():
+    # the face's calibrate first, the package imported after it, and the other way round (the
+    # README's example calls it on a sweep: tests/test_docs.py)
+    for code in ("import hsiffc; f = hsiffc.calibrate; import hsiffc.calibrate.joint as j",
+                 "import hsiffc.calibrate.joint as j, hsiffc; f = hsiffc.calibrate"):
+        loaded = modules_after(code + "\npackage = sys.modules['hsiffc.calibrate']\n"
+                               "assert f is package and hsiffc.calibrate is package\n"
+                               "assert j is package.joint and callable(f)")
+        assert "hsiffc.calibrate.joint" in loaded
 
 
 def test_a_stand_in_for_calibrate_can_be_set_and_undone(monkeypatch):
     monkeypatch.setattr(hsiffc, "calibrate", lambda sweep: "stand-in")
     assert hsiffc.calibrate(None) == "stand-in"
     monkeypatch.undo()
-    from hsiffc.calibrate import calibrate
-
-    assert hsiffc.calibrate is calibrate
+    assert hsiffc.calibrate is sys.modules["hsiffc.calibrate"]
 
 
 def test_the_command_table_says_which_module_registers_each_command():
