@@ -78,8 +78,9 @@ def _decode_envi_dq(header_path):
     names = [s.strip() for s in fields["dq bit names"].split(",")]
     values = [int(s) for s in fields["dq bit values"].split(",")]
     shape = (int(fields["bands"]), int(fields["lines"]), int(fields["samples"]))
-    assert fields["data type"].strip() == "13" and fields["interleave"].strip() == "bsq"
-    plane = np.fromfile(header_path.with_suffix(".img"), "<u4").reshape(shape)
+    # the smallest unsigned type that holds the bits in use: uint16 (12) today
+    assert fields["data type"].strip() == "12" and fields["interleave"].strip() == "bsq"
+    plane = np.fromfile(header_path.with_suffix(".img"), "<u2").reshape(shape)
     return dict(zip(names, values)), np.moveaxis(plane, 0, 2)
 
 

@@ -82,7 +82,7 @@ def test_folder_of_camera_tiffs_fit_correct_cube(tmp_path, imec_xml, capsys):
     assert cube.shape == (216, 409, 25)                 # one spectrum per tile, as before
     np.testing.assert_allclose(head["wavelengths_nm"], np.sort(imec.bands.centres_nm), rtol=1e-5)
     dq_cube, _ = read_envi(tmp_path / "out" / "scene_0.corrected.dq.hdr")
-    assert dq_cube.shape == cube.shape and dq_cube.dtype == np.uint32
+    assert dq_cube.shape == cube.shape and dq_cube.dtype == np.uint16  # the bits in use
     assert np.isfinite(cube).all()
 
     # the product of the work: a full-resolution PPID cube that SPy opens, and its quicklook

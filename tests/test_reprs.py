@@ -46,3 +46,20 @@ def test_frame_repr_names_shape_dtype_exposure_and_what_was_done(sample_cubes, d
     assert "dark removed" in text and "alpha" in text and "after " in text
     bare = Frame.from_raw(np.zeros((4, 8)), exposure_ms=1.0, bit_depth=12)
     assert repr(bare) == "<Frame frame 4 x 8 float32, 1 ms, 12-bit, light, 0.00 % flagged>"
+
+
+def test_sweep_repr_is_one_line_of_key_figures_and_never_the_array(sample_cubes):
+    from hsiffc.io import read_sweep
+
+    sweep = read_sweep(sample_cubes / "sweep_2900K.tif")
+    text = repr(sweep)
+    assert "\n" not in text and len(text) < 250 and "array" not in text and "[" not in text
+    light, dark = int(sweep.is_light.sum()), int(sweep.is_dark.sum())
+    t = sweep.exposure_ms
+    for part in ("<Sweep 80 frames of 96 x 128 px uint16", "10-bit",
+                 f"{len(sweep.steps())} steps", f"exposure {t.min():.4g}-{t.max():.4g} ms",
+                 f"{light} light + {dark} dark", sweep.mosaic.describe(), "sweep_2900K.tif"):
+        assert part in text, part
+    empty = sweep.select(np.zeros(sweep.n_frames, bool))
+    assert repr(empty).startswith("<Sweep 0 frames of 96 x 128 px uint16, 10-bit, 0 steps, "
+                                  "0 light + 0 dark")

@@ -1,8 +1,11 @@
 """The ``hsiffc`` command line.
 
 Sub-commands live in one module per group (:mod:`.data`, :mod:`.pipeline`, :mod:`.reports`), each
-with a ``register(sub)`` function. Each command runs under one write policy
-(:func:`hsiffc.files.atomic.write_policy`: ``--overwrite`` and the command's inputs, declared by the
+with a ``register(sub)`` function. A group's module is imported and registered only when one of
+its commands is parsed (or a listing of every command is asked for: ``hsiffc --help``), so that
+``hsiffc --version`` and a light command import none of the batch, calibration or kernel
+modules; :data:`COMMANDS` says which module registers which command. Each command runs under
+one write policy (:func:`hsiffc.files.atomic.write_policy`: ``--overwrite`` and the command's inputs, declared by the
 parser as ``input_args``; its outputs, ``output_args`` and ``output_dirs``, are checked before any
 work). Every expected error (input, output, parameter, environment) ends here, in one place:
 one line on stderr naming the file or parameter, the problem and the fix, exit status 2 (``--debug`` shows the traceback instead). Commands that process a batch return 1
@@ -13,25 +16,101 @@ from __future__ import annotations
 
 import argparse
 import errno
+import importlib
 import logging
 import os
 import sys
 import warnings
+from collections.abc import MutableMapping
 
 from .. import __version__
-from ..files.atomic import write_policy
 from ..errors import HsiffcError
-from ..batch.memory import reuse_freed_memory
-from . import cubes, data, emva1288, importer, pipeline, reflectance, reports, uniformity
 from .args import OneLineParser
-from .common import check_declared_outputs, declared, input_files
-from .examples import add_examples
-from .status import command_status
+from .examples import give_examples
 
 log = logging.getLogger("hsiffc")
 
-#: modules whose ``register(sub)`` adds sub-commands, in the order ``--help`` lists them
-COMMAND_MODULES = [reports, data, pipeline, reflectance, cubes, importer, uniformity, emva1288]
+#: command -> the module of this package whose ``register(sub)`` adds it, in the order
+#: ``--help`` lists the commands (a test checks each module registers exactly its commands)
+COMMANDS = {
+    "demo": "reports", "paper": "reports", "diagnose": "reports",
+    "info": "data", "simulate": "data", "calibrate": "data", "select": "data",
+    "stages": "pipeline", "fit": "pipeline", "correct": "pipeline",
+    "reflectance": "reflectance",
+    "quicklook": "cubes",
+    "import": "importer",
+    "uniformity": "uniformity", "study-ffc": "uniformity",
+    "emva1288": "emva1288",
+}
+#: the modules that register commands, in the order ``--help`` lists them
+COMMAND_MODULES = tuple(dict.fromkeys(COMMANDS.values()))
+
+
+class _Commands(MutableMapping):
+    """The sub-parsers of :data:`COMMANDS` by name, each group's module imported and registered
+    the first time one of its commands is looked up; the names are known without importing."""
+
+    def __init__(self, action):
+        self._action = action
+        self._parsers: dict = {}
+        self._registered: set = set()
+
+    def register(self, module: str) -> None:
+        """Import the command module ``module`` and let it add its sub-parsers (once)."""
+        if module in self._registered:
+            return
+        self._registered.add(module)
+        before = set(self._parsers)
+        importlib.import_module(f"{__name__}.{module}").register(self._action)
+        for name in [n for n in self._parsers if n not in before]:
+            give_examples(name, self._parsers[name])
+
+    def __getitem__(self, name):
+        if name not in self._parsers and name in COMMANDS:
+            self.register(COMMANDS[name])
+        return self._parsers[name]
+
+    def __setitem__(self, name, parser):
+        self._parsers[name] = parser
+
+    def __delitem__(self, name):
+        del self._parsers[name]
+
+    def __contains__(self, name):
+        return name in COMMANDS or name in self._parsers
+
+    def __iter__(self):
+        yield from COMMANDS
+        yield from (n for n in self._parsers if n not in COMMANDS)
+
+    def __len__(self):
+        return len(set(COMMANDS) | set(self._parsers))
+
+
+class _LazyCommands(argparse._SubParsersAction):
+    """argparse's sub-command action over :class:`_Commands`: a command's module is imported
+    when the command is parsed; listing every command (``--help``) imports them all."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._name_parser_map = self.choices = _Commands(self)
+
+    def add_parser(self, name, **kwargs):
+        """argparse's ``add_parser``, whose check for a name added twice sees the parsers made
+        so far, not the names of :data:`COMMANDS` still to be registered."""
+        commands = self._name_parser_map
+        self._name_parser_map = commands._parsers
+        try:
+            return super().add_parser(name, **kwargs)
+        finally:
+            self._name_parser_map = commands
+
+    def _get_subactions(self):
+        for module in COMMAND_MODULES:
+            self._name_parser_map.register(module)
+        order = {name: i for i, name in enumerate(self._name_parser_map)}
+        return sorted(self._choices_actions, key=lambda a: order.get(a.dest, len(order)))
+
 
 EXIT_USAGE = 2
 EXIT_INTERNAL = 3
@@ -45,8 +124,9 @@ def build_parser() -> argparse.ArgumentParser:
     Returns
     -------
     OneLineParser
-        ``hsiffc`` with the sub-commands of :data:`COMMAND_MODULES` (the command-line
-        reference of the documentation is generated from it).
+        ``hsiffc`` with the sub-commands of :data:`COMMANDS`, each registered by its module
+        when first looked up (the command-line reference of the documentation is generated
+        from it).
     """
     parser = OneLineParser(
         prog="hsiffc",
@@ -57,10 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="log progress (-v: info, -vv: debug)")
     parser.add_argument("--debug", action="store_true",
                         help="on an error, show the Python traceback instead of one line")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in COMMAND_MODULES:
-        module.register(sub)
-    add_examples(sub)  # every command's help ends with examples (hsiffc.cli.examples)
+    # a command's module registers it when it is parsed; its help ends with examples
+    # (hsiffc.cli.examples)
+    parser.add_subparsers(dest="command", metavar="COMMAND", action=_LazyCommands)
     return parser
 
 
@@ -132,6 +211,11 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
+    from ..batch.memory import reuse_freed_memory
+    from ..files.atomic import write_policy
+    from .common import check_declared_outputs, declared, input_files
+    from .status import command_status
+
     reuse_freed_memory()  # a frame's large arrays reuse the last frame's pages (hsiffc.batch.memory)
     prefix = f"hsiffc {args.command}: error:"
     try:

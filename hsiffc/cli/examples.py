@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["EXAMPLES", "ExamplesFormatter", "add_examples"]
+__all__ = ["EXAMPLES", "ExamplesFormatter", "add_examples", "give_examples"]
 
 #: command (``"reflectance fit"`` for an action) -> example command lines
 EXAMPLES: dict[str, tuple[str, ...]] = {
@@ -81,10 +81,24 @@ def add_examples(sub, prefix: str = "") -> None:
         The parent command (``"reflectance "``), for the actions of a command.
     """
     for name, parser in sub.choices.items():
-        text = epilog(prefix + name)
-        if text is not None and not parser.epilog:
-            parser.epilog = text
-            parser.formatter_class = ExamplesFormatter
-        for action in parser._actions:
-            if isinstance(action, argparse._SubParsersAction):
-                add_examples(action, prefix=f"{prefix}{name} ")
+        give_examples(prefix + name, parser)
+
+
+def give_examples(command: str, parser) -> None:
+    """Give the parser of ``command`` (``"reflectance"``) its examples, and the actions of its
+    own sub-commands theirs (:func:`add_examples` for one command).
+
+    Parameters
+    ----------
+    command : str
+        The command's name as :data:`EXAMPLES` spells it.
+    parser : argparse.ArgumentParser
+        Its parser.
+    """
+    text = epilog(command)
+    if text is not None and not parser.epilog:
+        parser.epilog = text
+        parser.formatter_class = ExamplesFormatter
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            add_examples(action, prefix=f"{command} ")

@@ -30,11 +30,11 @@ def _envi(path: Path) -> Cube:
         name = raw.get(f"{key} file")
         if isinstance(name, str) and name:
             planes[key] = read_envi(header.with_name(name).with_suffix(".hdr"))[0]
-    dq = planes.get("dq")
+    dq = planes.get("dq")  # stored in the smallest type (uint16); Cube gives it as DQ_DTYPE
     if dq is None:
         dq = np.zeros(data.shape, np.uint32)
     fwhm = raw.get("fwhm")
-    return Cube(data.astype(np.float32), dq.astype(np.uint32), planes.get("alpha"),
+    return Cube(data.astype(np.float32), dq, planes.get("alpha"),
                 head.get("wavelengths_nm"), _floats(fwhm) if isinstance(fwhm, list) else None,
                 unit=str(raw.get("data units", "DN")), attrs={"source": path.name})
 
@@ -103,6 +103,19 @@ def read_cube(path, *, frame: int = 0) -> Cube:
     Returns
     -------
     Cube
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from hsiffc.io import write_cube
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> cube = Cube(np.ones((4, 6, 3), np.float32), np.zeros((4, 6, 3), np.uint32),
+    ...             wavelengths_nm=(500.0, 600.0, 700.0))
+    >>> paths = write_cube(cube, Path(tmp.name) / "cube.hdr")
+    >>> back = read_cube(paths[0])
+    >>> back.data.shape, [float(w) for w in back.wavelengths_nm]
+    ((4, 6, 3), [500.0, 600.0, 700.0])
+    >>> tmp.cleanup()
     """
     path = Path(path)
     if not path.exists():

@@ -13,6 +13,12 @@ netcdf     ``NAME.nc``                  coordinate ``wavelength``; ``dq`` CF ``f
                                         / ``flag_meanings``; attributes (needs xarray)
 =========  ===========================  ===================================================
 
+The DQ plane of the ENVI, OME-TIFF and netCDF files is stored in the smallest unsigned type that
+holds the DQ bits in use (:func:`dq_storage`: uint16 today), with the bit table beside it; the
+hsiffc TIFF keeps its uint32 DQ pages. The ENVI data header also gives ``data ignore value``
+(NaN: hsiffc stores none, the DQ file says what to leave out) and ``bbl`` (0 for a band with no
+usable value).
+
 Every file written here holds the bands by wavelength, ascending (the hsiffc TIFF that
 ``hsiffc correct`` streams keeps the pipeline's band order and records it in its provenance's
 ``"cube"``). Each file is written atomically.
@@ -31,7 +37,7 @@ from ..data.dq import TABLE_VERSION, table
 from ..errors import DataFormatError, HsiffcError
 from ..files.jsonsafe import json_safe
 
-__all__ = ["FORMATS", "COMPRESSIONS", "format_for", "cube_files", "write_cube"]
+__all__ = ["FORMATS", "COMPRESSIONS", "format_for", "cube_files", "dq_storage", "write_cube"]
 
 #: format -> the suffix of its main file
 FORMATS = {"tiff": ".tif", "envi": ".hdr", "ome": ".ome.tif", "netcdf": ".nc"}
@@ -80,6 +86,40 @@ def cube_files(path, fmt: str, *, alpha: bool = True) -> list[Path]:
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     return [base.with_name(base.name + FORMATS[fmt])]
+
+
+def dq_storage(dq) -> np.ndarray:
+    """``dq`` in the smallest unsigned integer type that holds the DQ bits in use: every bit of
+    the DQ table (:func:`hsiffc.data.dq.table`) and any other bit set in ``dq``. The table's
+    highest bit is below 16 today, so a DQ plane is stored as uint16, half the bytes of the
+    in-memory uint32 (:data:`hsiffc.data.dq.DQ_DTYPE`); readers give it back as that type.
+
+    Parameters
+    ----------
+    dq : ndarray of unsigned integers
+        A DQ plane.
+
+    Returns
+    -------
+    ndarray
+        The same values as uint8, uint16 or uint32 (``dq`` itself when its type is already the
+        smallest).
+
+    Examples
+    --------
+    >>> dq_storage(np.array([0, 2, 2048], np.uint32)).dtype
+    dtype('uint16')
+    >>> dq_storage(np.array([0, 1 << 20], np.uint32)).dtype
+    dtype('uint32')
+    """
+    dq = np.asarray(dq)
+    used = max(r["value"] for r in table())
+    if dq.size:
+        used |= int(np.bitwise_or.reduce(dq, axis=None))
+    for kind in (np.uint8, np.uint16, np.uint32):
+        if used <= np.iinfo(kind).max:
+            return dq if dq.dtype == kind else dq.astype(kind)
+    return dq.astype(np.uint64)
 
 
 def _document(cube) -> dict:
@@ -166,6 +206,15 @@ def _envi_dq_entries() -> dict:
             "dq table version": TABLE_VERSION}
 
 
+def _bad_band_list(dq) -> list[int]:
+    """ENVI's ``bbl``: 1 for a band with a usable value, 0 for one whose every value is
+    flagged DO_NOT_USE (ENVI tools and SPy leave such bands out of plots and statistics)."""
+    from ..data.dq import DQ
+
+    flag = dq.dtype.type(DQ.DO_NOT_USE)
+    return [0 if np.all(dq[:, :, b] & flag) else 1 for b in range(dq.shape[2])]
+
+
 def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
     from ..io.envi import write_envi
 
@@ -184,9 +233,10 @@ def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
     names = {k: v for k, v in bands.items() if k != "band names"}
     files = {"dq": base.with_name(base.name + ".dq"),
              "alpha": base.with_name(base.name + ".alpha")}
-    write_envi(files["dq"], cube.dq, wavelengths_nm=wl, band_names=cube.band_names(),
-               description=f"{text}: DQ bits (uint32; names and values in dq bit names / dq "
-                           "bit values)", interleave="bsq",
+    dq = dq_storage(cube.dq)
+    write_envi(files["dq"], dq, wavelengths_nm=wl, band_names=cube.band_names(),
+               description=f"{text}: DQ bits ({dq.dtype}; names and values in dq bit names / "
+                           "dq bit values)", interleave="bsq",
                extra={**common, **names, **_envi_dq_entries()},
                overwrite=overwrite)
     if cube.alpha is not None:
@@ -194,6 +244,7 @@ def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
                    description=f"{text}: leakage percentage alpha (percent)",
                    extra={**common, **names, "data units": "percent"}, overwrite=overwrite)
     data_extra = {**common, **names, "data units": cube.unit,
+                  "data ignore value": "NaN", "bbl": _bad_band_list(cube.dq),
                   "dq file": files["dq"].name + ".img"}
     if cube.alpha is not None:
         data_extra["alpha file"] = files["alpha"].name + ".img"
@@ -205,7 +256,8 @@ def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
 def _write_ome(cube, path: Path, compression, description, overwrite) -> None:
     names = cube.band_names()
     doc = json.dumps({**_document(cube), "note": description}, allow_nan=False)
-    planes = [("data", cube.data, names), ("dq", cube.dq, [f"DQ {n}" for n in names])]
+    planes = [("data", cube.data, names),
+              ("dq", dq_storage(cube.dq), [f"DQ {n}" for n in names])]
     if cube.alpha is not None:
         planes.append(("alpha", cube.alpha, [f"alpha {n}" for n in names]))
     volume = sum(a.nbytes for _, a, _ in planes)
@@ -234,6 +286,9 @@ def _write_netcdf(cube, path: Path, compression, description, overwrite) -> None
             raise HsiffcError("writing netCDF needs h5netcdf or netCDF4: pip install "
                               "'hsiffc[xarray]'") from None
     ds = to_xarray(cube)
+    dq = dq_storage(ds["dq"].values)  # CF: the flag masks have the variable's type
+    ds["dq"] = ds["dq"].copy(data=dq)
+    ds["dq"].attrs["flag_masks"] = ds["dq"].attrs["flag_masks"].astype(dq.dtype)
     if description:
         ds.attrs["description"] = description
     encoding = {}

@@ -80,6 +80,15 @@ class Frame:
 
     The state a stage needs (see :meth:`state`) is read from these typed fields, never from
     ``meta`` strings.
+
+    Examples
+    --------
+    >>> f = Frame(np.full((4, 4), 100, np.uint16), np.zeros((4, 4), np.uint32),
+    ...           {"exposure_ms": 10.0})
+    >>> f
+    <Frame frame 4 x 4 float32, 0.00 % flagged>
+    >>> f.data.dtype, f.meta["exposure_ms"]
+    (dtype('float32'), 10.0)
     """
 
     data: np.ndarray

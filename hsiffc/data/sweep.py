@@ -60,6 +60,8 @@ class Sweep:
     [20.0, 20.0]
     >>> print(sweep.summary())
     4 frames (2 light, 2 dark) of 2 x 3 px, 12-bit, 2 steps, exposure 10-20 ms
+    >>> sweep                                # key figures, never the array
+    <Sweep 4 frames of 2 x 3 px uint16, 12-bit, 2 steps, exposure 10-20 ms, 2 light + 2 dark>
     """
 
     data: np.ndarray
@@ -117,6 +119,21 @@ class Sweep:
                             ("illumination", illum), ("photons", photons), ("step", step)):
             object.__setattr__(self, name, value)
         object.__setattr__(self, "bit_depth", int(self.bit_depth))
+
+    def __repr__(self) -> str:  # key figures, never the arrays
+        n, h, w = self.data.shape
+        t = self.exposure_ms
+        parts = [f"{n} frames of {h} x {w} px {self.data.dtype}", f"{self.bit_depth}-bit",
+                 f"{len(np.unique(self.step))} steps"]
+        if n:
+            parts.append(f"exposure {t.min():.4g}-{t.max():.4g} ms")
+        parts.append(" + ".join(f"{int(np.count_nonzero(self.kind == k))} {k}"
+                                for k in FRAME_KINDS))
+        if self.mosaic is not None:
+            parts.append(f"mosaic {self.mosaic.describe()}")
+        if self.source:
+            parts.append(f"from {self.source}")
+        return f"<Sweep {', '.join(parts)}>"
 
     # -- basic facts ---------------------------------------------------------------------------
     @property

@@ -112,6 +112,8 @@ def create(name: str, **params):
 
     Examples
     --------
+    >>> create("dark")
+    DarkSubtract(average='median', match='exposure', calibration=None)
     >>> create("alpha_mask", threshold_percnt=12)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
