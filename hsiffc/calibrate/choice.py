@@ -24,11 +24,13 @@ keeps the simplest one that the held-out steps do not show to be worse:
 Every candidate shares the dark (each pixel's dark frames) and the sensor's exposure offset.
 The held-out score of a candidate is its corrected frames' fixed-pattern non-uniformity
 (EMVA 1288: temporal noise removed; squared and relative to the signal) on each held-out
-light step. A richer candidate replaces a simpler one only where it lowers that score, as
-the relative difference ``(new - old) / (new + old)`` averaged over the steps (each step
-counts alike, from the dark end to saturation), by more than twice its standard error: a
-sensor whose leakage is not measurable keeps the stack two-point, within noise, by
-construction.
+light step. A richer candidate replaces a simpler one where its mean over the held-out steps
+is lower and it is higher in no range of signal (darkest 40 %, middle, brightest 20 % of the
+held-out steps) beyond twice the standard error of the relative difference
+``(new - old) / (new + old)``: what it adds must pay on steps it did not see, and must not
+buy the top with the bottom. A sensor whose leakage is not measurable keeps a linear model
+(the stack two-point, or the light steps combined with it: equal within noise); within the
+leakage model, each pixel's a and b must also be earned by its own samples (below).
 
 The comparison runs on a block of whole mosaic rows (up to :data:`MAX_PIXELS` pixels, the
 middle of the sensor) with the sweep's light steps split in two by dose (every other step
@@ -47,7 +49,7 @@ from ..flatfield.model_based import model_ffc_apply
 from ..flatfield.model_flat import FlatStack, model_flat_fit
 from .joint import B_GRID, MARGIN_GRID, run_kernel
 from .pixelfit import LEAKAGE, LINEAR_NOT_CONVERGED, LINEAR_WORSE, NO_FIT, TOO_FEW
-from .samples import collect_samples, kernel_samples, linear_fit
+from .samples import collect_samples, dark_level, dark_sigma, kernel_samples, linear_fit
 
 __all__ = ["CANDIDATES", "CODES", "MAX_PIXELS", "FitSettings", "calibration_flags", "choose_models", "held_out_split",
            "kept_codes"]
@@ -67,6 +69,9 @@ MIN_LIGHT_STEPS = 6
 #: a leakage pixel whose ln b has a larger 1-sigma error is not determined by the sweep
 MAX_SIGMA_LN_B = 0.5
 MIN_FLAT_FRAMES = 8
+#: Levenberg-Marquardt iterations per pixel: with its dark pinned by the dark frames a
+#: strongly bent pixel can need more than the fit's default 200
+MAX_ITER = 600
 #: the chi-square a pixel's leakage fit must gain over its linear one, per ln(samples) (the
 #: Bayesian information criterion's price of the two leakage parameters)
 EARN_PER_LN_N = 2.0
@@ -91,21 +96,30 @@ class FitSettings:
         fit = run_kernel(**ks, dark_current="estimate" if self.use_dc else None,
                          dark_model=self.dark_model,
                          b_start=self.starts[0] if self.starts else B_GRID,
-                         margins=(self.starts[1],) if self.starts else MARGIN_GRID)
+                         margins=(self.starts[1],) if self.starts else MARGIN_GRID,
+                         max_iter=MAX_ITER)
         return fit, ks
 
 
 def candidate_parameters(fit, ks, settings: FitSettings, code) -> dict:
     """Per-pixel parameters (P,) of the kept model ``code`` (P,) of :data:`CANDIDATES`: a, b,
-    responsivity and its sigma, and which pixels use the linear response."""
-    g_lin, s_lin = linear_fit(ks, fit.dark, fit.dark_current,
+    the dark level, responsivity and its sigma, and which pixels use the linear response.
+
+    The dark level is the dark frames' (:func:`~hsiffc.calibrate.samples.dark_level`) where
+    the fit pinned it to them, exactly: the pin leaves the light response a pull of order
+    1/:data:`~hsiffc.calibrate.sensor.DARK_PIN` on it, which a converged fit takes."""
+    dark = fit.dark
+    if settings.dark_weight > 1:
+        frames = dark_level(ks, fit.dark_current)
+        dark = np.where(np.isfinite(frames), frames, fit.dark)
+    g_lin, s_lin = linear_fit(ks, dark, fit.dark_current,
                               exposure_offset_ms=settings.exposure_offset_ms)
     code = np.broadcast_to(np.asarray(code), fit.g.shape)
     with np.errstate(divide="ignore", invalid="ignore"):
         earned = fit.chi2_linear - fit.chi2 > EARN_PER_LN_N * np.log(np.maximum(fit.n_valid, 2))
     leak = (code == _code("pixel_leakage")) & (fit.status == LEAKAGE) & earned
     sigma_lin = np.where(code == _code("two_point_stack"), np.inf, s_lin)
-    return {"a": np.where(leak, fit.a, 0.0), "b": fit.b, "linear": ~leak,
+    return {"a": np.where(leak, fit.a, 0.0), "b": fit.b, "linear": ~leak, "dark": dark,
             "responsivity": np.where(leak, fit.g, np.where(np.isfinite(g_lin), g_lin, fit.g)),
             "sigma_ln_g": np.where(leak, fit.sigma[:, 0], sigma_lin)}
 
@@ -184,7 +198,7 @@ def _flat_stack(flats, rows, settings, dark, dark_current, fs):
 
 def _fpn2(corrected, good, band_map, n_bands):
     """Per band: relative fixed-pattern variance (temporal noise removed) of frames (N, H, W)
-    over the ``good`` pixels, NaN where fewer than 90 % of the band's pixels are good."""
+    over the ``good`` pixels, NaN where fewer than half of the band's pixels are good."""
     n = corrected.shape[0]
     m = corrected.mean(axis=0)
     v = corrected.var(axis=0, ddof=1)
@@ -192,7 +206,7 @@ def _fpn2(corrected, good, band_map, n_bands):
     for band in range(n_bands):
         sel = band_map == band
         ok = good & sel
-        if ok.sum() < max(10, 0.9 * sel.sum()):
+        if ok.sum() < max(10, 0.5 * sel.sum()):
             continue
         level = m[ok].mean()
         if not level > 0:
@@ -224,7 +238,9 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
     dict or None
         ``bands``: per band the ``kept`` model, ``held_out_fpn_percent`` of every candidate
         (root of the mean relative fixed-pattern variance over the held-out steps) and
-        ``n_steps``; ``rows``, ``fit_steps``, ``held_out_steps``, ``candidates``. None where
+        ``n_steps``, and ``predicted_fpn_percent``: what the kept model's own errors (its factor's and
+        its dark's) predict for the same steps; ``rows``, ``fit_steps``, ``held_out_steps``,
+        ``candidates``. None where
         the sweep has fewer than :data:`MIN_LIGHT_STEPS` light steps of two or more frames
         (every band then keeps ``pixel_leakage``).
     """
@@ -243,7 +259,8 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
     fit, ks = settings.fit(collect_samples(sub, full_well_dn=settings.full_well_dn,
                                            dtype=np.float64))
     fs = sweep.full_scale_dn
-    stack = _flat_stack(flats, rows, settings, fit.dark, fit.dark_current, fs)
+    dark0 = candidate_parameters(fit, ks, settings, _code("linear"))["dark"]
+    stack = _flat_stack(flats, rows, settings, dark0, fit.dark_current, fs)
     names = [c for c in CANDIDATES if stack is not None or c != "two_point_stack"]
     shape = band_map.shape
     params, gains = {}, {}
@@ -257,7 +274,11 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
                             flags=flags.reshape(shape), flats=[stack] if stack else ())
         params[name], gains[name] = p, mf
     scores = {name: [] for name in names}
-    dark0 = fit.dark.reshape(shape)
+    predicted = {name: [] for name in names}
+    levels = []  # per held-out step, each band's mean signal above dark (DN)
+    sigma_dark = dark_sigma(ks, dark_current=settings.use_dc,
+                            dark_weight=settings.dark_weight).reshape(shape)
+    dark0 = dark0.reshape(shape)
     dc = fit.dark_current.reshape(shape)
     for s in held:
         sel = sweep.step == s
@@ -267,6 +288,8 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
         for mf in gains.values():
             good &= mf.dq == 0
         dark_t = dark0 + dc * t
+        above = raw.mean(axis=0) - dark_t
+        levels.append([float(above[band_map == band].mean()) for band in range(n_bands)])
         out = {}
         for name in names:
             p, mf = params[name], gains[name]
@@ -281,14 +304,44 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
             out[name] = np.asarray(frames, np.float64)
         for name in names:
             scores[name].append(_fpn2(out[name], good, band_map, n_bands))
-    return {"bands": [_keep(band, names, scores) for band in range(n_bands)],
+            predicted[name].append(_predicted2(gains[name], sigma_dark, out[name], good,
+                                               band_map, n_bands))
+    levels = np.asarray(levels)
+    return {"bands": [_keep(band, names, scores, predicted, levels[:, band])
+                      for band in range(n_bands)],
             "rows": [rows.start, rows.stop], "fit_steps": fit_steps, "held_out_steps": held,
             "candidates": names}
 
 
-def _keep(band, names, scores) -> dict:
-    """The kept candidate of one band: the simplest, replaced by a richer one where that
-    lowers the held-out score by more than twice the paired difference's standard error."""
+def _predicted2(mf, sigma_dark, corrected, good, band_map, n_bands):
+    """Per band: the relative fixed-pattern variance the calibration's own errors predict for
+    frames (N, H, W) corrected by ``mf``: each pixel's factor error (``sigma_ln_gain``) and
+    its dark's error through the factor, over its signal, averaged over the ``good`` pixels
+    (leakage a and b add where they bend the response: not included)."""
+    m = corrected.mean(axis=0)
+    out = np.full(n_bands, np.nan)
+    for band in range(n_bands):
+        ok = good & (band_map == band)
+        if ok.sum() < 10:
+            continue
+        level = m[ok].mean()
+        if not level > 0:
+            continue
+        var = (mf.sigma_ln_gain[ok].astype(np.float64) ** 2
+               + (sigma_dark[ok] * mf.gain[ok] / level) ** 2)
+        out[band] = var[np.isfinite(var)].mean()
+    return out
+
+
+#: the held-out steps' ranges of signal, as fractions of the band's brightest held-out step
+RANGES = (0.0, 0.4, 0.8)
+
+
+def _keep(band, names, scores, predicted, level) -> dict:
+    """The kept candidate of one band: the simplest, replaced by a richer one that predicts
+    the held-out steps better and nowhere worse.
+
+    See :func:`_better`; the ranges of signal are :data:`RANGES`."""
     per = {n: np.array([s[band] for s in scores[n]]) for n in names}
     ok = np.all([np.isfinite(v) for v in per.values()], axis=0)
     row = {"band": int(band), "n_steps": int(ok.sum()),
@@ -296,14 +349,33 @@ def _keep(band, names, scores) -> dict:
                                     if ok.any() else float("nan") for n in names}}
     kept = names[0]
     if ok.sum() >= 2:
+        top = level[ok].max()
+        which = np.searchsorted(np.asarray(RANGES) * top, level[ok], side="right") - 1
         for n in names[1:]:
-            d = _relative_difference(per[n][ok], per[kept][ok])
-            if d.mean() < -2.0 * d.std(ddof=1) / np.sqrt(d.size):
+            if _better(per[n][ok], per[kept][ok], which):
                 kept = n
     elif not ok.any():
         kept = "pixel_leakage"
     row["kept"] = kept
+    pred = np.array([s[band] for s in predicted[kept]])[ok]
+    row["predicted_fpn_percent"] = (float(100 * np.sqrt(np.nanmean(pred))) if ok.any()
+                                    and np.isfinite(pred).any() else float("nan"))
     return row
+
+
+def _better(new, old, which) -> bool:
+    """Whether the held-out fixed-pattern variances ``new`` show a candidate better than the
+    one with ``old`` (per step; ``which``: each step's range of signal): lower in their mean
+    over the steps, and higher in no range beyond twice the standard error of the relative
+    difference (:func:`_relative_difference`)."""
+    if not new.mean() < old.mean():
+        return False
+    rel = _relative_difference(new, old)
+    for r in np.unique(which):
+        x = rel[which == r]
+        if x.size >= 2 and x.mean() > 2.0 * x.std(ddof=1) / np.sqrt(x.size):
+            return False
+    return True
 
 
 def _relative_difference(new, old) -> np.ndarray:

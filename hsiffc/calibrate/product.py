@@ -460,5 +460,7 @@ def _choice_lines(choice) -> list:
     for row in choice["bands"]:
         errs = ", ".join(f"{name} {value:.3f}" for name, value in
                          row["held_out_fpn_percent"].items())
-        lines.append(f"    band {row['band'] + 1}: {row['kept']} ({errs})")
+        pred = row.get("predicted_fpn_percent", float("nan"))
+        lines.append(f"    band {row['band'] + 1}: {row['kept']} ({errs}"
+                     + (f"; its own errors predict {pred:.3f})" if pred == pred else ")"))
     return lines

@@ -380,6 +380,26 @@ def _dark_lines(y, valid, t, dark):
     return lambda ti: ym + slope * (ti - tm)
 
 
+def dark_level(ks: dict, dark_current) -> np.ndarray:
+    """Per pixel, its dark frames' level at zero exposure (DN): the weighted mean of its dark
+    samples (step means weighted by their frames) less ``dark_current`` times their weighted
+    mean exposure; NaN without a dark sample.
+
+    Parameters
+    ----------
+    ks : dict
+        :func:`kernel_samples` of the pixels.
+    dark_current : (P,) array_like, DN/ms
+    """
+    use = ks["valid"] & ks["dark"][:, None]
+    w = np.where(use, ks["n_frames"][:, None], 0.0)
+    sw = w.sum(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mt = (w * ks["t"][:, None]).sum(axis=0) / sw
+        my = (w * np.where(use, ks["y"], 0.0)).sum(axis=0) / sw
+    return np.where(sw > 0, my - np.asarray(dark_current, np.float64) * mt, np.nan)
+
+
 def dark_sigma(ks: dict, *, dark_current: bool, dark_weight: float = 1.0) -> np.ndarray:
     """Per pixel, the 1-sigma error (DN) of the dark level measured by its dark frames: the
     intercept of the weighted line through the dark samples (or their weighted mean without a

@@ -29,8 +29,10 @@ log = logging.getLogger(__name__)
 N_PILOT = 4096
 MIN_LIGHT_DOSES = 3
 DO_NOT_USE_STATUS = (pixelfit.TOO_FEW,) + pixelfit.NO_FIT
-#: weight factor on the dark samples that pins each pixel's dark level to its dark frames
-DARK_PIN = 1e2
+#: weight factor on the dark samples that pins each pixel's dark level to its dark frames (1e2
+#: and 1e3 left the light response's pull on it at 0.1-1 DN on the 10-bit light sweep of
+#: ../shared/data, enough to double the fixed pattern at 2-12 % of saturation)
+DARK_PIN = 1e4
 
 
 def check_design(sweep: Sweep, light_rate=None) -> None:
@@ -260,7 +262,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                 np.inf)
         lin = kept["linear"]
         for name, v in (("responsivity", kept["responsivity"]), ("a_dn_per_ms", kept["a"]),
-                        ("b_per_dn", fit.b), ("dark_dn", fit.dark),
+                        ("b_per_dn", fit.b), ("dark_dn", kept["dark"]),
                         ("dark_current_dn_per_ms", fit.dark_current),
                         ("sigma_ln_g", kept["sigma_ln_g"]),
                         ("sigma_ln_a", fit.sigma[:, 1]),
