@@ -368,8 +368,8 @@ def _better(new, old, which) -> bool:
     one with ``old`` (per step; ``which``: each step's range of signal): lower in their mean
     over the steps, and higher in no range beyond twice the standard error of the relative
     difference (:func:`_relative_difference`)."""
-    if not new.mean() < old.mean():
-        return False
+    if not (old.mean() > 0 and new.mean() < old.mean()):
+        return False  # (below the noise on average: no pattern to improve on)
     rel = _relative_difference(new, old)
     for r in np.unique(which):
         x = rel[which == r]
