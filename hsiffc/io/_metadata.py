@@ -166,8 +166,8 @@ class Overrides:
                 if f.name != "sidecar" and getattr(self, f.name) is not None}
 
 
-def parse_mosaic(spec, *, base=None, path=None, frame_shape=None,
-                 origin: str = "") -> tuple[Mosaic, ActiveArea | None]:
+def parse_mosaic(spec, *, base=None, path=None, frame_shape=None, origin: str = "",
+                 sources: list | None = None) -> tuple[Mosaic, ActiveArea | None]:
     """A mosaic from ``"4x4"``, ``"5x5"``, ``"WxH"`` (tile width x height) or an IMEC XML path.
 
     Parameters
@@ -183,6 +183,9 @@ def parse_mosaic(spec, *, base=None, path=None, frame_shape=None,
         pattern is built (a "100000x100000" tile would take 80 GB).
     origin : str
         Where the value came from ("sidecar x.toml", "--mosaic"), for the messages.
+    sources : list, optional
+        The IMEC XML read is appended here (a metadata source whose content the batch's resume
+        check compares).
 
     Returns
     -------
@@ -222,6 +225,8 @@ def parse_mosaic(spec, *, base=None, path=None, frame_shape=None,
     from ..spectral.imec import read_imec_xml
 
     cal = read_imec_xml(xml)
+    if sources is not None:
+        sources.append(xml)
     mosaic = cal.mosaic()
     fa = cal.filter_area
     area = ActiveArea(fa.offset_y, fa.offset_x, fa.height, fa.width)
@@ -283,7 +288,8 @@ def _per_frame(layout: FileLayout, name, value, origin):
 
 
 def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
-                   missing: list | None = None) -> tuple[dict, dict]:
+                   missing: list | None = None,
+                   sources: list | None = None) -> tuple[dict, dict]:
     """Fields and their origins for one file (overrides, then the file, then the sidecar).
 
     Parameters
@@ -294,6 +300,8 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
     missing : list, optional
         When given, a missing exposure time is not an error: it becomes NaN, its origin says
         "MISSING" and the field's name is appended here (for ``hsiffc info``).
+    sources : list, optional
+        Every IMEC XML read for the mosaic is appended here.
 
     Returns
     -------
@@ -327,14 +335,16 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
         if name == "mosaic" and not isinstance(value, Mosaic):
             base = sidecar.path.parent if origin == side_label else None
             value, area = parse_mosaic(value, base=base, path=layout.path,
-                                       frame_shape=layout.shape[:2], origin=origin)
+                                       frame_shape=layout.shape[:2], origin=origin,
+                                       sources=sources)
             if area is not None:
                 values["active_area"] = area
         for other, other_origin in candidates[1:]:
             if name == "mosaic" and not isinstance(other, Mosaic):
                 base = sidecar.path.parent if other_origin == side_label else None
                 other = parse_mosaic(other, base=base, path=layout.path,
-                                     frame_shape=layout.shape[:2], origin=other_origin)[0]
+                                     frame_shape=layout.shape[:2], origin=other_origin,
+                                     sources=sources)[0]
             if not _same(value, other):
                 warnings.warn(f"{layout.path}: {name} from {other_origin} ({_short(other)}) "
                               f"ignored; the {origin} says {_short(value)} and comes first",

@@ -40,6 +40,7 @@ from ._layout import FileLayout, FrameMeta
 from ._metadata import Overrides, missing_field_error, missing_origin, resolve_fields
 from ._readers import expand_inputs, open_layout
 from ._sidecar import Sidecar, find_sidecar
+from .envi import envi_paths
 
 __all__ = ["open_source", "FrameSource", "FrameMeta", "expand_inputs"]
 
@@ -143,6 +144,12 @@ class FrameSource:
     missing : list of str
         Fields no source gives (only with ``inspect=True``; otherwise missing ones raise).
     files : list of Path
+    metadata_files : list of Path
+        Other files whose content gave metadata: sidecars, IMEC XML, the other file of an ENVI
+        pair.
+    sidecar_lookup : bool
+        Whether a sidecar next to the data would be read (no ``sidecar`` override and a file
+        that is not self-describing).
     meta : dict
 
     Examples
@@ -175,6 +182,7 @@ class FrameSource:
         #: Frames decoded ahead on worker threads while iterating (0: none).
         self.prefetch = 2 if (os.cpu_count() or 1) > 1 else 0
         sidecars: dict[Path, Sidecar | None] = {}
+        xmls: list = []
         resolved = []
         for lay in layouts:
             if overrides.sidecar is not None:
@@ -184,7 +192,8 @@ class FrameSource:
             if side_path is not None and side_path not in sidecars:
                 sidecars[side_path] = Sidecar(side_path)
             resolved.append(resolve_fields(lay, sidecars.get(side_path), overrides,
-                                           missing=self.missing if inspect else None))
+                                           missing=self.missing if inspect else None,
+                                           sources=xmls))
         self._starts = np.cumsum([0] + [lay.n_frames for lay in layouts])
         self.n_frames = int(self._starts[-1])
         facts = resolve_facts(layouts, resolved, label=self.label, inspect=inspect,
@@ -207,6 +216,15 @@ class FrameSource:
         self.strict = all(lay.strict for lay in layouts)
         self.meta = dict(layouts[0].meta) if len(layouts) == 1 else {
             "files": [str(p) for p in self.files]}
+        companions = [p for lay in layouts if lay.format == "envi"
+                      for p in envi_paths(lay.path) if p != lay.path]
+        #: Files besides the data whose content gave metadata (sidecars, IMEC XML, an ENVI
+        #: header or data file beside the one named), without repeats: the batch's resume
+        #: check compares their content.
+        self.metadata_files = list(dict.fromkeys([*sidecars, *xmls, *companions]))
+        #: Whether a sidecar next to the data would have been read (a file not self-describing).
+        self.sidecar_lookup = overrides.sidecar is None and not all(lay.strict
+                                                                    for lay in layouts)
 
     # -- decoding -------------------------------------------------------------------------------
     def _locate(self, index: int) -> tuple[FileLayout, int]:
