@@ -48,3 +48,68 @@ def test_resume_redoes_an_output_whose_sidecar_changed(sweep, tmp_path, capsys):
     side.unlink()
     assert main(argv) == 1
 
+
+# -- cause: hsiffc.dq.mask took bytes as integers, "" as no flag, and overflowed ------------------
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+from hsiffc.data.dq import DQ, DQ_DTYPE, bits, mask  # noqa: E402
+
+_NAMES = [f.name for f in DQ if f]
+_TOP = int(np.iinfo(DQ_DTYPE).max)
+_DQ = np.arange(0, 1 << 12, dtype=DQ_DTYPE) * np.uint32(1048573)  # many bit patterns
+
+
+def test_dq_mask_refuses_bytes_empty_expressions_and_values_past_32_bits():
+    with pytest.raises(TypeError, match="decode"):
+        mask(_DQ, b"DEAD")
+    for empty in ("", " ", "|", " , + "):
+        with pytest.raises(ValueError, match="name no flag"):
+            mask(_DQ, empty, good=True)  # used to select every value
+    for big in ("4294967296", 4294967296, "9" * 5000, -1):
+        with pytest.raises(ValueError, match="32-bit"):
+            mask(_DQ, big)  # an OverflowError before
+    assert mask(_DQ, "4294967295").all() == (_DQ != 0).all()
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.sampled_from(_NAMES), min_size=1, max_size=5),
+       st.lists(st.sampled_from(["|", "+", ",", " | ", "||"]), min_size=5, max_size=5),
+       st.booleans())
+def test_dq_mask_of_names_is_the_or_of_their_bits(names, seps, lower):
+    text = names[0] + "".join(sep + (n.lower() if lower else n)
+                              for sep, n in zip(seps, names[1:]))
+    want = 0
+    for n in names:
+        want |= int(DQ[n])
+    assert bits(text) == want
+    assert np.array_equal(mask(_DQ, text), (_DQ & np.uint32(want)) != 0)
+    assert np.array_equal(mask(_DQ, text, good=True), (_DQ & np.uint32(want)) == 0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(min_value=-(1 << 70), max_value=1 << 70))
+def test_dq_mask_of_integers_is_the_value_or_one_valueerror(value):
+    for given_as in (value, str(value)):
+        if 0 <= value <= _TOP:
+            assert bits(given_as) == value
+            assert np.array_equal(mask(_DQ, given_as), (_DQ & np.uint32(value)) != 0)
+        else:
+            with pytest.raises(ValueError) as err:  # never OverflowError
+                mask(_DQ, given_as)
+            assert "\n" not in str(err.value)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(st.text(max_size=40), st.binary(max_size=10),
+                 st.lists(st.one_of(st.sampled_from(_NAMES), st.integers(0, _TOP)), max_size=4)))
+def test_dq_mask_of_any_expression_is_bits_in_range_or_one_line(flags):
+    try:
+        value = bits(flags)
+    except (TypeError, ValueError) as exc:
+        assert not isinstance(exc, OverflowError) and "\n" not in str(exc)
+        assert not isinstance(flags, str) or not flags.strip(" |+,") or "DQ flag" in str(exc)
+        return
+    assert not isinstance(flags, bytes)
+    assert 0 <= value <= _TOP
+    mask(_DQ, flags)
+
