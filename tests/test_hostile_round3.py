@@ -113,3 +113,58 @@ def test_dq_mask_of_any_expression_is_bits_in_range_or_one_line(flags):
     assert 0 <= value <= _TOP
     mask(_DQ, flags)
 
+
+# -- cause: plugin loading caught Exception only; a SystemExit ended the command with its code ----
+def test_plugin_calling_sys_exit_on_import_fails_fit_in_one_line(
+        sweep, tmp_path, monkeypatch, capsys):
+    import importlib.metadata
+
+    from hsiffc.stages import registry
+
+    (tmp_path / "hsiffc_exits_on_import.py").write_text("import sys\nsys.exit(0)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    info = tmp_path / "metadata" / "hsiffc_exits-1.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: hsiffc-exits\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(
+        f"[{registry.GROUP}]\nexits = hsiffc_exits_on_import:Stage\n")
+    extra = list(importlib.metadata.PathDistribution(info).entry_points.select(
+        group=registry.GROUP))
+    real = registry.entry_points
+    monkeypatch.setattr(registry, "entry_points", lambda **kw: list(real(**kw)) + extra)
+    desc = tmp_path / "pipe.toml"
+    desc.write_text('[[step]]\nname = "x"\nstage = "exits"\n')
+    capsys.readouterr()
+    rc = main(["fit", str(desc), str(sweep / "s.tif"), "-o", str(tmp_path / "p.npz")])
+    err = capsys.readouterr().err
+    assert rc != 0  # was 0: nothing written, no summary
+    assert "sys.exit(0)" in err and "hsiffc-exits 1.0" in err
+    assert not (tmp_path / "p.npz").exists()
+
+
+def test_a_system_exit_inside_any_command_is_one_line_and_not_zero(monkeypatch, capsys):
+    """The command's exception boundary: a SystemExit that is not hsiffc's own status."""
+    import hsiffc.cli as cli
+
+    parser = cli.build_parser()
+    args = parser.parse_args(["info", "x.tif"])
+
+    def exits(_args):
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli, "build_parser", lambda: _Fixed(parser, args, exits))
+    assert main(["info", "x.tif"]) == 3
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "sys.exit(0)" in err
+
+
+class _Fixed:
+    """A parser that returns ``args`` with its command replaced by ``func``."""
+
+    def __init__(self, parser, args, func):
+        self.parser, self.args = parser, args
+        self.args.func = func
+
+    def parse_args(self, argv):
+        return self.args
+
