@@ -168,3 +168,32 @@ class _Fixed:
     def parse_args(self, argv):
         return self.args
 
+
+# -- cause: the ENVI header parser was quadratic and read any size --------------------------------
+def test_envi_header_size_is_bounded_and_a_large_legal_header_parses(tmp_path, monkeypatch,
+                                                                     capsys):
+    """A 2 MB header (thousands of wavelengths, one long line without '=' handled in linear
+    time) parses; over ``HSIFFC_MAX_HEADER_BYTES`` it is one line before it is read."""
+    from hsiffc.io.envi import parse_envi_header
+
+    np.zeros((2, 4, 5), np.uint16).tofile(tmp_path / "c.img")
+    head = ("ENVI\nsamples = 5\nlines = 4\nbands = 2\nheader offset = 0\ndata type = 12\n"
+            "interleave = bsq\nbyte order = 0\nbit depth = 12\nband names = {a, b}\n")
+    notes = "notes = {" + ",\n".join(f"{i}.5" for i in range(250_000)) + "}\n"
+    (tmp_path / "c.hdr").write_text(head + notes)
+    assert (tmp_path / "c.hdr").stat().st_size > 2_000_000
+    parsed = parse_envi_header(tmp_path / "c.hdr")
+    assert len(parsed["notes"]) == 250_000 and parsed["band names"] == ["a", "b"]
+    with open_source_ok(tmp_path / "c.hdr") as src:
+        assert src.n_frames == 2
+    monkeypatch.setenv("HSIFFC_MAX_HEADER_BYTES", "1000000")
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "c.hdr"), "--exposure-ms", "1"]) == 2
+    line = _one_line(capsys, "c.hdr", "HSIFFC_MAX_HEADER_BYTES")
+    assert "more than the limit of 1,000,000" in line
+
+
+def open_source_ok(path):
+    from hsiffc.io import open_source
+
+    return open_source(path, exposure_ms=1.0)
