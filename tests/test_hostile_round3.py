@@ -5,6 +5,8 @@ Each test names the cause it covers; each failed before its fix.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import tifffile
@@ -197,3 +199,161 @@ def open_source_ok(path):
     from hsiffc.io import open_source
 
     return open_source(path, exposure_ms=1.0)
+
+
+# -- cause: a cube's size was not checked against HSIFFC_MAX_BYTES before it was allocated --------
+def test_a_cube_over_the_byte_limit_is_refused_before_it_is_allocated(monkeypatch):
+    from hsiffc.data.mosaic import Mosaic
+    from hsiffc.errors import DataFormatError
+    from hsiffc.reconstruct.demosaic import demosaic
+
+    monkeypatch.setenv("HSIFFC_MAX_BYTES", "100000")  # the 64 x 64 x 64-band cube: 2 MiB
+    with pytest.raises(DataFormatError, match="HSIFFC_MAX_BYTES") as err:
+        demosaic(np.zeros((64, 64), np.float32), Mosaic.square(8))
+    assert "64 bands" in str(err.value) and "\n" not in str(err.value)
+    monkeypatch.delenv("HSIFFC_MAX_BYTES")
+    assert demosaic(np.zeros((64, 64), np.float32), Mosaic.square(8)).cube.shape == (64, 64, 64)
+
+
+# -- cause: only --mosaic WxH was checked against the frame; an IMEC pattern or a file's own ------
+def test_a_tile_larger_than_the_frame_from_an_imec_pattern_or_the_file_is_one_line(tmp_path,
+                                                                                     capsys):
+    from test_spectral import _xml
+
+    from hsiffc import Sweep
+    from hsiffc.data.mosaic import Mosaic
+    from hsiffc.io import write_sweep
+
+    xml = _xml(order=tuple(range(900)))
+    xml = xml.replace("<pattern_width>2</pattern_width><pattern_height>2</pattern_height>",
+                      "<pattern_width>30</pattern_width><pattern_height>30</pattern_height>")
+    xml = xml.replace('nr_elements="4"><data>' + ", ".join(["0.01"] * 4),
+                      'nr_elements="900"><data>' + ", ".join(["0.01"] * 900))
+    (tmp_path / "big.xml").write_text(xml)
+    tifffile.imwrite(tmp_path / "raw.tif", np.zeros((2, 32, 64), np.uint16),
+                     photometric="minisblack")
+    own = Sweep(np.zeros((2, 8, 8), np.uint16), exposure_ms=[1.0, 1.0], kind=["light"] * 2,
+                bit_depth=10, mosaic=Mosaic.rectangular(16, 16))
+    write_sweep(tmp_path / "own.tif", own)
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "raw.tif"), "--exposure-ms", "1", "--bit-depth", "10",
+                 "--mosaic", str(tmp_path / "big.xml")]) == 2
+    _one_line(capsys, "big.xml", "30 x 30", "larger than its filter area (60 x 28")
+    assert main(["info", str(tmp_path / "own.tif")]) == 2
+    _one_line(capsys, "own.tif", "16 x 16", "larger than the frames (8 x 8")
+
+
+# -- cause: quicklook --frame past the file's frames was an internal error -----------------------
+def test_a_frame_out_of_range_is_one_line(tmp_path, capsys):
+    from hsiffc.errors import ParameterError
+    from hsiffc.io.corrected import CorrectedWriter, read_corrected
+
+    path = tmp_path / "f.corrected.tif"
+    writer = CorrectedWriter(path, {"source": "example"}, n_frames=2, frame_shape=(4, 6))
+    for _ in range(2):
+        writer.write(np.zeros((4, 6), np.float32), np.zeros((4, 6), np.uint32))
+    writer.finish()
+    with pytest.raises(ParameterError, match=r"holds 2 frames \(0..1\)"):
+        read_corrected(path, frames=[99])
+    capsys.readouterr()
+    assert main(["quicklook", str(path), "-o", str(tmp_path / "q.png"), "--frame", "99"]) == 2
+    _one_line(capsys, "out of range", "2 frames")
+
+
+# -- cause: EMVA 1288 on degenerate sets divided by zero or reduced empty arrays ------------------
+def _emva_set(case):
+    from hsiffc.data.sweep import Sweep
+
+    rng = np.random.default_rng(0)
+    data, photons = [], []
+    for i in range(6):
+        if case == "saturated":
+            pair = np.full((2, 16, 16), 4095, np.uint16)
+        elif case == "identical":
+            pair = np.repeat(rng.poisson(100 + 200 * i, (1, 16, 16)), 2, axis=0)
+        else:
+            pair = rng.poisson(100 + 200 * i, (2, 16, 16))
+        data.append(pair)
+        photons += [0.0 if case == "photons 0" else 1000.0 * (i + 1)] * 2
+    data.append(rng.poisson(100, (2, 16, 16)))
+    kind = ["light"] * 12 + ["dark"] * 2
+    return Sweep(np.concatenate(data).astype(np.uint16), 10.0, np.array(kind), 12,
+                 step=np.repeat(np.arange(7), 2), photons=np.array(photons + [np.nan] * 2),
+                 source="set")
+
+
+@pytest.mark.parametrize("case, needle", [("saturated", "clipped"), ("identical", "identical"),
+                                          ("photons 0", "photon counts")])
+def test_emva1288_on_a_degenerate_set_is_one_line(case, needle):
+    from hsiffc.emva1288 import characterise
+    from hsiffc.errors import DataFormatError
+
+    with pytest.raises(DataFormatError, match=needle) as err:
+        characterise(_emva_set(case))
+    assert "\n" not in str(err.value) and str(err.value).startswith("set: ")
+
+
+# -- cause: quicklook's readers and the panel file skipped the file-kind check and the limits ----
+def test_quicklook_readers_and_the_panel_file_refuse_fifos_and_apply_the_limits(tmp_path,
+                                                                               capsys,
+                                                                               monkeypatch):
+    """A FIFO named as an OME, netCDF, corrected-TIFF or ENVI cube, or as the panel's spectrum:
+    one line each, never opened (they hung before); HSIFFC_MAX_FRAME_PIXELS bounds a cube's
+    planes before they are decoded."""
+    import subprocess
+    import sys
+
+    from hsiffc.cubes import Cube, write_cube
+
+    names = ["c.ome.tif", "c.nc", "c.corrected.tif", "c.hdr"]
+    for name in names + ["panel.csv"]:
+        os.mkfifo(tmp_path / name)
+    runs = [["quicklook", str(tmp_path / n), "-o", str(tmp_path / f"{n}.png")] for n in names]
+    code = "".join(f"sys.stderr.write('===\\n'); sys.stderr.flush(); codes.append(main({r!r})); "
+                   for r in runs)
+    code += ("from hsiffc.reflectance._panel import read_panel_spectrum\n"
+             "sys.stderr.write('===\\n')\n"
+             "try:\n"
+             f"    read_panel_spectrum({str(tmp_path / 'panel.csv')!r})\n"
+             "except Exception as exc:\n"
+             "    sys.stderr.write(str(exc) + '\\n')\n")
+    done = subprocess.run([sys.executable, "-c", "import sys; from hsiffc.cli import main; "
+                           f"codes = []\n{code}sys.exit(10 * max(codes) + min(codes))"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 22, done.stderr
+    parts = [[ln for ln in p.splitlines() if ln.strip()] for p in done.stderr.split("===")[1:]]
+    assert [len(p) for p in parts] == [1] * 5, done.stderr
+    assert all("named pipe (FIFO)" in p[0] for p in parts), parts
+
+    rng = np.random.default_rng(1)
+    cube = Cube(rng.random((8, 8, 4), np.float32), np.zeros((8, 8, 4), np.uint32),
+                wavelengths_nm=(500, 600, 700, 800))
+    for name in ("big.ome.tif", "big.nc"):
+        write_cube(cube, tmp_path / name)
+    monkeypatch.setenv("HSIFFC_MAX_FRAME_PIXELS", "100")
+    capsys.readouterr()
+    for name in ("big.ome.tif", "big.nc"):
+        assert main(["quicklook", str(tmp_path / name), "-o", str(tmp_path / f"{name}.png")]) == 2
+        _one_line(capsys, name, "HSIFFC_MAX_FRAME_PIXELS")
+
+
+# -- cause: an ENVI cube's header was trusted for its DQ file's name and shape and its fwhm -------
+@pytest.mark.parametrize("old, new, needle", [
+    ("dq file = c.dq.img", "dq file = ../elsewhere/c.dq.img", "not a file name beside"),
+    ("dq file = c.dq.img", "dq file = d.dq.img", "damaged or mixed up"),
+    ("fwhm = {", "fwhm = {wide, ", "'fwhm' holds values that are not numbers")],
+    ids=["dq-outside", "dq-shape", "fwhm-words"])
+def test_an_altered_envi_cube_header_is_one_line(tmp_path, capsys, old, new, needle):
+    from hsiffc.cubes import Cube, write_cube
+
+    cube = Cube(np.ones((6, 5, 2), np.float32), np.zeros((6, 5, 2), np.uint32),
+                wavelengths_nm=(500, 600), fwhm_nm=(10, 10))
+    write_cube(cube, tmp_path / "c.hdr")
+    write_cube(Cube(np.ones((3, 5, 2), np.float32), np.zeros((3, 5, 2), np.uint32)),
+               tmp_path / "d.hdr")
+    head = (tmp_path / "c.hdr").read_text()
+    assert old in head
+    (tmp_path / "c.hdr").write_text(head.replace(old, new))
+    capsys.readouterr()
+    assert main(["quicklook", str(tmp_path / "c.hdr"), "-o", str(tmp_path / "q.png")]) == 2
+    _one_line(capsys, "c.hdr", needle)

@@ -208,11 +208,7 @@ def parse_mosaic(spec, *, base=None, path=None, frame_shape=None, origin: str = 
         where = f" from {origin}" if origin else ""
         if width < 1 or height < 1:
             raise DataFormatError(f"mosaic {text!r}{where}: tile sizes must be >= 1", path=path)
-        if frame_shape is not None and (height > frame_shape[0] or width > frame_shape[1]):
-            raise DataFormatError(
-                f"mosaic {text!r}{where}: a tile of {width} x {height} px (W x H) is larger than "
-                f"the frames ({frame_shape[1]} x {frame_shape[0]} px); give the filter pattern's "
-                "tile size (e.g. 4x4, 5x5) there", path=path)
+        check_tile((height, width), frame_shape, what=f"mosaic {text!r}{where}", path=path)
         return Mosaic.rectangular(height, width, name=f"{width}x{height}"), None
     xml = Path(text)
     if base is not None and not xml.is_absolute():
@@ -229,9 +225,45 @@ def parse_mosaic(spec, *, base=None, path=None, frame_shape=None, origin: str = 
         sources.append(xml)
     mosaic = cal.mosaic()
     fa = cal.filter_area
+    check_tile(mosaic.tile_shape, (fa.height, fa.width),
+               what=f"the IMEC pattern of {xml.name}" + (f" from {origin}" if origin else ""),
+               path=path, frames="its filter area")
+    check_tile(mosaic.tile_shape, frame_shape,
+               what=f"the IMEC pattern of {xml.name}" + (f" from {origin}" if origin else ""),
+               path=path)
     area = ActiveArea(fa.offset_y, fa.offset_x, fa.height, fa.width)
     return Mosaic(mosaic.pattern, mosaic.wavelengths_nm, (0, 0), name=mosaic.name,
                   fwhm_nm=mosaic.fwhm_nm), area
+
+
+def check_tile(tile, frame_shape, *, what: str, path=None, frames: str = "the frames") -> None:
+    """Refuse a mosaic tile larger than the frames it tiles (before anything of the tile's
+    size is built: a 250 x 250 pattern is 62,500 bands).
+
+    Parameters
+    ----------
+    tile : (int, int)
+        (height, width) of the tile, px.
+    frame_shape : (int, int) or None
+        (H, W) of the frames (None: not checked).
+    what : str
+        The mosaic and where it came from, for the message.
+    path : str or Path, optional
+        The data file.
+    frames : str
+        What ``frame_shape`` is, for the message.
+
+    Raises
+    ------
+    DataFormatError
+        One line naming the mosaic, both sizes and the fix.
+    """
+    height, width = (int(t) for t in tile)
+    if frame_shape is not None and (height > frame_shape[0] or width > frame_shape[1]):
+        raise DataFormatError(
+            f"{what}: a tile of {width} x {height} px (W x H) is larger than {frames} "
+            f"({frame_shape[1]} x {frame_shape[0]} px); give the filter pattern's tile size "
+            "(e.g. 4x4, 5x5) or the sensor's own XML", path=path)
 
 
 def missing_field_error(path, name: str, *, sidecar=None) -> DataFormatError:
@@ -339,6 +371,9 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
                                        sources=sources)
             if area is not None:
                 values["active_area"] = area
+        elif name == "mosaic":  # a file's own mosaic (an hsiffc TIFF) is checked the same way
+            check_tile(value.tile_shape, layout.shape[:2],
+                       what=f"mosaic {value.describe()} from {origin}", path=layout.path)
         for other, other_origin in candidates[1:]:
             if name == "mosaic" and not isinstance(other, Mosaic):
                 base = sidecar.path.parent if other_origin == side_label else None
