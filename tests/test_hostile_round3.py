@@ -357,3 +357,49 @@ def test_an_altered_envi_cube_header_is_one_line(tmp_path, capsys, old, new, nee
     capsys.readouterr()
     assert main(["quicklook", str(tmp_path / "c.hdr"), "-o", str(tmp_path / "q.png")]) == 2
     _one_line(capsys, "c.hdr", needle)
+
+# -- cause: an IMEC XML's peak wavelength, FWHM and QE were not checked for sign ------------------
+@pytest.mark.parametrize("old, new, needle", [
+    ("<wavelength_nm>402</wavelength_nm>", "<wavelength_nm>-500</wavelength_nm>", "> 0"),
+    ("<fwhm_nm>2.4</fwhm_nm>", "<fwhm_nm>-2.4</fwhm_nm>", ">= 0"),
+    ("<QE>100</QE>", "<QE>-100</QE>", ">= 0")], ids=["peak", "fwhm", "qe"])
+def test_imec_peaks_with_impossible_values_are_refused(tmp_path, old, new, needle):
+    from test_spectral import _xml
+
+    from hsiffc.errors import DataFormatError
+    from hsiffc.spectral.imec import read_imec_xml
+
+    text = _xml().replace(old, new, 1)
+    assert text != _xml()
+    (tmp_path / "a.xml").write_text(text)
+    with pytest.raises(DataFormatError, match=needle) as err:
+        read_imec_xml(tmp_path / "a.xml")
+    assert "peak" in str(err.value) and "\n" not in str(err.value)
+
+
+# -- cause: reflectance check --roi took ROW0 as a count (>= 1) though rows count from 0 ---------
+def test_reflectance_check_roi_counts_from_zero(capsys):
+    from hsiffc.cli import build_parser
+
+    args = build_parser().parse_args(["reflectance", "check", "t.tif", "--pipeline", "p.npz",
+                                      "--roi", "0", "4", "0", "4"])
+    assert args.roi == [0, 4, 0, 4]
+    assert main(["reflectance", "check", "t.tif", "--pipeline", "p.npz", "--roi", "-1", "4",
+                 "0", "4"]) == 2
+    _one_line(capsys, "--roi", "count from 0")
+
+
+# -- cause: a one-band cube could not be written (tifffile refuses an (H, W, 1) page) -------------
+@pytest.mark.parametrize("name", ["one.tif", "one.ome.tif", "one.hdr", "one.nc"])
+def test_a_one_band_cube_is_written_and_read_back_as_one_band(tmp_path, name):
+    from hsiffc.cubes import Cube, read_cube, write_cube
+
+    rng = np.random.default_rng(2)
+    cube = Cube(rng.random((6, 5, 1), np.float32), np.ones((6, 5, 1), np.uint32),
+                alpha=np.full((6, 5, 1), 2.0, np.float32), wavelengths_nm=(550,))
+    write_cube(cube, tmp_path / name)
+    back = read_cube(tmp_path / name)
+    assert back.data.shape == back.dq.shape == back.alpha.shape == (6, 5, 1)
+    np.testing.assert_array_equal(back.data, cube.data)
+    np.testing.assert_array_equal(back.dq, cube.dq)
+    assert back.wavelengths_nm == (550.0,)

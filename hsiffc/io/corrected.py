@@ -413,8 +413,11 @@ class CorrectedWriter:
             rows = [strip, strip, max(1, strip - 1) if strip > 1 else strip]
         options = {"photometric": "minisblack", "metadata": None,
                    "compression": self.compression}
-        if len(self.frame_shape) == 3:  # the bands as samples of each pixel, as in memory
-            options["planarconfig"] = "contig"
+        if len(self.frame_shape) == 3 and self.frame_shape[2] > 1:  # the bands as samples of
+            options["planarconfig"] = "contig"  # each pixel, as in memory
+        elif len(self.frame_shape) == 3:  # one band: tifffile refuses an (H, W, 1) page; the
+            planes = [p.reshape(self.frame_shape[:2]) for p in planes]  # (H, W) page is read
+            # back with the frame_shape (H, W, 1) of the provenance
         for k, plane in enumerate(planes):
             self._tw.write(plane, rowsperstrip=rows[k],
                            description=self._description if first and k == 0 else None,
