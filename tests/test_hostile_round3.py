@@ -358,6 +358,34 @@ def test_an_altered_envi_cube_header_is_one_line(tmp_path, capsys, old, new, nee
     assert main(["quicklook", str(tmp_path / "c.hdr"), "-o", str(tmp_path / "q.png")]) == 2
     _one_line(capsys, "c.hdr", needle)
 
+
+# -- cause: ENVI header text refused braces anywhere and was checked after the data were written --
+def test_envi_cube_names_with_braces_are_written_and_unwritable_names_leave_no_file(tmp_path):
+    from hsiffc.cubes import Cube, read_cube, write_cube
+    from hsiffc.errors import DataFormatError
+
+    cube = Cube(np.ones((4, 3, 2), np.float32), np.zeros((4, 3, 2), np.uint32),
+                wavelengths_nm=(500, 600))
+    write_cube(cube, tmp_path / "scan{1}.hdr")  # no header before: braces were refused
+    assert read_cube(tmp_path / "scan{1}.hdr").data.shape == (4, 3, 2)
+    for bad in ("two\nlines", os.fsdecode(b"caf\xe9")):
+        folder = tmp_path / f"bad{len(bad)}"
+        folder.mkdir()
+        with pytest.raises(DataFormatError, match="rename the file") as err:
+            write_cube(cube, folder / f"{bad}.hdr")
+        assert "\n" not in str(err.value).replace("\\n", "")
+        assert list(folder.iterdir()) == []  # no .dq.img left to block a rerun
+
+
+# -- cause: the outputs of a file of more than 10,000 frames (_f10000) were read back as inputs --
+def test_exports_past_ten_thousand_frames_are_known_as_outputs():
+    from hsiffc.batch.plan import is_batch_output
+
+    for name in ("a.corrected_f10000.hdr", "a.corrected_f123456.dq.img",
+                 "a.corrected_f10000.ome.tif", "a.corrected_f10000.nc"):
+        assert is_batch_output(name), name
+    assert not is_batch_output("a_f10000.hdr")
+
 # -- cause: an IMEC XML's peak wavelength, FWHM and QE were not checked for sign ------------------
 @pytest.mark.parametrize("old, new, needle", [
     ("<wavelength_nm>402</wavelength_nm>", "<wavelength_nm>-500</wavelength_nm>", "> 0"),

@@ -167,7 +167,7 @@ def _envi_dq_entries() -> dict:
 
 
 def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
-    from ..io.envi import write_envi
+    from ..io.envi import check_header_values, write_envi
 
     base = header.with_suffix("")
     bands = {"band names": cube.band_names()}
@@ -184,6 +184,14 @@ def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
     names = {k: v for k, v in bands.items() if k != "band names"}
     files = {"dq": base.with_name(base.name + ".dq"),
              "alpha": base.with_name(base.name + ".alpha")}
+    data_extra = {**common, **names, "data units": cube.unit,
+                  "dq file": files["dq"].name + ".img"}
+    if cube.alpha is not None:
+        data_extra["alpha file"] = files["alpha"].name + ".img"
+    # every header's text checked before the first file is written: a name that cannot be
+    # written (a line break, not UTF-8) must not leave a .dq.img without its data pair
+    check_header_values(text, cube.unit, *[v for v in data_extra.values()
+                                           if not isinstance(v, (int, float))])
     write_envi(files["dq"], cube.dq, wavelengths_nm=wl, band_names=cube.band_names(),
                description=f"{text}: DQ bits (uint32; names and values in dq bit names / dq "
                            "bit values)", interleave="bsq",
@@ -193,10 +201,6 @@ def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
         write_envi(files["alpha"], cube.alpha, wavelengths_nm=wl, band_names=cube.band_names(),
                    description=f"{text}: leakage percentage alpha (percent)",
                    extra={**common, **names, "data units": "percent"}, overwrite=overwrite)
-    data_extra = {**common, **names, "data units": cube.unit,
-                  "dq file": files["dq"].name + ".img"}
-    if cube.alpha is not None:
-        data_extra["alpha file"] = files["alpha"].name + ".img"
     write_envi(base, cube.data, wavelengths_nm=wl, band_names=cube.band_names(),
                description=f"{text} ({cube.unit})", interleave="bsq", extra=data_extra,
                overwrite=overwrite)

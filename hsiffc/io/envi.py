@@ -339,14 +339,33 @@ _CODES = {np.dtype(v).newbyteorder("<"): k for k, v in ENVI_DTYPES.items()}
 
 
 def _value(value) -> str:
+    """``value`` as ENVI header text: a list in braces; a scalar as it is, which may hold braces
+    but not start with one (a reader would take it for a list) nor hold a line break, and must
+    be UTF-8 (a file name that is not is refused here, before any file is written)."""
     if isinstance(value, (list, tuple, np.ndarray)):
         items = [f"{v:.6g}" if isinstance(v, (float, np.floating)) else str(v) for v in value]
+        for item in items:
+            if any(c in item for c in "{}\n\r"):
+                raise DataFormatError(f"ENVI header list item {item[:40]!r} may not contain "
+                                      "braces or line breaks")
         return "{" + ", ".join(items) + "}"
     text = str(value)
-    if any(c in text for c in "{}\n"):
-        raise DataFormatError(f"ENVI header value {text[:40]!r} may not contain braces or line "
-                              "breaks")
+    if any(c in text for c in "\n\r") or text.lstrip().startswith("{"):
+        raise DataFormatError(f"ENVI header value {text[:40]!r} may not contain line breaks or "
+                              "start with '{'; rename the file")
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise DataFormatError(f"ENVI header value {text[:40]!r} is not UTF-8 text (a file name "
+                              "in another encoding?); rename the file") from None
     return text
+
+
+def check_header_values(*values) -> None:
+    """Raise the :class:`DataFormatError` :func:`write_envi` would raise for any of ``values``
+    (before a set of ENVI files is written, so none is left without the others)."""
+    for value in values:
+        _value(value)
 
 
 def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description: str = "",
