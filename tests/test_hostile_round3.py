@@ -386,6 +386,41 @@ def test_exports_past_ten_thousand_frames_are_known_as_outputs():
         assert is_batch_output(name), name
     assert not is_batch_output("a_f10000.hdr")
 
+
+# -- cause: an ENVI pair's data were committed before the header that vouches for them -----------
+def test_envi_export_interrupted_between_its_files_is_resumed_by_the_same_command(
+        sweep, tmp_path, monkeypatch, capsys):
+    """A full disk (or a kill) after the first file of an ENVI export: the rerun of the same
+    command, without --overwrite, finishes the cubes (it stopped at the header-less .img with
+    'already exists and is not a cube hsiffc wrote')."""
+    import errno
+
+    import hsiffc.io.envi as envi
+
+    out = tmp_path / "out"
+    argv = ["correct", str(sweep / "s.tif"), "--calibration", str(sweep / "cal.npz"), "-o",
+            str(out), "--format", "envi", "-q"]
+    assert main(argv) == 0
+    cubes = sorted(p.name for p in out.iterdir() if p.suffix in (".hdr", ".img"))
+    for name in cubes:
+        (out / name).unlink()
+    real, calls = envi.atomic_path, []
+
+    def full_disk(*args, **kwargs):
+        calls.append(args[0])
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(envi, "atomic_path", full_disk)
+    assert main(argv) != 0  # the cubes of that output were not written
+    monkeypatch.setattr(envi, "atomic_path", real)
+    left = sorted(p.name for p in out.iterdir() if p.suffix in (".hdr", ".img"))
+    assert len(left) == 1 and left[0].endswith(".hdr")  # the header that vouches for its pair
+    capsys.readouterr()
+    assert main(argv) == 0, capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir() if p.suffix in (".hdr", ".img")) == cubes
+
 # -- cause: an IMEC XML's peak wavelength, FWHM and QE were not checked for sign ------------------
 @pytest.mark.parametrize("old, new, needle", [
     ("<wavelength_nm>402</wavelength_nm>", "<wavelength_nm>-500</wavelength_nm>", "> 0"),

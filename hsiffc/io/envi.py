@@ -427,11 +427,14 @@ def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description:
         entries[str(key).lower()] = _value(value)
     text = "ENVI\n" + "".join(f"{k} = {v if isinstance(v, str) else _value(v)}\n"
                               for k, v in entries.items())
+    # the header first: a pair is judged by its header (whether hsiffc wrote it, from what), so
+    # a kill or a full disk between the two writes leaves a header that says whose it is, never
+    # a data file nothing vouches for (a rerun stopped at such an .img without --overwrite)
+    with atomic_path(header, overwrite=overwrite) as tmp:
+        Path(tmp).write_text(text, encoding="utf-8")
     with atomic_path(data, overwrite=overwrite) as tmp:
         with open(tmp, "wb") as fh:
             np.ascontiguousarray(cube.transpose(axes), dtype=dtype).tofile(fh)
-    with atomic_path(header, overwrite=overwrite) as tmp:
-        Path(tmp).write_text(text, encoding="utf-8")
     return header, data
 
 
