@@ -421,6 +421,51 @@ def test_envi_export_interrupted_between_its_files_is_resumed_by_the_same_comman
     assert main(argv) == 0, capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir() if p.suffix in (".hdr", ".img")) == cubes
 
+
+# -- cause: a netCDF cube's variables could point to another file's bytes (HDF5 external) --------
+def test_a_netcdf_cube_with_external_storage_is_refused(tmp_path, capsys):
+    import h5py
+
+    from hsiffc.cubes import Cube, write_cube
+
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(b"S" * 400)
+    cube = Cube(np.ones((4, 3, 2), np.float32), np.zeros((4, 3, 2), np.uint32),
+                wavelengths_nm=(500, 600))
+    write_cube(cube, tmp_path / "c.nc")
+    with h5py.File(tmp_path / "c.nc", "r+") as h5:
+        h5.create_dataset("leak", shape=(10, 10), dtype="f4",
+                          external=[(str(secret), 0, 400)])
+    capsys.readouterr()
+    assert main(["quicklook", str(tmp_path / "c.nc"), "-o", str(tmp_path / "q.png")]) == 2
+    _one_line(capsys, "c.nc", "'leak'", "another file")
+    assert not (tmp_path / "q.png").exists()
+
+
+# -- cause: a full disk during a netCDF export was HDF5's several lines naming the temporary file --
+def test_a_full_disk_during_a_netcdf_export_is_one_line_naming_the_cube(sweep, tmp_path,
+                                                                       monkeypatch, capsys):
+    import xarray
+
+    out = tmp_path / "out"
+    argv = ["correct", str(sweep / "s.tif"), "--calibration", str(sweep / "cal.npz"), "-o",
+            str(out), "-q"]
+    assert main(argv) == 0
+
+    def full(self, path, *args, **kwargs):
+        raise OSError(f"Can't write data (file write failed: time = Fri Nov 27, filename = "
+                      f"'{path}', file descriptor = 7, errno = 28, error message = 'No space "
+                      "left on device', buf = 0x1, total write size = 1024)\n  HDF5-DIAG: "
+                      "error detected in libhdf5")
+
+    monkeypatch.setattr(xarray.Dataset, "to_netcdf", full)
+    capsys.readouterr()
+    assert main(argv + ["--format", "netcdf"]) != 0
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "netCDF cubes" in ln]
+    assert len(lines) == 1, lines
+    assert "No space left on device" in lines[0] and ".part" not in lines[0]
+    assert "HDF5" not in lines[0] and "s.corrected" in lines[0]
+
 # -- cause: an IMEC XML's peak wavelength, FWHM and QE were not checked for sign ------------------
 @pytest.mark.parametrize("old, new, needle", [
     ("<wavelength_nm>402</wavelength_nm>", "<wavelength_nm>-500</wavelength_nm>", "> 0"),

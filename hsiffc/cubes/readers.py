@@ -96,6 +96,7 @@ def _netcdf(path: Path) -> Cube:
     from .xr import require_xarray
 
     xr = require_xarray()
+    _no_external_storage(path)
     with xr.open_dataset(path) as ds:
         _check_sizes(path, [(ds[k].shape, ds[k].dtype) for k in ("data", "dq", "alpha")
                             if k in ds])
@@ -108,6 +109,28 @@ def _netcdf(path: Path) -> Cube:
                     None if np.isnan(wl).all() else wl, None if np.isnan(fwhm).all() else fwhm,
                     positions, ds["band_index"].values, unit=str(ds.attrs.get("unit", "DN")),
                     attrs={"source": path.name})
+
+
+def _no_external_storage(path: Path) -> None:
+    """Refuse a netCDF-4 (HDF5) file whose variables keep their data in other files (HDF5
+    external or virtual storage): decoding them would draw another file's bytes, perhaps any
+    file on the disk, into a quicklook a user may share."""
+    try:
+        import h5py
+    except ImportError:  # xarray then reads through netCDF4, which has the same HDF5 library
+        return
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError:  # not HDF5 (netCDF classic): no external storage
+        return
+    bad: list = []
+    with h5:
+        h5.visititems(lambda name, obj: bad.append(name) if isinstance(obj, h5py.Dataset) and (
+            obj.external or obj.is_virtual) else None)
+    if bad:
+        raise DataFormatError(f"variable {bad[0]!r} keeps its data in another file (HDF5 "
+                              "external or virtual storage); hsiffc reads only data stored in "
+                              "the file it is given", path=path)
 
 
 def _check_sizes(path, arrays) -> None:

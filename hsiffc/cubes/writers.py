@@ -20,7 +20,10 @@ Every file written here holds the bands by wavelength, ascending (the hsiffc TIF
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -247,4 +250,20 @@ def _write_netcdf(cube, path: Path, compression, description, overwrite) -> None
                                   path=path)
         encoding = {v: {"zlib": True, "complevel": 4} for v in ds.data_vars}
     with atomic_path(path, overwrite=overwrite) as tmp:
-        ds.to_netcdf(tmp, engine=engine, encoding=encoding)
+        try:
+            ds.to_netcdf(tmp, engine=engine, encoding=encoding)
+        except OSError as exc:  # HDF5's are several lines naming the temporary file
+            raise _one_line_os_error(exc, path) from None
+
+
+def _one_line_os_error(exc: OSError, path: Path) -> OSError:
+    """``exc`` as one line naming ``path`` (not the temporary file): HDF5 reports a full disk
+    as ``Can't write data (file write failed: ..., errno = 28, error message = 'No space left
+    on device', ...)`` over several lines."""
+    text = str(exc)
+    found = re.search(r"errno = (\d+)", text)
+    code = exc.errno or (int(found.group(1)) if found else None)
+    if code:
+        return OSError(code, os.strerror(code), str(path))
+    first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
+    return OSError(errno.EIO, f"the netCDF library failed: {first[:200]}", str(path))
