@@ -466,6 +466,38 @@ def test_a_full_disk_during_a_netcdf_export_is_one_line_naming_the_cube(sweep, t
     assert "No space left on device" in lines[0] and ".part" not in lines[0]
     assert "HDF5" not in lines[0] and "s.corrected" in lines[0]
 
+
+# -- cause: exports ran after the batch returned, outside the folder's lock -----------------------
+def test_exports_run_inside_the_folder_lock_and_clear_an_interrupted_exports_part_file(
+        sweep, tmp_path, monkeypatch):
+    """A second run during the first one's export is refused (it was not), and the temporary
+    file a killed netCDF export left is removed by the rerun that holds the lock (it
+    survived)."""
+    import hsiffc.cubes.export as export
+    from hsiffc.files.atomic import FolderLockedError, folder_lock
+
+    out = tmp_path / "out"
+    argv = ["correct", str(sweep / "s.tif"), "--calibration", str(sweep / "cal.npz"), "-o",
+            str(out), "-q"]
+    assert main(argv) == 0
+    stale = out / ".s.corrected_f0000.nc.4242-deadbeef.part"
+    stale.write_bytes(b"half a cube")
+    real, seen = export.export_corrected, []
+
+    def during(*args, **kwargs):
+        try:
+            with folder_lock(out, what="a second hsiffc correct"):
+                seen.append("second run got the lock")
+        except FolderLockedError:
+            seen.append("refused")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(export, "export_corrected", during)
+    assert main(argv + ["--format", "netcdf"]) == 0
+    assert seen == ["refused"]
+    assert not stale.exists()
+    assert (out / "s.corrected_f0000.nc").is_file()
+
 # -- cause: an IMEC XML's peak wavelength, FWHM and QE were not checked for sign ------------------
 @pytest.mark.parametrize("old, new, needle", [
     ("<wavelength_nm>402</wavelength_nm>", "<wavelength_nm>-500</wavelength_nm>", "> 0"),
