@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError
+from ..errors import DataFormatError, HsiffcError
 from .product import Cube
 from .writers import format_for
 
@@ -169,10 +169,17 @@ def read_cube(path, *, frame: int = 0) -> Cube:
         raise DataFormatError("cube file not found", path=path)
     require_regular_input(path, what="cube file")  # a FIFO or device is never opened
     fmt = format_for(path)
-    if fmt == "envi":
-        return _envi(path)
-    if fmt == "ome":
-        return _ome(path)
-    if fmt == "netcdf":
-        return _netcdf(path)
-    return _hsiffc_tiff(path, int(frame))
+    readers = {"envi": _envi, "ome": _ome, "netcdf": _netcdf,
+               "tiff": lambda p: _hsiffc_tiff(p, int(frame))}
+    try:
+        return readers[fmt](path)
+    except (HsiffcError, MemoryError):
+        raise
+    except Exception as exc:  # tifffile, HDF5 and xarray raise many types on damaged files,
+        # and a header's values may not make a Cube (3 bands, 1 wavelength)
+        what = {"ome": "OME-TIFF cube", "netcdf": "netCDF cube", "envi": "ENVI cube",
+                "tiff": "corrected file"}[fmt]
+        text = " ".join(str(exc).split())[:200]
+        raise DataFormatError(f"not a readable {what} written by hsiffc ({type(exc).__name__}: "
+                              f"{text}); the file is damaged or another program's",
+                              path=path) from exc
