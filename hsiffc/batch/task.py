@@ -129,13 +129,23 @@ def stale_reason(out: Path, job: Job, ctx: Context, nan: str = "flag") -> str | 
     return None
 
 
+_DIGESTS: dict = {}  # (path, device, inode, size, mtime_ns) -> sha256: one sidecar or XML
+# shared by thousands of inputs is read once per process, not once per input
+
+
 def _digest(path) -> str | None:
     """sha256 of a regular file's bytes; None when it is gone or not a regular file (a FIFO
     is never opened)."""
     try:
-        if not stat.S_ISREG(os.stat(path).st_mode):
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
             return None
-        return sha256_file(path)
+        key = (str(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+        if key not in _DIGESTS:
+            if len(_DIGESTS) > 256:
+                _DIGESTS.clear()
+            _DIGESTS[key] = sha256_file(path)
+        return _DIGESTS[key]
     except OSError:
         return None
 
