@@ -51,6 +51,32 @@ def test_resume_redoes_an_output_whose_sidecar_changed(sweep, tmp_path, capsys):
     assert main(argv) == 1
 
 
+def test_resume_redoes_an_envi_input_whose_data_file_changed(sweep, tmp_path, capsys):
+    """An ENVI input named by its header: a new data file redoes it (the check compared the
+    header's size and time only); its bytes are not hashed at each resume check."""
+    from hsiffc.io import read_sweep
+
+    data = read_sweep(sweep / "s.tif").data
+    raw = tmp_path / "in"
+    raw.mkdir()
+    data.astype("<u2").tofile(raw / "c.img")
+    n, h, w = data.shape
+    (raw / "c.hdr").write_text(f"ENVI\nsamples = {w}\nlines = {h}\nbands = {n}\n"
+                               "header offset = 0\ndata type = 12\ninterleave = bsq\n"
+                               "byte order = 0\nbit depth = 10\nexposure time = 12\n"
+                               "exposure time units = ms\n")
+    argv = ["correct", str(raw / "c.hdr"), "--calibration", str(sweep / "cal.npz"),
+            "-o", str(tmp_path / "out")]
+    assert main(argv) == 0
+    files = read_provenance(tmp_path / "out" / "c.corrected.tif")["input"]["data_files"]
+    assert [f["path"] for f in files] == [str(raw / "c.img")]
+    capsys.readouterr()
+    assert main(argv) == 0 and "0 done, 1 skipped" in capsys.readouterr().out
+    (data // 2).astype("<u2").tofile(raw / "c.img")
+    os.utime(raw / "c.img", ns=(1, 1))
+    assert main(argv) == 0 and "1 done, 0 skipped" in capsys.readouterr().out
+
+
 # -- cause: hsiffc.dq.mask took bytes as integers, "" as no flag, and overflowed ------------------
 from hypothesis import given, settings, strategies as st  # noqa: E402
 

@@ -160,9 +160,15 @@ def _metadata_sources(src, settings: Settings) -> list:
     return [{"path": str(p), "sha256": _digest(p)} for p in dict.fromkeys(files)]
 
 
+def _stat_record(path) -> dict:
+    st = os.stat(path)
+    return {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
 def _metadata_changed(src: dict, input_path: Path) -> str | None:
-    """Why the metadata sources recorded in an output's provenance (``src``: its "input")
-    differ from the files now on disk, or None."""
+    """Why the metadata sources (their content) and the data files besides the input (their
+    size and time) recorded in an output's provenance (``src``: its "input") differ from the
+    files now on disk, or None."""
     sources = src.get("metadata_sources")
     if not isinstance(sources, list):
         return ("was made by an hsiffc that did not record its metadata sources (sidecar, "
@@ -175,6 +181,17 @@ def _metadata_changed(src: dict, input_path: Path) -> str | None:
             return (f"was made with another version of {Path(item['path']).name} (a metadata "
                     "source: its content differs now, or it is gone)")
         recorded.add(Path(item["path"]).resolve())
+    for item in src.get("data_files") or ():
+        if not isinstance(item, dict) or not isinstance(item.get("path"), str):
+            return "has a damaged provenance (its data files)"
+        try:
+            st = os.stat(item["path"])
+        except OSError:
+            st = None
+        if st is None or (st.st_size, st.st_mtime_ns) != (item.get("size"),
+                                                          item.get("mtime_ns")):
+            return (f"was made from another version of its data file {Path(item['path']).name} "
+                    "(size or modification time differ, or it is gone)")
     if src.get("sidecar_lookup"):
         side = find_sidecar(input_path.parent)
         if side is not None and side.resolve() not in recorded:
@@ -378,7 +395,8 @@ def _provenance(job: Job, settings: Settings, ctx: Context, src, st) -> dict:
     return {"input": {"path": job.input, "relative": job.rel, "size": st.st_size,
                       "mtime_ns": st.st_mtime_ns, "sha256": None,
                       "metadata_sources": _metadata_sources(src, settings),
-                      "sidecar_lookup": bool(src.sidecar_lookup)},
+                      "sidecar_lookup": bool(src.sidecar_lookup),
+                      "data_files": [_stat_record(p) for p in src.data_files]},
             "calibration": None if cal is None else {
                 "identity": ctx.identity, "path": settings.calibration, "method": cal.method,
                 "fitted_on": cal.fitted_on.get("source")},

@@ -145,8 +145,10 @@ class FrameSource:
         Fields no source gives (only with ``inspect=True``; otherwise missing ones raise).
     files : list of Path
     metadata_files : list of Path
-        Other files whose content gave metadata: sidecars, IMEC XML, the other file of an ENVI
-        pair.
+        Other files whose content gave metadata: sidecars, IMEC XML, the ENVI header of a data
+        file named.
+    data_files : list of Path
+        Other files the frames are read from: the data file of an ENVI header named.
     sidecar_lookup : bool
         Whether a sidecar next to the data would be read (no ``sidecar`` override and a file
         that is not self-describing).
@@ -216,12 +218,16 @@ class FrameSource:
         self.strict = all(lay.strict for lay in layouts)
         self.meta = dict(layouts[0].meta) if len(layouts) == 1 else {
             "files": [str(p) for p in self.files]}
-        companions = [p for lay in layouts if lay.format == "envi"
-                      for p in envi_paths(lay.path) if p != lay.path]
-        #: Files besides the data whose content gave metadata (sidecars, IMEC XML, an ENVI
-        #: header or data file beside the one named), without repeats: the batch's resume
-        #: check compares their content.
-        self.metadata_files = list(dict.fromkeys([*sidecars, *xmls, *companions]))
+        pairs = [(lay.path, *envi_paths(lay.path)) for lay in layouts if lay.format == "envi"]
+        #: Files besides the data whose content gave metadata (sidecars, IMEC XML, the ENVI
+        #: header of a data file named), without repeats: the batch's resume check compares
+        #: their content.
+        self.metadata_files = list(dict.fromkeys(
+            [*sidecars, *xmls, *(head for named, head, _ in pairs if head != named)]))
+        #: Files the frames are read from besides those named (the data file of an ENVI
+        #: header): the resume check compares their size and modification time, as the
+        #: input's.
+        self.data_files = list(dict.fromkeys(data for named, _, data in pairs if data != named))
         #: Whether a sidecar next to the data would have been read (a file not self-describing).
         self.sidecar_lookup = overrides.sidecar is None and not all(lay.strict
                                                                     for lay in layouts)
