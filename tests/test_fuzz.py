@@ -335,3 +335,70 @@ def test_file_kinds_at_the_lock_and_as_input(world, tmp_path, at_lock, as_input)
         assert _digest(data_file) == before
         if at_lock == "data":
             assert (out / ".hsiffc.lock").read_bytes() == b"measured data"
+
+
+# -- the cube readers (quicklook, hsiffc.cubes.read_cube), issue 52 --------------------------------
+def _cube_files(root: Path) -> Path:
+    """One small cube in every format hsiffc writes (ENVI with its DQ and alpha pairs)."""
+    from hsiffc.cubes import Cube, write_cube
+
+    rng = np.random.default_rng(7)
+    cube = Cube(rng.random((6, 5, 3), np.float32), np.zeros((6, 5, 3), np.uint32),
+                alpha=np.zeros((6, 5, 3), np.float32), wavelengths_nm=(500, 600, 700),
+                fwhm_nm=(10, 10, 10))
+    for name in ("c.hdr", "c.ome.tif", "c.nc", "c.tif"):
+        write_cube(cube, root / name)
+    return root
+
+
+def _copy_cubes(src: Path, dst: Path) -> None:
+    for p in src.iterdir():
+        (dst / p.name).write_bytes(p.read_bytes())
+
+
+@pytest.fixture(scope="module")
+def cubes(tmp_path_factory):
+    return _cube_files(tmp_path_factory.mktemp("cubes"))
+
+
+_CUBE_FIELDS = ["samples", "lines", "bands", "header offset", "data type", "interleave",
+                "byte order", "dq file", "alpha file", "fwhm", "wavelength", "data units"]
+
+
+@FUZZ
+@example(field="dq file", value="../../etc/passwd")
+@example(field="fwhm", value="{a, b, c}")
+@example(field="bands", value="100000000")
+@given(field=st.sampled_from(_CUBE_FIELDS),
+       value=st.one_of(st.integers(-3, 10 ** 9).map(str), st.text(max_size=12),
+                       st.lists(st.text(max_size=4), max_size=4).map(
+                           lambda v: "{" + ", ".join(v) + "}"),
+                       st.sampled_from(["c.dq.img", "c.alpha.img", "c.img", "/dev/zero", "..",
+                                        "{", "}", "bip", "bil", "1", "-1"])))
+def test_cube_header_fields_in_quicklook(cubes, tmp_path, field, value):
+    """Any value of any ENVI cube header field: quicklook draws the cube or refuses it in one
+    line (exit 2), never an internal error or a hang."""
+    value = value.replace("\n", " ").replace("\r", " ")
+    with tempfile.TemporaryDirectory(dir=tmp_path) as d:
+        d = Path(d)
+        _copy_cubes(cubes, d)
+        lines = (d / "c.hdr").read_text().splitlines()
+        kept = [ln for ln in lines if ln.split("=")[0].strip() != field]
+        (d / "c.hdr").write_text("\n".join(kept + [f"{field} = {value}"]) + "\n")
+        code, err = _run(["quicklook", d / "c.hdr", "-o", d / "q.png"])
+        _assert_clean(code, err, allowed=(0, 2))
+
+
+@FUZZ
+@given(name=st.sampled_from(["c.ome.tif", "c.nc", "c.tif", "c.img", "c.dq.img", "c.hdr"]),
+       fraction=st.floats(0.0, 1.0, exclude_max=True))
+def test_truncated_cube_files_in_quicklook(cubes, tmp_path, name, fraction):
+    """A cube file cut anywhere: drawn or one line (exit 2)."""
+    with tempfile.TemporaryDirectory(dir=tmp_path) as d:
+        d = Path(d)
+        _copy_cubes(cubes, d)
+        data = (cubes / name).read_bytes()
+        (d / name).write_bytes(data[:int(len(data) * fraction)])
+        main_file = name if name in ("c.ome.tif", "c.nc", "c.tif") else "c.hdr"
+        code, err = _run(["quicklook", d / main_file, "-o", d / "q.png"])
+        _assert_clean(code, err, allowed=(0, 2))

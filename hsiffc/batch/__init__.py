@@ -50,7 +50,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                   overrides: dict | None = None, observer=None,
                   wait_s: float = 0.0, cube: str | None = None,
                   cube_correction: str | None = None, imec_xml=None,
-                  compression: str | None = None, device: str = "cpu") -> BatchSummary:
+                  compression: str | None = None, device: str = "cpu",
+                  after=None) -> BatchSummary:
     """Correct every input (files, folders, globs) into ``outdir``; see ``hsiffc correct``.
 
     Parameters
@@ -108,6 +109,10 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         ``"cuda"``: the pipeline runs on the GPU (:mod:`hsiffc.gpu`, one process); refused in
         one line, before anything is read, without numba-cuda or a GPU, with ``workers`` above
         1 or a ``scheduler``, or for a step the GPU does not run.
+    after : callable, optional
+        ``after(summary)`` runs once every file is done, while the output folder's lock is
+        still held (the CLI's ``--format`` exports: a second run cannot start in between, and
+        they may remove the temporary files an interrupted export left).
 
     Returns
     -------
@@ -160,15 +165,17 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         finally:
             if observer is not None:
                 observer.close()
-    steps = [s["name"] for s in ctx.info["steps"]]
-    return BatchSummary([results[i] for i in sorted(results)], time.perf_counter() - t0,
-                        str(Path(outdir).resolve()),
-                        {"path": None if cal_path is None else str(cal_path),
-                         "identity": ctx.identity},
-                        {k: v for k, v in ctx.info.items() if k != "steps"} | {"steps": steps},
-                        ignored,
-                        execution={"scheduler": scheduler} if plan is None else plan.to_dict()
-                        | {"text": plan.describe()})
+        steps = [s["name"] for s in ctx.info["steps"]]
+        summary = BatchSummary(
+            [results[i] for i in sorted(results)], time.perf_counter() - t0,
+            str(Path(outdir).resolve()),
+            {"path": None if cal_path is None else str(cal_path), "identity": ctx.identity},
+            {k: v for k, v in ctx.info.items() if k != "steps"} | {"steps": steps}, ignored,
+            execution={"scheduler": scheduler} if plan is None else plan.to_dict()
+            | {"text": plan.describe()})
+        if after is not None:
+            after(summary)
+    return summary
 
 
 def _check_device(device, workers: int, scheduler) -> None:

@@ -33,7 +33,7 @@ def _is_tiff(path) -> bool:
 
 #: the cubes ``hsiffc correct --format envi|ome|netcdf`` writes beside a corrected file
 _ENVI_OUTPUT = re.compile(re.escape(SUFFIX[:-len(".tif")])
-                          + r"(_f\d{4})?((\.dq|\.alpha)?\.(hdr|img)|\.ome\.tiff?|\.nc)$")
+                          + r"(_f\d{4,})?((\.dq|\.alpha)?\.(hdr|img)|\.ome\.tiff?|\.nc)$")
 
 
 def is_batch_output(path) -> bool:
@@ -45,6 +45,8 @@ def is_batch_output(path) -> bool:
     (True, True)
     >>> is_batch_output("a.corrected_f0001.ome.tif"), is_batch_output("a.corrected.alpha.img")
     (True, True)
+    >>> is_batch_output("a.corrected_f10000.dq.img")  # a file of more than 10,000 frames
+    True
     >>> is_batch_output("a.tif")
     False
     """

@@ -11,6 +11,7 @@ import glob
 import logging
 import os
 import queue
+import stat
 import threading
 import time
 import warnings
@@ -24,6 +25,7 @@ from ..cubes.product import frame_unit
 from ..data.dq import DQ
 from ..errors import DataFormatError, HsiffcError, MissingMosaicWarning
 from ..data.frame import Frame
+from ..io._sidecar import find_sidecar
 from ..io.corrected import (
     BackgroundWriter,
     CorrectedWriter,
@@ -115,12 +117,85 @@ def stale_reason(out: Path, job: Job, ctx: Context, nan: str = "flag") -> str | 
     src = prov.get("input") or {}
     if src.get("size") != st.st_size or src.get("mtime_ns") != st.st_mtime_ns:
         return "was made from another version of the input (size or modification time differ)"
+    why = _metadata_changed(src, Path(job.input))
+    if why:
+        return why
     if (prov.get("calibration") or {}).get("identity") != ctx.identity:
         return "was made with another calibration"
     if (prov.get("pipeline") or {}).get("fingerprint") != ctx.info["fingerprint"]:
         return "was made with another pipeline or other parameters"
     if nan == "fail" and any((prov.get("frames") or {}).get("nonfinite_pixels") or ()):
         return "holds NaN/inf pixels flagged under --nan flag"
+    return None
+
+
+_DIGESTS: dict = {}  # (path, device, inode, size, mtime_ns) -> sha256: one sidecar or XML
+# shared by thousands of inputs is read once per process, not once per input
+
+
+def _digest(path) -> str | None:
+    """sha256 of a regular file's bytes; None when it is gone or not a regular file (a FIFO
+    is never opened)."""
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            return None
+        key = (str(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+        if key not in _DIGESTS:
+            if len(_DIGESTS) > 256:
+                _DIGESTS.clear()
+            _DIGESTS[key] = sha256_file(path)
+        return _DIGESTS[key]
+    except OSError:
+        return None
+
+
+def _metadata_sources(src, settings: Settings) -> list:
+    """Every file besides the input whose content gave this output's metadata or
+    correction (sidecars, IMEC XML, the other file of an ENVI pair, the ``--cube`` correction's
+    XML), with the sha256 of its bytes: the resume check compares them."""
+    files = [Path(p) for p in src.metadata_files]
+    if settings.imec_xml:
+        files.append(Path(settings.imec_xml))
+    return [{"path": str(p), "sha256": _digest(p)} for p in dict.fromkeys(files)]
+
+
+def _stat_record(path) -> dict:
+    st = os.stat(path)
+    return {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def _metadata_changed(src: dict, input_path: Path) -> str | None:
+    """Why the metadata sources (their content) and the data files besides the input (their
+    size and time) recorded in an output's provenance (``src``: its "input") differ from the
+    files now on disk, or None."""
+    sources = src.get("metadata_sources")
+    if not isinstance(sources, list):
+        return ("was made by an hsiffc that did not record its metadata sources (sidecar, "
+                "IMEC XML)")
+    recorded = set()
+    for item in sources:
+        if not isinstance(item, dict) or not isinstance(item.get("path"), str):
+            return "has a damaged provenance (its metadata sources)"
+        if _digest(item["path"]) != item.get("sha256"):
+            return (f"was made with another version of {Path(item['path']).name} (a metadata "
+                    "source: its content differs now, or it is gone)")
+        recorded.add(Path(item["path"]).resolve())
+    for item in src.get("data_files") or ():
+        if not isinstance(item, dict) or not isinstance(item.get("path"), str):
+            return "has a damaged provenance (its data files)"
+        try:
+            st = os.stat(item["path"])
+        except OSError:
+            st = None
+        if st is None or (st.st_size, st.st_mtime_ns) != (item.get("size"),
+                                                          item.get("mtime_ns")):
+            return (f"was made from another version of its data file {Path(item['path']).name} "
+                    "(size or modification time differ, or it is gone)")
+    if src.get("sidecar_lookup"):
+        side = find_sidecar(input_path.parent)
+        if side is not None and side.resolve() not in recorded:
+            return f"was made without the sidecar {side.name} now next to the input"
     return None
 
 
@@ -318,7 +393,10 @@ def _remove_leftovers(out: Path) -> None:
 def _provenance(job: Job, settings: Settings, ctx: Context, src, st) -> dict:
     cal, mosaic = ctx.calibration, src.mosaic
     return {"input": {"path": job.input, "relative": job.rel, "size": st.st_size,
-                      "mtime_ns": st.st_mtime_ns, "sha256": None},
+                      "mtime_ns": st.st_mtime_ns, "sha256": None,
+                      "metadata_sources": _metadata_sources(src, settings),
+                      "sidecar_lookup": bool(src.sidecar_lookup),
+                      "data_files": [_stat_record(p) for p in src.data_files]},
             "calibration": None if cal is None else {
                 "identity": ctx.identity, "path": settings.calibration, "method": cal.method,
                 "fitted_on": cal.fitted_on.get("source")},

@@ -235,6 +235,13 @@ def main(argv=None) -> int:
             raise
         print(f"hsiffc {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except SystemExit as exc:  # not hsiffc's (it returns its status): a plugin or library
+        if args.debug:  # ending the process would end the command with its code, maybe 0
+            raise
+        print(f"hsiffc {args.command}: internal error: something called sys.exit({exc.code!r}) "
+              "during the command (a plugin?); nothing more was done (run again with --debug "
+              "for the traceback)", file=sys.stderr)
+        return EXIT_INTERNAL
     except HsiffcError as exc:
         if args.debug:
             raise

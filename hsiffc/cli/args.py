@@ -106,3 +106,5 @@ percent = _checked(float, "a percentage (a finite number > 0)", 0.0, strict=True
                    doc="A threshold in percent: finite and > 0.")
 count = _checked(int, "a whole number >= 1", 1, doc="A whole number >= 1.")
 seed = _checked(int, "a whole number >= 0", 0, doc="A random seed: a whole number >= 0.")
+index = _checked(int, "a row or column index (a whole number >= 0; rows and columns count from 0)",
+                 0, doc="A pixel index: a whole number >= 0 (rows and columns count from 0).")

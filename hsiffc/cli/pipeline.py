@@ -271,7 +271,8 @@ def _exports(summary, fmt: str, *, overwrite: bool, compression=None) -> int:
                                   f"wrote from {out.name}; pass --overwrite to replace it, or "
                                   "move it")
             export_corrected(out, fmt, overwrite=True,
-                             compression=None if fmt == "envi" else compression)
+                             compression=None if fmt == "envi" else compression,
+                             remove_leftovers=True)  # the folder's lock is held
         except (HsiffcError, OSError) as exc:
             failed += 1
             print(f"hsiffc correct: {label} cubes of {out.name} not written: {exc}",
@@ -310,6 +311,13 @@ def _cmd_correct(args) -> int:
         require_xarray()
     compression = None if args.compression == "none" else args.compression
     show = not args.quiet and sys.stderr.isatty()
+    exports = {"failed": 0}
+
+    def finish(summary):  # inside the output folder's lock (issue 52: a second run could
+        print(summary.to_text())  # start during the exports)
+        if args.format != "tiff":
+            exports["failed"] = _exports(summary, args.format, overwrite=args.overwrite,
+                                         compression=compression)
     try:
         summary = correct_batch(args.inputs, args.outdir, args.calibration,
                                 pipeline=args.pipeline, threshold_percent=args.threshold,
@@ -321,15 +329,12 @@ def _cmd_correct(args) -> int:
                                 observer=Progress() if show else None, cube=args.cube,
                                 cube_correction=args.cube_correction,
                                 imec_xml=args.imec_xml, compression=compression,
-                                device=args.device)
+                                device=args.device, after=finish)
     except KeyboardInterrupt:
         print("hsiffc correct: interrupted; finished outputs are kept (no partial file is left "
               "under a final name): run the same command again to resume", file=sys.stderr)
         return 130
-    print(summary.to_text())
-    envi_failed = (_exports(summary, args.format, overwrite=args.overwrite,
-                            compression=compression) if args.format != "tiff" else 0)
     if args.json:
         write_json(args.json, summary.to_dict())
-    return max(summary.exit_status, 1 if envi_failed else 0)
+    return max(summary.exit_status, 1 if exports["failed"] else 0)
 

@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import HsiffcError
 from ..reconstruct import DEMOSAIC_METHODS
 from ..reflectance import REFLECTANCE_METHODS, resolve_method
-from .args import count, percent, positive
+from .args import index, percent, positive
 from .common import add_input_options, add_overwrite, input_overrides, write_json
 from .pipeline import read_training
 
@@ -180,10 +180,10 @@ def _add_check(acts):
                    help="fitted pipeline (.npz) ending in a reflectance step")
     p.add_argument("--expected", type=positive, default=None, metavar="R",
                    help="the target's reflectance factor (default: the panel's)")
-    p.add_argument("--roi", type=count, nargs=4, default=None,
+    p.add_argument("--roi", type=index, nargs=4, default=None,
                    metavar=("ROW0", "ROW1", "COL0", "COL1"),
-                   help="the target's rows ROW0..ROW1-1 and columns COL0..COL1-1 (default: the "
-                        "whole frame)")
+                   help="the target's rows ROW0..ROW1-1 and columns COL0..COL1-1, counted from 0 "
+                        "(default: the whole frame)")
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     add_input_options(p)
     add_overwrite(p)
@@ -214,7 +214,7 @@ def _cmd_check(args) -> int:
         if not (r0 < r1 <= data.shape[1] and c0 < c1 <= data.shape[2]):
             raise HsiffcError(f"--roi {r0} {r1} {c0} {c1}: outside the {data.shape[1]} x "
                               f"{data.shape[2]} frames or empty; give ROW0 < ROW1 and COL0 < COL1 "
-                              "inside them")
+                              "inside them (rows and columns count from 0)")
         data, dq = data[:, r0:r1, c0:c1], dq[:, r0:r1, c0:c1]
         bands = bands[r0:r1, c0:c1]
     expected = (np.asarray(stage.panel_) if args.expected is None

@@ -10,6 +10,7 @@ is; a corrected file of mosaic frames becomes one spectrum per mosaic tile
 
 from __future__ import annotations
 
+import glob
 from pathlib import Path
 
 from ..errors import DataFormatError
@@ -77,7 +78,8 @@ def cube_from_corrected(prov: dict, k: int, data, dq, alpha, *, source: str = ""
 
 
 def export_corrected(path, fmt: str, *, compression: str | None = None,
-                     overwrite: bool | None = None) -> list[Path]:
+                     overwrite: bool | None = None,
+                     remove_leftovers: bool = False) -> list[Path]:
     """Write every frame of the corrected file ``path`` as a cube in format ``fmt``.
 
     Parameters
@@ -89,12 +91,17 @@ def export_corrected(path, fmt: str, *, compression: str | None = None,
         As :func:`~hsiffc.cubes.write_cube` takes it.
     overwrite : bool, optional
         Replace existing files (default: the current write policy, which refuses).
+    remove_leftovers : bool
+        First remove the temporary files (``.NAME.*.part``) an interrupted export of these
+        cubes left; only for a caller that holds the output folder's lock (another run's
+        temporary files must not be removed).
 
     Returns
     -------
     list of Path
         Every file written.
     """
+    from ..files.atomic import PART_SUFFIX
     from ..io.corrected import iter_corrected, read_provenance
 
     path = Path(path)
@@ -103,6 +110,10 @@ def export_corrected(path, fmt: str, *, compression: str | None = None,
                               path=path)
     prov = read_provenance(path)
     names = export_names(path, int(prov["n_frames"]))
+    if remove_leftovers:
+        for file in export_files(path, fmt, prov):
+            for stale in file.parent.glob(f".{glob.escape(file.name)}.*{PART_SUFFIX}"):
+                stale.unlink(missing_ok=True)
     written: list[Path] = []
     for k, data, dq, alpha in iter_corrected(path):
         cube = cube_from_corrected(prov, k, data, dq, alpha, source=path.name)

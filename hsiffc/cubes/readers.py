@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError
+from ..errors import DataFormatError, HsiffcError
 from .product import Cube
 from .writers import format_for
 
@@ -29,13 +29,26 @@ def _envi(path: Path) -> Cube:
     for key in ("dq", "alpha"):
         name = raw.get(f"{key} file")
         if isinstance(name, str) and name:
+            if Path(name).name != name or name in (".", ".."):
+                raise DataFormatError(f"'{key} file = {name[:60]}' is not a file name beside "
+                                      "the header (hsiffc writes NAME.dq.img there); the header "
+                                      "was altered", path=header)
             planes[key] = read_envi(header.with_name(name).with_suffix(".hdr"))[0]
+            if planes[key].shape != data.shape:
+                raise DataFormatError(f"the {key} file {name} holds {planes[key].shape}, the "
+                                      f"data {data.shape}; the pair is damaged or mixed up",
+                                      path=header)
     dq = planes.get("dq")  # stored in the smallest type (uint16); Cube gives it as DQ_DTYPE
     if dq is None:
         dq = np.zeros(data.shape, np.uint32)
     fwhm = raw.get("fwhm")
-    return Cube(data.astype(np.float32), dq, planes.get("alpha"),
-                head.get("wavelengths_nm"), _floats(fwhm) if isinstance(fwhm, list) else None,
+    try:
+        fwhm = _floats(fwhm) if isinstance(fwhm, list) else None
+    except ValueError:
+        raise DataFormatError("'fwhm' holds values that are not numbers (nm); correct or "
+                              "remove it", path=header) from None
+    return Cube(data.astype(np.float32), dq.astype(np.uint32), planes.get("alpha"),
+                head.get("wavelengths_nm"), fwhm,
                 unit=str(raw.get("data units", "DN")), attrs={"source": path.name})
 
 
@@ -56,9 +69,9 @@ def _ome(path: Path) -> Cube:
         if not tf.is_ome or len(series) < 2:
             raise DataFormatError("not an OME-TIFF cube written by hsiffc (data and DQ "
                                   "series)", path=path)
-        data = np.moveaxis(series[0].asarray(), 0, 2)
-        dq = np.moveaxis(series[1].asarray(), 0, 2)
-        alpha = np.moveaxis(series[2].asarray(), 0, 2) if len(series) > 2 else None
+        _check_sizes(path, [(s.shape, s.dtype) for s in series[:3]])
+        data, dq = _yxc(series[0]), _yxc(series[1])
+        alpha = _yxc(series[2]) if len(series) > 2 else None
         doc = {}
         import xml.etree.ElementTree as ET
 
@@ -73,11 +86,20 @@ def _ome(path: Path) -> Cube:
                 unit=info.get("unit", "DN"), attrs={"source": path.name})
 
 
+def _yxc(series) -> np.ndarray:
+    """An OME series (C, Y, X) as (Y, X, C); tifffile gives a one-band cube's series as (Y, X)."""
+    arr = series.asarray()
+    return arr[:, :, None] if arr.ndim == 2 else np.moveaxis(arr, 0, 2)
+
+
 def _netcdf(path: Path) -> Cube:
     from .xr import require_xarray
 
     xr = require_xarray()
+    _no_external_storage(path)
     with xr.open_dataset(path) as ds:
+        _check_sizes(path, [(ds[k].shape, ds[k].dtype) for k in ("data", "dq", "alpha")
+                            if k in ds])
         alpha = ds["alpha"].values if "alpha" in ds else None
         rows, cols = ds["pattern_row"].values, ds["pattern_col"].values
         positions = [None if r < 0 else (int(r), int(c)) for r, c in zip(rows, cols)]
@@ -87,6 +109,42 @@ def _netcdf(path: Path) -> Cube:
                     None if np.isnan(wl).all() else wl, None if np.isnan(fwhm).all() else fwhm,
                     positions, ds["band_index"].values, unit=str(ds.attrs.get("unit", "DN")),
                     attrs={"source": path.name})
+
+
+def _no_external_storage(path: Path) -> None:
+    """Refuse a netCDF-4 (HDF5) file whose variables keep their data in other files (HDF5
+    external or virtual storage): decoding them would draw another file's bytes, perhaps any
+    file on the disk, into a quicklook a user may share."""
+    try:
+        import h5py
+    except ImportError:  # xarray then reads through netCDF4, which has the same HDF5 library
+        return
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError:  # not HDF5 (netCDF classic): no external storage
+        return
+    bad: list = []
+    with h5:
+        h5.visititems(lambda name, obj: bad.append(name) if isinstance(obj, h5py.Dataset) and (
+            obj.external or obj.is_virtual) else None)
+    if bad:
+        raise DataFormatError(f"variable {bad[0]!r} keeps its data in another file (HDF5 "
+                              "external or virtual storage); hsiffc reads only data stored in "
+                              "the file it is given", path=path)
+
+
+def _check_sizes(path, arrays) -> None:
+    """The limits in force (``HSIFFC_MAX_FRAME_PIXELS``, ``HSIFFC_MAX_BYTES``) applied to the
+    (shape, dtype) each plane's header states, before any is decoded."""
+    from ..files.limits import default_limits
+
+    limits = default_limits()
+    total = 0
+    for shape, dtype in arrays:
+        limits.check_frames(path=path, n_frames=1, shape=shape or (1,),
+                            itemsize=np.dtype(dtype).itemsize)
+        total += int(np.prod(shape, dtype=np.float64)) * np.dtype(dtype).itemsize
+    limits.check_bytes(path=path, nbytes=total, what="the cube's planes")
 
 
 def read_cube(path, *, frame: int = 0) -> Cube:
@@ -117,14 +175,24 @@ def read_cube(path, *, frame: int = 0) -> Cube:
     ((4, 6, 3), [500.0, 600.0, 700.0])
     >>> tmp.cleanup()
     """
+    from ..files.atomic import require_regular_input
+
     path = Path(path)
     if not path.exists():
         raise DataFormatError("cube file not found", path=path)
+    require_regular_input(path, what="cube file")  # a FIFO or device is never opened
     fmt = format_for(path)
-    if fmt == "envi":
-        return _envi(path)
-    if fmt == "ome":
-        return _ome(path)
-    if fmt == "netcdf":
-        return _netcdf(path)
-    return _hsiffc_tiff(path, int(frame))
+    readers = {"envi": _envi, "ome": _ome, "netcdf": _netcdf,
+               "tiff": lambda p: _hsiffc_tiff(p, int(frame))}
+    try:
+        return readers[fmt](path)
+    except (HsiffcError, MemoryError):
+        raise
+    except Exception as exc:  # tifffile, HDF5 and xarray raise many types on damaged files,
+        # and a header's values may not make a Cube (3 bands, 1 wavelength)
+        what = {"ome": "OME-TIFF cube", "netcdf": "netCDF cube", "envi": "ENVI cube",
+                "tiff": "corrected file"}[fmt]
+        text = " ".join(str(exc).split())[:200]
+        raise DataFormatError(f"not a readable {what} written by hsiffc ({type(exc).__name__}: "
+                              f"{text}); the file is damaged or another program's",
+                              path=path) from exc

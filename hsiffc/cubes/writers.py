@@ -26,7 +26,10 @@ Every file written here holds the bands by wavelength, ascending (the hsiffc TIF
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -216,7 +219,7 @@ def _bad_band_list(dq) -> list[int]:
 
 
 def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
-    from ..io.envi import write_envi
+    from ..io.envi import check_header_values, write_envi
 
     base = header.with_suffix("")
     bands = {"band names": cube.band_names()}
@@ -233,6 +236,15 @@ def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
     names = {k: v for k, v in bands.items() if k != "band names"}
     files = {"dq": base.with_name(base.name + ".dq"),
              "alpha": base.with_name(base.name + ".alpha")}
+    data_extra = {**common, **names, "data units": cube.unit,
+                  "data ignore value": "NaN", "bbl": _bad_band_list(cube.dq),
+                  "dq file": files["dq"].name + ".img"}
+    if cube.alpha is not None:
+        data_extra["alpha file"] = files["alpha"].name + ".img"
+    # every header's text checked before the first file is written: a name that cannot be
+    # written (a line break, not UTF-8) must not leave a .dq.img without its data pair
+    check_header_values(text, cube.unit, *[v for v in data_extra.values()
+                                           if not isinstance(v, (int, float, list))])
     dq = dq_storage(cube.dq)
     write_envi(files["dq"], dq, wavelengths_nm=wl, band_names=cube.band_names(),
                description=f"{text}: DQ bits ({dq.dtype}; names and values in dq bit names / "
@@ -243,11 +255,6 @@ def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
         write_envi(files["alpha"], cube.alpha, wavelengths_nm=wl, band_names=cube.band_names(),
                    description=f"{text}: leakage percentage alpha (percent)",
                    extra={**common, **names, "data units": "percent"}, overwrite=overwrite)
-    data_extra = {**common, **names, "data units": cube.unit,
-                  "data ignore value": "NaN", "bbl": _bad_band_list(cube.dq),
-                  "dq file": files["dq"].name + ".img"}
-    if cube.alpha is not None:
-        data_extra["alpha file"] = files["alpha"].name + ".img"
     write_envi(base, cube.data, wavelengths_nm=wl, band_names=cube.band_names(),
                description=f"{text} ({cube.unit})", interleave="bsq", extra=data_extra,
                overwrite=overwrite)
@@ -298,4 +305,20 @@ def _write_netcdf(cube, path: Path, compression, description, overwrite) -> None
                                   path=path)
         encoding = {v: {"zlib": True, "complevel": 4} for v in ds.data_vars}
     with atomic_path(path, overwrite=overwrite) as tmp:
-        ds.to_netcdf(tmp, engine=engine, encoding=encoding)
+        try:
+            ds.to_netcdf(tmp, engine=engine, encoding=encoding)
+        except OSError as exc:  # HDF5's are several lines naming the temporary file
+            raise _one_line_os_error(exc, path) from None
+
+
+def _one_line_os_error(exc: OSError, path: Path) -> OSError:
+    """``exc`` as one line naming ``path`` (not the temporary file): HDF5 reports a full disk
+    as ``Can't write data (file write failed: ..., errno = 28, error message = 'No space left
+    on device', ...)`` over several lines."""
+    text = str(exc)
+    found = re.search(r"errno = (\d+)", text)
+    code = exc.errno or (int(found.group(1)) if found else None)
+    if code:
+        return OSError(code, os.strerror(code), str(path))
+    first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
+    return OSError(errno.EIO, f"the netCDF library failed: {first[:200]}", str(path))

@@ -147,25 +147,40 @@ def bits(flags) -> int:
     """
     if flags is None:
         return 0
+    top = int(np.iinfo(DQ_DTYPE).max)
+    if isinstance(flags, (bool, np.bool_)):
+        raise TypeError(f"DQ flags {flags!r} are a bool, not bits; give names "
+                        "(\"SATURATED|DEAD\") or an integer 0..4294967295")
     if isinstance(flags, (int, np.integer)):  # DQ members are ints
-        if int(flags) < 0 or int(flags) > int(np.iinfo(DQ_DTYPE).max):
-            raise ValueError(f"DQ flags {flags} are not a 32-bit set of bits")
+        if int(flags) < 0 or int(flags) > top:
+            raise ValueError(f"DQ flags {flags} are not a 32-bit set of bits (0..{top})")
         return int(flags)
+    if isinstance(flags, (bytes, bytearray, memoryview)):
+        raise TypeError(f"DQ flags {bytes(flags)[:40]!r} are bytes; give a str (decode it: "
+                        "flags.decode()), an integer or a list of names")
     if isinstance(flags, str):
         parts = [p.strip() for p in flags.replace("+", "|").replace(",", "|").split("|")]
+        if not any(parts):
+            raise ValueError(f"DQ flags {flags[:40]!r} name no flag; give names "
+                             "(\"SATURATED|DEAD\"), an integer, or None for all bits")
         value = 0
         for name in filter(None, parts):
-            if name.isdigit():
-                value |= int(name)
+            if name.isascii() and name.isdigit():
+                value |= bits(int(name) if len(name) <= 10 else top + 1)
                 continue
             try:
                 value |= int(DQ[name.upper()])
             except KeyError:
                 known = ", ".join(f.name for f in DQ if f)
-                raise ValueError(f"unknown DQ flag {name!r}; known flags: {known}") from None
+                raise ValueError(f"unknown DQ flag {name[:40]!r}; known flags: {known}") from None
         return value
+    try:
+        items = iter(flags)
+    except TypeError:
+        raise TypeError(f"DQ flags of type {type(flags).__name__} are not names, an integer "
+                        "or a sequence of those") from None
     value = 0
-    for item in flags:
+    for item in items:
         value |= bits(item)
     return value
 

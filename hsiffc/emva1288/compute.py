@@ -192,6 +192,8 @@ def spatial_statistics(sweep, step_light: int, step_dark: int, mask=None) -> dic
 def _slope0(x, y) -> tuple[float, float]:
     """Least-squares slope of a line through the origin and its standard error."""
     sxx = float((x * x).sum())
+    if not sxx > 0:  # every x is 0: no slope (the caller says why in one line)
+        return float("nan"), float("nan")
     m = float((x * y).sum()) / sxx
     n = len(x)
     se = math.sqrt(float(((y - m * x) ** 2).sum()) / (n - 1) / sxx) if n > 1 else float("nan")
@@ -253,6 +255,10 @@ def _temporal_arrays(info: dict, mean, var, where: str) -> dict:
         raise DataFormatError("light steps without photon counts; EMVA 1288 figures need the "
                               "mean photons per pixel of every light step ('b EXPOSURE PHOTONS' "
                               "lines)", path=where)
+    if np.any(photons < 0) or not np.any(photons > 0):
+        raise DataFormatError("the light steps' photon counts are all 0 or some are negative; "
+                              "give the mean photons per pixel of every light step "
+                              "('b EXPOSURE PHOTONS' lines), > 0 for a lit step", path=where)
     if dark.size == 0:
         raise DataFormatError("no dark sweep step; EMVA 1288 needs a dark step at every exposure "
                               "of the light steps", path=where)
@@ -313,10 +319,26 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
                      "noise near the top stopped it early (a pixel that levels off without "
                      "clipping keeps a variance); the figures use step "
                      f"{isat}, as the reference implementation does")
-    isens = int(np.flatnonzero(y <= SENSITIVITY_FRACTION * ysat).max())
+    if not np.any(s2_y > 0):
+        raise DataFormatError("every light step has a temporal variance of 0 DN^2: the frames "
+                              "of each step are identical (copies of one frame?) or all clipped "
+                              "(every step saturated); EMVA 1288 needs two independent frames "
+                              "per step, from dark to saturation", path=where)
+    below = np.flatnonzero(y <= SENSITIVITY_FRACTION * ysat)
+    if not ysat > 0 or below.size == 0:
+        raise DataFormatError(f"no light step lies below {SENSITIVITY_FRACTION:.0%} of the "
+                              f"saturation signal ({ysat:.4g} DN above dark): every step is "
+                              "saturated, or none is above the dark level; record steps from "
+                              "dark to saturation", path=where)
+    isens = int(below.max())
     sl = slice(0, isens + 1)
     R, R_se = _slope0(u_p[sl], y[sl])
     K, K_se = _slope0(y[sl], v[sl])
+    if not (R > 0 and K > 0):
+        raise DataFormatError(f"the photon transfer gives responsivity R = {R:.4g} DN/p and "
+                              f"gain K = {K:.4g} DN/e-: the signal or its variance does not rise "
+                              "with the light below saturation; check the photon counts and "
+                              "that the steps span dark to saturation", path=where)
     qe = R / K
     qe_se = abs(qe) * math.hypot(R_se / R, K_se / K)
 
@@ -347,6 +369,10 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
 
     lo = int(np.flatnonzero(y >= LINEARITY_RANGE[0] * ysat).min())
     hi = int(np.flatnonzero(y <= LINEARITY_RANGE[1] * ysat).max())
+    if hi <= lo:
+        raise DataFormatError(f"fewer than 2 light steps between {LINEARITY_RANGE[0]:.0%} and "
+                              f"{LINEARITY_RANGE[1]:.0%} of saturation: no linearity fit; "
+                              "record more steps below saturation", path=where)
     ll = slice(lo, hi + 1)
     a_lin, b_lin = relative_fit(u_p[ll], y[ll])
     fit = a_lin * u_p + b_lin

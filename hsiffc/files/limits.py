@@ -15,13 +15,16 @@ pixels per frame            100 000 000 (100 MP)  ``HSIFFC_MAX_FRAME_PIXELS``
 frames per input            1 000 000             ``HSIFFC_MAX_FRAMES``
 bytes loaded at once        8 GiB                 ``HSIFFC_MAX_BYTES``
 samples of a spectral grid  100 000               ``HSIFFC_MAX_SPECTRAL_SAMPLES``
+bytes of a text header      16 MiB                ``HSIFFC_MAX_HEADER_BYTES``
 ==========================  ====================  ========================================
 
 "Bytes loaded at once" is the decoded size of everything a command holds in memory together:
 a whole sweep for ``info``/``calibrate``/``fit`` (:meth:`FrameSource.to_sweep`), a single frame
 when frames are streamed (``hsiffc correct``). "Samples of a spectral grid" bounds the
 wavelength grids a file declares (an IMEC sensor calibration's measurement range and step)
-before arrays of that length are made: 100 000 samples is a 0.1 nm grid over 10 um.
+before arrays of that length are made: 100 000 samples is a 0.1 nm grid over 10 um. "Bytes of
+a text header" bounds an ENVI header, checked from its ``stat`` before it is read (a sparse
+3 GB ``.hdr`` is refused at once; a header with the wavelengths of 10 000 bands is ~100 KB).
 
 Other files are checked from their headers against the same limits: the images an EMVA 1288
 descriptor names (each must be the size its ``n`` line declares, read from the PNG or TIFF
@@ -39,7 +42,8 @@ from ..errors import DataFormatError
 __all__ = ["ReadLimits", "default_limits"]
 
 _ENV = {"max_frame_pixels": "HSIFFC_MAX_FRAME_PIXELS", "max_frames": "HSIFFC_MAX_FRAMES",
-        "max_bytes": "HSIFFC_MAX_BYTES", "max_spectral_samples": "HSIFFC_MAX_SPECTRAL_SAMPLES"}
+        "max_bytes": "HSIFFC_MAX_BYTES", "max_spectral_samples": "HSIFFC_MAX_SPECTRAL_SAMPLES",
+        "max_header_bytes": "HSIFFC_MAX_HEADER_BYTES"}
 
 
 @dataclass(frozen=True)
@@ -56,6 +60,8 @@ class ReadLimits:
         Decoded bytes held in memory at once.
     max_spectral_samples : int
         Samples of a wavelength grid a file declares.
+    max_header_bytes : int
+        Bytes of a text header (ENVI ``.hdr``).
 
     Examples
     --------
@@ -80,6 +86,30 @@ class ReadLimits:
     max_frames: int = 1_000_000
     max_bytes: int = 8 * 1024 ** 3
     max_spectral_samples: int = 100_000
+    max_header_bytes: int = 16 * 1024 ** 2
+
+    def check_header_bytes(self, *, path, nbytes: int, what: str) -> None:
+        """Refuse a text header of more than ``max_header_bytes`` bytes (before reading it).
+
+        Parameters
+        ----------
+        path : str or Path
+            The header (for the message).
+        nbytes : int
+            Its size.
+        what : str
+            What it is, e.g. "ENVI header".
+
+        Raises
+        ------
+        DataFormatError
+            One line naming the file, its size, the limit and how to raise it.
+        """
+        if nbytes > self.max_header_bytes:
+            raise DataFormatError(
+                f"the {what} is {nbytes:,} bytes, more than the limit of "
+                f"{self.max_header_bytes:,}; a genuine header is far smaller: check the file, or "
+                f"raise the limit ({_ENV['max_header_bytes']}=...)", path=path)
 
     def check_spectral_samples(self, *, path, field: str, n: int) -> None:
         """Refuse a wavelength grid of more than ``max_spectral_samples`` samples.

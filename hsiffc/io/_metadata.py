@@ -166,8 +166,8 @@ class Overrides:
                 if f.name != "sidecar" and getattr(self, f.name) is not None}
 
 
-def parse_mosaic(spec, *, base=None, path=None, frame_shape=None,
-                 origin: str = "") -> tuple[Mosaic, ActiveArea | None]:
+def parse_mosaic(spec, *, base=None, path=None, frame_shape=None, origin: str = "",
+                 sources: list | None = None) -> tuple[Mosaic, ActiveArea | None]:
     """A mosaic from ``"4x4"``, ``"5x5"``, ``"WxH"`` (tile width x height) or an IMEC XML path.
 
     Parameters
@@ -183,6 +183,9 @@ def parse_mosaic(spec, *, base=None, path=None, frame_shape=None,
         pattern is built (a "100000x100000" tile would take 80 GB).
     origin : str
         Where the value came from ("sidecar x.toml", "--mosaic"), for the messages.
+    sources : list, optional
+        The IMEC XML read is appended here (a metadata source whose content the batch's resume
+        check compares).
 
     Returns
     -------
@@ -205,11 +208,7 @@ def parse_mosaic(spec, *, base=None, path=None, frame_shape=None,
         where = f" from {origin}" if origin else ""
         if width < 1 or height < 1:
             raise DataFormatError(f"mosaic {text!r}{where}: tile sizes must be >= 1", path=path)
-        if frame_shape is not None and (height > frame_shape[0] or width > frame_shape[1]):
-            raise DataFormatError(
-                f"mosaic {text!r}{where}: a tile of {width} x {height} px (W x H) is larger than "
-                f"the frames ({frame_shape[1]} x {frame_shape[0]} px); give the filter pattern's "
-                "tile size (e.g. 4x4, 5x5) there", path=path)
+        check_tile((height, width), frame_shape, what=f"mosaic {text!r}{where}", path=path)
         return Mosaic.rectangular(height, width, name=f"{width}x{height}"), None
     xml = Path(text)
     if base is not None and not xml.is_absolute():
@@ -222,11 +221,49 @@ def parse_mosaic(spec, *, base=None, path=None, frame_shape=None,
     from ..spectral.imec import read_imec_xml
 
     cal = read_imec_xml(xml)
+    if sources is not None:
+        sources.append(xml)
     mosaic = cal.mosaic()
     fa = cal.filter_area
+    check_tile(mosaic.tile_shape, (fa.height, fa.width),
+               what=f"the IMEC pattern of {xml.name}" + (f" from {origin}" if origin else ""),
+               path=path, frames="its filter area")
+    check_tile(mosaic.tile_shape, frame_shape,
+               what=f"the IMEC pattern of {xml.name}" + (f" from {origin}" if origin else ""),
+               path=path)
     area = ActiveArea(fa.offset_y, fa.offset_x, fa.height, fa.width)
     return Mosaic(mosaic.pattern, mosaic.wavelengths_nm, (0, 0), name=mosaic.name,
                   fwhm_nm=mosaic.fwhm_nm), area
+
+
+def check_tile(tile, frame_shape, *, what: str, path=None, frames: str = "the frames") -> None:
+    """Refuse a mosaic tile larger than the frames it tiles (before anything of the tile's
+    size is built: a 250 x 250 pattern is 62,500 bands).
+
+    Parameters
+    ----------
+    tile : (int, int)
+        (height, width) of the tile, px.
+    frame_shape : (int, int) or None
+        (H, W) of the frames (None: not checked).
+    what : str
+        The mosaic and where it came from, for the message.
+    path : str or Path, optional
+        The data file.
+    frames : str
+        What ``frame_shape`` is, for the message.
+
+    Raises
+    ------
+    DataFormatError
+        One line naming the mosaic, both sizes and the fix.
+    """
+    height, width = (int(t) for t in tile)
+    if frame_shape is not None and (height > frame_shape[0] or width > frame_shape[1]):
+        raise DataFormatError(
+            f"{what}: a tile of {width} x {height} px (W x H) is larger than {frames} "
+            f"({frame_shape[1]} x {frame_shape[0]} px); give the filter pattern's tile size "
+            "(e.g. 4x4, 5x5) or the sensor's own XML", path=path)
 
 
 def missing_field_error(path, name: str, *, sidecar=None) -> DataFormatError:
@@ -283,7 +320,8 @@ def _per_frame(layout: FileLayout, name, value, origin):
 
 
 def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
-                   missing: list | None = None) -> tuple[dict, dict]:
+                   missing: list | None = None,
+                   sources: list | None = None) -> tuple[dict, dict]:
     """Fields and their origins for one file (overrides, then the file, then the sidecar).
 
     Parameters
@@ -294,6 +332,8 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
     missing : list, optional
         When given, a missing exposure time is not an error: it becomes NaN, its origin says
         "MISSING" and the field's name is appended here (for ``hsiffc info``).
+    sources : list, optional
+        Every IMEC XML read for the mosaic is appended here.
 
     Returns
     -------
@@ -327,14 +367,19 @@ def resolve_fields(layout: FileLayout, sidecar, overrides: Overrides, *,
         if name == "mosaic" and not isinstance(value, Mosaic):
             base = sidecar.path.parent if origin == side_label else None
             value, area = parse_mosaic(value, base=base, path=layout.path,
-                                       frame_shape=layout.shape[:2], origin=origin)
+                                       frame_shape=layout.shape[:2], origin=origin,
+                                       sources=sources)
             if area is not None:
                 values["active_area"] = area
+        elif name == "mosaic":  # a file's own mosaic (an hsiffc TIFF) is checked the same way
+            check_tile(value.tile_shape, layout.shape[:2],
+                       what=f"mosaic {value.describe()} from {origin}", path=layout.path)
         for other, other_origin in candidates[1:]:
             if name == "mosaic" and not isinstance(other, Mosaic):
                 base = sidecar.path.parent if other_origin == side_label else None
                 other = parse_mosaic(other, base=base, path=layout.path,
-                                     frame_shape=layout.shape[:2], origin=other_origin)[0]
+                                     frame_shape=layout.shape[:2], origin=other_origin,
+                                     sources=sources)[0]
             if not _same(value, other):
                 warnings.warn(f"{layout.path}: {name} from {other_origin} ({_short(other)}) "
                               f"ignored; the {origin} says {_short(value)} and comes first",

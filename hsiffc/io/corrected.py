@@ -45,6 +45,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import stat
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,7 +54,8 @@ import numpy as np
 import tifffile
 
 from ..data.dq import TABLE_VERSION as DQ_TABLE_VERSION, table as dq_table
-from ..errors import DataFormatError
+from ..errors import DataFormatError, ParameterError
+from ..files.limits import default_limits
 from ..files.jsonsafe import json_safe
 from ..files.parsers import load_json
 from .tiff import TiffLog
@@ -148,9 +150,10 @@ def _open_checked(tf, path: Path) -> dict:
 
 
 def _open(path) -> tifffile.TiffFile:
+    from ..files.atomic import require_regular_input
+
     path = Path(path)
-    if not path.is_file():
-        raise DataFormatError("corrected file not found", path=path)
+    require_regular_input(path, what="corrected file")  # a FIFO is never opened
     try:
         return tifffile.TiffFile(path)
     except Exception as exc:  # tifffile raises many types on broken files
@@ -171,6 +174,11 @@ def is_corrected_file(path) -> bool:
     -------
     bool
     """
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO would block the probe
+            return False
+    except OSError:
+        return False
     try:  # tifffile logs what it finds wrong with a file; a probe keeps that quiet
         with TiffLog(), tifffile.TiffFile(path) as tf:
             text = (tf.pages[0].description or "") if len(tf.pages) else ""
@@ -265,10 +273,19 @@ def read_corrected(path, frames=None) -> Corrected:
     with _open(path) as tf:
         doc = _open_checked(tf, path)
         per = doc.get("pages_per_frame", len(PLANES))
-        index = np.arange(doc["n_frames"])
+        n = doc["n_frames"]
+        index = np.arange(n)
         if frames is not None:
-            index = np.atleast_1d(index[frames])
+            try:
+                index = np.atleast_1d(index[frames])
+            except IndexError:
+                raise ParameterError(f"frames {frames!r} out of range: the file holds {n} "
+                                     f"frames (0..{n - 1})") from None
         shape = tuple(doc["frame_shape"])
+        limits = default_limits()  # the header's sizes, before any plane is allocated
+        limits.check_frames(path=path, n_frames=max(len(index), 1), shape=shape, itemsize=4)
+        limits.check_bytes(path=path, nbytes=len(index) * 12 * int(np.prod(shape)),
+                           what=f"{len(index)} frames of data, DQ and alpha planes")
         out = [np.empty((len(index),) + shape, PLANE_DTYPES[p]) for p in PLANES]
         for i, k in enumerate(index):
             for j in range(min(per, 3)):
@@ -396,8 +413,11 @@ class CorrectedWriter:
             rows = [strip, strip, max(1, strip - 1) if strip > 1 else strip]
         options = {"photometric": "minisblack", "metadata": None,
                    "compression": self.compression}
-        if len(self.frame_shape) == 3:  # the bands as samples of each pixel, as in memory
-            options["planarconfig"] = "contig"
+        if len(self.frame_shape) == 3 and self.frame_shape[2] > 1:  # the bands as samples of
+            options["planarconfig"] = "contig"  # each pixel, as in memory
+        elif len(self.frame_shape) == 3:  # one band: tifffile refuses an (H, W, 1) page; the
+            planes = [p.reshape(self.frame_shape[:2]) for p in planes]  # (H, W) page is read
+            # back with the frame_shape (H, W, 1) of the provenance
         for k, plane in enumerate(planes):
             self._tw.write(plane, rowsperstrip=rows[k],
                            description=self._description if first and k == 0 else None,

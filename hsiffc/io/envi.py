@@ -32,7 +32,6 @@ the header finds complete data).
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
@@ -55,16 +54,20 @@ _EXPOSURE_KEYS = ("exposure_ms", "exposure time", "integration time", "tint", "s
                   "exposure")
 _UNITS_MS = {"s": 1e3, "sec": 1e3, "seconds": 1e3, "ms": 1.0, "msec": 1.0, "milliseconds": 1.0,
              "us": 1e-3, "usec": 1e-3, "microseconds": 1e-3, "ns": 1e-6, "nanoseconds": 1e-6}
-_ENTRY = re.compile(r"^\s*([^=]+?)\s*=\s*(.*)$")
 
 
-def parse_envi_header(path) -> dict:
+def parse_envi_header(path, limits: ReadLimits | None = None) -> dict:
     """``key -> value`` of an ENVI header (keys lower-case; lists as lists of strings).
+
+    The header must be a regular file no larger than ``limits.max_header_bytes`` (checked from
+    its ``stat`` before it is read); parsing takes time linear in its size.
 
     Parameters
     ----------
     path : str or Path
         The ``.hdr`` file.
+    limits : ReadLimits, optional
+        Default: :func:`~hsiffc.files.limits.default_limits`.
 
     Returns
     -------
@@ -74,14 +77,22 @@ def parse_envi_header(path) -> dict:
     Raises
     ------
     DataFormatError
-        Unreadable file, or its first line is not ``ENVI``.
+        Unreadable, not a regular file, larger than the limit, or its first line is not
+        ``ENVI``.
     """
+    from ..files.atomic import require_regular_input
+
     path = Path(path)
+    limits = limits or default_limits()
+    st = require_regular_input(path, what="ENVI header")
+    limits.check_header_bytes(path=path, nbytes=st.st_size, what="ENVI header")
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        with open(path, "rb") as fh:
+            raw = fh.read(limits.max_header_bytes + 1)
     except OSError as exc:
         raise DataFormatError(f"cannot read the ENVI header ({exc})", path=path) from exc
-    lines = text.splitlines()
+    limits.check_header_bytes(path=path, nbytes=len(raw), what="ENVI header")  # it grew
+    lines = raw.decode("utf-8", errors="replace").splitlines()
     if not lines or lines[0].strip() != "ENVI":
         raise DataFormatError("not an ENVI header (the first line must be 'ENVI')", path=path)
     out: dict = {}
@@ -91,21 +102,22 @@ def parse_envi_header(path) -> dict:
         i += 1
         if not line.strip() or line.lstrip().startswith(";"):
             continue
-        match = _ENTRY.match(line)
-        if not match:
+        key, eq, value = line.partition("=")
+        key, value = key.strip().lower(), value.strip()
+        if not eq:
             raise DataFormatError(f"line {i}: {line.strip()[:60]!r} is not 'key = value'",
                                   path=path)
-        key, value = match.group(1).strip().lower(), match.group(2).strip()
         if value.startswith("{"):
-            while "}" not in value and i < len(lines):
-                value += "\n" + lines[i]
+            parts = [value]  # each line is searched for "}" once: linear in the header's size
+            while "}" not in parts[-1] and i < len(lines):
+                parts.append(lines[i])
                 i += 1
-            if "}" not in value:
+            if "}" not in parts[-1]:
                 raise DataFormatError(f"the value of {key!r} opens '{{' but never closes it; "
                                       "the header is truncated", path=path)
-            inner = value[1:value.index("}")]
-            value = [v.strip() for v in inner.replace("\n", " ").split(",")] if inner.strip() \
-                else []
+            parts[-1] = parts[-1][:parts[-1].index("}")]
+            inner = " ".join(parts)[1:]
+            value = [v.strip() for v in inner.split(",")] if inner.strip() else []
         out[key] = value
     return out
 
@@ -237,7 +249,7 @@ def open_envi(path, limits: ReadLimits) -> FileLayout:
         Unreadable, truncated or unsupported file, or a header over the limits.
     """
     header, data = envi_paths(path)
-    head = parse_envi_header(header)
+    head = parse_envi_header(header, limits)
     shape, dtype, offset, interleave, (lines, samples, bands) = _geometry(header, head, data,
                                                                           limits)
     wavelengths = _wavelengths_nm(head, header)
@@ -306,7 +318,7 @@ def read_envi(path, *, limits: ReadLimits | None = None) -> tuple[np.ndarray, di
     """
     limits = limits or default_limits()
     header, data = envi_paths(path)
-    head = parse_envi_header(header)
+    head = parse_envi_header(header, limits)
     shape, dtype, offset, interleave, (lines, samples, bands) = _geometry(header, head, data,
                                                                           limits)
     limits.check_bytes(path=header, nbytes=lines * samples * bands * dtype.itemsize,
@@ -327,14 +339,33 @@ _CODES = {np.dtype(v).newbyteorder("<"): k for k, v in ENVI_DTYPES.items()}
 
 
 def _value(value) -> str:
+    """``value`` as ENVI header text: a list in braces; a scalar as it is, which may hold braces
+    but not start with one (a reader would take it for a list) nor hold a line break, and must
+    be UTF-8 (a file name that is not is refused here, before any file is written)."""
     if isinstance(value, (list, tuple, np.ndarray)):
         items = [f"{v:.6g}" if isinstance(v, (float, np.floating)) else str(v) for v in value]
+        for item in items:
+            if any(c in item for c in "{}\n\r"):
+                raise DataFormatError(f"ENVI header list item {item[:40]!r} may not contain "
+                                      "braces or line breaks")
         return "{" + ", ".join(items) + "}"
     text = str(value)
-    if any(c in text for c in "{}\n"):
-        raise DataFormatError(f"ENVI header value {text[:40]!r} may not contain braces or line "
-                              "breaks")
+    if any(c in text for c in "\n\r") or text.lstrip().startswith("{"):
+        raise DataFormatError(f"ENVI header value {text[:40]!r} may not contain line breaks or "
+                              "start with '{'; rename the file")
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise DataFormatError(f"ENVI header value {text[:40]!r} is not UTF-8 text (a file name "
+                              "in another encoding?); rename the file") from None
     return text
+
+
+def check_header_values(*values) -> None:
+    """Raise the :class:`DataFormatError` :func:`write_envi` would raise for any of ``values``
+    (before a set of ENVI files is written, so none is left without the others)."""
+    for value in values:
+        _value(value)
 
 
 def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description: str = "",
@@ -396,11 +427,14 @@ def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description:
         entries[str(key).lower()] = _value(value)
     text = "ENVI\n" + "".join(f"{k} = {v if isinstance(v, str) else _value(v)}\n"
                               for k, v in entries.items())
+    # the header first: a pair is judged by its header (whether hsiffc wrote it, from what), so
+    # a kill or a full disk between the two writes leaves a header that says whose it is, never
+    # a data file nothing vouches for (a rerun stopped at such an .img without --overwrite)
+    with atomic_path(header, overwrite=overwrite) as tmp:
+        Path(tmp).write_text(text, encoding="utf-8")
     with atomic_path(data, overwrite=overwrite) as tmp:
         with open(tmp, "wb") as fh:
             np.ascontiguousarray(cube.transpose(axes), dtype=dtype).tofile(fh)
-    with atomic_path(header, overwrite=overwrite) as tmp:
-        Path(tmp).write_text(text, encoding="utf-8")
     return header, data
 
 

@@ -40,6 +40,7 @@ from ._layout import FileLayout, FrameMeta
 from ._metadata import Overrides, missing_field_error, missing_origin, resolve_fields
 from ._readers import expand_inputs, open_layout
 from ._sidecar import Sidecar, find_sidecar
+from .envi import envi_paths
 
 __all__ = ["open_source", "FrameSource", "FrameMeta", "expand_inputs"]
 
@@ -143,6 +144,14 @@ class FrameSource:
     missing : list of str
         Fields no source gives (only with ``inspect=True``; otherwise missing ones raise).
     files : list of Path
+    metadata_files : list of Path
+        Other files whose content gave metadata: sidecars, IMEC XML, the ENVI header of a data
+        file named.
+    data_files : list of Path
+        Other files the frames are read from: the data file of an ENVI header named.
+    sidecar_lookup : bool
+        Whether a sidecar next to the data would be read (no ``sidecar`` override and a file
+        that is not self-describing).
     meta : dict
 
     Examples
@@ -175,6 +184,7 @@ class FrameSource:
         #: Frames decoded ahead on worker threads while iterating (0: none).
         self.prefetch = 2 if (os.cpu_count() or 1) > 1 else 0
         sidecars: dict[Path, Sidecar | None] = {}
+        xmls: list = []
         resolved = []
         for lay in layouts:
             if overrides.sidecar is not None:
@@ -184,7 +194,8 @@ class FrameSource:
             if side_path is not None and side_path not in sidecars:
                 sidecars[side_path] = Sidecar(side_path)
             resolved.append(resolve_fields(lay, sidecars.get(side_path), overrides,
-                                           missing=self.missing if inspect else None))
+                                           missing=self.missing if inspect else None,
+                                           sources=xmls))
         self._starts = np.cumsum([0] + [lay.n_frames for lay in layouts])
         self.n_frames = int(self._starts[-1])
         facts = resolve_facts(layouts, resolved, label=self.label, inspect=inspect,
@@ -207,6 +218,19 @@ class FrameSource:
         self.strict = all(lay.strict for lay in layouts)
         self.meta = dict(layouts[0].meta) if len(layouts) == 1 else {
             "files": [str(p) for p in self.files]}
+        pairs = [(lay.path, *envi_paths(lay.path)) for lay in layouts if lay.format == "envi"]
+        #: Files besides the data whose content gave metadata (sidecars, IMEC XML, the ENVI
+        #: header of a data file named), without repeats: the batch's resume check compares
+        #: their content.
+        self.metadata_files = list(dict.fromkeys(
+            [*sidecars, *xmls, *(head for named, head, _ in pairs if head != named)]))
+        #: Files the frames are read from besides those named (the data file of an ENVI
+        #: header): the resume check compares their size and modification time, as the
+        #: input's.
+        self.data_files = list(dict.fromkeys(data for named, _, data in pairs if data != named))
+        #: Whether a sidecar next to the data would have been read (a file not self-describing).
+        self.sidecar_lookup = overrides.sidecar is None and not all(lay.strict
+                                                                    for lay in layouts)
 
     # -- decoding -------------------------------------------------------------------------------
     def _locate(self, index: int) -> tuple[FileLayout, int]:

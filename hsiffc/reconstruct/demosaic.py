@@ -13,6 +13,7 @@ from ..data.dq import DQ_DTYPE
 from ..kernels.demosaic import interpolate_bands
 from ..data.mosaic import Mosaic
 from ..data.params import validate_method
+from ..files.limits import default_limits
 from .prepare import (Prepared, band_levels, band_medians, ppi_kernel, prepare,
                       pseudo_panchromatic, tile_starts)
 from .tiles import tile_alpha
@@ -219,6 +220,11 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
     p = prepare(raw, mosaic, dq)
     H, W = p.shape
     B = mosaic.n_bands
+    per_value = 8 + (4 if alpha is not None and not how.uses_ppi else 0)  # cube, DQ, alpha
+    default_limits().check_bytes(  # before allocating: a 250 x 250 tile is 62,500 bands
+        path=None, nbytes=H * W * B * per_value,
+        what=f"the {method} cube of a {W} x {H} px frame with {B} bands "
+             f"({mosaic.describe()})")
     ppi = ppi_ok = None
     levels = np.ones(B)
     if how.uses_ppi:

@@ -44,7 +44,15 @@ def read_panel_spectrum(path) -> tuple[np.ndarray, np.ndarray, str]:
         Missing file, fewer than two rows, a row that is not two numbers, wavelengths not
         increasing, values not positive.
     """
+    from ..files.atomic import require_regular_input
+    from ..files.limits import default_limits
+
     path = Path(path)
+    if not path.exists():
+        raise DataFormatError("panel spectrum not found; give the panel's certificate as a "
+                              "two-column file (wavelength in nm, reflectance)", path=path)
+    st = require_regular_input(path, what="panel spectrum")  # a FIFO is never opened
+    default_limits().check_header_bytes(path=path, nbytes=st.st_size, what="panel spectrum")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:

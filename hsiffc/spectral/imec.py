@@ -151,7 +151,8 @@ class _Reader:
             self.fail(f"element <{where}/{tag}> is empty")
         return e.text.strip()
 
-    def number(self, parent, tag: str, where: str, kind=float):
+    def number(self, parent, tag: str, where: str, kind=float, *, positive: bool = False,
+               nonnegative: bool = False):
         s = self.text(parent, tag, where)
         try:
             v = float(s)
@@ -159,6 +160,10 @@ class _Reader:
             self.fail(f"element <{where}/{tag}> is not a number: {s!r}")
         if not np.isfinite(v):
             self.fail(f"element <{where}/{tag}> is not finite: {s!r}")
+        if positive and v <= 0:
+            self.fail(f"element <{where}/{tag}> must be > 0, got {s!r}")
+        if nonnegative and v < 0:
+            self.fail(f"element <{where}/{tag}> must be >= 0, got {s!r}")
         if kind is int:
             if v != round(v):
                 self.fail(f"element <{where}/{tag}> must be an integer, got {s!r}")
@@ -346,9 +351,9 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
                 order = int(order_s)
             except ValueError:
                 rd.fail(f"<{w_pk}> has a bad order attribute {order_s!r}")
-            band_peaks.append((rd.number(pe, "wavelength_nm", w_pk),
-                               rd.number(pe, "fwhm_nm", w_pk),
-                               rd.number(pe, "QE", w_pk), order))
+            band_peaks.append((rd.number(pe, "wavelength_nm", w_pk, positive=True),
+                               rd.number(pe, "fwhm_nm", w_pk, nonnegative=True),
+                               rd.number(pe, "QE", w_pk, nonnegative=True), order))
         raw_peaks.append(band_peaks)
         selected.append(b.get("selected", "true").strip().lower() != "false")
 
@@ -382,7 +387,7 @@ def read_imec_xml(path, *, max_qe: float | None = None) -> ImecSensorCalibration
         vb = sc.find("virtual_bands")
         for k, ve in enumerate([] if vb is None else vb.findall("band")):
             w_v = f"{w_sc}/virtual_bands/band[{k}]"
-            v_wl.append(rd.number(ve, "wavelength_nm", w_v))
+            v_wl.append(rd.number(ve, "wavelength_nm", w_v, positive=True))
             v_rows.append(rd.vector(rd.child(ve, "custom_spectral_correction", w_v),
                                     w_v + "/custom_spectral_correction", n_bands))
     correction = np.array(v_rows).reshape(len(v_rows), n_bands)

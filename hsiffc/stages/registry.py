@@ -79,11 +79,14 @@ def get(name: str):
     module, _, attr = entry.target.partition(":")
     try:
         cls = getattr(importlib.import_module(module), attr)
-    except Exception as exc:  # a broken plugin must not take hsiffc down
+    except (Exception, SystemExit) as exc:  # a broken plugin must not take hsiffc down, nor
+        # end it: a plugin calling sys.exit(0) on import would end fit/correct with status 0
+        what = (f"it called sys.exit({exc.code!r}) while being imported"
+                if isinstance(exc, SystemExit) else str(exc))
         warnings.warn(f"stage {name!r} from {entry.source} could not be loaded "
-                      f"({type(exc).__name__}: {exc})", PluginWarning, stacklevel=2)
+                      f"({type(exc).__name__}: {what})", PluginWarning, stacklevel=2)
         raise UnknownStageError(f"stage {name!r} is installed ({entry.source}) but failed to "
-                                f"load: {exc}") from exc
+                                f"load: {what}") from exc
     if not getattr(cls, "name", ""):
         cls.name = name
     return cls
