@@ -33,9 +33,11 @@ from .context import (
     load_pipeline,
 )
 from .executors import check_scheduler, run_jobs
-from .plan import BatchError, Job, discover_inputs, output_name, plan_jobs
+from .plan import BatchError, Job, discover_inputs, output_name, plan_jobs, unread_files
 from .summary import BatchSummary
+from .replace import check_replacements
 from .task import correct_file
+from .warnrec import check_classes
 from .workers import WorkerPlan, plan_workers
 
 __all__ = ["FFC_CHOICES", "BatchError", "BatchSummary", "Job", "Settings", "check_scheduler", "correct_batch",
@@ -50,7 +52,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                   overrides: dict | None = None, observer=None,
                   wait_s: float = 0.0, cube: str | None = None,
                   cube_correction: str | None = None, imec_xml=None,
-                  compression: str | None = None, device: str = "cpu") -> BatchSummary:
+                  compression: str | None = None, device: str = "cpu",
+                  fail_on_warning=()) -> BatchSummary:
     """Correct every input (files, folders, globs) into ``outdir``; see ``hsiffc correct``.
 
     Parameters
@@ -78,7 +81,9 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         inputs, the calibration and OUTDIR at the same absolute paths. Checked for a connection
         (a few seconds) before anything else.
     overwrite : bool
-        Redo outputs that are complete and up to date (otherwise skipped), and replace files at
+        Redo outputs that are complete and up to date (otherwise skipped), replace the outputs
+        of another job (another calibration, pipeline or options: otherwise the batch is
+        refused before anything is written, :mod:`hsiffc.batch.replace`), and replace files at
         output names that are not outputs of ``hsiffc correct`` or are symbolic links (the link
         itself is replaced, never its target).
     nan : "flag" or "fail"
@@ -108,6 +113,11 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         ``"cuda"``: the pipeline runs on the GPU (:mod:`hsiffc.gpu`, one process); refused in
         one line, before anything is read, without numba-cuda or a GPU, with ``workers`` above
         1 or a ``scheduler``, or for a step the GPU does not run.
+    fail_on_warning : sequence of str
+        Warning classes (e.g. ``"SceneBrighterThanReferenceWarning"``; a base class such as
+        ``"ReflectanceWarning"`` covers its subclasses) or ``"all"`` that fail a file: its
+        output is not written and its result says which warning. Every warning is recorded
+        for its file either way (:mod:`hsiffc.batch.warnrec`).
 
     Returns
     -------
@@ -117,7 +127,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
     ------
     BatchError, DataFormatError
         Before any file is processed: bad options, missing inputs, unreadable calibration or
-        pipeline, an unreachable scheduler, or an output that would overwrite an input.
+        pipeline, an unreachable scheduler, an output that would overwrite an input, or an
+        output of another job without ``overwrite``.
     hsiffc.files.atomic.FolderLockedError
         Another run is writing into ``outdir`` (the message names its pid, host and start).
     """
@@ -139,7 +150,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                         overrides=_overrides(overrides), cube=cube,
                         cube_correction=cube_correction,
                         imec_xml=None if imec_xml is None else str(Path(imec_xml).resolve()),
-                        compression=_compression(compression), device=device)
+                        compression=_compression(compression), device=device,
+                        fail_on_warning=check_classes(fail_on_warning))
     if settings.imec_xml and not Path(settings.imec_xml).is_file():
         raise BatchError(f"{imec_xml}: IMEC calibration XML not found")
     if settings.pipeline and not Path(settings.pipeline).is_file():
@@ -150,6 +162,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
     used = [p for p in (cal_path, settings.pipeline, settings.imec_xml) if p]
     with protect_inputs([j.input for j in jobs] + used), \
             folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
+        check_replacements(jobs, ctx, settings)  # another job's outputs: refused, untouched
         if observer is not None:
             observer.start(len(jobs))
         plan = None if scheduler else plan_workers(workers, _sizes(jobs))
@@ -168,7 +181,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                         {k: v for k, v in ctx.info.items() if k != "steps"} | {"steps": steps},
                         ignored,
                         execution={"scheduler": scheduler} if plan is None else plan.to_dict()
-                        | {"text": plan.describe()})
+                        | {"text": plan.describe()},
+                        unread=[str(p) for p in unread_files(inputs)])
 
 
 def _check_device(device, workers: int, scheduler) -> None:

@@ -128,6 +128,9 @@ class Settings:
     #: where the pipeline runs: "cpu", or "cuda" (:mod:`hsiffc.gpu`; the same frames within
     #: its stated float32 tolerance, so not part of the outputs' fingerprint)
     device: str = "cpu"
+    #: warning classes (or "all") that fail a file (``--fail-on-warning``; not part of the
+    #: outputs' fingerprint: an output is written only without such a warning)
+    fail_on_warning: tuple = ()
 
 
 @dataclass

@@ -379,6 +379,12 @@ class Pipeline:
         except UnicodeDecodeError as exc:
             raise DataFormatError(f"not valid TOML: {exc}", path=path) from exc
         doc = load_toml(text, path=path, what="pipeline description")
+        for key in doc:  # [[stepp]] beside [[step]] would be a shorter pipeline, silently
+            if key != "step":
+                raise DataFormatError(
+                    f"unknown table or key {key!r}: {did_you_mean(key, ['step'])}a pipeline "
+                    "description holds only [[step]] tables (name = ..., stage = ..., and the "
+                    "stage's parameters)", path=path)
         specs = doc.get("step")
         if not specs or not isinstance(specs, list):
             raise DataFormatError("no [[step]] tables: describe each stage as [[step]] with "
