@@ -178,3 +178,50 @@ def test_an_exposure_in_seconds_gets_a_unit_hint_and_cli_options(campaign, tmp_p
     assert "no master dark at 0.012 ms (only at 12 ms)" in text
     assert "was the exposure given in seconds?" in text
     assert "--calibration FILE" in text and "calibration=\"" not in text
+
+
+# -- the fit's frame contract --------------------------------------------------------------------
+
+def test_a_fitted_pipeline_records_and_checks_its_frames(campaign, tmp_path, capsys):
+    """The manifest records what the pipeline was fitted on; frames given another mosaic or
+    bit depth fail per file with one line naming the option to fix."""
+    from hsiffc.stages import Pipeline
+
+    pipe = Pipeline.load(campaign["two"])
+    rec = pipe.fitted_on
+    assert rec["shape"] == [32, 48] and rec["bit_depth"] == 10 and rec["dtype"] == "uint16"
+    assert rec["mosaic_option"] == "4x4" and rec["exposure_ms"] == [12.0, 12.0]
+    scene = tmp_path / "scene.tif"  # no sidecar: metadata from the command line
+    scene.write_bytes((campaign["scenes"] / "scene_0.tif").read_bytes())
+    base = ["correct", "--pipeline", str(campaign["two"]), str(scene), "-q",
+            "--exposure-ms", "12"]
+    assert main([*base, "-o", str(tmp_path / "a"), "--bit-depth", "10", "--mosaic", "2x2"]) == 1
+    text = capsys.readouterr().out
+    assert "scene.tif: mosaic 2x2 (W x H), but the pipeline was fitted on frames of mosaic " \
+           "4x4 (W x H): give --mosaic 4x4" in text
+    assert main([*base, "-o", str(tmp_path / "b"), "--bit-depth", "12", "--mosaic", "4x4"]) == 1
+    text = capsys.readouterr().out
+    assert "bit depth 12, but the pipeline was fitted on 10-bit frames" in text
+    assert "give --bit-depth 10" in text
+    assert main([*base, "-o", str(tmp_path / "c"), "--bit-depth", "10", "--mosaic", "4x4"]) == 0
+    # the same check in Python, on the frame
+    from hsiffc.data.frame import Frame
+
+    frame = Frame.from_raw(np.zeros((32, 48), np.uint16), exposure_ms=12, bit_depth=12)
+    with pytest.raises(ValueError, match="give --mosaic 4x4"):
+        pipe.transform(frame)
+
+
+def test_fit_refuses_a_reconstruct_step_without_a_mosaic(campaign, tmp_path, capsys):
+    toml = tmp_path / "cube.toml"
+    toml.write_text('[[step]]\nname = "dark"\nstage = "dark"\n\n[[step]]\nname = "cube"\n'
+                    'stage = "reconstruct"\n')
+    dark = tmp_path / "dark.tif"  # no sidecar: no mosaic
+    dark.write_bytes((campaign["root"] / "refs" / "dark_00.tif").read_bytes())
+    capsys.readouterr()
+    assert main(["fit", str(toml), "--dark", str(dark), "--bit-depth", "10", "--exposure-ms",
+                 "12", "-o", str(tmp_path / "cube.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "step 'cube' (reconstruct) needs a mosaic layout" in err and "--mosaic" in err
+    assert not (tmp_path / "cube.npz").exists()
+

@@ -57,7 +57,9 @@ def with_cube_step(pipe: Pipeline, method: str, correction=None, imec_xml=None) 
               "resolution": "tile" if method == "tile" else "full",
               "correction": correction, "imec_xml": imec_xml}
     step = create("reconstruct", **params).fit([])
-    return Pipeline(list(pipe.steps) + [("cube", step)])
+    out = Pipeline(list(pipe.steps) + [("cube", step)])
+    out.fitted_on = pipe.fitted_on  # the frames it takes are the same
+    return out
 
 
 def check_ffc(ffc: str, linearise: bool) -> None:
@@ -170,6 +172,7 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
             pipe = default_pipeline(cal, threshold_percent=settings.threshold_percent,
                                     linearise=settings.linearise, ffc=settings.ffc)
             info = {"kind": "default", "path": None, "sha256": None, "notes": []}
+        info["fitted_on"] = pipe.fitted_on  # what frames must be (None: not recorded)
         if settings.cube:
             pipe = with_cube_step(pipe, settings.cube, settings.cube_correction,
                                   settings.imec_xml)

@@ -24,6 +24,7 @@ from ..cubes.product import frame_unit
 from ..data.dq import DQ
 from ..errors import DataFormatError, HsiffcError, MissingMosaicWarning
 from ..data.frame import Frame
+from ..stages.contract import check_frames
 from ..io.corrected import (
     BackgroundWriter,
     CorrectedWriter,
@@ -168,6 +169,8 @@ def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame,
             if kinds == {"dark"} and "kind" not in dict(settings.overrides):
                 raise LeftOut("dark frames (the file's metadata says kind dark): left out of "
                               "the scene batch (give --kind light to correct them as scenes)")
+            check_frames(ctx.info.get("fitted_on"), shape=src.frame_shape, mosaic=src.mosaic,
+                         bit_depth=src.bit_depth, what=path.name)  # the fit's frame contract
             if ctx.calibration is not None:
                 ctx.calibration.check_compatible(frame_shape=src.frame_shape,
                                                  bit_depth=src.bit_depth, mosaic=src.mosaic,

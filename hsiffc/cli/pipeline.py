@@ -107,7 +107,8 @@ def read_training(args, inputs) -> list:
             raise HsiffcError(f"{path}: mosaic {sweep.mosaic.describe()}, but {first[0]} has "
                               f"{first[2].describe()}; train a pipeline on frames of one sensor "
                               "(give the right --mosaic or fit each sensor separately)")
-        frames += Frame.list_from_sweep(sweep)
+        dtype = str(sweep.data.dtype)  # recorded in the fitted pipeline (its fitted_on)
+        frames += [f.replace(meta={"input_dtype": dtype}) for f in Frame.list_from_sweep(sweep)]
     return frames
 
 
