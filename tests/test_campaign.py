@@ -225,3 +225,49 @@ def test_fit_refuses_a_reconstruct_step_without_a_mosaic(campaign, tmp_path, cap
     assert "step 'cube' (reconstruct) needs a mosaic layout" in err and "--mosaic" in err
     assert not (tmp_path / "cube.npz").exists()
 
+
+# -- reference checks of the dark and two-point stages -------------------------------------------
+
+def test_two_point_fit_checks_its_references(campaign, tmp_path, capsys):
+    """Dark and flat swapped: "were the dark and flat swapped?"; one dim flat frame: too
+    dark, with its numbers, and one frame; the fit still writes the pipeline."""
+    refs = campaign["root"] / "refs"
+    toml = campaign["root"] / "two.toml"
+    darks = [str(p) for p in sorted(refs.glob("dark_*"))]
+    whites = [str(p) for p in sorted(refs.glob("white_*"))]
+    capsys.readouterr()
+    assert main(["fit", str(toml), "--dark", *whites, "--flat", *darks, "-o",
+                 str(tmp_path / "swapped.npz")]) == 0
+    err = capsys.readouterr().err
+    line = [x for x in err.splitlines() if "dark is above the flat" in x]
+    assert line and "were the dark and flat swapped?" in line[0] and "16 of 16 bands" in line[0]
+    assert main(["fit", str(toml), "--dark", *darks, "--flat", whites[0], "-o",
+                 str(tmp_path / "dim.npz")]) == 0
+    err = capsys.readouterr().err
+    dim = [x for x in err.splitlines() if "too dark" in x]
+    assert dim and "flat (12 ms) too dark in 16 of 16 bands" in dim[0] and "% of the range" \
+        in dim[0]
+    assert "one flat frame (12 ms): its noise cannot be measured" in err
+
+
+def test_reference_warnings_carry_their_figures():
+    import warnings
+
+    from hsiffc.data.frame import Frame
+    from hsiffc.data.mosaic import Mosaic
+    from hsiffc.stages import create
+    from hsiffc.stages.refchecks import DarkAboveFlatWarning, SingleReferenceFrameWarning
+
+    mosaic = Mosaic.square(2)
+    dark = Frame.from_raw(np.full((8, 8), 100, np.uint16), exposure_ms=5, bit_depth=10,
+                          mosaic=mosaic, kind="dark")
+    flat = Frame.from_raw(np.full((8, 8), 40, np.uint16), exposure_ms=5, bit_depth=10,
+                          mosaic=mosaic)
+    step = create("dark")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        step.fit([dark])
+        create("two_point_ffc", exposure_ms=5).fit([step.transform(flat)])
+    kinds = {type(w.message): w.message for w in caught}
+    assert kinds[DarkAboveFlatWarning].figures["level_dn"] == [-60.0] * 4
+    assert kinds[SingleReferenceFrameWarning].figures["n_frames"] == 1

@@ -11,6 +11,7 @@ from ..data.params import Param
 from .common import (AVERAGE, CALIBRATION, GIVE_CALIBRATION, find_exposure,
                      group_by_exposure, unit_hint)
 from .base import PreparedWithCalibration, Stage
+from .refchecks import check_darks
 
 MATCHES = ("exposure", "scale")
 
@@ -57,6 +58,7 @@ class DarkSubtract(Stage):
         self.exposures_ms_ = [float(e) for e in groups]
         if groups:
             stacks = [stack_mean(s, robust=self.average == "median") for s in groups.values()]
+            check_darks("dark", groups, [m for m, _ in stacks], stacklevel=3)
             self.masters_ = np.stack([m for m, _ in stacks])
             self.master_dq_ = np.stack([dq for _, dq in stacks])
         if len(groups) >= 2:  # per-pixel line through the masters for unmatched exposures

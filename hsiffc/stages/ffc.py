@@ -28,6 +28,7 @@ from ..leakage.validity import alpha_table_of
 from .common import (AVERAGE, CALIBRATION, GIVE_CALIBRATION, THRESHOLD, find_exposure,
                      group_by_exposure)
 from .base import Stage
+from .refchecks import check_flats
 
 
 def _flats(frames, stage: str) -> dict:
@@ -111,6 +112,7 @@ class TwoPointFFC(Stage):
         dq = np.zeros(band_map.shape, DQ_DTYPE)
         for e in sorted(set(selected)):
             signal, sdq = stack_mean(flats[e], robust=self.average == "median")
+            check_flats(self.name, flats[e], signal, stacklevel=3)  # as reflectance's checks
             ff = two_point_fit(signal, band_map=band_map, flat_dq=sdq)
             bands = [i for i, s in enumerate(selected) if s == e]
             mask = np.isin(band_map, bands)

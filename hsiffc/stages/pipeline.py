@@ -278,7 +278,7 @@ class Pipeline:
         ``frame``'s mosaic, shape or bit depth differ from those the pipeline was fitted on
         (:attr:`fitted_on`; :func:`hsiffc.stages.contract.check_frames`). Checked by
         :meth:`transform`, once per kind of frame."""
-        key = (frame.data.shape, frame.bit_depth, id(frame.mosaic))
+        key = (frame.data.shape, frame.bit_depth, frame.mosaic)  # the same object: no compare
         if self.fitted_on is None or key == self._checked:
             return
         check_frames(self.fitted_on, shape=frame.data.shape, mosaic=frame.mosaic,
