@@ -85,6 +85,24 @@ def test_every_scene_warning_reaches_its_file(campaign, tmp_path, capsys):
         assert [p["class"] for p in prov["warnings"]] == [w["class"] for w in r["warnings"]]
 
 
+def test_a_resumed_campaign_still_lists_its_warnings(campaign, tmp_path, capsys):
+    """Outputs skipped as up to date keep the warnings recorded when they were made (summary
+    and --json); --fail-on-warning fails them too, the outputs kept."""
+    out = tmp_path / "out"
+    assert _correct(campaign, out, "-q") == 0
+    capsys.readouterr()
+    assert _correct(campaign, out, "-q", "--json", tmp_path / "s.json") == 0
+    text = capsys.readouterr().out
+    assert "2 skipped" in text and f"{BRIGHT}: 2 files (scene_0.tif, scene_1.tif)" in text
+    doc = json.loads((tmp_path / "s.json").read_text())
+    assert all(r["warnings"][0]["run"] == "earlier" for r in doc["results"])
+    before = {p.name: p.read_bytes() for p in out.glob("*.corrected.tif")}
+    assert _correct(campaign, out, "-q", "--fail-on-warning", "all") == 1
+    text = capsys.readouterr().out
+    assert "recorded when the output was made" in text and "the output is kept" in text
+    assert {p.name: p.read_bytes() for p in out.glob("*.corrected.tif")} == before
+
+
 def test_a_warning_class_can_fail_the_file(campaign, tmp_path, capsys):
     out = tmp_path / "out"
     assert _correct(campaign, out, "-q", "--fail-on-warning", "ReflectanceWarning") == 1

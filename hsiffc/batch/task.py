@@ -35,7 +35,8 @@ from .context import Context, Settings, context_for, sha256_file
 from .plan import BatchError, Job
 from .source import open_input
 from .stats import FrameStats
-from .warnrec import FileWarnings, NonFiniteInputWarning, NonFiniteOutputWarning
+from .warnrec import (FileWarnings, NonFiniteInputWarning, NonFiniteOutputWarning,
+                      failing_record)
 
 __all__ = ["correct_file", "empty_result", "settle", "stale_reason", "stream_file"]
 
@@ -75,7 +76,7 @@ def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> d
     """
     t0 = time.perf_counter()
     res = empty_result(job)
-    caught = FileWarnings()
+    caught, kept = FileWarnings(), []
     try:
         with caught:
             res["bytes"] = os.stat(job.input).st_size
@@ -83,6 +84,7 @@ def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> d
             why = _existing_output(Path(job.output), job, settings, ctx)
             if why == "":
                 res.update(status="skipped", reason="output complete and up to date")
+                kept = _kept_warnings(Path(job.output), settings, res)
                 return res
             if why is not None:
                 res["redone"] = f"existing output redone: it {why}"
@@ -93,9 +95,25 @@ def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> d
     except Exception as exc:  # one bad input must not stop the batch
         res.update(status="failed", reason=_reason(exc, job.input), frames=0)
     finally:
-        res["warnings"] = caught.records()  # also those of a file that failed
+        res["warnings"] = kept + caught.records()  # also those of a file that failed
         res["seconds"] = time.perf_counter() - t0
     return res
+
+
+def _kept_warnings(out: Path, settings: Settings, res: dict) -> list:
+    """The warnings an up-to-date output recorded when it was made (so that a resumed
+    campaign's summary still lists them; marked ``"run": "earlier"``). A class given to
+    ``--fail-on-warning`` fails the file, its output kept."""
+    try:
+        records = [dict(r, run="earlier") for r in read_provenance(out).get("warnings") or ()]
+    except (DataFormatError, OSError):
+        return []
+    hit = failing_record(records, settings.fail_on_warning)
+    if hit is not None:
+        res.update(status="failed", reason=f"{hit['class']} (--fail-on-warning), recorded when "
+                   f"the output was made: {hit['message']}; the output is kept: pass "
+                   "--overwrite to redo it, or move it")
+    return records
 
 
 class LeftOut(Exception):

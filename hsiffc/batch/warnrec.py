@@ -25,7 +25,7 @@ from ..files.jsonsafe import json_safe
 from .plan import BatchError
 
 __all__ = ["FileWarnings", "NonFiniteInputWarning", "NonFiniteOutputWarning",
-           "WarningAsFailure", "add_record", "check_classes", "known_classes"]
+           "WarningAsFailure", "add_record", "check_classes", "failing_record", "known_classes"]
 
 #: categories about the code, not the data: shown as Python shows them, never recorded
 NOT_DATA = (DeprecationWarning, PendingDeprecationWarning, FutureWarning, ImportWarning,
@@ -75,6 +75,20 @@ def check_classes(names) -> tuple:
 def _names(category) -> list:
     """The class's name and its bases' (so a base class matches its subclasses)."""
     return [c.__name__ for c in category.__mro__ if issubclass(c, Warning)]
+
+
+def failing_record(records, fail_on) -> dict | None:
+    """The first of ``records`` whose class (or a base of it, for hsiffc's classes) is in
+    ``fail_on`` (``"all"``: any), else None."""
+    if not fail_on:
+        return None
+    known = known_classes()
+    for r in records:
+        cls = known.get(r["class"])
+        names = _names(cls) if cls is not None else [r["class"]]
+        if "all" in fail_on or any(n in fail_on for n in names):
+            return r
+    return None
 
 
 def add_record(records: list, record: dict) -> None:
