@@ -128,7 +128,7 @@ class BatchSummary:
                          f"correct (*{SUFFIX} and their ENVI cubes)")
         if self.left_out:
             lines.append(f"left out {len(self.left_out)} files of dark frames (their metadata "
-                         f"says kind dark; --kind light corrects them): "
+                         f"says kind dark; --kind corrects them anyway): "
                          f"{', '.join(r['rel'] for r in self.left_out)}")
         if self.unread:
             lines.append(f"not read: {len(self.unread)} files that are not an image format "

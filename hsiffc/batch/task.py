@@ -46,8 +46,9 @@ log = logging.getLogger(__name__)
 def empty_result(job: Job, **fields) -> dict:
     """The result dict of a task that has not done anything yet (status "failed")."""
     return {"input": job.input, "rel": job.rel, "output": job.output, "status": "failed",
-            "reason": "", "warnings": [], "redone": None, "frames": 0, "bytes": 0, "seconds": 0.0,
-            "uniformity_before": None, "uniformity_after": None, "light_frames": 0, **fields}
+            "reason": "", "warnings": [], "redone": None, "frames": 0, "bytes": 0,
+            "seconds": 0.0, "uniformity_before": None, "uniformity_after": None,
+            "light_frames": 0, **fields}
 
 
 def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> dict:
@@ -186,7 +187,7 @@ def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame,
             kinds = {str(k) for k in src.kind}
             if kinds == {"dark"} and "kind" not in dict(settings.overrides):
                 raise LeftOut("dark frames (the file's metadata says kind dark): left out of "
-                              "the scene batch (give --kind light to correct them as scenes)")
+                              "the scene batch (give --kind to correct them anyway)")
             check_frames(ctx.info.get("fitted_on"), shape=src.frame_shape, mosaic=src.mosaic,
                          bit_depth=src.bit_depth, what=path.name)  # the fit's frame contract
             if ctx.calibration is not None:
