@@ -5,6 +5,9 @@ Every error names the file or argument at fault, what was expected, what was fou
 
 from __future__ import annotations
 
+import contextvars
+from contextlib import contextmanager
+
 
 class HsiffcError(Exception):
     """Base class of every error hsiffc raises on purpose."""
@@ -44,7 +47,43 @@ class CalibrationMismatchError(HsiffcError, ValueError):
 
 
 class HsiffcWarning(UserWarning):
-    """Base class of hsiffc warnings (a library never prints; it warns)."""
+    """Base class of hsiffc warnings (a library never prints; it warns).
+
+    ``figures``: the numbers behind the message (a dict of JSON values), recorded with the
+    warning where a batch keeps it as data (``hsiffc correct``'s results and provenance).
+    """
+
+    def __init__(self, *args, figures: dict | None = None):
+        super().__init__(*args)
+        self.figures = dict(figures or {})
+
+
+_SCOPE: contextvars.ContextVar = contextvars.ContextVar("hsiffc_warning_scope", default=None)
+
+
+@contextmanager
+def warning_scope():
+    """A new scope for warnings a stage gives once (:func:`once_in_scope`): a batch opens one
+    per file, so each file gets its own warnings (never only the first file of a campaign)."""
+    token = _SCOPE.set(object())
+    try:
+        yield
+    finally:
+        _SCOPE.reset(token)
+
+
+def once_in_scope(owner, key) -> bool:
+    """True the first time ``key`` is seen by ``owner`` (an object with a ``__dict__``) in
+    the current :func:`warning_scope` (outside any: once per ``owner``)."""
+    scope = _SCOPE.get()
+    held = owner.__dict__.get("_warned")
+    if held is None or held[0] is not scope:
+        held = (scope, set())
+        owner.__dict__["_warned"] = held
+    if key in held[1]:
+        return False
+    held[1].add(key)
+    return True
 
 
 class MissingMosaicWarning(HsiffcWarning):

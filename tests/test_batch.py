@@ -213,7 +213,8 @@ def test_each_bad_input_is_reported_with_its_reason_and_the_rest_carries_on(worl
     out = tmp_path / "out"
     code = _run(bad_folder, "--calibration", world["cal"], "-o", out, "--json",
                 tmp_path / "summary.json")
-    text = capsys.readouterr().out
+    cap = capsys.readouterr()
+    text = cap.out
     assert code == 1  # something failed
     summary = json.loads((tmp_path / "summary.json").read_text())
     status = {Path(r["input"]).name: r for r in summary["results"]}
@@ -236,7 +237,10 @@ def test_each_bad_input_is_reported_with_its_reason_and_the_rest_carries_on(worl
     assert summary["counts"] == {"done": 3, "skipped": 0, "failed": 6}
     assert "3 done, 0 skipped, 6 failed" in text
     # NaN: done, pixels flagged NONFINITE (set to 0 DN), counted in a warning and the provenance
-    assert "3 NaN/inf pixels in 2 frames flagged NONFINITE" in text
+    # (printed with the file's name as it comes, counted by class in the summary)
+    assert ("hsiffc correct: warning: with_nan.tif: 3 NaN/inf pixels in 2 frames flagged "
+            "NONFINITE") in cap.err
+    assert "NonFiniteInputWarning: 1 file (with_nan.tif)" in text
     c = read_corrected(out / "with_nan.corrected.tif")
     assert c.dq[1, 3, 7] & DQ.NONFINITE and c.dq[0, 0, 0] & DQ.NONFINITE
     assert np.isfinite(c.data).all()
@@ -301,9 +305,14 @@ def test_stale_or_damaged_outputs_are_redone(world, tmp_path):
     src.write_bytes(world["good"][0].read_bytes())
     batch.correct_batch([src], out, world["cal"])
     target = out / "cube_0.corrected.tif"
-    # other parameters: redone
-    res = batch.correct_batch([src], out, world["cal"], threshold_percent=5.0).results[0]
-    assert res["status"] == "done" and "other parameters" in res["warnings"][0]
+    # other parameters: another job, refused before anything is written; --overwrite redoes
+    before = target.read_bytes()
+    with pytest.raises(batch.BatchError, match="already written by another job"):
+        batch.correct_batch([src], out, world["cal"], threshold_percent=5.0)
+    assert target.read_bytes() == before
+    res = batch.correct_batch([src], out, world["cal"], threshold_percent=5.0,
+                              overwrite=True).results[0]
+    assert res["status"] == "done" and res["redone"] is None
     assert read_provenance(target)["pipeline"]["steps"][1]["params"]["threshold_percent"] == 5.0
     # a damaged output under the final name (e.g. cut by a copy tool): redone
     whole = target.read_bytes()
@@ -311,14 +320,14 @@ def test_stale_or_damaged_outputs_are_redone(world, tmp_path):
     with pytest.raises(DataFormatError):
         read_provenance(target)
     res = batch.correct_batch([src], out, world["cal"], threshold_percent=5.0).results[0]
-    assert res["status"] == "done" and "not a complete corrected file" in res["warnings"][0]
+    assert res["status"] == "done" and "not a complete corrected file" in res["redone"]
     # a newer input (modification time): redone; otherwise skipped
     assert batch.correct_batch([src], out, world["cal"],
                                threshold_percent=5.0).results[0]["status"] == "skipped"
     st = os.stat(src)
     os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
     res = batch.correct_batch([src], out, world["cal"], threshold_percent=5.0).results[0]
-    assert res["status"] == "done" and "another version of the input" in res["warnings"][0]
+    assert res["status"] == "done" and "another version of the input" in res["redone"]
 
 
 def test_interrupted_run_resumes_to_the_clean_result(world, tmp_path, clean_run, monkeypatch):
@@ -589,7 +598,8 @@ def test_correction_that_gives_nan_is_flagged_never_written_as_nan(world, tmp_pa
     lost = (c.dq & int(DQ.NONFINITE | DQ.DO_NOT_USE)) == int(DQ.NONFINITE | DQ.DO_NOT_USE)
     assert lost.any() and (c.data[lost] == 0).all()
     if ffc == "none":
-        assert any("NaN/inf" in w for w in res["warnings"])
+        assert any("NaN/inf" in w["message"] for w in res["warnings"])
+        assert "NonFiniteOutputWarning" in [w["class"] for w in c.provenance["warnings"]]
         assert sum(c.provenance["frames"]["nonfinite_output_pixels"]) == int(lost.sum())
 
 
@@ -608,9 +618,12 @@ def test_metadata_options_correct_plain_tiffs_and_count_in_the_fingerprint(world
     again = batch.correct_batch([plain], tmp_path / "out", world["cal"],
                                 overrides={"exposure_ms": 10.0, "bit_depth": 10})
     assert again.skipped  # same metadata: up to date
-    other = batch.correct_batch([plain], tmp_path / "out", world["cal"],
+    with pytest.raises(batch.BatchError, match="another job"):  # other metadata: another job
+        batch.correct_batch([plain], tmp_path / "out", world["cal"],
+                            overrides={"exposure_ms": 20.0, "bit_depth": 10})
+    other = batch.correct_batch([plain], tmp_path / "out", world["cal"], overwrite=True,
                                 overrides={"exposure_ms": 20.0, "bit_depth": 10})
-    assert other.done and "other parameters" in other.done[0]["warnings"][0]
+    assert other.done
 
 
 def test_size_limits_apply_before_any_decode_and_the_batch_carries_on(world, tmp_path,

@@ -161,6 +161,10 @@ def test_what_is_not_fused_runs_stage_by_stage(sim):
     assert fusion.fusable(pipe.steps, pipe.steps[0][1].transform(frame)) == 0
     small = Frame.from_raw(np.zeros((8, 8)), exposure_ms=20.0, bit_depth=10, mosaic=s.mosaic)
     assert fusion.fusable(pipe.steps, small) == 2
+    for fuse in (True, False):  # the fit's frame contract says it first
+        with pytest.raises(ValueError, match=r"fitted on 272 x 512 px frames"):
+            pipe.transform(small, fuse=fuse)
+    pipe.fitted_on = None  # a pipeline saved without the record: the dark stage's own error
     for fuse in (True, False):
         with pytest.raises(ValueError, match=r"dark has shape \(272, 512\) but frames have"):
             pipe.transform(small, fuse=fuse)

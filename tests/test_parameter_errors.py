@@ -136,7 +136,7 @@ def test_file_without_a_mosaic_corrected_with_a_mosaic_calibration_is_warned(
                             overrides={"exposure_ms": 16.125, "bit_depth": 10})
     (res,) = summary.results
     assert res["status"] == "done", res
-    note = [w for w in res["warnings"] if "no mosaic layout" in w]
+    note = [w["message"] for w in res["warnings"] if "no mosaic layout" in w["message"]]
     assert note and f"calibration is for {demo_result.calibration.mosaic.describe()}, 8 bands" \
         in note[0] and "--mosaic" in note[0]
 

@@ -33,9 +33,11 @@ from .context import (
     load_pipeline,
 )
 from .executors import check_scheduler, run_jobs
-from .plan import BatchError, Job, discover_inputs, output_name, plan_jobs
+from .plan import BatchError, Job, discover_inputs, output_name, plan_jobs, unread_files
 from .summary import BatchSummary
+from .replace import check_replacements
 from .task import correct_file
+from .warnrec import check_classes
 from .workers import WorkerPlan, plan_workers
 
 __all__ = ["FFC_CHOICES", "BatchError", "BatchSummary", "Job", "Settings", "check_scheduler", "correct_batch",
@@ -51,7 +53,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                   wait_s: float = 0.0, cube: str | None = None,
                   cube_correction: str | None = None, imec_xml=None,
                   compression: str | None = None, device: str = "cpu",
-                  after=None) -> BatchSummary:
+                  after=None, fail_on_warning=()) -> BatchSummary:
     """Correct every input (files, folders, globs) into ``outdir``; see ``hsiffc correct``.
 
     Parameters
@@ -79,7 +81,9 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         inputs, the calibration and OUTDIR at the same absolute paths. Checked for a connection
         (a few seconds) before anything else.
     overwrite : bool
-        Redo outputs that are complete and up to date (otherwise skipped), and replace files at
+        Redo outputs that are complete and up to date (otherwise skipped), replace the outputs
+        of another job (another calibration, pipeline or options: otherwise the batch is
+        refused before anything is written, :mod:`hsiffc.batch.replace`), and replace files at
         output names that are not outputs of ``hsiffc correct`` or are symbolic links (the link
         itself is replaced, never its target).
     nan : "flag" or "fail"
@@ -113,6 +117,11 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         ``after(summary)`` runs once every file is done, while the output folder's lock is
         still held (the CLI's ``--format`` exports: a second run cannot start in between, and
         they may remove the temporary files an interrupted export left).
+    fail_on_warning : sequence of str
+        Warning classes (e.g. ``"SceneBrighterThanReferenceWarning"``; a base class such as
+        ``"ReflectanceWarning"`` covers its subclasses) or ``"all"`` that fail a file: its
+        output is not written and its result says which warning. Every warning is recorded
+        for its file either way (:mod:`hsiffc.batch.warnrec`).
 
     Returns
     -------
@@ -122,7 +131,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
     ------
     BatchError, DataFormatError
         Before any file is processed: bad options, missing inputs, unreadable calibration or
-        pipeline, an unreachable scheduler, or an output that would overwrite an input.
+        pipeline, an unreachable scheduler, an output that would overwrite an input, or an
+        output of another job without ``overwrite``.
     hsiffc.files.atomic.FolderLockedError
         Another run is writing into ``outdir`` (the message names its pid, host and start).
     """
@@ -144,7 +154,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                         overrides=_overrides(overrides), cube=cube,
                         cube_correction=cube_correction,
                         imec_xml=None if imec_xml is None else str(Path(imec_xml).resolve()),
-                        compression=_compression(compression), device=device)
+                        compression=_compression(compression), device=device,
+                        fail_on_warning=check_classes(fail_on_warning))
     if settings.imec_xml and not Path(settings.imec_xml).is_file():
         raise BatchError(f"{imec_xml}: IMEC calibration XML not found")
     if settings.pipeline and not Path(settings.pipeline).is_file():
@@ -155,6 +166,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
     used = [p for p in (cal_path, settings.pipeline, settings.imec_xml) if p]
     with protect_inputs([j.input for j in jobs] + used), \
             folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):
+        check_replacements(jobs, ctx, settings)  # another job's outputs: refused, untouched
         if observer is not None:
             observer.start(len(jobs))
         plan = None if scheduler else plan_workers(workers, _sizes(jobs))
@@ -172,7 +184,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
             {"path": None if cal_path is None else str(cal_path), "identity": ctx.identity},
             {k: v for k, v in ctx.info.items() if k != "steps"} | {"steps": steps}, ignored,
             execution={"scheduler": scheduler} if plan is None else plan.to_dict()
-            | {"text": plan.describe()})
+            | {"text": plan.describe()},
+            unread=[str(p) for p in unread_files(inputs)])
         if after is not None:
             after(summary)
     return summary

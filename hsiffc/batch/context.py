@@ -57,7 +57,9 @@ def with_cube_step(pipe: Pipeline, method: str, correction=None, imec_xml=None) 
               "resolution": "tile" if method == "tile" else "full",
               "correction": correction, "imec_xml": imec_xml}
     step = create("reconstruct", **params).fit([])
-    return Pipeline(list(pipe.steps) + [("cube", step)])
+    out = Pipeline(list(pipe.steps) + [("cube", step)])
+    out.fitted_on = pipe.fitted_on  # the frames it takes are the same
+    return out
 
 
 def check_ffc(ffc: str, linearise: bool) -> None:
@@ -128,6 +130,9 @@ class Settings:
     #: where the pipeline runs: "cpu", or "cuda" (:mod:`hsiffc.gpu`; the same frames within
     #: its stated float32 tolerance, so not part of the outputs' fingerprint)
     device: str = "cpu"
+    #: warning classes (or "all") that fail a file (``--fail-on-warning``; not part of the
+    #: outputs' fingerprint: an output is written only without such a warning)
+    fail_on_warning: tuple = ()
 
 
 @dataclass
@@ -167,6 +172,7 @@ def context_for(settings: Settings, calibration: Calibration | None = None) -> C
             pipe = default_pipeline(cal, threshold_percent=settings.threshold_percent,
                                     linearise=settings.linearise, ffc=settings.ffc)
             info = {"kind": "default", "path": None, "sha256": None, "notes": []}
+        info["fitted_on"] = pipe.fitted_on  # what frames must be (None: not recorded)
         if settings.cube:
             pipe = with_cube_step(pipe, settings.cube, settings.cube_correction,
                                   settings.imec_xml)

@@ -16,7 +16,8 @@ from ..errors import HsiffcError
 from ..io.corrected import SUFFIX
 from ..io import IMAGE_SUFFIXES
 
-__all__ = ["BatchError", "Job", "discover_inputs", "is_batch_output", "output_name", "plan_jobs"]
+__all__ = ["BatchError", "Job", "discover_inputs", "is_batch_output", "output_name", "plan_jobs",
+           "unread_files"]
 
 _MAGIC = re.compile(r"[*?[]")
 
@@ -122,6 +123,34 @@ def discover_inputs(args) -> tuple[list[tuple[Path, PurePath]], list[Path]]:
         else:
             raise BatchError(f"{path}: no such file or folder")
     return list(found.values()), ignored
+
+
+#: files beside the images that hsiffc reads with them: sidecars and ENVI data files
+_COMPANIONS = {"hsiffc.toml"}
+
+
+def unread_files(args) -> list[Path]:
+    """The files in the folders among ``args`` that the batch does not read: neither an
+    image hsiffc reads, nor an output of ``hsiffc correct``, a sidecar (``hsiffc.toml``) or the
+    data file of an ENVI header (``NAME.img``/``.raw``/``.dat``/no suffix beside
+    ``NAME.hdr``); hidden entries are not searched. Listed in the summary, so that a ``.jpg``
+    or ``.txt`` that was meant as an input is not skipped without a word.
+
+    >>> unread_files([])
+    []
+    """
+    out = []
+    for arg in args:
+        path = Path(os.fspath(arg))
+        if not path.is_dir():
+            continue
+        for f in sorted(path.rglob("*")):
+            if (not f.is_file() or _hidden(f.relative_to(path)) or _is_tiff(f)
+                    or is_batch_output(f) or f.name in _COMPANIONS
+                    or f.with_suffix(".hdr").is_file()):
+                continue
+            out.append(f)
+    return out
 
 
 def _glob_root(pattern: str) -> str:

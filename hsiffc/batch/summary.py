@@ -25,6 +25,8 @@ class BatchSummary:
     #: how it ran: :meth:`hsiffc.batch.workers.WorkerPlan.to_dict` and its ``text``, or the
     #: ``scheduler`` address
     execution: dict = field(default_factory=dict)
+    #: files in the input folders that are not read (not an image format hsiffc reads)
+    unread: list = field(default_factory=list)
 
     def _with(self, status):
         return [r for r in self.results if r["status"] == status]
@@ -36,8 +38,14 @@ class BatchSummary:
 
     @property
     def skipped(self):
-        """Results of the files skipped (outputs complete and up to date)."""
+        """Results of the files skipped (outputs complete and up to date, or left out: see
+        :attr:`left_out`)."""
         return self._with("skipped")
+
+    @property
+    def left_out(self):
+        """Results of the files left out (among the skipped): darks by their metadata."""
+        return [r for r in self.results if r.get("left_out")]
 
     @property
     def failed(self):
@@ -78,6 +86,17 @@ class BatchSummary:
     def _band_counts(rows) -> set:
         return {len(r[key]) for r in rows for key in ("uniformity_before", "uniformity_after")}
 
+    def warnings(self) -> dict:
+        """Per warning class, the number of files that gave it and their names (relative
+        to their input folder), in the order first seen: ``{class: {"count", "files"}}``."""
+        out: dict = {}
+        for r in self.results:
+            for w in r["warnings"]:
+                entry = out.setdefault(w["class"], {"count": 0, "files": []})
+                entry["count"] += 1
+                entry["files"].append(r["rel"])
+        return out
+
     def to_dict(self) -> dict:
         """JSON-safe summary with one result per file (``--json``)."""
         u = self.uniformity()
@@ -85,7 +104,9 @@ class BatchSummary:
                           "counts": {s: len(self._with(s)) for s in ("done", "skipped", "failed")},
                           "exit_status": self.exit_status, "calibration": self.calibration,
                           "pipeline": self.pipeline, "ignored": [str(p) for p in self.ignored],
-                          "execution": self.execution,
+                          "unread": [str(p) for p in self.unread],
+                          "left_out": [r["rel"] for r in self.left_out],
+                          "execution": self.execution, "warnings": self.warnings(),
                           "uniformity_before": None if u is None else u[0],
                           "uniformity_after": None if u is None else u[1],
                           "results": self.results})
@@ -105,6 +126,14 @@ class BatchSummary:
         if self.ignored:
             lines.append(f"ignored {len(self.ignored)} files named like outputs of hsiffc "
                          f"correct (*{SUFFIX} and their ENVI cubes)")
+        if self.left_out:
+            lines.append(f"left out {len(self.left_out)} files of dark frames (their metadata "
+                         f"says kind dark; --kind corrects them anyway): "
+                         f"{', '.join(r['rel'] for r in self.left_out)}")
+        if self.unread:
+            lines.append(f"not read: {len(self.unread)} files that are not an image format "
+                         "hsiffc reads (.tif/.tiff, .png, .hdr, .fits): "
+                         f"{', '.join(_short(self.unread))}")
         u = self.uniformity()
         counts = self._band_counts(self._measured())
         if len(counts) > 1:
@@ -115,10 +144,17 @@ class BatchSummary:
             lines.append("non-uniformity per band (eq. 6, %, mean over light frames, pixels "
                          "good in input and output): input less the pipeline's dark -> corrected")
             lines += [f"  band {i + 1}: {_pct(b)} -> {_pct(a)}" for i, (b, a) in enumerate(zip(*u))]
-        warned = [r for r in self.results if r["warnings"]]
-        if warned:
-            lines.append("warnings:")
-            lines += [f"  {r['rel']}: {w}" for r in warned for w in r["warnings"]]
+        redone = [r for r in self.results if r.get("redone")]
+        if redone:
+            lines.append("redone:")
+            lines += [f"  {r['rel']}: {r['redone']}" for r in redone]
+        by_class = self.warnings()
+        if by_class:
+            n = len({f for c in by_class.values() for f in c["files"]})
+            lines.append(f"warnings in {n} file{'s' if n != 1 else ''} (each file's records "
+                         "are in the --json results and its output's provenance):")
+            lines += [f"  {name}: {c['count']} file{'s' if c['count'] != 1 else ''} "
+                      f"({', '.join(c['files'])})" for name, c in by_class.items()]
         if self.failed:
             lines.append("failed:")
             lines += [f"  {r['rel']}: {r['reason']}" for r in self.failed]
@@ -129,3 +165,9 @@ class BatchSummary:
 def _pct(value) -> str:
     """A non-uniformity for the summary table ("n/a" where none could be measured)."""
     return f"{value:7.3f}" if np.isfinite(value) else "    n/a"
+
+
+def _short(paths, limit: int = 8) -> list:
+    """Up to ``limit`` file names, then how many more."""
+    names = [str(p) for p in paths[:limit]]
+    return names + ([f"and {len(paths) - limit} more"] if len(paths) > limit else [])

@@ -26,6 +26,7 @@ from ..data.dq import DQ
 from ..errors import DataFormatError, HsiffcError, MissingMosaicWarning
 from ..data.frame import Frame
 from ..io._sidecar import find_sidecar
+from ..stages.contract import check_frames
 from ..io.corrected import (
     BackgroundWriter,
     CorrectedWriter,
@@ -36,6 +37,8 @@ from .context import Context, Settings, context_for, sha256_file
 from .plan import BatchError, Job
 from .source import open_input
 from .stats import FrameStats
+from .warnrec import (FileWarnings, NonFiniteInputWarning, NonFiniteOutputWarning,
+                      failing_record)
 
 __all__ = ["correct_file", "empty_result", "settle", "stale_reason", "stream_file"]
 
@@ -45,8 +48,9 @@ log = logging.getLogger(__name__)
 def empty_result(job: Job, **fields) -> dict:
     """The result dict of a task that has not done anything yet (status "failed")."""
     return {"input": job.input, "rel": job.rel, "output": job.output, "status": "failed",
-            "reason": "", "warnings": [], "frames": 0, "bytes": 0, "seconds": 0.0,
-            "uniformity_before": None, "uniformity_after": None, "light_frames": 0, **fields}
+            "reason": "", "warnings": [], "redone": None, "frames": 0, "bytes": 0,
+            "seconds": 0.0, "uniformity_before": None, "uniformity_after": None,
+            "light_frames": 0, **fields}
 
 
 def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> dict:
@@ -66,28 +70,57 @@ def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> d
     -------
     dict
         ``input``, ``rel``, ``output``, ``status`` ("done", "skipped" or "failed"),
-        ``reason``, ``warnings``, ``frames``, ``bytes`` (input size), ``seconds`` and per band
+        ``reason``, ``warnings`` (one record per warning class given while the file was
+        corrected: ``class``, ``message``, ``figures``, ``count``; see
+        :mod:`hsiffc.batch.warnrec`), ``redone`` (why an existing output was replaced, or
+        None), ``frames``, ``bytes`` (input size), ``seconds`` and per band
         ``uniformity_before``/``uniformity_after`` (mean over the light frames, %) with
         ``light_frames``.
     """
     t0 = time.perf_counter()
     res = empty_result(job)
+    caught, kept = FileWarnings(), []
     try:
-        res["bytes"] = os.stat(job.input).st_size
-        ctx = context_for(settings)
-        why = _existing_output(Path(job.output), job, settings, ctx)
-        if why == "":
-            res.update(status="skipped", reason="output complete and up to date")
-            return res
-        if why is not None:
-            res["warnings"].append(f"existing output redone: it {why}")
-        _correct(job, settings, ctx, res, on_frame, commits)
-        res["status"] = "done"
+        with caught:
+            res["bytes"] = os.stat(job.input).st_size
+            ctx = context_for(settings)
+            why = _existing_output(Path(job.output), job, settings, ctx)
+            if why == "":
+                res.update(status="skipped", reason="output complete and up to date")
+                kept = _kept_warnings(Path(job.output), settings, res)
+                return res
+            if why is not None:
+                res["redone"] = f"existing output redone: it {why}"
+            _correct(job, settings, ctx, res, on_frame, commits, caught)
+            res["status"] = "done"
+    except LeftOut as why:
+        res.update(status="skipped", reason=str(why), left_out="dark", frames=0)
     except Exception as exc:  # one bad input must not stop the batch
         res.update(status="failed", reason=_reason(exc, job.input), frames=0)
     finally:
+        res["warnings"] = kept + caught.records()  # also those of a file that failed
         res["seconds"] = time.perf_counter() - t0
     return res
+
+
+def _kept_warnings(out: Path, settings: Settings, res: dict) -> list:
+    """The warnings an up-to-date output recorded when it was made (so that a resumed
+    campaign's summary still lists them; marked ``"run": "earlier"``). A class given to
+    ``--fail-on-warning`` fails the file, its output kept."""
+    try:
+        records = [dict(r, run="earlier") for r in read_provenance(out).get("warnings") or ()]
+    except (DataFormatError, OSError):
+        return []
+    hit = failing_record(records, settings.fail_on_warning)
+    if hit is not None:
+        res.update(status="failed", reason=f"{hit['class']} (--fail-on-warning), recorded when "
+                   f"the output was made: {hit['message']}; the output is kept: pass "
+                   "--overwrite to redo it, or move it")
+    return records
+
+
+class LeftOut(Exception):
+    """A file the batch leaves out (its frames are darks, by its own metadata)."""
 
 
 def _existing_output(out: Path, job: Job, settings: Settings, ctx: Context) -> str | None:
@@ -220,37 +253,41 @@ def settle(res: dict, commits) -> dict:
 
 
 def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame,
-             commits=None) -> None:
+             commits=None, caught=None) -> None:
     path = Path(job.input)
     st = os.stat(path)
     hasher = Background(sha256_file, path) if settings.hash_inputs else None
-    said_once = False
     try:
         with open_input(path, settings.overrides) as src:
+            kinds = {str(k) for k in src.kind}
+            if kinds == {"dark"} and "kind" not in dict(settings.overrides):
+                raise LeftOut("dark frames (the file's metadata says kind dark): left out of "
+                              "the scene batch (give --kind to correct them anyway)")
+            check_frames(ctx.info.get("fitted_on"), shape=src.frame_shape, mosaic=src.mosaic,
+                         bit_depth=src.bit_depth, what=path.name)  # the fit's frame contract
             if ctx.calibration is not None:
                 ctx.calibration.check_compatible(frame_shape=src.frame_shape,
                                                  bit_depth=src.bit_depth, mosaic=src.mosaic,
                                                  what=path.name)
                 if src.mosaic is None and ctx.calibration.mosaic is not None:
-                    said_once = True  # the stages would say it again for every frame
-                    res["warnings"].append(
+                    # the file's record keeps this first message (the stages' repeats count)
+                    warnings.warn(MissingMosaicWarning(
                         "the file gives no mosaic layout but the calibration is for "
                         f"{ctx.calibration.mosaic.describe()}, {ctx.calibration.mosaic.n_bands} "
                         "bands: corrected pixel by pixel, its "
                         "per-band figures are for the whole frame as one band; give the "
-                        "layout (--mosaic, or a sidecar hsiffc.toml) to get them by band")
-            with warnings.catch_warnings():
-                if said_once:
-                    warnings.simplefilter("ignore", MissingMosaicWarning)
-                stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st,
-                            hasher=hasher, commits=commits)
+                        "layout (--mosaic, or a sidecar hsiffc.toml) to get them by band",
+                        figures={"mosaic": ctx.calibration.mosaic.describe(),
+                                 "bands": ctx.calibration.mosaic.n_bands}))
+            stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st,
+                        hasher=hasher, commits=commits, caught=caught)
     finally:
         if hasher is not None:
             hasher.wait(raise_error=False)
 
 
 def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, on_frame=None,
-                st=None, hasher=None, commits=None) -> None:
+                st=None, hasher=None, commits=None, caught=None) -> None:
     """Correct every frame of the open input ``src`` into ``job.output`` (atomically).
 
     The loop is decode (``src`` yields raw frames, read ahead on a thread by
@@ -258,6 +295,10 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
     using every core), encode (a :class:`~hsiffc.io.corrected.BackgroundWriter` writes the
     planes on its own thread while the next frame is corrected): the three overlap, as
     tifffile and imagecodecs release the GIL. Memory: a few frames.
+
+    ``caught``: the file's :class:`~hsiffc.batch.warnrec.FileWarnings`; its records go into
+    the provenance, and a class in ``settings.fail_on_warning`` fails the file before its
+    output is put in place.
     """
     out = Path(job.output)
     st = st if st is not None else os.stat(job.input)
@@ -311,22 +352,36 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
             raise DataFormatError(f"only {res['frames']} of {src.n_frames} frames could be read",
                                   path=job.input)
         res.update(stats.file_result())
+        _nonfinite_warnings(stats)
+        if caught is not None:
+            try:
+                caught.check(settings.fail_on_warning)
+            except BaseException:
+                writer.close()
+                raise
         sha = hasher.wait() if hasher is not None else None
         final = {"input": {**prov["input"], "sha256": sha}, "frames": stats.to_dict(),
                  "seconds": round(time.perf_counter() - t0, 3),
-                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                 "warnings": [] if caught is None else caught.records()}
         if cube is not None:
             final["cube"] = cube
         writer.finish(final)
+
+
+def _nonfinite_warnings(stats: FrameStats) -> None:
+    """The file's NaN/inf counts, in and out, as warnings (recorded with the file's)."""
     bad = [b for b in stats.nonfinite if b]
     if bad:
-        res["warnings"].append(f"{sum(bad)} NaN/inf pixels in {len(bad)} frames flagged "
-                               "NONFINITE (set to 0 DN)")
+        warnings.warn(NonFiniteInputWarning(
+            f"{sum(bad)} NaN/inf pixels in {len(bad)} frames flagged NONFINITE (set to 0 DN)",
+            figures={"pixels": sum(bad), "frames": len(bad)}))
     lost = [b for b in stats.nonfinite_out if b]
     if lost:
-        res["warnings"].append(f"the correction gave {sum(lost)} NaN/inf pixels in {len(lost)} "
-                               "frames (e.g. an exposure far outside the calibration's range): "
-                               "flagged NONFINITE + DO_NOT_USE and written as 0 DN")
+        warnings.warn(NonFiniteOutputWarning(
+            f"the correction gave {sum(lost)} NaN/inf pixels in {len(lost)} frames (e.g. an "
+            "exposure far outside the calibration's range): flagged NONFINITE + DO_NOT_USE and "
+            "written as 0 DN", figures={"pixels": sum(lost), "frames": len(lost)}))
 
 
 def _output_shape(result: Frame, shape: tuple) -> tuple:

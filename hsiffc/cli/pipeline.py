@@ -107,7 +107,8 @@ def read_training(args, inputs) -> list:
             raise HsiffcError(f"{path}: mosaic {sweep.mosaic.describe()}, but {first[0]} has "
                               f"{first[2].describe()}; train a pipeline on frames of one sensor "
                               "(give the right --mosaic or fit each sensor separately)")
-        frames += Frame.list_from_sweep(sweep)
+        dtype = str(sweep.data.dtype)  # recorded in the fitted pipeline (its fitted_on)
+        frames += [f.replace(meta={"input_dtype": dtype}) for f in Frame.list_from_sweep(sweep)]
     return frames
 
 
@@ -169,7 +170,15 @@ def _add_correct(sub):
     p.add_argument("--wait", type=real, default=0.0, metavar="SECONDS",
                    help="when another run is writing into OUTDIR, wait up to SECONDS for it to "
                         "finish (default: refuse at once, naming that run)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar (warnings are still printed)")
+    p.add_argument("--fail-on-warning", action="append", default=[], metavar="CLASS",
+                   help="fail a file that gives this warning class (e.g. "
+                        "SceneBrighterThanReferenceWarning; a base class such as "
+                        "ReflectanceWarning covers its subclasses; all: any warning): its "
+                        "output is not written. Repeatable. Every warning is recorded either "
+                        "way: printed with the file's name, in the --json results and in the "
+                        "output's provenance")
     add_input_options(p)
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
     p.add_argument("--format", choices=("tiff", "envi", "ome", "netcdf"), default="tiff",
@@ -199,10 +208,20 @@ def _add_correct(sub):
 
 
 class Progress:
-    """A rich progress bar on stderr for ``hsiffc correct``: files, frames, input throughput
-    (an observer of :func:`hsiffc.batch.correct_batch`)."""
+    """What ``hsiffc correct`` says while it runs (an observer of
+    :func:`hsiffc.batch.correct_batch`): each file's warnings as they come, one line per
+    warning class naming the file (never merged across files; ``-q`` keeps them), and, with
+    ``bar``, a rich progress bar on stderr: files, frames, input throughput."""
+
+    def __init__(self, bar: bool = True):
+        self.bar = bar
+        self._p = None
 
     def start(self, n_files: int) -> None:
+        if self.bar:
+            self._start_bar(n_files)
+
+    def _start_bar(self, n_files: int) -> None:
         from rich.console import Console
         from rich.progress import (
             BarColumn,
@@ -223,15 +242,27 @@ class Progress:
         self._p.start()
 
     def _update(self, **kw):
+        if self._p is None:
+            return
         rate = self._bytes / max(time.perf_counter() - self._t0, 1e-9) / 1e6
         self._p.update(self._task, frames=self._frames, rate=rate, failed=self._failed, **kw)
 
     def frame(self, nbytes: float) -> None:
+        if self._p is None:
+            return
         self._frames += 1
         self._bytes += nbytes
         self._update()
 
     def file(self, res: dict, counted_frames: bool) -> None:
+        for w in res["warnings"]:
+            line = f"hsiffc correct: warning: {res['rel']}: {w['message']}"
+            if self._p is not None:
+                self._p.console.print(line, markup=False, highlight=False, soft_wrap=True)
+            else:
+                print(line, file=sys.stderr)
+        if self._p is None:
+            return
         if not counted_frames and res["status"] == "done":
             self._frames += res["frames"]
             self._bytes += res["bytes"]
@@ -239,7 +270,8 @@ class Progress:
         self._update(advance=1)
 
     def close(self) -> None:
-        self._p.stop()
+        if self._p is not None:
+            self._p.stop()
 
 
 def _exports(summary, fmt: str, *, overwrite: bool, compression=None) -> int:
@@ -257,6 +289,8 @@ def _exports(summary, fmt: str, *, overwrite: bool, compression=None) -> int:
     failed = 0
     label = {"envi": "ENVI", "ome": "OME-TIFF", "netcdf": "netCDF"}[fmt]
     for r in summary.done + summary.skipped:
+        if r.get("left_out"):
+            continue  # no output: a file of darks left out of the scene batch
         out = Path(r["output"])
         try:
             files = export_files(out, fmt, read_provenance(out))
@@ -326,10 +360,11 @@ def _cmd_correct(args) -> int:
                                 scheduler=args.scheduler, overwrite=args.overwrite, nan=args.nan,
                                 hash_inputs=not args.no_hash, wait_s=args.wait,
                                 overrides=vars(input_overrides(args)),
-                                observer=Progress() if show else None, cube=args.cube,
+                                observer=Progress(bar=show), cube=args.cube,
                                 cube_correction=args.cube_correction,
                                 imec_xml=args.imec_xml, compression=compression,
-                                device=args.device, after=finish)
+                                device=args.device, after=finish,
+                                fail_on_warning=args.fail_on_warning)
     except KeyboardInterrupt:
         print("hsiffc correct: interrupted; finished outputs are kept (no partial file is left "
               "under a final name): run the same command again to resume", file=sys.stderr)

@@ -142,8 +142,10 @@ class Stage:
         if cal is None:
             from ..errors import ParameterError
 
-            raise ParameterError(f"{self.name or type(self).__name__} needs calibration= (a "
-                                 "Calibration or a file from 'hsiffc calibrate')")
+            from .common import GIVE_CALIBRATION
+
+            raise ParameterError(f"{self.name or type(self).__name__} needs a calibration (a "
+                                 f"file from 'hsiffc calibrate'): {GIVE_CALIBRATION}")
         return cal
 
     # -- fitting -------------------------------------------------------------------------------

@@ -31,3 +31,27 @@ def find_exposure(exposures, t_ms: float, rtol: float = 1e-6):
         if abs(e - t_ms) <= rtol * max(abs(t_ms), 1e-12):
             return e
     return None
+
+
+#: how a stage's error asks for a calibration, for every way of giving one
+GIVE_CALIBRATION = ("give a calibration: --calibration FILE (hsiffc correct), calibration = "
+                    "\"FILE\" in the step's [[step]] table (hsiffc fit), calibration= in Python")
+
+
+def unit_hint(t_ms: float, exposures) -> str:
+    """``"; ..."`` suggesting the unit when ``t_ms`` is exactly 1000x or 1/1000x of one of
+    ``exposures`` (an exposure given in seconds where milliseconds are expected, or the
+    reverse), else "".
+
+    >>> unit_hint(0.1, [100.0])[:59]
+    '; 0.1 ms is 100 ms / 1000: was the exposure given in second'
+    >>> unit_hint(12.0, [100.0])
+    ''
+    """
+    for e in exposures:
+        for factor, sign, unit in ((1e-3, "/", "seconds"), (1e3, "x", "microseconds")):
+            if find_exposure([e * factor], t_ms) is not None:
+                return (f"; {t_ms:g} ms is {e:g} ms {sign} 1000: was the exposure given in "
+                        f"{unit}? hsiffc takes milliseconds (--exposure-ms, exposure_ms in a "
+                        "sidecar)")
+    return ""

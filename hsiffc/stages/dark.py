@@ -8,8 +8,10 @@ from ..data.dark import DarkLine, fit_dark_line
 from ..errors import ParameterError
 from ..data.frame import stack_mean
 from ..data.params import Param
-from .common import AVERAGE, CALIBRATION, find_exposure, group_by_exposure
+from .common import (AVERAGE, CALIBRATION, GIVE_CALIBRATION, find_exposure,
+                     group_by_exposure, unit_hint)
 from .base import PreparedWithCalibration, Stage
+from .refchecks import check_darks
 
 MATCHES = ("exposure", "scale")
 
@@ -50,11 +52,13 @@ class DarkSubtract(Stage):
         groups = group_by_exposure(frames, "dark")
         if not groups and self.calibration is None:
             raise ParameterError("dark: no dark frames among the training frames; add dark "
-                                 "frames (kind 'dark') or give calibration= to use its dark level")
+                                 "frames (--dark PATH, or kind 'dark' in their metadata) or "
+                                 f"{GIVE_CALIBRATION} (its dark level is used)")
         self.calibration_product()  # read the file now, not at the first frame
         self.exposures_ms_ = [float(e) for e in groups]
         if groups:
             stacks = [stack_mean(s, robust=self.average == "median") for s in groups.values()]
+            check_darks("dark", groups, [m for m, _ in stacks], stacklevel=3)
             self.masters_ = np.stack([m for m, _ in stacks])
             self.master_dq_ = np.stack([dq for _, dq in stacks])
         if len(groups) >= 2:  # per-pixel line through the masters for unmatched exposures
@@ -114,8 +118,8 @@ class PreparedDark(PreparedWithCalibration):
             return cal.dark_at(exposure_ms), "calibration"
         only = f" (only at {st.exposures_ms_[0]:g} ms)" if st.exposures_ms_ else ""
         raise ParameterError(f"no master dark at {exposure_ms:g} ms{only} and nothing to scale "
-                             "with: record darks at this exposure or at two exposures, or give "
-                             "calibration=")
+                             "with: record darks at this exposure or at two exposures, or "
+                             f"{GIVE_CALIBRATION}{unit_hint(exposure_ms, st.exposures_ms_)}")
 
     def transform(self, frame):
         """:meth:`DarkSubtract.transform`."""

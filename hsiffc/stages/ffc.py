@@ -25,8 +25,10 @@ from ..data.frame import stack_mean
 from ..data.params import Param
 from ..flatfield.polynomial import PolynomialFlat, polynomial_apply, polynomial_fit
 from ..leakage.validity import alpha_table_of
-from .common import AVERAGE, CALIBRATION, THRESHOLD, find_exposure, group_by_exposure
+from .common import (AVERAGE, CALIBRATION, GIVE_CALIBRATION, THRESHOLD, find_exposure,
+                     group_by_exposure)
 from .base import Stage
+from .refchecks import check_flats
 
 
 def _flats(frames, stage: str) -> dict:
@@ -110,6 +112,7 @@ class TwoPointFFC(Stage):
         dq = np.zeros(band_map.shape, DQ_DTYPE)
         for e in sorted(set(selected)):
             signal, sdq = stack_mean(flats[e], robust=self.average == "median")
+            check_flats(self.name, flats[e], signal, stacklevel=3)  # as reflectance's checks
             ff = two_point_fit(signal, band_map=band_map, flat_dq=sdq)
             bands = [i for i, s in enumerate(selected) if s == e]
             mask = np.isin(band_map, bands)
@@ -127,8 +130,10 @@ class TwoPointFFC(Stage):
         """Per band, the longest flat exposure with median alpha under the threshold."""
         cal = self.calibration_product()
         if cal is None:
-            raise ParameterError(f"{self.name}: give exposure_ms= or calibration= (to select "
-                                 "the training exposure per band by the leakage percentage)")
+            raise ParameterError(f"{self.name}: give the flats' exposure (exposure_ms = ... in "
+                                 "the step's [[step]] table, exposure_ms= in Python) or a "
+                                 "calibration to select the training exposure per band by the "
+                                 f"leakage percentage ({GIVE_CALIBRATION})")
         raws = np.stack([np.mean([f.raw for f in s], axis=0) for s in flats.values()])
         darks = np.stack([s[0].dark_removed for s in flats.values()])
         mosaic = next(iter(flats.values()))[0].mosaic

@@ -27,6 +27,7 @@ from ..data.params import did_you_mean
 from ..data.products import STATE_SCHEMAS, read_product, write_product
 from . import registry
 from .base import Stage
+from .contract import check_frames, check_needs, training_record
 from .fusion import FusedFrontEnd
 from .order import check_order
 
@@ -179,6 +180,10 @@ class Pipeline:
         for _, stage in steps:  # calibration files are read once, here
             stage.calibration_product()
         self.steps = steps
+        #: what the pipeline was fitted on (:func:`hsiffc.stages.contract.training_record`;
+        #: saved in the manifest): frames are checked against it; None before :meth:`fit`
+        self.fitted_on = None
+        self._checked = None
         #: how a frame is run (:class:`Plan`), made by :meth:`prepare`; None until fitted
         self.plan = None
         self._prepare_if_fitted()
@@ -243,19 +248,42 @@ class Pipeline:
     # -- fit / transform -----------------------------------------------------------------------
     def fit(self, frames) -> "Pipeline":
         """Fit every stage on ``frames`` (a list of Frames, or a Sweep) passed through the stages
-        fitted before it."""
+        fitted before it, and record what they are (:attr:`fitted_on`: shape, mosaic, bit
+        depth, the files' dtype where the frames' ``input_dtype`` metadata gives it, exposure
+        range).
+
+        Raises
+        ------
+        ParameterError
+            A step whose needs the frames cannot meet (a reconstruct step without a mosaic).
+        """
         from ..data.sweep import Sweep
 
         current = Frame.list_from_sweep(frames) if isinstance(frames, Sweep) else list(frames)
         if not current:
             raise ValueError("fit needs training frames (darks and flats); got none")
+        check_needs(self.steps, current)
+        record = training_record(current)
         for i, (name, stage) in enumerate(self.steps):
             stage.fit(current)
             if i < len(self.steps) - 1:
                 prepared = stage.prepare()
                 current = [prepared.transform(f) for f in current]
+        self.fitted_on, self._checked = record, None
         self.prepare()
         return self
+
+    def check_frame(self, frame: Frame) -> None:
+        """CalibrationMismatchError (one line naming the option that fixes it) when
+        ``frame``'s mosaic, shape or bit depth differ from those the pipeline was fitted on
+        (:attr:`fitted_on`; :func:`hsiffc.stages.contract.check_frames`). Checked by
+        :meth:`transform`, once per kind of frame."""
+        key = (frame.data.shape, frame.bit_depth, frame.mosaic)  # the same object: no compare
+        if self.fitted_on is None or key == self._checked:
+            return
+        check_frames(self.fitted_on, shape=frame.data.shape, mosaic=frame.mosaic,
+                     bit_depth=frame.bit_depth, what="the frame")
+        self._checked = key
 
     def transform(self, frame: Frame, *, fuse: bool = True) -> Frame:
         """Run every stage on ``frame`` and record each in its history.
@@ -265,6 +293,7 @@ class Pipeline:
         frame, bit for bit, in less time; ``fuse=False`` runs every stage's own
         ``transform``. Both run the stages as prepared in :attr:`plan` (made again first
         where a stage was changed since it was made)."""
+        self.check_frame(frame)
         plan = self.plan
         if plan is None or not plan.is_current(self.steps):
             plan = self.prepare()
@@ -299,10 +328,13 @@ class Pipeline:
     # -- persistence ---------------------------------------------------------------------------
     def manifest(self) -> dict:
         """The JSON manifest :meth:`save` writes (format, versions, steps with parameters)."""
-        return {"steps": [{"name": n, "stage": s.name or type(s).__name__,
-                           "params": json_params(s),
-                           "state": s.get_state()[0] if s.is_fitted() else None}
-                          for n, s in self.steps]}
+        man = {"steps": [{"name": n, "stage": s.name or type(s).__name__,
+                          "params": json_params(s),
+                          "state": s.get_state()[0] if s.is_fitted() else None}
+                         for n, s in self.steps]}
+        if self.fitted_on is not None:
+            man["fitted_on"] = self.fitted_on
+        return man
 
     def save(self, path, *, overwrite: bool = False) -> Path:
         """Write the (fitted) pipeline to one ``.npz`` atomically. A calibration that exists
@@ -346,7 +378,12 @@ class Pipeline:
             if not isinstance(specs, list) or not specs:
                 raise TypeError("'steps' must be a non-empty list")
             steps = [_load_step(spec, arrays, Path(path), calibration) for spec in specs]
-            return cls(steps)
+            pipe = cls(steps)
+            record = man.get("fitted_on")
+            if record is not None and not isinstance(record, dict):
+                raise TypeError("'fitted_on' must be a table")
+            pipe.fitted_on = record
+            return pipe
         except ParameterError as exc:
             raise ParameterError(f"{path}: {exc}") from exc
         except HsiffcError:
@@ -379,6 +416,12 @@ class Pipeline:
         except UnicodeDecodeError as exc:
             raise DataFormatError(f"not valid TOML: {exc}", path=path) from exc
         doc = load_toml(text, path=path, what="pipeline description")
+        for key in doc:  # [[stepp]] beside [[step]] would be a shorter pipeline, silently
+            if key != "step":
+                raise DataFormatError(
+                    f"unknown table or key {key!r}: {did_you_mean(key, ['step'])}a pipeline "
+                    "description holds only [[step]] tables (name = ..., stage = ..., and the "
+                    "stage's parameters)", path=path)
         specs = doc.get("step")
         if not specs or not isinstance(specs, list):
             raise DataFormatError("no [[step]] tables: describe each stage as [[step]] with "

@@ -18,7 +18,7 @@ import warnings
 import numpy as np
 
 from ..data.dq import DQ, DQ_DTYPE
-from ..errors import CalibrationMismatchError, ParameterError
+from ..errors import CalibrationMismatchError, ParameterError, once_in_scope
 from ..files.jsonsafe import json_safe
 from ..data.params import Param
 from ..reflectance import (REFLECTANCE_METHODS, ExposureMismatchWarning, GainMismatchWarning,
@@ -283,11 +283,10 @@ class Reflectance(Stage):
         return ref, report
 
     # -- transform -----------------------------------------------------------------------------
-    def _warn_once(self, key, text, category):
-        seen = self.__dict__.setdefault("_warned", set())
-        if key not in seen:
-            seen.add(key)
-            warnings.warn(text, category, stacklevel=5)  # past _transform and Prepared.transform
+    def _warn_once(self, key, text, category, figures=None):
+        if once_in_scope(self, key):  # once per file in a batch (hsiffc.errors.warning_scope)
+            warnings.warn(category(text, figures=figures),
+                          stacklevel=5)  # past _transform and Prepared.transform
 
     def reference_index(self, exposure_ms: float) -> int:
         """Index of the reference used for a scene at ``exposure_ms``: the same exposure, else
@@ -337,7 +336,9 @@ class Reflectance(Stage):
                             f"reflectance: scene at {t:g} ms, white reference at {t_ref:g} ms: "
                             f"scaled by the exposure (x {scale:.4g}), which assumes {how}; "
                             "record a reference at the scenes' exposure for the most direct "
-                            "ratio", ExposureMismatchWarning)
+                            "ratio", ExposureMismatchWarning,
+                            {"scene_exposure_ms": t, "reference_exposure_ms": t_ref,
+                             "exposure_scale": scale})
         g_ref, g = self.white_gain_[j], json_safe(frame.meta.get("gain"))
         if g is not None and g_ref is not None and g != g_ref:
             info["gain_mismatch"] = [g_ref, g]
@@ -345,7 +346,7 @@ class Reflectance(Stage):
                             f"reflectance: scene recorded at gain {g}, white reference at "
                             f"{g_ref}: not corrected, every reflectance is off by the gain "
                             "ratio; record the reference at the scenes' gain",
-                            GainMismatchWarning)
+                            GainMismatchWarning, {"scene_gain": g, "reference_gain": g_ref})
         if frame.kind == "light":
             frac, med = scene_brightness(out, dq == 0,
                                          max_reflectance=float(self.max_reflectance))
@@ -358,7 +359,10 @@ class Reflectance(Stage):
                     f"{med:.3g}); scene at {t:g} ms, reference at {t_ref:g} ms: the scene was "
                     "probably recorded at another exposure, gain or light than the panel "
                     "(or the panel was in shade); record the panel under the scene's light "
-                    "and settings", SceneBrighterThanReferenceWarning)
+                    "and settings", SceneBrighterThanReferenceWarning,
+                    {"fraction_above_max": round(frac, 4), "median": float(med),
+                     "max_reflectance": float(self.max_reflectance),
+                     "scene_exposure_ms": t, "reference_exposure_ms": t_ref})
         return frame.replace(data=out, dq=dq, corrected_by=self.name,
                              meta={"units": "reflectance factor", "reflectance": info})
 
