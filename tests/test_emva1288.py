@@ -254,12 +254,12 @@ def leaky_sweep(seed=0, shape=(32, 32), b=0.004, bits=12, t_max=80.0):
 
 
 def test_leakage_explains_the_linearity_error_of_a_leaky_sensor(tmp_path):
-    from hsiffc.calibrate import calibrate
+    from hsiffc.calibrate import LEAKAGE_ACCOUNT, calibrate
 
     sweep = leaky_sweep()
     res = characterise(sweep)
     assert res["figures"]["LE_min"]["value"] < -0.1  # leakage bends the mean curve
-    leak = leakage_effects(sweep, res, calibrate(sweep, method="joint"))
+    leak = leakage_effects(sweep, res, calibrate(sweep, method="joint", **LEAKAGE_ACCOUNT))
     lin = leak["linearity"]
     assert lin["share_explained_model"] > 0.6
     assert lin["share_explained_by_leakage"] > 0.6  # not the clipping: the control has none
@@ -323,13 +323,14 @@ def test_leakage_sets_the_saturation_point_of_the_real_cmos(emva_dir):
     variance peak, light step 71) within two steps; without leakage it would be where the
     pixels clip, many steps later. (The default run covers the same code on a simulated
     sensor.)"""
-    from hsiffc.calibrate import calibrate
+    from hsiffc.calibrate import LEAKAGE_ACCOUNT, calibrate
     from hsiffc.io import read_emva1288
     from hsiffc.reports.emva_leakage import sweep_steps_only
 
     sweep = read_emva1288(emva_dir)
     res = characterise(sweep)
-    leak = leakage_effects(sweep, res, calibrate(sweep_steps_only(sweep), method="joint"))
+    leak = leakage_effects(sweep, res, calibrate(sweep_steps_only(sweep),
+                                                 method="joint", **LEAKAGE_ACCOUNT))
     tv = leak["temporal_variance"]
     assert tv["saturation_index_measured"] == 71
     assert abs(tv["saturation_index_predicted"] - 71) <= 2

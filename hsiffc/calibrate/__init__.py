@@ -46,6 +46,7 @@ __all__ = [
     "B_GRID",
     "CALIBRATION_METHODS",
     "DARK_MODELS",
+    "LEAKAGE_ACCOUNT",
     "STATUS_REASONS",
     "Calibration",
     "CalibrationMethod",
@@ -100,6 +101,11 @@ CALIBRATION_METHODS = {
     "paper": CalibrationMethod("the paper's section III.C: k per illumination, a and b from "
                                "the dynamic saturation levels", calibrate_paper),
 }
+#: Keywords of :func:`calibrate` (method "joint") that give the leakage model's own account of
+#: a sweep: each pixel's leakage wherever its fit converged, its dark the intercept of its own
+#: fit, no exposure offset, no held-out model choice. What the EMVA 1288 leakage analysis and
+#: the paper's reproduction study; a correction uses the default instead.
+LEAKAGE_ACCOUNT = {"choose": False, "dark_from": "fit", "exposure_offset_ms": 0.0}
 #: The registered names (kept for code that imported them before the registry).
 METHODS = tuple(CALIBRATION_METHODS)
 

@@ -1,11 +1,12 @@
-"""Which response model each band keeps: chosen by held-out prediction inside the calibration.
+"""Which response model a sensor keeps: chosen by held-out prediction inside the calibration.
 
 A per-pixel fit has as many chances to follow noise as it has parameters. The leakage model
 has four per pixel (responsivity g, leakage a and b, the dark level); on a sensor whose
 response does not bend, or bends the same way in every pixel, a and b are not determined by
 one pixel's samples, and a correction built on them adds a fixed pattern of their noise. So
-the calibration compares candidate models on light steps their fit did not see, per band, and
-keeps the simplest one that the held-out steps do not show to be worse:
+the calibration compares candidate models on light steps their fit did not see, on every band
+at once (each band's figures are recorded too), and keeps the simplest one that the held-out
+steps do not show to be worse:
 
 ``two_point_stack``
     a linear response, each pixel's gain from the flat stack alone (the EMVA 1288 two-point
@@ -51,7 +52,8 @@ from .joint import B_GRID, MARGIN_GRID, run_kernel
 from .pixelfit import LEAKAGE, LINEAR_NOT_CONVERGED, LINEAR_WORSE, NO_FIT, TOO_FEW
 from .samples import collect_samples, dark_level, dark_sigma, kernel_samples, linear_fit
 
-__all__ = ["CANDIDATES", "CODES", "MAX_PIXELS", "FitSettings", "calibration_flags", "choose_models", "held_out_split",
+__all__ = ["CANDIDATES", "CODES", "MAX_PIXELS", "FitSettings", "calibration_flags",
+           "candidate_parameters", "choose_models", "held_out_split",
            "kept_codes"]
 
 #: the candidate models, simplest first (code = position)
@@ -101,9 +103,10 @@ class FitSettings:
         return fit, ks
 
 
-def candidate_parameters(fit, ks, settings: FitSettings, code) -> dict:
+def candidate_parameters(fit, ks, settings: FitSettings, code, *, earn: bool = True) -> dict:
     """Per-pixel parameters (P,) of the kept model ``code`` (P,) of :data:`CANDIDATES`: a, b,
-    the dark level, responsivity and its sigma, and which pixels use the linear response.
+    the dark level, responsivity and its sigma, and which pixels use the linear response
+    (``earn=False``: the leakage model wherever its fit converged, earned or not).
 
     The dark level is the dark frames' (:func:`~hsiffc.calibrate.samples.dark_level`) where
     the fit pinned it to them, exactly: the pin leaves the light response a pull of order
@@ -117,7 +120,7 @@ def candidate_parameters(fit, ks, settings: FitSettings, code) -> dict:
     code = np.broadcast_to(np.asarray(code), fit.g.shape)
     with np.errstate(divide="ignore", invalid="ignore"):
         earned = fit.chi2_linear - fit.chi2 > EARN_PER_LN_N * np.log(np.maximum(fit.n_valid, 2))
-    leak = (code == _code("pixel_leakage")) & (fit.status == LEAKAGE) & earned
+    leak = (code == _code("pixel_leakage")) & (fit.status == LEAKAGE) & (earned | (not earn))
     sigma_lin = np.where(code == _code("two_point_stack"), np.inf, s_lin)
     return {"a": np.where(leak, fit.a, 0.0), "b": fit.b, "linear": ~leak, "dark": dark,
             "responsivity": np.where(leak, fit.g, np.where(np.isfinite(g_lin), g_lin, fit.g)),
@@ -236,10 +239,12 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
     Returns
     -------
     dict or None
-        ``bands``: per band the ``kept`` model, ``held_out_fpn_percent`` of every candidate
+        ``kept``: the sensor's model, chosen on every band's held-out steps at once, with its
+        ``held_out_fpn_percent`` (every candidate) and ``predicted_fpn_percent``; ``bands``:
+        per band the same ``kept`` model, ``held_out_fpn_percent`` of every candidate
         (root of the mean relative fixed-pattern variance over the held-out steps) and
-        ``n_steps``, and ``predicted_fpn_percent``: what the kept model's own errors (its factor's and
-        its dark's) predict for the same steps; ``rows``, ``fit_steps``, ``held_out_steps``,
+        ``n_steps``, and ``predicted_fpn_percent``: what the kept model's own errors (its
+        factor's and its dark's) predict for the same steps; ``rows``, ``fit_steps``, ``held_out_steps``,
         ``candidates``. None where
         the sweep has fewer than :data:`MIN_LIGHT_STEPS` light steps of two or more frames
         (every band then keeps ``pixel_leakage``).
@@ -307,8 +312,19 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
             predicted[name].append(_predicted2(gains[name], sigma_dark, out[name], good,
                                                band_map, n_bands))
     levels = np.asarray(levels)
-    return {"bands": [_keep(band, names, scores, predicted, levels[:, band])
-                      for band in range(n_bands)],
+    # the sensor's choice, on every band's steps at once (more steps than one band has: a
+    # near tie in one band does not flip it); each band's own figures beside it
+    pooled = {n: [np.concatenate(scores[n]).reshape(-1)] for n in names}
+    pooled_pred = {n: [np.concatenate(predicted[n]).reshape(-1)] for n in names}
+    sensor = _keep(0, names, {n: [v[0][i:i + 1] for i in range(v[0].size)] for n, v in
+                              pooled.items()},
+                   {n: [v[0][i:i + 1] for i in range(v[0].size)] for n, v in pooled_pred.items()},
+                   (levels / np.nanmax(levels, axis=0, keepdims=True)).reshape(-1))
+    bands = [_keep(band, names, scores, predicted, levels[:, band]) for band in range(n_bands)]
+    for row in bands:
+        row["kept"] = sensor["kept"]
+    return {"kept": sensor["kept"], "held_out_fpn_percent": sensor["held_out_fpn_percent"],
+            "predicted_fpn_percent": sensor["predicted_fpn_percent"], "bands": bands,
             "rows": [rows.start, rows.stop], "fit_steps": fit_steps, "held_out_steps": held,
             "candidates": names}
 

@@ -450,17 +450,27 @@ class Calibration:
 
 
 def _choice_lines(choice) -> list:
-    """The summary's lines on the model each band kept (:mod:`hsiffc.calibrate.choice`)."""
+    """The summary's lines on the model the sensor kept and each band's held-out figures
+    (:mod:`hsiffc.calibrate.choice`)."""
     if not choice:
         return []
     if not choice.get("bands"):
         return [f"  model: leakage where the sweep determines it ({choice.get('reason', '')})"]
-    lines = ["  model kept per band, by held-out fixed-pattern non-uniformity (% on "
-             f"{len(choice['held_out_steps'])} light steps the fit did not see):"]
-    for row in choice["bands"]:
+
+    def figures(row):
         errs = ", ".join(f"{name} {value:.3f}" for name, value in
                          row["held_out_fpn_percent"].items())
         pred = row.get("predicted_fpn_percent", float("nan"))
-        lines.append(f"    band {row['band'] + 1}: {row['kept']} ({errs}"
-                     + (f"; its own errors predict {pred:.3f})" if pred == pred else ")"))
+        return errs + (f"; its own errors predict {pred:.3f}" if pred == pred else "")
+
+    n = len(choice["held_out_steps"])
+    lines = []
+    if "kept" in choice:
+        lines.append(f"  model kept: {choice['kept']}, by held-out prediction on {n} light "
+                     f"steps the fit did not see (fixed-pattern non-uniformity, %: "
+                     f"{figures(choice)})")
+    lines.append(f"  model kept per band, by held-out fixed-pattern non-uniformity (% on {n} "
+                 "light steps the fit did not see):")
+    lines += [f"    band {row['band'] + 1}: {row['kept']} ({figures(row)})"
+              for row in choice["bands"]]
     return lines

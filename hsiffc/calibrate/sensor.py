@@ -202,8 +202,10 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         candidate of the model choice (fold them into the calibration afterwards with
         :func:`hsiffc.calibrate.flats.add_flat_stacks`).
     choose : bool
-        Choose each band's model by held-out prediction (default); False keeps the leakage
-        model wherever the sweep determines it.
+        Choose the model by held-out prediction, and use a pixel's leakage only where its
+        samples earn it (default); False keeps the leakage model wherever its fit converged
+        (with ``dark_from="fit"`` and ``exposure_offset_ms=0``: the leakage model's own account
+        of a sweep, as the EMVA 1288 leakage analysis and the paper's reproduction use it).
     rows_per_chunk : int, optional
         Rows fitted at once (memory is bounded by rows x width x steps).
     progress : callable, optional
@@ -254,7 +256,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                               dtype=np.float64)  # the kernel's precision: no conversion pass
         info = info or smp
         fit, ks = settings.fit(smp)
-        kept = choice.candidate_parameters(fit, ks, settings, codes[rows].ravel())
+        kept = choice.candidate_parameters(fit, ks, settings, codes[rows].ravel(), earn=choose)
         shape = (rows.stop - rows.start, w)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             sat = np.where(kept["a"] > 0, model.dynamic_saturation_level(

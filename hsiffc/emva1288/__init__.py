@@ -57,11 +57,12 @@ def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leak
     if not leakage:
         return res, None, None
     if calibration is None:
-        from ..calibrate import calibrate
+        from ..calibrate import LEAKAGE_ACCOUNT, calibrate
         from ..reports.emva_leakage import sweep_steps_only
 
         try:
-            calibration = calibrate(sweep_steps_only(sweep), method="joint")
+            # the leakage model's own account (no held-out choice of a simpler model)
+            calibration = calibrate(sweep_steps_only(sweep), method="joint", **LEAKAGE_ACCOUNT)
         except DataFormatError as exc:
             return res, None, f"not computed: the sweep cannot calibrate the leakage model ({exc})"
     return res, leakage_effects(sweep, res, calibration), None

@@ -11,7 +11,8 @@ import numpy as np
 from ...files.jsonsafe import json_safe
 from ... import __version__
 from ...leakage import model
-from ...calibrate import Calibration, calibrate, collect_samples, photon_transfer
+from ...calibrate import (LEAKAGE_ACCOUNT, Calibration, calibrate, collect_samples,
+                         photon_transfer)
 from ...errors import CalibrationMismatchError, DataFormatError
 
 __all__ = ["BIN_WIDTH_DN", "analyse_emva_leakage", "fit_linear", "sweep_steps_only"]
@@ -172,7 +173,9 @@ def analyse_emva_leakage(sweep, calibration: Calibration | None = None, *,
         raise ValueError(f"n_example_pixels must be 1 to {len(ROLES)}, got {n_example_pixels}")
     sweep = sweep_steps_only(sweep)
     if calibration is None:
-        calibration = calibrate(sweep, method="joint")
+        # what the leakage model explains: each pixel's, wherever its samples earn it (no
+        # held-out choice of a simpler model, which a correction would make)
+        calibration = calibrate(sweep, method="joint", **LEAKAGE_ACCOUNT)
     if tuple(calibration.domain.get("frame_shape", ())) != tuple(sweep.frame_shape):
         raise CalibrationMismatchError(
             f"the calibration is for frames {calibration.domain.get('frame_shape')}, the sweep "
