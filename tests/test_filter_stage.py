@@ -35,9 +35,9 @@ def _cube(seed=0, shape=(32, 32, 4), level=1000.0, noise=20.0):
     return Frame(data, np.zeros(shape, np.uint32), {"exposure_ms": 10.0, "bit_depth": 12})
 
 
-def _mosaic_frame(seed=0, shape=(60, 60), n=3):
+def _mosaic_frame(seed=0, shape=(60, 60), n=3, offset=(0, 0)):
     rng = np.random.default_rng(seed)
-    mosaic = Mosaic.square(n)
+    mosaic = Mosaic(np.arange(n * n).reshape(n, n), offset=offset)
     levels = np.arange(n * n, dtype=np.float32) * 300 + 500  # bands far apart in level
     data = (levels[mosaic.band_map(shape)] + rng.normal(0, 20, shape)).astype(np.float32)
     return Frame(data, np.zeros(shape, np.uint32),
@@ -74,15 +74,29 @@ def test_a_flagged_outlier_does_not_spread_and_flags_are_carried(method):
     assert b.data[3, 5, 1] == f.data[3, 5, 1]
 
 
-@pytest.mark.parametrize("method", OPENCV)
-def test_a_mosaic_frame_is_filtered_per_band_without_mixing_bands(method):
-    f = _mosaic_frame()
+@pytest.mark.parametrize("method, offset", [(m, (0, 0)) for m in OPENCV]
+                         + [("gaussian", (1, 2)), ("median", (2, 1))])
+def test_a_mosaic_frame_is_filtered_per_band_without_mixing_bands(method, offset):
+    f = _mosaic_frame(offset=offset)
     out = create("filter", method=method).fit([f]).transform(f)
     band = f.band_map()
     for b in range(f.mosaic.n_bands):
         before, after = f.data[band == b], out.data[band == b]
         # each band keeps its own level (a 3x3 filter over the mosaic would mix 300 DN steps)
         assert abs(after.mean() - before.mean()) < 3 and after.std() < 0.8 * before.std()
+
+
+def test_a_frame_without_a_mosaic_is_one_image():
+    f = _mosaic_frame().replace(meta={"mosaic": None})
+    out = create("filter", method="gaussian", params={"sigma": 2.0}).transform(f)
+    # the bands' 300 DN steps are blurred together: the whole frame is one image
+    assert out.data.std() < 0.8 * f.data.std() and out.corrected_by == "filter"
+
+
+def test_stages_that_need_the_response_go_before_the_filter():
+    with pytest.raises(ParameterError, match="needs the uncorrected sensor response"):
+        Pipeline([("dark", create("dark")), ("denoise", create("filter")),
+                  ("alpha", create("alpha_mask", calibration="cal.npz"))])
 
 
 def test_params_are_checked_against_the_filters_own_declaration():
@@ -203,6 +217,34 @@ def test_plugins_register_filters(tmp_path):
         FILTERS.pop("test_box", None)
     with pytest.raises(ParameterError, match="not a registered filter"):
         get_filter("test_box")
+
+
+def test_filters_of_installed_packages_load_from_their_entry_point(monkeypatch):
+    """A module declared under the entry-point group hsiffc.filters is imported when a name
+    is not found (it registers its filters); a broken one warns and hsiffc goes on."""
+    from hsiffc.stages import filter as filter_module
+    from hsiffc.stages.registry import PluginWarning
+
+    class EntryPoint:
+        def __init__(self, value, load):
+            self.value, self.load = value, load
+
+    def good():
+        register_filter("test_ep_filter", lambda im: im, summary="identity", source="test")
+
+    def bad():
+        raise ImportError("no such module")
+
+    monkeypatch.setattr("importlib.metadata.entry_points",
+                        lambda group: [EntryPoint("broken_pkg", bad),
+                                       EntryPoint("good_pkg", good)]
+                        if group == "hsiffc.filters" else [])
+    monkeypatch.setattr(filter_module, "_loaded_plugins", False)
+    try:
+        with pytest.warns(PluginWarning, match="broken_pkg"):
+            assert get_filter("test_ep_filter").source == "test"
+    finally:
+        FILTERS.pop("test_ep_filter", None)
 
 
 def test_a_pipeline_file_never_names_an_import_path(tmp_path):
