@@ -271,4 +271,5 @@ def test_the_contract_helper_passes(sample_cubes, method):
 def test_the_stage_is_listed_by_hsiffc_stages():
     out = subprocess.run([sys.executable, "-m", "hsiffc", "stages"], capture_output=True,
                          text=True, check=True).stdout
-    assert "filter" in out
+    assert "filter" in out and "filters of the 'filter' stage" in out
+    assert "  gaussian " in out and "sigma=1.0" in out

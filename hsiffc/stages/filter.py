@@ -50,7 +50,7 @@ from ..data.params import Param, check_params, did_you_mean, unknown_parameters
 from .base import Stage
 
 __all__ = ["FILTERS", "FilterMethod", "FilterStage", "filter_image", "filter_planes",
-           "get_filter", "noise_dn", "register_filter"]
+           "describe_filters", "get_filter", "noise_dn", "register_filter"]
 
 #: the entry-point group whose modules register filters when imported
 GROUP = "hsiffc.filters"
@@ -277,6 +277,23 @@ def get_filter(name) -> FilterMethod:
             raise ParameterError(f"filter: method={name!r} needs {record.needs}, which is not "
                                  f"installed: {record.extra or 'install it'}") from None
     return record
+
+
+def describe_filters() -> list[dict]:
+    """Name, source, summary and status (``"ok"``, or what to install) of every registered
+    filter, those of installed plugins included (for ``hsiffc stages``)."""
+    _load_plugins()
+    rows = []
+    for name in sorted(FILTERS):
+        try:
+            get_filter(name)
+            status = "ok"
+        except ParameterError:
+            status = f"needs {FILTERS[name].needs}: {FILTERS[name].extra or 'install it'}"
+        rec = FILTERS[name]
+        rows.append({"name": name, "source": rec.source, "summary": rec.summary,
+                     "params": dict(rec.defaults), "status": status})
+    return rows
 
 
 def _fill_flagged(image, bad):
