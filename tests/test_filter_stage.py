@@ -213,8 +213,16 @@ def test_plugins_register_filters(tmp_path):
             register_filter("gaussian", box)
         with pytest.raises(ParameterError, match="no default"):
             register_filter("test_nodefault", box, params={"k": Param("integer")})
+        # a filter that writes into its image never changes the frame it was given
+        register_filter("test_inplace", lambda im: np.add(im, 1, out=im))
+        plain = f.replace(data=np.ascontiguousarray(f.data[:, :, 0]), dq=f.dq[:, :, 0])
+        before = plain.data.copy()
+        shifted = create("filter", method="test_inplace").transform(plain)
+        assert np.array_equal(plain.data, before)
+        assert np.array_equal(shifted.data, before + 1)
     finally:
         FILTERS.pop("test_box", None)
+        FILTERS.pop("test_inplace", None)
     with pytest.raises(ParameterError, match="not a registered filter"):
         get_filter("test_box")
 

@@ -322,7 +322,7 @@ def filter_image(image, dq, record: FilterMethod, params: dict) -> np.ndarray:
     bad = (np.asarray(dq) != 0) | ~np.isfinite(image)
     if bad.all() or image.size == 0:
         return image.copy()
-    work = _fill_flagged(image, bad) if bad.any() else image
+    work = _fill_flagged(image, bad) if bad.any() else image.copy()  # a filter may write
     lo = hi = None
     if record.scaled:
         lo, hi = float(work.min()), float(work.max())
