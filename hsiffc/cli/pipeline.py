@@ -37,9 +37,25 @@ def _cmd_stages(args) -> int:
         print(f"{r['name']:<{width}}  {r['source']:<24} {r['target']}{status}")
         if r["summary"]:
             print(f"{'':<{width}}  {r['summary']}")
+    _print_filters()
     if args.json:
         write_json(args.json, rows)
     return 0
+
+
+def _print_filters() -> None:
+    """The filters the ``filter`` stage takes (``method = ...``), with their defaults."""
+    from ..stages.filter import describe_filters
+
+    rows = describe_filters()
+    print("filters of the 'filter' stage (method = NAME, params = {...}):")
+    width = max(len(r["name"]) for r in rows)
+    for r in rows:
+        params = ", ".join(f"{k}={v!r}" for k, v in r["params"].items()) or "no parameters"
+        status = "" if r["status"] == "ok" else f"[{r['status']}] "
+        summary = r["summary"].rstrip(".") or "no summary"
+        source = "" if r["source"] == "hsiffc (built-in)" else f"; from {r['source']}"
+        print(f"  {r['name']:<{width}}  {status}{summary} ({params}{source}).")
 
 
 def _add_fit(sub):

@@ -202,6 +202,7 @@ STATE_SCHEMAS = {
                     "matrix_": ("f", ("virtual_wavelengths_nm_", "B"))},
     "alpha_mask": {"fitted_": "bool"},
     "linearise": {"fitted_": "bool"},
+    "filter": {"fitted_": "bool"},
 }
 _DTYPE_WORDS = {"f": "floats", "u": "unsigned integers (DQ bits)"}
 _MAX_SIZE = 65536  # a step's own sizes (bands, coefficients, exposures): far above any real one

@@ -32,6 +32,7 @@ BUILTIN = {
     "model_ffc": "hsiffc.stages.model_ffc:ModelFFC",
     "reconstruct": "hsiffc.stages.reconstruct:Reconstruct",
     "reflectance": "hsiffc.stages.reflectance:Reflectance",
+    "filter": "hsiffc.stages.filter:FilterStage",
 }
 
 
