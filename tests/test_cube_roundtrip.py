@@ -16,6 +16,7 @@ import pytest
 from hsiffc.cli import main
 from hsiffc.cubes import Cube, read_cube, to_xarray, write_cube
 from hsiffc.data.dq import DQ
+from hsiffc.errors import DataFormatError
 from hsiffc.io import write_sweep
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 
@@ -187,3 +188,18 @@ def test_envi_reflectance_cube_says_its_scale_factor(tmp_path):
     assert read_cube(tmp_path / "r.hdr").unit == "reflectance factor"
     write_cube(_cube(), tmp_path / "dn.hdr")  # DN: no reflectance scale factor
     assert "reflectance scale factor" not in (tmp_path / "dn.hdr").read_text()
+
+
+def test_envi_header_from_another_tool_reads_without_hsiffc_keys(tmp_path):
+    """A header whose band keys no longer fit the cube (a tool kept them when it wrote a
+    subset) reads without them; history that is not hsiffc's JSON is refused by name."""
+    write_cube(_cube(), tmp_path / "c.hdr")
+    hdr = tmp_path / "c.hdr"
+    text = hdr.read_text()
+    hdr.write_text(text.replace("hsiffc band index = {1, 3, 2, 0}", "hsiffc band index = {1, 3}"))
+    back = read_cube(hdr)
+    assert back.positions is None and back.band_index == (0, 1, 2, 3)
+    assert back.attrs["frame"] == 3
+    hdr.write_text(re.sub(r"hsiffc history = .*", "hsiffc history = [oops", text))
+    with pytest.raises(DataFormatError, match="hsiffc history"):
+        read_cube(hdr)

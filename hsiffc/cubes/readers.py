@@ -61,14 +61,13 @@ def _envi(path: Path) -> Cube:
 
 def _envi_bands(raw: dict, n: int, header: Path):
     """Band positions and indices from ``hsiffc band positions`` / ``hsiffc band index``
-    (written by :func:`~hsiffc.cubes.write_cube`); (None, None) for another program's file."""
+    (written by :func:`~hsiffc.cubes.write_cube`); (None, None) for another program's file,
+    or where their lengths are not the cube's (a tool that kept the keys when it wrote a
+    subset of the bands)."""
     index, where = raw.get("hsiffc band index"), raw.get("hsiffc band positions")
-    if not isinstance(index, list) or not isinstance(where, list):
+    if not isinstance(index, list) or not isinstance(where, list) or not (
+            len(index) == len(where) == n):
         return None, None
-    if len(index) != n or len(where) != n:
-        raise DataFormatError(f"'hsiffc band index' / 'hsiffc band positions' list {len(index)}"
-                              f" / {len(where)} bands for a cube of {n}; the header was "
-                              "altered", path=header)
     positions = []
     for item in where:
         found = re.fullmatch(r"r(\d+)c(\d+)", item)
@@ -179,8 +178,13 @@ def _netcdf_attrs(stored: dict, path: Path) -> tuple:
     ``source``."""
     from .xr import OWN_ATTRS
 
-    if "json_attrs" not in stored:
-        return (), {"source": path.name}
+    if "json_attrs" not in stored:  # another program's, or written before hsiffc 0.2
+        try:
+            history = json.loads(str(stored.get("history", "[]")))
+        except ValueError:
+            history = []
+        ok = isinstance(history, list) and all(isinstance(h, dict) for h in history)
+        return (tuple(history) if ok else ()), {"source": path.name}
     as_json = str(stored["json_attrs"]).split()
     try:
         history = json.loads(str(stored.get("history", "[]")))
