@@ -72,6 +72,14 @@ def test_plain_camera_tiffs_to_reflectance(tmp_path, capsys):
     assert cube.data.shape == (1, 32, 48, 16)
     assert cube.provenance["cube"]["unit"] == "reflectance factor"
     assert abs(np.median(cube.data[cube.dq == 0]) / 0.3 - 1) < 0.01
+    # an ENVI export of the same job (a resume) is named and labelled as reflectance
+    assert main(["correct", "--pipeline", str(tmp_path / "cube.npz"), str(scenes), "-o",
+                 str(tmp_path / "cubes"), "--format", "envi", "-q"]) == 0
+    header = (tmp_path / "cubes" / "scene_0.reflectance.hdr").read_text()
+    assert "reflectance scale factor = 1.0" in header and "data units = reflectance factor" in header
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "cubes" / "scene_0.reflectance.hdr")]) == 0
+    assert "ENVI cube, 32 x 48 px, 16 bands, float32 reflectance factor" in capsys.readouterr().out
     # the same reference checks a grey target: its mean against its value, its uniformity
     assert main(["reflectance", "check", str(scenes), "--pipeline", str(refl), "--expected",
                  "0.3", "--json", str(tmp_path / "target.json")]) == 0
