@@ -28,8 +28,9 @@ def register(sub) -> None:
 
 def _add_info(sub):
     p = sub.add_parser("info", help="describe frames of any supported format and where each "
-                                    "metadata field came from (of hsiffc correct's outputs: "
-                                    "their provenance)")
+                                    "metadata field came from (of hsiffc correct's outputs and "
+                                    "the ENVI, OME-TIFF and netCDF cubes hsiffc writes: bands, "
+                                    "DQ counts, provenance)")
     p.add_argument("sweep", type=Path, nargs="+", help="files, folders or globs")
     p.add_argument("--json", type=Path, default=None, help="also write the description as JSON")
     add_input_options(p)

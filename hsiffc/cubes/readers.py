@@ -247,6 +247,9 @@ def read_cube(path, *, frame: int = 0) -> Cube:
     Returns
     -------
     Cube
+        As written: data, DQ (uint32), alpha, wavelengths, widths, band indices and mosaic
+        positions, unit, history and attributes (a file another program wrote has its own
+        name as ``attrs["source"]``).
 
     Examples
     --------
