@@ -81,7 +81,7 @@ def test_every_scene_warning_reaches_its_file(campaign, tmp_path, capsys):
         (w,) = [w for w in r["warnings"] if w["class"] == BRIGHT]
         assert "brighter" in w["message"] and w["figures"]["fraction_above_max"] > 0.5
         assert w["figures"]["median"] > 1.5 and w["count"] == 1  # one frame: one warning
-        prov = read_provenance(out / r["rel"].replace(".tif", ".corrected.tif"))
+        prov = read_provenance(out / r["rel"].replace(".tif", ".reflectance.tif"))
         assert [p["class"] for p in prov["warnings"]] == [w["class"] for w in r["warnings"]]
 
 
@@ -96,11 +96,11 @@ def test_a_resumed_campaign_still_lists_its_warnings(campaign, tmp_path, capsys)
     assert "2 skipped" in text and f"{BRIGHT}: 2 files (scene_0.tif, scene_1.tif)" in text
     doc = json.loads((tmp_path / "s.json").read_text())
     assert all(r["warnings"][0]["run"] == "earlier" for r in doc["results"])
-    before = {p.name: p.read_bytes() for p in out.glob("*.corrected.tif")}
+    before = {p.name: p.read_bytes() for p in out.glob("*.reflectance.tif")}
     assert _correct(campaign, out, "-q", "--fail-on-warning", "all") == 1
     text = capsys.readouterr().out
     assert "recorded when the output was made" in text and "the output is kept" in text
-    assert {p.name: p.read_bytes() for p in out.glob("*.corrected.tif")} == before
+    assert {p.name: p.read_bytes() for p in out.glob("*.reflectance.tif")} == before
 
 
 def test_a_warning_class_can_fail_the_file(campaign, tmp_path, capsys):
@@ -108,7 +108,7 @@ def test_a_warning_class_can_fail_the_file(campaign, tmp_path, capsys):
     assert _correct(campaign, out, "-q", "--fail-on-warning", "ReflectanceWarning") == 1
     text = capsys.readouterr().out
     assert "failed:" in text and f"{BRIGHT} (--fail-on-warning)" in text
-    assert not list(out.glob("*.corrected.tif"))  # no output written for a failed file
+    assert not list(out.glob("*.reflectance.tif"))  # no output written for a failed file
     assert _correct(campaign, out, "--fail-on-warning", "SceneBrighterThanReferenceWarnin") == 2
     err = capsys.readouterr().err
     assert f"did you mean '{BRIGHT}'" in err and len(err.strip().splitlines()) == 1
@@ -121,23 +121,29 @@ def _state(folder):
 
 
 def test_another_jobs_outputs_are_not_replaced_unasked(campaign, tmp_path, capsys):
-    """Reflectance outputs, then a two-point pipeline into the same folder: refused in one
-    line naming the existing job (rc 2), the folder unchanged; the same job resumes;
-    --overwrite replaces them."""
+    """Reflectance outputs, then the same pipeline with other input options (another job:
+    its fingerprint covers them) into the same folder: refused in one line naming the
+    existing job (rc 2), the folder unchanged; the same job resumes; --overwrite replaces
+    them. A two-point pipeline's outputs are named .corrected.tif: written beside the
+    reflectance products, which stay as they were."""
     out = tmp_path / "out"
     assert _correct(campaign, out, "-q") == 0
     before = _state(out)
     capsys.readouterr()
-    assert _correct(campaign, out, "-q", pipeline="two") == 2
+    assert _correct(campaign, out, "-q", "--bit-depth", "10") == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "already written by another job" in err
     assert "pipeline refl.npz (dark, reflectance" in err and "--overwrite" in err
     assert _state(out) == before
     assert _correct(campaign, out, "-q") == 0  # the same job: a resume (skipped)
     assert "2 skipped" in capsys.readouterr().out and _state(out) == before
-    assert _correct(campaign, out, "-q", "--overwrite", pipeline="two") == 0
-    prov = read_provenance(out / "scene_0.corrected.tif")
-    assert prov["pipeline"]["path"].endswith("two.npz")
+    assert _correct(campaign, out, "-q", pipeline="two") == 0
+    assert read_provenance(out / "scene_0.corrected.tif")["pipeline"]["path"].endswith(
+        "two.npz")
+    assert {k: v for k, v in _state(out).items() if k in before} == before
+    assert _correct(campaign, out, "-q", "--overwrite", "--bit-depth", "10") == 0
+    prov = read_provenance(out / "scene_0.reflectance.tif")
+    assert prov["pipeline"]["input_overrides"] == {"bit_depth": "10"}
 
 
 def test_input_hygiene_in_a_scene_folder(campaign, tmp_path, capsys):
@@ -161,8 +167,8 @@ def test_input_hygiene_in_a_scene_folder(campaign, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "left out 1 files of dark frames" in text and "dark_cap.tif" in text
     assert "not read: 2 files" in text and "notes.txt" in text and "preview.jpg" in text
-    assert not (tmp_path / "out" / "dark_cap.corrected.tif").exists()
-    assert (tmp_path / "out" / "scene_1.corrected.tif").exists()
+    assert not (tmp_path / "out" / "dark_cap.reflectance.tif").exists()
+    assert (tmp_path / "out" / "scene_1.reflectance.tif").exists()
     doc = json.loads((tmp_path / "s.json").read_text())
     assert doc["left_out"] == ["dark_cap.tif"]
     assert sorted(p.rsplit("/", 1)[-1] for p in doc["unread"]) == ["notes.txt", "preview.jpg"]

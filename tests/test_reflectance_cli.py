@@ -58,7 +58,7 @@ def test_plain_camera_tiffs_to_reflectance(tmp_path, capsys):
                  "-q"]) == 0
     text = capsys.readouterr().out
     assert "eq. 6" not in text  # no eq. (6) of a scene printed as if it measured the correction
-    res = read_corrected(tmp_path / "out" / "scene_0.corrected.tif")
+    res = read_corrected(tmp_path / "out" / "scene_0.reflectance.tif")
     good = res.dq[0] == 0
     assert abs(np.median(res.data[0][good]) / 0.3 - 1) < 0.01
     # cubes: reconstruction before the reflectance, written as (H, W, bands) by correct
@@ -68,10 +68,18 @@ def test_plain_camera_tiffs_to_reflectance(tmp_path, capsys):
     assert main(["correct", "--pipeline", str(tmp_path / "cube.npz"), str(scenes), "-o",
                  str(tmp_path / "cubes"), "-q"]) == 0
     capsys.readouterr()
-    cube = read_corrected(tmp_path / "cubes" / "scene_0.corrected.tif")
+    cube = read_corrected(tmp_path / "cubes" / "scene_0.reflectance.tif")
     assert cube.data.shape == (1, 32, 48, 16)
     assert cube.provenance["cube"]["unit"] == "reflectance factor"
     assert abs(np.median(cube.data[cube.dq == 0]) / 0.3 - 1) < 0.01
+    # an ENVI export of the same job (a resume) is named and labelled as reflectance
+    assert main(["correct", "--pipeline", str(tmp_path / "cube.npz"), str(scenes), "-o",
+                 str(tmp_path / "cubes"), "--format", "envi", "-q"]) == 0
+    header = (tmp_path / "cubes" / "scene_0.reflectance.hdr").read_text()
+    assert "reflectance scale factor = 1.0" in header and "data units = reflectance factor" in header
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "cubes" / "scene_0.reflectance.hdr")]) == 0
+    assert "ENVI cube, 32 x 48 px, 16 bands, float32 reflectance factor" in capsys.readouterr().out
     # the same reference checks a grey target: its mean against its value, its uniformity
     assert main(["reflectance", "check", str(scenes), "--pipeline", str(refl), "--expected",
                  "0.3", "--json", str(tmp_path / "target.json")]) == 0
@@ -111,7 +119,7 @@ def test_leakage_aware_from_the_command_line_and_its_warnings(tmp_path, capsys):
     assert f"--calibration {tmp_path / 'cal.npz'}" in out.out  # how to apply it
     assert main(["correct", "--pipeline", str(refl), "--calibration", str(tmp_path / "cal.npz"),
                  str(tmp_path / "scene.tif"), "-o", str(tmp_path / "out"), "-q"]) == 0
-    res = read_corrected(tmp_path / "out" / "scene.corrected.tif")
+    res = read_corrected(tmp_path / "out" / "scene.reflectance.tif")
     good = (res.dq == 0)
     assert abs(np.median(res.data[good]) / 0.2 - 1) < 0.02
     # a dark panel: one line with its numbers

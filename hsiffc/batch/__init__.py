@@ -33,7 +33,8 @@ from .context import (
     load_pipeline,
 )
 from .executors import check_scheduler, run_jobs
-from .plan import BatchError, Job, discover_inputs, output_name, plan_jobs, unread_files
+from .plan import (BatchError, Job, discover_inputs, output_name, output_suffix, plan_jobs,
+                   unread_files)
 from .summary import BatchSummary
 from .replace import check_replacements
 from .task import correct_file
@@ -162,7 +163,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         raise BatchError(f"{pipeline}: pipeline file not found")
     ctx = context_for(settings, cal)  # validates the pipeline here, before any file is touched
     del cal
-    jobs, ignored = plan_jobs(inputs, outdir)
+    jobs, ignored = plan_jobs(inputs, outdir, output_suffix(ctx.info["steps"]))
     used = [p for p in (cal_path, settings.pipeline, settings.imec_xml) if p]
     with protect_inputs([j.input for j in jobs] + used), \
             folder_lock(outdir, wait_s=wait_s, what="hsiffc correct"):

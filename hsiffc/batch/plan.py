@@ -16,8 +16,8 @@ from ..errors import HsiffcError
 from ..io.corrected import SUFFIX
 from ..io import IMAGE_SUFFIXES
 
-__all__ = ["BatchError", "Job", "discover_inputs", "is_batch_output", "output_name", "plan_jobs",
-           "unread_files"]
+__all__ = ["BatchError", "Job", "REFLECTANCE_SUFFIX", "discover_inputs", "is_batch_output",
+           "output_name", "output_suffix", "plan_jobs", "unread_files"]
 
 _MAGIC = re.compile(r"[*?[]")
 
@@ -32,15 +32,30 @@ def _is_tiff(path) -> bool:
     return PurePath(path).suffix.lower() in IMAGE_SUFFIXES
 
 
+#: the name of a reflectance product (a pipeline with a reflectance stage): it says what it holds
+REFLECTANCE_SUFFIX = ".reflectance.tif"
+_SUFFIXES = (SUFFIX, REFLECTANCE_SUFFIX)
 #: the cubes ``hsiffc correct --format envi|ome|netcdf`` writes beside a corrected file
-_ENVI_OUTPUT = re.compile(re.escape(SUFFIX[:-len(".tif")])
+_ENVI_OUTPUT = re.compile("(" + "|".join(re.escape(s[:-len(".tif")]) for s in _SUFFIXES) + ")"
                           + r"(_f\d{4,})?((\.dq|\.alpha)?\.(hdr|img)|\.ome\.tiff?|\.nc)$")
+
+
+def output_suffix(steps) -> str:
+    """The suffix of a batch's outputs: ``.reflectance.tif`` when a step of the pipeline
+    (``steps``: dicts with ``"stage"``) is the reflectance stage, else ``.corrected.tif``.
+
+    >>> output_suffix([{"stage": "dark"}, {"stage": "reflectance"}, {"stage": "reconstruct"}])
+    '.reflectance.tif'
+    >>> output_suffix([{"stage": "dark"}])
+    '.corrected.tif'
+    """
+    return REFLECTANCE_SUFFIX if any(s.get("stage") == "reflectance" for s in steps) else SUFFIX
 
 
 def is_batch_output(path) -> bool:
     """Whether ``path`` is named like an output of ``hsiffc correct``: a corrected file
-    (``*.corrected.tif``) or one of its ENVI cubes (``*.corrected.hdr``,
-    ``*.corrected_f0001.dq.img``, ...).
+    (``*.corrected.tif``, a reflectance product ``*.reflectance.tif``) or one of its cubes
+    (``*.corrected.hdr``, ``*.corrected_f0001.dq.img``, ``*.reflectance.nc``, ...).
 
     >>> is_batch_output("a.corrected.tif"), is_batch_output("a.corrected_f0002.dq.hdr")
     (True, True)
@@ -48,11 +63,14 @@ def is_batch_output(path) -> bool:
     (True, True)
     >>> is_batch_output("a.corrected_f10000.dq.img")  # a file of more than 10,000 frames
     True
+    >>> is_batch_output("a.reflectance.tif"), is_batch_output("a.reflectance.dq.hdr")
+    (True, True)
     >>> is_batch_output("a.tif")
     False
     """
     name = PurePath(path).name.lower()
-    return name.endswith(SUFFIX) or name.endswith(SUFFIX + "f") or bool(_ENVI_OUTPUT.search(name))
+    return name.endswith(_SUFFIXES) or name.endswith(tuple(s + "f" for s in _SUFFIXES)) or \
+        bool(_ENVI_OUTPUT.search(name))
 
 
 def _hidden(rel: PurePath) -> bool:
@@ -163,10 +181,11 @@ def _glob_root(pattern: str) -> str:
     return str(PurePath(*fixed)) if fixed else ""
 
 
-def output_name(rel) -> str:
-    """The output's name below OUTDIR for an input's relative name (POSIX separators)."""
+def output_name(rel, suffix: str = SUFFIX) -> str:
+    """The output's name below OUTDIR for an input's relative name (POSIX separators);
+    ``suffix`` as :func:`output_suffix` gives it."""
     rel = PurePath(rel)
-    return rel.with_name(rel.stem + SUFFIX).as_posix()
+    return rel.with_name(rel.stem + suffix).as_posix()
 
 
 @dataclass(frozen=True)
@@ -178,8 +197,9 @@ class Job:
     output: str
 
 
-def plan_jobs(inputs, outdir) -> tuple[list[Job], list[Path]]:
-    """Jobs for ``inputs`` (files, folders, globs) writing below ``outdir``.
+def plan_jobs(inputs, outdir, suffix: str = SUFFIX) -> tuple[list[Job], list[Path]]:
+    """Jobs for ``inputs`` (files, folders, globs) writing below ``outdir``, each output
+    named with ``suffix`` (:func:`output_suffix`).
 
     Raises BatchError if two inputs map to one output or an output would overwrite an input.
     """
@@ -194,7 +214,7 @@ def plan_jobs(inputs, outdir) -> tuple[list[Job], list[Path]]:
     inodes = {_inode(p) for p, _ in pairs} - {None}
     root = outdir.resolve()
     for path, rel in pairs:
-        out = root / output_name(rel)  # not resolved: a link at the name is never followed
+        out = root / output_name(rel, suffix)  # not resolved: a link at the name is never followed
         if out in seen:
             raise BatchError(f"{path} and {seen[out]} would both be written to {out}; give them "
                              "from their folder (their relative paths keep them apart) or "

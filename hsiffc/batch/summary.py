@@ -8,6 +8,7 @@ import numpy as np
 
 from ..files.jsonsafe import json_safe
 from ..io.corrected import SUFFIX
+from .plan import REFLECTANCE_SUFFIX
 
 __all__ = ["BatchSummary"]
 
@@ -125,7 +126,7 @@ class BatchSummary:
         lines += [f"note: {n}" for n in self.pipeline.get("notes", [])]
         if self.ignored:
             lines.append(f"ignored {len(self.ignored)} files named like outputs of hsiffc "
-                         f"correct (*{SUFFIX} and their ENVI cubes)")
+                         f"correct (*{SUFFIX}, *{REFLECTANCE_SUFFIX} and their cubes)")
         if self.left_out:
             lines.append(f"left out {len(self.left_out)} files of dark frames (their metadata "
                          f"says kind dark; --kind corrects them anyway): "

@@ -28,8 +28,9 @@ def register(sub) -> None:
 
 def _add_info(sub):
     p = sub.add_parser("info", help="describe frames of any supported format and where each "
-                                    "metadata field came from (of hsiffc correct's outputs: "
-                                    "their provenance)")
+                                    "metadata field came from (of hsiffc correct's outputs and "
+                                    "the ENVI, OME-TIFF and netCDF cubes hsiffc writes: bands, "
+                                    "DQ counts, provenance)")
     p.add_argument("sweep", type=Path, nargs="+", help="files, folders or globs")
     p.add_argument("--json", type=Path, default=None, help="also write the description as JSON")
     add_input_options(p)
@@ -41,8 +42,13 @@ def _cmd_info(args) -> int:
     from ..io import open_source
     from ..io.corrected import is_corrected_file
 
-    if all(Path(p).is_file() and is_corrected_file(p) for p in args.sweep):
-        return _info_corrected(args)  # hsiffc correct's own outputs: their provenance
+    kinds = [_written_kind(Path(p), is_corrected_file) for p in args.sweep]
+    if all(kinds):  # outputs of hsiffc correct and cubes: what each holds, its provenance
+        docs = [_info_cube(Path(p), kind) if kind != "corrected" else _info_corrected(p)
+                for p, kind in zip(args.sweep, kinds)]
+        if args.json:
+            write_json(args.json, docs if len(docs) > 1 else docs[0])
+        return 0
     with open_source(args.sweep, overrides=input_overrides(args), inspect=True) as src:
         print(src.describe())
         steps = _stream_steps(src)
@@ -74,39 +80,112 @@ def _rows_done(done: int, total: int) -> None:
                                                done, total, 100.0 * done / max(total, 1))
 
 
-def _info_corrected(args) -> int:
-    """``hsiffc info`` on outputs of ``hsiffc correct``: what each holds and where it came
+def _written_kind(path: Path, is_corrected_file) -> str | None:
+    """``"corrected"`` for an output of ``hsiffc correct`` (or an hsiffc TIFF cube), the cube
+    format (``"envi"``, ``"ome"``, ``"netcdf"``) for a cube file :func:`hsiffc.cubes.read_cube`
+    reads (an ENVI header with one wavelength per band, the OME-TIFF and netCDF cubes hsiffc
+    writes), None for anything else (raw frames: :func:`hsiffc.io.open_source` describes
+    them, or says why it cannot)."""
+    if not path.is_file():
+        return None
+    name = path.name.lower()
+    try:
+        if name.endswith(".nc"):
+            return "netcdf"
+        if name.endswith((".ome.tif", ".ome.tiff")):
+            import tifffile
+
+            with tifffile.TiffFile(path) as tf:
+                if tf.is_ome and "hsiffc-cube" in (tf.ome_metadata or ""):
+                    return "ome"
+        if name.endswith((".hdr", ".img")):
+            from ..io.envi import parse_envi_header
+
+            head = parse_envi_header(path.with_suffix(".hdr"))
+            wl, bands = head.get("wavelength"), str(head.get("bands", "1")).strip()
+            if "hsiffc version" in head or "dq file" in head or (
+                    isinstance(wl, list) and bands.isdigit() and len(wl) == int(bands) > 1):
+                return "envi"
+            return None
+    except Exception:  # unreadable here: the frame reader says why
+        return None
+    if not is_corrected_file(path):
+        return None
+    from ..io.corrected import read_provenance
+
+    prov = read_provenance(path)  # write_cube's own TIFF keeps the cube's history and attrs
+    return "tiff" if isinstance(prov.get("attrs"), dict) and "history" in prov else "corrected"
+
+
+def _info_cube(path: Path, fmt: str) -> dict:
+    """``hsiffc info`` on a cube file: its shape and unit, the bands with their wavelengths,
+    the DQ values flagged per bit, and its provenance (history and attributes)."""
+    import textwrap
+
+    from ..cubes import read_cube
+    from ..data.dq import table
+
+    cube = read_cube(path)
+    h, w, b = cube.data.shape
+    wl = cube.wavelengths_nm
+    positions = cube.positions or [None] * b
+    bands = [{"band": k, "wavelength_nm": None if wl is None else wl[k],
+              "fwhm_nm": None if cube.fwhm_nm is None else cube.fwhm_nm[k],
+              "band_index": cube.band_index[k],
+              "position": None if positions[k] is None else list(positions[k])}
+             for k in range(b)]
+    counts = {r["name"]: int(np.count_nonzero(cube.dq & np.uint32(r["value"])))
+              for r in table()}
+    flagged = int(np.count_nonzero(cube.dq))
+    label = {"envi": "ENVI", "ome": "OME-TIFF", "netcdf": "netCDF", "tiff": "hsiffc TIFF"}[fmt]
+    print(f"{path}: {label} cube, {h} x {w} px, {b} bands, float32 {cube.unit}; planes data, "
+          f"dq{', alpha' if cube.alpha is not None else ''}")
+    names = [f"{k} " + (f"{wl[k]:.1f} nm" if wl is not None else "?") +
+             (f" r{positions[k][0]}c{positions[k][1]}" if positions[k] is not None else "")
+             for k in range(b)]
+    print(textwrap.fill("bands (by wavelength): " + ", ".join(names), width=100,
+                        initial_indent="  ", subsequent_indent="    "))
+    hits = ", ".join(f"{name} {n}" for name, n in counts.items() if n)
+    print(f"  DQ: {flagged} of {cube.dq.size} values flagged ({100 * flagged / cube.dq.size:.2f}"
+          f" %){': ' + hits if hits else ''}")
+    steps = [str(s.get("name", "?")) for s in cube.history if isinstance(s, dict)]
+    print(f"  provenance: pipeline {' -> '.join(steps) or 'not recorded'}; "
+          + (", ".join(f"{k} {v}" for k, v in cube.attrs.items()
+                       if isinstance(v, (str, int, float)))[:400] or "no attributes"))
+    return {"path": str(path), "format": fmt, "shape": [h, w, b], "unit": cube.unit,
+            "alpha": cube.alpha is not None, "bands": bands, "dq_counts": counts,
+            "flagged_values": flagged, "history": list(cube.history), "attrs": cube.attrs}
+
+
+def _info_corrected(path) -> dict:
+    """``hsiffc info`` on an output of ``hsiffc correct``: what it holds and where it came
     from (its provenance; the planes are not read)."""
     from ..io.corrected import read_provenance
 
-    docs = []
-    for path in args.sweep:
-        prov = read_provenance(path)
-        docs.append({"path": str(path), **prov})
-        shape = " x ".join(str(s) for s in prov.get("frame_shape", []))
-        cube = prov.get("cube") or {}
-        what = "cubes" if cube or len(prov.get("frame_shape", [])) == 3 else "frames"
-        exposures = sorted({float(e) for e in prov.get("exposure", [])})
-        flagged = (prov.get("frames") or {}).get("flagged_fraction") or []
-        cal = prov.get("calibration") or {}
-        steps = [s.get("name", "?") for s in (prov.get("pipeline") or {}).get("steps", [])]
-        src = (prov.get("input") or {}).get("path", "?")
-        print(f"{path}: output of hsiffc correct ({prov.get('format')} version "
-              f"{prov.get('format_version')}, {prov.get('status')}), written by hsiffc "
-              f"{prov.get('hsiffc_version', '?')}")
-        print(f"  {prov.get('n_frames')} {what} of {shape} px, planes "
-              f"{', '.join(prov.get('planes', []))}; {prov.get('bit_depth')}-bit input "
-              f"{prov.get('input_dtype', '')} from {src}")
-        print(f"  exposures {', '.join(f'{e:g}' for e in exposures)} "
-              f"{prov.get('exposure_unit', 'ms')}; flagged "
-              + (f"{100 * float(np.mean(flagged)):.2f} % of pixels on average" if flagged
-                 else "fraction not recorded"))
-        print(f"  pipeline {' -> '.join(steps) or '?'}; calibration "
-              f"{cal.get('identity', 'none')}"
-              + (f" ({cal.get('method')}, fitted on {cal.get('fitted_on')})" if cal else ""))
-    if args.json:
-        write_json(args.json, docs if len(docs) > 1 else docs[0])
-    return 0
+    prov = read_provenance(path)
+    doc = {"path": str(path), **prov}
+    shape = " x ".join(str(s) for s in prov.get("frame_shape", []))
+    cube = prov.get("cube") or {}
+    what = "cubes" if cube or len(prov.get("frame_shape", [])) == 3 else "frames"
+    exposures = sorted({float(e) for e in prov.get("exposure", [])})
+    flagged = (prov.get("frames") or {}).get("flagged_fraction") or []
+    cal = prov.get("calibration") or {}
+    steps = [s.get("name", "?") for s in (prov.get("pipeline") or {}).get("steps", [])]
+    src = (prov.get("input") or {}).get("path", "?")
+    print(f"{path}: output of hsiffc correct ({prov.get('format')} version "
+          f"{prov.get('format_version')}, {prov.get('status')}), written by hsiffc "
+          f"{prov.get('hsiffc_version', '?')}")
+    print(f"  {prov.get('n_frames')} {what} of {shape} px, planes "
+          f"{', '.join(prov.get('planes', []))}; {prov.get('bit_depth')}-bit input "
+          f"{prov.get('input_dtype', '')} from {src}")
+    print(f"  exposures {', '.join(f'{e:g}' for e in exposures)} "
+          f"{prov.get('exposure_unit', 'ms')}; flagged "
+          + (f"{100 * float(np.mean(flagged)):.2f} % of pixels on average" if flagged
+             else "fraction not recorded"))
+    print(f"  pipeline {' -> '.join(steps) or '?'}; calibration "
+          f"{cal.get('identity', 'none')}"
+          + (f" ({cal.get('method')}, fitted on {cal.get('fitted_on')})" if cal else ""))
+    return doc
 
 
 def _stream_steps(src) -> list:

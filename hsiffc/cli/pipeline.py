@@ -348,7 +348,8 @@ def _cmd_correct(args) -> int:
                               "name, e.g. summary.json")
         if is_batch_output(args.json):
             raise HsiffcError(f"--json {args.json}: is named like an output of hsiffc correct "
-                              "(*.corrected.tif or its ENVI cubes); give the summary another "
+                              "(*.corrected.tif, *.reflectance.tif or their cubes); give the "
+                              "summary another "
                               "name, e.g. summary.json")
         # an input found in a folder or glob
         check_output(args.json, overwrite=args.overwrite,

@@ -4,6 +4,8 @@ as a :class:`~hsiffc.cubes.Cube` (for quicklooks and round trips): :func:`read_c
 from __future__ import annotations
 
 import json
+import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +27,10 @@ def _envi(path: Path) -> Cube:
     header = path.with_suffix(".hdr")
     data, head = read_envi(header)
     raw = parse_envi_header(header)
+    if "dq bit names" in raw and "dq file" not in raw:
+        raise DataFormatError("this is the DQ file of a cube (its bit table in 'dq bit names'); "
+                              "give the cube's own header, the one whose 'dq file' names this "
+                              "file", path=header)
     planes = {}
     for key in ("dq", "alpha"):
         name = raw.get(f"{key} file")
@@ -47,9 +53,55 @@ def _envi(path: Path) -> Cube:
     except ValueError:
         raise DataFormatError("'fwhm' holds values that are not numbers (nm); correct or "
                               "remove it", path=header) from None
+    bands = _envi_bands(raw, data.shape[2], header)
     return Cube(data.astype(np.float32), dq.astype(np.uint32), planes.get("alpha"),
-                head.get("wavelengths_nm"), fwhm,
-                unit=str(raw.get("data units", "DN")), attrs={"source": path.name})
+                head.get("wavelengths_nm"), fwhm, *bands,
+                unit=str(raw.get("data units", "DN")), **_envi_history(raw, path, header))
+
+
+def _envi_bands(raw: dict, n: int, header: Path):
+    """Band positions and indices from ``hsiffc band positions`` / ``hsiffc band index``
+    (written by :func:`~hsiffc.cubes.write_cube`); (None, None) for another program's file,
+    or where their lengths are not the cube's (a tool that kept the keys when it wrote a
+    subset of the bands)."""
+    index, where = raw.get("hsiffc band index"), raw.get("hsiffc band positions")
+    if not isinstance(index, list) or not isinstance(where, list) or not (
+            len(index) == len(where) == n):
+        return None, None
+    positions = []
+    for item in where:
+        found = re.fullmatch(r"r(\d+)c(\d+)", item)
+        if item != "none" and not found:
+            raise DataFormatError(f"'hsiffc band positions' holds {item[:20]!r}, not rRcC or "
+                                  "none; the header was altered", path=header)
+        positions.append((int(found[1]), int(found[2])) if found else None)
+    try:
+        return positions, [int(i) for i in index]
+    except ValueError:
+        raise DataFormatError("'hsiffc band index' holds values that are not whole numbers; "
+                              "the header was altered", path=header) from None
+
+
+def _envi_history(raw: dict, path: Path, header: Path) -> dict:
+    """The cube's history and attributes as written (``hsiffc history``, ``hsiffc attrs``:
+    JSON lists); another program's file gets its own name as ``source``."""
+    if "hsiffc attrs" not in raw and "hsiffc history" not in raw:
+        return {"attrs": {"source": path.name}}
+    try:
+        history = json.loads(_text(raw.get("hsiffc history", "[]")))
+        pairs = json.loads(_text(raw.get("hsiffc attrs", "[]")))
+        attrs = {str(k): v for k, v in pairs}
+        if not isinstance(history, list) or not all(isinstance(h, dict) for h in history):
+            raise ValueError("not a list of stages")
+    except (ValueError, TypeError):
+        raise DataFormatError("'hsiffc history' / 'hsiffc attrs' is not the JSON hsiffc "
+                              "writes; the header was altered", path=header) from None
+    return {"history": history, "attrs": attrs}
+
+
+def _text(value) -> str:
+    """A header value as the text written (a value holding commas is one string here)."""
+    return ", ".join(value) if isinstance(value, list) else str(value)
 
 
 def _hsiffc_tiff(path: Path, frame: int) -> Cube:
@@ -57,8 +109,13 @@ def _hsiffc_tiff(path: Path, frame: int) -> Cube:
     from .export import cube_from_corrected
 
     got = read_corrected(path, frames=[frame])
-    return cube_from_corrected(got.provenance, frame, got.data[0], got.dq[0], got.alpha[0],
+    cube = cube_from_corrected(got.provenance, frame, got.data[0], got.dq[0], got.alpha[0],
                                source=path.name)
+    prov = got.provenance
+    if isinstance(prov.get("attrs"), dict) and isinstance(prov.get("history"), list):
+        # written by write_cube (not hsiffc correct): its history and attributes as written
+        cube = replace(cube, history=tuple(prov["history"]), attrs=prov["attrs"])
+    return cube
 
 
 def _ome(path: Path) -> Cube:
@@ -83,7 +140,9 @@ def _ome(path: Path) -> Cube:
     info = doc.get("cube") or {}
     return Cube(data, dq, alpha, info.get("wavelengths_nm"), info.get("fwhm_nm"),
                 info.get("band_positions"), info.get("band_index"),
-                unit=info.get("unit", "DN"), attrs={"source": path.name})
+                unit=info.get("unit", "DN"), history=doc.get("history") or (),
+                attrs=doc["attrs"] if isinstance(doc.get("attrs"), dict)
+                else {"source": path.name})
 
 
 def _yxc(series) -> np.ndarray:
@@ -105,10 +164,37 @@ def _netcdf(path: Path) -> Cube:
         positions = [None if r < 0 else (int(r), int(c)) for r, c in zip(rows, cols)]
         wl = ds["wavelength"].values
         fwhm = ds["fwhm"].values
+        history, attrs = _netcdf_attrs(ds.attrs, path)
         return Cube(ds["data"].values, ds["dq"].values, alpha,
                     None if np.isnan(wl).all() else wl, None if np.isnan(fwhm).all() else fwhm,
                     positions, ds["band_index"].values, unit=str(ds.attrs.get("unit", "DN")),
-                    attrs={"source": path.name})
+                    history=history, attrs=attrs)
+
+
+def _netcdf_attrs(stored: dict, path: Path) -> tuple:
+    """The cube's history and attributes from a netCDF file's global attributes: those
+    :func:`~hsiffc.cubes.to_xarray` lists in ``json_attrs`` decoded from JSON text, numbers as
+    Python numbers; another program's file (no ``json_attrs``) gets its own name as
+    ``source``."""
+    from .xr import OWN_ATTRS
+
+    if "json_attrs" not in stored:  # another program's, or written before hsiffc 0.2
+        try:
+            history = json.loads(str(stored.get("history", "[]")))
+        except ValueError:
+            history = []
+        ok = isinstance(history, list) and all(isinstance(h, dict) for h in history)
+        return (tuple(history) if ok else ()), {"source": path.name}
+    as_json = str(stored["json_attrs"]).split()
+    try:
+        history = json.loads(str(stored.get("history", "[]")))
+        attrs = {k: json.loads(str(v)) if k in as_json else
+                 (v.item() if isinstance(v, np.generic) else v)
+                 for k, v in stored.items() if k not in OWN_ATTRS}
+    except ValueError:
+        raise DataFormatError("an attribute listed in 'json_attrs' (or 'history') is not JSON "
+                              "text; the file was altered", path=path) from None
+    return history, attrs
 
 
 def _no_external_storage(path: Path) -> None:
@@ -161,6 +247,9 @@ def read_cube(path, *, frame: int = 0) -> Cube:
     Returns
     -------
     Cube
+        As written: data, DQ (uint32), alpha, wavelengths, widths, band indices and mosaic
+        positions, unit, history and attributes (a file another program wrote has its own
+        name as ``attrs["source"]``).
 
     Examples
     --------

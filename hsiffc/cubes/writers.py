@@ -5,13 +5,27 @@ format     files                        what carries the bands and the DQ bit ta
 =========  ===========================  ===================================================
 tiff       ``NAME.tif`` (hsiffc TIFF)   provenance JSON of page 0 (``"cube"``, ``"dq_bits"``)
 envi       ``NAME.hdr/.img``,           header ``wavelength``, ``fwhm``, ``band names``,
-           ``NAME.dq.hdr/.img``,        ``default bands``; the DQ header ``dq bit names``,
-           ``NAME.alpha.hdr/.img``      ``dq bit values``, ``dq bit meanings``
-ome        ``NAME.ome.tif``             OME-XML: channels named by wavelength; series 0 data,
-                                        1 DQ, 2 alpha; Description: JSON with the bit table
-netcdf     ``NAME.nc``                  coordinate ``wavelength``; ``dq`` CF ``flag_masks``
-                                        / ``flag_meanings``; attributes (needs xarray)
+           ``NAME.dq.hdr/.img``,        ``default bands``, ``hsiffc ...`` (below); the DQ
+           ``NAME.alpha.hdr/.img``      header ``dq bit names``, ``dq bit values``,
+                                        ``dq bit meanings``
+ome        ``NAME.ome.tif``             OME-XML: channels named by wavelength, with
+                                        ``EmissionWavelength`` (nm); series 0 data, 1 DQ,
+                                        2 alpha; Description: JSON with the bit table
+netcdf     ``NAME.nc``                  coordinates ``band`` (index), ``wavelength``; ``dq``
+                                        CF ``flag_masks`` / ``flag_meanings``; attributes
+                                        (needs xarray)
 =========  ===========================  ===================================================
+
+Each format keeps what :func:`~hsiffc.cubes.read_cube` needs to give the cube back as written
+(band index and mosaic position, unit, history, attributes): the hsiffc TIFF and the OME-TIFF
+in their JSON, netCDF in coordinates and attributes, ENVI in ``hsiffc version``,
+``hsiffc band index``, ``hsiffc band positions``, ``hsiffc history`` and ``hsiffc attrs``
+(JSON lists). A reflectance cube (unit ``reflectance factor``) gets ENVI's
+``reflectance scale factor = 1.0``.
+
+ENVI headers are written and parsed by :mod:`hsiffc.io.envi`, not SPy: SPy is an optional
+dependency, and the reader must apply hsiffc's size limits and refuse a damaged header before
+any data is read.
 
 The DQ plane of the ENVI, OME-TIFF and netCDF files is stored in the smallest unsigned type that
 holds the DQ bits in use (:func:`dq_storage`: uint16 today), with the bit table beside it; the
@@ -218,6 +232,25 @@ def _bad_band_list(dq) -> list[int]:
     return [0 if np.all(dq[:, :, b] & flag) else 1 for b in range(dq.shape[2])]
 
 
+def _envi_provenance(cube) -> dict:
+    """The ENVI header entries that give a cube back as written (:func:`read_cube`): the
+    hsiffc version, each band's index in the pipeline's cube and its mosaic position
+    (``r0c1``, ``none`` for a virtual band), and the history and attributes as JSON text.
+    An ENVI value may not begin with a brace (a reader takes it for a list), so both JSON
+    values are lists: ``hsiffc history`` one entry per stage, ``hsiffc attrs`` one
+    ``[name, value]`` pair per attribute."""
+    from .. import __version__
+
+    positions = cube.positions or [None] * cube.n_bands
+    return {"hsiffc version": __version__,
+            "hsiffc band index": list(cube.band_index),
+            "hsiffc band positions": ["none" if p is None else f"r{p[0]}c{p[1]}"
+                                      for p in positions],
+            "hsiffc history": json.dumps(json_safe(list(cube.history)), allow_nan=False),
+            "hsiffc attrs": json.dumps(json_safe([[k, v] for k, v in cube.attrs.items()]),
+                                       allow_nan=False)}
+
+
 def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
     from ..io.envi import check_header_values, write_envi
 
@@ -238,7 +271,9 @@ def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
              "alpha": base.with_name(base.name + ".alpha")}
     data_extra = {**common, **names, "data units": cube.unit,
                   "data ignore value": "NaN", "bbl": _bad_band_list(cube.dq),
-                  "dq file": files["dq"].name + ".img"}
+                  "dq file": files["dq"].name + ".img", **_envi_provenance(cube)}
+    if cube.unit == "reflectance factor":  # ENVI: the value that scales the data to 0-1
+        data_extra["reflectance scale factor"] = 1.0
     if cube.alpha is not None:
         data_extra["alpha file"] = files["alpha"].name + ".img"
     # every header's text checked before the first file is written: a name that cannot be
@@ -268,10 +303,15 @@ def _write_ome(cube, path: Path, compression, description, overwrite) -> None:
     if cube.alpha is not None:
         planes.append(("alpha", cube.alpha, [f"alpha {n}" for n in names]))
     volume = sum(a.nbytes for _, a, _ in planes)
+    wl = cube.wavelengths_nm
+    # OME's EmissionWavelength is a positive float: given only where every band has one
+    emission = ({"EmissionWavelength": [float(w) for w in wl],
+                 "EmissionWavelengthUnit": ["nm"] * cube.n_bands}
+                if wl is not None and all(np.isfinite(w) and w > 0 for w in wl) else {})
     with atomic_path(path, overwrite=overwrite) as tmp:
         with tifffile.TiffWriter(tmp, ome=True, bigtiff=volume > _BIGTIFF_ABOVE) as tw:
             for name, arr, channels in planes:
-                meta = {"axes": "CYX", "Name": name, "Channel": {"Name": channels}}
+                meta = {"axes": "CYX", "Name": name, "Channel": {"Name": channels, **emission}}
                 if name == "data":
                     meta["Description"] = doc
                 tw.write(np.ascontiguousarray(np.moveaxis(arr, 2, 0)), photometric="minisblack",

@@ -1,12 +1,17 @@
 """A :class:`~hsiffc.cubes.Cube` as an ``xarray.Dataset`` (optional: ``pip install hsiffc[xarray]``).
 
-Layout: dims ``(y, x, band)``; coordinates ``wavelength`` (nm, ascending), ``fwhm`` (nm),
-``band_index`` (the band's index in the pipeline's cube), ``pattern_row`` / ``pattern_col``
-(its position in the mosaic tile; -1 for virtual bands) and ``band_name``; variables ``data``
-(float32, in the cube's unit), ``dq`` (uint32, CF ``flag_masks`` / ``flag_meanings``
-attributes: the bit table) and ``alpha`` (float32 percent, when computed). Dataset attributes:
-``history`` and ``dq_bits`` (JSON text: netCDF attributes are flat), the cube's unit and
-whatever the cube's ``attrs`` hold.
+Layout: dims ``(y, x, band)``; coordinates ``band`` (0, 1, ... in the Dataset's band order:
+an index), ``wavelength`` (nm, ascending; an index too, ``ds.sel(wavelength=650.0,
+method="nearest")``), ``fwhm`` (nm), ``band_index`` (the band's index in the pipeline's cube),
+``pattern_row`` / ``pattern_col`` (its position in the mosaic tile; -1 for virtual bands) and
+``band_name``; variables ``data`` (float32, in the cube's unit), ``dq`` (uint32, CF
+``flag_masks`` / ``flag_meanings`` attributes: the bit table) and ``alpha`` (float32 percent,
+when computed). Dataset attributes: ``history`` and ``dq_bits`` (JSON text: netCDF attributes
+are flat), the cube's unit and whatever the cube's ``attrs`` hold: strings and numbers as they
+are, anything else as JSON text, named in ``json_attrs`` (so that
+:func:`~hsiffc.cubes.read_cube` gives them back). A netCDF file keeps no index on
+``wavelength`` (not a dimension): after ``xarray.open_dataset``, ``ds.set_xindex("wavelength")``
+adds it.
 """
 
 from __future__ import annotations
@@ -20,6 +25,10 @@ from ..errors import HsiffcError
 from ..files.jsonsafe import json_safe
 
 __all__ = ["require_xarray", "to_xarray"]
+
+
+#: global attributes that describe the file, not the cube's ``attrs``
+OWN_ATTRS = ("title", "unit", "history", "dq_bits", "band_order", "description", "json_attrs")
 
 
 def require_xarray():
@@ -75,7 +84,11 @@ def to_xarray(cube, *, sort: bool = True):
                              {"units": "nm", "long_name": "band centre wavelength"}),
               "fwhm": ("band", np.asarray(cube.fwhm_nm or nan, np.float64),
                        {"units": "nm", "long_name": "band full width at half maximum"}),
-              "band_index": ("band", np.asarray(cube.band_index, np.int32)),
+              "band": ("band", np.arange(n, dtype=np.int32),
+                       {"long_name": "band number, counted from 0 in the file's band order"}),
+              "band_index": ("band", np.asarray(cube.band_index, np.int32),
+                             {"long_name": "the band's index in the pipeline's cube (the "
+                                           "mosaic's band order)"}),
               "pattern_row": ("band", np.asarray(rows, np.int32)),
               "pattern_col": ("band", np.asarray(cols, np.int32)),
               "band_name": ("band", np.asarray(cube.band_names(), dtype=str))}
@@ -87,9 +100,17 @@ def to_xarray(cube, *, sort: bool = True):
     attrs = {"title": "hsiffc spectral cube", "unit": cube.unit,
              "history": _text(list(cube.history)), "dq_bits": json.dumps(table()),
              "band_order": "wavelength ascending" if cube.is_sorted else "band index"}
+    as_json = []
     for key, value in cube.attrs.items():
+        if key in OWN_ATTRS or value is None:
+            continue
+        if isinstance(value, np.generic):
+            value = value.item()  # numbers stay numbers (np.float32 is no float)
         if isinstance(value, (str, int, float)) and not isinstance(value, bool):
             attrs[key] = value
-        elif value is not None:
+        else:
             attrs[key] = _text(value)
-    return xr.Dataset(variables, coords=coords, attrs=attrs)
+            as_json.append(key)
+    attrs["json_attrs"] = " ".join(as_json)
+    ds = xr.Dataset(variables, coords=coords, attrs=attrs)
+    return ds.set_xindex("wavelength")  # ds.sel(wavelength=650.0, method="nearest")

@@ -255,8 +255,10 @@ def open_envi(path, limits: ReadLimits) -> FileLayout:
     wavelengths = _wavelengths_nm(head, header)
     if wavelengths is not None and bands > 1 and len(wavelengths) == bands:
         raise DataFormatError(f"holds a spectral cube ({bands} bands with one wavelength each), "
-                              "not raw mosaic frames; hsiffc reads raw frames (one band per "
-                              "frame) - read cubes with hsiffc.io.envi.read_envi", path=header)
+                              "not raw mosaic frames; the commands that take frames read "
+                              "raw frames (one band per frame) - describe or draw a cube with "
+                              "hsiffc info / hsiffc quicklook, read it with hsiffc.read_cube",
+                              path=header)
     state = {"map": None}
 
     def read(k: int) -> np.ndarray:
