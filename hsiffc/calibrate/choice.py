@@ -115,12 +115,19 @@ def candidate_parameters(fit, ks, settings: FitSettings, code, *, earn: bool = T
     if settings.dark_weight > 1:
         frames = dark_level(ks, fit.dark_current)
         dark = np.where(np.isfinite(frames), frames, fit.dark)
-    g_lin, s_lin = linear_fit(ks, dark, fit.dark_current,
-                              exposure_offset_ms=settings.exposure_offset_ms)
     code = np.broadcast_to(np.asarray(code), fit.g.shape)
     with np.errstate(divide="ignore", invalid="ignore"):
         earned = fit.chi2_linear - fit.chi2 > EARN_PER_LN_N * np.log(np.maximum(fit.n_valid, 2))
     leak = (code == _code("pixel_leakage")) & (fit.status == LEAKAGE) & (earned | (not earn))
+    # the linear response, fitted where it is used (every pixel of a linear sensor, the
+    # pixels of a leaky one that do not earn their leakage)
+    need = np.flatnonzero(~leak)
+    g_lin = np.full(fit.g.shape, np.nan)
+    s_lin = np.full(fit.g.shape, np.inf)
+    if need.size:
+        sub = {**ks, "y": ks["y"][:, need], "valid": ks["valid"][:, need]}
+        g_lin[need], s_lin[need] = linear_fit(sub, dark[need], fit.dark_current[need],
+                                              exposure_offset_ms=settings.exposure_offset_ms)
     sigma_lin = np.where(code == _code("two_point_stack"), np.inf, s_lin)
     return {"a": np.where(leak, fit.a, 0.0), "b": fit.b, "linear": ~leak, "dark": dark,
             "responsivity": np.where(leak, fit.g, np.where(np.isfinite(g_lin), g_lin, fit.g)),

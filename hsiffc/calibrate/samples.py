@@ -391,12 +391,13 @@ def dark_level(ks: dict, dark_current) -> np.ndarray:
         :func:`kernel_samples` of the pixels.
     dark_current : (P,) array_like, DN/ms
     """
-    use = ks["valid"] & ks["dark"][:, None]
-    w = np.where(use, ks["n_frames"][:, None], 0.0)
-    sw = w.sum(axis=0)
+    rows = np.flatnonzero(ks["dark"])  # the dark steps' rows only: weights by matrix products
+    use = ks["valid"][rows].astype(np.float64)
+    n = np.asarray(ks["n_frames"], np.float64)[rows]
+    sw = n @ use
     with np.errstate(divide="ignore", invalid="ignore"):
-        mt = (w * ks["t"][:, None]).sum(axis=0) / sw
-        my = (w * np.where(use, ks["y"], 0.0)).sum(axis=0) / sw
+        mt = (n * ks["t"][rows]) @ use / sw
+        my = (n[:, None] * use * ks["y"][rows]).sum(axis=0) / sw
     return np.where(sw > 0, my - np.asarray(dark_current, np.float64) * mt, np.nan)
 
 
@@ -419,10 +420,11 @@ def dark_sigma(ks: dict, *, dark_current: bool, dark_weight: float = 1.0) -> np.
     (P,) float64 (inf without a dark sample)
     """
     read_var = ks["noise"][1] if ks["noise"] is not None else 1.0
-    use = ks["valid"] & ks["dark"][:, None]
-    w = np.where(use, (ks["n_frames"] / dark_weight / read_var)[:, None], 0.0)
-    t = ks["t"][:, None]
-    sw, swt, swtt = w.sum(0), (w * t).sum(0), (w * t * t).sum(0)
+    rows = np.flatnonzero(ks["dark"])
+    use = ks["valid"][rows].astype(np.float64)
+    w = np.asarray(ks["n_frames"], np.float64)[rows] / dark_weight / read_var
+    t = ks["t"][rows]
+    sw, swt, swtt = w @ use, (w * t) @ use, (w * t * t) @ use
     with np.errstate(divide="ignore", invalid="ignore"):
         if dark_current:
             den = sw * swtt - swt ** 2
