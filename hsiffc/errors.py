@@ -86,6 +86,11 @@ def once_in_scope(owner, key) -> bool:
     return True
 
 
+class CalibrationDomainWarning(HsiffcWarning):
+    """Pixels of a calibration hold leakage parameters outside the model (b <= 0): they are
+    flagged DO_NOT_USE and their b set to NaN, as a NaN is, instead of failing every frame."""
+
+
 class MissingMosaicWarning(HsiffcWarning):
     """A frame gives no mosaic layout but its calibration has one: corrected pixel by pixel,
     per-band figures over the whole frame as one band."""

@@ -569,3 +569,45 @@ def test_a_one_band_cube_is_written_and_read_back_as_one_band(tmp_path, name):
     np.testing.assert_array_equal(back.data, cube.data)
     np.testing.assert_array_equal(back.dq, cube.dq)
     assert back.wavelengths_nm == (550.0,)
+
+
+def test_a_pixel_with_b_not_positive_is_flagged_not_fatal(sweep, tmp_path, capsys):
+    """One pixel of a calibration with leakage b <= 0 used to fail every frame of a batch
+    ("b (1/DN) must be > 0") without naming the calibration; a NaN was just flagged. Now the
+    calibration names itself in a warning, that pixel is flagged DO_NOT_USE (b NaN) and the
+    rest of the frame is corrected."""
+    from dataclasses import replace
+
+    from hsiffc.calibrate import Calibration
+    from hsiffc.errors import CalibrationDomainWarning
+    from hsiffc.io.corrected import read_corrected
+
+    good = Calibration.load(sweep / "cal.npz")
+    arrays = dict(good.arrays)
+    b = arrays["b_per_dn"].copy()
+    b[2, 3] = -0.01
+    arrays["b_per_dn"] = b
+    a = arrays["a_dn_per_ms"].copy()
+    a[2, 3] = max(float(a[2, 3]), 1e-3)  # a leaking pixel: its b is used
+    arrays["a_dn_per_ms"] = a
+    with pytest.warns(CalibrationDomainWarning, match="1 pixel"):
+        bad = replace(good, arrays=arrays, path=None)
+    assert np.isnan(bad.b[2, 3]) and bad.flags[2, 3] & DQ.DO_NOT_USE
+    # a file holding such a pixel, as another tool or an older fit may have written it
+    with np.load(sweep / "cal.npz") as z:
+        members = {k: z[k] for k in z.files}
+    members["b_per_dn"] = b
+    members["a_dn_per_ms"] = a
+    np.savez(tmp_path / "bad.npz", **members)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    rc = main(["correct", str(sweep / "s.tif"), "--calibration", str(tmp_path / "bad.npz"),
+               "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "bad.npz" in err and "b <= 0" in err, err
+    c = read_corrected(out / "s.corrected.tif")
+    assert (c.dq[:, 2, 3] & DQ.DO_NOT_USE).all()
+    others = np.ones(c.dq.shape[1:], bool)
+    others[2, 3] = False
+    assert np.isfinite(c.data[:, others]).all()

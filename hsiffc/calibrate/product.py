@@ -19,8 +19,8 @@ import numpy as np
 
 from .. import __version__
 from ..data.dark import dark_at
-from ..errors import (CalibrationMismatchError, DataFormatError, MissingMosaicWarning,
-                      ParameterError)
+from ..errors import (CalibrationDomainWarning, CalibrationMismatchError, DataFormatError,
+                      MissingMosaicWarning, ParameterError)
 from ..data.mosaic import Mosaic
 from ..data.products import read_product, write_product
 
@@ -76,9 +76,34 @@ class Calibration:
             if np.shape(arr) != shape:
                 raise ValueError(f"array {name!r} has shape {np.shape(arr)}, the domain says "
                                  f"frame_shape {shape}")
+        self._flag_outside_model()
         if not self.created:
             object.__setattr__(self, "created",
                                _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+
+    def _flag_outside_model(self) -> None:
+        """Pixels whose leakage exponent b is finite but not positive are outside the model
+        (the leakage grows with the signal): one such pixel would fail every frame it is
+        applied to. They get b = NaN and DO_NOT_USE, as a pixel with a NaN parameter is
+        flagged, and a :class:`~hsiffc.errors.CalibrationDomainWarning` says how many."""
+        b = np.asarray(self.arrays["b_per_dn"])
+        with np.errstate(invalid="ignore"):
+            bad = np.isfinite(b) & (b <= 0)
+        if not bad.any():
+            return
+        from ..data.dq import DQ
+
+        arrays = dict(self.arrays)
+        arrays["b_per_dn"] = np.where(bad, np.nan, b).astype(b.dtype)
+        flags = np.asarray(arrays.get("flags", np.zeros(b.shape, np.uint32)), np.uint32)
+        arrays["flags"] = flags | np.where(bad, np.uint32(DQ.DO_NOT_USE), np.uint32(0))
+        object.__setattr__(self, "arrays", arrays)
+        where = f" ({self.path})" if self.path else ""
+        warnings.warn(CalibrationDomainWarning(
+            f"calibration{where}: {int(bad.sum())} pixel(s) have leakage b <= 0 (1/DN), "
+            "outside the model; they are flagged DO_NOT_USE (b set to NaN) and every other "
+            "pixel is corrected; recalibrate to fit them", figures={"pixels": int(bad.sum())}),
+            stacklevel=3)
 
     def __repr__(self) -> str:  # key figures, never the arrays (a REPL echo stays short)
         h, w = self.frame_shape
