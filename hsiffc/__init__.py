@@ -26,9 +26,10 @@ import importlib as _importlib
 import sys as _sys
 import types as _types
 
-from ._moved import install as _install
+from ._moved import install
 
-_install()  # old module paths (hsiffc.frame, ...) keep working
+install()  # old module paths (hsiffc.frame, ...) keep working
+del install
 
 #: public name -> the module it lives in (imported on first use: see ``__getattr__``)
 _FACE = {
