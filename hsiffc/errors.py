@@ -58,6 +58,18 @@ class HsiffcWarning(UserWarning):
         self.figures = dict(figures or {})
 
 
+def band_figures(idx, values, fmt: str, limit: int = 6) -> str:
+    """The bands a warning is about, each with its figure: ``"band 3 12.5, band 7 9.1 (and 4
+    more)"`` (bands counted from 1; ``idx`` 0-based, ``values`` indexed by band, ``fmt`` a
+    format spec, at most ``limit`` named).
+
+    >>> band_figures([2, 6], [0.0, 0.0, 12.5, 0, 0, 0, 9.12], ".1f")
+    'band 3 12.5, band 7 9.1'
+    """
+    shown = ", ".join(f"band {i + 1} {format(values[i], fmt)}" for i in idx[:limit])
+    return shown + (f" (and {len(idx) - limit} more)" if len(idx) > limit else "")
+
+
 _SCOPE: contextvars.ContextVar = contextvars.ContextVar("hsiffc_warning_scope", default=None)
 
 

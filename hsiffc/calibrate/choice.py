@@ -48,6 +48,7 @@ from ..data.dq import DQ
 from ..data.mosaic import single_band_map
 from ..flatfield.model_based import model_ffc_apply
 from ..flatfield.model_flat import FlatStack, model_flat_fit
+from .flats import MIN_FLAT_FRAMES, flat_stack_steps
 from .joint import B_GRID, MARGIN_GRID, run_kernel
 from .pixelfit import LEAKAGE, LINEAR_NOT_CONVERGED, LINEAR_WORSE, NO_FIT, TOO_FEW
 from .samples import collect_samples, dark_level, dark_sigma, kernel_samples, linear_fit
@@ -70,7 +71,6 @@ MAX_PIXELS = 16384
 MIN_LIGHT_STEPS = 6
 #: a leakage pixel whose ln b has a larger 1-sigma error is not determined by the sweep
 MAX_SIGMA_LN_B = 0.5
-MIN_FLAT_FRAMES = 8
 #: Levenberg-Marquardt iterations per pixel: with its dark pinned by the dark frames a
 #: strongly bent pixel can need more than the fit's default 200
 MAX_ITER = 600
@@ -103,18 +103,24 @@ class FitSettings:
         return fit, ks
 
 
+def fit_dark(fit, ks, settings: FitSettings) -> np.ndarray:
+    """Each pixel's dark level (P,), DN: the dark frames'
+    (:func:`~hsiffc.calibrate.samples.dark_level`) where the fit pinned it to them, exactly
+    (the pin leaves the light response a pull of order
+    1/:data:`~hsiffc.calibrate.sensor.DARK_PIN` on it, which a converged fit takes); the
+    fit's own elsewhere."""
+    if settings.dark_weight <= 1:
+        return fit.dark
+    frames = dark_level(ks, fit.dark_current)
+    return np.where(np.isfinite(frames), frames, fit.dark)
+
+
 def candidate_parameters(fit, ks, settings: FitSettings, code, *, earn: bool = True) -> dict:
     """Per-pixel parameters (P,) of the kept model ``code`` (P,) of :data:`CANDIDATES`: a, b,
-    the dark level, responsivity and its sigma, and which pixels use the linear response
-    (``earn=False``: the leakage model wherever its fit converged, earned or not).
-
-    The dark level is the dark frames' (:func:`~hsiffc.calibrate.samples.dark_level`) where
-    the fit pinned it to them, exactly: the pin leaves the light response a pull of order
-    1/:data:`~hsiffc.calibrate.sensor.DARK_PIN` on it, which a converged fit takes."""
-    dark = fit.dark
-    if settings.dark_weight > 1:
-        frames = dark_level(ks, fit.dark_current)
-        dark = np.where(np.isfinite(frames), frames, fit.dark)
+    the dark level (:func:`fit_dark`), responsivity and its sigma, and which pixels use the
+    linear response (``earn=False``: the leakage model wherever its fit converged, earned or
+    not)."""
+    dark = fit_dark(fit, ks, settings)
     code = np.broadcast_to(np.asarray(code), fit.g.shape)
     with np.errstate(divide="ignore", invalid="ignore"):
         earned = fit.chi2_linear - fit.chi2 > EARN_PER_LN_N * np.log(np.maximum(fit.n_valid, 2))
@@ -191,10 +197,8 @@ def _flat_stack(flats, rows, settings, dark, dark_current, fs):
     of its exposure where there are two or more, else the pixels' dark line."""
     if flats is None:
         return None
-    for s in flats.steps():
+    for s in flat_stack_steps(flats, MIN_FLAT_FRAMES):
         sel = flats.step == s
-        if flats.kind[sel][0] != "light" or sel.sum() < MIN_FLAT_FRAMES:
-            continue
         t = float(flats.exposure_ms[sel][0])
         frames = flats.data[sel][:, rows].astype(np.float64)
         darks = flats.data[(flats.kind == "dark")
@@ -251,10 +255,10 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
         per band the same ``kept`` model, ``held_out_fpn_percent`` of every candidate
         (root of the mean relative fixed-pattern variance over the held-out steps) and
         ``n_steps``, and ``predicted_fpn_percent``: what the kept model's own errors (its
-        factor's and its dark's) predict for the same steps; ``rows``, ``fit_steps``, ``held_out_steps``,
-        ``candidates``. None where
-        the sweep has fewer than :data:`MIN_LIGHT_STEPS` light steps of two or more frames
-        (every band then keeps ``pixel_leakage``).
+        factor's and its dark's) predict for the same steps; ``rows``, ``fit_steps``,
+        ``held_out_steps``, ``candidates``. None where the sweep has fewer than
+        :data:`MIN_LIGHT_STEPS` light steps of two or more frames (every band then keeps
+        ``pixel_leakage``).
     """
     fit_steps, held, darks = held_out_split(sweep)
     if light_rate is not None or len(fit_steps) + len(held) < MIN_LIGHT_STEPS or not darks:
@@ -271,7 +275,7 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
     fit, ks = settings.fit(collect_samples(sub, full_well_dn=settings.full_well_dn,
                                            dtype=np.float64))
     fs = sweep.full_scale_dn
-    dark0 = candidate_parameters(fit, ks, settings, _code("linear"))["dark"]
+    dark0 = fit_dark(fit, ks, settings)
     stack = _flat_stack(flats, rows, settings, dark0, fit.dark_current, fs)
     names = [c for c in CANDIDATES if stack is not None or c != "two_point_stack"]
     shape = band_map.shape
@@ -318,19 +322,19 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
             scores[name].append(_fpn2(out[name], good, band_map, n_bands))
             predicted[name].append(_predicted2(gains[name], sigma_dark, out[name], good,
                                                band_map, n_bands))
-    levels = np.asarray(levels)
     # the sensor's choice, on every band's steps at once (more steps than one band has: a
     # near tie in one band does not flip it); each band's own figures beside it
-    pooled = {n: [np.concatenate(scores[n]).reshape(-1)] for n in names}
-    pooled_pred = {n: [np.concatenate(predicted[n]).reshape(-1)] for n in names}
-    sensor = _keep(0, names, {n: [v[0][i:i + 1] for i in range(v[0].size)] for n, v in
-                              pooled.items()},
-                   {n: [v[0][i:i + 1] for i in range(v[0].size)] for n, v in pooled_pred.items()},
-                   (levels / np.nanmax(levels, axis=0, keepdims=True)).reshape(-1))
-    bands = [_keep(band, names, scores, predicted, levels[:, band]) for band in range(n_bands)]
-    for row in bands:
-        row["kept"] = sensor["kept"]
-    return {"kept": sensor["kept"], "held_out_fpn_percent": sensor["held_out_fpn_percent"],
+    scores = {n: np.asarray(v) for n, v in scores.items()}  # (held-out steps, bands)
+    predicted = {n: np.asarray(v) for n, v in predicted.items()}
+    levels = np.asarray(levels)
+    kept = _choose(names, {n: v.ravel() for n, v in scores.items()},
+                   (levels / np.nanmax(levels, axis=0, keepdims=True)).ravel())
+    sensor = _figures({n: v.ravel() for n, v in scores.items()},
+                      {n: v.ravel() for n, v in predicted.items()}, kept)
+    bands = [{"band": band, **_figures({n: v[:, band] for n, v in scores.items()},
+                                       {n: v[:, band] for n, v in predicted.items()}, kept)}
+             for band in range(n_bands)]
+    return {"kept": kept, "held_out_fpn_percent": sensor["held_out_fpn_percent"],
             "predicted_fpn_percent": sensor["predicted_fpn_percent"], "bands": bands,
             "rows": [rows.start, rows.stop], "fit_steps": fit_steps, "held_out_steps": held,
             "candidates": names}
@@ -360,30 +364,37 @@ def _predicted2(mf, sigma_dark, corrected, good, band_map, n_bands):
 RANGES = (0.0, 0.4, 0.8)
 
 
-def _keep(band, names, scores, predicted, level) -> dict:
-    """The kept candidate of one band: the simplest, replaced by a richer one that predicts
-    the held-out steps better and nowhere worse.
-
-    See :func:`_better`; the ranges of signal are :data:`RANGES`."""
-    per = {n: np.array([s[band] for s in scores[n]]) for n in names}
+def _choose(names, per, level) -> str:
+    """The kept candidate: the simplest of ``names``, replaced by a richer one that predicts
+    the held-out steps better and nowhere worse (:func:`_better`; the ranges of signal are
+    :data:`RANGES` of ``level``, each step's signal relative to its band's brightest).
+    ``per``: each candidate's relative fixed-pattern variance per step (NaN: not measured);
+    with no step measured, ``pixel_leakage``."""
     ok = np.all([np.isfinite(v) for v in per.values()], axis=0)
-    row = {"band": int(band), "n_steps": int(ok.sum()),
-           "held_out_fpn_percent": {n: float(100 * np.sqrt(max(per[n][ok].mean(), 0.0)))
-                                    if ok.any() else float("nan") for n in names}}
+    if not ok.any():
+        return "pixel_leakage"
     kept = names[0]
     if ok.sum() >= 2:
-        top = level[ok].max()
-        which = np.searchsorted(np.asarray(RANGES) * top, level[ok], side="right") - 1
+        which = np.searchsorted(np.asarray(RANGES) * level[ok].max(), level[ok],
+                                side="right") - 1
         for n in names[1:]:
             if _better(per[n][ok], per[kept][ok], which):
                 kept = n
-    elif not ok.any():
-        kept = "pixel_leakage"
-    row["kept"] = kept
-    pred = np.array([s[band] for s in predicted[kept]])[ok]
-    row["predicted_fpn_percent"] = (float(100 * np.sqrt(np.nanmean(pred))) if ok.any()
-                                    and np.isfinite(pred).any() else float("nan"))
-    return row
+    return kept
+
+
+def _figures(per, predicted, kept) -> dict:
+    """The held-out figures of the steps every candidate measured: their number, each
+    candidate's root mean relative fixed-pattern variance (percent), the ``kept`` one and
+    what its own errors predict."""
+    ok = np.all([np.isfinite(v) for v in per.values()], axis=0)
+    pred = predicted[kept][ok]
+    return {"n_steps": int(ok.sum()),
+            "held_out_fpn_percent": {n: float(100 * np.sqrt(max(v[ok].mean(), 0.0)))
+                                     if ok.any() else float("nan") for n, v in per.items()},
+            "kept": kept,
+            "predicted_fpn_percent": (float(100 * np.sqrt(np.nanmean(pred)))
+                                      if np.isfinite(pred).any() else float("nan"))}
 
 
 def _better(new, old, which) -> bool:

@@ -321,7 +321,11 @@ def exposure_offset(ks: dict, *, max_fraction: float = 0.5, min_sigmas: float = 
     dark, light = ks["dark"], ks["light"]
     if not dark.any():
         return {**out, "reason": "no dark frames: the offset cannot be told from the dark"}
-    dark_line = _dark_lines(y, valid, t, dark)
+    tm, ym, slope = dark_lines(ks)
+    slope = np.nan_to_num(slope)  # one dark exposure: a constant dark
+
+    def dark_line(ti):
+        return ym + slope * (ti - tm)
     signal = []
     for s in np.flatnonzero(light):
         ok = valid[s]
@@ -361,23 +365,30 @@ def exposure_offset(ks: dict, *, max_fraction: float = 0.5, min_sigmas: float = 
     return {**out, "reason": f"not significant ({t0:.3g} +- {se:.2g} ms)"}
 
 
-def _dark_lines(y, valid, t, dark):
-    """Per pixel, the dark level at exposure t (DN): a least-squares line through the dark
-    samples where they span two or more exposures, else their mean. Returns a function of
-    t giving (P,) arrays."""
-    use = valid & dark[:, None]
+def dark_lines(ks: dict) -> tuple:
+    """Per pixel, the unweighted least-squares line through its valid dark samples.
+
+    Parameters
+    ----------
+    ks : dict
+        :func:`kernel_samples` of the pixels.
+
+    Returns
+    -------
+    t_mean, y_mean, slope : (P,) float64
+        Mean exposure (ms), mean level (DN) and slope (DN/ms; NaN where the samples do not
+        span two exposures, or there are none), so the level at ``t`` is ``y_mean + slope *
+        (t - t_mean)``.
+    """
+    use = ks["valid"] & ks["dark"][:, None]
     n = use.sum(axis=0)
-    tt = np.where(use, t[:, None], 0.0)
-    yy = np.where(use, y, 0.0)
+    tt = np.where(use, ks["t"][:, None], 0.0)
+    yy = np.where(use, ks["y"], 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         tm, ym = tt.sum(0) / n, yy.sum(0) / n
-        if np.unique(t[dark]).size >= 2:
-            slope = (np.where(use, (tt - tm) * (yy - ym), 0).sum(0)
-                     / np.where(use, (tt - tm) ** 2, 0).sum(0))
-            slope = np.where(np.isfinite(slope), slope, 0.0)
-        else:
-            slope = np.zeros_like(ym)
-    return lambda ti: ym + slope * (ti - tm)
+        slope = (np.where(use, (tt - tm) * (yy - ym), 0).sum(0)
+                 / np.where(use, (tt - tm) ** 2, 0).sum(0))
+    return tm, ym, slope
 
 
 def dark_level(ks: dict, dark_current) -> np.ndarray:

@@ -21,8 +21,8 @@ from ..data.sweep import Sweep
 from . import choice, pixelfit
 from .joint import B_GRID, run_kernel
 from .product import Calibration
-from .samples import (PhotonTransfer, Samples, collect_samples, dark_sigma, exposure_offset,
-                      kernel_samples, linear_fit, photon_transfer)
+from .samples import (PhotonTransfer, Samples, collect_samples, dark_lines, dark_sigma,
+                      exposure_offset, kernel_samples, linear_fit, photon_transfer)
 
 log = logging.getLogger(__name__)
 
@@ -92,14 +92,7 @@ def _light_doses(sweep: Sweep, light_rate=None) -> np.ndarray:
 def _dark_slopes(ks) -> np.ndarray:
     """Per-pixel least-squares slope (DN/ms) of the valid dark samples against exposure, not
     clipped at 0 (the pilot's test of whether the sensor has a dark current at all)."""
-    use = ks["valid"] & ks["dark"][:, None]
-    t = np.where(use, ks["t"][:, None], 0.0)
-    y = np.where(use, ks["y"], 0.0)
-    n = use.sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        tm, ym = t.sum(0) / n, y.sum(0) / n
-        slope = (np.where(use, (t - tm) * (y - ym), 0).sum(0)
-                 / np.where(use, (t - tm) ** 2, 0).sum(0))
+    slope = dark_lines(ks)[2]
     return slope[np.isfinite(slope)]
 
 

@@ -8,7 +8,7 @@ import warnings
 
 import numpy as np
 
-from ..errors import HsiffcWarning
+from ..errors import HsiffcWarning, band_figures
 from ._methods import REFLECTANCE_METHODS
 
 __all__ = ["ReflectanceWarning", "WhiteReferenceTooDarkWarning", "ReferenceSaturatedWarning",
@@ -47,11 +47,6 @@ class ExposureMismatchWarning(ReflectanceWarning):
 
 class GainMismatchWarning(ReflectanceWarning):
     """Scene and reference were recorded at different gains (not corrected)."""
-
-
-def _bands_text(idx, values, fmt: str, limit: int = 6) -> str:
-    shown = ", ".join(f"band {i + 1} {format(values[i], fmt)}" for i in idx[:limit])
-    return shown + (f" (and {len(idx) - limit} more)" if len(idx) > limit else "")
 
 
 def _worst(values, idx, *, lowest: bool):
@@ -116,7 +111,7 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
                 f"Band {dark[0] + 1} has no signal above dark: its reflectance is meaningless")
         warn(WhiteReferenceTooDarkWarning,
              f"white reference ({t:g} ms) too dark in {len(dark)} of {nb} bands: "
-             f"{_bands_text(dark, level, '.1f')} DN above dark "
+             f"{band_figures(dark, level, '.1f')} DN above dark "
              f"({of_range}; asked for >= {100 * min_level_fraction:g} % and SNR >= "
              f"{min_snr:g}); {snr_txt}. "
              f"{cost}: lengthen the reference's exposure, light the panel better or "
@@ -126,7 +121,7 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
     if hit:
         hit = _worst(sat, hit, lowest=False)
         warn(ReferenceSaturatedWarning,
-             f"white reference ({t:g} ms) saturated: {_bands_text(hit, sat, '.2g')} % of the "
+             f"white reference ({t:g} ms) saturated: {band_figures(hit, sat, '.2g')} % of the "
              f"pixels at full scale (allowed {max_saturated_percent:g} %); their reflectances "
              "are wrong and flagged SATURATED: shorten the reference's exposure or dim the "
              "light (and record the scenes at settings the panel does not saturate)")
@@ -139,7 +134,7 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
         if hit:
             warn(ReferenceSaturatedWarning,
                  f"white reference ({t:g} ms) stopped responding below full scale: "
-                 f"{_bands_text(hit, level, '.0f')} DN above dark with a temporal noise of "
+                 f"{band_figures(hit, level, '.0f')} DN above dark with a temporal noise of "
                  f"{', '.join(f'{var_w[i]:.2g}' for i in hit[:6])} DN^2, no more than the "
                  f"dark's ({', '.join(f'{var_d[i]:.2g}' for i in hit[:6])} DN^2): no shot "
                  "noise, the pixels sit at a full well below the ADC's full scale (not flagged "
@@ -167,7 +162,7 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
                         "reference exposure gives a more precise reference")
             warn(ReferenceLeakageWarning,
                  f"white reference ({t:g} ms) in strong leakage: median alpha "
-                 f"{_bands_text(hit, alpha, '.1f')} % (threshold {reference_alpha_percent:g} "
+                 f"{band_figures(hit, alpha, '.1f')} % (threshold {reference_alpha_percent:g} "
                  f"%); {cost}")
     if n < 2:
         warn(TooFewReferenceFramesWarning,
@@ -182,7 +177,7 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
             need = int(math.ceil(n * (err[hit[0]] / precision_percent) ** 2))
             warn(TooFewReferenceFramesWarning,
                  f"{n} white-reference frames ({t:g} ms) give a reference error of "
-                 f"{_bands_text(hit, err, '.2f')} % per pixel, above the requested "
+                 f"{band_figures(hit, err, '.2f')} % per pixel, above the requested "
                  f"{precision_percent:g} %; it is printed into every reflectance as a fixed "
                  f"pattern: record about {need} frames (or a brighter reference)")
     return out

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..data.bandstats import band_reduce
 from ..data.dq import DQ
-from ..errors import HsiffcWarning
+from ..errors import HsiffcWarning, band_figures
 
 __all__ = ["DarkAboveFlatWarning", "DarkTooBrightWarning", "FlatSaturatedWarning",
            "FlatTooDarkWarning", "ReferenceWarning", "SingleReferenceFrameWarning",
@@ -54,11 +54,6 @@ class DarkTooBrightWarning(ReferenceWarning):
     """The dark frames are as bright as a flat: a light frame given as a dark?"""
 
 
-def _bands(idx, values, fmt: str, limit: int = 6) -> str:
-    shown = ", ".join(f"band {i + 1} {format(values[i], fmt)}" for i in idx[:limit])
-    return shown + (f" (and {len(idx) - limit} more)" if len(idx) > limit else "")
-
-
 def _warn(category, text, figures, stacklevel):
     warnings.warn(category(text, figures=figures), stacklevel=stacklevel + 1)
 
@@ -80,7 +75,7 @@ def check_flats(stage: str, stack, signal, *, stacklevel: int = 3) -> None:
     if swapped:
         _warn(DarkAboveFlatWarning,
               f"{stage}: the dark is above the flat ({t:g} ms) in {len(swapped)} of {n_bands} "
-              f"bands: {_bands(swapped, level, '.1f')} DN flat less dark: were the dark and "
+              f"bands: {band_figures(swapped, level, '.1f')} DN flat less dark: were the dark and "
               "flat swapped? (--dark takes the dark frames, --flat the flat ones; or check "
               "the kind in their metadata); those bands cannot be flat-fielded",
               {"exposure_ms": t, "bands": [i + 1 for i in swapped],
@@ -90,7 +85,7 @@ def check_flats(stage: str, stack, signal, *, stacklevel: int = 3) -> None:
         dim = sorted(dim, key=lambda i: frac[i])
         _warn(FlatTooDarkWarning,
               f"{stage}: flat ({t:g} ms) too dark in {len(dim)} of {n_bands} bands: "
-              f"{_bands(dim, level, '.1f')} DN above dark "
+              f"{band_figures(dim, level, '.1f')} DN above dark "
               f"({', '.join(f'{100 * frac[i]:.1f} %' for i in dim[:6])} of the range; asked "
               f"for >= {100 * MIN_LEVEL_FRACTION:g} %): its noise is printed into every "
               "corrected frame; lengthen the flat's exposure or light it better",
@@ -102,8 +97,8 @@ def check_flats(stage: str, stack, signal, *, stacklevel: int = 3) -> None:
     hit = [i for i in range(n_bands) if sat[i] > MAX_SATURATED_PERCENT]
     if hit:
         _warn(FlatSaturatedWarning,
-              f"{stage}: flat ({t:g} ms) saturated: {_bands(hit, sat, '.2g')} % of the pixels "
-              f"at full scale (allowed {MAX_SATURATED_PERCENT:g} %); their gains are wrong and "
+              f"{stage}: flat ({t:g} ms) saturated: {band_figures(hit, sat, '.2g')} % of the "
+              f"pixels at full scale (allowed {MAX_SATURATED_PERCENT:g} %); their gains are wrong and "
               "flagged: shorten the flat's exposure or dim the light",
               {"exposure_ms": t, "bands": [i + 1 for i in hit],
                "saturated_percent": [float(sat[i]) for i in hit]}, stacklevel)
