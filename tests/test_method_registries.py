@@ -19,7 +19,7 @@ from hsiffc.data.sweep import Sweep
 from hsiffc.errors import ParameterError
 from hsiffc.flatfield import FFC_METHODS, Corrected, correct_flat
 from hsiffc.flatfield.model_based import model_ffc_apply
-from hsiffc.flatfield.model_flat import model_flat_fit
+from hsiffc.flatfield.model_based import model_flat_fit
 from hsiffc.flatfield.polynomial import polynomial_apply, polynomial_fit
 from hsiffc.flatfield.two_point import two_point_correct, two_point_fit
 from hsiffc.leakage.validity import (ALPHA_METHODS, AlphaFlags, DarkFlagged, alpha_map,

@@ -203,7 +203,7 @@ def test_bad_arguments_are_named():
                 max_size=20))
 def test_smallest_below_zero_means_any_below_zero(values):
     """The input checks use smallest(x) < 0 (one pass, no temporary) for np.any(x < 0)."""
-    from hsiffc.leakage._numerics import smallest
+    from hsiffc.leakage.model import smallest
 
     x = np.array(values, np.float64)
     assert (smallest(x) < 0) == bool(np.any(x < 0))

@@ -47,7 +47,7 @@ import numpy as np
 from ..data.dq import DQ
 from ..data.mosaic import single_band_map
 from ..flatfield.model_based import model_ffc_apply
-from ..flatfield.model_flat import FlatStack, model_flat_fit
+from ..flatfield.model_based import FlatStack, model_flat_fit
 from .flats import MIN_FLAT_FRAMES, flat_stack_steps
 from .joint import B_GRID, MARGIN_GRID, run_kernel
 from .pixelfit import LEAKAGE, LINEAR_NOT_CONVERGED, LINEAR_WORSE, NO_FIT, TOO_FEW

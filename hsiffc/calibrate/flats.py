@@ -2,7 +2,7 @@
 
 A sweep fit estimates each pixel's responsivity from a few frames per step; a flat stack (many
 frames of one uniform light, e.g. the EMVA 1288 spatial set) estimates it from many. The
-model-based flat field (:func:`hsiffc.flatfield.model_flat.model_flat_fit`) combines both per pixel by
+model-based flat field (:func:`hsiffc.flatfield.model_based.model_flat_fit`) combines both per pixel by
 inverse variance. :func:`add_flat_stacks` runs that combination at calibration time and stores
 its result in the calibration, so that the calibration alone (what ``hsiffc correct`` applies by
 default, with no training frames) already carries it:
@@ -29,7 +29,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..flatfield.model_flat import FlatStack, model_flat_fit
+from ..flatfield.model_based import FlatStack, model_flat_fit
 from ..data.sweep import Sweep
 from .product import Calibration
 

@@ -2,8 +2,8 @@
 
 - :mod:`.two_point` - the classic two-point (dark + flat) correction;
 - :mod:`.polynomial` - per-pixel polynomial correction over several flats;
-- :mod:`.model_based` - the leakage-model-based correction and its uncertainty;
-- :mod:`.model_flat` - the model-based correction's training (responsivity per pixel);
+- :mod:`.model_based` - the leakage-model-based correction, its uncertainty and its training
+  (responsivity per pixel);
 - :mod:`.floor` - the fixed-pattern floor a calibration sweep sets;
 - :mod:`.uniformity` - fixed-pattern non-uniformity figures;
 - :mod:`.methods` - the family's registry :data:`FFC_METHODS`: every method behind one

@@ -33,7 +33,7 @@ from ..data.dq import DQ_DTYPE
 from ..data.params import validate_method
 from ..errors import ParameterError
 from .model_based import model_ffc_apply
-from .model_flat import ModelFlat
+from .model_based import ModelFlat
 from .polynomial import PolynomialFlat, polynomial_apply
 from .two_point import FlatField, two_point_correct_with
 
@@ -157,7 +157,7 @@ def correct_flat(method: str, raw, dark, flat, *, dq=None, band_map=None, exposu
     flat : FlatField, PolynomialFlat or ModelFlat
         What the method learnt (:func:`~hsiffc.flatfield.two_point.two_point_fit`,
         :func:`~hsiffc.flatfield.polynomial.polynomial_fit`,
-        :func:`~hsiffc.flatfield.model_flat.model_flat_fit`).
+        :func:`~hsiffc.flatfield.model_based.model_flat_fit`).
     dq : (H, W) uint32, optional
         The frame's DQ; its bits are kept in the result's.
     band_map : (H, W) int, optional

@@ -24,9 +24,10 @@ integration constant c is the same curve: ``c_from_dark`` / ``dark_from_c`` conv
 the two.
 
 This module holds the response (closed form, the paper's eq. 3 and the linear eq. 1), its
-inversion, its gradient and the reference ODE solution. The quantities derived from the
+inversion, its gradient and the reference ODE solution, the quantities derived from the
 parameters (dynamic saturation level, leakage rate and percentage, exposure at a given
-percentage) are in :mod:`hsiffc.leakage._derived` and importable from here as well.
+percentage) and the numerical helpers they share (float64 arguments, logarithms that map 0 to
+``-inf`` quietly, ``log(1 - e^{-x})``, the check of a positive leakage exponent ``b``).
 """
 
 from __future__ import annotations
@@ -38,24 +39,6 @@ import numpy as np
 from ..data.dq import DQ_DTYPE
 from ..kernels import gradient, inversion, leakage
 from ..kernels.operands import flat_operands
-from ._derived import (
-    dynamic_saturation_level,
-    exposure_at_leakage_percentage,
-    leakage_percentage,
-    leakage_percentage_paper,
-    leakage_percentage_paper_into,
-    leakage_rate,
-)
-from ._numerics import (
-    B_MESSAGE,
-    NEGATIVE_MESSAGE,
-    as_float64,
-    check_positive_b,
-    log1mexp,
-    log_or_neg_inf,
-    smallest,
-)
-
 __all__ = [
     "response", "response_from_c", "linear_response", "c_from_dark", "dark_from_c",
     "dynamic_saturation_level", "leakage_rate", "leakage_percentage",
@@ -63,6 +46,97 @@ __all__ = [
     "invert_response",
     "Inversion", "solve_ode", "response_and_gradient",
 ]
+
+
+# -- numerical helpers: float64 arguments, quiet logarithms, log(1 - e^-x), the b check ------
+
+def as_float64(*arrays):
+    """Every argument as a float64 ndarray.
+
+    Parameters
+    ----------
+    *arrays : array_like
+        Values to convert (any shape).
+
+    Returns
+    -------
+    list of ndarray of float64
+        One array per argument, in order.
+    """
+    return [np.asarray(a, dtype=np.float64) for a in arrays]
+
+
+def log_or_neg_inf(x):
+    """Natural log that maps 0 to -inf without a warning.
+
+    Parameters
+    ----------
+    x : array_like
+        Values >= 0.
+
+    Returns
+    -------
+    ndarray or float
+        ``log(x)``, -inf where x is 0.
+    """
+    with np.errstate(divide="ignore"):
+        return np.log(x)
+
+
+def log1mexp(x):
+    """log(1 - exp(-x)) for x >= 0, accurate everywhere (Maechler 2012).
+
+    Parameters
+    ----------
+    x : array_like
+        Values >= 0 (0 gives -inf).
+
+    Returns
+    -------
+    ndarray of float64
+        Shape of ``x``.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        small = x < np.log(2.0)
+        return np.where(small, np.log(-np.expm1(-np.where(small, x, 1.0))),
+                        np.log1p(-np.exp(-np.where(small, 1.0, x))))
+
+
+def smallest(x) -> float:
+    """The smallest value of ``x`` that is not NaN (NaN when there is none): one pass, no
+    temporary array (``np.any(x < 0)`` builds a boolean array of the frame first), and
+    ``smallest(x) < 0`` means exactly ``np.any(x < 0)``."""
+    a = np.asarray(x)
+    return float(np.fmin.reduce(a, axis=None)) if a.size else np.nan
+
+
+B_MESSAGE = "b (1/DN) must be > 0: the leakage grows with the collected signal"
+NEGATIVE_MESSAGE = "t_ms, k and a must be >= 0"
+
+
+def check_positive_b(b):
+    """Refuse a leakage exponent that is not > 0.
+
+    Parameters
+    ----------
+    b : array_like, 1/DN
+        Leakage exponent(s).
+
+    Returns
+    -------
+    None
+
+    Raises
+    ------
+    ValueError
+        If any ``b`` is <= 0.
+    """
+    if smallest(b) <= 0:
+        raise ValueError(B_MESSAGE)
+
+
+# -- the response ------------------------------------------------------------------------------
 
 
 def _response(t_ms, k, a, b, dark, check: bool = False):
@@ -376,3 +450,198 @@ def response_and_gradient(t_ms, k, a, b, dark):
     out = np.empty((5, int(np.prod(shape))))
     gradient.response_gradient_kernel(*ops, out)
     return tuple(o.reshape(shape) for o in out)
+
+
+# -- quantities derived from the parameters -----------------------------------------------------
+# where leakage balances the light (the dynamic saturation level ln(k/a)/b), the leakage rate
+# a e^{bY} at a response, the leakage percentage alpha of eq. (4) (with k from the model, or as
+# the paper computes it from the signal over the exposure) and the exposure at which the model
+# response reaches a given alpha
+
+def dynamic_saturation_level(k, a, b):
+    """Level ``ln(k/a)/b`` (DN) where leakage balances the light: the dynamic saturation.
+
+    Parameters
+    ----------
+    k : array_like, DN/ms
+        Light rate.
+    a : array_like, DN/ms
+        Leakage amplitude (0 gives +inf: no saturation).
+    b : array_like, 1/DN
+        Leakage exponent (> 0).
+
+    Returns
+    -------
+    ndarray of float64, DN
+        Shape of the broadcast of the arguments.
+
+    Examples
+    --------
+    >>> round(float(dynamic_saturation_level(2.0, 2 * np.exp(-8.0), 0.01)), 6)
+    800.0
+    """
+    k, a, b = as_float64(k, a, b)
+    check_positive_b(b)
+    with np.errstate(divide="ignore"):
+        return (log_or_neg_inf(k) - log_or_neg_inf(a)) / b
+
+
+def leakage_rate(y, a, b):
+    """Leakage ``a e^{bY}`` (DN/ms) at response ``y`` (DN).
+
+    Parameters
+    ----------
+    y : array_like, DN
+        Response.
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent.
+
+    Returns
+    -------
+    ndarray of float64, DN/ms
+        Shape of the broadcast (inf where it overflows).
+    """
+    y, a, b = as_float64(y, a, b)
+    with np.errstate(over="ignore"):
+        return np.exp(log_or_neg_inf(a) + b * y)
+
+
+def leakage_percentage(y, k, a, b):
+    """Leakage percentage alpha of eq. (4) with k from the model: ``100 a e^{bY} / k`` (percent).
+
+    Along a response that starts below saturation alpha stays below 100 %: it reaches 100 % only
+    at the dynamic saturation level.
+
+    Parameters
+    ----------
+    y : array_like, DN
+        Response.
+    k : array_like, DN/ms
+        Light rate (from the calibration or an inversion).
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent.
+
+    Returns
+    -------
+    ndarray of float64, percent
+        Shape of the broadcast of the arguments.
+
+    Examples
+    --------
+    >>> a, b = 2 * np.exp(-8.0), 0.01
+    >>> round(float(leakage_percentage(800.0, 2.0, a, b)), 6)   # at the dynamic saturation
+    100.0
+    """
+    shape, ops = flat_operands(y, k, a, b, names=("y", "k", "a", "b"))
+    out = np.empty(int(np.prod(shape, dtype=np.int64)))
+    leakage.alpha_model_kernel(*ops, out)
+    return out.reshape(shape)
+
+
+def leakage_percentage_paper(y, t_ms, a, b, dark=0.0):
+    """Alpha as the paper computes it, with k approximated by the signal over the exposure.
+
+    ``alpha = 100 a e^{bY} / ((Y - dark) / t)`` in percent. The paper divides the raw response
+    by the exposure (``dark=0``, the default, reproduces that); passing the dark level gives the
+    signal rate. Because Y/t underestimates k once leakage bends the curve, this alpha exceeds
+    100 % deep in saturation (the paper's 173.5 % example). Where the signal is not positive the
+    result is ``inf`` (no light rate can be estimated: treat as invalid).
+
+    Parameters
+    ----------
+    y : array_like, DN
+        Raw response.
+    t_ms : array_like, ms
+        Exposure time (> 0).
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent.
+    dark : array_like, DN
+        Level subtracted before dividing by the exposure (0: the paper's form).
+
+    Returns
+    -------
+    ndarray of float64, percent
+        Shape of the broadcast of the arguments.
+    """
+    return leakage_percentage_paper_into(None, y, t_ms, a, b, dark)
+
+
+def leakage_percentage_paper_into(out, y, t_ms, a, b, dark=0.0):
+    """:func:`leakage_percentage_paper` written into ``out`` (float32 or float64, the shape of
+    the broadcast; None allocates float64). float32 is enough for a validity mask: alpha is
+    computed in float64 and rounded once (1e-7 relative).
+
+    Parameters
+    ----------
+    out : ndarray or None
+        C-contiguous output of the broadcast shape (float32 or float64), or None.
+    y, t_ms, a, b, dark : array_like
+        As in :func:`leakage_percentage_paper`.
+
+    Returns
+    -------
+    ndarray, percent
+        ``out`` (or the new float64 array).
+    """
+    shape, ops = flat_operands(y, t_ms, a, b, dark,
+                               names=("y", "t_ms", "a", "b", "dark"))
+    if out is None:
+        out = np.empty(shape)
+    if out.shape != tuple(shape) or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous array of shape {tuple(shape)}, got "
+                         f"{out.shape}")
+    leakage.alpha_paper_kernel(*ops, out.reshape(-1))
+    return out
+
+
+def exposure_at_leakage_percentage(alpha_percent, k, a, b, dark):
+    """Exposure (ms) at which the model response reaches a leakage percentage.
+
+    With ``alpha0`` the model alpha at the dark level,
+    ``t = (logit(alpha) - logit(alpha0)) / (b k)``.
+    Returns 0 where the response starts at or above that alpha and ``inf`` where it is never
+    reached (alpha >= 100 %, or k = 0).
+
+    Parameters
+    ----------
+    alpha_percent : array_like, percent
+        Leakage percentage to reach (model alpha, :func:`leakage_percentage`).
+    k : array_like, DN/ms
+        Light rate.
+    a : array_like, DN/ms
+        Leakage amplitude.
+    b : array_like, 1/DN
+        Leakage exponent (> 0).
+    dark : array_like, DN
+        Level at t = 0.
+
+    Returns
+    -------
+    ndarray of float64, ms
+        Shape of the broadcast of the arguments.
+
+    Examples
+    --------
+    >>> from hsiffc.leakage.model import response
+    >>> k, a, b, d = 2.0, 2 * np.exp(-8.0), 0.01, 50.0
+    >>> t = exposure_at_leakage_percentage(50.0, k, a, b, d)
+    >>> round(float(leakage_percentage(response(t, k, a, b, d), k, a, b)), 6)
+    50.0
+    """
+    alpha, k, a, b, dark = as_float64(alpha_percent, k, a, b, dark)
+    check_positive_b(b)
+    p = alpha / 100.0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        log_p0 = log_or_neg_inf(a) + b * dark - log_or_neg_inf(k)  # log of alpha0 as a fraction
+        logit_p = np.log(p) - log1mexp(-np.log(p))
+        logit_p0 = log_p0 - log1mexp(-log_p0)
+        t = (logit_p - logit_p0) / (b * k)
+    t = np.where(p >= 1.0, np.inf, t)
+    t = np.where((p < 1.0) & (log_p0 >= np.log(np.minimum(p, 1.0))), 0.0, t)
+    return np.where(k > 0, np.maximum(t, 0.0), np.inf)

@@ -9,7 +9,7 @@ from ..data.dq import DQ_DTYPE
 from ..errors import ParameterError
 from ..kernels.bits import or_into
 from ..flatfield.model_based import log_gain_ratio, model_ffc_apply
-from ..flatfield.model_flat import FlatStack, model_flat_fit
+from ..flatfield.model_based import FlatStack, model_flat_fit
 from ..data.params import Param
 from .common import CALIBRATION, THRESHOLD
 from .base import PreparedWithCalibration, Stage
