@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import inspect
 import warnings
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from hsiffc.data.dark import subtract_dark
 from hsiffc.data.mosaic import Mosaic
 from hsiffc.data.sweep import Sweep
 from hsiffc.errors import ParameterError
-from hsiffc.flatfield import FFC_METHODS, Corrected, correct_flat
+from hsiffc.flatfield import FFC_METHODS, FROM_CALIBRATION, Corrected, FFCMethod, correct_flat
 from hsiffc.flatfield.model_based import model_ffc_apply
 from hsiffc.flatfield.model_based import model_flat_fit
 from hsiffc.flatfield.polynomial import polynomial_apply, polynomial_fit
@@ -146,6 +147,72 @@ def test_ffc_entries_check_the_flat_and_the_method():
     _, _, mf, _, _ = _ffc_case("model")
     with pytest.raises(ParameterError, match="needs exposure_ms=, a=, b="):
         correct_flat("model", raw, dark, mf)
+
+
+@dataclass(frozen=True)
+class ScaleFlat:
+    """What the test's method learns: one factor per pixel."""
+
+    gain: np.ndarray
+
+
+def _scaled(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None, calibration=None):
+    out = (subtract_dark(raw, dark) * flat.gain).astype(np.float32)
+    return Corrected(out, np.zeros(out.shape, np.uint32) | (0 if dq is None else dq), None)
+
+
+#: a flat-field method added through the registry alone: half the signal above the dark
+SCALED = FFCMethod("test: the signal above the dark times a learnt factor", _scaled, ScaleFlat,
+                   learn=lambda cal: ScaleFlat(np.full(cal.frame_shape, 0.5, np.float32)),
+                   state_schema={"gain_": ("f", ("H", "W"))})
+
+
+def test_a_method_added_to_the_registry_runs_from_the_command_line(monkeypatch, tmp_path,
+                                                                   calibrations, sensor):
+    """One registry line makes a new flat-field method a choice of ``hsiffc correct --ffc``, a
+    step of the default pipeline and of a pipeline file (its state checked by its schema)."""
+    from hsiffc.batch.context import FFC_CHOICES
+    from hsiffc.cli import build_parser, main
+    from hsiffc.io import write_sweep
+    from hsiffc.io.corrected import read_corrected
+    from hsiffc.stages import Pipeline
+    from hsiffc.stages.defaults import default_pipeline
+
+    assert "scaled" not in FFC_CHOICES
+    monkeypatch.setitem(FFC_METHODS, "scaled", SCALED)
+    assert "scaled" in FROM_CALIBRATION and "scaled" in FFC_CHOICES
+    cal = tmp_path / "cal.npz"
+    calibrations["joint"].save(cal)
+    scene = sensor.sweep([10.0, 20.0], "lamp A", irradiance_w_m2=TRAIN / 4, n_frames=2,
+                         darks=False, seed=8)
+    write_sweep(tmp_path / "scene.tif", replace(scene, meta={}))
+    out = {}
+    for ffc in ("none", "scaled"):
+        assert main(["correct", str(tmp_path / "scene.tif"), "--calibration", str(cal), "-o",
+                     str(tmp_path / ffc), "--ffc", ffc, "-q"]) == 0
+        out[ffc] = read_corrected(tmp_path / ffc / "scene.corrected.tif")
+    steps = [s["stage"] for s in out["scaled"].provenance["pipeline"]["steps"]]
+    assert steps == ["dark", "alpha_mask", "flat_field"]
+    np.testing.assert_allclose(out["scaled"].data, 0.5 * out["none"].data, rtol=1e-5, atol=1e-3)
+    np.testing.assert_array_equal(out["scaled"].dq, out["none"].dq)
+    # a pipeline file keeps the step; its state is checked against the method's schema
+    pipe = default_pipeline(calibrations["joint"], ffc="scaled")
+    pipe.save(tmp_path / "pipe.npz")
+    again = Pipeline.load(tmp_path / "pipe.npz")
+    frame = sensor.capture(20.0, "lamp A", irradiance_w_m2=TRAIN / 4, seed=9).to_frames()[0]
+    np.testing.assert_array_equal(again.transform(frame).data, pipe.transform(frame).data)
+    # the command line's help lists it, read from the registry
+    sub = next(a for a in build_parser()._actions if a.choices and "correct" in a.choices)
+    ffc_opt = next(a for a in sub.choices["correct"]._actions if a.dest == "ffc")
+    assert tuple(ffc_opt.choices) == (*FROM_CALIBRATION, "none")
+
+
+def test_a_method_learnt_from_frames_only_is_no_default_choice():
+    from hsiffc.stages.ffc import from_calibration
+
+    assert tuple(FROM_CALIBRATION) == ("model",)  # two_point and polynomial need flats
+    with pytest.raises(ParameterError, match="learns from training frames"):
+        from_calibration("two_point", None)
 
 
 # -- calibration and alpha (one tiny simulated sweep per calibration method) -----------------

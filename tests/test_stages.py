@@ -36,7 +36,7 @@ def sample_cal(sample_cubes, tmp_path_factory):
 
 
 def _params_for(name, cal_path):
-    needs_cal = {"alpha_mask", "linearise", "two_point_ffc", "model_ffc"}
+    needs_cal = {"alpha_mask", "linearise", "two_point_ffc", "model_ffc", "flat_field"}
     if name == "reflectance":
         return {"panel": 0.99}
     return {"calibration": str(cal_path)} if name in needs_cal else {}

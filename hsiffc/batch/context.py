@@ -12,6 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..calibrate.product import Calibration
+from ..data.params import LiveChoices
+from ..flatfield.methods import FROM_CALIBRATION
 from ..reconstruct import DEMOSAIC_METHODS
 from ..stages import Pipeline, create
 from ..stages import defaults
@@ -23,14 +25,17 @@ __all__ = ["CUBE_METHODS", "FFC_CHOICES", "Context", "Settings", "check_ffc", "c
 NAN_POLICIES = ("flag", "fail")
 
 
-FFC_CHOICES = ("model", "none")
+#: ``--ffc`` choices: the flat-field methods learnt from a calibration alone
+#: (:data:`hsiffc.flatfield.FROM_CALIBRATION`, read from the registry when looked at) and
+#: "none"
+FFC_CHOICES = LiveChoices(lambda: (*FROM_CALIBRATION, "none"))
 
 
 def default_pipeline(calibration, *, threshold_percent: float = 12.0,
                      linearise: bool = False, ffc: str = "model") -> Pipeline:
     """The pipeline ``hsiffc correct`` applies without ``--pipeline``
     (:func:`hsiffc.stages.defaults.default_pipeline`), after :func:`check_ffc` (BatchError for
-    an unknown ``ffc`` or ``linearise`` with ``ffc="model"``)."""
+    an unknown ``ffc`` or ``linearise`` with a flat-field method)."""
     check_ffc(ffc, linearise)
     return defaults.default_pipeline(calibration, threshold_percent=threshold_percent,
                                      linearise=linearise, ffc=ffc)
@@ -63,11 +68,11 @@ def with_cube_step(pipe: Pipeline, method: str, correction=None, imec_xml=None) 
 
 
 def check_ffc(ffc: str, linearise: bool) -> None:
-    """BatchError unless ``ffc`` is one of :data:`FFC_CHOICES` and not ``"model"`` together
-    with ``linearise``."""
+    """BatchError unless ``ffc`` is one of :data:`FFC_CHOICES` and not a method (other than
+    "none") together with ``linearise``."""
     if ffc not in FFC_CHOICES:
         raise BatchError(f"--ffc must be one of {', '.join(FFC_CHOICES)}, got {ffc!r}")
-    if linearise and ffc == "model":
+    if linearise and ffc != "none":
         raise BatchError("--linearise needs --ffc none: the default --ffc model already inverts "
                          "the leakage (drop --linearise, or add --ffc none for linearisation "
                          "without flat field)")

@@ -313,6 +313,7 @@ def _cmd_simulate(args) -> int:
 
 def _add_calibrate(sub):
     from ..calibrate import CALIBRATION_METHODS
+    from ..data.params import LiveChoices
 
     p = sub.add_parser(
         "calibrate", help="calibrate the leakage model of every pixel from a sweep",
@@ -322,7 +323,7 @@ def _add_calibrate(sub):
                    help="sweep: files of any supported format, folders or globs")
     add_input_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, help="calibration file (.npz)")
-    p.add_argument("--method", choices=tuple(CALIBRATION_METHODS), default="joint",
+    p.add_argument("--method", choices=LiveChoices(CALIBRATION_METHODS), default="joint",
                    help="joint per-pixel fit (default) or the paper's procedure (several "
                         "illuminations)")
     p.add_argument("--full-well-dn", type=positive, default=None,

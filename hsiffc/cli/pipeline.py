@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..batch.context import CUBE_METHODS
+from ..batch.context import CUBE_METHODS, FFC_CHOICES
 from ..errors import HsiffcError
 from .args import count, percent, real
 from .common import add_input_options, add_overwrite, input_overrides, write_json
@@ -153,11 +153,11 @@ def _add_correct(sub):
                         "calibration + alpha mask + model-based flat field (--ffc)")
     p.add_argument("--threshold", type=percent, default=12.0,
                    help="alpha threshold in percent for the default pipeline (default 12)")
-    p.add_argument("--ffc", choices=("model", "none"), default=None,
-                   help="flat-field step of the default pipeline: model (default: model_ffc "
-                        "from the calibration alone: leakage inverted, each pixel divided by "
-                        "its responsivity relative to its band) or none (dark + alpha mask "
-                        "only)")
+    p.add_argument("--ffc", choices=FFC_CHOICES, default=None,
+                   help="flat-field step of the default pipeline: a flat-field method learnt "
+                        "from the calibration alone (hsiffc.flatfield.FFC_METHODS; default "
+                        "model: model_ffc, leakage inverted, each pixel divided by its "
+                        "responsivity relative to its band) or none (dark + alpha mask only)")
     p.add_argument("--linearise", action="store_true",
                    help="with --ffc none: add leakage linearisation (model_ffc already "
                         "inverts the leakage)")

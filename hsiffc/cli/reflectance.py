@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.params import LiveChoices
 from ..errors import HsiffcError
 from ..reconstruct import DEMOSAIC_METHODS
 from ..reflectance import REFLECTANCE_METHODS, resolve_method
@@ -69,7 +70,7 @@ def _add_fit(acts):
                    help="leakage calibration (.npz from 'hsiffc calibrate'): reflectance from "
                         "the light rates the model recovers (leakage-aware)")
     default = "auto"
-    p.add_argument("--method", choices=tuple(REFLECTANCE_METHODS), default=default,
+    p.add_argument("--method", choices=LiveChoices(REFLECTANCE_METHODS), default=default,
                    help="; ".join(f"{name}: {how.summary}"
                                   + (" (needs --calibration)" if how.leakage_aware else "")
                                   + (" (default)" if name == default else "")

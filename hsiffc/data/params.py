@@ -20,13 +20,59 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import ParameterError
 
 KINDS = ("number", "integer", "choice", "bool", "string", "path", "calibration")
+
+
+class LiveChoices(Sequence):
+    """The names of a method registry, read each time they are looked at, so that a method
+    registered after a stage or a command-line parser was defined is one of its choices.
+
+    Parameters
+    ----------
+    source : mapping or callable
+        A registry (its keys are the names) or a function returning the names.
+
+    Examples
+    --------
+    >>> registry = {"a": 1}
+    >>> names = LiveChoices(registry)
+    >>> registry["b"] = 2
+    >>> "b" in names, names == ("a", "b"), list(names)
+    (True, True, ['a', 'b'])
+    """
+
+    def __init__(self, source: Mapping | Callable[[], Iterable[str]]):
+        self._source = source
+
+    def _names(self) -> tuple:
+        return tuple(self._source if isinstance(self._source, Mapping) else self._source())
+
+    def __getitem__(self, index):
+        return self._names()[index]
+
+    def __len__(self) -> int:
+        return len(self._names())
+
+    def __contains__(self, value) -> bool:
+        return value in self._names()
+
+    def __iter__(self):
+        return iter(self._names())
+
+    def __eq__(self, other) -> bool:
+        return self._names() == (other._names() if isinstance(other, LiveChoices) else other)
+
+    def __hash__(self) -> int:
+        return hash(self._names())
+
+    def __repr__(self) -> str:
+        return repr(self._names())
 
 
 @dataclass(frozen=True)
@@ -42,8 +88,9 @@ class Param:
     low, high : float, optional
         Range of a number or integer (inclusive unless ``low_open`` / ``high_open``).
     choices : tuple
-        Valid values of a ``"choice"`` parameter (any iterable: a method registry gives its
-        names; kept as a tuple).
+        Valid values of a ``"choice"`` parameter (any iterable, kept as a tuple; a method
+        registry or a :class:`LiveChoices` gives its names as they are when a value is
+        checked).
     optional : bool
         None is accepted.
     unit : str
@@ -55,14 +102,16 @@ class Param:
     high: float | None = None
     low_open: bool = False
     high_open: bool = False
-    choices: tuple = ()
+    choices: tuple | LiveChoices = ()
     optional: bool = False
     unit: str = ""
 
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ValueError(f"Param kind must be one of {KINDS}, got {self.kind!r}")
-        if not isinstance(self.choices, tuple):  # e.g. a registry: its names
+        if isinstance(self.choices, Mapping):  # a registry: its names, live
+            object.__setattr__(self, "choices", LiveChoices(self.choices))
+        elif not isinstance(self.choices, (tuple, LiveChoices)):
             object.__setattr__(self, "choices", tuple(self.choices))
 
     def describe(self) -> str:

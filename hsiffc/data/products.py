@@ -175,35 +175,12 @@ def _manifest(zf, header, path, format: str, format_version: int) -> dict:
 
 
 # -- the schema of what a product file holds --------------------------------------------------
-#: Fitted state of the built-in stages: field -> JSON kind ("bool", "int", "number",
-#: "numbers", "dict", "str", "any"; "|null" allows null) or array spec (dtype kinds, dims, or a
-#: list of dims the array may have).
-#: Dims are "H"/"W" (the frame, shared by the whole file), another capital letter (a size
-#: shared within the step, e.g. bands), or the name of a list field (its length). A plugin
-#: stage may declare its own ``state_schema`` class attribute the same way.
-STATE_SCHEMAS = {
-    "dark": {"fitted_": "bool", "exposures_ms_": "numbers",
-             "masters_": ("f", ("exposures_ms_", "H", "W")),
-             "master_dq_": ("u", ("exposures_ms_", "H", "W")),
-             "dark0_": ("f", ("H", "W")), "dark_slope_": ("f", ("H", "W"))},
-    "two_point_ffc": {"fitted_": "bool", "selected_ms_": "numbers", "alpha_table_": "dict|null",
-                      "gain_": ("f", ("H", "W")),
-                      # one value per band; format 1 stored it per pixel
-                      "flat_mean_": ("f", [("selected_ms_",), ("H", "W")]),
-                      "dq_": ("u", ("H", "W"))},
-    "polynomial_ffc": {"fitted_": "bool", "n_levels_": "int", "coef_": ("f", ("K", "H", "W")),
-                       "scale_": ("f", ("H", "W")), "x_min_": ("f", ("H", "W")),
-                       "x_max_": ("f", ("H", "W")), "dq_": ("u", ("H", "W"))},
-    "model_ffc": {"fitted_": "bool", "uncertainty_": "any", "gain_": ("f", ("H", "W")),
-                  "gain_sweep_": ("f", ("H", "W")), "sigma_ln_gain_": ("f", ("H", "W")),
-                  "flat_weight_": ("f", ("H", "W")), "dq_": ("u", ("H", "W"))},
-    "reconstruct": {"fitted_": "bool", "virtual_wavelengths_nm_": "numbers",
-                    "virtual_fwhm_nm_": "number|null",
-                    "matrix_": ("f", ("virtual_wavelengths_nm_", "B"))},
-    "alpha_mask": {"fitted_": "bool"},
-    "linearise": {"fitted_": "bool"},
-    "filter": {"fitted_": "bool"},
-}
+# A stage's fitted state is described by its own ``state_schema`` (a class attribute, or a
+# function of the step's parameters where the state depends on them): field -> JSON kind
+# ("bool", "int", "number", "numbers", "dict", "str", "any"; "|null" allows null) or array spec
+# (dtype kinds, dims, or a list of dims the array may have). Dims are "H"/"W" (the frame,
+# shared by the whole file), another capital letter (a size shared within the step, e.g.
+# bands), or the name of a list field (its length).
 _DTYPE_WORDS = {"f": "floats", "u": "unsigned integers (DQ bits)"}
 _MAX_SIZE = 65536  # a step's own sizes (bands, coefficients, exposures): far above any real one
 _KINDS = {"bool": (bool,), "int": (int,), "number": (int, float), "dict": (dict,), "str": (str,),
@@ -344,7 +321,7 @@ def _check_pipeline(dims: _Dims, manifest: dict, headers: dict, state_schema) ->
             if state:
                 dims.fail(f"{where} array {next(iter(state))!r}", "belongs to no fitted state")
             continue
-        schema = (state_schema or STATE_SCHEMAS.get)(spec["stage"])
+        schema = None if state_schema is None else state_schema(spec["stage"], spec["params"])
         if schema is None:  # a plugin that declares nothing: numbers only (checked already)
             continue
         _check_fields(dims, f"{where} state", schema, spec["state"])
@@ -362,7 +339,7 @@ def check_product(format: str, manifest: dict, headers: dict, *, path, limits,
     Every array holds numbers (checked with the headers); its shape fits the others (one frame
     size for the whole file, within the size limits) and the manifest (a calibration's
     declared arrays, a state's list lengths: e.g. one stored dark per listed exposure); a
-    fitted state's JSON fields have the types its stage writes (:data:`STATE_SCHEMAS`); no
+    fitted state's JSON fields have the types its stage writes (its ``state_schema``); no
     array is left over; all arrays together fit ``limits.max_bytes``.
 
     Parameters
@@ -379,9 +356,10 @@ def check_product(format: str, manifest: dict, headers: dict, *, path, limits,
     remedy : str
         How to make a good file (ends the messages).
     state_schema : callable, optional
-        Stage name -> the schema of its fitted state, or None to check numbers only (the
-        pipeline passes its registry's lookup: a plugin stage's own ``state_schema``); default
-        :data:`STATE_SCHEMAS`.
+        ``state_schema(stage, params)``: the schema of the fitted state of a step of that
+        registered stage with those parameters, or None to check numbers only (the pipeline
+        passes its registry's lookup: each stage's own ``state_schema``). Without it, a
+        pipeline's states are checked for numbers and sizes only.
 
     Raises
     ------

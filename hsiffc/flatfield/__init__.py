@@ -12,6 +12,6 @@
 The stages in :mod:`hsiffc.stages` wrap these functions.
 """
 
-from .methods import FFC_METHODS, Corrected, FFCMethod, correct_flat
+from .methods import FFC_METHODS, FROM_CALIBRATION, Corrected, FFCMethod, correct_flat
 
-__all__ = ["FFC_METHODS", "Corrected", "FFCMethod", "correct_flat"]
+__all__ = ["FFC_METHODS", "FROM_CALIBRATION", "Corrected", "FFCMethod", "correct_flat"]

@@ -22,22 +22,21 @@ hsiffc.errors.ParameterError: unknown flat-field method 'two-point'; did you mea
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
-from typing import NamedTuple
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..data.dark import subtract_dark
 from ..data.dq import DQ_DTYPE
-from ..data.params import validate_method
+from ..data.params import LiveChoices, validate_method
 from ..errors import ParameterError
-from .model_based import model_ffc_apply
-from .model_based import ModelFlat
+from .model_based import ModelFlat, model_ffc_apply, model_flat_of
 from .polynomial import PolynomialFlat, polynomial_apply
 from .two_point import FlatField, two_point_correct_with
 
-__all__ = ["FFC_METHODS", "Corrected", "FFCMethod", "correct_flat"]
+__all__ = ["FFC_METHODS", "FROM_CALIBRATION", "Corrected", "FFCMethod", "correct_flat"]
 
 
 class Corrected(NamedTuple):
@@ -68,18 +67,35 @@ class FFCMethod:
     summary : str
         What the method does, in one line.
     correct : callable
-        ``correct(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None, **options)
-        -> Corrected``: ``raw`` the frame's raw response (H, W) in DN, ``dark`` the (H, W)
-        dark under it in DN, ``flat`` what the method learnt (``learnt``), ``dq`` the frame's
-        DQ, ``band_map`` its band of every pixel, ``exposure_ms`` its exposure; ``options``
-        the method's own settings.
+        ``correct(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None,
+        calibration=None, **options) -> Corrected``: ``raw`` the frame's raw response (H, W)
+        in DN, ``dark`` the (H, W) dark under it in DN, ``flat`` what the method learnt
+        (``learnt``), ``dq`` the frame's DQ, ``band_map`` its band of every pixel,
+        ``exposure_ms`` its exposure, ``calibration`` the calibration of the pipeline (or
+        None); ``options`` the method's own settings.
     learnt : type
         The type of ``flat`` the method applies (how to make it: its docstring).
+    stage : str
+        The registered stage that learns and applies the method in a pipeline
+        (:mod:`hsiffc.stages`); ``"flat_field"``, the default, is the stage that runs any
+        method of this registry with a ``learn``.
+    learn : callable or None
+        ``learn(calibration) -> learnt``: the method learnt from a calibration alone, without
+        training frames; a method that has one is a choice of ``hsiffc correct --ffc``
+        (:data:`FROM_CALIBRATION`). None: it learns from training frames only (its stage's
+        ``fit``).
+    state_schema : mapping
+        Its stage's fitted state as a pipeline file stores it: field name -> JSON kind or
+        array spec (:func:`hsiffc.data.products.check_product`). For the ``"flat_field"``
+        stage: one array per field of ``learnt``, named ``<field>_``.
     """
 
     summary: str
     correct: Callable[..., Corrected]
     learnt: type
+    stage: str = "flat_field"
+    learn: Callable[[Any], Any] | None = None
+    state_schema: Mapping = field(default_factory=dict)
 
 
 def _merged(dq, *planes):
@@ -90,7 +106,7 @@ def _merged(dq, *planes):
     return dq
 
 
-def _two_point(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None,
+def _two_point(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None, calibration=None,
                normalisation: str = "paper") -> Corrected:
     """The paper's eq. (5) (:func:`~hsiffc.flatfield.two_point.two_point_correct_with`);
     ``normalisation``: "paper" or "mean_gain"."""
@@ -99,7 +115,7 @@ def _two_point(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None,
     return Corrected(out, out_dq, None)
 
 
-def _polynomial(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None,
+def _polynomial(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None, calibration=None,
                 margin: float = 0.05) -> Corrected:
     """Per-pixel polynomials on ``raw - dark``
     (:func:`~hsiffc.flatfield.polynomial.polynomial_apply`); ``margin``: relative slack of
@@ -108,12 +124,15 @@ def _polynomial(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None,
     return Corrected(out, _merged(out_dq, dq), None)
 
 
-def _model(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None, a=None, b=None,
-           **options) -> Corrected:
+def _model(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None, calibration=None,
+           a=None, b=None, **options) -> Corrected:
     """The leakage model inverted per pixel, times the responsivity factor
     (:func:`~hsiffc.flatfield.model_based.model_ffc_apply`); ``a``, ``b``: the calibration's
-    leakage amplitude (DN/ms) and exponent (1/DN), required; ``options``: the keywords of
-    ``model_ffc_apply``."""
+    leakage amplitude (DN/ms) and exponent (1/DN), required (default: ``calibration``'s);
+    ``options``: the keywords of ``model_ffc_apply``."""
+    if calibration is not None:
+        a = calibration.a if a is None else a
+        b = calibration.b if b is None else b
     missing = [name for name, v in (("exposure_ms", exposure_ms), ("a", a), ("b", b))
                if v is None]
     if missing:
@@ -124,26 +143,48 @@ def _model(raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None, a=None,
     return Corrected(out, _merged(out_dq, flat.dq, dq), alpha)
 
 
+_DQ = ("u", ("H", "W"))
+_PLANE = ("f", ("H", "W"))
+
 #: Registered flat-field correction methods: name -> :class:`FFCMethod`.
 #:
-#: Adding a method: write its array functions in a module of this package (a fit that
-#: returns a frozen dataclass of what it learnt, an apply), an adapter with the signature of
-#: :attr:`FFCMethod.correct` that returns a :class:`Corrected`, and register it here;
-#: :func:`correct_flat` then takes its name (looked up with
-#: :func:`~hsiffc.data.params.validate_method`: an unknown name is one line listing these).
-#: A stage that wraps it goes in :mod:`hsiffc.stages`.
+#: Adding a method: write its array functions in a module of this package (what it learnt: a
+#: frozen dataclass of arrays; how to learn it from a calibration, ``learn``; how to apply it),
+#: an adapter with the signature of :attr:`FFCMethod.correct` that returns a
+#: :class:`Corrected`, and register it here. That is all the dispatch there is:
+#: :func:`correct_flat` takes its name (an unknown name is one line listing these), the
+#: ``flat_field`` stage (:class:`hsiffc.stages.ffc.FlatFieldFFC`) runs it in a pipeline and
+#: ``hsiffc correct --ffc NAME`` offers it when it has a ``learn``. A method that learns from
+#: training frames in its own way gets its own stage in :mod:`hsiffc.stages` (``stage``).
 FFC_METHODS = {
-    "two_point": FFCMethod("the paper's eq. (5): per-pixel gain from one dark-subtracted flat",
-                           _two_point, FlatField),
-    "polynomial": FFCMethod("per-pixel polynomial from flats at several levels to the band "
-                            "mean", _polynomial, PolynomialFlat),
-    "model": FFCMethod("the calibrated leakage model inverted per pixel, times the relative "
-                       "responsivity", _model, ModelFlat),
+    "two_point": FFCMethod(
+        "the paper's eq. (5): per-pixel gain from one dark-subtracted flat", _two_point,
+        FlatField, stage="two_point_ffc",
+        state_schema={"fitted_": "bool", "selected_ms_": "numbers", "alpha_table_": "dict|null",
+                      "gain_": _PLANE,
+                      # one value per band; format 1 stored it per pixel
+                      "flat_mean_": ("f", [("selected_ms_",), ("H", "W")]), "dq_": _DQ}),
+    "polynomial": FFCMethod(
+        "per-pixel polynomial from flats at several levels to the band mean", _polynomial,
+        PolynomialFlat, stage="polynomial_ffc",
+        state_schema={"fitted_": "bool", "n_levels_": "int", "coef_": ("f", ("K", "H", "W")),
+                      "scale_": _PLANE, "x_min_": _PLANE, "x_max_": _PLANE, "dq_": _DQ}),
+    "model": FFCMethod(
+        "the calibrated leakage model inverted per pixel, times the relative responsivity",
+        _model, ModelFlat, stage="model_ffc", learn=model_flat_of,
+        state_schema={"fitted_": "bool", "uncertainty_": "any", "gain_": _PLANE,
+                      "gain_sweep_": _PLANE, "sigma_ln_gain_": _PLANE,
+                      "flat_weight_": _PLANE, "dq_": _DQ}),
 }
+
+#: The methods learnt from a calibration alone (those with a ``learn``), read from
+#: :data:`FFC_METHODS` whenever they are looked at: the flat-field choices of the pipeline
+#: ``hsiffc correct`` builds without ``--pipeline``.
+FROM_CALIBRATION = LiveChoices(lambda: [n for n, m in FFC_METHODS.items() if m.learn is not None])
 
 
 def correct_flat(method: str, raw, dark, flat, *, dq=None, band_map=None, exposure_ms=None,
-                 **options) -> Corrected:
+                 calibration=None, **options) -> Corrected:
     """Correct one frame by one of :data:`FFC_METHODS`.
 
     Parameters
@@ -164,6 +205,8 @@ def correct_flat(method: str, raw, dark, flat, *, dq=None, band_map=None, exposu
         Band of every pixel ("two_point" takes its means per band).
     exposure_ms : float, optional
         The frame's exposure (ms); "model" needs it.
+    calibration : Calibration, optional
+        The pipeline's calibration ("model" takes its ``a`` and ``b`` where not given).
     **options
         The method's own settings ("two_point": ``normalisation``; "polynomial":
         ``margin``; "model": ``a`` and ``b`` (required) and the keywords of
@@ -185,4 +228,4 @@ def correct_flat(method: str, raw, dark, flat, *, dq=None, band_map=None, exposu
                              f"{how.learnt.__name__} (what the method learnt), got "
                              f"{type(flat).__name__}")
     return how.correct(raw, dark, flat, dq=dq, band_map=band_map, exposure_ms=exposure_ms,
-                       **options)
+                       calibration=calibration, **options)

@@ -44,6 +44,7 @@ import numpy as np
 from ..leakage import model
 from ..data.bandstats import band_reduce
 from ..data.dq import DQ, DQ_DTYPE
+from ..errors import ParameterError
 from ..kernels.leakage import BLOCK
 from ..kernels.modelffc import (CorrectionLimits, CorrectionOutputs, Factors, PixelModel,
                                 model_ffc_finish, model_ffc_kernel, pending_indices)
@@ -53,7 +54,8 @@ from ..kernels.operands import flat_operands
 _TOL_DN = 1e-9
 
 __all__ = ["UNUSABLE", "FlatStack", "ModelFlat", "correction_uncertainty", "flat_responsivity",
-           "log_gain_ratio", "model_ffc_apply", "model_flat_fit", "relative_responsivity"]
+           "log_gain_ratio", "model_ffc_apply", "model_flat_fit", "model_flat_of",
+           "relative_responsivity"]
 
 def log_gain_ratio(gain, gain_sweep) -> np.ndarray:
     """``ln(gain / gain_sweep)`` as :func:`model_ffc_apply` blends the two factors with it
@@ -253,8 +255,10 @@ class ModelFlat:
     sigma_ln_gain : (H, W) float32
         1-sigma relative uncertainty of ``gain`` (its contribution to the corrected frame's
         fixed pattern, as a fraction).
-    sigma_ln_sweep : (H, W) float32
-        The sweep fit's part (``sigma_ln_g`` of the calibration, plus the model inconsistency).
+    sigma_ln_sweep : (H, W) float32 or None
+        The sweep fit's part (``sigma_ln_g`` of the calibration, plus the model inconsistency);
+        None where it was taken from a calibration that carries the combined factors only
+        (:func:`model_flat_of`).
     flat_weight : (H, W) float32
         Share of the flat stacks in the combined estimate (0 without flats).
     dq : (H, W) uint32
@@ -266,7 +270,7 @@ class ModelFlat:
     gain: np.ndarray
     gain_sweep: np.ndarray
     sigma_ln_gain: np.ndarray
-    sigma_ln_sweep: np.ndarray
+    sigma_ln_sweep: np.ndarray | None
     flat_weight: np.ndarray
     dq: np.ndarray
     summary: dict
@@ -384,6 +388,51 @@ def model_flat_fit(responsivity, sigma_ln_g, a, b, band_map, *, flags=None,
                      sigma.astype(np.float32),
                      np.where(np.isfinite(s_sweep_eff), s_sweep_eff, 0).astype(np.float32),
                      share.astype(np.float32), dq, summary)
+
+
+def model_flat_of(calibration, *, band_map=None, flats=(),
+                  who: str = "flat-field method 'model'") -> ModelFlat:
+    """What the model-based flat field learns from a calibration and any flat stacks: the
+    ``learn`` of ``"model"`` in :data:`hsiffc.flatfield.FFC_METHODS` (no flat stack) and the
+    fit of the ``model_ffc`` stage.
+
+    Without flat stacks, a calibration that carries the flat stacks of its sweep
+    (:func:`hsiffc.calibrate.flats.add_flat_stacks` folds them in) gives the factors combined
+    then; otherwise :func:`model_flat_fit` combines the calibration's responsivity with
+    ``flats``.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        With a ``responsivity`` map (``hsiffc calibrate``, method joint).
+    band_map : (H, W) int, optional
+        Default: the calibration's mosaic over its frame (one band without a mosaic).
+    flats : sequence of FlatStack
+    who : str
+        Names the caller in the error message.
+
+    Returns
+    -------
+    ModelFlat
+
+    Raises
+    ------
+    ParameterError
+        The calibration has no ``responsivity`` map.
+    """
+    arrays = calibration.arrays
+    if "responsivity" not in arrays:
+        raise ParameterError(f"{who}: the calibration has no 'responsivity' map; make it with "
+                             "'hsiffc calibrate' (method joint)")
+    if not flats and "flat_gain" in arrays:
+        return ModelFlat(arrays["flat_gain"], arrays["flat_gain_sweep"],
+                         arrays["sigma_ln_flat_gain"], None, arrays["flat_weight"],
+                         arrays["flat_dq"], calibration.fitted_on.get("flat_summary", {}))
+    if band_map is None:
+        band_map = (calibration.mosaic.band_map(calibration.frame_shape) if calibration.mosaic
+                    else np.zeros(calibration.frame_shape, np.int64))
+    return model_flat_fit(arrays["responsivity"], arrays.get("sigma_ln_g"), calibration.a,
+                          calibration.b, band_map, flags=arrays.get("flags"), flats=flats)
 
 
 def _summary(bm, n_bands, usable, sigma, s_sweep, s_sweep_eff, excess, flat_est) -> dict:

@@ -28,11 +28,13 @@ class AlphaMask(Stage):
     """
 
     name = "alpha_mask"
+    #: fitted state as a pipeline file stores it (:func:`hsiffc.data.products.check_product`)
+    state_schema = {"fitted_": "bool"}
     stateless = True
     requires = frozenset({"mosaic", "response"})
     produces = frozenset({"alpha"})
     param_spec = {"calibration": CALIBRATION, "threshold_percent": THRESHOLD,
-                  "method": Param("choice", choices=tuple(ALPHA_METHODS))}
+                  "method": Param("choice", choices=ALPHA_METHODS)}
 
     def __init__(self, *, calibration=None, threshold_percent: float = 12.0,
                  method: str = "paper"):

@@ -34,6 +34,11 @@ class DarkSubtract(Stage):
     """
 
     name = "dark"
+    #: fitted state as a pipeline file stores it (:func:`hsiffc.data.products.check_product`)
+    state_schema = {"fitted_": "bool", "exposures_ms_": "numbers",
+                    "masters_": ("f", ("exposures_ms_", "H", "W")),
+                    "master_dq_": ("u", ("exposures_ms_", "H", "W")),
+                    "dark0_": ("f", ("H", "W")), "dark_slope_": ("f", ("H", "W"))}
     fuses_as = "dark"
     requires = frozenset({"mosaic", "raw"})
     produces = frozenset({"dark_subtracted"})

@@ -1,13 +1,18 @@
-"""Flat-field correction stages: two-point (eq. 5) with alpha-selected training, polynomial.
+"""Flat-field correction stages: two-point (eq. 5) with alpha-selected training, polynomial,
+and ``flat_field``, which runs any method of :data:`hsiffc.flatfield.FFC_METHODS` learnt from a
+calibration alone.
 
-Both wrap the array functions of :mod:`hsiffc.flatfield.two_point` and :mod:`hsiffc.flatfield.polynomial` and work on
+The two-point and polynomial stages wrap the array functions of
+:mod:`hsiffc.flatfield.two_point` and :mod:`hsiffc.flatfield.polynomial` and work on
 dark-subtracted frames (put a ``dark`` stage before them): they carry no dark handling of
-their own.
+their own. :func:`from_calibration` makes the flat-field step of a pipeline built from a
+calibration alone (``hsiffc correct --ffc``), through the registry.
 """
 
 from __future__ import annotations
 
 import warnings
+from dataclasses import fields
 
 import numpy as np
 
@@ -22,11 +27,13 @@ from ..flatfield.two_point import (
     two_point_fit,
 )
 from ..data.frame import stack_mean
-from ..data.params import Param
+from ..data.params import Param, validate_method
+from ..flatfield.methods import FFC_METHODS, FROM_CALIBRATION, correct_flat
 from ..flatfield.polynomial import PolynomialFlat, polynomial_apply, polynomial_fit
 from ..leakage.validity import alpha_table_of
 from .common import (AVERAGE, CALIBRATION, GIVE_CALIBRATION, THRESHOLD, find_exposure,
                      group_by_exposure)
+from . import registry
 from .base import Stage
 from .refchecks import check_flats
 
@@ -69,6 +76,7 @@ class TwoPointFFC(Stage):
     param_spec = {"exposure_ms": Param("number", low=0, low_open=True, optional=True, unit="ms"),
                   "calibration": CALIBRATION, "threshold_percent": THRESHOLD,
                   "normalisation": Param("choice", choices=NORMALISATIONS), "average": AVERAGE}
+    state_schema = FFC_METHODS["two_point"].state_schema
 
     def __init__(self, *, exposure_ms: float | None = None, calibration=None,
                  threshold_percent: float = 12.0, normalisation: str = "paper",
@@ -200,6 +208,7 @@ class PolynomialFFC(Stage):
     removes = frozenset({"response"})
     param_spec = {"order": Param("integer", low=1), "margin": Param("number", low=0),
                   "average": AVERAGE}
+    state_schema = FFC_METHODS["polynomial"].state_schema
 
     def __init__(self, *, order: int = 2, margin: float = 0.05, average: str = "median"):
         self.order = order
@@ -233,3 +242,91 @@ class PolynomialFFC(Stage):
         out, dq = polynomial_apply(frame.signal, flat, margin=float(self.margin))
         return frame.replace(data=out, dq=frame.dq | dq, corrected_by=self.name,
                              meta={"ffc": f"polynomial order {int(self.order)}"})
+
+
+class FlatFieldFFC(Stage):
+    """Any flat-field method of :data:`hsiffc.flatfield.FFC_METHODS` that learns from a
+    calibration alone (its ``learn``), run through the registry.
+
+    ``fit`` stores what the method learnt (one fitted attribute ``<field>_`` per field of the
+    method's ``learnt`` type); ``transform`` corrects the frame's raw response with
+    :func:`hsiffc.flatfield.correct_flat` above the dark a preceding ``dark`` stage removed
+    (else the calibration's dark at the frame's exposure) and returns it dark-subtracted.
+
+    Parameters
+    ----------
+    method : str
+        A name of :data:`~hsiffc.flatfield.FFC_METHODS` with a ``learn``.
+    calibration : path or Calibration
+    """
+
+    name = "flat_field"
+    requires = frozenset({"mosaic", "response"})
+    produces = frozenset({"dark_subtracted"})
+    removes = frozenset({"raw", "response"})
+    param_spec = {"method": Param("choice", choices=FFC_METHODS), "calibration": CALIBRATION}
+
+    def __init__(self, *, method: str = "model", calibration=None):
+        self.method = method
+        self.calibration = calibration
+
+    @staticmethod
+    def state_schema(params: dict) -> dict | None:
+        """The fitted state of a step with these parameters: its method's ``state_schema``."""
+        how = FFC_METHODS.get(params.get("method"))
+        return None if how is None else {"fitted_": "bool", **how.state_schema}
+
+    def fit(self, frames):
+        self.validate_params()
+        how = FFC_METHODS[self.method]
+        if how.learn is None:
+            raise ParameterError(f"{self.name}: method {self.method!r} learns from training "
+                                 f"frames, not from a calibration alone; use the stage "
+                                 f"{how.stage!r} (methods learnt from a calibration: "
+                                 f"{', '.join(FROM_CALIBRATION)})")
+        learnt = how.learn(self.require_calibration())
+        for f in fields(learnt):
+            setattr(self, f"{f.name}_", getattr(learnt, f.name))
+        self.fitted_ = True
+        return self
+
+    def learnt(self):
+        """What the method learnt, as its ``learnt`` type (from the fitted attributes)."""
+        self.check_is_fitted()
+        how = FFC_METHODS[self.method]
+        return how.learnt(**{f.name: getattr(self, f"{f.name}_") for f in fields(how.learnt)})
+
+    def transform(self, frame):
+        flat = self.learnt()
+        cal = self.require_calibration()
+        cal.check_frame(frame)
+        dark = (frame.dark_removed if frame.dark_removed is not None else
+                cal.dark_at(frame.exposure_ms))
+        res = correct_flat(self.method, frame.raw, dark, flat, dq=frame.dq,
+                           band_map=frame.band_map(), exposure_ms=frame.exposure_ms,
+                           calibration=cal)
+        return frame.replace(data=res.out, dq=res.dq, dark_removed=np.asarray(dark, np.float32),
+                             corrected_by=self.name, meta={"ffc": self.method})
+
+
+def from_calibration(method: str, calibration) -> Stage:
+    """The fitted flat-field step of ``method`` learnt from ``calibration`` alone: the stage
+    its record in :data:`hsiffc.flatfield.FFC_METHODS` names, fitted with no training frames
+    (what ``hsiffc correct --ffc METHOD`` runs).
+
+    Raises
+    ------
+    ParameterError
+        Unknown ``method``, or one that learns from training frames only.
+    """
+    how = validate_method(method, FFC_METHODS, "flat-field method")
+    if how.learn is None:
+        raise ParameterError(f"flat-field method {method!r} learns from training frames (fit a "
+                             f"pipeline with its stage {how.stage!r}: hsiffc fit); from a "
+                             f"calibration alone: {', '.join(FROM_CALIBRATION)}")
+    stage_cls = registry.get(how.stage)
+    params = {"calibration": calibration}
+    if "method" in stage_cls.param_spec:
+        params["method"] = method
+    return stage_cls(**params).fit([])
+

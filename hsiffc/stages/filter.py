@@ -387,6 +387,8 @@ class FilterStage(Stage):
     """
 
     name = "filter"
+    #: fitted state as a pipeline file stores it (:func:`hsiffc.data.products.check_product`)
+    state_schema = {"fitted_": "bool"}
     stateless = True
     removes = frozenset({"response"})
     param_spec = {"method": Param("string")}

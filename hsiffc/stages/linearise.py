@@ -29,6 +29,8 @@ class LeakageLinearise(Stage):
     """
 
     name = "linearise"
+    #: fitted state as a pipeline file stores it (:func:`hsiffc.data.products.check_product`)
+    state_schema = {"fitted_": "bool"}
     stateless = True
     requires = frozenset({"mosaic", "response"})
     removes = frozenset({"response"})

@@ -8,8 +8,8 @@ from ..calibrate.flats import combined_dark
 from ..data.dq import DQ_DTYPE
 from ..errors import ParameterError
 from ..kernels.bits import or_into
-from ..flatfield.model_based import log_gain_ratio, model_ffc_apply
-from ..flatfield.model_based import FlatStack, model_flat_fit
+from ..flatfield.methods import FFC_METHODS
+from ..flatfield.model_based import FlatStack, log_gain_ratio, model_ffc_apply, model_flat_of
 from ..data.params import Param
 from .common import CALIBRATION, THRESHOLD
 from .base import PreparedWithCalibration, Stage
@@ -64,6 +64,7 @@ class ModelFFC(Stage):
     param_spec = {"calibration": CALIBRATION, "alpha_limit_percent": THRESHOLD,
                   "flat_alpha_percent": THRESHOLD,
                   "min_flat_frames": Param("integer", low=2)}
+    state_schema = FFC_METHODS["model"].state_schema
 
     def __init__(self, *, calibration=None, alpha_limit_percent: float = 50.0,
                  flat_alpha_percent: float = 5.0, min_flat_frames: int = 8):
@@ -80,13 +81,8 @@ class ModelFFC(Stage):
     def fit(self, frames):
         self.validate_params()
         cal = self.require_calibration()
-        if "responsivity" not in cal.arrays:
-            raise ParameterError(f"{self.name}: the calibration has no 'responsivity' map; "
-                                 "make it with 'hsiffc calibrate' (method joint)")
         frames = [f for f in frames if not f.is_cube]
-        band_map = (frames[0].band_map() if frames else
-                    (cal.mosaic.band_map(cal.frame_shape) if cal.mosaic else
-                     np.zeros(cal.frame_shape, np.int64)))
+        band_map = frames[0].band_map() if frames else None
         stacks = []
         for group in flat_stacks(frames, int(self.min_flat_frames)):
             cal = self._cal_for(group[0])
@@ -99,17 +95,9 @@ class ModelFFC(Stage):
                          and np.isclose(f.exposure_ms, t, rtol=1e-6, atol=0.0)]
                 dark = combined_dark(cal, t, darks if len(darks) >= 2 else None)
             stacks.append(FlatStack.from_arrays([f.raw for f in group], t, dark, usable=usable))
-        if not stacks and "flat_gain" in cal.arrays:
-            # no flat stack among the training frames: the ones the calibration carries
-            # (hsiffc.calibrate.flats.add_flat_stacks), combined when it was made
-            self.gain_, self.gain_sweep_ = cal["flat_gain"], cal["flat_gain_sweep"]
-            self.sigma_ln_gain_ = cal["sigma_ln_flat_gain"]
-            self.flat_weight_, self.dq_ = cal["flat_weight"], cal["flat_dq"]
-            self.uncertainty_ = cal.fitted_on.get("flat_summary", {})
-            self.fitted_ = True
-            return self
-        mf = model_flat_fit(cal["responsivity"], cal.arrays.get("sigma_ln_g"), cal.a, cal.b,
-                            band_map, flags=cal.arrays.get("flags"), flats=stacks)
+        # no flat stack among the training frames: the ones the calibration carries, if any
+        # (hsiffc.calibrate.flats.add_flat_stacks), combined when it was made
+        mf = model_flat_of(cal, band_map=band_map, flats=stacks, who=self.name)
         self.gain_, self.gain_sweep_ = mf.gain, mf.gain_sweep
         self.sigma_ln_gain_, self.flat_weight_, self.dq_ = mf.sigma_ln_gain, mf.flat_weight, mf.dq
         self.uncertainty_ = mf.summary

@@ -24,7 +24,7 @@ from ..calibrate.product import Calibration
 from ..errors import DataFormatError, HsiffcError, ParameterError
 from ..data.frame import Frame
 from ..data.params import did_you_mean
-from ..data.products import STATE_SCHEMAS, read_product, write_product
+from ..data.products import read_product, write_product
 from . import registry
 from .base import Stage
 from .contract import check_frames, check_needs, training_record
@@ -74,15 +74,17 @@ def _recorded(name, stage, frame: Frame) -> Frame:
     return frame.replace(meta={"history": frame.history + (entry,)})
 
 
-def _state_schema(stage_name: str):
-    """The schema of a registered stage's fitted state: its own ``state_schema``, else the
-    built-in table (:data:`hsiffc.data.products.STATE_SCHEMAS`); None for an unknown stage
-    (Pipeline.load reports it, naming the stage)."""
+def _state_schema(stage_name: str, params: dict):
+    """The schema of the fitted state of a step of a registered stage with ``params``: the
+    stage's own ``state_schema`` (a mapping, or a function of the parameters); None for a
+    stage that declares none (numbers only) or an unknown stage (Pipeline.load reports it,
+    naming the stage)."""
     try:
         stage_cls = registry.get(stage_name)
     except KeyError:
         return None
-    return getattr(stage_cls, "state_schema", None) or STATE_SCHEMAS.get(stage_name)
+    schema = getattr(stage_cls, "state_schema", None)
+    return schema(params) if callable(schema) else schema
 
 
 def _made_from(steps) -> tuple:

@@ -74,6 +74,10 @@ class Reconstruct(Stage):
     #: the registered name, also when the class is instantiated directly (pipeline files
     #: resolve stages by this name)
     name = "reconstruct"
+    #: fitted state as a pipeline file stores it (:func:`hsiffc.data.products.check_product`)
+    state_schema = {"fitted_": "bool", "virtual_wavelengths_nm_": "numbers",
+                    "virtual_fwhm_nm_": "number|null",
+                    "matrix_": ("f", ("virtual_wavelengths_nm_", "B"))}
     requires = frozenset({"mosaic"})
     produces = frozenset({"cube"})
     removes = frozenset({"mosaic"})

@@ -28,6 +28,7 @@ BUILTIN = {
     "alpha_mask": "hsiffc.stages.alpha:AlphaMask",
     "two_point_ffc": "hsiffc.stages.ffc:TwoPointFFC",
     "polynomial_ffc": "hsiffc.stages.ffc:PolynomialFFC",
+    "flat_field": "hsiffc.stages.ffc:FlatFieldFFC",
     "linearise": "hsiffc.stages.linearise:LeakageLinearise",
     "model_ffc": "hsiffc.stages.model_ffc:ModelFFC",
     "reconstruct": "hsiffc.stages.reconstruct:Reconstruct",
