@@ -27,7 +27,7 @@ MOVED = {
     'hsiffc.sweep': 'hsiffc.data.sweep',
     'hsiffc.params': 'hsiffc.data.params',
     'hsiffc.products': 'hsiffc.data.products',
-    'hsiffc.bandstats': 'hsiffc.data.bandstats',
+    'hsiffc.bandstats': 'hsiffc.spectral.bandstats',
     'hsiffc.dark': 'hsiffc.data.dark',
     'hsiffc.model': 'hsiffc.leakage.model',
     'hsiffc.model_derived': 'hsiffc.leakage.model',
@@ -46,6 +46,8 @@ MOVED = {
     'hsiffc.flatfield.model_flat': 'hsiffc.flatfield.model_based',
     'hsiffc.leakage._derived': 'hsiffc.leakage.model',
     'hsiffc.leakage._numerics': 'hsiffc.leakage.model',
+    # per-band statistics above the compiled kernels they run on (no data <-> kernels cycle)
+    'hsiffc.data.bandstats': 'hsiffc.spectral.bandstats',
     # one module per file format (hsiffc 0.2): the parts of a format merged into it
     'hsiffc.io.corrected_format': 'hsiffc.io.corrected',
     'hsiffc.io.corrected_writer': 'hsiffc.io.corrected',

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .files.atomic import atomic_path
-from .stages.base import check_stage  # noqa: F401 (the stage contract tests, for plugin authors)
+from .stages.contract import check_stage  # noqa: F401 (the stage contract tests, for plugin authors)
 
 __all__ = ["assert_golden", "check_stage", "golden_path", "REGEN_HINT"]
 

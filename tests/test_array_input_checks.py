@@ -6,7 +6,7 @@ array."""
 import numpy as np
 import pytest
 
-from hsiffc.data.bandstats import band_reduce
+from hsiffc.spectral.bandstats import band_reduce
 from hsiffc.data.dq import DQ
 from hsiffc.flatfield.two_point import two_point_apply, two_point_fit, uniformity_per_band
 from hsiffc.data.frame import Frame

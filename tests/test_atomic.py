@@ -14,15 +14,14 @@ import pytest
 
 from hsiffc.files import atomic
 from hsiffc.files.atomic import (
-    FolderLockedError,
     OutputError,
     OutputExistsError,
     atomic_path,
     atomic_write_text,
     check_output_folder,
-    folder_lock,
     write_policy,
 )
+from hsiffc.files.folderlock import FolderLockedError, folder_lock
 from hsiffc.errors import HsiffcError
 
 
@@ -181,7 +180,7 @@ def test_report_folder_holding_files_is_refused_up_front(tmp_path):
 def test_folder_lock_refuses_a_second_holder_and_names_the_first(tmp_path):
     script = textwrap.dedent(f"""
         import sys, time
-        from hsiffc.files.atomic import folder_lock
+        from hsiffc.files.folderlock import folder_lock
         with folder_lock({str(tmp_path)!r}, what="hsiffc correct"):
             print("locked", flush=True)
             sys.stdin.readline()

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc.data.bandstats import band_reduce
+from hsiffc.spectral.bandstats import band_reduce
 from hsiffc.kernels import launch
 
 

@@ -18,7 +18,7 @@ import pytest
 import tifffile
 
 from hsiffc import batch
-from hsiffc.files.atomic import FolderLockedError, folder_lock
+from hsiffc.files.folderlock import FolderLockedError, folder_lock
 from hsiffc.calibrate import Calibration, calibrate
 from hsiffc.cli import main
 from hsiffc.cli.pipeline import Progress

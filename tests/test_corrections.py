@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hsiffc.data.bandstats import band_reduce
+from hsiffc.spectral.bandstats import band_reduce
 from hsiffc.calibrate import Calibration, calibrate
 from hsiffc.data.dq import DQ
 from hsiffc.errors import DataFormatError, ParameterError

@@ -18,7 +18,7 @@ from hsiffc.kernels.launch import PARALLEL_MIN
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 from hsiffc.stages import Pipeline, create
 from hsiffc.stages import fusion
-from hsiffc.data.bandstats import band_reduce
+from hsiffc.spectral.bandstats import band_reduce
 from hsiffc.data.mosaic import row_period, single_band_map
 from hsiffc.leakage.validity import subtract_dark_and_flag
 

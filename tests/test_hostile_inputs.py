@@ -116,7 +116,8 @@ def test_lock_file_hard_linked_to_an_input_is_refused_and_the_input_kept(sweep, 
 
 @pytest.mark.parametrize("planted", ["data", "fifo", "folder"])
 def test_lock_file_that_hsiffc_did_not_make_is_never_written(tmp_path, planted):
-    from hsiffc.files.atomic import OutputError, folder_lock
+    from hsiffc.files.atomic import OutputError
+    from hsiffc.files.folderlock import folder_lock
 
     lock = tmp_path / ".hsiffc.lock"
     if planted == "data":
@@ -136,7 +137,7 @@ def test_lock_file_that_hsiffc_did_not_make_is_never_written(tmp_path, planted):
 def test_lock_left_by_a_killed_run_is_taken_over(tmp_path):
     """A record left by a run killed with -9 (the kernel released its flock) is a lock file
     hsiffc made: the next run takes it."""
-    from hsiffc.files.atomic import folder_lock
+    from hsiffc.files.folderlock import folder_lock
 
     lock = tmp_path / ".hsiffc.lock"
     lock.write_text('{"pid": 1, "host": "gone", "started": "2026-01-01T00:00:00+0000", '

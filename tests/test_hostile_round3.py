@@ -500,7 +500,7 @@ def test_exports_run_inside_the_folder_lock_and_clear_an_interrupted_exports_par
     file a killed netCDF export left is removed by the rerun that holds the lock (it
     survived)."""
     import hsiffc.cubes.export as export
-    from hsiffc.files.atomic import FolderLockedError, folder_lock
+    from hsiffc.files.folderlock import FolderLockedError, folder_lock
 
     out = tmp_path / "out"
     argv = ["correct", str(sweep / "s.tif"), "--calibration", str(sweep / "cal.npz"), "-o",

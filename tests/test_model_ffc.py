@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hsiffc.leakage import model
-from hsiffc.data.bandstats import band_reduce
+from hsiffc.spectral.bandstats import band_reduce
 from hsiffc.calibrate import calibrate
 from hsiffc.data.dq import DQ
 from hsiffc.flatfield.floor import parameter_covariance, sweep_floor

@@ -23,7 +23,8 @@ from hsiffc.reconstruct import (
 )
 from hsiffc.simulate import MosaicSensor
 from hsiffc.spectral import imec_5x5_nir, read_imec_xml
-from hsiffc.stages.base import NotFittedError, check_stage
+from hsiffc.stages.base import NotFittedError
+from hsiffc.stages.contract import check_stage
 from hsiffc.stages.reconstruct import Reconstruct
 
 METHODS = sorted(DEMOSAIC_METHODS)

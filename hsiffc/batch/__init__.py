@@ -8,7 +8,7 @@ calibration and pipeline, :mod:`.executors` runs the tasks in this process (one 
 local Dask cluster (``workers > 1``) or on any Dask distributed scheduler (``scheduler=``).
 Each task returns a small result dict, so a bad input is reported with its reason and the rest
 carries on. The output folder is locked while a batch writes into it
-(:func:`hsiffc.files.atomic.folder_lock`).
+(:func:`hsiffc.files.folderlock.folder_lock`).
 
 >>> from hsiffc.batch import output_name
 >>> output_name("day1/cube_07.tif")
@@ -21,7 +21,8 @@ import os
 import time
 from pathlib import Path
 
-from ..files.atomic import folder_lock, protect_inputs
+from ..files.atomic import protect_inputs
+from ..files.folderlock import folder_lock
 from ..calibrate.product import Calibration
 from .context import (
     FFC_CHOICES,
@@ -134,7 +135,7 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         Before any file is processed: bad options, missing inputs, unreadable calibration or
         pipeline, an unreachable scheduler, an output that would overwrite an input, or an
         output of another job without ``overwrite``.
-    hsiffc.files.atomic.FolderLockedError
+    hsiffc.files.folderlock.FolderLockedError
         Another run is writing into ``outdir`` (the message names its pid, host and start).
     """
     t0 = time.perf_counter()

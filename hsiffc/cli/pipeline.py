@@ -334,7 +334,8 @@ def _exports(summary, fmt: str, *, overwrite: bool, compression=None) -> int:
 
 def _cmd_correct(args) -> int:
     from ..batch import correct_batch
-    from ..files.atomic import LOCK_NAME, check_output
+    from ..files.atomic import check_output
+    from ..files.folderlock import LOCK_NAME
     from ..batch.plan import discover_inputs, is_batch_output
 
     if args.pipeline is not None and (args.ffc is not None or args.linearise):

@@ -46,7 +46,7 @@ def cube_from_corrected(prov: dict, k: int, data, dq, alpha, *, source: str = ""
     provenance describes, or, for a mosaic frame, one spectrum per tile."""
     from ..data.mosaic import Mosaic
     from ..reconstruct import reconstruct_alpha, tile_cube
-    from ..stages.reconstruct import band_positions
+    from ..data.mosaic import band_positions
 
     computed = bool(prov.get("alpha_computed"))
     exposure = (prov.get("exposure") or [None] * (k + 1))[k]

@@ -159,6 +159,20 @@ def _band_map(pattern: bytes, tile: tuple, offset: tuple, h: int, w: int) -> np.
     return out
 
 
+def band_positions(mosaic) -> list:
+    """(row, col) of each band's first position in the mosaic tile, in band-index order.
+
+    >>> band_positions(Mosaic.rectangular(2, 2))
+    [[0, 0], [0, 1], [1, 0], [1, 1]]
+    """
+    pattern = np.asarray(mosaic.pattern)
+    out = []
+    for b in range(mosaic.n_bands):
+        r, c = np.argwhere(pattern == b)[0]
+        out.append([int(r), int(c)])
+    return out
+
+
 def single_band_map(shape) -> np.ndarray:
     """The band map of a frame without a mosaic: every pixel band 0 (read-only, cached, and
     known to :func:`row_period`, so band statistics sum it by rows as a mosaic's)."""

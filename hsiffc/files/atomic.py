@@ -583,8 +583,3 @@ def check_output_folder(folder, *, overwrite: bool | None = None, inputs=()) -> 
             raise OutputExistsError(f"{folder}: already holds files ({shown}); pass --overwrite "
                                     "to replace them, or choose an empty or new folder")
     return folder
-
-
-# the folder lock, importable from here too (its documented place: hsiffc.files.folderlock,
-# or the package face hsiffc.files)
-from .folderlock import LOCK_NAME, FolderLockedError, folder_lock  # noqa: E402,F401

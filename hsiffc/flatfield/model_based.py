@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..leakage import model
-from ..data.bandstats import band_reduce
+from ..spectral.bandstats import band_reduce
 from ..data.dq import DQ, DQ_DTYPE
 from ..errors import ParameterError
 from ..kernels.leakage import BLOCK

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..data.bandstats import band_reduce
+from ..spectral.bandstats import band_reduce
 from ..data.dq import DQ, DQ_DTYPE
 
 

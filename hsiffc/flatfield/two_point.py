@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..data.bandstats import band_layout, band_reduce
+from ..spectral.bandstats import band_layout, band_reduce
 from ..data.dark import subtract_dark
 from ..data.dq import DQ, DQ_DTYPE
 from ..kernels.bands import band_scale_kernel, band_sums, phase_scale_kernel, scale_kernel

@@ -27,12 +27,6 @@ from ..data.frame import Frame
 from ..kernels.lattice import lattice_arrays
 from ..kernels.operands import float_array
 from ..reconstruct.prepare import band_medians, periodic_index, ppi_kernel, prepare
-from ..stages.alpha import AlphaMask
-from ..stages.dark import DarkSubtract
-from ..stages.ffc import TwoPointFFC
-from ..stages.model_ffc import ModelFFC
-from ..stages.pipeline import json_params
-from ..stages.reconstruct import Reconstruct
 from . import cuda_module
 from .pack import DATA_DTYPES, check_dtypes, pack_cpu
 
@@ -62,19 +56,20 @@ class StreamItem:
 
 def _entry(name, stage):
     return {"step": name, "stage": stage.name or type(stage).__name__,
-            "params": json_params(stage), "status": "ok"}
+            "params": stage.json_params(), "status": "ok"}
 
 
 def plan(pipeline):
     """``(dark, mask, ffc or None, reconstruct or None)`` of a pipeline the GPU runs, with
-    their step names; ParameterError naming the first step it cannot run."""
+    their step names; ParameterError naming the first step it cannot run. A step runs on the
+    GPU as what its stage declares it computes (:attr:`hsiffc.stages.base.Stage.gpu_as`)."""
     steps = list(pipeline.steps)
-    kinds = [((DarkSubtract,), "dark"), ((AlphaMask,), "alpha_mask"),
-             ((ModelFFC, TwoPointFFC), "ffc"), ((Reconstruct,), "reconstruct")]
+    kinds = [(("dark",), "dark"), (("alpha_mask",), "alpha_mask"),
+             (("model_ffc", "two_point_ffc"), "ffc"), (("reconstruct",), "reconstruct")]
     found = {}
     i = 0
-    for cls, key in kinds:
-        if i < len(steps) and type(steps[i][1]) in cls:
+    for roles, key in kinds:
+        if i < len(steps) and getattr(steps[i][1], "gpu_as", None) in roles:
             found[key] = steps[i]
             i += 1
         elif key in ("dark", "alpha_mask"):
@@ -146,6 +141,9 @@ class GpuPipeline:
         self.k = kernels
         self._planes = {}  # per frame shape: the device planes
         self._darks = OrderedDict()  # (shape, exposure) -> device dark
+        self._rec_meta_cache = {}  # mosaic (by value) -> what reconstruct adds to the metadata
+        self._transform_slots = [None, None]  # transform's device buffers, kept: a batch calls
+        # it once per frame
 
     def __repr__(self):
         return f"GpuPipeline({self.pipeline!r})"
@@ -189,7 +187,7 @@ class GpuPipeline:
         p = {"cal": cal, "a32": dev(prep.a), "b32": dev(prep.b)}
         one = dev(np.zeros((1, 1), np.float32))
         p["two_point"] = None
-        if self.ffc is not None and type(self.ffc[1]) is TwoPointFFC:
+        if self.ffc is not None and self.ffc[1].gpu_as == "two_point_ffc":
             ffc = self.ffc[1]
             if ffc.gain_.shape != tuple(shape):
                 raise ValueError(f"frame shape {tuple(shape)} differs from the flat's "
@@ -534,7 +532,7 @@ class GpuPipeline:
         hist.append(_entry(*self.mask))
         if self.ffc is not None:
             ffc = self.ffc[1]
-            if type(ffc) is TwoPointFFC:
+            if ffc.gpu_as == "two_point_ffc":
                 meta.update(ffc="two_point", ffc_training_ms=ffc.selected_ms_)
             else:
                 meta["ffc"] = "model"
@@ -549,8 +547,8 @@ class GpuPipeline:
         """What the reconstruct stage adds to a frame's metadata (wavelengths, band positions
         ...): the stage's own ``transform`` on a frame of two tiles of this mosaic, kept per
         mosaic (it depends on nothing else at full resolution)."""
-        cache = self.__dict__.setdefault("_rec_meta_cache", {})
-        key = id(mosaic)
+        cache = self._rec_meta_cache
+        key = mosaic  # hashed and compared by value (pattern, wavelengths, offset)
         if key not in cache:
             ph, pw = (int(v) for v in mosaic.tile_shape)
             stub = Frame(np.zeros((2 * ph, 2 * pw), np.float32),
@@ -564,9 +562,8 @@ class GpuPipeline:
 
     def transform(self, frame: Frame) -> Frame:
         """The CPU pipeline's frame for ``frame``, computed on the GPU."""
-        slots = self.__dict__.setdefault("_transform_slots", [None, None])  # kept: a batch
-        item, done = next(iter(self._run([frame], {"alpha": True, "copy": True},  # calls
-                                         slots)))  # this once per frame
+        item, done = next(iter(self._run([frame], {"alpha": True, "copy": True},
+                                         self._transform_slots)))
         if done is not None:
             return done
         return Frame(item.data, item.dq, item.meta, alpha=item.alpha,
@@ -627,7 +624,7 @@ class GpuPipeline:
                 i += 1
                 continue
             key = (raw.shape, raw.dtype.str, dq_in is not None, data_dtype, dq_dtype, alpha,
-                   id(mos))
+                   mos)
             slot = slots[s]
             if slot is None or slot["key"] != key:
                 planes, _ = self._const(raw.shape, exp, bd, mos)

@@ -21,7 +21,7 @@ samples) frame, so a single-band file is one frame. A header whose ``wavelength`
 entry per band (``bands`` > 1) describes a spectral cube, not raw frames, and is refused by the
 frame reader (read it with :func:`read_envi`).
 
-Writing (:func:`write_envi`, :func:`corrected_to_envi`) gives ``NAME.hdr`` + ``NAME.img`` for
+Writing (:func:`write_envi`; a corrected file's cubes: :mod:`hsiffc.cubes.export`) gives ``NAME.hdr`` + ``NAME.img`` for
 users whose next tool is ENVI or SPy. The header holds ``samples``, ``lines``, ``bands``,
 ``header offset = 0``, ``file type = ENVI Standard``, ``data type``, ``interleave``,
 ``byte order = 0`` (little-endian), ``wavelength units = Nanometers`` and ``wavelength = {...}``
@@ -41,8 +41,7 @@ from ..files.atomic import atomic_path
 from ..files.limits import ReadLimits, default_limits
 from ._layout import FileLayout
 
-__all__ = ["parse_envi_header", "open_envi", "read_envi", "envi_paths", "ENVI_DTYPES", "write_envi",
-           "corrected_to_envi", "corrected_envi_names", "corrected_envi_files", "written_from"]
+__all__ = ["parse_envi_header", "open_envi", "read_envi", "envi_paths", "ENVI_DTYPES", "write_envi"]
 
 
 # --- Reading ----------------------------------------------------------------------------------
@@ -438,71 +437,3 @@ def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description:
         with open(tmp, "wb") as fh:
             np.ascontiguousarray(cube.transpose(axes), dtype=dtype).tofile(fh)
     return header, data
-
-
-def corrected_envi_names(path, n_frames: int) -> list[Path]:
-    """The ENVI names :func:`corrected_to_envi` gives the frames of the corrected file ``path``
-    (without suffix): ``NAME`` for one frame, ``NAME_f0000``, ``NAME_f0001``, ... for several;
-    each frame's files are ``NAME.hdr``, ``NAME.img``, ``NAME.dq.hdr`` and ``NAME.dq.img``.
-
-    Examples
-    --------
-    >>> [p.name for p in corrected_envi_names("a.corrected.tif", 2)]
-    ['a.corrected_f0000', 'a.corrected_f0001']
-    """
-    base = Path(path).with_suffix("")
-    if n_frames == 1:
-        return [base]
-    return [base.with_name(f"{base.name}_f{k:04d}") for k in range(n_frames)]
-
-
-def corrected_envi_files(path, n_frames: int) -> list[Path]:
-    """Every file :func:`corrected_to_envi` writes for ``path`` (headers and data, DQ
-    included)."""
-    return [name.with_name(name.name + tail) for name in corrected_envi_names(path, n_frames)
-            for tail in (".hdr", ".img", ".dq.hdr", ".dq.img")]
-
-
-def corrected_to_envi(path, *, overwrite: bool | None = None) -> list[Path]:
-    """Write a corrected file (an output of ``hsiffc correct``) as ENVI cubes beside it.
-
-    Each frame becomes ``NAME.hdr``/``NAME.img`` (``NAME_fKKKK`` when the file holds several
-    frames; ``NAME`` is the corrected file's name without ``.tif``) with its DQ as
-    ``NAME.dq.hdr``/``.img`` (and alpha as ``NAME.alpha.*`` when computed): a cube file as it
-    is, a mosaic frame as one spectrum per tile; bands by wavelength, ascending
-    (:func:`hsiffc.cubes.export.export_corrected`).
-
-    Parameters
-    ----------
-    path : str or Path
-        A complete corrected file.
-    overwrite : bool, optional
-        Replace existing ENVI files (default: the current write policy, which refuses).
-
-    Returns
-    -------
-    list of Path
-        The header files written (data, DQ and alpha for every frame).
-    """
-    from ..cubes.export import export_corrected
-
-    return [p for p in export_corrected(path, "envi", overwrite=overwrite)
-            if p.suffix == ".hdr"]
-
-
-def written_from(envi_file, corrected) -> bool:
-    """Whether the ENVI file ``envi_file`` (a header or its data file) is one
-    :func:`corrected_to_envi` wrote from the corrected file ``corrected``: its header exists,
-    says hsiffc wrote it, and names that file as its ``source``. A file that is not such a
-    pair (the user's own, another program's) is never replaced without ``--overwrite``."""
-    header = Path(envi_file).with_suffix(".hdr")
-    try:
-        head = parse_envi_header(header)
-    except (OSError, ValueError, DataFormatError):
-        return False
-
-    def text(key):
-        value = head.get(key, "")
-        return (", ".join(value) if isinstance(value, list) else str(value)).strip()
-
-    return text("description").startswith("hsiffc ") and text("source") == Path(corrected).name

@@ -1,4 +1,4 @@
-"""Compiled per-band sums (the body of :func:`hsiffc.data.bandstats.band_reduce` for the mean) and
+"""Compiled per-band sums (the body of :func:`hsiffc.spectral.bandstats.band_reduce` for the mean) and
 the two-point apply product (the body of :func:`hsiffc.flatfield.two_point.two_point_apply`).
 
 One pass over the frame reads the values in their own dtype (no float64 copy), the band map

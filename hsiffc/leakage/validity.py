@@ -13,8 +13,8 @@ from typing import NamedTuple
 import numpy as np
 
 from . import model
-from ..data.bandstats import STATISTICS as BAND_STATISTICS
-from ..data.bandstats import band_layout, band_mean, band_reduce
+from ..spectral.bandstats import STATISTICS as BAND_STATISTICS
+from ..spectral.bandstats import band_layout, band_mean, band_reduce
 from ..data.dq import DQ, DQ_DTYPE
 from ..kernels import leakage
 from ..kernels.bands import block_arrays
@@ -94,7 +94,7 @@ def _flags(alpha, response, exposure_ms, a, b, dark, *, threshold_percent, full_
     """alpha (computed when ``alpha`` is None: paper form) and DQ in one compiled pass; with
     ``with_signal`` also ``response - dark`` (float32), returned first. ``sums_by``: a 2-D
     frame's ``(band_map, row_period > 0, n_bands)``, checked by the caller; then the
-    :func:`~hsiffc.data.bandstats.band_reduce` mean of ``response`` over the pixels whose DQ is 0
+    :func:`~hsiffc.spectral.bandstats.band_reduce` mean of ``response`` over the pixels whose DQ is 0
     is returned last."""
     shape, (y, t, a_, b_, d) = flat_operands(
         response, exposure_ms, a, b, dark, names=("response", "exposure_ms", "a", "b", "dark"))
@@ -338,7 +338,7 @@ def subtract_dark_and_flag(frame, dark, exposure_ms: float, calibration, *,
     band_map : (H, W) int array, optional
         A mosaic's band map (:meth:`hsiffc.data.mosaic.Mosaic.band_map`, whose row period is
         known): the same pass then also takes the per-band mean of ``frame`` over the pixels
-        whose returned DQ is 0, as :func:`hsiffc.data.bandstats.band_reduce` gives it (bit for bit:
+        whose returned DQ is 0, as :func:`hsiffc.spectral.bandstats.band_reduce` gives it (bit for bit:
         the same sums in the same order). ``n_bands``: its length (default: the map's).
 
     Returns
@@ -440,7 +440,7 @@ def alpha_table_of(responses, exposures_ms, calibration, *, darks=None, band_map
     darks : (E, H, W) array_like, DN, optional
         The dark under each response (default: the calibrated dark at each exposure).
     band_map : (H, W) int array, optional
-    method, statistic : see :func:`alpha_map` and :func:`hsiffc.data.bandstats.band_reduce`
+    method, statistic : see :func:`alpha_map` and :func:`hsiffc.spectral.bandstats.band_reduce`
     wavelengths_nm : sequence of float, optional
 
     Returns
@@ -473,7 +473,7 @@ def alpha_table(sweep: Sweep, calibration, *, method: str = "paper",
         Of the same sensor (checked).
     method : str
         One of :data:`ALPHA_METHODS` ("paper", "model").
-    statistic : "median" or another :func:`hsiffc.data.bandstats.band_reduce` statistic
+    statistic : "median" or another :func:`hsiffc.spectral.bandstats.band_reduce` statistic
 
     Returns
     -------

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from .base import NotFittedError, Stage, check_stage
+from .base import NotFittedError, Stage
+from .contract import check_stage
 from .pipeline import Pipeline
 from .registry import create, describe, get
 

@@ -28,6 +28,7 @@ class AlphaMask(Stage):
     """
 
     name = "alpha_mask"
+    gpu_as = "alpha_mask"
     #: fitted state as a pipeline file stores it (:func:`hsiffc.data.products.check_product`)
     state_schema = {"fitted_": "bool"}
     stateless = True

@@ -16,10 +16,11 @@ import copy
 import functools
 import inspect
 import json
+from pathlib import Path
 
 import numpy as np
 
-from ..errors import HsiffcError
+from ..errors import HsiffcError, ParameterError
 from ..data.params import check_params, short_repr, unknown_parameters
 
 
@@ -96,6 +97,11 @@ class Stage:
     #: ``"dark"``, ``"alpha_mask"``, ``"two_point_ffc"``), None for a stage that does not
     #: fuse. A subclass that changes what ``transform`` computes sets it to None.
     fuses_as: str | None = None
+    #: what the stage computes in the terms of the GPU pipeline (:func:`hsiffc.gpu.pipeline.plan`:
+    #: ``"dark"``, ``"alpha_mask"``, ``"model_ffc"``, ``"two_point_ffc"``, ``"reconstruct"``),
+    #: None for a stage the GPU does not run. A subclass that changes what ``transform``
+    #: computes sets it to None.
+    gpu_as: str | None = None
 
     # -- parameters ----------------------------------------------------------------------------
     @classmethod
@@ -113,6 +119,34 @@ class Stage:
         for key, value in params.items():
             setattr(self, key, value)
         return self
+
+    def json_params(self) -> dict:
+        """The parameters as JSON (what a pipeline file and a frame's history record): paths
+        become strings, a calibration its :meth:`~hsiffc.calibrate.Calibration.reference`
+        (identity and path).
+
+        Raises
+        ------
+        ParameterError
+            A value that cannot be saved (neither a path nor a plain value).
+        """
+        from ..calibrate.product import Calibration
+
+        out = {}
+        for key, value in self.get_params().items():
+            if key == "calibration" and value is not None:
+                value = self.calibration_product()  # read once; a path is recorded by identity
+            if isinstance(value, Calibration):
+                value = value.reference()
+            elif isinstance(value, Path):
+                value = str(value)
+            elif isinstance(value, np.generic):
+                value = value.item()
+            elif not isinstance(value, (str, int, float, bool, type(None), list, dict)):
+                raise ParameterError(f"{self.name}: parameter {key}={value!r} cannot be saved; "
+                                     "give a path or a plain value")
+            out[key] = value
+        return out
 
     def __repr__(self):  # one line: arrays by shape, a calibration by its key figures
         args = ", ".join(f"{k}={short_repr(v)}" for k, v in self.get_params().items())
@@ -140,8 +174,6 @@ class Stage:
         """:meth:`calibration_product`, or a ParameterError saying the stage needs one."""
         cal = self.calibration_product()
         if cal is None:
-            from ..errors import ParameterError
-
             from .common import GIVE_CALIBRATION
 
             raise ParameterError(f"{self.name or type(self).__name__} needs a calibration (a "
@@ -208,80 +240,3 @@ class Stage:
     def clone(self) -> "Stage":
         """An unfitted copy with the same parameters."""
         return type(self)(**copy.deepcopy(self.get_params()))
-
-
-def check_stage(stage: Stage, train_frames, test_frame) -> None:
-    """Run the stage contract tests; raises AssertionError with the broken rule.
-
-    Checks: parameters round-trip through get_params/clone; transform before fit raises
-    NotFittedError (unless stateless); fit returns self; transform returns a new Frame and does
-    not mutate its input; no NaN or inf appears in the output data; the DQ plane is kept or
-    extended (no bit of the input is cleared); the output has the states the stage declares it
-    produces and none it declares it removes; the fitted state survives a JSON + npz round
-    trip and gives the same output.
-
-    Frames are given raw (as read from files); when the stage ``requires`` dark-subtracted
-    frames, a default dark stage fitted on ``train_frames`` is run on them first.
-
-    Parameters
-    ----------
-    stage : Stage
-        An unfitted instance with the parameters to test.
-    train_frames : list of Frame
-        Training frames (darks and flats, as the stage needs).
-    test_frame : Frame
-        A raw frame to transform.
-
-    Raises
-    ------
-    AssertionError
-        Naming the rule the stage breaks.
-    """
-    import io
-
-    from ..data.frame import Frame
-
-    if "dark_subtracted" in stage.requires and "dark_subtracted" not in test_frame.state():
-        from .dark import DarkSubtract
-
-        dark = DarkSubtract().fit(train_frames)
-        train_frames = [dark.transform(f) for f in train_frames]
-        test_frame = dark.transform(test_frame)
-    missing = stage.requires - test_frame.state()
-    assert not missing, f"check_stage cannot give {type(stage).__name__} frames with {missing}"
-    params = stage.get_params()
-    fresh = stage.clone()
-    assert fresh.get_params().keys() == params.keys(), "clone() changed the parameter names"
-    if not stage.stateless:
-        try:
-            fresh.transform(test_frame)
-        except NotFittedError:
-            pass
-        else:
-            raise AssertionError(f"{type(stage).__name__}.transform ran before fit")
-    before_data = test_frame.data.copy()
-    before_dq = test_frame.dq.copy()
-    fitted = fresh.fit(train_frames)
-    assert fitted is fresh, "fit() must return self"
-    out = fresh.transform(test_frame)
-    assert isinstance(out, Frame), "transform() must return a Frame"
-    assert out is not test_frame, "transform() must return a new Frame"
-    assert np.array_equal(test_frame.data, before_data), "transform() mutated its input data"
-    assert np.array_equal(test_frame.dq, before_dq), "transform() mutated its input dq"
-    assert np.all(np.isfinite(out.data)), "transform() produced NaN or inf"
-    state = out.state()
-    assert stage.produces <= state, f"output lacks the declared {set(stage.produces - state)}"
-    assert not stage.removes & state, f"output still has the removed {set(stage.removes & state)}"
-    if out.dq.shape == test_frame.dq.shape:
-        lost = test_frame.dq & ~out.dq
-        assert not lost.any(), "transform() cleared DQ bits of its input"
-    js, arrays = fresh.get_state()
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    buf.seek(0)
-    with np.load(buf, allow_pickle=False) as npz:
-        restored = stage.clone().set_state(json.loads(json.dumps(js)),
-                                           {k: npz[k] for k in npz.files})
-    again = restored.transform(test_frame)
-    assert np.array_equal(again.data, out.data), "state round trip changed the output"
-    assert np.array_equal(again.dq, out.dq), "state round trip changed the DQ plane"

@@ -34,6 +34,7 @@ class DarkSubtract(Stage):
     """
 
     name = "dark"
+    gpu_as = "dark"
     #: fitted state as a pipeline file stores it (:func:`hsiffc.data.products.check_product`)
     state_schema = {"fitted_": "bool", "exposures_ms_": "numbers",
                     "masters_": ("f", ("exposures_ms_", "H", "W")),

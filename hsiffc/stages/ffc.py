@@ -16,7 +16,7 @@ from dataclasses import fields
 
 import numpy as np
 
-from ..data.bandstats import band_reduce
+from ..spectral.bandstats import band_reduce
 from ..data.dq import DQ_DTYPE
 from ..errors import HsiffcWarning, ParameterError
 from ..flatfield.two_point import (
@@ -71,6 +71,7 @@ class TwoPointFFC(Stage):
     """
 
     name = "two_point_ffc"
+    gpu_as = "two_point_ffc"
     fuses_as = "two_point_ffc"
     removes = frozenset({"response"})
     param_spec = {"exposure_ms": Param("number", low=0, low_open=True, optional=True, unit="ms"),

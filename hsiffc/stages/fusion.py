@@ -10,7 +10,7 @@ so, :meth:`hsiffc.stages.Pipeline.prepare` puts a :class:`FusedFrontEnd` in its 
 in the pipeline's ``repr``). On a raw frame it does the stages' per-pixel work in one pass
 (:func:`hsiffc.leakage.validity.subtract_dark_and_flag`, which with the two-point FFC's
 ``"paper"`` normalisation also takes the test frame's per-band level of eq. 5, the sums
-:func:`hsiffc.data.bandstats.band_reduce` would take, in its order) and then lets every stage
+:func:`hsiffc.spectral.bandstats.band_reduce` would take, in its order) and then lets every stage
 finish its frame as its own ``transform`` would. The result is the same frame, bit for bit,
 with the same history (``tests/test_fusion.py`` compares them on simulated and real data).
 

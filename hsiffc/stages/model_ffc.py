@@ -6,7 +6,6 @@ import numpy as np
 
 from ..calibrate.flats import combined_dark
 from ..data.dq import DQ_DTYPE
-from ..errors import ParameterError
 from ..kernels.bits import or_into
 from ..flatfield.methods import FFC_METHODS
 from ..flatfield.model_based import FlatStack, log_gain_ratio, model_ffc_apply, model_flat_of
@@ -58,6 +57,7 @@ class ModelFFC(Stage):
     """
 
     name = "model_ffc"
+    gpu_as = "model_ffc"
     requires = frozenset({"mosaic", "response"})
     produces = frozenset({"dark_subtracted"})
     removes = frozenset({"raw", "response"})

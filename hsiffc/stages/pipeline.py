@@ -16,9 +16,8 @@ in memory), so a pipeline built in a notebook saves and loads without saving any
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
-
-import numpy as np
 
 from ..calibrate.product import Calibration
 from ..errors import DataFormatError, HsiffcError, ParameterError
@@ -38,23 +37,20 @@ REMEDY = "fit one with 'hsiffc fit DESCRIPTION.toml TRAINING... -o PIPELINE.npz'
 
 
 def json_params(stage: Stage) -> dict:
-    """A stage's parameters as JSON: paths become strings, a calibration its
-    :meth:`~hsiffc.calibrate.Calibration.reference` (identity and path)."""
-    out = {}
-    for key, value in stage.get_params().items():
-        if key == "calibration" and value is not None:
-            value = stage.calibration_product()  # read once; a path is recorded with identity
-        if isinstance(value, Calibration):
-            value = value.reference()
-        elif isinstance(value, Path):
-            value = str(value)
-        elif isinstance(value, np.generic):
-            value = value.item()
-        elif not isinstance(value, (str, int, float, bool, type(None), list, dict)):
-            raise ParameterError(f"{stage.name}: parameter {key}={value!r} cannot be saved; "
-                                 "give a path or a plain value")
-        out[key] = value
-    return out
+    """A stage's parameters as JSON (:meth:`hsiffc.stages.base.Stage.json_params`)."""
+    return stage.json_params()
+
+
+#: Where a pipeline runs besides this process's CPU, and its CPU stream: name ->
+#: ``"module:function"``, imported when called (as plugin stages are): the GPU backend
+#: (:mod:`hsiffc.gpu`) sits above the stages and imports them, so the stages name it instead
+#: of importing it.
+BACKENDS = {"to_device": "hsiffc.gpu:to_device", "cpu_stream": "hsiffc.gpu.pipeline:cpu_stream"}
+
+
+def _backend(name: str):
+    module, _, attr = BACKENDS[name].partition(":")
+    return getattr(importlib.import_module(module), attr)
 
 
 def _is_calibration(stage_cls, key: str) -> bool:
@@ -316,16 +312,14 @@ class Pipeline:
         """This pipeline for ``device``: ``"cpu"`` (itself) or ``"cuda"`` (a
         :class:`hsiffc.gpu.pipeline.GpuPipeline`; :class:`hsiffc.gpu.GpuUnavailableError`, one
         line, where numba-cuda or a GPU is missing)."""
-        from ..gpu import to_device
-        return to_device(self, device)
+        return _backend("to_device")(self, device)
 
     def stream(self, frames, **options):
         """Correct an iterable of frames (or raw arrays) one by one, yielding
         :class:`hsiffc.gpu.pipeline.StreamItem` s; ``options`` as
         :meth:`hsiffc.gpu.pipeline.GpuPipeline.stream` (output types, alpha). On the CPU a
         plain loop over :meth:`transform`."""
-        from ..gpu.pipeline import cpu_stream
-        return cpu_stream(self, frames, **options)
+        return _backend("cpu_stream")(self, frames, **options)
 
     # -- persistence ---------------------------------------------------------------------------
     def manifest(self) -> dict:

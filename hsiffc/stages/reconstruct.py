@@ -6,27 +6,13 @@ import numpy as np
 
 from .. import reconstruct as rc
 from ..data.dq import DQ_DTYPE
+from ..data.mosaic import band_positions
 from ..errors import ParameterError
 from ..data.params import Param
 from .base import Stage
 
 RESOLUTIONS = ("full", "tile")
 CORRECTIONS = (None, "imec", "derived")
-
-
-def band_positions(mosaic) -> list:
-    """(row, col) of each band's first position in the mosaic tile, in band-index order.
-
-    >>> from hsiffc.data.mosaic import Mosaic
-    >>> band_positions(Mosaic.rectangular(2, 2))
-    [[0, 0], [0, 1], [1, 0], [1, 1]]
-    """
-    pattern = np.asarray(mosaic.pattern)
-    out = []
-    for b in range(mosaic.n_bands):
-        r, c = np.argwhere(pattern == b)[0]
-        out.append([int(r), int(c)])
-    return out
 
 
 class Reconstruct(Stage):
@@ -74,6 +60,7 @@ class Reconstruct(Stage):
     #: the registered name, also when the class is instantiated directly (pipeline files
     #: resolve stages by this name)
     name = "reconstruct"
+    gpu_as = "reconstruct"
     #: fitted state as a pipeline file stores it (:func:`hsiffc.data.products.check_product`)
     state_schema = {"fitted_": "bool", "virtual_wavelengths_nm_": "numbers",
                     "virtual_fwhm_nm_": "number|null",

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from ..data.bandstats import band_reduce
+from ..spectral.bandstats import band_reduce
 from ..data.dq import DQ
 from ..errors import HsiffcWarning, band_figures
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..kernels.bands import band_sums
-from .mosaic import row_period
-from .params import validate_method
+from ..data.mosaic import row_period
+from ..data.params import validate_method
 
 STATISTICS = ("mean", "median", "p95")
 
