@@ -34,9 +34,9 @@ def unit(module: str) -> str:
     return parts[1] if len(parts) > 1 else "hsiffc"
 
 
-def imports() -> list[tuple[str, str, str]]:
-    """(importing unit, imported unit, where) for every hsiffc import in the package."""
-    found = []
+def module_imports():
+    """(importing module, the module an import statement names, the names it imports, path,
+    line) for every import statement of the package."""
     for path in sorted(PACKAGE.rglob("*.py")):
         rel = path.relative_to(REPO).with_suffix("").parts
         is_pkg = rel[-1] == "__init__"
@@ -49,16 +49,20 @@ def imports() -> list[tuple[str, str, str]]:
                     target = ".".join(base + ([node.module] if node.module else []))
                 else:
                     target = node.module or ""
-                targets = ([f"hsiffc.{a.name}" for a in node.names] if target == "hsiffc"
-                           else [target])
+                yield module, target, [a.name for a in node.names], path, node.lineno
             elif isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            else:
-                continue
-            for t in targets:
-                if t.startswith("hsiffc."):
-                    found.append((unit(module), unit(t),
-                                  f"{path.relative_to(REPO)}:{node.lineno}"))
+                for a in node.names:
+                    yield module, a.name, [], path, node.lineno
+
+
+def imports() -> list[tuple[str, str, str]]:
+    """(importing unit, imported unit, where) for every hsiffc import in the package."""
+    found = []
+    for module, target, names, path, line in module_imports():
+        targets = [f"hsiffc.{n}" for n in names] if target == "hsiffc" else [target]
+        for t in targets:
+            if t.startswith("hsiffc."):
+                found.append((unit(module), unit(t), f"{path.relative_to(REPO)}:{line}"))
     return found
 
 
@@ -154,28 +158,12 @@ def test_no_modules_import_each_other():
     """No cycle of modules (imports inside functions count), but those listed in
     :data:`MODULE_CYCLES`."""
     edges: dict[str, set] = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
-        rel = path.relative_to(REPO).with_suffix("").parts
-        is_pkg = rel[-1] == "__init__"
-        module = ".".join(rel[:-1] if is_pkg else rel)
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.ImportFrom):
-                base = module.split(".") if is_pkg else module.split(".")[:-1]
-                if node.level:
-                    base = base[: len(base) - (node.level - 1)]
-                    target = ".".join(base + ([node.module] if node.module else []))
-                else:
-                    target = node.module or ""
-                targets = [target] + [f"{target}.{a.name}" for a in node.names]
-            elif isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            else:
-                continue
-            for t in targets:
-                t_path = REPO.joinpath(*t.split("."))
-                if t.startswith("hsiffc") and t != module and (
-                        t_path.with_suffix(".py").exists() or (t_path / "__init__.py").exists()):
-                    edges.setdefault(module, set()).add(t)
+    for module, target, names, _, _ in module_imports():
+        for t in [target] + [f"{target}.{n}" for n in names]:
+            where = REPO.joinpath(*t.split("."))
+            if t.startswith("hsiffc") and t != module and (
+                    where.with_suffix(".py").exists() or (where / "__init__.py").exists()):
+                edges.setdefault(module, set()).add(t)
     # a package imports its modules to show them on its face: the face is not a cycle; nor
     # are the upward imports the page names (module -> the folder it imports)
     named = {(path.replace("/", ".")[:-3], f"hsiffc.{b}") for _, b, path in EXCEPTIONS}
