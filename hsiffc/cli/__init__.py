@@ -1,7 +1,8 @@
 """The ``hsiffc`` command line.
 
-Sub-commands live in one module per group (:mod:`.data`, :mod:`.pipeline`, :mod:`.reports`), each
-with a ``register(sub)`` function. A group's module is imported and registered only when one of
+Sub-commands live in one module per command or small group of commands (:mod:`.calibrate`,
+:mod:`.diagnose`, :mod:`.data`, :mod:`.pipeline`, :mod:`.reports` ...), each with a
+``register(sub)`` function. A group's module is imported and registered only when one of
 its commands is parsed (or a listing of every command is asked for: ``hsiffc --help``), so that
 ``hsiffc --version`` and a light command import none of the batch, calibration or kernel
 modules; :data:`COMMANDS` says which module registers which command. Each command runs under
@@ -33,8 +34,8 @@ log = logging.getLogger("hsiffc")
 #: command -> the module of this package whose ``register(sub)`` adds it, in the order
 #: ``--help`` lists the commands (a test checks each module registers exactly its commands)
 COMMANDS = {
-    "demo": "reports", "paper": "reports", "diagnose": "reports",
-    "info": "data", "simulate": "data", "calibrate": "data", "select": "data",
+    "demo": "reports", "paper": "reports", "diagnose": "diagnose",
+    "info": "data", "simulate": "data", "select": "data", "calibrate": "calibrate",
     "stages": "pipeline", "fit": "pipeline", "correct": "pipeline",
     "reflectance": "reflectance",
     "quicklook": "cubes",
