@@ -71,7 +71,7 @@ MAX_PIXELS = 16384
 MIN_LIGHT_STEPS = 6
 #: a leakage pixel whose ln b has a larger 1-sigma error is not determined by the sweep
 MAX_SIGMA_LN_B = 0.5
-#: Levenberg-Marquardt iterations per pixel: with its dark pinned by the dark frames a
+#: Levenberg-Marquardt iterations per pixel: with its dark held at the dark frames' a
 #: strongly bent pixel can need more than the fit's default 200
 MAX_ITER = 600
 #: the chi-square a pixel's leakage fit must gain over its linear one, per ln(samples) (the

@@ -29,9 +29,6 @@ log = logging.getLogger(__name__)
 N_PILOT = 4096
 MIN_LIGHT_DOSES = 3
 DO_NOT_USE_STATUS = (pixelfit.TOO_FEW,) + pixelfit.NO_FIT
-#: weight factor on the dark samples that pins each pixel's dark level to its dark frames (1e2
-#: and 1e3 left the light response's pull on it at 0.1-1 DN on the 10-bit light sweep of
-#: ../shared/data, enough to double the fixed pattern at 2-12 % of saturation)
 
 
 def check_design(sweep: Sweep, light_rate=None) -> None:
@@ -161,7 +158,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     band's model chosen by held-out prediction.
 
     Every per-pixel parameter is earned from the data that determine it best: the dark level
-    of each pixel from its dark frames (``dark_from="frames"``: the dark samples pin it; the
+    of each pixel from its dark frames (``dark_from="frames"``: the fit holds it there; the
     light response does not set it), a light response that does not start at the dark level
     as one exposure offset for the sensor (:func:`~hsiffc.calibrate.samples.exposure_offset`),
     leakage a and b only where the sweep determines them, and per band the simplest model
