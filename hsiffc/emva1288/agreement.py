@@ -73,7 +73,7 @@ def compare_with_reference(data_dir, *, reference_file=None) -> dict:
     DataFormatError
         The reference file is missing or not what it should be.
     """
-    from ..io import read_emva1288
+    from ..io import open_source
     from .compute import characterise
 
     data_dir = Path(data_dir)
@@ -93,7 +93,8 @@ def compare_with_reference(data_dir, *, reference_file=None) -> dict:
         if not folder.exists():
             out["datasets"][name] = {"missing": f"{folder} not found"}
             continue
-        res = characterise(read_emva1288(folder))
+        with open_source(folder) as src:  # streamed, as the command reads it
+            res = characterise(src)
         ours = dict(res["figures"])
         ours["_index_u_ysat"] = res["fit_ranges"]["index_u_ysat"]
         rows = compare_figures(ours, figs)

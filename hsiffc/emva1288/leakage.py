@@ -207,8 +207,13 @@ def leakage_effects(sweep, emva: dict, calibration) -> dict:
             gen = k * t[i] + 0.0
             stored_model = resp - dark
             stored_adc = np.minimum(resp, fs) - dark
-            data = sweep.data[sweep.step == int(c["step"][i])]
-            clipped_meas = (data >= sweep.full_scale_dn).any(axis=0).ravel()
+            share = emva.get("steps", {}).get("clipped_share")
+            if share is not None:  # measured while the frames were read
+                clipped_meas = float(np.asarray(share)[
+                    np.asarray(emva["steps"]["step"]) == int(c["step"][i])][0])
+            else:
+                data = sweep.data[sweep.step == int(c["step"][i])]
+                clipped_meas = float((data >= sweep.full_scale_dn).any(axis=0).mean())
             budget = {
                 "index": int(i), "u_p": float(u_p[i]), "exposure_ms": float(t[i]),
                 "light_rate_photons_per_ms": float(rate[i]),
@@ -223,7 +228,7 @@ def leakage_effects(sweep, emva: dict, calibration) -> dict:
                 "u_e_sat_standard": emva["figures"]["u_e_sat"]["value"],
                 "share_pixels_leakage_limited": float(below_fs[i]),
                 "share_pixels_clipped_model": float((resp >= fs).mean()),
-                "share_pixels_clipped_measured": float(clipped_meas.mean()),
+                "share_pixels_clipped_measured": clipped_meas,
             }
     gen_share = budget["generated_dn"]
     for key in ("leaked", "clipped", "stored"):

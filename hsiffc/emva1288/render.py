@@ -202,8 +202,9 @@ def write_report(sweep, res: dict, outdir, leak: dict | None = None,
 
     Parameters
     ----------
-    sweep : Sweep
-        The characterised measurement (for the spatial images).
+    sweep : Sweep, FrameSource or None
+        The characterised measurement (unused: the result holds what the plots need; kept
+        for callers that pass it).
     res : dict
         :func:`hsiffc.emva1288.characterise` of it.
     outdir : path-like
@@ -228,10 +229,9 @@ def write_report(sweep, res: dict, outdir, leak: dict | None = None,
     dc = plot.dark_current_figure(res)
     if dc is not None:
         figs["dark current"] = dc
-    images = plot.spatial_images(sweep, res)
-    if images is not None:
-        figs["DSNU and PRNU histograms"] = plot.histogram_figure(images)
-        figs["DSNU and PRNU spectrograms"] = plot.spectrogram_figure(images)
+    if res.get("defect_pixels") is not None:
+        figs["DSNU and PRNU histograms"] = plot.histogram_figure(res)
+        figs["DSNU and PRNU spectrograms"] = plot.spectrogram_figure(res)
     if leak is not None:
         figs["leakage"] = plot.leakage_figure(res, leak)
     files = {}
