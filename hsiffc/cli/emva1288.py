@@ -44,14 +44,14 @@ def register(sub) -> None:
                    help="only the standard's figures (no leakage calibration)")
     add_input_options(p)
     add_overwrite(p, "replace an existing --json file or the files of an earlier --report")
+    # streamed statistics: no frame-sized arrays to keep for reuse (hsiffc.batch.memory)
     p.set_defaults(func=_cmd_emva1288, input_args=("descriptor", "calibration"),
-                   output_args=("json",), output_dirs=("report",))
+                   output_args=("json",), output_dirs=("report",), reuse_memory=False)
 
 
 def _cmd_emva1288(args) -> int:
-    from ..calibrate import Calibration
-    from ..emva1288 import run_characterisation, to_json, write_report
-    from ..emva1288.render import fmt
+    from ..emva1288 import run_characterisation
+    from ..emva1288.render import fmt, to_json, write_report
     from ..io import open_source
 
     if args.no_leakage and args.calibration is not None:
@@ -64,7 +64,11 @@ def _cmd_emva1288(args) -> int:
         h, w = sweep.frame_shape
         print(f"{sweep.n_frames} frames of {h} x {w} px, {sweep.bit_depth}-bit, "
               f"{len(set(sweep.step.tolist()))} steps, from {sweep.label}")
-        cal = Calibration.load(args.calibration) if args.calibration else None
+        cal = None
+        if args.calibration:
+            from ..calibrate import Calibration
+
+            cal = Calibration.load(args.calibration)
         res, leak, note = run_characterisation(
             sweep, pixel_area_um2=args.pixel_area_um2, wavelength_nm=args.wavelength_nm,
             leakage=not args.no_leakage, calibration=cal)

@@ -9,8 +9,6 @@ import numpy as np
 
 from ..files.atomic import atomic_write_text
 from ..files.jsonsafe import json_safe
-from ..reports.figures import save_figure
-from . import plot
 from .compute import FIGURES
 
 __all__ = ["figures_table", "leakage_markdown", "render_markdown", "to_json", "write_report",
@@ -221,6 +219,9 @@ def write_report(sweep, res: dict, outdir, leak: dict | None = None,
     dict
         Name -> path of every file written.
     """
+    from ..reports.figures import save_figure  # matplotlib: only when plots are written
+    from . import plot
+
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     figs = {"photon transfer": plot.photon_transfer_figure(res),

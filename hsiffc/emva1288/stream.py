@@ -1,6 +1,6 @@
 """EMVA 1288 step statistics reduced while the frames are read: memory bounded by a few frames.
 
-Every frame goes once through a compiled kernel (numba, without the GIL) that adds it to
+Every frame goes once through a kernel (numba, compiled, without the GIL) that adds it to
 its step's accumulators; a step is reduced to its statistics when its last frame has been read,
 and the frames are never held together. Per pixel the kernel keeps the step's first frame
 ``f0`` and the sums ``S1 = sum (f - f0)`` and ``S2 = sum (f - f0)^2`` over the later frames
@@ -27,10 +27,11 @@ two frames of each step give the calibration's photon transfer (pixels below ful
 both: their number, mean level and half the mean squared difference).
 
 The frames are read by :class:`hsiffc.io.FrameSource`, which decodes the next frames on worker
-threads while the kernel works on the current one: both cores are busy. The kernels run on
-one thread: a frame takes well under a millisecond per 100 000 pixels, less than its decoding,
-and numba's parallel launch costs more than it saves on frames up to a few megapixels when the
-cores are shared (measured 4.0 ms against 0.35 ms per 128 x 256 frame here).
+threads while the kernel works on the current one: both cores are busy (decoding a frame
+costs several times what the kernel does). The kernels are whole-array expressions, so the
+same code runs compiled (numba fuses them into one loop) or as numpy: a measurement of fewer
+than :data:`COMPILED_FROM` pixel-frames runs them as numpy, where loading numba's code
+generator would cost more than the compiled loop saves.
 """
 
 from __future__ import annotations
@@ -46,82 +47,80 @@ SPATIAL_FACTOR = 2.0  # a step with more than this x the median frames per step 
 
 
 @njit(cache=True, nogil=True)
-def _add_frame(frame, j, first, s1, s2, clip, band, fs, gpart, ppart):
-    """Add frame number ``j`` of a step to its accumulators (in place). ``band`` (H, W) int
-    holds each pixel's group index after the whole frame's (-1: none); ``gpart`` (H, G) row
-    sums per group; ``ppart`` (H, 3) the pair statistics of the first two frames."""
-    h, w = frame.shape
-    for r in range(h):
-        for c in range(w):
-            v = np.float64(frame[r, c])
-            gpart[r, 0] += v
-            g = band[r, c]
-            if g >= 0:
-                gpart[r, g + 1] += v
-            at_fs = v >= fs
-            if j == 0:
-                first[r, c] = v
-                s1[r, c] = 0.0
-                s2[r, c] = 0.0
-                clip[r, c] = at_fs
-            else:
-                a = first[r, c]
-                d = v - a
-                s1[r, c] += d
-                s2[r, c] += d * d
-                clip[r, c] |= at_fs
-                if j == 1 and a < fs and v < fs:
-                    ppart[r, 0] += 1.0
-                    ppart[r, 1] += 0.5 * (a + v)
-                    ppart[r, 2] += d * d
+def _add_frame(v, j, first, s1, s2, clip, band, n_bands, fs, pairs):
+    """Add frame number ``j`` of a step (``v``: the frame flattened, float64 DN) to its
+    accumulators (flat, in place); return the frame's sum per group (whole frame, then each
+    of ``n_bands`` bands by ``band``). ``pairs`` (3,) gathers the first two frames' pixels
+    below full scale in both: count, sum of their means, sum of squared differences."""
+    sums = np.zeros(1 + n_bands)
+    sums[0] = v.sum()
+    if n_bands > 0:
+        sums[1:] = np.bincount(band, v, n_bands)
+    at = v >= fs
+    if j == 0:
+        first[:] = v
+        s1[:] = 0.0
+        s2[:] = 0.0
+        clip[:] = at
+    else:
+        d = v - first
+        s1 += d
+        d2 = d * d
+        s2 += d2
+        clip |= at
+        if j == 1:
+            ok = (first < fs) & ~at
+            pairs[0] += ok.sum()
+            pairs[1] += 0.5 * (first[ok].sum() + v[ok].sum())
+            pairs[2] += d2[ok].sum()
+    return sums
 
 
 @njit(cache=True, nogil=True)
-def _finish_step(first, s1, s2, clip, n, band, n_groups, fs, mean_out, var_out, sum_out,
-                 want_mean, want_images):
-    """Reduce a step of ``n`` frames: per-row sums of the per-pixel temporal variance per group
-    (H, G), the number of clipped pixels per row; optionally the mean image (float32, full
-    scale where clipped) and the sum and variance images (float64)."""
-    h, w = first.shape
-    vpart = np.zeros((h, n_groups))
-    cpart = np.zeros(h)
+def _finish_step(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_images):
+    """Reduce a step of ``n`` frames: the sum of the per-pixel temporal variances per group,
+    the number of pixels at full scale in some frame, and (else empty) the mean image
+    (float32, full scale where clipped), the sum image and the variance image (float64)."""
     inv = 1.0 / n
-    for r in range(h):
-        for c in range(w):
-            a = s1[r, c]
-            if n > 1:
-                var = (s2[r, c] - a * a * inv) / (n - 1)
-            else:
-                var = 0.0
-            vpart[r, 0] += var
-            g = band[r, c]
-            if g >= 0:
-                vpart[r, g + 1] += var
-            if clip[r, c]:
-                cpart[r] += 1.0
-            if want_mean:
-                mean_out[r, c] = fs if clip[r, c] else first[r, c] + a * inv
-            if want_images:
-                sum_out[r, c] = first[r, c] * n + a
-                var_out[r, c] = var
-    return vpart, cpart
+    if n > 1:
+        var = (s2 - s1 * s1 * inv) / (n - 1)
+    else:
+        var = np.zeros_like(s1)
+    vs = np.zeros(1 + n_bands)
+    vs[0] = var.sum()
+    if n_bands > 0:
+        vs[1:] = np.bincount(band, var, n_bands)
+    mean = np.empty(0, np.float32)
+    if want_mean:
+        mean = np.where(clip, fs, first + s1 * inv).astype(np.float32)
+    total = np.empty(0)
+    if want_images:
+        total = first * n + s1
+    else:
+        var = np.empty(0)
+    return vs, float(clip.sum()), mean, total, var
+
+
+#: pixels x frames from which the compiled kernels run: below it, the same code as numpy
+#: array expressions (their first call loads numba's code generator, about 1 s of CPU here,
+#: which a smaller set does not earn back: 39 ms saved per 4-Mpx frame, measured here)
+COMPILED_FROM = 1e8
 
 
 class _StepState:
     """Accumulators of the step being read (buffers reused from step to step)."""
 
-    def __init__(self, shape, n_groups):
-        self.first = np.empty(shape)
-        self.s1 = np.empty(shape)
-        self.s2 = np.empty(shape)
-        self.clip = np.empty(shape, np.bool_)
-        self.n_groups = n_groups
+    def __init__(self, n_pixels):
+        self.first = np.empty(n_pixels)
+        self.s1 = np.empty(n_pixels)
+        self.s2 = np.empty(n_pixels)
+        self.clip = np.empty(n_pixels, np.bool_)
         self.reset(None, None)
 
     def reset(self, step, meta):
         self.step, self.meta, self.n = step, meta, 0
         self.frame_sums: list = []
-        self.ppart = np.zeros((self.first.shape[0], 3))
+        self.pairs = np.zeros(3)
 
 
 def _frames_of(source):
@@ -138,10 +137,11 @@ def _frames_of(source):
 
 
 def _group_map(source, frame_shape, mosaic_bands):
+    """(band index of every pixel, flat int64; or empty without bands) and the band count."""
     mosaic = getattr(source, "mosaic", None)
     if mosaic_bands and mosaic is not None:
-        return mosaic.band_map(frame_shape).astype(np.int64), mosaic.n_bands
-    return np.full(frame_shape, -1, np.int64), 0
+        return mosaic.band_map(frame_shape).astype(np.int64).ravel(), int(mosaic.n_bands)
+    return np.empty(0, np.int64), 0
 
 
 def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = False,
@@ -186,8 +186,9 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
     where = getattr(source, "source", None) or getattr(source, "label", None) or None
     band, n_bands = _group_map(source, frame_shape, mosaic_bands)
     n_groups = 1 + n_bands
-    counts = np.bincount(band.ravel() + 1, minlength=n_groups + 1)
-    n_pix = np.concatenate([[band.size], counts[1:n_groups]]).astype(np.float64)
+    n_total = int(np.prod(frame_shape))
+    n_pix = np.concatenate([[n_total], np.bincount(band, minlength=n_bands)[:n_bands]]
+                           ).astype(np.float64)
     if spatial_steps is None:
         spatial_steps = meta.get("spatial_steps")
     if spatial_steps is None:
@@ -195,40 +196,36 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         ids, cnt = np.unique(steps_all, return_counts=True)
         spatial_steps = ids[cnt > SPATIAL_FACTOR * np.median(cnt)].tolist()
     spatial = {int(s) for s in spatial_steps}
-    st = _StepState(frame_shape, n_groups)
+    compiled = float(source.n_frames) * n_total >= COMPILED_FROM
+    add = _add_frame if compiled else _add_frame.py_func
+    reduce_step = _finish_step if compiled else _finish_step.py_func
+    st = _StepState(n_total)
     rows: list[dict] = []
     images: dict = {}
     means: list = []
     done: set = set()
-    h = frame_shape[0]
 
     def finish():
         if st.step is None:
             return
         is_sp = st.step in spatial
-        sum_img = np.empty(frame_shape) if is_sp else np.empty((1, 1))
-        var_img = np.empty(frame_shape) if is_sp else np.empty((1, 1))
-        mean_img = (np.empty(frame_shape, np.float32) if keep_step_means and not is_sp
-                    else np.empty((1, 1), np.float32))
-        vpart, cpart = _finish_step(st.first, st.s1, st.s2, st.clip, st.n, band, n_groups, fs,
-                                    mean_img, var_img, sum_img, keep_step_means and not is_sp,
-                                    is_sp)
+        vs, n_clip, mean_img, sum_img, var_img = reduce_step(
+            st.first, st.s1, st.s2, st.clip, st.n, band, n_bands, fs,
+            keep_step_means and not is_sp, is_sp)
         fm = np.array(st.frame_sums) / n_pix  # (L, G) frame means per group
         mean = fm.mean(axis=0)
-        if st.n > 1:
-            var = vpart.sum(axis=0) / n_pix - fm.var(axis=0, ddof=1)
-        else:
-            var = np.full(n_groups, np.nan)
+        var = (vs / n_pix - fm.var(axis=0, ddof=1)) if st.n > 1 else np.full(n_groups, np.nan)
         kind, exposure, photons = st.meta
         rows.append({"step": st.step, "kind": kind, "exposure_ms": exposure,
                      "photons": photons, "n_frames": st.n, "spatial": is_sp,
-                     "clipped_share": float(cpart.sum()) / band.size, "mean": mean,
-                     "var": var, "pairs": st.ppart.sum(axis=0)})
+                     "clipped_share": n_clip / n_total, "mean": mean, "var": var,
+                     "pairs": st.pairs.copy()})
         if is_sp:
-            images.setdefault(kind, []).append({"sum": sum_img, "var": var_img, "L": st.n,
-                                                "step": st.step})
+            images.setdefault(kind, []).append({"sum": sum_img.reshape(frame_shape),
+                                                "var": var_img.reshape(frame_shape),
+                                                "L": st.n, "step": st.step})
         elif keep_step_means:
-            means.append((st.step, mean_img))
+            means.append((st.step, mean_img.reshape(frame_shape)))
         done.add(st.step)
 
     for frame, step, kind, exposure, photons in _frames_of(source):
@@ -239,9 +236,9 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
                                       "EMVA 1288 lists each step's images together: fix the "
                                       "descriptor's order", path=where)
             st.reset(step, (kind, exposure, photons))
-        gpart = np.zeros((h, n_groups))
-        _add_frame(frame, st.n, st.first, st.s1, st.s2, st.clip, band, fs, gpart, st.ppart)
-        st.frame_sums.append(gpart.sum(axis=0))
+        v = np.asarray(frame, np.float64).reshape(-1)
+        st.frame_sums.append(add(v, st.n, st.first, st.s1, st.s2, st.clip, band, n_bands, fs,
+                                 st.pairs))
         st.n += 1
     finish()
     order = np.argsort([r["step"] for r in rows], kind="stable")
@@ -260,7 +257,7 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
                "var_dn2": np.array([np.nan if r["spatial"] else r["var"][g] for r in rows])}
               for g in range(n_groups)]
     out = {"steps": info, "groups": groups, "frame_shape": list(frame_shape),
-           "n_pixels": int(band.size), "bit_depth": bit_depth, "full_scale_dn": int(fs),
+           "n_pixels": n_total, "bit_depth": bit_depth, "full_scale_dn": int(fs),
            "band_map": band if n_bands else None, "images": None}
     light, dark = images.get("light", []), images.get("dark", [])
     if len(light) == 1 and len(dark) == 1:
