@@ -10,6 +10,9 @@ implementation computes it, plus what the leakage model says about the figures.
   capacity).
 - :func:`write_report` (:mod:`.render`, :mod:`.plot`): the standard's plots as PNG and a
   Markdown page with the figures table.
+- :func:`hsiffc.emva1288.general.general_figures` (:mod:`.general`): Release 4.0 General, the
+  application figures without the linear model (differential responsivity, SNR, saturation,
+  threshold, dynamic range), measured and as the leakage model predicts them.
 - :func:`run_characterisation`: all of it for one measurement.
 - :mod:`.agreement`: the figures of the shared EMVA 1288 sets beside the reference
   implementation's (``python3 -m hsiffc.emva1288 DATA OUTDIR``).
@@ -104,6 +107,8 @@ def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leak
                        statistics=stats)
     if not leakage:
         return res, None, None
+    from .general import general_figures
+
     means = None
     if calibration is None:
         from ..calibrate import LEAKAGE_ACCOUNT, calibrate
@@ -115,4 +120,7 @@ def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leak
             calibration = calibrate(means, method="joint", ptc=ptc, **LEAKAGE_ACCOUNT)
         except DataFormatError as exc:
             return res, None, f"not computed: the sweep cannot calibrate the leakage model ({exc})"
-    return res, leakage_effects(means if means is not None else sweep, res, calibration), None
+
+    leak = leakage_effects(means if means is not None else sweep, res, calibration)
+    res["general"] = general_figures(res, leak)  # the model's General figures beside
+    return res, leak, None

@@ -463,7 +463,8 @@ def characterise(sweep, *, pixel_area_um2: float | None = None,
         classic set, ``LE_mean`` and, with a spatial stack, the row, column and pixel parts of
         DSNU and PRNU and the high-pass PRNU), ``fit_ranges``, ``curves``, ``spatial``
         statistics, ``nonuniformity`` (variances of the split), ``spectrograms`` and
-        ``defect_pixels`` (histograms; :mod:`.spatial`), ``notes``; ``bands`` (the same per
+        ``defect_pixels`` (histograms; :mod:`.spatial`), ``general`` (Release 4.0 General,
+        :func:`hsiffc.emva1288.general.general_figures`), ``notes``; ``bands`` (the same per
         band) when the sweep has a mosaic; ``steps`` per-step statistics.
 
     Raises
@@ -503,6 +504,9 @@ def characterise(sweep, *, pixel_area_um2: float | None = None,
         "spatial": main["spatial"], "notes": main["notes"],
         "steps": {k: v for k, v in stats["steps"].items()},
     }
+    from .general import general_figures
+
+    result["general"] = general_figures(result)
     if images is not None:
         result["nonuniformity"] = main["nonuniformity"]
         result["spectrograms"] = spectrograms(images, {k: v["value"] for k, v in

@@ -15,7 +15,8 @@ from ..reports.figures import new_figure
 from .compute import QUANTISATION_VARIANCE
 
 __all__ = ["photon_transfer_figure", "sensitivity_figure", "snr_figure", "linearity_figure",
-           "dark_current_figure", "histogram_figure", "spectrogram_figure", "leakage_figure"]
+           "dark_current_figure", "histogram_figure", "spectrogram_figure", "general_figure",
+           "leakage_figure"]
 
 
 def _ranges(ax, x, fr, key, label):
@@ -168,6 +169,36 @@ def spectrogram_figure(res: dict):
                    ylabel=f"amplitude ({d['unit']})")
             if cidx == 0:
                 ax.legend(fontsize=7)
+    return fig
+
+
+def general_figure(res: dict):
+    """Release 4.0 General: the SNR against photons without the linear model (measured and, when
+    the leakage account ran, predicted by the leakage model), the Linear module's SNR, and the
+    differential responsivity."""
+    g = res["general"]
+    c = g["curves"]
+    fig, (ax, ax2) = new_figure((6.4, 7.2), nrows=2)
+    ax.loglog(c["u_p"], np.maximum(c["SNR"], 1e-3), "o", ms=3, label="General, measured")
+    cu = res["curves"]
+    lin = (np.asarray(cu["u_y"]) - np.asarray(cu["u_ydark"])) / np.sqrt(np.asarray(cu["s2_y"]))
+    ax.loglog(cu["u_p"], np.maximum(lin, 1e-3), ":", color="0.4", label="Linear: signal / noise")
+    model = g.get("model")
+    if model is not None:
+        ax.loglog(c["u_p"], np.maximum(model["curves"]["SNR"], 1e-3), "-", color="C3",
+                  label="General, leakage model")
+    i = g["index_sat"]
+    ax.plot(c["u_p"][i], c["SNR"][i], "s", mfc="none", ms=9, color="k", label="saturation")
+    ax.axhline(1.0, color="0.6", lw=0.6)
+    ax.set(xlabel="u_p (photons per pixel)", ylabel="SNR", title="Release 4.0 General: SNR")
+    ax.legend(fontsize=8)
+    ax2.plot(c["u_p"], c["R_diff"], "o", ms=3, label="measured")
+    if model is not None:
+        ax2.plot(c["u_p"], model["curves"]["R_diff"], "-", color="C3", label="leakage model")
+    ax2.axhline(res["figures"]["R"]["value"], color="0.4", ls=":", label="Linear R")
+    ax2.set(xlabel="u_p (photons per pixel)", ylabel="dY/du_p (DN/p)",
+            title="Differential responsivity")
+    ax2.legend(fontsize=8)
     return fig
 
 
