@@ -21,19 +21,8 @@ implementation computes it, plus what the leakage model says about the figures.
 from __future__ import annotations
 
 from .compute import FIGURES, characterise, saturation_index, step_statistics
-
-_LAZY = {"leakage_effects": ".leakage", "render_markdown": ".render", "to_json": ".render",
-         "write_report": ".render"}
-
-
-def __getattr__(name):
-    # the leakage account and the report (numba kernels, matplotlib) load when first used:
-    # the figures alone need neither
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name], __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+from .leakage import leakage_effects
+from .render import render_markdown, to_json, write_report  # matplotlib loads when plotting
 
 __all__ = ["FIGURES", "characterise", "leakage_effects", "render_markdown",
            "run_characterisation", "saturation_index", "step_mean_sweep", "step_statistics",
@@ -100,7 +89,6 @@ def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leak
         Why ``leak`` is None when ``leakage`` was asked for (the sweep cannot be calibrated).
     """
     from ..errors import DataFormatError
-    from .leakage import leakage_effects
 
     stats = step_statistics(sweep, keep_step_means=leakage and calibration is None)
     res = characterise(sweep, pixel_area_um2=pixel_area_um2, wavelength_nm=wavelength_nm,
