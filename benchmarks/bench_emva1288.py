@@ -16,8 +16,9 @@ on the shared CMOS set (``../shared/data/emva1288-cmos8-roi``, 600 frames of 128
 with N exposure steps (a light and a dark step of 2 frames each) and a 16-frame light and dark
 stack, at N = 50 and at 2N = 100 (the issue's 2048 x 2048 x 100 steps shrunk four-fold in
 area and two-fold in steps: on two cores shared with other jobs one such run takes minutes;
-``--quick``: 512 x 512, N = 25 and 50). The leakage run is timed on the CMOS set and on the
-N set only.
+``--quick``: 512 x 512, N = 25 and 50, one round and no warm-up round, the sets just written
+being in the page cache and numba's cache on disk). The leakage run is timed on the CMOS set
+and on the N set only.
 
 Targets (issue 57): figures-only wall at or below the reference's, peak memory at most 1.5 x
 the reference's and flat in the number of steps (2N against N), the default with leakage at
@@ -109,11 +110,12 @@ def _process(cmd) -> dict:
     return {"wall": wall, "cpu": ru.ru_utime + ru.ru_stime, "rss": ru.ru_maxrss / 1024}
 
 
-def _medians(cmds: dict, repeat: int) -> dict:
-    """Run ``cmds`` (name -> argv) in turn, ``repeat`` rounds after one warm-up round (numba's
-    cache, the page cache); median wall, CPU and peak memory per name."""
-    for cmd in cmds.values():
-        _process(cmd)
+def _medians(cmds: dict, repeat: int, warmup: int = 1) -> dict:
+    """Run ``cmds`` (name -> argv) in turn, ``repeat`` rounds after ``warmup`` warm-up rounds
+    (numba's cache, the page cache); median wall, CPU and peak memory per name."""
+    for _ in range(warmup):
+        for cmd in cmds.values():
+            _process(cmd)
     runs = {name: [] for name in cmds}
     for _ in range(repeat):
         for name, cmd in cmds.items():
@@ -158,7 +160,7 @@ def main(quick: bool = False) -> dict:
             if with_leak:
                 cmds["leakage"] = env_py + ["-m", "hsiffc", "emva1288", str(desc), "--json",
                                             str(o), "--overwrite"]
-            m = _medians(cmds, repeat)
+            m = _medians(cmds, repeat, warmup=0 if quick else 1)
             out["sets"][label] = m
             b, f = m["baseline"], m["figures"]
             print(f"  {label}")
