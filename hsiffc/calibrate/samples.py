@@ -158,8 +158,9 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     _step_means(sweep.data, sel, np.array([f.size for f in frames_of]), r0, r1,
                 float(fs if clip_dn is None else clip_dn),
                 float(-np.inf if floor_dn is None else floor_dn), means, clipped)
+    averaged = sweep.meta.get("frames_averaged")  # frames that are means of several
     for i, f in enumerate(frames_of):
-        n_frames[i] = f.size
+        n_frames[i] = f.size if averaged is None else int(np.asarray(averaged)[f].sum())
         exposure[i] = sweep.exposure_ms[f[0]]
         kind[i] = sweep.kind[f[0]]
         photons[i] = sweep.photons[f[0]]
@@ -219,17 +220,31 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
         None when no step has two frames.
     """
     fs = sweep.full_scale_dn
-    rows = []
-    dark_means = []
+    pairs = []
     for s in sweep.steps():
         sel = np.flatnonzero(sweep.step == s)
-        if sel.size < 2:
+        if sel.size >= 2:
+            pairs.append((sweep.kind[sel[0]],
+                          *_pair_stats(sweep.data[sel[0]], sweep.data[sel[1]], float(fs))))
+    return photon_transfer_from_pairs(pairs, sweep.data[0].size, fs,
+                                      max_fraction_of_full_scale=max_fraction_of_full_scale)
+
+
+def photon_transfer_from_pairs(pairs, n_pixels: int, full_scale_dn: float, *,
+                               max_fraction_of_full_scale: float = 0.7
+                               ) -> PhotonTransfer | None:
+    """:func:`photon_transfer` from the first two frames of every step, reduced: ``pairs`` holds
+    per step (kind, pixels below full scale in both frames, their mean level in DN, half
+    their mean squared frame-to-frame difference in DN^2), e.g. accumulated while the frames
+    were streamed (:mod:`hsiffc.emva1288.stream`); ``n_pixels`` the frame's pixels."""
+    fs = full_scale_dn
+    rows = []
+    dark_means = []
+    for kind, n_ok, mean, var in pairs:
+        if n_ok < 0.5 * n_pixels:
             continue
-        n_ok, mean, var = _pair_stats(sweep.data[sel[0]], sweep.data[sel[1]], float(fs))
-        if n_ok < 0.5 * sweep.data[0].size:
-            continue
-        rows.append((sweep.kind[sel[0]], mean, var))
-        if sweep.kind[sel[0]] == "dark":
+        rows.append((kind, mean, var))
+        if kind == "dark":
             dark_means.append(mean)
     if not rows:
         return None

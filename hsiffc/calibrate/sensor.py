@@ -102,7 +102,8 @@ def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model
     idx = np.sort(rng.choice(n, size=min(n, N_PILOT), replace=False))
     rr, cc = np.unravel_index(idx, (h, w))
     sub = replace(sweep, data=np.ascontiguousarray(sweep.data[:, rr, cc])[:, None, :],
-                  mosaic=None, meta={})
+                  mosaic=None, meta={k: sweep.meta[k] for k in ("frames_averaged",)
+                                     if k in sweep.meta})
     smp = collect_samples(sub, full_well_dn=full_well_dn, light_rate=light_rate)
     ks = kernel_samples(smp, ptc)
     dark_exposures = np.unique(smp.exposure_ms[(smp.kind == "dark") & smp.usable_step])
@@ -153,7 +154,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                     dark_current: bool | str = "auto", dark_model: str = "auto",
                     dark_from: str = "frames", exposure_offset_ms="auto", flats=None,
                     choose: bool = True, rows_per_chunk: int | None = None,
-                    progress=None) -> Calibration:
+                    progress=None, ptc: PhotonTransfer | None = None) -> Calibration:
     """Joint per-pixel fit of responsivity, a, b and the dark model from one sweep, with each
     band's model chosen by held-out prediction.
 
@@ -199,6 +200,10 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         Rows fitted at once (memory is bounded by rows x width x steps).
     progress : callable, optional
         Called with (rows_done, rows_total) after each chunk.
+    ptc : PhotonTransfer, optional
+        The photon transfer of the sweep's raw frames, when its frames are step means
+        (``meta["frames_averaged"]``: how many raw frames each stands for) that cannot give
+        it (:func:`~hsiffc.calibrate.samples.photon_transfer_from_pairs`).
 
     Returns
     -------
@@ -218,7 +223,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     if dark_from not in ("frames", "fit"):
         raise ParameterError(f"dark_from must be 'frames' or 'fit', got {dark_from!r}")
     h, w = sweep.frame_shape
-    ptc = photon_transfer(sweep)
+    ptc = ptc or photon_transfer(sweep)
     fix = dark_from == "frames" and bool(sweep.is_dark.any())
     use_dc, dmodel, starts, t0, pilot = _pilot(sweep, ptc, full_well_dn, light_rate,
                                                dark_current, dark_model, fix_dark=fix,
