@@ -1,0 +1,276 @@
+"""Compiled kernels of the refined-PPI demosaicking methods ("ppid_paper", "ppid_edge").
+
+The implementation behind those methods of :func:`hsiffc.reconstruct.demosaic`; every kernel
+takes a frame whose flagged samples were already replaced (:func:`fill_flagged`), so that no
+flagged value is ever a source, and works in float32 with float64 sums where they are long.
+
+* :func:`fill_flagged`: each flagged sample replaced by the tent-weighted mean of its usable
+  same-band neighbours one tile away (the PPI's fill, :mod:`hsiffc.kernels.ppi`), NaN where
+  it has none (the caller fills those with the band median).
+* :func:`refine_ppi`: the full-resolution PPI. At pixel ``p`` of band ``b`` the sample
+  minus a prediction of it from its 8 same-band neighbours ``q`` one tile away:
+  ``PPI(p) = (raw(p) - sum_q w_q (raw(q) - l_b M(q)) / sum_q w_q) / l_b`` with ``M`` the
+  mean-filter PPI, ``l_b`` the band level (1 without balancing) and ``w_q`` the tent weight
+  (1/2 straight, 1/4 diagonal), times the edge weight ``g_q = 1 / (eps + |raw(q) - raw(p)|
+  / l_b + |M(q) - M(p)|)`` when ``edge`` is set (a neighbour across an edge counts little).
+  Edge weights of the 8 directions are written out for the direction-weighted interpolation.
+* :func:`interpolate_differences`: every band ``c`` at every pixel,
+  ``l_c PPI(p) + D_c(p)``, ``D_c`` the tent (bilinear) interpolation of ``raw - l_c PPI`` at
+  the band's samples, optionally each sample's tent weight times the edge weight of its
+  direction from ``p`` (Mihoubi et al.'s direction-weighted difference interpolation).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from .demosaic import EPS
+from .lattice import lattice_arrays, tent_sums
+from .launch import JIT_OPTIONS, Kernel
+from .ppi import neighbour_offsets, pixel_neighbour_sums
+
+__all__ = ["fill_flagged", "flag_values", "interpolate_differences", "refine_ppi"]
+
+_JIT = {**JIT_OPTIONS, "cache": False}
+
+
+def _fill_loop(raw, dq, ph, pw, out):
+    """``out`` = ``raw`` with every flagged sample replaced by its neighbour mean (NaN if it
+    has no usable neighbour)."""
+    H, W = raw.shape
+    offs = neighbour_offsets(ph, pw)
+    for y in prange(H):
+        row = np.int64(y)
+        for x in range(W):
+            if dq[y, x] == 0:
+                out[y, x] = raw[y, x]
+            else:
+                s, w = pixel_neighbour_sums(raw, dq, row, x, offs)
+                out[y, x] = np.float32(s / w) if w > 0.0 else np.float32(np.nan)
+
+
+fill_flagged = Kernel(_fill_loop, 4)
+
+
+@njit(**_JIT)
+def _dir_index(sy, sx):
+    """Direction (sy, sx) in {-1, 0, 1}^2 as 0..8 (4: none)."""
+    return (sy + 1) * 3 + (sx + 1)
+
+
+def _refine_loop(raw, mbar, band_of, levels, edge, eps, ph, pw, ppi, gam, store):
+    """The refined PPI (module docstring) into ``ppi`` (H, W); with ``store`` the edge weight
+    of each direction into ``gam`` (H, W, 9) (index :func:`_dir_index`; 4, the pixel itself,
+    is ``1 / eps``, an edge weight of no difference)."""
+    H, W = raw.shape
+    for y in prange(H):
+        yph = y % ph
+        for x in range(W):
+            b = band_of[yph, x % pw]
+            lev = levels[b]
+            v = raw[y, x]
+            mp = mbar[y, x]
+            num = 0.0
+            den = 0.0
+            for sy in range(-1, 2):
+                qy = y + sy * ph
+                for sx in range(-1, 2):
+                    if sy == 0 and sx == 0:
+                        continue
+                    qx = x + sx * pw
+                    g = 0.0
+                    if qy >= 0 and qy < H and qx >= 0 and qx < W:
+                        w = 0.25 if (sy != 0 and sx != 0) else 0.5
+                        rq = raw[qy, qx]
+                        mq = mbar[qy, qx]
+                        if edge:
+                            g = 1.0 / (eps + abs(rq - v) / lev + abs(mq - mp))
+                            w *= g
+                        num += w * (rq - lev * mq)
+                        den += w
+                    if store:
+                        gam[y, x, _dir_index(sy, sx)] = g
+            if store:
+                gam[y, x, 4] = 1.0 / eps
+            ppi[y, x] = (v - num / den) / lev if den > 0.0 else mp
+
+
+refine_ppi = Kernel(_refine_loop, 8)
+
+
+def _diff_loop(raw, ppi, levels, lat_r, lat_c, lat_band, ph, pw, gam, weighted, cube):
+    """Every band at every pixel (module docstring) into ``cube`` (H, W, B)."""
+    H, W = raw.shape
+    n_lat = lat_r.shape[0]
+    B = cube.shape[2]
+    for y in prange(H):
+        num = np.zeros(B)
+        den = np.zeros(B)
+        for x in range(W):
+            num[:] = 0.0
+            den[:] = 0.0
+            for j in range(n_lat):
+                b = lat_band[j]
+                lev = levels[b]
+                ry = y - ((y - lat_r[j]) % ph)  # sample row at or above y
+                cx = x - ((x - lat_c[j]) % pw)  # sample column at or left of x
+                for t in range(2):
+                    ys = ry + t * ph
+                    wy = 1.0 - abs(y - ys) / ph
+                    if ys >= H or wy <= 0.0:
+                        continue
+                    for s in range(2):
+                        xs = cx + s * pw
+                        wx = 1.0 - abs(x - xs) / pw
+                        if xs >= W or wx <= 0.0:
+                            continue
+                        w = wy * wx
+                        if weighted:
+                            sy = 1 if ys > y else (-1 if ys < y else 0)
+                            sx = 1 if xs > x else (-1 if xs < x else 0)
+                            w *= gam[y, x, _dir_index(sy, sx)]
+                        num[b] += w * (raw[ys, xs] - lev * ppi[ys, xs])
+                        den[b] += w
+            p = ppi[y, x]
+            for b in range(B):
+                cube[y, x, b] = levels[b] * p + (num[b] / den[b] if den[b] > 0.0 else 0.0)
+
+
+_diff = Kernel(_diff_loop, 10)
+
+
+def _diff_fast_loop(dl, ppi, levels, lat_band, lat_r, n_rows, kl, wr, ph, cube):
+    """:func:`_diff_loop` without edge weights, one lattice per band: ``dl`` (L, Hc, Wc + 1)
+    the lattices' differences (last column repeated), ``kl`` (L, W) int32 the lattice column
+    at or left of each x (clamped into the lattice), ``wr`` (L, W) float32 its right weight,
+    ``n_rows`` (L,) the rows of each lattice in the frame."""
+    H, W = ppi.shape
+    n_lat = dl.shape[0]
+    Wc1 = dl.shape[2]
+    for y in prange(H):
+        vb = np.empty((n_lat, Wc1), np.float32)
+        for j in range(n_lat):
+            i0 = (y - lat_r[j]) // ph  # lattice row at or above y (may be -1)
+            wy = np.float32(((y - lat_r[j]) % ph) / ph)
+            if i0 < 0:
+                i0, wy = 0, np.float32(0.0)
+            if i0 >= n_rows[j] - 1:
+                i0, wy = n_rows[j] - 1, np.float32(0.0)
+            a = dl[j, i0]
+            c = dl[j, min(i0 + 1, n_rows[j] - 1)]
+            v = vb[j]
+            for k in range(Wc1):
+                v[k] = a[k] + wy * (c[k] - a[k])
+        row = cube[y]
+        prow = ppi[y]
+        for x in range(W):
+            p = prow[x]
+            for j in range(n_lat):
+                k = kl[j, x]
+                v0 = vb[j, k]
+                row[x, lat_band[j]] = levels[lat_band[j]] * p + v0 + wr[j, x] * (vb[j, k + 1] - v0)
+
+
+_diff_fast = Kernel(_diff_fast_loop, 9)
+
+
+def _lattice_diffs_loop(raw, ppi, levels, lat_r, lat_c, lat_band, ph, pw, dl):
+    """``dl[j, i, k] = raw - l ppi`` at sample (lat_r[j] + i ph, lat_c[j] + k pw), the last
+    column repeated once more."""
+    n_lat, Hc, Wc1 = dl.shape
+    H, W = raw.shape
+    for j in prange(n_lat):
+        lev = np.float32(levels[lat_band[j]])
+        for i in range(Hc):
+            y = lat_r[j] + i * ph
+            if y >= H:  # a lattice with a row less: its last row repeated
+                for k in range(Wc1):
+                    dl[j, i, k] = dl[j, i - 1, k]
+                continue
+            nk = 0
+            for x in range(lat_c[j], W, pw):
+                dl[j, i, nk] = raw[y, x] - lev * ppi[y, x]
+                nk += 1
+            for k in range(nk, Wc1):
+                dl[j, i, k] = dl[j, i, nk - 1]
+
+
+_lattice_diffs = Kernel(_lattice_diffs_loop, 8)
+
+
+def interpolate_differences(raw, ppi, levels, lattices, period, gam, weighted, cube):
+    """Fill ``cube`` (H, W, B) float32: ``l_c PPI + D_c`` for every band (module docstring).
+
+    ``lattices[b]``: the first sample (row, col) of each position of band ``b`` in the tile;
+    ``gam`` (H, W, 9) float32 edge weights, read where ``weighted``."""
+    H, W = raw.shape
+    ph, pw = int(period[0]), int(period[1])
+    lat_r = np.array([r for lat in lattices for r, _ in lat], np.int64)
+    lat_c = np.array([c for lat in lattices for _, c in lat], np.int64)
+    lat_band = np.array([b for b, lat in enumerate(lattices) for _ in lat], np.int64)
+    lev = np.asarray(levels, np.float32)
+    one_each = all(len(lat) == 1 for lat in lattices)
+    inside = all(r < H and c < W for r, c in zip(lat_r, lat_c, strict=True))
+    if weighted or not one_each or not inside or H < 2 * ph or W < 2 * pw:
+        _diff(raw, ppi, lev, lat_r, lat_c, lat_band, ph, pw, gam, weighted, cube)
+        return
+    n_rows = np.array([(H - r + ph - 1) // ph for r in lat_r], np.int64)
+    Wc = max((W - c + pw - 1) // pw for c in lat_c)
+    dl = np.empty((len(lat_r), int(n_rows.max()), Wc + 1), np.float32)
+    _lattice_diffs(raw, ppi, lev, lat_r, lat_c, lat_band, ph, pw, dl)
+    x = np.arange(W)
+    kl = np.empty((len(lat_r), W), np.int32)
+    wr = np.empty((len(lat_r), W), np.float32)
+    for j, c in enumerate(lat_c):
+        n = (W - c + pw - 1) // pw  # columns of this lattice
+        k = (x - c) // pw
+        w = np.where(k < 0, 0.0, ((x - c) % pw) / pw)
+        k = np.maximum(k, 0)
+        w = np.where(k >= n - 1, 0.0, w)
+        kl[j], wr[j] = np.minimum(k, n - 1), w
+    _diff_fast(dl, ppi, lev, lat_band, lat_r, n_rows, kl, wr, ph, cube)
+
+
+@njit(**JIT_OPTIONS)
+def _flag_values(raw, dq, flagged, band_of, lat_r, lat_c, lat_start, ph, pw, cube, cube_dq,
+                 missing):
+    """The DQ rule of :mod:`hsiffc.reconstruct` around the flagged samples ``flagged`` (flat
+    indices): every value of the flagged sample's band within one tile of it whose S1 holds no
+    usable sample takes the OR of S1's flags and the twice-wide tent's estimate (NaN, and
+    ``missing[y, b]`` set, where that has none either). ``cube_dq`` must be zero elsewhere."""
+    H, W = raw.shape
+    dummy = np.zeros((1, 1), np.float32)
+    for i in range(flagged.shape[0]):
+        ys, xs = flagged[i] // W, flagged[i] % W
+        b = band_of[ys % ph, xs % pw]
+        j0, j1 = lat_start[b], lat_start[b + 1]
+        for y in range(max(0, ys - ph + 1), min(H, ys + ph)):
+            for x in range(max(0, xs - pw + 1), min(W, xs + pw)):
+                if cube_dq[y, x, b] != 0:
+                    continue  # done from another flagged sample
+                _, _, d1, f1 = tent_sums(raw, dq, True, dummy, 0.0, False, y, x, lat_r, lat_c,
+                                         j0, j1, ph, pw, 1)
+                if d1 > EPS:
+                    continue
+                _, r2, d2, _ = tent_sums(raw, dq, True, dummy, 0.0, False, y, x, lat_r, lat_c,
+                                         j0, j1, ph, pw, 2)
+                cube_dq[y, x, b] = f1
+                if d2 > EPS:
+                    cube[y, x, b] = np.float32(r2 / d2)
+                else:
+                    cube[y, x, b] = np.nan
+                    missing[y, b] = True
+        cube_dq[ys, xs, b] |= dq[ys, xs]  # a sample's own flags at its site, always
+
+
+def flag_values(raw, dq, band_of, lattices, period, cube, cube_dq):
+    """Apply the DQ rule around every flagged sample (:func:`_flag_values`); ``cube_dq`` zero
+    on entry. Returns ``missing`` (H, B) bool: rows and bands with values left NaN."""
+    ph, pw = int(period[0]), int(period[1])
+    lat_r, lat_c, lat_start = lattice_arrays(lattices)
+    missing = np.zeros((raw.shape[0], len(lattices)), np.bool_)
+    _flag_values(raw, dq, np.flatnonzero(dq).astype(np.int64),
+                 np.ascontiguousarray(band_of, np.int64), lat_r, lat_c, lat_start, ph, pw, cube,
+                 cube_dq, missing)
+    return missing
