@@ -33,6 +33,7 @@ from .ppi import neighbour_offsets, pixel_neighbour_sums
 __all__ = ["fill_flagged", "flag_values", "interpolate_differences", "refine_ppi"]
 
 _JIT = {**JIT_OPTIONS, "cache": False}
+_INL = {**_JIT, "inline": "always"}
 
 
 def _fill_loop(raw, dq, ph, pw, out):
@@ -59,41 +60,87 @@ def _dir_index(sy, sx):
     return (sy + 1) * 3 + (sx + 1)
 
 
+@njit(**_JIT)
+def _refine_pixel(raw, mbar, y, x, v, mp, lev, edge, eps, ph, pw, gam, store):
+    """The refined PPI at one pixel, every neighbour checked against the frame's borders."""
+    H, W = raw.shape
+    num = np.float32(0.0)
+    den = np.float32(0.0)
+    for sy in range(-1, 2):
+        qy = y + sy * ph
+        for sx in range(-1, 2):
+            if sy == 0 and sx == 0:
+                continue
+            qx = x + sx * pw
+            g = np.float32(0.0)
+            if qy >= 0 and qy < H and qx >= 0 and qx < W:
+                w = np.float32(0.25 if (sy != 0 and sx != 0) else 0.5)
+                rq = raw[qy, qx]
+                mq = mbar[qy, qx]
+                if edge:
+                    g = np.float32(1.0) / (eps + abs(rq - v) / lev + abs(mq - mp))
+                    w *= g
+                num += w * (rq - lev * mq)
+                den += w
+            if store:
+                gam[y, x, _dir_index(sy, sx)] = g
+    return (v - num / den) / lev if den > 0.0 else mp
+
+
+@njit(**_INL)
+def _term(w, rq, mq, v, mp, lev, inv_lev, eps):
+    """One neighbour's edge weight ``g`` and weighted term (interior pixels)."""
+    g = np.float32(1.0) / (eps + abs(rq - v) * inv_lev + abs(mq - mp))
+    return g, w * g, w * g * (rq - lev * mq)
+
+
 def _refine_loop(raw, mbar, band_of, levels, edge, eps, ph, pw, ppi, gam, store):
     """The refined PPI (module docstring) into ``ppi`` (H, W); with ``store`` the edge weight
     of each direction into ``gam`` (H, W, 9) (index :func:`_dir_index`; 4, the pixel itself,
-    is ``1 / eps``, an edge weight of no difference)."""
+    is ``1 / eps``, an edge weight of no difference). Interior pixels (a tile from every
+    border) with edge weights take a branch-free loop over the row."""
     H, W = raw.shape
+    lev_row = np.empty((ph, W), np.float32)
+    for yph in range(ph):
+        for x in range(W):
+            lev_row[yph, x] = levels[band_of[yph, x % pw]]
+    half = np.float32(0.5)
+    quarter = np.float32(0.25)
     for y in prange(H):
         yph = y % ph
+        lr = lev_row[yph]
+        interior = edge and y >= ph and y < H - ph and W > 2 * pw
+        x_lo, x_hi = (pw, W - pw) if interior else (0, 0)
         for x in range(W):
-            b = band_of[yph, x % pw]
-            lev = levels[b]
-            v = raw[y, x]
-            mp = mbar[y, x]
-            num = 0.0
-            den = 0.0
-            for sy in range(-1, 2):
-                qy = y + sy * ph
-                for sx in range(-1, 2):
-                    if sy == 0 and sx == 0:
-                        continue
-                    qx = x + sx * pw
-                    g = 0.0
-                    if qy >= 0 and qy < H and qx >= 0 and qx < W:
-                        w = 0.25 if (sy != 0 and sx != 0) else 0.5
-                        rq = raw[qy, qx]
-                        mq = mbar[qy, qx]
-                        if edge:
-                            g = 1.0 / (eps + abs(rq - v) / lev + abs(mq - mp))
-                            w *= g
-                        num += w * (rq - lev * mq)
-                        den += w
-                    if store:
-                        gam[y, x, _dir_index(sy, sx)] = g
+            if x >= x_lo and x < x_hi:
+                continue
+            ppi[y, x] = _refine_pixel(raw, mbar, y, x, raw[y, x], mbar[y, x], lr[x], edge, eps,
+                                      ph, pw, gam, store)
             if store:
-                gam[y, x, 4] = 1.0 / eps
-            ppi[y, x] = (v - num / den) / lev if den > 0.0 else mp
+                gam[y, x, 4] = np.float32(1.0) / eps
+        if not interior:
+            continue
+        r, m = raw[y], mbar[y]
+        ru, mu, rd, md = raw[y - ph], mbar[y - ph], raw[y + ph], mbar[y + ph]
+        for x in range(x_lo, x_hi):
+            v, mp, lev = r[x], m[x], lr[x]
+            il = np.float32(1.0) / lev
+            g0, w0, n0 = _term(quarter, ru[x - pw], mu[x - pw], v, mp, lev, il, eps)
+            g1, w1, n1 = _term(half, ru[x], mu[x], v, mp, lev, il, eps)
+            g2, w2, n2 = _term(quarter, ru[x + pw], mu[x + pw], v, mp, lev, il, eps)
+            g3, w3, n3 = _term(half, r[x - pw], m[x - pw], v, mp, lev, il, eps)
+            g5, w5, n5 = _term(half, r[x + pw], m[x + pw], v, mp, lev, il, eps)
+            g6, w6, n6 = _term(quarter, rd[x - pw], md[x - pw], v, mp, lev, il, eps)
+            g7, w7, n7 = _term(half, rd[x], md[x], v, mp, lev, il, eps)
+            g8, w8, n8 = _term(quarter, rd[x + pw], md[x + pw], v, mp, lev, il, eps)
+            num = ((n0 + n1) + (n2 + n3)) + ((n5 + n6) + (n7 + n8))
+            den = ((w0 + w1) + (w2 + w3)) + ((w5 + w6) + (w7 + w8))
+            ppi[y, x] = (v - num / den) * il
+            if store:
+                gg = gam[y, x]
+                gg[0], gg[1], gg[2], gg[3] = g0, g1, g2, g3
+                gg[4] = np.float32(1.0) / eps
+                gg[5], gg[6], gg[7], gg[8] = g5, g6, g7, g8
 
 
 refine_ppi = Kernel(_refine_loop, 8)
@@ -118,12 +165,12 @@ def _diff_loop(raw, ppi, levels, lat_r, lat_c, lat_band, ph, pw, gam, weighted, 
                 for t in range(2):
                     ys = ry + t * ph
                     wy = 1.0 - abs(y - ys) / ph
-                    if ys >= H or wy <= 0.0:
+                    if ys < 0 or ys >= H or wy <= 0.0:
                         continue
                     for s in range(2):
                         xs = cx + s * pw
                         wx = 1.0 - abs(x - xs) / pw
-                        if xs >= W or wx <= 0.0:
+                        if xs < 0 or xs >= W or wx <= 0.0:
                             continue
                         w = wy * wx
                         if weighted:
@@ -140,63 +187,66 @@ def _diff_loop(raw, ppi, levels, lat_r, lat_c, lat_band, ph, pw, gam, weighted, 
 _diff = Kernel(_diff_loop, 10)
 
 
-def _diff_fast_loop(dl, ppi, levels, lat_band, lat_r, n_rows, kl, wr, ph, cube):
-    """:func:`_diff_loop` without edge weights, one lattice per band: ``dl`` (L, Hc, Wc + 1)
-    the lattices' differences (last column repeated), ``kl`` (L, W) int32 the lattice column
-    at or left of each x (clamped into the lattice), ``wr`` (L, W) float32 its right weight,
-    ``n_rows`` (L,) the rows of each lattice in the frame."""
+def _diff_fast_loop(dl, ppi, levels, lat_r, n_rows, kl, wr, ph, cube):
+    """:func:`_diff_loop` without edge weights, one lattice per band (lattice ``j`` is band
+    ``j``): ``dl`` (Hc, Wc + 1, B) the lattices' differences (last column repeated), ``kl``
+    (W, B) int32 the lattice column at or left of each x (clamped into the lattice), ``wr``
+    (W, B) float32 its right weight, ``n_rows`` (B,) the rows of each lattice in the frame."""
     H, W = ppi.shape
-    n_lat = dl.shape[0]
-    Wc1 = dl.shape[2]
+    Wc1 = dl.shape[1]
+    B = dl.shape[2]
     for y in prange(H):
-        vb = np.empty((n_lat, Wc1), np.float32)
-        for j in range(n_lat):
-            i0 = (y - lat_r[j]) // ph  # lattice row at or above y (may be -1)
-            wy = np.float32(((y - lat_r[j]) % ph) / ph)
-            if i0 < 0:
-                i0, wy = 0, np.float32(0.0)
-            if i0 >= n_rows[j] - 1:
-                i0, wy = n_rows[j] - 1, np.float32(0.0)
-            a = dl[j, i0]
-            c = dl[j, min(i0 + 1, n_rows[j] - 1)]
-            v = vb[j]
-            for k in range(Wc1):
-                v[k] = a[k] + wy * (c[k] - a[k])
-        row = cube[y]
+        vb = np.empty((Wc1, B), np.float32)
+        i0 = np.empty(B, np.int64)
+        i1 = np.empty(B, np.int64)
+        wy = np.empty(B, np.float32)
+        for j in range(B):
+            i = (y - lat_r[j]) // ph  # lattice row at or above y (may be -1)
+            w = np.float32(((y - lat_r[j]) % ph) / ph)
+            if i < 0:
+                i, w = 0, np.float32(0.0)
+            if i >= n_rows[j] - 1:
+                i, w = n_rows[j] - 1, np.float32(0.0)
+            i0[j], i1[j], wy[j] = i, min(i + 1, n_rows[j] - 1), w
+        for k in range(Wc1):
+            for j in range(B):
+                a = dl[i0[j], k, j]
+                vb[k, j] = a + wy[j] * (dl[i1[j], k, j] - a)
+        row = cube[y].reshape(W * B)  # flat: no view per pixel
         prow = ppi[y]
+        klf = kl.reshape(W * B)
+        wrf = wr.reshape(W * B)
+        vbf = vb.reshape(Wc1 * B)
         for x in range(W):
             p = prow[x]
-            for j in range(n_lat):
-                k = kl[j, x]
-                v0 = vb[j, k]
-                row[x, lat_band[j]] = levels[lat_band[j]] * p + v0 + wr[j, x] * (vb[j, k + 1] - v0)
+            base = x * B
+            for j in range(B):
+                i = klf[base + j] * B + j
+                v0 = vbf[i]
+                row[base + j] = levels[j] * p + v0 + wrf[base + j] * (vbf[i + B] - v0)
 
 
-_diff_fast = Kernel(_diff_fast_loop, 9)
+_diff_fast = Kernel(_diff_fast_loop, 8)
 
 
-def _lattice_diffs_loop(raw, ppi, levels, lat_r, lat_c, lat_band, ph, pw, dl):
-    """``dl[j, i, k] = raw - l ppi`` at sample (lat_r[j] + i ph, lat_c[j] + k pw), the last
-    column repeated once more."""
-    n_lat, Hc, Wc1 = dl.shape
+def _lattice_diffs_loop(raw, ppi, levels, lat_r, lat_c, ph, pw, dl):
+    """``dl[i, k, j] = raw - l_j ppi`` at sample (lat_r[j] + i ph, lat_c[j] + k pw) of
+    lattice (band) ``j``, the last column repeated to the end, the last row likewise."""
+    Hc, Wc1, B = dl.shape
     H, W = raw.shape
-    for j in prange(n_lat):
-        lev = np.float32(levels[lat_band[j]])
-        for i in range(Hc):
-            y = lat_r[j] + i * ph
-            if y >= H:  # a lattice with a row less: its last row repeated
-                for k in range(Wc1):
-                    dl[j, i, k] = dl[j, i - 1, k]
-                continue
+    for i in prange(Hc):
+        for j in range(B):
+            y = min(lat_r[j] + i * ph, lat_r[j] + ((H - 1 - lat_r[j]) // ph) * ph)
+            lev = levels[j]
             nk = 0
             for x in range(lat_c[j], W, pw):
-                dl[j, i, nk] = raw[y, x] - lev * ppi[y, x]
+                dl[i, nk, j] = raw[y, x] - lev * ppi[y, x]
                 nk += 1
             for k in range(nk, Wc1):
-                dl[j, i, k] = dl[j, i, nk - 1]
+                dl[i, k, j] = dl[i, nk - 1, j]
 
 
-_lattice_diffs = Kernel(_lattice_diffs_loop, 8)
+_lattice_diffs = Kernel(_lattice_diffs_loop, 7)
 
 
 def interpolate_differences(raw, ppi, levels, lattices, period, gam, weighted, cube):
@@ -210,26 +260,24 @@ def interpolate_differences(raw, ppi, levels, lattices, period, gam, weighted, c
     lat_c = np.array([c for lat in lattices for _, c in lat], np.int64)
     lat_band = np.array([b for b, lat in enumerate(lattices) for _ in lat], np.int64)
     lev = np.asarray(levels, np.float32)
-    one_each = all(len(lat) == 1 for lat in lattices)
+    one_each = all(len(lat) == 1 for lat in lattices)  # then lattice j is band j
     inside = all(r < H and c < W for r, c in zip(lat_r, lat_c, strict=True))
     if weighted or not one_each or not inside or H < 2 * ph or W < 2 * pw:
         _diff(raw, ppi, lev, lat_r, lat_c, lat_band, ph, pw, gam, weighted, cube)
         return
     n_rows = np.array([(H - r + ph - 1) // ph for r in lat_r], np.int64)
     Wc = max((W - c + pw - 1) // pw for c in lat_c)
-    dl = np.empty((len(lat_r), int(n_rows.max()), Wc + 1), np.float32)
-    _lattice_diffs(raw, ppi, lev, lat_r, lat_c, lat_band, ph, pw, dl)
-    x = np.arange(W)
-    kl = np.empty((len(lat_r), W), np.int32)
-    wr = np.empty((len(lat_r), W), np.float32)
-    for j, c in enumerate(lat_c):
-        n = (W - c + pw - 1) // pw  # columns of this lattice
-        k = (x - c) // pw
-        w = np.where(k < 0, 0.0, ((x - c) % pw) / pw)
-        k = np.maximum(k, 0)
-        w = np.where(k >= n - 1, 0.0, w)
-        kl[j], wr[j] = np.minimum(k, n - 1), w
-    _diff_fast(dl, ppi, lev, lat_band, lat_r, n_rows, kl, wr, ph, cube)
+    dl = np.empty((int(n_rows.max()), Wc + 1, len(lat_r)), np.float32)
+    _lattice_diffs(raw, ppi, lev, lat_r, lat_c, ph, pw, dl)
+    x = np.arange(W)[:, None]
+    n = (W - lat_c + pw - 1) // pw  # columns of each lattice
+    k = (x - lat_c) // pw
+    w = np.where(k < 0, 0.0, ((x - lat_c) % pw) / pw)
+    k = np.maximum(k, 0)
+    w = np.where(k >= n - 1, 0.0, w)
+    kl = np.ascontiguousarray(np.minimum(k, n - 1), np.int32)
+    wr = np.ascontiguousarray(w, np.float32)
+    _diff_fast(dl, ppi, lev, lat_r, n_rows, kl, wr, ph, cube)
 
 
 @njit(**JIT_OPTIONS)
