@@ -45,8 +45,10 @@ class Demosaiced(NamedTuple):
 class DemosaicMethod:
     """A registered demosaicking method: what :func:`demosaic` does differently for it.
 
-    The methods share one compiled pass (bilinear interpolation of every band on its sample
-    lattice, with the DQ rule of :mod:`hsiffc.reconstruct`); a method is what it adds to it.
+    Most methods share one compiled pass (bilinear interpolation of every band on its sample
+    lattice, with the DQ rule of :mod:`hsiffc.reconstruct`), and a method is what it adds to
+    it; a method with ``cube`` computes its values itself (:mod:`hsiffc.reconstruct.refined`)
+    and keeps the same DQ rule.
 
     Attributes
     ----------
@@ -130,7 +132,7 @@ DEMOSAIC_METHODS = {
         uses_ppi=True, cube=_ppid_paper, alpha_tiles=2),
     "ppid_edge": DemosaicMethod(
         "hsiffc's best: the edge-sensitive full-resolution PPI with band balancing and "
-        "bilinear interpolation of the band differences (sharper than ppid, and faster)",
+        "bilinear interpolation of the band differences (sharper than ppid)",
         uses_ppi=True, cube=_ppid_edge, alpha_tiles=2),
 }
 
@@ -196,9 +198,9 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
             the differences ``sample - PPI`` at the band's sites are interpolated bilinearly as
             above and the PPI is added back. Because bands share their spatial texture, the
             differences are much smoother than the bands and the PPI carries full-resolution
-            detail. Implemented is the paper's simple PPI (a mean filter); not implemented are
-            its edge-sensitive PPI refinement (weights from local directional differences of
-            the raw image) and adaptive (direction-weighted) difference interpolation.
+            detail. Implemented is the paper's simple PPI (a mean filter); its edge-sensitive
+            PPI refinement and direction-weighted difference interpolation are
+            ``"ppid_paper"``.
             Our addition, band balancing: the bands are first scaled to a common level (each
             band divided by its median over the mean of the band medians, like a white
             balance) and the PPI is scaled back per band, ``est_b = l_b PPI + interp(b -
@@ -209,6 +211,16 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
             samples enter the PPI as the mean of their unflagged same-band neighbours one
             tile away; where a PPI window holds no usable pixel at all, the band value is
             the bilinear one.
+        ``"ppid_paper"``
+            the paper's PPID in full: the edge-sensitive, full-resolution PPI (each pixel's
+            sample minus its offset from the mean-filter PPI, predicted from its same-band
+            neighbours one tile away with weights that fall across edges) and the
+            direction-weighted interpolation of the differences; no band balancing
+            (:mod:`hsiffc.reconstruct.refined`).
+        ``"ppid_edge"``
+            hsiffc's best: that full-resolution PPI with ``"ppid"``'s band balancing, and
+            bilinear interpolation of the differences. Frames under two tiles in either
+            direction take ``"ppid"`` for both.
     dq : (H, W) uint32, optional
         Raw DQ flags; non-zero samples are not used as sources (see the package docstring).
     alpha : (H, W) float32, optional
@@ -225,9 +237,9 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
         dq : (H, W, B) uint32
             DQ of every band value, by the rule in the package docstring.
         alpha : (H, W, B) float32, or None when ``alpha`` is not given
-            For "ppid" one plane for every band (the PPI window's max): a read-only view that
-            repeats it along the band axis (``np.broadcast_to``); ``np.array(result.alpha)``
-            gives a writable copy.
+            For the PPI methods one plane for every band (the PPI window's max): a read-only
+            view that repeats it along the band axis (``np.broadcast_to``);
+            ``np.array(result.alpha)`` gives a writable copy.
 
     Raises
     ------
