@@ -30,7 +30,8 @@ from .lattice import lattice_arrays, tent_sums
 from .launch import JIT_OPTIONS, Kernel
 from .ppi import neighbour_offsets, pixel_neighbour_sums
 
-__all__ = ["fill_flagged", "flag_values", "interpolate_differences", "refine_ppi"]
+__all__ = ["fill_flagged", "flag_values", "interpolate_differences", "refine_ppi",
+           "scaled_padded"]
 
 _JIT = {**JIT_OPTIONS, "cache": False}
 _INL = {**_JIT, "inline": "always"}
@@ -52,6 +53,26 @@ def _fill_loop(raw, dq, ph, pw, out):
 
 
 fill_flagged = Kernel(_fill_loop, 4)
+
+
+def _pad_loop(raw, scale, rows, cols, pad):
+    """``pad[i, j] = raw[rows[i], cols[j]] * scale[rows[i] % ph, cols[j] % pw]``: the frame
+    with each band divided by its level (``scale`` (ph, pw) of 1 / level), extended through
+    the index maps ``rows``, ``cols``."""
+    ph, pw = scale.shape
+    row_scale = np.empty((ph, cols.shape[0]), np.float32)
+    for r in range(ph):
+        for j in range(cols.shape[0]):
+            row_scale[r, j] = scale[r, cols[j] % pw]
+    for i in prange(rows.shape[0]):
+        src = raw[rows[i]]
+        sc = row_scale[rows[i] % ph]
+        out = pad[i]
+        for j in range(cols.shape[0]):
+            out[j] = src[cols[j]] * sc[j]
+
+
+scaled_padded = Kernel(_pad_loop, 4)
 
 
 @njit(**_JIT)

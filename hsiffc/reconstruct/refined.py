@@ -30,8 +30,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..kernels.refined import fill_flagged, flag_values, interpolate_differences, refine_ppi
-from .prepare import Prepared, band_levels, band_medians, pseudo_panchromatic
+import cv2
+
+from ..kernels.refined import (fill_flagged, flag_values, interpolate_differences, refine_ppi,
+                               scaled_padded)
+from .prepare import (Prepared, band_levels, band_medians, periodic_index, ppi_kernel,
+                      prepare)
 
 __all__ = ["EDGE_EPS", "refined_cube"]
 
@@ -55,16 +59,46 @@ def _filled(p: Prepared) -> np.ndarray:
     return out
 
 
+def _levels(p: Prepared, raw) -> np.ndarray:
+    """The band levels (:func:`~hsiffc.reconstruct.prepare.band_levels`) of one tile row in
+    four: the medians of a quarter of the samples (the level is a scale, not a statistic of
+    every pixel), from the filled frame (no flagged sample)."""
+    ph = p.period[0]
+    H = p.shape[0]
+    rows = np.arange(H)
+    keep = rows[(rows // ph) % 4 == 0]  # whole blocks of ph rows from multiples of ph: the
+    if keep.size < 2 * ph:  # sub-frame's row phases are the frame's
+        return band_levels(prepare(raw, p.mosaic, None))
+    return band_levels(prepare(raw[keep], p.mosaic, None))
+
+
+def _mean_ppi(p: Prepared, raw, levels) -> np.ndarray:
+    """The mean-filter PPI ``M`` (:func:`~hsiffc.reconstruct.prepare.pseudo_panchromatic`) of
+    the filled frame: each band divided by its level, extended by whole tiles beyond the
+    borders, averaged over the tile-sized window (``cv2.sepFilter2D``, float32)."""
+    H, W = p.shape
+    ph, pw = p.period
+    kx, ky = ppi_kernel(pw), ppi_kernel(ph)
+    inv = (1.0 / np.asarray(levels, np.float64)).astype(np.float32)
+    scale = inv[p.mosaic.band_map((ph, pw))]
+    rows = periodic_index(H, ph, ky.size // 2)
+    cols = periodic_index(W, pw, kx.size // 2)
+    pad = np.empty((rows.size, cols.size), np.float32)
+    scaled_padded(raw, np.ascontiguousarray(scale), rows.astype(np.int64), cols.astype(np.int64),
+                  pad)
+    out = cv2.sepFilter2D(pad, cv2.CV_32F, kx, ky, borderType=cv2.BORDER_CONSTANT)
+    my, mx = ky.size // 2, kx.size // 2
+    return np.ascontiguousarray(out[my:my + H, mx:mx + W])
+
+
 def refined_cube(p: Prepared, cube, cube_dq, *, balance: bool, weighted: bool) -> np.ndarray:
     """Every value of ``cube`` (H, W, B) and ``cube_dq`` (zero on entry; module docstring),
     for a frame of at least two tiles each way; returns the
     (H, B) rows and bands with values left NaN for the band-median fill."""
     B = p.mosaic.n_bands
-    levels = band_levels(p) if balance else np.ones(B)
-    mbar, ok = pseudo_panchromatic(p, levels)
-    if ok is not None and not ok.all():
-        mbar = np.where(ok, mbar, np.float32(mbar[ok].mean() if ok.any() else 0.0))
     raw = _filled(p)
+    levels = _levels(p, raw) if balance else np.ones(B)
+    mbar = _mean_ppi(p, raw, levels)
     ph, pw = p.period
     band_of = p.mosaic.band_map((ph, pw))
     eps = EDGE_EPS * max(float(np.mean(mbar, dtype=np.float64)), 0.0) + 1e-6
