@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ..data.dq import DQ
 from .demosaic import EPS
 from .lattice import lattice_arrays, tent_sums
 from .launch import JIT_OPTIONS, Kernel
@@ -34,6 +35,7 @@ __all__ = ["fill_flagged", "flag_values", "interpolate_differences", "refine_ppi
            "scaled_padded"]
 
 _JIT = {**JIT_OPTIONS, "cache": False}
+_DO_NOT_USE = np.uint32(DQ.DO_NOT_USE)
 _INL = {**_JIT, "inline": "always"}
 
 
@@ -306,8 +308,9 @@ def _flag_values(raw, dq, flagged, band_of, lat_r, lat_c, lat_start, ph, pw, cub
                  missing):
     """The DQ rule of :mod:`hsiffc.reconstruct` around the flagged samples ``flagged`` (flat
     indices): every value of the flagged sample's band within one tile of it whose S1 holds no
-    usable sample takes the OR of S1's flags and the twice-wide tent's estimate (NaN, and
-    ``missing[y, b]`` set, where that has none either). ``cube_dq`` must be zero elsewhere."""
+    usable sample takes the OR of S1's flags and the twice-wide tent's estimate (NaN with
+    DO_NOT_USE, and ``missing[y, b]`` set, where that has none either). ``cube_dq`` must be
+    zero elsewhere."""
     H, W = raw.shape
     dummy = np.zeros((1, 1), np.float32)
     for i in range(flagged.shape[0]):
@@ -327,8 +330,9 @@ def _flag_values(raw, dq, flagged, band_of, lat_r, lat_c, lat_start, ph, pw, cub
                 cube_dq[y, x, b] = f1
                 if d2 > EPS:
                     cube[y, x, b] = np.float32(r2 / d2)
-                else:
+                else:  # for the band-median fill
                     cube[y, x, b] = np.nan
+                    cube_dq[y, x, b] = f1 | _DO_NOT_USE
                     missing[y, b] = True
         cube_dq[ys, xs, b] |= dq[ys, xs]  # a sample's own flags at its site, always
 

@@ -73,8 +73,9 @@ from ..simulate import MosaicSensor, SensorParams
 from ..spectral import (BandSet, blackbody, colorchecker_reflectances, electron_rate,
                         imec_4x4_visible, read_imec_xml)
 
-__all__ = ["DEV_IMAGES", "EVAL_IMAGES", "LIGHT_LEVELS", "BenchSensor", "Scene", "make_scene",
-           "score", "spectral_library", "run", "sensors", "main"]
+__all__ = ["DEV_IMAGES", "EVAL_IMAGES", "LIGHT_LEVELS", "METHODS", "PARAMS", "BenchSensor",
+           "Scene", "frames_of", "main", "make_scene", "reconstruct", "render", "run",
+           "sam_degrees", "score", "sensors", "spectral_library"]
 
 #: scikit-image sample images the methods are developed on (never scored for the page)
 DEV_IMAGES = ("camera", "brick", "coins", "chelsea")
@@ -452,6 +453,7 @@ def render(doc: dict) -> str:
 
 
 def main(argv=None) -> int:
+    """The command line (module docstring): writes ``recon_bench.md`` and ``.json`` to OUT."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("out", type=Path, help="folder for recon_bench.md and recon_bench.json")
     ap.add_argument("--shared", type=Path, default=None,
