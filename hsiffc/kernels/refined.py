@@ -15,9 +15,12 @@ flagged value is ever a source, and works in float32 with float64 sums where the
   / l_b + |M(q) - M(p)|)`` when ``edge`` is set (a neighbour across an edge counts little).
   Edge weights of the 8 directions are written out for the direction-weighted interpolation.
 * :func:`interpolate_differences`: every band ``c`` at every pixel,
-  ``l_c PPI(p) + D_c(p)``, ``D_c`` the tent (bilinear) interpolation of ``raw - l_c PPI`` at
-  the band's samples, optionally each sample's tent weight times the edge weight of its
-  direction from ``p`` (Mihoubi et al.'s direction-weighted difference interpolation).
+  ``l_c PPI(p) + D_c(p)``, ``D_c`` the tent interpolation of ``raw - l_c PPI`` at the band's
+  samples with each sample's tent weight times the edge weight of its direction from ``p``
+  (Mihoubi et al.'s direction-weighted difference interpolation). Without the direction
+  weights the same sum is the shared pass of :mod:`hsiffc.kernels.demosaic` on the unflagged
+  frame, which "ppid_edge" calls.
+* :func:`flag_values`: the DQ rule of :mod:`hsiffc.reconstruct` around the flagged samples.
 """
 
 from __future__ import annotations
@@ -210,97 +213,18 @@ def _diff_loop(raw, ppi, levels, lat_r, lat_c, lat_band, ph, pw, gam, weighted, 
 _diff = Kernel(_diff_loop, 10)
 
 
-def _diff_fast_loop(dl, ppi, levels, lat_r, n_rows, kl, wr, ph, cube):
-    """:func:`_diff_loop` without edge weights, one lattice per band (lattice ``j`` is band
-    ``j``): ``dl`` (Hc, Wc + 1, B) the lattices' differences (last column repeated), ``kl``
-    (W, B) int32 the lattice column at or left of each x (clamped into the lattice), ``wr``
-    (W, B) float32 its right weight, ``n_rows`` (B,) the rows of each lattice in the frame."""
-    H, W = ppi.shape
-    Wc1 = dl.shape[1]
-    B = dl.shape[2]
-    for y in prange(H):
-        vb = np.empty((Wc1, B), np.float32)
-        i0 = np.empty(B, np.int64)
-        i1 = np.empty(B, np.int64)
-        wy = np.empty(B, np.float32)
-        for j in range(B):
-            i = (y - lat_r[j]) // ph  # lattice row at or above y (may be -1)
-            w = np.float32(((y - lat_r[j]) % ph) / ph)
-            if i < 0:
-                i, w = 0, np.float32(0.0)
-            if i >= n_rows[j] - 1:
-                i, w = n_rows[j] - 1, np.float32(0.0)
-            i0[j], i1[j], wy[j] = i, min(i + 1, n_rows[j] - 1), w
-        for k in range(Wc1):
-            for j in range(B):
-                a = dl[i0[j], k, j]
-                vb[k, j] = a + wy[j] * (dl[i1[j], k, j] - a)
-        row = cube[y].reshape(W * B)  # flat: no view per pixel
-        prow = ppi[y]
-        klf = kl.reshape(W * B)
-        wrf = wr.reshape(W * B)
-        vbf = vb.reshape(Wc1 * B)
-        for x in range(W):
-            p = prow[x]
-            base = x * B
-            for j in range(B):
-                i = klf[base + j] * B + j
-                v0 = vbf[i]
-                row[base + j] = levels[j] * p + v0 + wrf[base + j] * (vbf[i + B] - v0)
-
-
-_diff_fast = Kernel(_diff_fast_loop, 8)
-
-
-def _lattice_diffs_loop(raw, ppi, levels, lat_r, lat_c, ph, pw, dl):
-    """``dl[i, k, j] = raw - l_j ppi`` at sample (lat_r[j] + i ph, lat_c[j] + k pw) of
-    lattice (band) ``j``, the last column repeated to the end, the last row likewise."""
-    Hc, Wc1, B = dl.shape
-    H, W = raw.shape
-    for i in prange(Hc):
-        for j in range(B):
-            y = min(lat_r[j] + i * ph, lat_r[j] + ((H - 1 - lat_r[j]) // ph) * ph)
-            lev = levels[j]
-            nk = 0
-            for x in range(lat_c[j], W, pw):
-                dl[i, nk, j] = raw[y, x] - lev * ppi[y, x]
-                nk += 1
-            for k in range(nk, Wc1):
-                dl[i, k, j] = dl[i, nk - 1, j]
-
-
-_lattice_diffs = Kernel(_lattice_diffs_loop, 7)
-
-
-def interpolate_differences(raw, ppi, levels, lattices, period, gam, weighted, cube):
-    """Fill ``cube`` (H, W, B) float32: ``l_c PPI + D_c`` for every band (module docstring).
-
-    ``lattices[b]``: the first sample (row, col) of each position of band ``b`` in the tile;
-    ``gam`` (H, W, 9) float32 edge weights, read where ``weighted``."""
-    H, W = raw.shape
+def interpolate_differences(raw, ppi, levels, lattices, period, gam, cube):
+    """Fill ``cube`` (H, W, B) float32 with ``l_c PPI + D_c`` for every band, ``D_c``
+    interpolated with the direction weights ``gam`` (H, W, 9) (module docstring; without
+    them this is :func:`hsiffc.kernels.demosaic.interpolate_bands` of an unflagged frame).
+    ``lattices[b]``: the first sample (row, col) of each position of band ``b`` in the
+    tile."""
     ph, pw = int(period[0]), int(period[1])
     lat_r = np.array([r for lat in lattices for r, _ in lat], np.int64)
     lat_c = np.array([c for lat in lattices for _, c in lat], np.int64)
     lat_band = np.array([b for b, lat in enumerate(lattices) for _ in lat], np.int64)
-    lev = np.asarray(levels, np.float32)
-    one_each = all(len(lat) == 1 for lat in lattices)  # then lattice j is band j
-    inside = all(r < H and c < W for r, c in zip(lat_r, lat_c, strict=True))
-    if weighted or not one_each or not inside or H < 2 * ph or W < 2 * pw:
-        _diff(raw, ppi, lev, lat_r, lat_c, lat_band, ph, pw, gam, weighted, cube)
-        return
-    n_rows = np.array([(H - r + ph - 1) // ph for r in lat_r], np.int64)
-    Wc = max((W - c + pw - 1) // pw for c in lat_c)
-    dl = np.empty((int(n_rows.max()), Wc + 1, len(lat_r)), np.float32)
-    _lattice_diffs(raw, ppi, lev, lat_r, lat_c, ph, pw, dl)
-    x = np.arange(W)[:, None]
-    n = (W - lat_c + pw - 1) // pw  # columns of each lattice
-    k = (x - lat_c) // pw
-    w = np.where(k < 0, 0.0, ((x - lat_c) % pw) / pw)
-    k = np.maximum(k, 0)
-    w = np.where(k >= n - 1, 0.0, w)
-    kl = np.ascontiguousarray(np.minimum(k, n - 1), np.int32)
-    wr = np.ascontiguousarray(w, np.float32)
-    _diff_fast(dl, ppi, lev, lat_r, n_rows, kl, wr, ph, cube)
+    _diff(raw, ppi, np.asarray(levels, np.float32), lat_r, lat_c, lat_band, ph, pw, gam, True,
+          cube)
 
 
 @njit(**JIT_OPTIONS)

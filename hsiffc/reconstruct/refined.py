@@ -32,6 +32,7 @@ import numpy as np
 
 import cv2
 
+from ..kernels.demosaic import interpolate_bands
 from ..kernels.refined import (fill_flagged, flag_values, interpolate_differences, refine_ppi,
                                scaled_padded)
 from .prepare import (Prepared, band_levels, band_medians, periodic_index, ppi_kernel,
@@ -106,7 +107,11 @@ def refined_cube(p: Prepared, cube, cube_dq, *, balance: bool, weighted: bool) -
     gam = np.empty(p.shape + (9,) if weighted else (1, 1, 9), np.float32)
     refine_ppi(raw, mbar, np.ascontiguousarray(band_of, np.int64),
                np.asarray(levels, np.float32), True, np.float32(eps), ph, pw, ppi, gam, weighted)
-    interpolate_differences(raw, ppi, levels, p.lattices(), p.period, gam, weighted, cube)
+    if weighted:
+        interpolate_differences(raw, ppi, levels, p.lattices(), p.period, gam, cube)
+    else:  # the shared pass on the unflagged frame: l_c PPI + bilinear(raw - l_c PPI)
+        interpolate_bands(raw, None, None, ppi, None, levels, p.lattices(), p.period, cube,
+                          cube_dq, None)
     if not p.any_flags:
         return np.zeros((p.shape[0], B), bool)
     return flag_values(p.raw, p.dq, band_of, p.lattices(), p.period, cube, cube_dq)
