@@ -274,8 +274,11 @@ def _recon_verdicts(doc: dict) -> list[str]:
                          f"({lower})"
                          f" | {pp['psnr_db'] - b['psnr_db']:+.2f} dB | "
                          f"{pp['edges_psnr_db'] - p['edges_psnr_db']:+.2f} dB |")
+    load = doc.get("load_average")
     lines += ["", "Speed (2048 x 1088 frame, 0.1 % flagged, medians of interleaved calls in the "
-              "same run; target for `ppid_edge`: >= 30 Mpx/s on 2 cores):", ""]
+              "same run; target for `ppid_edge`: >= 30 Mpx/s on 2 cores"
+              + (f"; load average {load:.1f} at the start" if load is not None else "") + "):",
+              ""]
     for name, sensor in doc["sensors"].items():
         sp = sensor.get("speed_mpx_s") or {}
         if "ppid_edge" in sp and "ppid" in sp:

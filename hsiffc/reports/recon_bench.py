@@ -378,8 +378,11 @@ def run(shared: Path | None, *, half: str = "eval", shape=(160, 160), n_scenes: 
     seed0 = EVAL_SEED if half == "eval" else DEV_SEED
     if n_scenes is not None:
         images = images[:n_scenes]
+    import os
+
     doc = {"half": half, "shape": list(shape), "methods": list(methods), "images": list(images),
-           "light_levels": LIGHT_LEVELS, "sensors": {}}
+           "light_levels": LIGHT_LEVELS, "sensors": {},
+           "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else None}
     for sensor in sensors(shared):
         wl = sensor.bands.wavelengths_nm
         library = spectral_library(wl)
