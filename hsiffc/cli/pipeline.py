@@ -208,7 +208,12 @@ def _add_correct(sub):
                         f"by METHOD ({', '.join(CUBE_METHODS[:-1])}) or one spectrum per "
                         "mosaic tile "
                         "(tile). A --pipeline whose last step reconstructs writes cubes without "
-                        "it")
+                        "it. Which to use: ppid_edge for full-resolution cubes (the most "
+                        "accurate against ground truth on both benchmark sensors); ppid to "
+                        "match earlier results; ppid_paper to compare with "
+                        "the literature (Mihoubi et al. 2017); bilinear for no mixing between "
+                        "bands; tile when the spectra matter more than the resolution; nearest "
+                        "for a quick look. Figures: docs/results/recon.md")
     p.add_argument("--cube-correction", choices=("imec", "derived"), default=None,
                    help="with --cube: apply the IMEC correction matrix to virtual bands (imec: "
                         "the vendor's; derived: computed from the band responses); needs "
