@@ -37,7 +37,7 @@ from hsiffc.io import write_sweep
 
 SHAPE = (32, 48)
 LIGHT = PAPER_LIGHT_W_M2["training"]
-VOLATILE = ("seconds", "created")
+VOLATILE = ("seconds", "created", "run")
 
 
 def _clean(sweep):
@@ -677,16 +677,17 @@ def test_envi_cubes_of_skipped_outputs_are_left_alone_on_a_rerun(small_world, tm
     out = tmp_path / "out"
     assert _correct(small_world, [small_world["raw"]], out) == 0
     cubes = _envi(out)
-    # 4 frames -> _f0000.._f0003, 1 frame -> no index; each: data + DQ + alpha (the default
-    # pipeline computes alpha), header + data file
-    assert len(cubes) == 4 * 6 + 6
+    # 4 frames -> _f0000.._f0003, 1 frame -> no index; each: data + DQ (alpha only with
+    # --with-alpha), header + data file; no hsiffc TIFF (not asked for)
+    assert len(cubes) == 4 * 4 + 4
     assert any(p.name == "multi.corrected_f0003.dq.img" for p in cubes)
-    assert any(p.name == "multi.corrected_f0003.alpha.hdr" for p in cubes)
+    assert not any("alpha" in p.name for p in cubes)
     assert any(p.name == "single.corrected.hdr" for p in cubes)
+    assert not list(out.rglob("*.tif"))
     stamps = {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in cubes}
     capsys.readouterr()
     assert _correct(small_world, [small_world["raw"]], out) == 0
-    assert "wrote ENVI cubes" not in capsys.readouterr().out
+    assert "0 done, 2 skipped" in capsys.readouterr().out
     assert {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in cubes} == stamps
 
 
@@ -696,7 +697,9 @@ def test_envi_cubes_missing_for_a_skipped_output_are_written(small_world, tmp_pa
                  str(out), "-q"]) == 0
     assert not _envi(out)
     assert _correct(small_world, [small_world["raw"]], out) == 0
-    assert len(_envi(out)) == 30
+    assert len(_envi(out)) == 20
+    assert _correct(small_world, [small_world["raw"]], out, "--with-alpha") == 0
+    assert len(_envi(out)) == 30  # the alpha planes too
 
 
 def test_a_file_hsiffc_did_not_write_at_an_envi_name_is_kept(small_world, tmp_path, capsys):
@@ -705,13 +708,13 @@ def test_a_file_hsiffc_did_not_write_at_an_envi_name_is_kept(small_world, tmp_pa
     mine = out / "multi.corrected_f0001.hdr"
     mine.write_text("ENVI\ndescription = {my own cube}\n")
     capsys.readouterr()
-    assert _correct(small_world, [small_world["raw"]], out) == 1  # that file's cubes failed, rest done
-    err = capsys.readouterr().err
-    assert "multi.corrected_f0001.hdr" in err and "--overwrite" in err
+    assert _correct(small_world, [small_world["raw"]], out) == 1  # that file failed, rest done
+    said = capsys.readouterr().out
+    assert "multi.corrected_f0001.hdr" in said and "--overwrite" in said
     assert mine.read_text() == "ENVI\ndescription = {my own cube}\n"
     assert (out / "single.corrected.hdr").exists()
     assert _correct(small_world, [small_world["raw"]], out, "--overwrite") == 0
-    assert "hsiffc corrected frame 1" in mine.read_text()
+    assert "hsiffc correct: frame 1 of multi.tif" in mine.read_text()
 
 
 def test_envi_outputs_in_the_input_folder_are_not_read_back(small_world, tmp_path, capsys):
@@ -726,7 +729,7 @@ def test_envi_outputs_in_the_input_folder_are_not_read_back(small_world, tmp_pat
     assert sorted(p.name for p in folder.iterdir()) == before
     pairs, ignored = discover_inputs([folder])
     assert sorted(p.name for p, _ in pairs) == ["multi.tif", "single.tif"]
-    assert all(is_batch_output(p) for p in ignored) and len(ignored) == 2 + 15
+    assert all(is_batch_output(p) for p in ignored) and len(ignored) == 5 * 2  # the headers
 
 
 @pytest.mark.parametrize("name", ["single.corrected.tif", "multi.corrected_f0000.dq.hdr",

@@ -18,6 +18,7 @@ from hsiffc.cubes import Cube, read_cube, to_xarray, write_cube
 from hsiffc.data.dq import DQ
 from hsiffc.errors import DataFormatError
 from hsiffc.io import write_sweep
+from hsiffc.io.corrected import read_provenance
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 
 FORMATS = {"envi": ("c.hdr", "ENVI"), "ome": ("c.ome.tif", "OME-TIFF"),
@@ -123,14 +124,31 @@ def test_correct_exports_read_back_by_read_cube_info_and_quicklook(corrected, tm
                                                                    capsys):
     _needs(fmt)
     out = tmp_path / "out"
-    assert main(["correct", "--pipeline", str(corrected / "p.npz"), "--cube", "bilinear",
-                 str(corrected / "scene"), "-o", str(out), "--format", fmt, "-q"]) == 0
+    argv = ["correct", "--pipeline", str(corrected / "p.npz"), "--cube", "bilinear",
+            str(corrected / "scene"), "-o", str(out), "-q"]
+    assert main(argv + ["--format", f"{fmt},tiff"]) == 0
     export = out / f"scene.corrected{SUFFIX[fmt]}"
-    ref = read_cube(out / "scene.corrected.tif")  # the cube the export was written from
+    ref = read_cube(out / "scene.corrected.tif")  # the same frames, as the hsiffc TIFF holds them
     assert ref.attrs["source"] == "scene.corrected.tif" and ref.history
     back = read_cube(export)
+    prov = back.attrs.pop("provenance")
+    assert back.attrs.pop("source") == "scene.tif"  # the input it was corrected from
+    ref.attrs.pop("source")
     _assert_same(back, ref)
     assert [s["stage"] for s in back.history] == ["dark", "two_point_ffc", "reconstruct"]
+    whole = read_provenance(out / "scene.corrected.tif")  # the provenance, in every format
+    for key in ("input", "calibration", "pipeline", "run", "warnings", "hsiffc_version"):
+        assert prov[key] == whole[key], key
+    assert prov["exposure"] == whole["exposure"] and prov["frame"] == 0
+
+    # the format alone: only its files, and a rerun finds them complete
+    alone = tmp_path / "alone"
+    assert main(argv[:-3] + ["-o", str(alone), "-q", "--format", fmt]) == 0
+    assert not list(alone.glob("*.tif")) or fmt == "ome"
+    assert not (alone / "scene.corrected.tif").exists()
+    capsys.readouterr()
+    assert main(argv[:-3] + ["-o", str(alone), "-q", "--format", fmt]) == 0
+    assert "0 done, 1 skipped" in capsys.readouterr().out
 
     capsys.readouterr()
     assert main(["info", str(export)]) == 0
