@@ -221,3 +221,30 @@ def test_envi_header_from_another_tool_reads_without_hsiffc_keys(tmp_path):
     hdr.write_text(re.sub(r"hsiffc history = .*", "hsiffc history = [oops", text))
     with pytest.raises(DataFormatError, match="hsiffc history"):
         read_cube(hdr)
+
+
+def test_correct_compresses_the_dq_planes_by_default_and_none_on_request(corrected, tmp_path):
+    """--compression auto (the default): the DQ plane with a codec the format's readers have
+    (zstd in the hsiffc TIFF, deflate in the OME-TIFF and netCDF), the float planes raw;
+    --compression none: nothing compressed; ENVI never."""
+    import tifffile
+
+    pytest.importorskip("xarray")
+    import h5py
+
+    argv = ["correct", "--pipeline", str(corrected / "p.npz"), "--cube", "bilinear",
+            str(corrected / "scene"), "-q", "--format", "tiff,ome,netcdf"]
+    for option, want in (("auto", ("zstd", "deflate", "gzip")), ("none", (None, None, None))):
+        out = tmp_path / option
+        assert main(argv + ["-o", str(out), "--compression", option]) == 0
+        with tifffile.TiffFile(out / "scene.corrected.tif") as tf:  # data, dq pages
+            codecs = [p.compression.name for p in tf.pages[:2]]
+        assert codecs == ["NONE", "NONE" if want[0] is None else want[0].upper()]
+        with tifffile.TiffFile(out / "scene.corrected.ome.tif") as tf:
+            data, dq = tf.series[0].pages[0], tf.series[1].pages[0]
+            assert data.compression.name == "NONE"
+            assert dq.compression.name == ("NONE" if want[1] is None else "ADOBE_DEFLATE")
+        with h5py.File(out / "scene.corrected.nc", "r") as h5:
+            assert h5["data"].compression is None and h5["dq"].compression == want[2]
+        back = read_cube(out / "scene.corrected.ome.tif")
+        np.testing.assert_array_equal(back.dq, read_cube(out / "scene.corrected.tif").sorted().dq)

@@ -25,7 +25,13 @@ in their JSON, netCDF in coordinates and attributes, ENVI in ``hsiffc version``,
 
 ENVI headers are written and parsed by :mod:`hsiffc.io.envi`, not SPy: SPy is an optional
 dependency, and the reader must apply hsiffc's size limits and refuse a damaged header before
-any data is read.
+any data is read (SPy's ``envi.read_envi_header`` reads a header of any size whole). SPy opens
+every file written here (``tests/test_io_end_to_end.py`` compares its arrays with
+:func:`~hsiffc.cubes.read_cube`'s). The DQ and alpha companions are ENVI pairs of their own,
+``NAME.dq.hdr`` + ``NAME.dq.img``: each header is its data file's name with ``.hdr`` in place
+of ``.img``, the pairing ENVI, SPy (``spectral.open_image``) and GDAL's ENVI driver look for, so
+each opens alone; ENVI has no standard key that links a quality file to its cube, so the data
+header names it in ``dq file`` (and ``alpha file``).
 
 The DQ plane of the ENVI, OME-TIFF and netCDF files is stored in the smallest unsigned type that
 holds the DQ bits in use (:func:`dq_storage`: uint16 today), with the bit table beside it; the
