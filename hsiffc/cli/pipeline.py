@@ -223,10 +223,10 @@ def _add_correct(sub):
                    help="the sensor's IMEC calibration XML, for --cube-correction")
     p.add_argument("--compression", choices=("auto", "none", "zlib", "zstd", "lzma"),
                    default="auto",
-                   help="lossless compression of the outputs: auto (default) zstd for the "
-                        "hsiffc TIFF, deflate (zlib) for ome and netcdf, none for envi (the "
-                        "format has none); none; or zlib, zstd, lzma for the TIFF formats "
-                        "(netcdf takes zlib)")
+                   help="lossless compression of the outputs: auto (default) the DQ plane, "
+                        "zstd in the hsiffc TIFF, deflate (zlib) in ome and netcdf, none in envi "
+                        "(the format has none), the float planes raw; none; or zlib, zstd, "
+                        "lzma for every plane of the TIFF formats (netcdf takes zlib)")
     p.set_defaults(func=_cmd_correct,
                    input_args=("inputs", "calibration", "pipeline", "imec_xml"),
                    output_args=("json",))
