@@ -811,3 +811,23 @@ def test_closing_the_local_cluster_keeps_the_nannys_kill_warning_off(caplog):
     assert "still alive" not in caplog.text
     assert "a scheduler warning" in caplog.text  # only the nanny's shutdown line is muted
     assert nanny.level == level
+
+
+def test_summary_times_the_whole_job_and_counts_the_bytes_written(small_world, tmp_path,
+                                                                  capsys):
+    """The summary and --json: one time for the whole job (the cubes are written inside it),
+    the files written and their bytes, per file and in all."""
+    out = tmp_path / "out"
+    summary = tmp_path / "summary.json"
+    assert _correct(small_world, [small_world["raw"]], out, "--json", str(summary)) == 0
+    said = capsys.readouterr().out
+    doc = json.loads(summary.read_text())
+    on_disk = {str(p): p.stat().st_size for p in out.rglob("*") if p.is_file()
+               and not p.name.startswith(".")}
+    listed = [f for r in doc["results"] for f in r["files"]]
+    assert sorted(listed) == sorted(on_disk)
+    assert doc["bytes_written"] == sum(on_disk.values()) == sum(
+        r["bytes_written"] for r in doc["results"])
+    assert doc["seconds"] >= max(r["seconds"] for r in doc["results"])
+    assert "corrected and written in" in said and "the whole job" in said
+    assert f"{sum(on_disk.values()) / 1e6:.1f} MB written" in said
