@@ -1,8 +1,10 @@
 """Batch correction of TIFF cubes (``hsiffc correct``): streaming, resumable, parallel.
 
 One task per input file (:mod:`.task`): it reads the input one frame at a time, runs the
-pipeline on the frame and appends data, DQ and alpha to the output (:mod:`hsiffc.io.corrected`),
-written to a temporary file renamed into place only when complete. Memory is a few frames per
+pipeline on the frame and hands data, DQ and alpha to the writers of the formats asked for
+(``formats``: the hsiffc TIFF of :mod:`hsiffc.io.corrected`, ENVI, OME-TIFF, netCDF cubes:
+:mod:`hsiffc.cubes.stream`), written to temporary files renamed into place together only when
+the input is complete. Memory is a few frames per
 worker whatever the batch size. :mod:`.plan` turns inputs into jobs, :mod:`.context` holds the
 calibration and pipeline, :mod:`.executors` runs the tasks in this process (one worker), on a
 local Dask cluster (``workers > 1``) or on any Dask distributed scheduler (``scheduler=``).

@@ -1,11 +1,12 @@
-"""The outputs of ``hsiffc correct`` in other formats: :func:`export_corrected`.
+"""An hsiffc TIFF's frames as cubes of another format: :func:`export_corrected`.
 
-``hsiffc correct`` always writes its hsiffc TIFF (``NAME.corrected.tif``: resumable, with the
-provenance); ``--format envi|ome|netcdf`` then writes every frame of it beside it as a cube of
-that format, one frame at a time: ``NAME.corrected`` + the format's suffix for a file of one
-frame, ``NAME.corrected_f0000`` ... for several. A corrected file of cubes is written as it
-is; a corrected file of mosaic frames becomes one spectrum per mosaic tile
-(:func:`hsiffc.reconstruct.tile_cube`), as before cubes could be written.
+``hsiffc correct --format envi|ome|netcdf`` writes its cubes straight from the correction
+(:mod:`hsiffc.cubes.stream`); this module turns a corrected file that is already on disk
+(``NAME.corrected.tif``) into the same cubes, one frame at a time: ``NAME.corrected`` + the
+format's suffix for a file of one frame, ``NAME.corrected_f0000`` ... for several
+(:func:`export_names`). A corrected file of cubes is written as it is; a corrected file of
+mosaic frames becomes one spectrum per mosaic tile (:func:`hsiffc.reconstruct.tile_cube`).
+:func:`cube_from_corrected` makes the :class:`Cube` of one frame for both.
 """
 
 from __future__ import annotations
