@@ -31,12 +31,11 @@ import shutil
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import tifffile
 
-from bench_batch import _make_inputs
+from bench_batch import _make_inputs, _timed
 from benchutil import figure, row
 from hsiffc.batch import correct_batch
 
@@ -47,11 +46,6 @@ BANDS = 8
 JOBS = [("tiff (auto: zstd DQ)", "tiff", "auto"), ("tiff, uncompressed", "tiff", None),
         ("envi", "envi", "auto"), ("ome (auto: deflate DQ)", "ome", "auto"),
         ("ome, uncompressed", "ome", None), ("netcdf (auto: zlib dq)", "netcdf", "auto")]
-
-
-def _written(out: Path) -> int:
-    return sum(p.stat().st_size for p in out.rglob("*") if p.is_file()
-               and not p.name.startswith("."))
 
 
 def _bound(files, nbytes: int, out: Path) -> None:
@@ -71,11 +65,12 @@ def _bound(files, nbytes: int, out: Path) -> None:
         os.fsync(fh.fileno())
 
 
-def _run(fn, out: Path) -> float:
-    shutil.rmtree(out, ignore_errors=True)
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
+def _job(files, out: Path, cal, **options) -> tuple[float, int]:
+    """Seconds of one ``correct_batch`` into a fresh ``out`` and the bytes it wrote (its
+    summary's ``bytes_written``: every file of every format)."""
+    got = {}
+    seconds = _timed(lambda: got.update(s=correct_batch(files, out, cal, **options)), out)
+    return seconds, got["s"].to_dict()["bytes_written"]
 
 
 def main(quick: bool = False) -> dict:
@@ -104,10 +99,10 @@ def main(quick: bool = False) -> dict:
             times = {"job": [], "bound": []}
             written = 0
             for _ in range(cfg["repeat"]):
-                times["job"].append(_run(lambda: correct_batch(
-                    files, out, cal, cube="bilinear", formats=fmt, compression=comp), out))
-                written = _written(out)
-                times["bound"].append(_run(lambda: _bound(files, written, out), out))
+                seconds, written = _job(files, out, cal, cube="bilinear", formats=fmt,
+                                        compression=comp)
+                times["job"].append(seconds)
+                times["bound"].append(_timed(lambda: _bound(files, written, out), out))
             t_job, t_bound = (statistics.median(times[k]) for k in ("job", "bound"))
             per_byte = written / cube_bytes
             results["jobs"][label] = {"format": fmt, "compression": comp, "bytes": written,
@@ -134,13 +129,12 @@ def main(quick: bool = False) -> dict:
         # two in turn, the first of each round alternating (a run pays for the page cache the
         # one before it left)
         times = {"zstd": [], "none": []}
-        jobs = {"zstd": lambda: correct_batch(files, out, cal),
-                "none": lambda: correct_batch(files, out, cal, compression=None)}
+        options = {"zstd": {}, "none": {"compression": None}}
         sizes = {}
         for k in range(2 * cfg["repeat"] + 1):
             for name in (("zstd", "none") if k % 2 == 0 else ("none", "zstd")):
-                times[name].append(_run(jobs[name], out))
-                sizes[name] = _written(out)
+                seconds, sizes[name] = _job(files, out, cal, **options[name])
+                times[name].append(seconds)
         zstd_bytes, none_bytes = sizes["zstd"], sizes["none"]
         t_z, t_n = statistics.median(times["zstd"]), statistics.median(times["none"])
         results["default_job"] = {"zstd_s": t_z, "none_s": t_n, "zstd_bytes": zstd_bytes,
