@@ -419,7 +419,7 @@ def test_second_run_on_one_folder_refuses_and_keeps_the_first_runs_files(world, 
         assert parts, "the first run never started a file"
         second = subprocess.run([sys.executable, "-m", "hsiffc", *args], capture_output=True,
                                 text=True, timeout=120, check=False)
-        assert second.returncode == 2
+        assert second.returncode == 2, (second.stdout, parts, first.poll())
         err = second.stderr.strip()
         assert len(err.splitlines()) == 1 and "Traceback" not in err
         assert f"pid {first.pid}" in err and "started" in err and str(out) in err
@@ -831,3 +831,14 @@ def test_summary_times_the_whole_job_and_counts_the_bytes_written(small_world, t
     assert doc["seconds"] >= max(r["seconds"] for r in doc["results"])
     assert "corrected and written in" in said and "the whole job" in said
     assert f"{sum(on_disk.values()) / 1e6:.1f} MB written" in said
+
+
+@pytest.mark.parametrize("value", ["envi,foo", ",", "TIFF;envi"])
+def test_an_unknown_format_is_one_line_before_anything_is_written(small_world, tmp_path, capsys,
+                                                                  value):
+    out = tmp_path / "out"
+    assert main(["correct", str(small_world["raw"]), "--calibration", str(small_world["cal"]),
+                 "-o", str(out), "--format", value, "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--format must be one or more of" in err
+    assert repr(value) in err and not out.exists()
