@@ -1,46 +1,132 @@
-"""EMVA 1288 benchmark: the whole characterisation of the real CMOS set
-(``../shared/data/emva1288-cmos8-roi``: 600 frames of 128 x 256 px, 8-bit; issue 41 target:
-under 10 s).
+"""EMVA 1288 benchmark: hsiffc against the standard's reference implementation, whole processes
+as a user runs them (``python3 benchmarks/run.py emva1288``; ``--quick``: one repeat, a smaller
+synthetic set).
 
-Timed, median of repeats, each into a fresh folder:
+Measured in one run, interleaved (one call of each per round, median over the rounds; peak
+resident memory of each process from ``wait4``; CPU time user + system):
 
-- the standard's characterisation: read the descriptor and its 600 PNGs, every EMVA 1288
-  figure (``hsiffc.emva1288.characterise``), the report (seven PNG plots, Markdown, JSON);
-- the same through the command, ``hsiffc emva1288 DESC --json OUT --report DIR``, which adds
-  the leakage part (a joint per-pixel calibration of the 32768 pixels and the leakage account).
+- the reference implementation (``emva1288`` from PyPI, the ``emva-reference`` extra) run as
+  its documentation shows (``benchmarks/emva_reference_run.py``): the figures only;
+- ``hsiffc emva1288 SET --no-leakage --json OUT``: the figures only, streamed;
+- ``hsiffc emva1288 SET --json OUT``: the default, with the leakage account (a joint per-pixel
+  calibration on the step means);
 
-Baseline, measured in the same run: reading the measurement alone (the I/O floor), so the ratio
-says how many reads the characterisation costs. Skipped (empty result) when the shared data
-are absent.
+on the shared CMOS set (``../shared/data/emva1288-cmos8-roi``, 600 frames of 128 x 256 px,
+8-bit) and on a seeded synthetic 12-bit linear sensor (``synthetic_set``) of 1024 x 1024 px
+with N exposure steps (a light and a dark step of 2 frames each) and a 16-frame light and dark
+stack, at N = 50 and at 2N = 100 (the issue's 2048 x 2048 x 100 steps shrunk four-fold in
+area and two-fold in steps: on two cores shared with other jobs one such run takes minutes;
+``--quick``: 512 x 512, N = 25 and 50, one round and no warm-up round, the sets just written
+being in the page cache and numba's cache on disk). The leakage run is timed on the CMOS set
+and on the N set only.
+
+Targets (issue 57): figures-only wall at or below the reference's, peak memory at most 1.5 x
+the reference's and flat in the number of steps (2N against N), the default with leakage at
+most 2 x the figures alone. Without the reference installed, the baseline is hsiffc's
+in-memory path (``read_emva1288`` + ``characterise``, every frame held), and the table says so.
+Skipped (empty result) when the shared data are absent.
 """
 
 from __future__ import annotations
 
-import contextlib
-import io
+import os
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
-from benchutil import figure, median_time, row
-from hsiffc.cli import main as cli
-from hsiffc.emva1288 import characterise, write_report
-from hsiffc.io import read_emva1288
+import numpy as np
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "emva1288-cmos8-roi"
-TARGET_S = 10.0
+from benchutil import figure, row
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE.parents[1] / "shared" / "data" / "emva1288-cmos8-roi"
+REFERENCE = HERE / "emva_reference_run.py"
+IN_MEMORY = ("import sys\nfrom hsiffc.io import read_emva1288\n"
+             "from hsiffc.emva1288 import characterise\n"
+             "characterise(read_emva1288(sys.argv[1]))\n")
 
 
-def cpu_time(fn, repeat: int) -> float:
-    """Median CPU time (s, every thread of the process) of ``fn()``: on a machine shared with
-    other jobs the wall time waits for the CPU, the CPU time does not."""
-    times = []
+def synthetic_set(root: Path, *, shape=(1024, 1024), n_steps=50, stack=16, seed=0) -> Path:
+    """Write a seeded EMVA 1288 measurement of a linear 12-bit sensor into ``root``.
+
+    Gain 0.1 DN/e-, QE 0.5, read noise 6 e-, dark 40 DN with a 0.8 DN pattern, PRNU 1 %,
+    shot noise as a Gaussian of the electron count's variance, full well at 3900 DN (so the
+    variance peaks before the ADC clips); exposures 0.1-10 ms at one irradiance (up to
+    1.2 x the full well), a light and a dark step of 2 frames at each, then a ``stack``-frame
+    light and dark stack at half the full well; 16-bit PNGs (compression 1), exposure in ns.
+    """
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    gain, qe, read_e, fw_dn = 0.1, 0.5, 6.0, 3900.0
+    prnu = (1 + 0.01 * rng.standard_normal(shape)).astype(np.float32)
+    offset = (40 + 0.8 * rng.standard_normal(shape)).astype(np.float32)
+    p_full = 1.2 * (fw_dn - 40) / gain / qe  # photons at the longest exposure
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    lines = ["v 4.0", f"n 12 {w} {h}"]
+    k = 0
+
+    def frames(photons, n):
+        nonlocal k
+        names = []
+        e = qe * photons * prnu
+        for _ in range(n):
+            noise = rng.standard_normal(shape, dtype=np.float32)
+            y = offset + gain * (e + np.sqrt(e + read_e ** 2) * noise)
+            y = np.minimum(y, fw_dn + 0.5 * noise)
+            img = np.clip(np.rint(y), 0, 4095).astype(np.uint16)
+            name = f"images/f{k:05d}.png"
+            cv2.imwrite(str(root / name), img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            names.append(f"i {name}")
+            k += 1
+        return names
+
+    for t_ms in np.linspace(0.1, 10.0, n_steps):
+        photons = p_full * t_ms / 10.0
+        lines += [f"b {t_ms * 1e6:.0f} {photons:.4f}"] + frames(photons, 2)
+        lines += [f"d {t_ms * 1e6:.0f}"] + frames(0.0, 2)
+    t_ms = 5.0
+    lines += [f"b {t_ms * 1e6 + 1:.0f} {p_full / 2.4:.4f}"] + frames(p_full / 2.4, stack)
+    lines += [f"d {t_ms * 1e6 + 1:.0f}"] + frames(0.0, stack)
+    path = root / "EMVA1288_Data.txt"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _process(cmd) -> dict:
+    """Wall (s), CPU (s, user + system) and peak resident memory (MB) of one process."""
+    t0 = time.perf_counter()
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, ru = os.wait4(p.pid, 0)
+    wall = time.perf_counter() - t0
+    err = p.stderr.read().decode(errors="replace")
+    p.stderr.close()
+    if status:
+        raise RuntimeError(f"{cmd[:3]} failed ({status}): {err[-500:]}")
+    return {"wall": wall, "cpu": ru.ru_utime + ru.ru_stime, "rss": ru.ru_maxrss / 1024}
+
+
+def _medians(cmds: dict, repeat: int, warmup: int = 1) -> dict:
+    """Run ``cmds`` (name -> argv) in turn, ``repeat`` rounds after ``warmup`` warm-up rounds
+    (numba's cache, the page cache); median wall, CPU and peak memory per name."""
+    for _ in range(warmup):
+        for cmd in cmds.values():
+            _process(cmd)
+    runs = {name: [] for name in cmds}
     for _ in range(repeat):
-        t0 = time.process_time()
-        fn()
-        times.append(time.process_time() - t0)
-    return statistics.median(times)
+        for name, cmd in cmds.items():
+            runs[name].append(_process(cmd))
+    return {name: {k: statistics.median(r[k] for r in rs) for k in ("wall", "cpu", "rss")}
+            for name, rs in runs.items()}
+
+
+def _reference_available() -> bool:
+    return subprocess.run([sys.executable, "-c", "import emva1288"],
+                          capture_output=True).returncode == 0
 
 
 def main(quick: bool = False) -> dict:
@@ -48,46 +134,69 @@ def main(quick: bool = False) -> dict:
         print(f"emva1288: {DATA} not found; skipped")
         return {}
     repeat = 1 if quick else 3
-    print(f"emva1288: {DATA.name} (600 frames x 128 x 256 px, 8-bit), median of {repeat}")
+    shape, n = ((512, 512), 25) if quick else ((1024, 1024), 50)
+    ref_ok = _reference_available()
+    base = "reference implementation (emva1288)" if ref_ok else \
+        "hsiffc's in-memory path (reference not installed)"
+    env_py = [sys.executable]
+    out = {"repeat": repeat, "baseline": base, "sets": {}, "figures": []}
+    print(f"emva1288: hsiffc against the {base}; whole processes, median of {repeat}")
     with tempfile.TemporaryDirectory() as tmp:
-        runs = iter(range(100))
+        tmp = Path(tmp)
+        sets = {"CMOS 8-bit 128 x 256, 600 frames": (DATA / "EMVA1288_Data.txt", True)}
+        for steps in (n, 2 * n):
+            t0 = time.perf_counter()
+            desc = synthetic_set(tmp / f"syn{steps}", shape=shape, n_steps=steps)
+            label = (f"synthetic 12-bit {shape[0]} x {shape[1]}, {steps} steps "
+                     f"({4 * steps + 32} frames)")
+            print(f"  wrote {label} in {time.perf_counter() - t0:.0f} s")
+            sets[label] = (desc, steps == n)
+        for label, (desc, with_leak) in sets.items():
+            o = tmp / "out.json"
+            cmds = {"baseline": env_py + ([str(REFERENCE), str(desc)] if ref_ok else
+                                          ["-c", IN_MEMORY, str(desc)]),
+                    "figures": env_py + ["-m", "hsiffc", "emva1288", str(desc), "--no-leakage",
+                                         "--json", str(o), "--overwrite"]}
+            if with_leak:
+                cmds["leakage"] = env_py + ["-m", "hsiffc", "emva1288", str(desc), "--json",
+                                            str(o), "--overwrite"]
+            m = _medians(cmds, repeat, warmup=0 if quick else 1)
+            out["sets"][label] = m
+            b, f = m["baseline"], m["figures"]
+            print(f"  {label}")
+            print(row("baseline: " + ("reference, figures" if ref_ok else "in-memory"),
+                      b["wall"], "s", f"CPU {b['cpu']:.3g} s, peak {b['rss']:.0f} MB"))
+            print(row("hsiffc emva1288 --no-leakage --json", f["wall"], "s",
+                      f"CPU {f['cpu']:.3g} s, peak {f['rss']:.0f} MB; wall x "
+                      f"{f['wall'] / b['wall']:.2f}, memory x {f['rss'] / b['rss']:.2f}"))
+            out["figures"].append(figure(
+                f"figures-only wall, {label}", f["wall"], "s", baseline=b["wall"],
+                baseline_name=base, ratio=f["wall"] / b["wall"], target="<= 1 x baseline",
+                met=f["wall"] <= b["wall"],
+                note=f"CPU {f['cpu']:.3g} s against {b['cpu']:.3g} s"))
+            out["figures"].append(figure(
+                f"figures-only peak memory, {label}", f["rss"], "MB", baseline=b["rss"],
+                baseline_name=base, ratio=f["rss"] / b["rss"], target="<= 1.5 x baseline",
+                met=f["rss"] <= 1.5 * b["rss"]))
+            if with_leak:
+                lk = m["leakage"]
+                print(row("hsiffc emva1288 --json (default, leakage)", lk["wall"], "s",
+                          f"CPU {lk['cpu']:.3g} s, peak {lk['rss']:.0f} MB; x "
+                          f"{lk['wall'] / f['wall']:.2f} the figures alone"))
+                out["figures"].append(figure(
+                    f"default with leakage, {label}", lk["wall"], "s", baseline=f["wall"],
+                    baseline_name="hsiffc figures alone", ratio=lk["wall"] / f["wall"],
+                    target="<= 2 x figures alone", met=lk["wall"] <= 2 * f["wall"],
+                    note=f"peak {lk['rss']:.0f} MB"))
+        syn = [s for s in out["sets"] if s.startswith("synthetic")]
+        r1, r2 = (out["sets"][s]["figures"]["rss"] for s in syn)
+        print(row(f"hsiffc peak memory, {2 * n} steps / {n} steps", r2 / r1, "x"))
+        out["figures"].append(figure(
+            "figures-only peak memory at 2x the steps", r2, "MB", baseline=r1,
+            baseline_name=f"the same at {n} steps", ratio=r2 / r1, target="flat (<= 1.1 x)",
+            met=r2 <= 1.1 * r1))
+    return out
 
-        def standard():
-            sweep = read_emva1288(DATA)
-            res = characterise(sweep)
-            write_report(sweep, res, Path(tmp) / f"std{next(runs)}")
 
-        def command():
-            k = next(runs)
-            with contextlib.redirect_stdout(io.StringIO()):
-                assert cli(["emva1288", str(DATA), "--json", str(Path(tmp) / f"c{k}.json"),
-                            "--report", str(Path(tmp) / f"cmd{k}")]) == 0
-
-        t_std = median_time(standard, repeat=repeat, warmup=1)
-        t_cmd = median_time(command, repeat=repeat, warmup=1)
-        cpu_std, cpu_cmd = cpu_time(standard, repeat), cpu_time(command, repeat)
-    t_read = median_time(lambda: read_emva1288(DATA), repeat=repeat, warmup=0)
-    sweep = read_emva1288(DATA)
-    t_fig = median_time(lambda: characterise(sweep), repeat=repeat, warmup=0)
-    print(row("read + figures + report (the standard's part)", t_std, "s",
-              f"target < {TARGET_S:g} s: {'met' if t_std < TARGET_S else 'NOT met'}"))
-    print(row("  of which reading the measurement", t_read, "s"))
-    print(row("  of which the figures (characterise)", t_fig, "s"))
-    print(row("  CPU time of it (all threads)", cpu_std, "s"))
-    print(row("hsiffc emva1288 DESC --json --report (with leakage)", t_cmd, "s",
-              f"target < {TARGET_S:g} s: {'met' if t_cmd < TARGET_S else 'NOT met'}"))
-    print(row("  CPU time of it (all threads)", cpu_cmd, "s"))
-    return {"standard_s": t_std, "command_with_leakage_s": t_cmd, "read_s": t_read,
-            "figures_s": t_fig, "standard_cpu_s": cpu_std, "command_cpu_s": cpu_cmd,
-            "target_s": TARGET_S,
-            "figures": [
-                figure("EMVA 1288 characterisation of the CMOS set (read + figures + report)",
-                       t_std, "s", baseline=t_read, baseline_name="reading the measurement",
-                       ratio=t_std / t_read, target=f"< {TARGET_S:g} s", met=t_std < TARGET_S,
-                       note=f"figures alone {t_fig:.2g} s; CPU time {cpu_std:.2g} s; "
-                            "ratio = total / read"),
-                figure("hsiffc emva1288 on the CMOS set, leakage calibration included", t_cmd,
-                       "s", baseline=t_read, baseline_name="reading the measurement",
-                       ratio=t_cmd / t_read, target=f"< {TARGET_S:g} s", met=t_cmd < TARGET_S,
-                       note=f"adds a joint per-pixel leakage calibration of 32768 pixels; CPU "
-                            f"time {cpu_cmd:.2g} s (all threads)")]}
+if __name__ == "__main__":
+    main(quick="--quick" in sys.argv)

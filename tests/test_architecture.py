@@ -77,7 +77,10 @@ def test_every_folder_of_the_package_is_in_the_layer_table():
 
 #: the upward imports the architecture page names, each with its reason
 EXCEPTIONS = {("data", "cubes", "hsiffc/data/frame.py"):
-              "Frame.to_xarray() converts a cube in hand (imported when called)"}
+              "Frame.to_xarray() converts a cube in hand (imported when called)",
+              ("io", "cubes", "hsiffc/io/__init__.py"):
+              "hsiffc.io.write_cube, the input and output face, calls the cube writers (imported "
+              "when called); cubes read and write through io"}
 
 
 def test_no_layer_imports_a_layer_above_it():

@@ -37,7 +37,7 @@ from hsiffc.io import write_sweep
 
 SHAPE = (32, 48)
 LIGHT = PAPER_LIGHT_W_M2["training"]
-VOLATILE = ("seconds", "created")
+VOLATILE = ("seconds", "created", "run")
 
 
 def _clean(sweep):
@@ -419,7 +419,7 @@ def test_second_run_on_one_folder_refuses_and_keeps_the_first_runs_files(world, 
         assert parts, "the first run never started a file"
         second = subprocess.run([sys.executable, "-m", "hsiffc", *args], capture_output=True,
                                 text=True, timeout=120, check=False)
-        assert second.returncode == 2
+        assert second.returncode == 2, (second.stdout, parts, first.poll())
         err = second.stderr.strip()
         assert len(err.splitlines()) == 1 and "Traceback" not in err
         assert f"pid {first.pid}" in err and "started" in err and str(out) in err
@@ -677,16 +677,17 @@ def test_envi_cubes_of_skipped_outputs_are_left_alone_on_a_rerun(small_world, tm
     out = tmp_path / "out"
     assert _correct(small_world, [small_world["raw"]], out) == 0
     cubes = _envi(out)
-    # 4 frames -> _f0000.._f0003, 1 frame -> no index; each: data + DQ + alpha (the default
-    # pipeline computes alpha), header + data file
-    assert len(cubes) == 4 * 6 + 6
+    # 4 frames -> _f0000.._f0003, 1 frame -> no index; each: data + DQ (alpha only with
+    # --with-alpha), header + data file; no hsiffc TIFF (not asked for)
+    assert len(cubes) == 4 * 4 + 4
     assert any(p.name == "multi.corrected_f0003.dq.img" for p in cubes)
-    assert any(p.name == "multi.corrected_f0003.alpha.hdr" for p in cubes)
+    assert not any("alpha" in p.name for p in cubes)
     assert any(p.name == "single.corrected.hdr" for p in cubes)
+    assert not list(out.rglob("*.tif"))
     stamps = {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in cubes}
     capsys.readouterr()
     assert _correct(small_world, [small_world["raw"]], out) == 0
-    assert "wrote ENVI cubes" not in capsys.readouterr().out
+    assert "0 done, 2 skipped" in capsys.readouterr().out
     assert {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in cubes} == stamps
 
 
@@ -696,7 +697,9 @@ def test_envi_cubes_missing_for_a_skipped_output_are_written(small_world, tmp_pa
                  str(out), "-q"]) == 0
     assert not _envi(out)
     assert _correct(small_world, [small_world["raw"]], out) == 0
-    assert len(_envi(out)) == 30
+    assert len(_envi(out)) == 20
+    assert _correct(small_world, [small_world["raw"]], out, "--with-alpha") == 0
+    assert len(_envi(out)) == 30  # the alpha planes too
 
 
 def test_a_file_hsiffc_did_not_write_at_an_envi_name_is_kept(small_world, tmp_path, capsys):
@@ -705,13 +708,13 @@ def test_a_file_hsiffc_did_not_write_at_an_envi_name_is_kept(small_world, tmp_pa
     mine = out / "multi.corrected_f0001.hdr"
     mine.write_text("ENVI\ndescription = {my own cube}\n")
     capsys.readouterr()
-    assert _correct(small_world, [small_world["raw"]], out) == 1  # that file's cubes failed, rest done
-    err = capsys.readouterr().err
-    assert "multi.corrected_f0001.hdr" in err and "--overwrite" in err
+    assert _correct(small_world, [small_world["raw"]], out) == 1  # that file failed, rest done
+    said = capsys.readouterr().out
+    assert "multi.corrected_f0001.hdr" in said and "--overwrite" in said
     assert mine.read_text() == "ENVI\ndescription = {my own cube}\n"
     assert (out / "single.corrected.hdr").exists()
     assert _correct(small_world, [small_world["raw"]], out, "--overwrite") == 0
-    assert "hsiffc corrected frame 1" in mine.read_text()
+    assert "hsiffc correct: frame 1 of multi.tif" in mine.read_text()
 
 
 def test_envi_outputs_in_the_input_folder_are_not_read_back(small_world, tmp_path, capsys):
@@ -726,7 +729,7 @@ def test_envi_outputs_in_the_input_folder_are_not_read_back(small_world, tmp_pat
     assert sorted(p.name for p in folder.iterdir()) == before
     pairs, ignored = discover_inputs([folder])
     assert sorted(p.name for p, _ in pairs) == ["multi.tif", "single.tif"]
-    assert all(is_batch_output(p) for p in ignored) and len(ignored) == 2 + 15
+    assert all(is_batch_output(p) for p in ignored) and len(ignored) == 5 * 2  # the headers
 
 
 @pytest.mark.parametrize("name", ["single.corrected.tif", "multi.corrected_f0000.dq.hdr",
@@ -808,3 +811,34 @@ def test_closing_the_local_cluster_keeps_the_nannys_kill_warning_off(caplog):
     assert "still alive" not in caplog.text
     assert "a scheduler warning" in caplog.text  # only the nanny's shutdown line is muted
     assert nanny.level == level
+
+
+def test_summary_times_the_whole_job_and_counts_the_bytes_written(small_world, tmp_path,
+                                                                  capsys):
+    """The summary and --json: one time for the whole job (the cubes are written inside it),
+    the files written and their bytes, per file and in all."""
+    out = tmp_path / "out"
+    summary = tmp_path / "summary.json"
+    assert _correct(small_world, [small_world["raw"]], out, "--json", str(summary)) == 0
+    said = capsys.readouterr().out
+    doc = json.loads(summary.read_text())
+    on_disk = {str(p): p.stat().st_size for p in out.rglob("*") if p.is_file()
+               and not p.name.startswith(".")}
+    listed = [f for r in doc["results"] for f in r["files"]]
+    assert sorted(listed) == sorted(on_disk)
+    assert doc["bytes_written"] == sum(on_disk.values()) == sum(
+        r["bytes_written"] for r in doc["results"])
+    assert doc["seconds"] >= max(r["seconds"] for r in doc["results"])
+    assert "corrected and written in" in said and "the whole job" in said
+    assert f"{sum(on_disk.values()) / 1e6:.1f} MB written" in said
+
+
+@pytest.mark.parametrize("value", ["envi,foo", ",", "TIFF;envi"])
+def test_an_unknown_format_is_one_line_before_anything_is_written(small_world, tmp_path, capsys,
+                                                                  value):
+    out = tmp_path / "out"
+    assert main(["correct", str(small_world["raw"]), "--calibration", str(small_world["cal"]),
+                 "-o", str(out), "--format", value, "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--format must be one or more of" in err
+    assert repr(value) in err and not out.exists()

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from hsiffc.calibrate import STATUS_REASONS, calibrate, fit_pixels
+from hsiffc.calibrate.choice import CODES
 from hsiffc.diagnose.effects import add_effect
 from hsiffc.data.dq import DQ
 from hsiffc.errors import HsiffcError
@@ -117,7 +118,9 @@ def test_strong_pixel_nonlinearity_converges_or_falls_back(clean, size):
     weak = np.abs(c2) < 40
     assert np.median(cal["rms_dn"].ravel()[weak]) < 1.1 * np.median(cal0["rms_dn"])
     assert np.mean(c2[status == LINEAR_WORSE] > 0) > 0.8  # the linear model: expansions
-    assert (cal["flags"].ravel()[status == LINEAR_WORSE] & int(DQ.LEAK_UNCONSTRAINED)).all()
+    leak_band = cal["model_kept"].ravel() == CODES["pixel_leakage"]
+    worse = (status == LINEAR_WORSE) & leak_band  # (a band kept linear flags no leakage)
+    assert (cal["flags"].ravel()[worse] & int(DQ.LEAK_UNCONSTRAINED)).all()
     assert (cal["a_dn_per_ms"].ravel()[status == LINEAR_WORSE] == 0).all()
 
 
@@ -186,7 +189,9 @@ def test_fixed_exposure_sweep_that_never_saturates_keeps_the_linear_response():
     assert (cal.a == 0).all() and _flag_fraction(cal, DQ.LEAK_UNCONSTRAINED) == 0
     assert _flag_fraction(cal, DQ.NOT_CONVERGED) == 0
     forced = calibrate(sweep, choose=False)
-    assert _flag_fraction(forced, DQ.LEAK_UNCONSTRAINED) > 0.9
+    # (0.90 with the dark pinned by a weight; held exactly, the errors of a and b are those
+    # given the dark, a little smaller)
+    assert _flag_fraction(forced, DQ.LEAK_UNCONSTRAINED) > 0.85
     truth = sweep.meta["truth"]
     assert np.median(np.abs(cal["responsivity"] / truth.k_dn_per_ms - 1)) < 0.02
 

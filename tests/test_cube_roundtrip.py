@@ -18,6 +18,7 @@ from hsiffc.cubes import Cube, read_cube, to_xarray, write_cube
 from hsiffc.data.dq import DQ
 from hsiffc.errors import DataFormatError
 from hsiffc.io import write_sweep
+from hsiffc.io.corrected import read_provenance
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
 
 FORMATS = {"envi": ("c.hdr", "ENVI"), "ome": ("c.ome.tif", "OME-TIFF"),
@@ -123,14 +124,31 @@ def test_correct_exports_read_back_by_read_cube_info_and_quicklook(corrected, tm
                                                                    capsys):
     _needs(fmt)
     out = tmp_path / "out"
-    assert main(["correct", "--pipeline", str(corrected / "p.npz"), "--cube", "bilinear",
-                 str(corrected / "scene"), "-o", str(out), "--format", fmt, "-q"]) == 0
+    argv = ["correct", "--pipeline", str(corrected / "p.npz"), "--cube", "bilinear",
+            str(corrected / "scene"), "-o", str(out), "-q"]
+    assert main(argv + ["--format", f"{fmt},tiff"]) == 0
     export = out / f"scene.corrected{SUFFIX[fmt]}"
-    ref = read_cube(out / "scene.corrected.tif")  # the cube the export was written from
+    ref = read_cube(out / "scene.corrected.tif")  # the same frames, as the hsiffc TIFF holds them
     assert ref.attrs["source"] == "scene.corrected.tif" and ref.history
     back = read_cube(export)
+    prov = back.attrs.pop("provenance")
+    assert back.attrs.pop("source") == "scene.tif"  # the input it was corrected from
+    ref.attrs.pop("source")
     _assert_same(back, ref)
     assert [s["stage"] for s in back.history] == ["dark", "two_point_ffc", "reconstruct"]
+    whole = read_provenance(out / "scene.corrected.tif")  # the provenance, in every format
+    for key in ("input", "calibration", "pipeline", "run", "warnings", "hsiffc_version"):
+        assert prov[key] == whole[key], key
+    assert prov["exposure"] == whole["exposure"] and prov["frame"] == 0
+
+    # the format alone: only its files, and a rerun finds them complete
+    alone = tmp_path / "alone"
+    assert main(argv[:-3] + ["-o", str(alone), "-q", "--format", fmt]) == 0
+    assert not list(alone.glob("*.tif")) or fmt == "ome"
+    assert not (alone / "scene.corrected.tif").exists()
+    capsys.readouterr()
+    assert main(argv[:-3] + ["-o", str(alone), "-q", "--format", fmt]) == 0
+    assert "0 done, 1 skipped" in capsys.readouterr().out
 
     capsys.readouterr()
     assert main(["info", str(export)]) == 0
@@ -203,3 +221,30 @@ def test_envi_header_from_another_tool_reads_without_hsiffc_keys(tmp_path):
     hdr.write_text(re.sub(r"hsiffc history = .*", "hsiffc history = [oops", text))
     with pytest.raises(DataFormatError, match="hsiffc history"):
         read_cube(hdr)
+
+
+def test_correct_compresses_the_dq_planes_by_default_and_none_on_request(corrected, tmp_path):
+    """--compression auto (the default): the DQ plane with a codec the format's readers have
+    (zstd in the hsiffc TIFF, deflate in the OME-TIFF and netCDF), the float planes raw;
+    --compression none: nothing compressed; ENVI never."""
+    import tifffile
+
+    pytest.importorskip("xarray")
+    import h5py
+
+    argv = ["correct", "--pipeline", str(corrected / "p.npz"), "--cube", "bilinear",
+            str(corrected / "scene"), "-q", "--format", "tiff,ome,netcdf"]
+    for option, want in (("auto", ("zstd", "deflate", "gzip")), ("none", (None, None, None))):
+        out = tmp_path / option
+        assert main(argv + ["-o", str(out), "--compression", option]) == 0
+        with tifffile.TiffFile(out / "scene.corrected.tif") as tf:  # data, dq pages
+            codecs = [p.compression.name for p in tf.pages[:2]]
+        assert codecs == ["NONE", "NONE" if want[0] is None else want[0].upper()]
+        with tifffile.TiffFile(out / "scene.corrected.ome.tif") as tf:
+            data, dq = tf.series[0].pages[0], tf.series[1].pages[0]
+            assert data.compression.name == "NONE"
+            assert dq.compression.name == ("NONE" if want[1] is None else "ADOBE_DEFLATE")
+        with h5py.File(out / "scene.corrected.nc", "r") as h5:
+            assert h5["data"].compression is None and h5["dq"].compression == want[2]
+        back = read_cube(out / "scene.corrected.ome.tif")
+        np.testing.assert_array_equal(back.dq, read_cube(out / "scene.corrected.tif").sorted().dq)

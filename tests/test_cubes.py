@@ -87,7 +87,7 @@ def _decode_envi_dq(header_path):
 def test_fitted_pipeline_with_reconstruct_writes_cubes_and_envi(world, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["correct", "--pipeline", str(world["root"] / "cube.npz"), str(world["scene"]),
-                 "-o", str(out), "--format", "envi", "-q"]) == 0
+                 "-o", str(out), "--format", "envi,tiff", "-q"]) == 0
     got = read_corrected(out / "scene.corrected.tif")
     assert got.data.shape == (2,) + SHAPE + (8,)
     ref = _reference_cube(world)
@@ -124,7 +124,7 @@ def test_fitted_pipeline_with_reconstruct_writes_cubes_and_envi(world, tmp_path,
     # and rerunning skips both the corrected file and its cubes
     capsys.readouterr()
     assert main(["correct", "--pipeline", str(world["root"] / "cube.npz"), str(world["scene"]),
-                 "-o", str(out), "--format", "envi", "-q"]) == 0
+                 "-o", str(out), "--format", "envi,tiff", "-q"]) == 0
     assert "skipped" in capsys.readouterr().out
 
 
@@ -132,7 +132,7 @@ def test_cube_shortcut_ppid_to_ome_and_netcdf(world, tmp_path):
     xr = pytest.importorskip("xarray")
     out = tmp_path / "out"
     assert main(["correct", "--pipeline", str(world["root"] / "frames.npz"), "--cube", "ppid",
-                 str(world["scene"]), "-o", str(out), "--format", "ome",
+                 str(world["scene"]), "-o", str(out), "--format", "ome,tiff",
                  "--compression", "zlib", "-q"]) == 0
     ref = _reference_cube(world, "ppid")
     order = np.argsort(world["mosaic"].wavelengths_nm)

@@ -413,39 +413,59 @@ def test_exports_past_ten_thousand_frames_are_known_as_outputs():
     assert not is_batch_output("a_f10000.hdr")
 
 
-# -- cause: an ENVI pair's data were committed before the header that vouches for them -----------
-def test_envi_export_interrupted_between_its_files_is_resumed_by_the_same_command(
+# -- cause: an ENVI export was several atomic writes, each put in place on its own ----------------
+def _envi_set(out):
+    return {p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.suffix in (".hdr", ".img")}
+
+
+def test_envi_product_is_put_in_place_as_one_set_and_a_broken_commit_resumes(
         sweep, tmp_path, monkeypatch, capsys):
-    """A full disk (or a kill) after the first file of an ENVI export: the rerun of the same
-    command, without --overwrite, finishes the cubes (it stopped at the header-less .img with
-    'already exists and is not a cube hsiffc wrote')."""
+    """The .hdr/.img/DQ files of every frame appear together, after the last frame: a failure
+    (a kill, a full disk) before that leaves no file under a final name; one during the
+    renames leaves a set whose files do not agree (new headers beside the older data files),
+    which the rerun of the same command, without --overwrite, redoes instead of reporting it
+    up to date."""
     import errno
 
-    import hsiffc.io.envi as envi
+    import hsiffc.files.atomic as atomic
 
     out = tmp_path / "out"
     argv = ["correct", str(sweep / "s.tif"), "--calibration", str(sweep / "cal.npz"), "-o",
             str(out), "--format", "envi", "-q"]
+    real = atomic._commit
+    calls = []
+
+    def stop_after(n):
+        def commit(*args, **kwargs):
+            calls.append(args[1])
+            if len(calls) > n:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return real(*args, **kwargs)
+        return commit
+
+    monkeypatch.setattr(atomic, "_commit", stop_after(0))  # the first rename fails
+    assert main(argv) == 1
+    assert not [p for p in out.iterdir() if not p.name.startswith(".")]  # nothing, no .part
+    assert not [p for p in out.iterdir() if p.name.endswith(".part")]
+    monkeypatch.setattr(atomic, "_commit", real)
     assert main(argv) == 0
-    cubes = sorted(p.name for p in out.iterdir() if p.suffix in (".hdr", ".img"))
-    for name in cubes:
-        (out / name).unlink()
-    real, calls = envi.atomic_path, []
+    clean = _envi_set(out)
+    headers = [n for n in clean if n.endswith(".hdr")]
+    assert len(clean) == 2 * len(headers) and not any(n.endswith(".tif") for n in clean)
 
-    def full_disk(*args, **kwargs):
-        calls.append(args[0])
-        if len(calls) == 2:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(envi, "atomic_path", full_disk)
-    assert main(argv) != 0  # the cubes of that output were not written
-    monkeypatch.setattr(envi, "atomic_path", real)
-    left = sorted(p.name for p in out.iterdir() if p.suffix in (".hdr", ".img"))
-    assert len(left) == 1 and left[0].endswith(".hdr")  # the header that vouches for its pair
+    # redo it (--overwrite) and break the renames after the headers: new headers, old data
+    calls.clear()
+    monkeypatch.setattr(atomic, "_commit", stop_after(len(headers) + 1))
+    assert main(argv + ["--overwrite"]) == 1
+    monkeypatch.setattr(atomic, "_commit", real)
     capsys.readouterr()
-    assert main(argv) == 0, capsys.readouterr().err
-    assert sorted(p.name for p in out.iterdir() if p.suffix in (".hdr", ".img")) == cubes
+    assert main(argv) == 0
+    said = capsys.readouterr().out
+    assert "1 done" in said and "is not the data file its header" in said  # redone, and why
+    assert main(argv) == 0 and "0 done, 1 skipped" in capsys.readouterr().out
+    again = _envi_set(out)
+    assert again.keys() == clean.keys()
+    assert all(again[n] == clean[n] for n in clean if n.endswith(".img"))
 
 
 # -- cause: a netCDF cube's variables could point to another file's bytes (HDF5 external) --------
@@ -476,7 +496,6 @@ def test_a_full_disk_during_a_netcdf_export_is_one_line_naming_the_cube(sweep, t
     out = tmp_path / "out"
     argv = ["correct", str(sweep / "s.tif"), "--calibration", str(sweep / "cal.npz"), "-o",
             str(out), "-q"]
-    assert main(argv) == 0
 
     def full(self, path, *args, **kwargs):
         raise OSError(f"Can't write data (file write failed: time = Fri Nov 27, filename = "
@@ -487,28 +506,29 @@ def test_a_full_disk_during_a_netcdf_export_is_one_line_naming_the_cube(sweep, t
     monkeypatch.setattr(xarray.Dataset, "to_netcdf", full)
     capsys.readouterr()
     assert main(argv + ["--format", "netcdf"]) != 0
-    lines = [ln for ln in capsys.readouterr().err.splitlines() if "netCDF cubes" in ln]
-    assert len(lines) == 1, lines
-    assert "No space left on device" in lines[0] and ".part" not in lines[0]
-    assert "HDF5" not in lines[0] and "s.corrected" in lines[0]
+    said = capsys.readouterr().out
+    lines = [ln for ln in said.splitlines() if "No space left on device" in ln]
+    assert len(lines) == 1, said
+    assert ".part" not in lines[0] and "HDF5" not in lines[0] and "s.corrected" in lines[0]
+    assert not [p for p in out.iterdir() if p.suffix == ".nc" or p.name.endswith(".part")]
 
 
 # -- cause: exports ran after the batch returned, outside the folder's lock -----------------------
 def test_exports_run_inside_the_folder_lock_and_clear_an_interrupted_exports_part_file(
         sweep, tmp_path, monkeypatch):
-    """A second run during the first one's export is refused (it was not), and the temporary
-    file a killed netCDF export left is removed by the rerun that holds the lock (it
-    survived)."""
-    import hsiffc.cubes.export as export
+    """A second run while the first writes its netCDF cubes is refused (the exports ran
+    after the lock was let go), and the temporary file a killed netCDF write left is removed
+    by the rerun that holds the lock (it survived)."""
+    import hsiffc.cubes.stream as stream
     from hsiffc.files.folderlock import FolderLockedError, folder_lock
 
     out = tmp_path / "out"
+    out.mkdir()
     argv = ["correct", str(sweep / "s.tif"), "--calibration", str(sweep / "cal.npz"), "-o",
             str(out), "-q"]
-    assert main(argv) == 0
     stale = out / ".s.corrected_f0000.nc.4242-deadbeef.part"
     stale.write_bytes(b"half a cube")
-    real, seen = export.export_corrected, []
+    real, seen = stream.write_cube, []
 
     def during(*args, **kwargs):
         try:
@@ -518,11 +538,12 @@ def test_exports_run_inside_the_folder_lock_and_clear_an_interrupted_exports_par
             seen.append("refused")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(export, "export_corrected", during)
+    monkeypatch.setattr(stream, "write_cube", during)
     assert main(argv + ["--format", "netcdf"]) == 0
-    assert seen == ["refused"]
+    assert seen and set(seen) == {"refused"}
     assert not stale.exists()
     assert (out / "s.corrected_f0000.nc").is_file()
+
 
 # -- cause: an IMEC XML's peak wavelength, FWHM and QE were not checked for sign ------------------
 @pytest.mark.parametrize("old, new, needle", [
@@ -611,3 +632,52 @@ def test_a_pixel_with_b_not_positive_is_flagged_not_fatal(sweep, tmp_path, capsy
     others = np.ones(c.dq.shape[1:], bool)
     others[2, 3] = False
     assert np.isfinite(c.data[:, others]).all()
+
+
+# -- cause: readers allocated what a file's header declared (a 2 MB OME took 3.3 GB; a sparse
+# -- 3 GB ENVI header was read whole) -------------------------------------------------------------
+def test_a_small_ome_declaring_a_huge_cube_is_refused_within_a_memory_bound(tmp_path,
+                                                                             monkeypatch):
+    """An OME-TIFF of a few hundred kB whose zstd tiles decode to 315 MB (the issue's 2 MB file
+    declared 3.3 GB; the same attack at a tenth of the scale) is refused from its declared size
+    in one line naming HSIFFC_MAX_BYTES, in a process whose address space is capped at 150 MB
+    above its imports: nothing of the declared size is ever allocated."""
+    from test_hostile_inputs import _child_cli
+
+    c, h, w = 3, 5120, 5120                       # 3 x 5120 x 5120 x 2 bytes per series
+    tile = np.zeros((256, 256), np.uint16)
+    path = tmp_path / "bomb.ome.tif"
+    with tifffile.TiffWriter(path, ome=True, bigtiff=True) as tw:
+        for name in ("data", "dq"):
+            tiles = (tile for _ in range(c * (h // 256) * (w // 256)))
+            tw.write(tiles, shape=(c, h, w), dtype=np.uint16, tile=(256, 256),
+                     compression="zstd", photometric="minisblack",
+                     metadata={"axes": "CYX", "Name": name})
+    assert path.stat().st_size < 2_000_000        # a small file ...
+    assert 2 * c * h * w * 2 > 300_000_000        # ... declaring 315 MB of planes
+    monkeypatch.setenv("HSIFFC_MAX_BYTES", "100000000")
+    for argv in (["quicklook", path, "-o", tmp_path / "q.png"],):
+        rc, err = _child_cli(argv, extra_mb=150)
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        assert rc == 2 and len(lines) == 1, err
+        assert "HSIFFC_MAX_BYTES" in lines[0] and "bomb.ome.tif" in lines[0]
+        assert "MemoryError" not in err and "Traceback" not in err
+
+
+def test_a_sparse_3_gb_envi_header_is_refused_from_its_size_within_a_memory_bound(tmp_path):
+    """A sparse 3 GB .hdr (it took 3 GB of memory: the parser read it whole) is refused from
+    its stat, before it is read, in a process capped at 100 MB above its imports."""
+    from test_hostile_inputs import _child_cli
+
+    np.zeros((2, 4, 5), np.uint16).tofile(tmp_path / "c.img")
+    header = tmp_path / "c.hdr"
+    header.write_text("ENVI\nsamples = 5\nlines = 4\nbands = 2\ndata type = 12\n"
+                      "interleave = bsq\nbyte order = 0\nnotes = {")
+    os.truncate(header, 3 * 2 ** 30)                  # 3 GiB of holes: no disk used
+    assert header.stat().st_size == 3 * 2 ** 30
+    for argv in (["info", header, "--exposure-ms", "1"], ["quicklook", header, "-o",
+                                                            tmp_path / "q.png"]):
+        rc, err = _child_cli(argv, extra_mb=100)
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        assert rc == 2 and len(lines) == 1, err
+        assert "HSIFFC_MAX_HEADER_BYTES" in lines[0] and "c.hdr" in lines[0]

@@ -64,7 +64,7 @@ def test_folder_of_camera_tiffs_fit_correct_cube(tmp_path, imec_xml, capsys):
     assert main(["fit", str(tmp_path / "pipe.toml"), str(refs),
                  "-o", str(tmp_path / "pipe.npz")]) == 0
     assert main(["correct", "--pipeline", str(tmp_path / "pipe.npz"), str(raw),
-                 "-o", str(tmp_path / "out"), "--format", "envi", "-q"]) == 0
+                 "-o", str(tmp_path / "out"), "--format", "tiff,envi", "-q"]) == 0
     capsys.readouterr()
 
     out = read_corrected(tmp_path / "out" / "scene_0.corrected.tif")
@@ -85,12 +85,21 @@ def test_folder_of_camera_tiffs_fit_correct_cube(tmp_path, imec_xml, capsys):
     assert dq_cube.shape == cube.shape and dq_cube.dtype == np.uint16  # the bits in use
     assert np.isfinite(cube).all()
 
-    # the product of the work: a full-resolution PPID cube that SPy opens, and its quicklook
+    # the product of the work: a full-resolution PPID cube, ENVI only, that SPy opens
     import spectral
+
+    from hsiffc.cubes import read_cube
 
     assert main(["correct", "--pipeline", str(tmp_path / "pipe.npz"), str(raw / "scene_0.tif"),
                  "-o", str(tmp_path / "cubes"), "--cube", "ppid", "--format", "envi",
                  "-q"]) == 0
+    written = [p for p in (tmp_path / "cubes").iterdir() if not p.name.startswith(".")]
+    assert sorted(p.name for p in written) == [
+        "scene_0.corrected.dq.hdr", "scene_0.corrected.dq.img", "scene_0.corrected.hdr",
+        "scene_0.corrected.img"]                    # ENVI only: no hsiffc TIFF, no alpha
+    cube_bytes = 1080 * 2045 * 25 * 4               # the float32 cube's own size
+    total = sum(p.stat().st_size for p in written)
+    assert 1.5 * cube_bytes < total <= 1.6 * cube_bytes, total / cube_bytes  # + uint16 DQ + headers
     hdr = tmp_path / "cubes" / "scene_0.corrected.hdr"
     img = spectral.open_image(str(hdr))
     assert (img.nrows, img.ncols, img.nbands) == (1080, 2045, 25)   # every band at every pixel
@@ -99,6 +108,13 @@ def test_folder_of_camera_tiffs_fit_correct_cube(tmp_path, imec_xml, capsys):
     np.testing.assert_allclose(img.bands.bandwidths, imec.bands.fwhm_nm[order], rtol=1e-5)
     full = img.open_memmap()
     assert np.isfinite(full).all()
+    back = read_cube(hdr)                           # hsiffc reads its own export: the same
+    np.testing.assert_array_equal(back.data, full)
+    assert [float(w) for w in back.wavelengths_nm] == [float(w) for w in img.bands.centers]
+    spy_dq = spectral.open_image(str(hdr.with_name("scene_0.corrected.dq.hdr"))).open_memmap()
+    np.testing.assert_array_equal(back.dq, spy_dq)
+    assert back.attrs["provenance"]["pipeline"]["steps"]
+    del spy_dq, back
     # the full cube's band means follow the tile cube's: the same scene, the same band order
     np.testing.assert_allclose(full.mean(axis=(0, 1)), cube.mean(axis=(0, 1)), rtol=0.02)
     png = tmp_path / "cubes" / "scene_0.png"

@@ -1,8 +1,10 @@
 """Batch correction of TIFF cubes (``hsiffc correct``): streaming, resumable, parallel.
 
 One task per input file (:mod:`.task`): it reads the input one frame at a time, runs the
-pipeline on the frame and appends data, DQ and alpha to the output (:mod:`hsiffc.io.corrected`),
-written to a temporary file renamed into place only when complete. Memory is a few frames per
+pipeline on the frame and hands data, DQ and alpha to the writers of the formats asked for
+(``formats``: the hsiffc TIFF of :mod:`hsiffc.io.corrected`, ENVI, OME-TIFF, netCDF cubes:
+:mod:`hsiffc.cubes.stream`), written to temporary files renamed into place together only when
+the input is complete. Memory is a few frames per
 worker whatever the batch size. :mod:`.plan` turns inputs into jobs, :mod:`.context` holds the
 calibration and pipeline, :mod:`.executors` runs the tasks in this process (one worker), on a
 local Dask cluster (``workers > 1``) or on any Dask distributed scheduler (``scheduler=``).
@@ -34,8 +36,8 @@ from .context import (
     load_pipeline,
 )
 from .executors import check_scheduler, run_jobs
-from .plan import (BatchError, Job, discover_inputs, output_name, output_suffix, plan_jobs,
-                   unread_files)
+from .plan import (BatchError, Job, check_formats, discover_inputs, output_name, output_suffix,
+                   plan_jobs, unread_files)
 from .summary import BatchSummary
 from .replace import check_replacements
 from .task import correct_file
@@ -54,8 +56,9 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                   overrides: dict | None = None, observer=None,
                   wait_s: float = 0.0, cube: str | None = None,
                   cube_correction: str | None = None, imec_xml=None,
-                  compression: str | None = None, device: str = "cpu",
-                  after=None, fail_on_warning=()) -> BatchSummary:
+                  compression: str | None = "auto", device: str = "cpu",
+                  after=None, fail_on_warning=(), formats="tiff",
+                  cube_alpha: bool = False) -> BatchSummary:
     """Correct every input (files, folders, globs) into ``outdir``; see ``hsiffc correct``.
 
     Parameters
@@ -109,21 +112,30 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
         With ``cube``: the IMEC correction matrix to virtual bands (needs ``imec_xml``).
     imec_xml : path, optional
         The sensor's IMEC calibration XML (for ``cube_correction``).
-    compression : {"zlib", "zstd", "lzma"}, optional
-        TIFF compression of the outputs' pages (imagecodecs; default none).
+    compression : {"auto", "zlib", "zstd", "lzma"} or None
+        Lossless compression of the outputs. "auto" (default): each format's
+        (:data:`hsiffc.cubes.stream.DEFAULT_COMPRESSION`: zstd for the hsiffc TIFF, deflate
+        for the OME-TIFF and netCDF, none for ENVI); None: none; a name: the TIFF formats'
+        pages (imagecodecs) and netCDF's variables (zlib whatever is given).
     device : {"cpu", "cuda"}
         ``"cuda"``: the pipeline runs on the GPU (:mod:`hsiffc.gpu`, one process); refused in
         one line, before anything is read, without numba-cuda or a GPU, with ``workers`` above
         1 or a ``scheduler``, or for a step the GPU does not run.
     after : callable, optional
         ``after(summary)`` runs once every file is done, while the output folder's lock is
-        still held (the CLI's ``--format`` exports: a second run cannot start in between, and
-        they may remove the temporary files an interrupted export left).
+        still held.
     fail_on_warning : sequence of str
         Warning classes (e.g. ``"SceneBrighterThanReferenceWarning"``; a base class such as
         ``"ReflectanceWarning"`` covers its subclasses) or ``"all"`` that fail a file: its
         output is not written and its result says which warning. Every warning is recorded
         for its file either way (:mod:`hsiffc.batch.warnrec`).
+    formats : str or sequence of str
+        The product files (:data:`hsiffc.cubes.stream.PRODUCT_FORMATS`; a comma-separated
+        string or a sequence): "tiff" the hsiffc TIFF (default), "envi", "ome", "netcdf" a
+        cube per frame (a mosaic frame becomes one spectrum per tile). Only these are
+        written; each holds the provenance and resumes the batch alone.
+    cube_alpha : bool
+        Also write the alpha planes in the cube formats (the hsiffc TIFF always has them).
 
     Returns
     -------
@@ -140,6 +152,11 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
     """
     t0 = time.perf_counter()
     workers = _check_options(nan, workers, scheduler, threshold_percent)
+    formats = check_formats(formats)
+    if "netcdf" in formats:  # checked before any file is corrected
+        from ..cubes.xr import require_xarray
+
+        require_xarray()
     _check_device(device, workers, scheduler)
     check_ffc(ffc, bool(linearise) and pipeline is None)
     if calibration is None and pipeline is None:
@@ -157,7 +174,8 @@ def correct_batch(inputs, outdir, calibration=None, *, pipeline=None, threshold_
                         cube_correction=cube_correction,
                         imec_xml=None if imec_xml is None else str(Path(imec_xml).resolve()),
                         compression=_compression(compression), device=device,
-                        fail_on_warning=check_classes(fail_on_warning))
+                        fail_on_warning=check_classes(fail_on_warning), formats=formats,
+                        cube_alpha=bool(cube_alpha))
     if settings.imec_xml and not Path(settings.imec_xml).is_file():
         raise BatchError(f"{imec_xml}: IMEC calibration XML not found")
     if settings.pipeline and not Path(settings.pipeline).is_file():
@@ -220,14 +238,16 @@ def _sizes(jobs) -> list[int]:
 
 
 def _compression(name):
-    """A compression the outputs' TIFF pages take (None: uncompressed)."""
+    """A compression the outputs take ("auto": each format's default; None: uncompressed)."""
     from ..cubes.writers import COMPRESSIONS
 
     if name is None or name == "none":
         return None
+    if name == "auto":
+        return name
     if name not in COMPRESSIONS:
-        raise BatchError(f"--compression must be one of none, {', '.join(COMPRESSIONS)}, got "
-                         f"{name!r}")
+        raise BatchError(f"--compression must be one of auto, none, "
+                         f"{', '.join(COMPRESSIONS)}, got {name!r}")
     return name
 
 

@@ -130,14 +130,20 @@ class Settings:
     cube: str | None = None
     cube_correction: str | None = None
     imec_xml: str | None = None
-    #: TIFF compression of the outputs (None, "zlib", "zstd", "lzma")
-    compression: str | None = None
+    #: compression of the outputs: "auto" (each format's default:
+    #: :data:`hsiffc.cubes.stream.DEFAULT_COMPRESSION`), None, "zlib", "zstd" or "lzma"
+    compression: str | None = "auto"
     #: where the pipeline runs: "cpu", or "cuda" (:mod:`hsiffc.gpu`; the same frames within
     #: its stated float32 tolerance, so not part of the outputs' fingerprint)
     device: str = "cpu"
     #: warning classes (or "all") that fail a file (``--fail-on-warning``; not part of the
     #: outputs' fingerprint: an output is written only without such a warning)
     fail_on_warning: tuple = ()
+    #: the product files (``--format``: :data:`hsiffc.cubes.stream.PRODUCT_FORMATS`); not part
+    #: of the fingerprint (each format holds the same corrected frames)
+    formats: tuple = ("tiff",)
+    #: write the alpha planes in the cube formats too (the hsiffc TIFF always holds them)
+    cube_alpha: bool = False
 
 
 @dataclass

@@ -16,7 +16,8 @@ from ..errors import HsiffcError
 from ..io.corrected import SUFFIX
 from ..io import IMAGE_SUFFIXES
 
-__all__ = ["BatchError", "Job", "REFLECTANCE_SUFFIX", "discover_inputs", "is_batch_output",
+__all__ = ["BatchError", "Job", "REFLECTANCE_SUFFIX", "check_formats", "discover_inputs",
+           "is_batch_output",
            "output_name", "output_suffix", "plan_jobs", "unread_files"]
 
 _MAGIC = re.compile(r"[*?[]")
@@ -38,6 +39,25 @@ _SUFFIXES = (SUFFIX, REFLECTANCE_SUFFIX)
 #: the cubes ``hsiffc correct --format envi|ome|netcdf`` writes beside a corrected file
 _ENVI_OUTPUT = re.compile("(" + "|".join(re.escape(s[:-len(".tif")]) for s in _SUFFIXES) + ")"
                           + r"(_f\d{4,})?((\.dq|\.alpha)?\.(hdr|img)|\.ome\.tiff?|\.nc)$")
+
+
+def check_formats(formats) -> tuple[str, ...]:
+    """``formats`` (a name, a comma-separated list or a sequence) as a tuple of distinct
+    product formats, in :data:`PRODUCT_FORMATS` order.
+
+    >>> check_formats("envi"), check_formats("netcdf,tiff")
+    (('envi',), ('tiff', 'netcdf'))
+    """
+    from ..cubes.stream import PRODUCT_FORMATS
+
+    items = formats.split(",") if isinstance(formats, str) else list(formats or ())
+    names = [str(f).strip().lower() for f in items if str(f).strip()]
+    bad = [f for f in names if f not in PRODUCT_FORMATS]
+    if bad or not names:
+        raise BatchError(f"--format must be one or more of {', '.join(PRODUCT_FORMATS)} "
+                         f"(comma-separated, e.g. envi or envi,tiff), got "
+                         f"{formats if not isinstance(formats, str) else repr(formats)}")
+    return tuple(f for f in PRODUCT_FORMATS if f in names)
 
 
 def output_suffix(steps) -> str:

@@ -10,11 +10,11 @@ their input changed or they are damaged (:func:`hsiffc.batch.task.stale_reason`)
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
+from ..cubes.stream import product_present, read_product
 from ..errors import DataFormatError
-from ..io.corrected import is_corrected_file, read_provenance
+from ..io.corrected import is_corrected_file
 from .plan import BatchError
 
 __all__ = ["check_replacements", "describe_job"]
@@ -41,12 +41,14 @@ def check_replacements(jobs, ctx, settings) -> None:
     if settings.overwrite:
         return
     this = None
-    for job in jobs:
+    for job, fmt in ((j, f) for j in jobs for f in settings.formats):
         out = Path(job.output)
-        if not os.path.isfile(out) or out.is_symlink() or not is_corrected_file(out):
+        present = product_present(out, fmt)
+        if not present or any(p.is_symlink() for p in present) or (
+                fmt == "tiff" and not is_corrected_file(out)):
             continue
         try:
-            prov = read_provenance(out)
+            prov = read_product(out, fmt)
         except DataFormatError:
             continue  # not complete: redone by the task, which says why
         cal, pipe = prov.get("calibration") or {}, prov.get("pipeline") or {}
@@ -57,6 +59,6 @@ def check_replacements(jobs, ctx, settings) -> None:
             this = describe_job({"identity": ctx.identity, "path": settings.calibration},
                                 ctx.info)
         raise BatchError(
-            f"{out}: already written by another job, {describe_job(cal, pipe)}; this run is "
+            f"{present[0]}: already written by another job, {describe_job(cal, pipe)}; this run is "
             f"{this}. Nothing was changed: correct into another folder, or pass --overwrite "
             "to replace that job's outputs")

@@ -99,9 +99,12 @@ class BatchSummary:
         return out
 
     def to_dict(self) -> dict:
-        """JSON-safe summary with one result per file (``--json``)."""
+        """JSON-safe summary with one result per file (``--json``); ``seconds`` is the whole
+        job (reading, correcting and writing every format), ``bytes_written`` the size of the
+        files this run wrote."""
         u = self.uniformity()
         return json_safe({"outdir": self.outdir, "seconds": self.seconds,
+                          "bytes_written": sum(r.get("bytes_written") or 0 for r in self.done),
                           "counts": {s: len(self._with(s)) for s in ("done", "skipped", "failed")},
                           "exit_status": self.exit_status, "calibration": self.calibration,
                           "pipeline": self.pipeline, "ignored": [str(p) for p in self.ignored],
@@ -118,9 +121,11 @@ class BatchSummary:
         frames = sum(r["frames"] for r in done)
         mb = sum(r["bytes"] for r in done) / 1e6
         t = max(self.seconds, 1e-9)
+        written = sum(r.get("bytes_written") or 0 for r in done) / 1e6
         lines = [f"{len(self.results)} files: {len(done)} done, {len(self.skipped)} skipped, "
-                 f"{len(self.failed)} failed; {frames} frames corrected in {self.seconds:.1f} s "
-                 f"({frames / t:.2f} frames/s, {mb / t:.1f} MB/s of input)"]
+                 f"{len(self.failed)} failed; {frames} frames corrected and written in "
+                 f"{self.seconds:.1f} s, the whole job ({frames / t:.2f} frames/s, "
+                 f"{mb / t:.1f} MB/s of input; {written:.1f} MB written)"]
         if self.execution.get("text"):
             lines.append(self.execution["text"])
         lines += [f"note: {n}" for n in self.pipeline.get("notes", [])]

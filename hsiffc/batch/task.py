@@ -7,6 +7,7 @@ the planes to the writer); everything around it is checks, provenance and statis
 
 from __future__ import annotations
 
+import contextvars
 import glob
 import logging
 import os
@@ -31,8 +32,11 @@ from ..io.corrected import (
     BackgroundWriter,
     CorrectedWriter,
     is_corrected_file,
-    read_provenance,
 )
+from ..cubes.stream import (ProductWriter, compression_for, product_files, product_present,
+                            read_product)
+from ..cubes.export import written_by_hsiffc
+from ..files.atomic import FileSet
 from .context import Context, Settings, context_for, sha256_file
 from .plan import BatchError, Job
 from .source import open_input
@@ -75,7 +79,8 @@ def correct_file(job: Job, settings: Settings, on_frame=None, commits=None) -> d
         :mod:`hsiffc.batch.warnrec`), ``redone`` (why an existing output was replaced, or
         None), ``frames``, ``bytes`` (input size), ``seconds`` and per band
         ``uniformity_before``/``uniformity_after`` (mean over the light frames, %) with
-        ``light_frames``.
+        ``light_frames``; for a file done, ``files`` (every file written, in every format)
+        and ``bytes_written`` (their size).
     """
     t0 = time.perf_counter()
     res = empty_result(job)
@@ -108,7 +113,8 @@ def _kept_warnings(out: Path, settings: Settings, res: dict) -> list:
     campaign's summary still lists them; marked ``"run": "earlier"``). A class given to
     ``--fail-on-warning`` fails the file, its output kept."""
     try:
-        records = [dict(r, run="earlier") for r in read_provenance(out).get("warnings") or ()]
+        prov = read_product(out, settings.formats[0])
+        records = [dict(r, run="earlier") for r in prov.get("warnings") or ()]
     except (DataFormatError, OSError):
         return []
     hit = failing_record(records, settings.fail_on_warning)
@@ -124,28 +130,52 @@ class LeftOut(Exception):
 
 
 def _existing_output(out: Path, job: Job, settings: Settings, ctx: Context) -> str | None:
-    """None: no output yet (or --overwrite); "": complete and up to date (skip); else why the
-    existing output of this command is redone. Raises BatchError for a symbolic link or a
-    file that is not an output of ``hsiffc correct`` (kept unless --overwrite)."""
-    if settings.overwrite or not os.path.lexists(out):
+    """None: no output yet (or --overwrite); "": complete and up to date in every format
+    asked for (skip); else why the existing output of this command is redone. Raises
+    BatchError for a symbolic link or a file that is not an output of ``hsiffc correct``
+    (kept unless --overwrite)."""
+    if settings.overwrite:
         return None
-    if out.is_symlink():
-        raise BatchError(f"the output {out} is a symbolic link; hsiffc never writes through a "
-                         "link: remove it, or pass --overwrite to replace the link itself (its "
-                         "target is kept)")
-    if not is_corrected_file(out):
-        raise BatchError(f"the output {out} exists and is not an output of hsiffc correct; move "
-                         "it, or pass --overwrite to replace it")
-    return stale_reason(out, job, ctx, settings.nan) or ""
+    whys = []
+    for fmt in settings.formats:
+        present = product_present(out, fmt)
+        if not present:
+            whys.append(None)
+            continue
+        for path in present:
+            if path.is_symlink():
+                raise BatchError(f"the output {path} is a symbolic link; hsiffc never writes "
+                                 "through a link: remove it, or pass --overwrite to replace "
+                                 "the link itself (its target is kept)")
+        if fmt == "tiff" and not is_corrected_file(out):
+            raise BatchError(f"the output {out} exists and is not an output of hsiffc "
+                             "correct; move it, or pass --overwrite to replace it")
+        if fmt != "tiff":
+            foreign = [p for p in present if not written_by_hsiffc(p)]
+            if foreign:
+                raise BatchError(f"the output {foreign[0]} exists and is not a cube hsiffc "
+                                 "wrote; move it, or pass --overwrite to replace it")
+        whys.append(stale_reason(out, job, ctx, settings.nan, fmt=fmt,
+                                 cube_alpha=settings.cube_alpha) or "")
+    if all(w == "" for w in whys):
+        return ""
+    given = [w for w in whys if w]
+    if given:
+        return given[0]
+    return None if all(w is None for w in whys) else \
+        f"lacks the {', '.join(f for f, w in zip(settings.formats, whys) if w is None)} files"
 
 
-def stale_reason(out: Path, job: Job, ctx: Context, nan: str = "flag") -> str | None:
-    """None when ``out`` is complete and was made from this input, calibration and pipeline;
-    otherwise why it must be redone."""
+def stale_reason(out: Path, job: Job, ctx: Context, nan: str = "flag", *,
+                 fmt: str = "tiff", cube_alpha: bool = False) -> str | None:
+    """None when the product of ``out`` in format ``fmt`` is complete and was made from this
+    input, calibration and pipeline (and, for a cube format, holds the alpha planes when
+    ``cube_alpha`` asks for them); otherwise why it must be redone."""
     try:
-        prov = read_provenance(out)
+        prov = read_product(out, fmt)
     except DataFormatError as exc:
-        return f"is not a complete corrected file ({exc})"
+        what = "corrected file" if fmt == "tiff" else f"{fmt} product"
+        return f"is not a complete {what} ({exc})"
     st = os.stat(job.input)
     src = prov.get("input") or {}
     if src.get("size") != st.st_size or src.get("mtime_ns") != st.st_mtime_ns:
@@ -159,6 +189,9 @@ def stale_reason(out: Path, job: Job, ctx: Context, nan: str = "flag") -> str | 
         return "was made with another pipeline or other parameters"
     if nan == "fail" and any((prov.get("frames") or {}).get("nonfinite_pixels") or ()):
         return "holds NaN/inf pixels flagged under --nan flag"
+    wanted = cube_alpha and bool(ctx.info["alpha_computed"])
+    if fmt != "tiff" and bool(prov.get("cube_alpha")) != wanted:
+        return f"{'lacks' if wanted else 'holds'} the alpha planes (--with-alpha)"
     return None
 
 
@@ -306,29 +339,33 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
     stats = FrameStats(shape, src.mosaic)
     prov = _provenance(job, settings, ctx, src, st)
     t0 = time.perf_counter()
-    _remove_leftovers(out)  # of an interrupted earlier run (the folder lock is held)
-    writer = sink = cube = None
-    with atomic_path(out, overwrite=True, defer=commits) as tmp:
-        # the temporary file exists from the start, as when its shape was known up front (the
-        # writer opens it once the first frame tells whether the output holds cubes)
-        Path(tmp).touch()
+    cube_alpha = settings.cube_alpha and bool(ctx.info["alpha_computed"])
+    prov["cube_alpha"] = cube_alpha
+    for fmt in settings.formats:
+        names = product_files(out, fmt, src.n_frames, cube_alpha)
+        if fmt != "tiff" and not settings.overwrite:  # frame 0's were checked before
+            foreign = [p for p in names if os.path.lexists(p) and (
+                p.is_symlink() or not written_by_hsiffc(p))]
+            if foreign:
+                raise BatchError(f"the output {foreign[0]} exists and is not a cube hsiffc "
+                                 "wrote; move it, or pass --overwrite to replace it")
+        _remove_leftovers(names)  # of an interrupted earlier run (the folder lock is held)
+    files = FileSet()
+    writer = sink = None
+    try:
         frames = Prefetch(src)
         try:
             for raw, meta in frames:
                 frame, bad = _to_frame(raw, meta, src, settings)
                 result = ctx.pipeline.transform(frame)
                 if writer is None:  # the first frame tells the output's shape (a cube or not)
-                    writer = CorrectedWriter(
-                        tmp, prov, n_frames=src.n_frames,
-                        frame_shape=_output_shape(result, shape),
-                        reserve_per_frame=96 + 20 * max(stats.n_bands, result.data.shape[-1]),
-                        alpha=ctx.info["alpha_computed"], compression=settings.compression)
+                    writer = _product_writer(out, settings, ctx, prov, src, result, shape,
+                                             stats, files, cube_alpha)
                     sink = BackgroundWriter(writer)
-                    cube = cube_description(result)
-                elif result.data.shape != writer.frame_shape:
+                elif result.data.shape != writer.shape:
                     raise ValueError(f"the pipeline turned frame {meta.index} into "
                                      f"{result.data.shape}, the first into "
-                                     f"{writer.frame_shape}; one file holds one shape")
+                                     f"{writer.shape}; one file holds one shape")
                 data, dq, lost = _finite(result)
                 sink.write(data, dq, result.alpha)
                 stats.add(frame, result, bad, lost)
@@ -340,33 +377,55 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
             frames.close()
             if sink is not None:
                 sink.close(cancel=True)
-            if writer is not None:
-                writer.close()
             raise
         frames.close()
         if sink is not None:
             sink.close()
         if res["frames"] != src.n_frames or writer is None:
-            if writer is not None:
-                writer.close()
             raise DataFormatError(f"only {res['frames']} of {src.n_frames} frames could be read",
                                   path=job.input)
         res.update(stats.file_result())
         _nonfinite_warnings(stats)
         if caught is not None:
-            try:
-                caught.check(settings.fail_on_warning)
-            except BaseException:
-                writer.close()
-                raise
+            caught.check(settings.fail_on_warning)
         sha = hasher.wait() if hasher is not None else None
         final = {"input": {**prov["input"], "sha256": sha}, "frames": stats.to_dict(),
                  "seconds": round(time.perf_counter() - t0, 3),
                  "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                  "warnings": [] if caught is None else caught.records()}
-        if cube is not None:
-            final["cube"] = cube
+        if writer.cube is not None:
+            final["cube"] = writer.cube
         writer.finish(final)
+    except BaseException:
+        if writer is not None:
+            writer.close()
+        files.abort()
+        raise
+    res["files"] = [str(p) for p in files.paths]
+    res["bytes_written"] = sum(os.stat(files.temp(p)).st_size for p in files.paths)
+    if commits is not None:  # the fsyncs and renames overlap the next file
+        commits.submit(out, contextvars.copy_context().run, files.commit)
+    else:
+        files.commit()
+
+
+def _product_writer(out: Path, settings: Settings, ctx: Context, prov: dict, src, result,
+                    shape, stats, files, cube_alpha: bool) -> ProductWriter:
+    """The writer of every product format of this input, made when the first frame tells
+    the output's shape."""
+    frame_shape = _output_shape(result, shape)
+    cube = cube_description(result)
+    tiff = None
+    if "tiff" in settings.formats:
+        with atomic_path(out, overwrite=True, fileset=files) as tmp:
+            tiff = CorrectedWriter(
+                tmp, prov, n_frames=src.n_frames, frame_shape=frame_shape,
+                reserve_per_frame=96 + 20 * max(stats.n_bands, result.data.shape[-1]),
+                alpha=ctx.info["alpha_computed"],
+                compression=compression_for("tiff", settings.compression))
+    return ProductWriter(out, settings.formats, {**prov, "cube": cube},
+                         shape=result.data.shape, n_frames=src.n_frames, fileset=files,
+                         compression=settings.compression, alpha=cube_alpha, tiff_writer=tiff)
 
 
 def _nonfinite_warnings(stats: FrameStats) -> None:
@@ -439,10 +498,11 @@ def _to_frame(raw, meta, src, settings: Settings) -> tuple[Frame, int]:
     return frame, bad
 
 
-def _remove_leftovers(out: Path) -> None:
-    """Temporary files of an earlier, interrupted attempt at this output."""
-    for stale in out.parent.glob(f".{glob.escape(out.name)}.*{PART_SUFFIX}"):
-        stale.unlink(missing_ok=True)
+def _remove_leftovers(files) -> None:
+    """Temporary files of an earlier, interrupted attempt at these output files."""
+    for out in files:
+        for stale in out.parent.glob(f".{glob.escape(out.name)}.*{PART_SUFFIX}"):
+            stale.unlink(missing_ok=True)
 
 
 def _provenance(job: Job, settings: Settings, ctx: Context, src, st) -> dict:

@@ -71,7 +71,7 @@ MAX_PIXELS = 16384
 MIN_LIGHT_STEPS = 6
 #: a leakage pixel whose ln b has a larger 1-sigma error is not determined by the sweep
 MAX_SIGMA_LN_B = 0.5
-#: Levenberg-Marquardt iterations per pixel: with its dark pinned by the dark frames a
+#: Levenberg-Marquardt iterations per pixel: with its dark held at the dark frames' a
 #: strongly bent pixel can need more than the fit's default 200
 MAX_ITER = 600
 #: the chi-square a pixel's leakage fit must gain over its linear one, per ln(samples) (the
@@ -89,27 +89,25 @@ class FitSettings:
     dark_model: str  #: "in_well" or "additive"
     starts: tuple | None  #: (b start, margin) or None (grids)
     exposure_offset_ms: float
-    dark_weight: float  #: the dark samples' weight factor (pins the dark)
+    fix_dark: bool  #: each pixel's dark level held at its dark frames' line
 
     def fit(self, smp):
         """The joint fit of a chunk of samples and their kernel arguments."""
-        ks = kernel_samples(smp, self.ptc, dark_weight=self.dark_weight,
-                            exposure_offset_ms=self.exposure_offset_ms)
+        ks = kernel_samples(smp, self.ptc, exposure_offset_ms=self.exposure_offset_ms)
         fit = run_kernel(**ks, dark_current="estimate" if self.use_dc else None,
                          dark_model=self.dark_model,
                          b_start=self.starts[0] if self.starts else B_GRID,
                          margins=(self.starts[1],) if self.starts else MARGIN_GRID,
-                         max_iter=MAX_ITER)
+                         max_iter=MAX_ITER, fix_dark=self.fix_dark)
         return fit, ks
 
 
 def fit_dark(fit, ks, settings: FitSettings) -> np.ndarray:
     """Each pixel's dark level (P,), DN: the dark frames'
-    (:func:`~hsiffc.calibrate.samples.dark_level`) where the fit pinned it to them, exactly
-    (the pin leaves the light response a pull of order
-    1/:data:`~hsiffc.calibrate.sensor.DARK_PIN` on it, which a converged fit takes); the
-    fit's own elsewhere."""
-    if settings.dark_weight <= 1:
+    (:func:`~hsiffc.calibrate.samples.dark_level`) where the fit held it at them (the kernel
+    holds it at the same line, so the light response is fitted through exactly this level);
+    the fit's own elsewhere."""
+    if not settings.fix_dark:
         return fit.dark
     frames = dark_level(ks, fit.dark_current)
     return np.where(np.isfinite(frames), frames, fit.dark)
@@ -254,8 +252,9 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
         ``held_out_fpn_percent`` (every candidate) and ``predicted_fpn_percent``; ``bands``:
         per band the same ``kept`` model, ``held_out_fpn_percent`` of every candidate
         (root of the mean relative fixed-pattern variance over the held-out steps) and
-        ``n_steps``, and ``predicted_fpn_percent``: what the kept model's own errors (its
-        factor's and its dark's) predict for the same steps; ``rows``, ``fit_steps``,
+        ``n_steps``, ``predicted_fpn_percent``: what the kept model's own errors (its
+        factor's and its dark's) predict for the same steps, and ``held_out_over_predicted``
+        (the median over the steps of the ratio of the two, see :func:`_figures`); ``rows``, ``fit_steps``,
         ``held_out_steps``, ``candidates``. None where the sweep has fewer than
         :data:`MIN_LIGHT_STEPS` light steps of two or more frames (every band then keeps
         ``pixel_leakage``).
@@ -292,8 +291,7 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
     scores = {name: [] for name in names}
     predicted = {name: [] for name in names}
     levels = []  # per held-out step, each band's mean signal above dark (DN)
-    sigma_dark = dark_sigma(ks, dark_current=settings.use_dc,
-                            dark_weight=settings.dark_weight).reshape(shape)
+    sigma_dark = dark_sigma(ks, dark_current=settings.use_dc).reshape(shape)
     dark0 = dark0.reshape(shape)
     dc = fit.dark_current.reshape(shape)
     for s in held:
@@ -335,7 +333,8 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
                                        {n: v[:, band] for n, v in predicted.items()}, kept)}
              for band in range(n_bands)]
     return {"kept": kept, "held_out_fpn_percent": sensor["held_out_fpn_percent"],
-            "predicted_fpn_percent": sensor["predicted_fpn_percent"], "bands": bands,
+            "predicted_fpn_percent": sensor["predicted_fpn_percent"],
+            "held_out_over_predicted": sensor["held_out_over_predicted"], "bands": bands,
             "rows": [rows.start, rows.stop], "fit_steps": fit_steps, "held_out_steps": held,
             "candidates": names}
 
@@ -385,11 +384,18 @@ def _choose(names, per, level) -> str:
 
 def _figures(per, predicted, kept) -> dict:
     """The held-out figures of the steps every candidate measured: their number, each
-    candidate's root mean relative fixed-pattern variance (percent), the ``kept`` one and
-    what its own errors predict."""
+    candidate's root mean relative fixed-pattern variance (percent), the ``kept`` one, what
+    its own errors predict, and the median over the steps of the kept model's held-out
+    fixed pattern over its prediction (``held_out_over_predicted``: near 1 where the
+    calibration's errors explain what the correction leaves, well above 1 where the data
+    show a pattern the model misses)."""
     ok = np.all([np.isfinite(v) for v in per.values()], axis=0)
     pred = predicted[kept][ok]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.sqrt(np.maximum(per[kept][ok], 0.0) / pred)
+    ratio = ratio[np.isfinite(ratio)]
     return {"n_steps": int(ok.sum()),
+            "held_out_over_predicted": float(np.median(ratio)) if ratio.size else float("nan"),
             "held_out_fpn_percent": {n: float(100 * np.sqrt(max(v[ok].mean(), 0.0)))
                                      if ok.any() else float("nan") for n, v in per.items()},
             "kept": kept,

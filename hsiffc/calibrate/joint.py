@@ -151,7 +151,7 @@ def _weight_args(w, n_frames, noise, s_count):
 def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None,
                dark_current=None, dark_model="in_well", theta0=None, b_start=None,
                margins=MARGIN_GRID, max_iter=200, tol=1e-9, prior_sigma=PRIOR_SIGMA,
-               fallback=True, merge_darks=True) -> JointFit:
+               fallback=True, merge_darks=True, fix_dark=False) -> JointFit:
     """Run :func:`hsiffc.calibrate.pixelfit.fit_block` on (S, P) samples; returns the fit.
 
     Weights are ``w`` (S, P), or come from ``noise = (gain DN/e-, read variance DN^2)`` and
@@ -173,7 +173,8 @@ def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None
         samples, steps, noise_model,
         pixelfit.DarkModel(bool(merge_darks), estimate, dc_in, dark_model == "additive"),
         pixelfit.Starts(b_starts, np.atleast_1d(np.asarray(margins, np.float64)), th0),
-        pixelfit.FitControl(float(prior_sigma), int(max_iter), float(tol), bool(fallback)),
+        pixelfit.FitControl(float(prior_sigma), int(max_iter), float(tol), bool(fallback),
+                            bool(fix_dark)),
         pixelfit.FitOutputs(out_f, out_i))
     return _to_fit(out_f, out_i)
 

@@ -91,6 +91,7 @@ class FitControl(NamedTuple):
     max_iter: int  #: iterations (0: start values only)
     tol: float  #: relative cost change at convergence
     fallback: bool  #: the linear model (a = 0) where the leakage fit fails
+    fix_dark: bool  #: the dark level held at the dark frames' line (where the pixel has them)
 
 
 class FitOutputs(NamedTuple):
@@ -130,7 +131,7 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
     merge, estimate_dc, dc_in, additive = darks
     dc_given = dc_in[p]
     b_starts, margins, theta0 = starts
-    prior_sigma, max_iter, tol, fallback = control
+    prior_sigma, max_iter, tol, fallback, fix_dark = control
     out_f, out_i = outputs
     yq, wq, tq, rq, buf, h, gv, hn, step, ph, trial, prior, cov, scratch, lo, hi = work
     n = t.size
@@ -180,8 +181,13 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
         out_f[p, F_SIGMA:F_SIGMA + 4] = np.inf
         out_f[p, F_CHI2:F_RREF] = np.nan
         return
-    g_lin = (s0 * z1 - s1 * z0) / den
-    d_lin = (z0 - g_lin * s1) / s0
+    held = fix_dark and nd > 0  # the dark level held at the dark frames' line
+    if held:  # the line through it: d = the dark frames' intercept, g by least squares
+        d_lin = md_y - dc * md_t
+        g_lin = (z1 - d_lin * s1) / s2
+    else:
+        g_lin = (s0 * z1 - s1 * z0) / den
+        d_lin = (z0 - g_lin * s1) / s0
     chi2_lin = 0.0
     ss_lin = 0.0
     for i in range(n):
@@ -268,6 +274,8 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
         lo[3], hi[3] = d_lin - 10.0 * span - 100.0, d_lin + 10.0 * span + 100.0
         lo[1], hi[1] = lo[3], ymax + 1e4 * span
         lo[2], hi[2] = np.log(B_MIN), np.log(B_MAX)
+        if held:  # at the bounds: the iteration's active set never frees it
+            lo[3] = hi[3] = d_lin
         for a in range(4):
             ph[a] = min(max(ph[a], lo[a]), hi[a])
         conv, it, _cost, chi2, ss = levenberg_marquardt(
@@ -291,11 +299,11 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
         out_f[p, F_CHI2] = chi2_lin
         out_f[p, F_RMS] = np.sqrt(ss_lin / max(nl + nd, 1))
         # sigmas of g and d from the 2-parameter normal matrix
-        over = max(chi2_lin / max(nfit - 2, 1), 1.0)
-        out_f[p, F_SIGMA] = np.sqrt(s0 / den * over) / g_lin
+        over = max(chi2_lin / max(nfit - (1 if held else 2), 1), 1.0)
+        out_f[p, F_SIGMA] = np.sqrt((1.0 / s2 if held else s0 / den) * over) / g_lin
         out_f[p, F_SIGMA + 1] = np.inf
         out_f[p, F_SIGMA + 2] = np.inf
-        out_f[p, F_SIGMA + 3] = np.sqrt(s2 / den * over)
+        out_f[p, F_SIGMA + 3] = 0.0 if held else np.sqrt(s2 / den * over)
         return
     b = np.exp(ph[2])
     d = ph[3]
@@ -321,9 +329,15 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
                     yi, _, _, _, _ = sample(t[i], 0.0, g, ln_a, dc, additive, ph[1], b, d)
                     ss += (yi - yp[i]) ** 2
     out_f[p, F_RMS] = np.sqrt(ss / max(nl + nd, 1))
-    external_sigma(h, ph, chi2, nfit - 4, step, trial, cov, scratch)
+    if held:  # errors given the dark level (its own error is the dark frames')
+        for a in range(3):
+            h[a, 3] = h[3, a] = 0.0
+        h[3, 3] = 1.0
+    external_sigma(h, ph, chi2, nfit - (3 if held else 4), step, trial, cov, scratch)
     for a in range(4):
         out_f[p, F_SIGMA + a] = step[a]
+    if held:
+        out_f[p, F_SIGMA + 3] = 0.0
 
 
 @njit(**LOCALS_ONLY)

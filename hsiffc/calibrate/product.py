@@ -486,7 +486,10 @@ def _choice_lines(choice) -> list:
         errs = ", ".join(f"{name} {value:.3f}" for name, value in
                          row["held_out_fpn_percent"].items())
         pred = row.get("predicted_fpn_percent", float("nan"))
-        return errs + (f"; its own errors predict {pred:.3f}" if pred == pred else "")
+        ratio = row.get("held_out_over_predicted", float("nan"))
+        return (errs + (f"; its own errors predict {pred:.3f}" if pred == pred else "")
+                + (f"; held-out / predicted {ratio:.2f} per step (median)"
+                   if ratio == ratio else ""))
 
     n = len(choice["held_out_steps"])
     lines = []

@@ -158,8 +158,9 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     _step_means(sweep.data, sel, np.array([f.size for f in frames_of]), r0, r1,
                 float(fs if clip_dn is None else clip_dn),
                 float(-np.inf if floor_dn is None else floor_dn), means, clipped)
+    averaged = sweep.meta.get("frames_averaged")  # frames that are means of several
     for i, f in enumerate(frames_of):
-        n_frames[i] = f.size
+        n_frames[i] = f.size if averaged is None else int(np.asarray(averaged)[f].sum())
         exposure[i] = sweep.exposure_ms[f[0]]
         kind[i] = sweep.kind[f[0]]
         photons[i] = sweep.photons[f[0]]
@@ -219,17 +220,31 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
         None when no step has two frames.
     """
     fs = sweep.full_scale_dn
-    rows = []
-    dark_means = []
+    pairs = []
     for s in sweep.steps():
         sel = np.flatnonzero(sweep.step == s)
-        if sel.size < 2:
+        if sel.size >= 2:
+            pairs.append((sweep.kind[sel[0]],
+                          *_pair_stats(sweep.data[sel[0]], sweep.data[sel[1]], float(fs))))
+    return photon_transfer_from_pairs(pairs, sweep.data[0].size, fs,
+                                      max_fraction_of_full_scale=max_fraction_of_full_scale)
+
+
+def photon_transfer_from_pairs(pairs, n_pixels: int, full_scale_dn: float, *,
+                               max_fraction_of_full_scale: float = 0.7
+                               ) -> PhotonTransfer | None:
+    """:func:`photon_transfer` from the first two frames of every step, reduced: ``pairs`` holds
+    per step (kind, pixels below full scale in both frames, their mean level in DN, half
+    their mean squared frame-to-frame difference in DN^2), e.g. accumulated while the frames
+    were streamed (:mod:`hsiffc.emva1288.stream`); ``n_pixels`` the frame's pixels."""
+    fs = full_scale_dn
+    rows = []
+    dark_means = []
+    for kind, n_ok, mean, var in pairs:
+        if n_ok < 0.5 * n_pixels:
             continue
-        n_ok, mean, var = _pair_stats(sweep.data[sel[0]], sweep.data[sel[1]], float(fs))
-        if n_ok < 0.5 * sweep.data[0].size:
-            continue
-        rows.append((sweep.kind[sel[0]], mean, var))
-        if sweep.kind[sel[0]] == "dark":
+        rows.append((kind, mean, var))
+        if kind == "dark":
             dark_means.append(mean)
     if not rows:
         return None
@@ -251,7 +266,7 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
                           n_steps_used=int(light.sum()))
 
 
-def kernel_samples(smp: Samples, ptc: PhotonTransfer | None, *, dark_weight: float = 1.0,
+def kernel_samples(smp: Samples, ptc: PhotonTransfer | None, *,
                    exposure_offset_ms: float = 0.0) -> dict:
     """Arguments of :func:`hsiffc.calibrate.joint.run_kernel` for a chunk of samples: (S, P)
     step means and validity, the per-step arrays and the photon-transfer noise model.
@@ -262,10 +277,6 @@ def kernel_samples(smp: Samples, ptc: PhotonTransfer | None, *, dark_weight: flo
         Step means of a chunk of pixels (:func:`hsiffc.calibrate.collect_samples`).
     ptc : PhotonTransfer or None
         Noise model for the weights (None: unit read variance).
-    dark_weight : float
-        Factor on the weight of the dark samples: :data:`DARK_PIN` pins each pixel's dark
-        level to its dark frames (the fit's intercept is then the dark frames' line, not the
-        light response's extrapolation).
     exposure_offset_ms : float, ms
         Added to the exposure of every light sample: the light is collected for ``t + t0``
         (a shutter or transfer offset, :func:`exposure_offset`). A light step whose
@@ -284,9 +295,8 @@ def kernel_samples(smp: Samples, ptc: PhotonTransfer | None, *, dark_weight: flo
     light &= t_light > 0
     t = np.where(light, t_light, np.where(usable, smp.exposure_ms, 0.0))
     dark = usable & (smp.kind == "dark")
-    n_frames = smp.n_frames * np.where(dark, float(dark_weight), 1.0)
     return {"y": smp.y, "valid": smp.valid, "t": t, "r": np.where(light | dark, r, 0.0),
-            "light": light, "dark": dark, "n_frames": n_frames,
+            "light": light, "dark": dark, "n_frames": smp.n_frames,
             "noise": None if ptc is None else (ptc.gain_dn_per_e, ptc.read_var_dn2)}
 
 
@@ -412,7 +422,7 @@ def dark_level(ks: dict, dark_current) -> np.ndarray:
     return np.where(sw > 0, my - np.asarray(dark_current, np.float64) * mt, np.nan)
 
 
-def dark_sigma(ks: dict, *, dark_current: bool, dark_weight: float = 1.0) -> np.ndarray:
+def dark_sigma(ks: dict, *, dark_current: bool) -> np.ndarray:
     """Per pixel, the 1-sigma error (DN) of the dark level measured by its dark frames: the
     intercept of the weighted line through the dark samples (or their weighted mean without a
     dark current), each step mean weighted by its frames over the read variance.
@@ -423,8 +433,6 @@ def dark_sigma(ks: dict, *, dark_current: bool, dark_weight: float = 1.0) -> np.
         :func:`kernel_samples` of the pixels.
     dark_current : bool
         Whether the dark line has a slope (the dark current).
-    dark_weight : float
-        The factor ``ks``'s dark frame counts carry (divided out).
 
     Returns
     -------
@@ -433,7 +441,7 @@ def dark_sigma(ks: dict, *, dark_current: bool, dark_weight: float = 1.0) -> np.
     read_var = ks["noise"][1] if ks["noise"] is not None else 1.0
     rows = np.flatnonzero(ks["dark"])
     use = ks["valid"][rows].astype(np.float64)
-    w = np.asarray(ks["n_frames"], np.float64)[rows] / dark_weight / read_var
+    w = np.asarray(ks["n_frames"], np.float64)[rows] / read_var
     t = ks["t"][rows]
     sw, swt, swtt = w @ use, (w * t) @ use, (w * t * t) @ use
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -29,10 +29,6 @@ log = logging.getLogger(__name__)
 N_PILOT = 4096
 MIN_LIGHT_DOSES = 3
 DO_NOT_USE_STATUS = (pixelfit.TOO_FEW,) + pixelfit.NO_FIT
-#: weight factor on the dark samples that pins each pixel's dark level to its dark frames (1e2
-#: and 1e3 left the light response's pull on it at 0.1-1 DN on the 10-bit light sweep of
-#: ../shared/data, enough to double the fixed pattern at 2-12 % of saturation)
-DARK_PIN = 1e4
 
 
 def check_design(sweep: Sweep, light_rate=None) -> None:
@@ -97,7 +93,7 @@ def _dark_slopes(ks) -> np.ndarray:
 
 
 def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model, seed=0,
-           dark_weight=1.0, offset="auto"):
+           fix_dark=False, offset="auto"):
     """Sensor-wide choices on a random sample of pixels: dark current used or not, dark model,
     start value of b, exposure offset. Returns (use_dc, dark_model, b0, t0, report dict)."""
     h, w = sweep.frame_shape
@@ -106,7 +102,8 @@ def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model
     idx = np.sort(rng.choice(n, size=min(n, N_PILOT), replace=False))
     rr, cc = np.unravel_index(idx, (h, w))
     sub = replace(sweep, data=np.ascontiguousarray(sweep.data[:, rr, cc])[:, None, :],
-                  mosaic=None, meta={})
+                  mosaic=None, meta={k: sweep.meta[k] for k in ("frames_averaged",)
+                                     if k in sweep.meta})
     smp = collect_samples(sub, full_well_dn=full_well_dn, light_rate=light_rate)
     ks = kernel_samples(smp, ptc)
     dark_exposures = np.unique(smp.exposure_ms[(smp.kind == "dark") & smp.usable_step])
@@ -118,7 +115,7 @@ def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model
         t0 = float(offset or 0.0)
         report["exposure_offset"] = {"exposure_offset_ms": t0, "used": bool(t0),
                                      "reason": "given"}
-    ks = kernel_samples(smp, ptc, dark_weight=dark_weight, exposure_offset_ms=t0)
+    ks = kernel_samples(smp, ptc, exposure_offset_ms=t0)
     use_dc = False
     if dark_current is True or (dark_current == "auto" and dark_exposures.size >= 2):
         dc = _dark_slopes(ks)
@@ -132,7 +129,7 @@ def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model
     fits = {}
     for m in models:
         fits[m] = run_kernel(**ks, dark_current="estimate" if use_dc else None, dark_model=m,
-                             b_start=B_GRID)
+                             b_start=B_GRID, fix_dark=fix_dark)
     chi2 = {m: float(np.nansum(f.chi2)) for m, f in fits.items()}
     chosen = min(chi2, key=chi2.get)
     if len(chi2) > 1:
@@ -157,12 +154,12 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                     dark_current: bool | str = "auto", dark_model: str = "auto",
                     dark_from: str = "frames", exposure_offset_ms="auto", flats=None,
                     choose: bool = True, rows_per_chunk: int | None = None,
-                    progress=None) -> Calibration:
+                    progress=None, ptc: PhotonTransfer | None = None) -> Calibration:
     """Joint per-pixel fit of responsivity, a, b and the dark model from one sweep, with each
     band's model chosen by held-out prediction.
 
     Every per-pixel parameter is earned from the data that determine it best: the dark level
-    of each pixel from its dark frames (``dark_from="frames"``: the dark samples pin it; the
+    of each pixel from its dark frames (``dark_from="frames"``: the fit holds it there; the
     light response does not set it), a light response that does not start at the dark level
     as one exposure offset for the sensor (:func:`~hsiffc.calibrate.samples.exposure_offset`),
     leakage a and b only where the sweep determines them, and per band the simplest model
@@ -203,6 +200,10 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         Rows fitted at once (memory is bounded by rows x width x steps).
     progress : callable, optional
         Called with (rows_done, rows_total) after each chunk.
+    ptc : PhotonTransfer, optional
+        The photon transfer of the sweep's raw frames, when its frames are step means
+        (``meta["frames_averaged"]``: how many raw frames each stands for) that cannot give
+        it (:func:`~hsiffc.calibrate.samples.photon_transfer_from_pairs`).
 
     Returns
     -------
@@ -222,12 +223,12 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     if dark_from not in ("frames", "fit"):
         raise ParameterError(f"dark_from must be 'frames' or 'fit', got {dark_from!r}")
     h, w = sweep.frame_shape
-    ptc = photon_transfer(sweep)
-    pin = DARK_PIN if dark_from == "frames" and sweep.is_dark.any() else 1.0
+    ptc = ptc or photon_transfer(sweep)
+    fix = dark_from == "frames" and bool(sweep.is_dark.any())
     use_dc, dmodel, starts, t0, pilot = _pilot(sweep, ptc, full_well_dn, light_rate,
-                                               dark_current, dark_model, dark_weight=pin,
+                                               dark_current, dark_model, fix_dark=fix,
                                                offset=exposure_offset_ms)
-    settings = choice.FitSettings(ptc, full_well_dn, use_dc, dmodel, starts, t0, pin)
+    settings = choice.FitSettings(ptc, full_well_dn, use_dc, dmodel, starts, t0, fix)
     chosen = (choice.choose_models(sweep, settings, flats=flats, light_rate=light_rate)
               if choose else None)
     band_map = (sweep.mosaic.band_map(sweep.frame_shape) if sweep.mosaic is not None
@@ -262,8 +263,8 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                         ("sigma_ln_g", kept["sigma_ln_g"]),
                         ("sigma_ln_a", fit.sigma[:, 1]),
                         ("sigma_ln_b", fit.sigma[:, 2]),
-                        ("sigma_dark_dn", fit.sigma[:, 3] if pin == 1 else
-                         dark_sigma(ks, dark_current=use_dc, dark_weight=pin)),
+                        ("sigma_dark_dn", dark_sigma(ks, dark_current=use_dc) if fix else
+                         fit.sigma[:, 3]),
                         ("rms_dn", fit.rms_dn), ("chi2_red", fit.chi2_red),
                         ("saturation_ref_dn", sat)):
             out[name][rows] = v.reshape(shape)
@@ -296,7 +297,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                         + ("filling the well with the signal (it leaks with it)"
                            if dmodel == "in_well" else "added to the response after leakage")
                         if use_dc else "a constant dark level per pixel"),
-        "dark_from": "dark frames" if pin > 1 else "each pixel's fit",
+        "dark_from": "dark frames" if fix else "each pixel's fit",
         **pilot}
     fitted["exposure_offset_ms"] = float(t0)
     fitted["model_choice"] = chosen or {"bands": None, "reason": (

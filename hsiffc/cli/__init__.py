@@ -212,12 +212,14 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
-    from ..batch.memory import reuse_freed_memory
     from ..files.atomic import write_policy
     from .common import check_declared_outputs, declared, input_files
     from .status import command_status
 
-    reuse_freed_memory()  # a frame's large arrays reuse the last frame's pages (hsiffc.batch.memory)
+    if getattr(args, "reuse_memory", True):  # a command that streams small state opts out
+        from ..batch.memory import reuse_freed_memory
+
+        reuse_freed_memory()  # a frame's large arrays reuse the last frame's pages
     prefix = f"hsiffc {args.command}: error:"
     try:
         inputs = declared(args, "input_args")

@@ -44,27 +44,34 @@ def register(sub) -> None:
                    help="only the standard's figures (no leakage calibration)")
     add_input_options(p)
     add_overwrite(p, "replace an existing --json file or the files of an earlier --report")
+    # streamed statistics: no frame-sized arrays to keep for reuse (hsiffc.batch.memory)
     p.set_defaults(func=_cmd_emva1288, input_args=("descriptor", "calibration"),
-                   output_args=("json",), output_dirs=("report",))
+                   output_args=("json",), output_dirs=("report",), reuse_memory=False)
 
 
 def _cmd_emva1288(args) -> int:
-    from ..calibrate import Calibration
-    from ..emva1288 import run_characterisation, to_json, write_report
-    from ..emva1288.render import fmt
-    from ..io import read_sweep
+    from ..emva1288 import run_characterisation
+    from ..emva1288.render import fmt, to_json, write_report
+    from ..io import open_source
 
     if args.no_leakage and args.calibration is not None:
         raise HsiffcError("--calibration is for the leakage part; drop --no-leakage or it")
-    sweep = read_sweep(args.descriptor, overrides=input_overrides(args))
-    if sweep.meta.get("format") != "emva1288":
-        raise HsiffcError(f"{args.descriptor}: not an EMVA 1288 measurement; give its "
-                          "descriptor (.txt with 'b EXPOSURE PHOTONS' lines) or its folder")
-    print(sweep.summary())
-    cal = Calibration.load(args.calibration) if args.calibration else None
-    res, leak, note = run_characterisation(
-        sweep, pixel_area_um2=args.pixel_area_um2, wavelength_nm=args.wavelength_nm,
-        leakage=not args.no_leakage, calibration=cal)
+    # streamed: each step is reduced to its statistics as its frames are read
+    with open_source(args.descriptor, overrides=input_overrides(args)) as sweep:
+        if sweep.meta.get("format") != "emva1288":
+            raise HsiffcError(f"{args.descriptor}: not an EMVA 1288 measurement; give its "
+                              "descriptor (.txt with 'b EXPOSURE PHOTONS' lines) or its folder")
+        h, w = sweep.frame_shape
+        print(f"{sweep.n_frames} frames of {h} x {w} px, {sweep.bit_depth}-bit, "
+              f"{len(set(sweep.step.tolist()))} steps, from {sweep.label}")
+        cal = None
+        if args.calibration:
+            from ..calibrate import Calibration
+
+            cal = Calibration.load(args.calibration)
+        res, leak, note = run_characterisation(
+            sweep, pixel_area_um2=args.pixel_area_um2, wavelength_nm=args.wavelength_nm,
+            leakage=not args.no_leakage, calibration=cal)
     write_json(args.json, to_json(res, leak, note))
     for name, f in res["figures"].items():
         se = f" +- {fmt(f['se'], 2)}" if f.get("se") is not None else ""

@@ -197,27 +197,41 @@ def _add_correct(sub):
                         "output's provenance")
     add_input_options(p)
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
-    p.add_argument("--format", choices=("tiff", "envi", "ome", "netcdf"), default="tiff",
-                   help="besides the hsiffc TIFF, write every corrected frame as a cube in this "
-                        "format: envi (NAME.hdr/.img, bands by wavelength, DQ and alpha as "
-                        "their own files), ome (NAME.ome.tif, channels named by wavelength), "
-                        "netcdf (NAME.nc through xarray: pip install 'hsiffc[xarray]'); mosaic "
-                        "frames become one spectrum per tile. See the formats page")
+    p.add_argument("--format", default="tiff", metavar="FORMATS",
+                   help="the files to write, one or more of tiff, envi, ome, netcdf "
+                        "(comma-separated; default tiff): tiff the hsiffc TIFF "
+                        "(NAME.corrected.tif, every frame), envi (NAME.hdr/.img, bands by "
+                        "wavelength, DQ as NAME.dq.hdr/.img), ome (NAME.ome.tif, channels "
+                        "named by wavelength), netcdf (NAME.nc: pip install 'hsiffc[xarray]'), "
+                        "a cube per frame; mosaic frames become one spectrum per tile. Only "
+                        "these are written; each keeps the provenance and resumes alone. See "
+                        "the formats page")
+    p.add_argument("--with-alpha", action="store_true",
+                   help="also write the alpha planes in the envi, ome and netcdf files "
+                        "(NAME.alpha.hdr/.img; the hsiffc TIFF always holds them)")
     p.add_argument("--cube", choices=CUBE_METHODS, default=None, metavar="METHOD",
                    help="append a reconstruct step: write full-resolution (H, W, bands) cubes "
                         f"by METHOD ({', '.join(CUBE_METHODS[:-1])}) or one spectrum per "
                         "mosaic tile "
                         "(tile). A --pipeline whose last step reconstructs writes cubes without "
-                        "it")
+                        "it. Which to use: ppid_edge for full-resolution cubes (the most "
+                        "accurate against ground truth on both benchmark sensors); ppid to "
+                        "match earlier results; ppid_paper to compare with "
+                        "the literature (Mihoubi et al. 2017); bilinear for no mixing between "
+                        "bands; tile when the spectra matter more than the resolution; nearest "
+                        "for a quick look. Figures: docs/results/recon.md")
     p.add_argument("--cube-correction", choices=("imec", "derived"), default=None,
                    help="with --cube: apply the IMEC correction matrix to virtual bands (imec: "
                         "the vendor's; derived: computed from the band responses); needs "
                         "--imec-xml")
     p.add_argument("--imec-xml", type=Path, default=None, metavar="XML",
                    help="the sensor's IMEC calibration XML, for --cube-correction")
-    p.add_argument("--compression", choices=("none", "zlib", "zstd", "lzma"), default="none",
-                   help="compress the TIFF outputs' pages (and --format ome/netcdf; netCDF "
-                        "takes zlib only); default none")
+    p.add_argument("--compression", choices=("auto", "none", "zlib", "zstd", "lzma"),
+                   default="auto",
+                   help="lossless compression of the outputs: auto (default) the DQ plane, "
+                        "zstd in the hsiffc TIFF, deflate (zlib) in ome and netcdf, none in envi "
+                        "(the format has none), the float planes raw; none; or zlib, zstd, "
+                        "lzma for every plane of the TIFF formats (netcdf takes zlib)")
     p.set_defaults(func=_cmd_correct,
                    input_args=("inputs", "calibration", "pipeline", "imec_xml"),
                    output_args=("json",))
@@ -290,48 +304,6 @@ class Progress:
             self._p.stop()
 
 
-def _exports(summary, fmt: str, *, overwrite: bool, compression=None) -> int:
-    """Cubes in format ``fmt`` of the outputs this run wrote, and of skipped ones whose cubes
-    are missing or older than the corrected file. An existing file is replaced only when
-    hsiffc wrote it from the same corrected file (it names it as its source) or with
-    ``--overwrite``; any other file at one of the names is reported and that output's cubes
-    are left unwritten.
-
-    Returns the number of corrected files whose cubes could not be written (0: all done).
-    """
-    from ..cubes.export import export_corrected, export_files, written_from
-    from ..io.corrected import read_provenance
-
-    failed = 0
-    label = {"envi": "ENVI", "ome": "OME-TIFF", "netcdf": "netCDF"}[fmt]
-    for r in summary.done + summary.skipped:
-        if r.get("left_out"):
-            continue  # no output: a file of darks left out of the scene batch
-        out = Path(r["output"])
-        try:
-            files = export_files(out, fmt, read_provenance(out))
-            present = [p for p in files if os.path.lexists(p)]
-            made = out.stat().st_mtime
-            if (r["status"] == "skipped" and not overwrite and len(present) == len(files)
-                    and all(p.stat().st_mtime >= made for p in present)):
-                continue  # complete and up to date
-            foreign = [p for p in present if not written_from(p, out)]
-            if foreign and not overwrite:
-                raise HsiffcError(f"{foreign[0]}: already exists and is not a cube hsiffc "
-                                  f"wrote from {out.name}; pass --overwrite to replace it, or "
-                                  "move it")
-            export_corrected(out, fmt, overwrite=True,
-                             compression=None if fmt == "envi" else compression,
-                             remove_leftovers=True)  # the folder's lock is held
-        except (HsiffcError, OSError) as exc:
-            failed += 1
-            print(f"hsiffc correct: {label} cubes of {out.name} not written: {exc}",
-                  file=sys.stderr)
-            continue
-        print(f"wrote {label} cubes for {out.name}")
-    return failed
-
-
 def _cmd_correct(args) -> int:
     from ..batch import correct_batch
     from ..files.atomic import check_output
@@ -357,19 +329,8 @@ def _cmd_correct(args) -> int:
                      inputs=[path for path, _ in discover_inputs(args.inputs)[0]])
     if args.cube_correction is not None and args.cube is None:
         raise HsiffcError("--cube-correction applies to the cubes of --cube METHOD; add --cube")
-    if args.format == "netcdf":  # checked before any file is corrected
-        from ..cubes.xr import require_xarray
-
-        require_xarray()
     compression = None if args.compression == "none" else args.compression
     show = not args.quiet and sys.stderr.isatty()
-    exports = {"failed": 0}
-
-    def finish(summary):  # inside the output folder's lock (issue 52: a second run could
-        print(summary.to_text())  # start during the exports)
-        if args.format != "tiff":
-            exports["failed"] = _exports(summary, args.format, overwrite=args.overwrite,
-                                         compression=compression)
     try:
         summary = correct_batch(args.inputs, args.outdir, args.calibration,
                                 pipeline=args.pipeline, threshold_percent=args.threshold,
@@ -381,13 +342,14 @@ def _cmd_correct(args) -> int:
                                 observer=Progress(bar=show), cube=args.cube,
                                 cube_correction=args.cube_correction,
                                 imec_xml=args.imec_xml, compression=compression,
-                                device=args.device, after=finish,
-                                fail_on_warning=args.fail_on_warning)
+                                device=args.device, fail_on_warning=args.fail_on_warning,
+                                formats=args.format, cube_alpha=args.with_alpha)
     except KeyboardInterrupt:
         print("hsiffc correct: interrupted; finished outputs are kept (no partial file is left "
               "under a final name): run the same command again to resume", file=sys.stderr)
         return 130
+    print(summary.to_text())
     if args.json:
         write_json(args.json, summary.to_dict())
-    return max(summary.exit_status, 1 if exports["failed"] else 0)
+    return summary.exit_status
 

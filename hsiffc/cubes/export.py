@@ -1,11 +1,12 @@
-"""The outputs of ``hsiffc correct`` in other formats: :func:`export_corrected`.
+"""An hsiffc TIFF's frames as cubes of another format: :func:`export_corrected`.
 
-``hsiffc correct`` always writes its hsiffc TIFF (``NAME.corrected.tif``: resumable, with the
-provenance); ``--format envi|ome|netcdf`` then writes every frame of it beside it as a cube of
-that format, one frame at a time: ``NAME.corrected`` + the format's suffix for a file of one
-frame, ``NAME.corrected_f0000`` ... for several. A corrected file of cubes is written as it
-is; a corrected file of mosaic frames becomes one spectrum per mosaic tile
-(:func:`hsiffc.reconstruct.tile_cube`), as before cubes could be written.
+``hsiffc correct --format envi|ome|netcdf`` writes its cubes straight from the correction
+(:mod:`hsiffc.cubes.stream`); this module turns a corrected file that is already on disk
+(``NAME.corrected.tif``) into the same cubes, one frame at a time: ``NAME.corrected`` + the
+format's suffix for a file of one frame, ``NAME.corrected_f0000`` ... for several
+(:func:`export_names`). A corrected file of cubes is written as it is; a corrected file of
+mosaic frames becomes one spectrum per mosaic tile (:func:`hsiffc.reconstruct.tile_cube`).
+:func:`cube_from_corrected` makes the :class:`Cube` of one frame for both.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from .product import Cube
 from .writers import FORMATS, cube_files, write_cube
 
 __all__ = ["cube_from_corrected", "export_corrected", "export_files", "export_names",
-           "written_from"]
+           "written_by_hsiffc", "written_from"]
 
 
 def export_names(path, n_frames: int) -> list[Path]:
@@ -157,6 +158,35 @@ def written_from(file, corrected) -> bool:
                 source = h5.attrs.get("source")
             source = source.decode() if isinstance(source, bytes) else source
             return str(source) == name
+    except Exception:  # unreadable or not ours
+        return False
+    return False
+
+
+def written_by_hsiffc(file) -> bool:
+    """Whether ``file`` is a cube file hsiffc wrote: an ENVI header (or the data file of one)
+    with hsiffc's keys, an OME-TIFF whose Description is hsiffc's cube document, a netCDF file
+    with hsiffc's attributes. The batch replaces such a file at one of its product's names
+    (an earlier or interrupted run's); any other file only with ``--overwrite``."""
+    file = Path(file)
+    low = file.name.lower()
+    try:
+        if low.endswith((".hdr", ".img")):
+            from ..io.envi import parse_envi_header
+
+            head = parse_envi_header(file.with_suffix(".hdr"))
+            return "hsiffc version" in head or "dq bit names" in head or \
+                str(head.get("description", "")).startswith("hsiffc")
+        if low.endswith((".tif", ".tiff")):
+            import tifffile
+
+            with tifffile.TiffFile(file) as tf:
+                return "hsiffc-cube" in (tf.pages[0].description or "")
+        if low.endswith(".nc"):
+            import h5py
+
+            with h5py.File(file, "r") as h5:
+                return "json_attrs" in h5.attrs and "dq_bits" in h5.attrs
     except Exception:  # unreadable or not ours
         return False
     return False

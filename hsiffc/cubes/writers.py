@@ -25,7 +25,13 @@ in their JSON, netCDF in coordinates and attributes, ENVI in ``hsiffc version``,
 
 ENVI headers are written and parsed by :mod:`hsiffc.io.envi`, not SPy: SPy is an optional
 dependency, and the reader must apply hsiffc's size limits and refuse a damaged header before
-any data is read.
+any data is read (SPy's ``envi.read_envi_header`` reads a header of any size whole). SPy opens
+every file written here (``tests/test_io_end_to_end.py`` compares its arrays with
+:func:`~hsiffc.cubes.read_cube`'s). The DQ and alpha companions are ENVI pairs of their own,
+``NAME.dq.hdr`` + ``NAME.dq.img``: each header is its data file's name with ``.hdr`` in place
+of ``.img``, the pairing ENVI, SPy (``spectral.open_image``) and GDAL's ENVI driver look for, so
+each opens alone; ENVI has no standard key that links a quality file to its cube, so the data
+header names it in ``dq file`` (and ``alpha file``).
 
 The DQ plane of the ENVI, OME-TIFF and netCDF files is stored in the smallest unsigned type that
 holds the DQ bits in use (:func:`dq_storage`: uint16 today), with the bit table beside it; the
@@ -150,7 +156,7 @@ def _document(cube) -> dict:
 
 def write_cube(cube, path, *, format: str | None = None, compression: str | None = None,
                overwrite: bool | None = None, description: str = "",
-               extra: dict | None = None) -> list[Path]:
+               extra: dict | None = None, fileset=None) -> list[Path]:
     """Write a cube (with its DQ and alpha) as ``format``.
 
     Parameters
@@ -160,14 +166,19 @@ def write_cube(cube, path, *, format: str | None = None, compression: str | None
     path : str or Path
         The main file (its suffix chooses the format when ``format`` is None).
     format : {"tiff", "envi", "ome", "netcdf"}, optional
-    compression : {"zlib", "zstd", "lzma"}, optional
-        For the TIFF formats (imagecodecs), and netCDF (zlib). ENVI is never compressed.
+    compression : {"zlib", "zstd", "lzma"} or dict, optional
+        For the TIFF formats (imagecodecs), and netCDF (zlib). ENVI is never compressed. A
+        dict names it per plane (``{"dq": "zstd"}``: the DQ plane only, which compresses
+        tenfold or more at little cost, where float data gain ~20 %).
     overwrite : bool, optional
         Replace existing files (default: the current write policy, which refuses).
     description : str
         A line saying what the cube is (ENVI ``description``, TIFF provenance).
     extra : dict, optional
         More ENVI header entries.
+    fileset : hsiffc.files.atomic.FileSet, optional
+        Leave every file in this set (renamed with the rest of it by its ``commit``) instead
+        of renaming each when it is written.
 
     Returns
     -------
@@ -183,31 +194,34 @@ def write_cube(cube, path, *, format: str | None = None, compression: str | None
     if fmt not in FORMATS:
         raise DataFormatError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}",
                               path=path)
-    if compression is not None and compression not in COMPRESSIONS:
-        raise DataFormatError(f"compression must be one of {', '.join(COMPRESSIONS)}, got "
-                              f"{compression!r}", path=path)
+    codecs = compression.values() if isinstance(compression, dict) else [compression]
+    if any(c is not None and c not in COMPRESSIONS for c in codecs):
+        raise DataFormatError(f"compression must be one of {', '.join(COMPRESSIONS)} (or a "
+                              f"dict of them per plane: data, dq, alpha), got {compression!r}",
+                              path=path)
     if fmt == "envi" and compression is not None:
         raise DataFormatError("ENVI files are not compressed; drop the compression or choose "
                               "tiff, ome or netcdf", path=path)
     files = cube_files(path, fmt, alpha=cube.alpha is not None)
+    put = {"overwrite": overwrite, "fileset": fileset}  # how each file is put in place
     if fmt == "envi":
-        _write_envi(cube.sorted(), files[0], description, extra, overwrite)
+        _write_envi(cube.sorted(), files[0], description, extra, put)
     elif fmt == "ome":
-        _write_ome(cube.sorted(), files[0], compression, description, overwrite)
+        _write_ome(cube.sorted(), files[0], compression, description, put)
     elif fmt == "netcdf":
-        _write_netcdf(cube, files[0], compression, description, overwrite)
+        _write_netcdf(cube, files[0], compression, description, put)
     else:
-        _write_tiff(cube.sorted(), files[0], compression, description, overwrite)
+        _write_tiff(cube.sorted(), files[0], compression, description, put)
     return files
 
 
-def _write_tiff(cube, path, compression, description, overwrite) -> None:
+def _write_tiff(cube, path, compression, description, put) -> None:
     from ..io.corrected import CorrectedWriter
 
     doc = {**_document(cube), "format_note": description or "written by hsiffc.io.write_cube",
            "alpha_computed": cube.alpha is not None}
     doc.pop("format")
-    with atomic_path(path, overwrite=overwrite) as tmp:
+    with atomic_path(path, **put) as tmp:
         writer = CorrectedWriter(tmp, doc, n_frames=1, frame_shape=cube.data.shape,
                                  alpha=cube.alpha is not None, compression=compression)
         with writer:
@@ -251,7 +265,7 @@ def _envi_provenance(cube) -> dict:
                                        allow_nan=False)}
 
 
-def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
+def _write_envi(cube, header: Path, description, extra, put) -> None:
     from ..io.envi import check_header_values, write_envi
 
     base = header.with_suffix("")
@@ -284,18 +298,17 @@ def _write_envi(cube, header: Path, description, extra, overwrite) -> None:
     write_envi(files["dq"], dq, wavelengths_nm=wl, band_names=cube.band_names(),
                description=f"{text}: DQ bits ({dq.dtype}; names and values in dq bit names / "
                            "dq bit values)", interleave="bsq",
-               extra={**common, **names, **_envi_dq_entries()},
-               overwrite=overwrite)
+               extra={**common, **names, **_envi_dq_entries()}, **put)
     if cube.alpha is not None:
         write_envi(files["alpha"], cube.alpha, wavelengths_nm=wl, band_names=cube.band_names(),
                    description=f"{text}: leakage percentage alpha (percent)",
-                   extra={**common, **names, "data units": "percent"}, overwrite=overwrite)
+                   extra={**common, **names, "data units": "percent"}, **put)
     write_envi(base, cube.data, wavelengths_nm=wl, band_names=cube.band_names(),
                description=f"{text} ({cube.unit})", interleave="bsq", extra=data_extra,
-               overwrite=overwrite)
+               **put)
 
 
-def _write_ome(cube, path: Path, compression, description, overwrite) -> None:
+def _write_ome(cube, path: Path, compression, description, put) -> None:
     names = cube.band_names()
     doc = json.dumps({**_document(cube), "note": description}, allow_nan=False)
     planes = [("data", cube.data, names),
@@ -308,17 +321,18 @@ def _write_ome(cube, path: Path, compression, description, overwrite) -> None:
     emission = ({"EmissionWavelength": [float(w) for w in wl],
                  "EmissionWavelengthUnit": ["nm"] * cube.n_bands}
                 if wl is not None and all(np.isfinite(w) and w > 0 for w in wl) else {})
-    with atomic_path(path, overwrite=overwrite) as tmp:
+    with atomic_path(path, **put) as tmp:
         with tifffile.TiffWriter(tmp, ome=True, bigtiff=volume > _BIGTIFF_ABOVE) as tw:
             for name, arr, channels in planes:
                 meta = {"axes": "CYX", "Name": name, "Channel": {"Name": channels, **emission}}
                 if name == "data":
                     meta["Description"] = doc
+                codec = compression.get(name) if isinstance(compression, dict) else compression
                 tw.write(np.ascontiguousarray(np.moveaxis(arr, 2, 0)), photometric="minisblack",
-                         compression=compression, metadata=meta)
+                         compression=codec, metadata=meta)
 
 
-def _write_netcdf(cube, path: Path, compression, description, overwrite) -> None:
+def _write_netcdf(cube, path: Path, compression, description, put) -> None:
     from .xr import require_xarray, to_xarray
 
     require_xarray()
@@ -338,13 +352,13 @@ def _write_netcdf(cube, path: Path, compression, description, overwrite) -> None
     ds["dq"].attrs["flag_masks"] = ds["dq"].attrs["flag_masks"].astype(dq.dtype)
     if description:
         ds.attrs["description"] = description
-    encoding = {}
-    if compression is not None:
-        if compression != "zlib":
-            raise DataFormatError(f"netCDF compression is zlib only, got {compression!r}",
-                                  path=path)
-        encoding = {v: {"zlib": True, "complevel": 4} for v in ds.data_vars}
-    with atomic_path(path, overwrite=overwrite) as tmp:
+    codecs = {v: compression.get(v) if isinstance(compression, dict) else compression
+              for v in ds.data_vars}
+    if any(c not in (None, "zlib") for c in codecs.values()):
+        raise DataFormatError(f"netCDF compression is zlib only, got {compression!r}",
+                              path=path)
+    encoding = {v: {"zlib": True, "complevel": 4} for v, c in codecs.items() if c}
+    with atomic_path(path, **put) as tmp:
         try:
             ds.to_netcdf(tmp, engine=engine, encoding=encoding)
         except OSError as exc:  # HDF5's are several lines naming the temporary file

@@ -57,6 +57,7 @@ class DQ(enum.IntFlag):
     NOT_CONVERGED = 1 << 9
     LEAK_UNCONSTRAINED = 1 << 10  # calibration: the data do not pin the leakage a, b
     OUT_OF_DOMAIN = 1 << 11  # outside the calibration's validity domain
+    UNCERTAIN = 1 << 12  # model FFC: the calibration's own errors predict a large pattern
 
 
 def empty_dq(shape) -> np.ndarray:
@@ -113,6 +114,8 @@ MEANINGS = {
     "NOT_CONVERGED": "the per-pixel inversion did not converge",
     "LEAK_UNCONSTRAINED": "calibration: the data do not pin the leakage parameters a and b",
     "OUT_OF_DOMAIN": "outside the calibration's validity domain (exposure or light or bit depth)",
+    "UNCERTAIN": "model FFC: the calibration's own errors (factor, dark) predict a fixed-pattern "
+                 "error above the stage's uncertain_above_percent of the corrected signal",
 }
 
 #: Version of the bit table; raised whenever a bit's value or meaning changes.

@@ -10,6 +10,9 @@ implementation computes it, plus what the leakage model says about the figures.
   capacity).
 - :func:`write_report` (:mod:`.render`, :mod:`.plot`): the standard's plots as PNG and a
   Markdown page with the figures table.
+- :func:`hsiffc.emva1288.general.general_figures` (:mod:`.general`): Release 4.0 General, the
+  application figures without the linear model (differential responsivity, SNR, saturation,
+  threshold, dynamic range), measured and as the leakage model predicts them.
 - :func:`run_characterisation`: all of it for one measurement.
 - :mod:`.agreement`: the figures of the shared EMVA 1288 sets beside the reference
   implementation's (``python3 -m hsiffc.emva1288 DATA OUTDIR``).
@@ -19,25 +22,59 @@ from __future__ import annotations
 
 from .compute import FIGURES, characterise, saturation_index, step_statistics
 from .leakage import leakage_effects
-from .render import render_markdown, to_json, write_report
+from .render import render_markdown, to_json, write_report  # matplotlib loads when plotting
 
 __all__ = ["FIGURES", "characterise", "leakage_effects", "render_markdown",
-           "run_characterisation", "saturation_index", "step_statistics", "to_json",
-           "write_report"]
+           "run_characterisation", "saturation_index", "step_mean_sweep", "step_statistics",
+           "to_json", "write_report"]
+
+
+def step_mean_sweep(stats: dict, source) -> tuple:
+    """The sweep steps of :func:`step_statistics` (``keep_step_means=True``) as a Sweep of one
+    float32 frame per step (its per-pixel mean; full scale where some frame of the step was,
+    so that the calibration sees it clipped), each standing for the step's frames
+    (``meta["frames_averaged"]``), and the photon transfer of the raw frames' first pairs.
+
+    Returns
+    -------
+    sweep : Sweep
+        What :func:`hsiffc.calibrate.calibrate` fits the leakage model on.
+    ptc : PhotonTransfer or None
+        Its ``ptc`` argument.
+    """
+    import numpy as np
+
+    from ..calibrate.samples import photon_transfer_from_pairs
+    from ..data.sweep import Sweep
+
+    info = stats["sweep_step_info"]
+    pairs = [(k, p[0], p[1] / p[0] if p[0] else np.nan, 0.5 * p[2] / p[0] if p[0] else np.nan)
+             for k, p, n in zip(info["kind"], stats["pairs"], info["n_frames"]) if n >= 2]
+    ptc = photon_transfer_from_pairs(pairs, stats["n_pixels"], stats["full_scale_dn"])
+    label = getattr(source, "source", None) or getattr(source, "label", "") or ""
+    sweep = Sweep(stats["step_means"], info["exposure_ms"], info["kind"].astype(str),
+                  stats["bit_depth"], step=info["step"], photons=info["photons"],
+                  mosaic=getattr(source, "mosaic", None), source=str(label),
+                  meta={"frames_averaged": info["n_frames"]})
+    return sweep, ptc
 
 
 def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leakage=True,
                          calibration=None) -> tuple[dict, dict | None, str | None]:
     """The EMVA 1288 figures of ``sweep`` and, with ``leakage``, the leakage model's account.
 
+    The frames are read once, one at a time (:mod:`.stream`): memory holds a few frames, the
+    stacks' images and, for the leakage calibration, one mean image per sweep step.
+
     Parameters
     ----------
-    sweep : Sweep
-        An EMVA 1288 measurement (:func:`hsiffc.io.read_emva1288`).
+    sweep : Sweep or FrameSource
+        An EMVA 1288 measurement (:func:`hsiffc.io.read_emva1288`, or
+        :func:`hsiffc.io.open_source` on its descriptor to stream it).
     pixel_area_um2, wavelength_nm : float, optional
         See :func:`characterise`.
     leakage : bool
-        Also :func:`leakage_effects` (calibrates the sweep steps with
+        Also :func:`leakage_effects` (calibrates the sweep steps' means with
         :func:`hsiffc.calibrate.calibrate` unless ``calibration`` is given).
     calibration : Calibration, optional
         Leakage-model calibration of this measurement.
@@ -53,16 +90,25 @@ def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leak
     """
     from ..errors import DataFormatError
 
-    res = characterise(sweep, pixel_area_um2=pixel_area_um2, wavelength_nm=wavelength_nm)
+    stats = step_statistics(sweep, keep_step_means=leakage and calibration is None)
+    res = characterise(sweep, pixel_area_um2=pixel_area_um2, wavelength_nm=wavelength_nm,
+                       statistics=stats)
     if not leakage:
         return res, None, None
+    from .general import general_figures
+
+    means = None
     if calibration is None:
         from ..calibrate import LEAKAGE_ACCOUNT, calibrate
-        from ..reports.emva_leakage import sweep_steps_only
 
+        means, ptc = step_mean_sweep(stats, sweep)
+        del stats
         try:
             # the leakage model's own account (no held-out choice of a simpler model)
-            calibration = calibrate(sweep_steps_only(sweep), method="joint", **LEAKAGE_ACCOUNT)
+            calibration = calibrate(means, method="joint", ptc=ptc, **LEAKAGE_ACCOUNT)
         except DataFormatError as exc:
             return res, None, f"not computed: the sweep cannot calibrate the leakage model ({exc})"
-    return res, leakage_effects(sweep, res, calibration), None
+
+    leak = leakage_effects(means if means is not None else sweep, res, calibration)
+    res["general"] = general_figures(res, leak)  # the model's General figures beside
+    return res, leak, None

@@ -24,7 +24,7 @@ def main(argv=None) -> int:
     """Parse ``argv``, compare, write the pages, print the table."""
     from ..files.atomic import atomic_write_text, write_policy
     from ..errors import HsiffcError
-    from ..io import read_emva1288
+    from ..io import open_source
     from ..files.jsonsafe import json_safe
     from . import run_characterisation, write_report
     from .agreement import compare_with_reference, render_agreement
@@ -50,9 +50,9 @@ def main(argv=None) -> int:
             files = {}
             if (Path(args.data) / CMOS).exists():
                 t0 = time.perf_counter()
-                sweep = read_emva1288(Path(args.data) / CMOS)
-                res, leak, note = run_characterisation(sweep, leakage=not args.no_leakage)
-                files = write_report(sweep, res, out, leak, note)
+                with open_source(Path(args.data) / CMOS) as sweep:  # streamed
+                    res, leak, note = run_characterisation(sweep, leakage=not args.no_leakage)
+                files = write_report(None, res, out, leak, note)
                 t_cmos = time.perf_counter() - t0
     except HsiffcError as exc:
         print(f"emva1288: error: {exc}", file=sys.stderr)

@@ -55,14 +55,13 @@ import numpy as np
 
 from ..errors import DataFormatError, ParameterError
 
-__all__ = ["FIGURES", "QUANTISATION_VARIANCE", "characterise", "step_statistics",
-           "spatial_statistics", "figures_from_statistics", "saturation_index"]
+__all__ = ["FIGURES", "SPLIT_FIGURES", "QUANTISATION_VARIANCE", "characterise",
+           "step_statistics", "figures_from_statistics", "saturation_index"]
 
 QUANTISATION_VARIANCE = 1.0 / 12.0  # DN^2
 MIN_DARK_VARIANCE = 0.24  # DN^2: the standard's floor of s2_ydark (quantisation dominates below)
 SENSITIVITY_FRACTION = 0.70
 LINEARITY_RANGE = (0.05, 0.95)
-SPATIAL_FACTOR = 2.0  # a step with more than this x the median frames per step is a spatial stack
 
 #: name -> unit, in the order of the reference implementation's report
 FIGURES = {
@@ -70,6 +69,13 @@ FIGURES = {
     "DSNU1288_DN": "DN", "DSNU1288": "e-", "PRNU1288": "%", "LE_min": "%", "LE_max": "%",
     "u_p_sat": "p", "u_e_sat": "e-", "SNR_max": "1", "SNR_max_dB": "dB", "DR": "1",
     "DR_dB": "dB", "u_p_min": "p", "u_e_min": "e-", "u_I_mean": "e-/s", "u_I_var": "e-/s",
+}
+#: Release 4.0 figures beyond the reference's classic set: the mean linearity error and the
+#: split of DSNU and PRNU into row, column and pixel parts (:mod:`.spatial`)
+SPLIT_FIGURES = {
+    "LE_mean": "%", "DSNU1288_row": "e-", "DSNU1288_col": "e-", "DSNU1288_pixel": "e-",
+    "DSNU1288_row_DN": "DN", "DSNU1288_col_DN": "DN", "DSNU1288_pixel_DN": "DN",
+    "PRNU1288_row": "%", "PRNU1288_col": "%", "PRNU1288_pixel": "%", "PRNU1288_highpass": "%",
 }
 #: figures per unit area, given the pixel area
 AREA_FIGURES = {"u_p_sat_area": ("u_p_sat", "p/um^2"), "u_e_sat_area": ("u_e_sat", "e-/um^2"),
@@ -79,113 +85,55 @@ LIGHT_M_S = 299792458.0
 
 
 # -- step statistics ---------------------------------------------------------------------------
-def _masks(sweep, mosaic_bands: bool):
-    """[(label, band index or None, flat bool mask or None)]: the whole frame, then each band."""
-    out = [("all pixels", None, None)]
-    if mosaic_bands and sweep.mosaic is not None:
-        bmap = sweep.mosaic.band_map(sweep.frame_shape).ravel()
-        for b in range(sweep.mosaic.n_bands):
-            out.append((f"band {b}", b, bmap == b))
-    return out
-
-
-def _temporal(frames: np.ndarray, mask) -> tuple[float, float]:
-    """Mean and temporal variance (DN, DN^2) of one step's frames (L, P) over ``mask``."""
-    f = frames if mask is None else frames[:, mask]
-    f = f.astype(np.float64)
-    means = f.mean(axis=1)
-    if f.shape[0] < 2:
-        return float(means.mean()), float("nan")
-    r = f - means[:, None]  # each frame less its own spatial mean (Release 4.0)
-    return float(means.mean()), float(r.var(axis=0, ddof=1).mean())
-
-
-def _spatial(frames: np.ndarray, mask) -> dict:
-    """Spatial statistics of a stack (L, P): mean, spatial variance of the mean image, mean
-    per-pixel temporal variance, and the fixed-pattern variance (temporal part removed)."""
-    f = frames if mask is None else frames[:, mask]
-    f = f.astype(np.float64)
-    n = f.shape[0]
-    avg = f.mean(axis=0)
-    avg_var = float(avg.var(ddof=1))
-    var_mean = float(f.var(axis=0, ddof=1).mean())
-    return {"L": int(n), "avg_mean": float(avg.mean()), "avg_var": avg_var,
-            "var_mean": var_mean, "s2": avg_var - var_mean / n}
-
-
-def _spatial_steps(sweep) -> list:
-    steps = sweep.steps()
-    spatial = sweep.meta.get("spatial_steps")
-    if spatial is None:
-        counts = np.array([(sweep.step == s).sum() for s in steps])
-        spatial = steps[counts > SPATIAL_FACTOR * np.median(counts)].tolist()
-    return [int(s) for s in spatial]
-
-
-def step_statistics(sweep, *, mosaic_bands: bool = True) -> dict:
-    """Mean and temporal variance of every step, over the whole frame and per band.
+def step_statistics(source, *, mosaic_bands: bool = True, keep_step_means: bool = False) -> dict:
+    """Mean and temporal variance of every step, over the whole frame and per band, and the
+    spatial statistics of the stacks, read one frame at a time (:mod:`.stream`).
 
     Parameters
     ----------
-    sweep : Sweep
-        An EMVA 1288 measurement (:func:`hsiffc.io.read_emva1288`): light steps with photon
+    source : Sweep or FrameSource
+        An EMVA 1288 measurement (:func:`hsiffc.io.read_emva1288`, or
+        :func:`hsiffc.io.open_source` on its descriptor to stream it): light steps with photon
         counts, dark steps, optionally a spatial stack (one light and one dark step with many
         frames, listed in ``meta["spatial_steps"]`` or found as steps with more than twice the
         median frames per step).
     mosaic_bands : bool
-        Also per band when the sweep has a mosaic.
+        Also per band when the measurement has a mosaic.
+    keep_step_means : bool
+        Keep the per-pixel step means (for the leakage calibration).
 
     Returns
     -------
     dict
-        ``steps`` (per-step arrays: ``step``, ``kind``, ``exposure_ms``, ``photons``,
-        ``n_frames``, ``spatial``), ``groups`` (one per pixel group: ``label``, ``band``,
-        ``mean_dn`` and ``var_dn2`` per step, ``spatial`` statistics of the light and dark stack
-        or None), ``frame_shape`` and ``n_pixels``.
+        :func:`~hsiffc.emva1288.stream.reduce_frames`, each group with its ``spatial``
+        statistics of the light and dark stack (or None) and ``spatial_note`` saying why
+        they are missing.
     """
-    steps = sweep.steps()
-    spatial = set(_spatial_steps(sweep))
-    data = sweep.data.reshape(sweep.n_frames, -1)
-    masks = _masks(sweep, mosaic_bands)
-    first = [int(np.flatnonzero(sweep.step == s)[0]) for s in steps]
-    info = {"step": steps.astype(int), "kind": sweep.kind[first],
-            "exposure_ms": sweep.exposure_ms[first], "photons": sweep.photons[first],
-            "n_frames": np.array([(sweep.step == s).sum() for s in steps]),
-            "spatial": np.array([int(s) in spatial for s in steps])}
-    groups = [{"label": lab, "band": b, "mean_dn": np.full(len(steps), np.nan),
-               "var_dn2": np.full(len(steps), np.nan), "spatial": None} for lab, b, _ in masks]
-    stacks = {}
-    for i, s in enumerate(steps):
-        frames = data[sweep.step == s]
-        if info["spatial"][i]:
-            stacks.setdefault(info["kind"][i], []).append(i)
-            for g, (_, _, m) in zip(groups, masks):
-                g["mean_dn"][i] = float(frames.mean(dtype=np.float64) if m is None
-                                        else frames[:, m].mean(dtype=np.float64))
+    from .spatial import spatial_group
+    from .stream import reduce_frames
+
+    stats = reduce_frames(source, mosaic_bands=mosaic_bands, keep_step_means=keep_step_means)
+    info, images = stats["steps"], stats["images"]
+    stats["spatial_note"] = None
+    if images is None:
+        n_light, n_dark = stats["spatial_counts"]
+        stats["spatial_note"] = (f"no spatial stack (one light and one dark step with many "
+                                 f"frames): found {n_light} light and {n_dark}; DSNU and PRNU "
+                                 "not computed")
+    bmap = None if stats["band_map"] is None else stats["band_map"].ravel()
+    for g in stats["groups"]:
+        g["spatial"] = None
+        if images is None:
             continue
-        for g, (_, _, m) in zip(groups, masks):
-            g["mean_dn"][i], g["var_dn2"][i] = _temporal(frames, m)
-    spatial_note = None
-    light, dark = stacks.get("light", []), stacks.get("dark", [])
-    if len(light) == 1 and len(dark) == 1:
-        lf, df = data[sweep.step == steps[light[0]]], data[sweep.step == steps[dark[0]]]
-        for g, (_, _, m) in zip(groups, masks):
-            g["spatial"] = {"light": _spatial(lf, m), "dark": _spatial(df, m),
-                            "step_light": int(steps[light[0]]), "step_dark": int(steps[dark[0]]),
-                            "exposure_ms": float(info["exposure_ms"][light[0]]),
-                            "photons": float(info["photons"][light[0]])}
-    else:
-        spatial_note = (f"no spatial stack (one light and one dark step with many frames): found "
-                        f"{len(light)} light and {len(dark)}; DSNU and PRNU not computed")
-    return {"steps": info, "groups": groups, "spatial_note": spatial_note,
-            "frame_shape": list(sweep.frame_shape), "n_pixels": int(data.shape[1])}
-
-
-def spatial_statistics(sweep, step_light: int, step_dark: int, mask=None) -> dict:
-    """Spatial statistics of one light and one dark stack (see :func:`step_statistics`)."""
-    data = sweep.data.reshape(sweep.n_frames, -1)
-    return {"light": _spatial(data[sweep.step == step_light], mask),
-            "dark": _spatial(data[sweep.step == step_dark], mask)}
+        mask = None if g["band"] is None else bmap == g["band"]
+        il = int(np.flatnonzero(info["step"] == images["light"]["step"])[0])
+        g["spatial"] = {"light": spatial_group(images["light"], mask),
+                        "dark": spatial_group(images["dark"], mask),
+                        "step_light": int(images["light"]["step"]),
+                        "step_dark": int(images["dark"]["step"]),
+                        "exposure_ms": float(info["exposure_ms"][il]),
+                        "photons": float(info["photons"][il])}
+    return stats
 
 
 # -- fits --------------------------------------------------------------------------------------
@@ -284,7 +232,8 @@ def _temporal_arrays(info: dict, mean, var, where: str) -> dict:
 
 def figures_from_statistics(info: dict, group: dict, *, where: str = "",
                             pixel_area_um2: float | None = None,
-                            wavelength_nm: float | None = None) -> dict:
+                            wavelength_nm: float | None = None, images: dict | None = None
+                            ) -> dict:
     """The EMVA 1288 figures of one pixel group from its step statistics.
 
     Parameters
@@ -297,12 +246,16 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
         Names the data in error messages.
     pixel_area_um2, wavelength_nm : float, optional
         See :func:`characterise`.
+    images : dict, optional
+        The stacks' images (``images`` of :func:`step_statistics`): adds the row, column and
+        pixel parts of DSNU and PRNU and the high-pass PRNU (whole frame only).
 
     Returns
     -------
     dict
         ``figures`` (name -> ``{"value", "unit", "se"}``), ``fit_ranges``, ``curves`` (the
-        arrays the plots need) and ``notes``.
+        arrays the plots need), ``notes`` and, with ``images``, ``nonuniformity`` (the
+        variances of the split, DN^2).
     """
     ta = _temporal_arrays(info, group["mean_dn"], group["var_dn2"], where)
     u_p, u_y, s2_y = ta["u_p"], ta["u_y"], ta["s2_y"]
@@ -387,6 +340,7 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
         "sigma_y_dark": fig("sigma_y_dark", sy, sy_se), "sigma_d": fig("sigma_d", sigma_d,
                                                                        sigma_d_se),
         "LE_min": fig("LE_min", dev[ll].min()), "LE_max": fig("LE_max", dev[ll].max()),
+        "LE_mean": {"value": float(np.abs(dev[ll]).mean()), "unit": "%", "se": None},
         "u_p_sat": fig("u_p_sat", u_p_sat), "u_e_sat": fig("u_e_sat", u_e_sat, u_e_sat * qe_se / qe),
         "SNR_max": fig("SNR_max", snr_max, snr_max * qe_se / qe / 2),
         "SNR_max_dB": fig("SNR_max_dB", 20 * math.log10(snr_max)),
@@ -427,6 +381,13 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
     else:
         for name in ("DSNU1288_DN", "DSNU1288", "PRNU1288"):
             figs[name] = {"value": None, "unit": FIGURES[name], "se": None}
+    parts = None
+    if images is not None:
+        from .spatial import nonuniformity_parts
+
+        split, parts = nonuniformity_parts(images, K)
+        for name, value in split.items():
+            figs[name] = {"value": value, "unit": SPLIT_FIGURES[name], "se": None}
     if pixel_area_um2 is not None:
         for name, (base, unit) in AREA_FIGURES.items():
             figs[name] = {"value": figs[base]["value"] / pixel_area_um2, "unit": unit, "se": None}
@@ -463,19 +424,25 @@ def figures_from_statistics(info: dict, group: dict, *, where: str = "",
               "s2_ydark": ta["s2_ydark"], "texp_ms": ta["texp_ms"], "step": ta["step"],
               "linearity_deviation_percent": dev, "dark_texp_ms": ta["dark_texp_ms"],
               "dark_u_y": ta["dark_u_y"], "dark_s2_y": ta["dark_s2_y"]}
-    return {"figures": ordered, "fit_ranges": fit_ranges, "curves": curves, "notes": notes}
+    out = {"figures": ordered, "fit_ranges": fit_ranges, "curves": curves, "notes": notes}
+    if parts is not None:
+        out["nonuniformity"] = parts
+    return out
 
 
 def characterise(sweep, *, pixel_area_um2: float | None = None,
-                 wavelength_nm: float | None = None, mosaic_bands: bool = True) -> dict:
+                 wavelength_nm: float | None = None, mosaic_bands: bool = True,
+                 statistics: dict | None = None) -> dict:
     """EMVA 1288 Release 4.0 figures of a sweep under the reference implementation's names.
 
     Parameters
     ----------
-    sweep : Sweep
-        An EMVA 1288 measurement (:func:`hsiffc.io.read_emva1288`): light steps with photon
-        counts (mean photons per pixel), a dark step at every exposure of the light steps and,
-        for DSNU and PRNU, a spatial stack (one light and one dark step of many frames).
+    sweep : Sweep or FrameSource
+        An EMVA 1288 measurement (:func:`hsiffc.io.read_emva1288`; or
+        :func:`hsiffc.io.open_source` on its descriptor, read one frame at a time): light steps
+        with photon counts (mean photons per pixel), a dark step at every exposure of the
+        light steps and, for DSNU and PRNU, a spatial stack (one light and one dark step of
+        many frames).
     pixel_area_um2 : float, optional
         Pixel area in um^2: adds the saturation capacity and sensitivity threshold per area
         (``u_p_sat_area`` ... in p/um^2 and e-/um^2). The descriptor gives photons per pixel,
@@ -485,12 +452,19 @@ def characterise(sweep, *, pixel_area_um2: float | None = None,
         saturation and threshold irradiation ``H_sat``, ``H_min`` (uJ/m^2).
     mosaic_bands : bool
         With a mosaic, also the figures of each band (its pixels only).
+    statistics : dict, optional
+        :func:`step_statistics` of ``sweep``, when already computed (the frames are not read
+        again).
 
     Returns
     -------
     dict
-        ``figures`` (name -> value, unit and standard error; None where undefined),
-        ``fit_ranges``, ``curves``, ``spatial`` statistics, ``notes``; ``bands`` (the same per
+        ``figures`` (name -> value, unit and standard error; None where undefined; the
+        classic set, ``LE_mean`` and, with a spatial stack, the row, column and pixel parts of
+        DSNU and PRNU and the high-pass PRNU), ``fit_ranges``, ``curves``, ``spatial``
+        statistics, ``nonuniformity`` (variances of the split), ``spectrograms`` and
+        ``defect_pixels`` (histograms; :mod:`.spatial`), ``general`` (Release 4.0 General,
+        :func:`hsiffc.emva1288.general.general_figures`), ``notes``; ``bands`` (the same per
         band) when the sweep has a mosaic; ``steps`` per-step statistics.
 
     Raises
@@ -501,29 +475,43 @@ def characterise(sweep, *, pixel_area_um2: float | None = None,
     ParameterError
         A non-positive pixel area or wavelength.
     """
+    from .spatial import defect_histograms, spectrograms
+
     for name, value in (("pixel_area_um2", pixel_area_um2), ("wavelength_nm", wavelength_nm)):
         if value is not None and not (np.isfinite(value) and value > 0):
             raise ParameterError(f"{name} must be a positive number, got {value!r}")
-    where = sweep.source or None
-    stats = step_statistics(sweep, mosaic_bands=mosaic_bands)
+    source = getattr(sweep, "source", None) or getattr(sweep, "label", None) or None
+    where = source
+    stats = statistics or step_statistics(sweep, mosaic_bands=mosaic_bands)
+    images = stats["images"]
     out = []
     for g in stats["groups"]:
         res = figures_from_statistics(stats["steps"], g, where=where,
-                                      pixel_area_um2=pixel_area_um2, wavelength_nm=wavelength_nm)
+                                      pixel_area_um2=pixel_area_um2, wavelength_nm=wavelength_nm,
+                                      images=images if g["band"] is None else None)
         res.update({"label": g["label"], "band": g["band"], "spatial": g["spatial"]})
         out.append(res)
     main = out[0]
     if stats["spatial_note"]:
         main["notes"].append(stats["spatial_note"])
+    meta = getattr(sweep, "meta", {}) or {}
     result = {
-        "source": sweep.source, "frame_shape": stats["frame_shape"],
-        "n_pixels": stats["n_pixels"], "bit_depth": sweep.bit_depth,
-        "exposure_unit_in_descriptor": sweep.meta.get("exposure_unit_in_descriptor"),
+        "source": source or "", "frame_shape": stats["frame_shape"],
+        "n_pixels": stats["n_pixels"], "bit_depth": stats["bit_depth"],
+        "exposure_unit_in_descriptor": meta.get("exposure_unit_in_descriptor"),
         "pixel_area_um2": pixel_area_um2, "wavelength_nm": wavelength_nm,
         "figures": main["figures"], "fit_ranges": main["fit_ranges"], "curves": main["curves"],
         "spatial": main["spatial"], "notes": main["notes"],
         "steps": {k: v for k, v in stats["steps"].items()},
     }
+    from .general import general_figures
+
+    result["general"] = general_figures(result)
+    if images is not None:
+        result["nonuniformity"] = main["nonuniformity"]
+        result["spectrograms"] = spectrograms(images, {k: v["value"] for k, v in
+                                                       main["figures"].items()})
+        result["defect_pixels"] = defect_histograms(images)
     if len(out) > 1:
         wl = sweep.mosaic.wavelengths_nm
         result["bands"] = [{"band": r["band"], "wavelength_nm": None if wl is None else

@@ -15,8 +15,8 @@ from ..reports.figures import new_figure
 from .compute import QUANTISATION_VARIANCE
 
 __all__ = ["photon_transfer_figure", "sensitivity_figure", "snr_figure", "linearity_figure",
-           "dark_current_figure", "histogram_figure", "spectrogram_figure", "leakage_figure",
-           "spatial_images"]
+           "dark_current_figure", "histogram_figure", "spectrogram_figure", "general_figure",
+           "leakage_figure"]
 
 
 def _ranges(ax, x, fr, key, label):
@@ -122,63 +122,83 @@ def dark_current_figure(res: dict):
     return fig
 
 
-def spatial_images(sweep, res: dict):
-    """Mean images (H, W) of the dark stack and of the light stack less the dark, or None."""
-    sp = res.get("spatial")
-    if sp is None:
-        return None
-    dark = sweep.data[sweep.step == sp["step_dark"]].mean(axis=0, dtype=np.float64)
-    light = sweep.data[sweep.step == sp["step_light"]].mean(axis=0, dtype=np.float64)
-    return {"dark": dark, "light_minus_dark": light - dark,
-            "L_dark": sp["dark"]["L"], "L_light": sp["light"]["L"],
-            "var_dark": sp["dark"]["var_mean"], "var_light": sp["light"]["var_mean"]}
-
-
-def histogram_figure(images: dict):
-    """DSNU (DN) and PRNU (percent) histograms of the mean images, log counts."""
-    fig, (ax, ax2) = new_figure((6.4, 6.0), nrows=2)
-    d = images["dark"] - images["dark"].mean()
-    ax.hist(d.ravel(), bins=128, log=True, color="C0", histtype="step")
-    ax.set(xlabel="dark mean image - its mean (DN)", ylabel="pixels", title="DSNU histogram")
-    p = images["light_minus_dark"]
-    rel = 100 * (p / p.mean() - 1)
-    ax2.hist(rel.ravel(), bins=128, log=True, color="C1", histtype="step")
-    ax2.set(xlabel="(light - dark) / its mean - 1 (%)", ylabel="pixels", title="PRNU histogram")
+def histogram_figure(res: dict):
+    """The defect-pixel histograms of Release 4.0: DSNU and PRNU (pixels per bin, logarithmic,
+    with the normal curve of the same mean and deviation) and their accumulated histograms
+    (percent of pixels deviating by at least each value, logarithmic)."""
+    h = res["defect_pixels"]
+    fig, axes = new_figure((9.0, 6.0), nrows=2, ncols=2)
+    for r, name in enumerate(("DSNU", "PRNU")):
+        d = h[name]
+        ax = axes[r, 0]
+        ax.step(d["bins"], np.maximum(d["values"], 0.5), where="post", lw=0.8, label="data")
+        ok = d["model"] >= 0.5
+        ax.plot(np.asarray(d["bins"])[ok], np.asarray(d["model"])[ok], "--", color="C3",
+                lw=0.8, label="normal")
+        ax.set_yscale("log")
+        ax.set(title=f"{name} histogram", ylabel="pixels per bin",
+               xlabel="deviation from the mean (DN)" if name == "DSNU" else
+               "high-pass filtered signal (DN)")
+        ax.legend(fontsize=7)
+        a = h[f"{name}_accumulated"]
+        ax = axes[r, 1]
+        ax.step(a["bins"], np.maximum(a["values"], 1e-4), where="post", lw=0.8)
+        ax.set_yscale("log")
+        ax.set(title=f"{name} accumulated histogram", ylabel="pixels (%)",
+               xlabel="absolute deviation from the mean (DN)")
     return fig
 
 
-def _spectrum(img: np.ndarray, axis: int) -> np.ndarray:
-    """Amplitude spectrum along ``axis`` (rows: horizontal), power averaged over the other
-    axis, as sqrt(power) in the image's unit (first half, DC left out)."""
-    m = img - img.mean()
-    if axis == 0:
-        m = m.T
-    n = m.shape[1]
-    power = (np.abs(np.fft.rfft(m, axis=1)) ** 2 / n).mean(axis=0)
-    return np.sqrt(power[1:n // 2 + 1])
-
-
-def spectrogram_figure(images: dict):
-    """Horizontal and vertical spectrograms of DSNU (DN) and PRNU (percent), with the level
-    the temporal noise of the mean images would give."""
+def spectrogram_figure(res: dict):
+    """Horizontal and vertical spectrograms of DSNU (DN) and PRNU (percent), with the figure's
+    level (DSNU1288.DN, PRNU1288) and the temporal noise left in the mean image."""
+    sp = res["spectrograms"]
     fig, axes = new_figure((9.0, 6.0), nrows=2, ncols=2)
-    p = images["light_minus_dark"]
-    rows = (("DSNU", images["dark"], 1.0, images["var_dark"] / images["L_dark"], "DN"),
-            ("PRNU", p, 100.0 / p.mean(),
-             (images["var_light"] / images["L_light"] + images["var_dark"] / images["L_dark"]),
-             "%"))
-    for r, (name, img, scale, tvar, unit) in enumerate(rows):
-        for cidx, (axis, lab) in enumerate(((1, "horizontal"), (0, "vertical"))):
+    for r, name in enumerate(("DSNU", "PRNU")):
+        d = sp[name]
+        for cidx, lab in enumerate(("horizontal", "vertical")):
             ax = axes[r, cidx]
-            s = _spectrum(img * scale, axis)
-            fq = np.arange(1, len(s) + 1) / (2 * len(s))
-            ax.semilogy(fq, s, lw=0.8)
-            ax.axhline(np.sqrt(tvar) * scale, color="C3", lw=0.8, ls="--",
+            s = d[lab]
+            ax.semilogy(s["frequency"][1:], s["amplitude"][1:], lw=0.8, label="data")
+            if d["figure_level"] is not None:
+                ax.axhline(d["figure_level"], color="C3", lw=0.8, ls="--",
+                           label=f"{name}1288" + (" (DN)" if name == "DSNU" else ""))
+            ax.axhline(d["temporal_level"], color="C2", lw=0.8, ls="-.",
                        label="temporal noise of the mean")
-            ax.set(title=f"{name} {lab}", xlabel="frequency (cycles/pixel)",
-                   ylabel=f"amplitude ({unit})")
-            if r == 0 and cidx == 0:
+            ax.set(title=f"{name} {lab} spectrogram", xlabel="frequency (cycles/pixel)",
+                   ylabel=f"amplitude ({d['unit']})")
+            if cidx == 0:
                 ax.legend(fontsize=7)
+    return fig
+
+
+def general_figure(res: dict):
+    """Release 4.0 General: the SNR against photons without the linear model (measured and, when
+    the leakage account ran, predicted by the leakage model), the Linear module's SNR, and the
+    differential responsivity."""
+    g = res["general"]
+    c = g["curves"]
+    fig, (ax, ax2) = new_figure((6.4, 7.2), nrows=2)
+    ax.loglog(c["u_p"], np.maximum(c["SNR"], 1e-3), "o", ms=3, label="General, measured")
+    cu = res["curves"]
+    lin = (np.asarray(cu["u_y"]) - np.asarray(cu["u_ydark"])) / np.sqrt(np.asarray(cu["s2_y"]))
+    ax.loglog(cu["u_p"], np.maximum(lin, 1e-3), ":", color="0.4", label="Linear: signal / noise")
+    model = g.get("model")
+    if model is not None:
+        ax.loglog(c["u_p"], np.maximum(model["curves"]["SNR"], 1e-3), "-", color="C3",
+                  label="General, leakage model")
+    i = g["index_sat"]
+    ax.plot(c["u_p"][i], c["SNR"][i], "s", mfc="none", ms=9, color="k", label="saturation")
+    ax.axhline(1.0, color="0.6", lw=0.6)
+    ax.set(xlabel="u_p (photons per pixel)", ylabel="SNR", title="Release 4.0 General: SNR")
+    ax.legend(fontsize=8)
+    ax2.plot(c["u_p"], c["R_diff"], "o", ms=3, label="measured")
+    if model is not None:
+        ax2.plot(c["u_p"], model["curves"]["R_diff"], "-", color="C3", label="leakage model")
+    ax2.axhline(res["figures"]["R"]["value"], color="0.4", ls=":", label="Linear R")
+    ax2.set(xlabel="u_p (photons per pixel)", ylabel="dY/du_p (DN/p)",
+            title="Differential responsivity")
+    ax2.legend(fontsize=8)
     return fig
 
 

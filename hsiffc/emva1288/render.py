@@ -9,12 +9,10 @@ import numpy as np
 
 from ..files.atomic import atomic_write_text
 from ..files.jsonsafe import json_safe
-from ..reports.figures import save_figure
-from . import plot
 from .compute import FIGURES
 
-__all__ = ["figures_table", "leakage_markdown", "render_markdown", "to_json", "write_report",
-           "fmt"]
+__all__ = ["figures_table", "defect_markdown", "general_markdown", "leakage_markdown", "render_markdown", "to_json",
+           "write_report", "fmt"]
 
 LABELS = {
     "K": "system gain", "R": "responsivity", "QE": "quantum efficiency",
@@ -26,6 +24,13 @@ LABELS = {
     "DR": "dynamic range", "DR_dB": "dynamic range", "u_p_min": "absolute sensitivity threshold",
     "u_e_min": "absolute sensitivity threshold", "u_I_mean": "dark current, from the mean",
     "u_I_var": "dark current, from the variance",
+    "LE_mean": "linearity error, mean of its absolute value",
+    "DSNU1288_row": "DSNU, row part", "DSNU1288_col": "DSNU, column part",
+    "DSNU1288_pixel": "DSNU, pixel part", "DSNU1288_row_DN": "DSNU, row part",
+    "DSNU1288_col_DN": "DSNU, column part", "DSNU1288_pixel_DN": "DSNU, pixel part",
+    "PRNU1288_row": "PRNU, row part", "PRNU1288_col": "PRNU, column part",
+    "PRNU1288_pixel": "PRNU, pixel part",
+    "PRNU1288_highpass": "PRNU after the standard's 5 x 5 high-pass filter",
 }
 
 
@@ -141,6 +146,74 @@ def leakage_markdown(leak: dict) -> list[str]:
     return lines
 
 
+def general_markdown(res: dict) -> list[str]:
+    """The Release 4.0 General figures (no linearity assumed), measured and, when the leakage
+    account ran, as the leakage model predicts them, beside the Linear module's."""
+    g = res.get("general")
+    if g is None:
+        return []
+    f = res["figures"]
+    model = g.get("model")
+    lines = ["", "## Release 4.0 General (no linearity assumed)", "",
+             "Differential responsivity, SNR = u_p R / sigma_y, saturation at the largest SNR "
+             "where the camera still responds, threshold at SNR = 1 (definitions: module "
+             "docstring of `hsiffc.emva1288.general`).", "",
+             "| figure | General, measured |" + (" General, leakage model |" if model else "")
+             + " Linear |", "|---|---:|" + ("---:|" if model else "") + "---:|"]
+    linear = {"u_p_sat_general": "u_p_sat", "SNR_max_general": "SNR_max",
+              "SNR_max_general_dB": "SNR_max_dB", "u_p_min_general": "u_p_min",
+              "DR_general": "DR", "DR_general_dB": "DR_dB", "QE_general": "QE"}
+    for name, fig in g["figures"].items():
+        cells = [fmt(fig["value"], 4)]
+        if model:
+            cells.append(fmt(model["figures"][name]["value"], 4))
+        cells.append(fmt(f[linear[name]]["value"], 4))
+        lines.append(f"| `{name}` ({fig['unit']}) | " + " | ".join(cells) + " |")
+    lines += ["", f"Saturation: light step index {g['index_sat']} measured"
+              + (f", {model['index_sat']} predicted by the leakage model" if model else "")
+              + f"; {res['fit_ranges']['index_u_ysat']} by the Linear module's variance peak."]
+    return lines
+
+
+def defect_markdown(res: dict) -> list[str]:
+    """The defect-pixel counts (Release 4.0): pixels deviating from the mean by more than
+    multiples of the figure, from the accumulated histograms, and the share of the spatial
+    variance in rows, columns and pixels."""
+    h, nu = res.get("defect_pixels"), res.get("nonuniformity")
+    if h is None or nu is None:
+        return []
+    f = res["figures"]
+    lines = ["", "## Nonuniformity: rows, columns, pixels and defect pixels", "",
+             "Share of the spatial variance (DN^2) in each part (the split of Release 4.0; "
+             "negative where the temporal noise left in the stack exceeds a part):", "",
+             "| stack | total s2 (DN^2) | rows | columns | pixels |", "|---|---:|---:|---:|---:|"]
+    for kind in ("dark", "light"):
+        v = nu[kind]
+        tot = v["s2"]
+        cells = [fmt(None if v[k] is None or not tot else v[k] / tot, 3)
+                 for k in ("s2_row", "s2_col", "s2_pixel")]
+        lines.append(f"| {kind} | {fmt(tot, 4)} | " + " | ".join(cells) + " |")
+    lines += ["", "Defect pixels from the accumulated histograms (share of pixels whose "
+              "deviation from the mean reaches the first bin edge at or above each value):", "",
+              "| histogram | deviation (DN) | pixels (%) |", "|---|---:|---:|"]
+    for key, base in (("DSNU_accumulated", f["DSNU1288_DN"]["value"]),
+                      ("PRNU_accumulated", None)):
+        a = h[key]
+        bins, vals = np.asarray(a["bins"]), np.asarray(a["values"])
+        if base is None:  # PRNU: in DN of the (light - dark) signal, at 1 %, 3 %, 10 % of it
+            sp = res["spatial"]
+            base = 0.01 * (sp["light"]["avg_mean"] - sp["dark"]["avg_mean"])
+            steps = ((1, "1 % of the signal"), (3, "3 %"), (10, "10 %"))
+        else:
+            steps = ((3, "3 x DSNU1288.DN"), (6, "6 x"), (10, "10 x"))
+        for mult, lab in steps:
+            x = mult * base
+            i = int(np.searchsorted(bins, x, side="left"))
+            share = float(vals[i]) if i < len(vals) else 0.0
+            lines.append(f"| {key.split('_')[0]} ({lab}) | {x:.3g} | {share:.3g} |")
+    return lines
+
+
 def render_markdown(res: dict, leak: dict | None = None, images: dict | None = None,
                     leak_note: str | None = None, title: str = "EMVA 1288 characterisation"
                     ) -> str:
@@ -165,6 +238,7 @@ def render_markdown(res: dict, leak: dict | None = None, images: dict | None = N
               f"- sigma_y_dark: {fr['sigma_y_dark']}"]
     if res["notes"]:
         lines += ["", "Notes:", ""] + [f"- {n}" for n in res["notes"]]
+    lines += defect_markdown(res) + general_markdown(res)
     if res.get("bands"):
         names = ["K", "QE", "sigma_y_dark", "DSNU1288", "PRNU1288", "LE_min", "LE_max",
                  "u_e_sat", "DR_dB"]
@@ -202,8 +276,9 @@ def write_report(sweep, res: dict, outdir, leak: dict | None = None,
 
     Parameters
     ----------
-    sweep : Sweep
-        The characterised measurement (for the spatial images).
+    sweep : Sweep, FrameSource or None
+        The characterised measurement (unused: the result holds what the plots need; kept
+        for callers that pass it).
     res : dict
         :func:`hsiffc.emva1288.characterise` of it.
     outdir : path-like
@@ -220,6 +295,9 @@ def write_report(sweep, res: dict, outdir, leak: dict | None = None,
     dict
         Name -> path of every file written.
     """
+    from ..reports.figures import save_figure  # matplotlib: only when plots are written
+    from . import plot
+
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     figs = {"photon transfer": plot.photon_transfer_figure(res),
@@ -228,10 +306,11 @@ def write_report(sweep, res: dict, outdir, leak: dict | None = None,
     dc = plot.dark_current_figure(res)
     if dc is not None:
         figs["dark current"] = dc
-    images = plot.spatial_images(sweep, res)
-    if images is not None:
-        figs["DSNU and PRNU histograms"] = plot.histogram_figure(images)
-        figs["DSNU and PRNU spectrograms"] = plot.spectrogram_figure(images)
+    if res.get("defect_pixels") is not None:
+        figs["DSNU and PRNU histograms"] = plot.histogram_figure(res)
+        figs["DSNU and PRNU spectrograms"] = plot.spectrogram_figure(res)
+    if res.get("general") is not None:
+        figs["general SNR"] = plot.general_figure(res)
     if leak is not None:
         figs["leakage"] = plot.leakage_figure(res, leak)
     files = {}

@@ -45,7 +45,7 @@ from pathlib import Path
 
 from ..errors import HsiffcError
 
-__all__ = ["OutputError", "OutputExistsError", "WritePolicy",
+__all__ = ["FileSet", "OutputError", "OutputExistsError", "WritePolicy",
            "atomic_path", "atomic_write_bytes", "atomic_write_text", "check_output",
            "check_output_folder", "current_policy", "file_kind",
            "protect_inputs", "require_regular_input", "require_private_file", "write_policy"]
@@ -406,7 +406,7 @@ def _remove(tmp: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None):
+def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None, fileset=None):
     """Yield a hidden temporary path beside ``path``; on success move it onto ``path``.
 
     The caller writes the temporary file (by name or by reopening it). Afterwards it is
@@ -427,6 +427,10 @@ def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None):
         Hand the fsync and rename (``defer.submit(path, fn, *args)``) to a committer's thread
         instead of waiting for them here; ``defer.wait(path)`` then says whether they
         succeeded.
+    fileset : FileSet, optional
+        Keep the written temporary file in this set instead of renaming it now: the set
+        renames all its files in :meth:`FileSet.commit` (or removes them all,
+        :meth:`FileSet.abort`).
 
     Raises
     ------
@@ -467,14 +471,17 @@ def atomic_path(path, *, overwrite: bool | None = None, inputs=(), defer=None):
                      0o666)
         os.close(fd)
         yield tmp
-    if defer is not None:  # the same steps, in this context, on the committer's thread
+    if fileset is not None:
+        fileset.stage(path, tmp, _commit, overwrite, inputs, allowed, policy)
+    elif defer is not None:  # the same steps, in this context, on the committer's thread
         defer.submit(path, contextvars.copy_context().run, _commit, tmp, path, overwrite,
                      inputs, allowed, policy)
     else:
         _commit(tmp, path, overwrite, inputs, allowed, policy)
 
 
-def _commit(tmp: Path, path: Path, overwrite, inputs, allowed: bool, policy) -> None:
+def _commit(tmp: Path, path: Path, overwrite, inputs, allowed: bool, policy,
+            sync_folder: bool = True) -> None:
     """The end of :func:`atomic_path`: fsync the written temporary file, check ``path`` again
     (it may have changed), rename, fsync the folder; on error remove the temporary file."""
     with _removed_on_error(tmp, path):
@@ -486,7 +493,78 @@ def _commit(tmp: Path, path: Path, overwrite, inputs, allowed: bool, policy) -> 
         else:
             _rename_no_replace(tmp, path)
     policy.written.add(os.path.abspath(path))
-    _fsync_folder(path.parent)
+    if sync_folder:
+        _fsync_folder(path.parent)
+
+
+class FileSet:
+    """Files written as one product (an ENVI cube with its DQ and alpha companions, the cubes
+    of every frame of an input): each is written to its own temporary file by
+    :func:`atomic_path` (``fileset=``) and none is renamed onto its name before
+    :meth:`commit`, which renames them all (headers first: an ENVI data file is never put
+    in place without the header that says whose it is) and makes the renames durable.
+
+    POSIX renames one file at a time, so a kill during :meth:`commit` can leave some files of
+    the new set beside files of an older one; a reader of the set (the batch's resume check)
+    therefore checks that every file of it says the same run (hsiffc's cube files record it),
+    and redoes the set otherwise. Before :meth:`commit` a kill leaves only hidden temporary
+    files (``.NAME.*.part``), which the next batch in that folder removes.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> folder = Path(tempfile.mkdtemp())
+    >>> files = FileSet()
+    >>> for name in ("a.img", "a.hdr"):
+    ...     with atomic_path(folder / name, fileset=files) as tmp:
+    ...         _ = Path(tmp).write_text(name)
+    >>> sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
+    []
+    >>> files.commit()
+    >>> sorted(p.name for p in folder.iterdir())
+    ['a.hdr', 'a.img']
+    """
+
+    def __init__(self):
+        self._staged: dict[Path, tuple] = {}
+
+    def stage(self, path, tmp, commit, *args) -> None:
+        """Keep ``tmp`` (the written temporary file of ``path``) until :meth:`commit` runs
+        ``commit(tmp, path, *args)`` (:func:`atomic_path` calls this)."""
+        path = Path(path)
+        if path in self._staged:  # written twice: the first version is dropped
+            _remove(self._staged[path][0])
+        self._staged[path] = (Path(tmp), commit, args)
+
+    def temp(self, path) -> Path:
+        """The temporary file that holds ``path`` until :meth:`commit` (to finish it in
+        place, e.g. the provenance known only at the end)."""
+        return self._staged[Path(path)][0]
+
+    @property
+    def paths(self) -> list[Path]:
+        """The final names of the staged files, in the order they were written."""
+        return list(self._staged)
+
+    def commit(self) -> None:
+        """Rename every staged file onto its name (ENVI headers first), then fsync their
+        folders; an error removes every temporary file not yet renamed and is raised."""
+        order = sorted(self._staged, key=lambda p: p.suffix.lower() != ".hdr")
+        try:
+            for path in order:
+                tmp, commit, args = self._staged[path]
+                commit(tmp, path, *args, sync_folder=False)
+                del self._staged[path]
+        finally:
+            self.abort()
+        for folder in dict.fromkeys(p.parent for p in order):
+            _fsync_folder(folder)
+
+    def abort(self) -> None:
+        """Remove every temporary file not yet renamed."""
+        for tmp, _, _ in self._staged.values():
+            _remove(tmp)
+        self._staged.clear()
 
 
 def _rename_no_replace(tmp: Path, path: Path) -> None:

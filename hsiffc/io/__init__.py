@@ -6,8 +6,8 @@
 * :func:`read_sweep` = ``open_source(...).to_sweep()``: a :class:`~hsiffc.Sweep` in memory.
 * :func:`write_sweep` writes a sweep as an hsiffc TIFF (atomically).
 * :func:`read_sweep_tiff` and :func:`read_emva1288` read the two self-describing formats with
-  their specific options; :func:`read_corrected` reads what ``hsiffc correct`` wrote
-  (:func:`hsiffc.cubes.write_cube` writes a reconstructed cube).
+  their specific options; :func:`read_corrected` reads what ``hsiffc correct`` wrote and
+  :func:`write_cube` writes a reconstructed cube.
 * ``TIFF_SUFFIXES``, ``IMAGE_SUFFIXES`` (the file suffixes a folder is searched for) and
   ``ACCEPTED`` (the inputs, in words, as error messages list them).
 
@@ -48,14 +48,45 @@ from .tiff import TIFF_SUFFIXES, read_sweep_tiff, write_sweep
 __all__ = ["open_source", "FrameSource", "FrameMeta", "Overrides", "ReadLimits",
            "default_limits", "expand_inputs", "read_sweep", "read_sweep_tiff", "read_emva1288",
            "write_sweep", "read_corrected", "LayoutWarning", "MetadataConflictWarning",
-           "TIFF_SUFFIXES", "IMAGE_SUFFIXES", "ACCEPTED"]
+           "TIFF_SUFFIXES", "IMAGE_SUFFIXES", "ACCEPTED", "write_cube"]
 
 
-def __getattr__(name):
-    if name == "write_cube":  # moved: io sits beside cubes, which reads and writes through it
-        raise AttributeError("hsiffc.io.write_cube moved to hsiffc.cubes.write_cube (hsiffc "
-                             "0.2): import it from there")
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+def write_cube(cube, path, **options):
+    """Write a reconstructed cube (a :class:`~hsiffc.data.frame.Frame` or
+    :class:`~hsiffc.cubes.Cube`) with its DQ and alpha as hsiffc TIFF, ENVI, OME-TIFF or
+    netCDF, chosen by ``format=`` or the file name.
+
+    Parameters
+    ----------
+    cube : Cube or Frame
+        The cube, (H, W, B) values with their DQ bits and alpha.
+    path : str or Path
+        The main file; its suffix chooses the format when ``format`` is not given.
+    **options
+        ``format``, ``compression``, ``overwrite``, ``description``, ``extra``: see
+        :func:`hsiffc.cubes.write_cube`.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> from pathlib import Path
+    >>> from hsiffc.cubes import Cube
+    >>> from hsiffc.io import write_cube
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> cube = Cube(np.ones((4, 6, 3), np.float32), np.zeros((4, 6, 3), np.uint32),
+    ...             wavelengths_nm=(500.0, 600.0, 700.0))
+    >>> [p.name for p in write_cube(cube, Path(tmp.name) / "cube.hdr")]   # ENVI, by the suffix
+    ['cube.hdr', 'cube.img', 'cube.dq.hdr', 'cube.dq.img']
+    >>> tmp.cleanup()
+    """
+    from .. import cubes
+
+    return cubes.write_cube(cube, path, **options)
 
 
 def read_sweep(path, **options):

@@ -331,13 +331,15 @@ class CorrectedWriter:
     alpha : bool
         Write alpha pages (a NaN plane where a frame has none). Cubes without alpha leave
         them out (``"planes": ["data", "dq"]``); mosaic files always hold them (format 1).
-    compression : str, optional
-        TIFF compression of every page (``"zlib"``, ``"zstd"``, ``"lzma"``: imagecodecs).
+    compression : str or dict, optional
+        TIFF compression of every page (``"zlib"``, ``"zstd"``, ``"lzma"``: imagecodecs), or
+        per plane (``{"dq": "zstd"}``: the DQ pages only; a plane not named is not
+        compressed). Recorded as given in the provenance's ``"compression"``.
     """
 
     def __init__(self, path, document: dict, *, n_frames: int, frame_shape,
                  reserve_per_frame: int = _PAD_PER_FRAME, alpha: bool = True,
-                 compression: str | None = None):
+                 compression: str | dict | None = None):
         self.path = Path(path)
         self.n_frames = int(n_frames)
         self.frame_shape = tuple(int(s) for s in frame_shape)
@@ -405,24 +407,29 @@ class CorrectedWriter:
         first = self.written == 0
         # uncompressed: one strip per page (the fastest to write and read); compressed:
         # strips of about 1 MiB, so tifffile compresses them on several threads
-        if self.compression is None:
-            rows = [h, h, self._alpha_rows]
-        else:
-            row_bytes = int(np.prod(self.frame_shape[1:])) * 4
-            strip = max(1, min(h, (1 << 20) // max(row_bytes, 1)))
-            rows = [strip, strip, max(1, strip - 1) if strip > 1 else strip]
-        options = {"photometric": "minisblack", "metadata": None,
-                   "compression": self.compression}
+        codecs = [self._codec(name) for name in self.planes]
+        row_bytes = int(np.prod(self.frame_shape[1:])) * 4
+        strip = max(1, min(h, (1 << 20) // max(row_bytes, 1)))
+        rows = [(h if k < 2 else self._alpha_rows) if codec is None else
+                (max(1, strip - 1) if k == 2 and strip > 1 else strip)
+                for k, codec in enumerate(codecs)]
+        options = {"photometric": "minisblack", "metadata": None}
         if len(self.frame_shape) == 3 and self.frame_shape[2] > 1:  # the bands as samples of
             options["planarconfig"] = "contig"  # each pixel, as in memory
         elif len(self.frame_shape) == 3:  # one band: tifffile refuses an (H, W, 1) page; the
             planes = [p.reshape(self.frame_shape[:2]) for p in planes]  # (H, W) page is read
             # back with the frame_shape (H, W, 1) of the provenance
         for k, plane in enumerate(planes):
-            self._tw.write(plane, rowsperstrip=rows[k],
+            self._tw.write(plane, rowsperstrip=rows[k], compression=codecs[k],
                            description=self._description if first and k == 0 else None,
                            **options)
         self.written += 1
+
+    def _codec(self, plane: str):
+        """The compression of ``plane``'s pages (None: none)."""
+        if isinstance(self.compression, dict):
+            return self.compression.get(plane)
+        return self.compression
 
     def sync(self) -> None:
         """Start writing what is written so far to the disk, without waiting for it.

@@ -371,7 +371,7 @@ def check_header_values(*values) -> None:
 
 def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description: str = "",
                interleave: str = "bsq", extra: dict | None = None,
-               overwrite: bool | None = None) -> tuple[Path, Path]:
+               overwrite: bool | None = None, fileset=None) -> tuple[Path, Path]:
     """Write an (H, W, bands) cube (or an (H, W) image) as an ENVI header + data pair.
 
     Parameters
@@ -390,6 +390,8 @@ def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description:
         ``{"exposure time": 20.0, "data ignore value": 0}``.
     overwrite : bool, optional
         Replace existing files (default: the command's write policy; refuse).
+    fileset : hsiffc.files.atomic.FileSet, optional
+        Leave both files in this set, renamed with the rest of it (a cube's companions).
 
     Returns
     -------
@@ -431,9 +433,9 @@ def write_envi(path, cube, *, wavelengths_nm=None, band_names=None, description:
     # the header first: a pair is judged by its header (whether hsiffc wrote it, from what), so
     # a kill or a full disk between the two writes leaves a header that says whose it is, never
     # a data file nothing vouches for (a rerun stopped at such an .img without --overwrite)
-    with atomic_path(header, overwrite=overwrite) as tmp:
+    with atomic_path(header, overwrite=overwrite, fileset=fileset) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
-    with atomic_path(data, overwrite=overwrite) as tmp:
+    with atomic_path(data, overwrite=overwrite, fileset=fileset) as tmp:
         with open(tmp, "wb") as fh:
             np.ascontiguousarray(cube.transpose(axes), dtype=dtype).tofile(fh)
     return header, data

@@ -16,6 +16,7 @@ from ..data.params import validate_method
 from ..files.limits import default_limits
 from .prepare import (Prepared, band_levels, band_medians, ppi_kernel, prepare,
                       pseudo_panchromatic, tile_starts)
+from .refined import refined_cube
 from .tiles import tile_alpha
 
 __all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "Demosaiced", "demosaic", "reconstruct_alpha"]
@@ -44,8 +45,10 @@ class Demosaiced(NamedTuple):
 class DemosaicMethod:
     """A registered demosaicking method: what :func:`demosaic` does differently for it.
 
-    The methods share one compiled pass (bilinear interpolation of every band on its sample
-    lattice, with the DQ rule of :mod:`hsiffc.reconstruct`); a method is what it adds to it.
+    Most methods share one compiled pass (bilinear interpolation of every band on its sample
+    lattice, with the DQ rule of :mod:`hsiffc.reconstruct`), and a method is what it adds to
+    it; a method with ``cube`` computes its values itself (:mod:`hsiffc.reconstruct.refined`)
+    and keeps the same DQ rule.
 
     Attributes
     ----------
@@ -57,11 +60,22 @@ class DemosaicMethod:
     refine : callable, optional
         ``refine(prepared, cube)``: overwrites values of the bilinear cube in place after the
         pass (e.g. "nearest" puts each pixel's own-tile sample back).
+    cube : callable, optional
+        ``cube(prepared, cube, cube_dq) -> missing``: computes every value and its DQ itself
+        (``cube_dq`` zero on entry), instead of the shared pass, on frames of at least two
+        tiles each way (smaller frames take "ppid"); returns the (H, B) rows and bands with
+        values left NaN for the band-median fill.
+    alpha_tiles : int
+        The alpha of a value is the max over a centred window of ``2 alpha_tiles ph - 1 +
+        len(ppi_kernel(ph)) - 1`` rows (likewise columns) for PPI methods: 1 for "ppid", whose
+        values reach one tile; 2 for methods that refine the PPI from neighbours one tile away.
     """
 
     summary: str
     uses_ppi: bool = False
     refine: Callable | None = None
+    cube: Callable | None = None
+    alpha_tiles: int = 1
 
 
 def _nearest(p: Prepared, cube):
@@ -89,6 +103,14 @@ def _nearest(p: Prepared, cube):
         plane[hit] = acc[hit] / cnt[hit]
 
 
+def _ppid_paper(p: Prepared, cube, cube_dq):
+    return refined_cube(p, cube, cube_dq, balance=False, weighted=True)
+
+
+def _ppid_edge(p: Prepared, cube, cube_dq):
+    return refined_cube(p, cube, cube_dq, balance=True, weighted=False)
+
+
 #: Registered demosaicking methods: name -> :class:`DemosaicMethod`.
 #:
 #: Adding a method: register a :class:`DemosaicMethod` here (what it changes in the shared
@@ -104,6 +126,14 @@ DEMOSAIC_METHODS = {
     "ppid": DemosaicMethod("pseudo-panchromatic image difference (Mihoubi et al., IEEE TCI "
                            "2017): bilinear interpolation of band - PPI, plus the PPI",
                            uses_ppi=True),
+    "ppid_paper": DemosaicMethod(
+        "PPID as in Mihoubi et al. (2017) in full: edge-sensitive full-resolution PPI and "
+        "direction-weighted interpolation of the band differences (no band balancing)",
+        uses_ppi=True, cube=_ppid_paper, alpha_tiles=2),
+    "ppid_edge": DemosaicMethod(
+        "hsiffc's best: the edge-sensitive full-resolution PPI with band balancing and "
+        "bilinear interpolation of the band differences (sharper than ppid)",
+        uses_ppi=True, cube=_ppid_edge, alpha_tiles=2),
 }
 
 
@@ -117,7 +147,7 @@ def _alpha_plane(alpha, shape):
     return np.where(np.isfinite(a), a, np.finfo(np.float32).max).astype(np.float32)
 
 
-def _ppi_window_max(a, mosaic):
+def _ppi_window_max(a, mosaic, tiles=1):
     """PPID's alpha: the max alpha over every raw pixel that enters the PPI at the samples of
     a value (a centred window of ``2 ph - 1 + len(ppi_kernel(ph)) - 1`` rows, likewise
     columns: an odd size, since the PPI kernel's is odd). The window holds the value's S1
@@ -125,7 +155,7 @@ def _ppi_window_max(a, mosaic):
     alpha of the value in every band, and S1's max is not taken."""
     ph, pw = mosaic.tile_shape
     kh, kw = ppi_kernel(ph).size, ppi_kernel(pw).size
-    big = np.ones((2 * ph - 1 + kh - 1, 2 * pw - 1 + kw - 1), np.uint8)
+    big = np.ones((2 * tiles * ph - 1 + kh - 1, 2 * tiles * pw - 1 + kw - 1), np.uint8)
     return cv2.dilate(a, big, borderType=cv2.BORDER_REPLICATE)
 
 
@@ -168,9 +198,9 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
             the differences ``sample - PPI`` at the band's sites are interpolated bilinearly as
             above and the PPI is added back. Because bands share their spatial texture, the
             differences are much smoother than the bands and the PPI carries full-resolution
-            detail. Implemented is the paper's simple PPI (a mean filter); not implemented are
-            its edge-sensitive PPI refinement (weights from local directional differences of
-            the raw image) and adaptive (direction-weighted) difference interpolation.
+            detail. Implemented is the paper's simple PPI (a mean filter); its edge-sensitive
+            PPI refinement and direction-weighted difference interpolation are
+            ``"ppid_paper"``.
             Our addition, band balancing: the bands are first scaled to a common level (each
             band divided by its median over the mean of the band medians, like a white
             balance) and the PPI is scaled back per band, ``est_b = l_b PPI + interp(b -
@@ -181,6 +211,16 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
             samples enter the PPI as the mean of their unflagged same-band neighbours one
             tile away; where a PPI window holds no usable pixel at all, the band value is
             the bilinear one.
+        ``"ppid_paper"``
+            the paper's PPID in full: the edge-sensitive, full-resolution PPI (each pixel's
+            sample minus its offset from the mean-filter PPI, predicted from its same-band
+            neighbours one tile away with weights that fall across edges) and the
+            direction-weighted interpolation of the differences; no band balancing
+            (:mod:`hsiffc.reconstruct.refined`).
+        ``"ppid_edge"``
+            hsiffc's best: that full-resolution PPI with ``"ppid"``'s band balancing, and
+            bilinear interpolation of the differences. Frames under two tiles in either
+            direction take ``"ppid"`` for both.
     dq : (H, W) uint32, optional
         Raw DQ flags; non-zero samples are not used as sources (see the package docstring).
     alpha : (H, W) float32, optional
@@ -197,9 +237,9 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
         dq : (H, W, B) uint32
             DQ of every band value, by the rule in the package docstring.
         alpha : (H, W, B) float32, or None when ``alpha`` is not given
-            For "ppid" one plane for every band (the PPI window's max): a read-only view that
-            repeats it along the band axis (``np.broadcast_to``); ``np.array(result.alpha)``
-            gives a writable copy.
+            For the PPI methods one plane for every band (the PPI window's max): a read-only
+            view that repeats it along the band axis (``np.broadcast_to``);
+            ``np.array(result.alpha)`` gives a writable copy.
 
     Raises
     ------
@@ -220,6 +260,9 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
     p = prepare(raw, mosaic, dq)
     H, W = p.shape
     B = mosaic.n_bands
+    own = how.cube is not None and H >= 2 * mosaic.tile_shape[0] and W >= 2 * mosaic.tile_shape[1]
+    if how.cube is not None and not own:  # a frame under two tiles: as "ppid"
+        how = DEMOSAIC_METHODS["ppid"]
     per_value = 8 + (4 if alpha is not None and not how.uses_ppi else 0)  # cube, DQ, alpha
     default_limits().check_bytes(  # before allocating: a 250 x 250 tile is 62,500 bands
         path=None, nbytes=H * W * B * per_value,
@@ -227,21 +270,25 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
              f"({mosaic.describe()})")
     ppi = ppi_ok = None
     levels = np.ones(B)
-    if how.uses_ppi:
+    if how.uses_ppi and not own:
         levels = band_levels(p)
         ppi, ppi_ok = pseudo_panchromatic(p, levels)
     a = cube_alpha = None
     if alpha is not None:
         a = _alpha_plane(alpha, p.shape)
         if how.uses_ppi:  # the window max: every band's alpha (the window holds S1)
-            a, cube_alpha = None, _every_band(_ppi_window_max(a, mosaic), B)
+            a, cube_alpha = None, _every_band(_ppi_window_max(a, mosaic, how.alpha_tiles), B)
         else:
             cube_alpha = np.empty((H, W, B), np.float32)
     cube = np.empty((H, W, B), np.float32)
-    cube_dq = np.empty((H, W, B), DQ_DTYPE)  # every value written by the kernel
-    missing = interpolate_bands(p.raw, p.dq, a, ppi, ppi_ok, levels, p.lattices(),
-                                mosaic.tile_shape, cube, cube_dq,
-                                None if a is None else cube_alpha)
+    if own:
+        cube_dq = np.zeros((H, W, B), DQ_DTYPE)
+        missing = how.cube(p, cube, cube_dq)
+    else:
+        cube_dq = np.empty((H, W, B), DQ_DTYPE)  # every value written by the kernel
+        missing = interpolate_bands(p.raw, p.dq, a, ppi, ppi_ok, levels, p.lattices(),
+                                    mosaic.tile_shape, cube, cube_dq,
+                                    None if a is None else cube_alpha)
     fill = np.flatnonzero(missing.any(axis=0))  # bands with values whose wide support
     for b, med in zip(fill, band_medians(p, fill), strict=True):  # has no usable sample
         med = np.float32(med)

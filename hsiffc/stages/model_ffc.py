@@ -6,7 +6,8 @@ import numpy as np
 
 from ..calibrate.flats import combined_dark
 from ..data.dq import DQ_DTYPE
-from ..kernels.bits import or_into
+from ..data.dq import DQ
+from ..kernels.bits import or_into, or_into_flag_uncertain
 from ..flatfield.methods import FFC_METHODS
 from ..flatfield.model_based import FlatStack, log_gain_ratio, model_ffc_apply, model_flat_of
 from ..data.params import Param
@@ -23,6 +24,11 @@ def flat_stacks(frames, min_frames: int):
             key = (f.exposure_ms, str(f.meta.get("illumination", "")), f.meta.get("step"))
             groups.setdefault(key, []).append(f)
     return [g for g in groups.values() if len(g) >= min_frames]
+
+
+#: default limit of the predicted fixed-pattern error (percent of the corrected signal) above
+#: which model FFC flags a pixel UNCERTAIN
+UNCERTAIN_ABOVE_PERCENT = 5.0
 
 
 class ModelFFC(Stage):
@@ -42,7 +48,16 @@ class ModelFFC(Stage):
 
     Flags (value kept, never deleted): SATURATED (clipped), LEAKAGE (model alpha over
     ``alpha_limit_percent``), BELOW_DARK, UNREACHABLE, NOT_CONVERGED, NO_FLAT (no usable
-    responsivity: factor 1).
+    responsivity: factor 1), UNCERTAIN (the correction's predicted fixed-pattern error at this
+    pixel's corrected signal above ``uncertain_above_percent``).
+
+    The predicted error is the calibration's own, carried to each output pixel: the relative
+    1-sigma error of its factor (:attr:`sigma_ln_gain_`) and its dark level's error
+    (the calibration's ``sigma_dark_dn``) over the corrected signal, in quadrature,
+    ``sqrt(sigma_ln_gain^2 + (sigma_dark gain / signal)^2)``. Leakage's bend is left out: it
+    makes the dark's share larger by ``1 / (1 - alpha)`` at most, and a pixel where that
+    matters is flagged LEAKAGE (see :func:`hsiffc.flatfield.model_based.correction_uncertainty`
+    for the exact propagation).
 
     Parameters
     ----------
@@ -54,6 +69,9 @@ class ModelFFC(Stage):
         :func:`hsiffc.flatfield.model_based.model_ffc_apply`).
     min_flat_frames : int
         Light frames of one step needed to count as a flat stack.
+    uncertain_above_percent : float or None
+        Pixels whose predicted fixed-pattern error exceeds this percentage of their corrected
+        signal are flagged UNCERTAIN (None: never).
     """
 
     name = "model_ffc"
@@ -63,12 +81,16 @@ class ModelFFC(Stage):
     removes = frozenset({"raw", "response"})
     param_spec = {"calibration": CALIBRATION, "alpha_limit_percent": THRESHOLD,
                   "flat_alpha_percent": THRESHOLD,
-                  "min_flat_frames": Param("integer", low=2)}
+                  "min_flat_frames": Param("integer", low=2),
+                  "uncertain_above_percent": Param("number", low=0, low_open=True,
+                                                   unit="percent", optional=True)}
     state_schema = FFC_METHODS["model"].state_schema
 
     def __init__(self, *, calibration=None, alpha_limit_percent: float = 50.0,
-                 flat_alpha_percent: float = 5.0, min_flat_frames: int = 8):
+                 flat_alpha_percent: float = 5.0, min_flat_frames: int = 8,
+                 uncertain_above_percent: float | None = UNCERTAIN_ABOVE_PERCENT):
         self.calibration = calibration
+        self.uncertain_above_percent = uncertain_above_percent
         self.alpha_limit_percent = alpha_limit_percent
         self.flat_alpha_percent = flat_alpha_percent
         self.min_flat_frames = min_flat_frames
@@ -110,7 +132,22 @@ class ModelFFC(Stage):
         self.check_is_fitted()
         log_ratio = (None if self.gain_sweep_ is None else
                      log_gain_ratio(self.gain_, self.gain_sweep_))
-        return PreparedModelFFC(self, self.require_calibration().prepare(), log_ratio)
+        cal = self.require_calibration()
+        return PreparedModelFFC(self, cal.prepare(), log_ratio, self._uncertain_terms(cal))
+
+    def _uncertain_terms(self, cal):
+        """``(c, e)`` of the UNCERTAIN test ``c > e signal^2`` (float32 planes), or None:
+        ``c = (sigma_dark gain)^2``, ``e = limit^2 - sigma_ln_gain^2``."""
+        if self.uncertain_above_percent is None:
+            return None
+        gain = np.asarray(self.gain_, np.float64)
+        sigma_dark = np.asarray(cal.arrays.get("sigma_dark_dn", 0.0), np.float64)
+        sigma_gain = np.nan_to_num(np.asarray(self.sigma_ln_gain_, np.float64), nan=np.inf)
+        with np.errstate(invalid="ignore", over="ignore"):
+            c = np.broadcast_to((sigma_dark * gain) ** 2, gain.shape).astype(np.float32)
+            e = ((float(self.uncertain_above_percent) / 100.0) ** 2
+                 - sigma_gain ** 2).astype(np.float32)
+        return c, e
 
     def transform(self, frame):
         return self.prepare().transform(frame)
@@ -126,13 +163,16 @@ class PreparedModelFFC(PreparedWithCalibration):
         Its dark line gives the dark where no dark stage removed one.
     log_ratio : (H, W) ndarray or None
         ``ln(gain_ / gain_sweep_)`` (None without a sweep factor).
+    uncertain : (c, e) of float32 (H, W) planes, or None
+        The UNCERTAIN test ``c > e signal^2`` (None: not flagged).
     """
 
-    __slots__ = ("log_ratio",)
+    __slots__ = ("log_ratio", "uncertain")
 
-    def __init__(self, stage, calibration, log_ratio):
+    def __init__(self, stage, calibration, log_ratio, uncertain=None):
         super().__init__(stage, calibration)
         self.log_ratio = log_ratio
+        self.uncertain = uncertain
 
     def transform(self, frame):
         """:meth:`ModelFFC.transform`."""
@@ -146,7 +186,11 @@ class PreparedModelFFC(PreparedWithCalibration):
             full_scale_dn=2 ** frame.bit_depth - 1,
             alpha_limit_percent=float(st.alpha_limit_percent), log_ratio=self.log_ratio)
         # dq is this call's own array: merged in place, in parallel (hsiffc.kernels.bits)
-        or_into(dq, frame.dq, st.dq_.astype(DQ_DTYPE, copy=False))
+        if self.uncertain is None:
+            or_into(dq, frame.dq, st.dq_.astype(DQ_DTYPE, copy=False))
+        else:
+            or_into_flag_uncertain(dq, frame.dq, st.dq_.astype(DQ_DTYPE, copy=False), out,
+                                   *self.uncertain, int(DQ.UNCERTAIN))
         return frame.replace(data=out, dq=dq,
                              dark_removed=np.asarray(dark, np.float32), corrected_by=st.name,
                              meta={"ffc": "model"})

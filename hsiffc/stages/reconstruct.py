@@ -21,9 +21,11 @@ class Reconstruct(Stage):
 
     Parameters
     ----------
-    method : "nearest", "bilinear" or "ppid"
-        Demosaicing method for ``resolution="full"`` (see :func:`hsiffc.reconstruct.demosaic`);
-        ignored for ``resolution="tile"``.
+    method : str
+        Demosaicing method for ``resolution="full"``, one of
+        :data:`hsiffc.reconstruct.DEMOSAIC_METHODS` ("nearest", "bilinear", "ppid",
+        "ppid_paper", "ppid_edge"; see :func:`hsiffc.reconstruct.demosaic`); ignored for
+        ``resolution="tile"``.
     resolution : "full" or "tile"
         "full": every band at every pixel (:func:`hsiffc.reconstruct.demosaic`); "tile": one
         spectrum per complete tile (:func:`hsiffc.reconstruct.tile_cube`).
