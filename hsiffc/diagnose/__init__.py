@@ -480,17 +480,20 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         if leakage["verdict"] == "cannot tell":
             ambiguous.append({"effects": leakage["models"], "reason": leakage["reason"]})
     check = residual_check(problem, final, rows, cols, band, noise_floor, seed)
-    if check.structured and per_pixel is not None and final.state.base.name == "shared leakage":
+    if (check.structured or check.too_big(final)) and per_pixel is not None \
+            and final.state.base.name == "shared leakage":
         # one leakage shape is as good on the held-out error, but leaves a pattern over the
-        # pixels: the per-pixel model is kept where it leaves none
+        # pixels, or a systematic error its smaller fit noise no longer hides (a leakage
+        # amplitude that spreads over the pixels): the per-pixel model is kept where it
+        # leaves neither
         alt = residual_check(problem, per_pixel[0], rows, cols, band, noise_floor, seed)
-        if not alt.structured:
+        if not (alt.structured or alt.too_big(per_pixel[0])):
             final, base_fit = per_pixel
             check = alt
             leakage["shape"] = (
                 "per pixel: one leakage shape for the sensor fits the held-out error as well "
-                "with fewer parameters, but leaves a pattern over the pixels in the residual "
-                "that the per-pixel model does not")
+                "with fewer parameters, but leaves a pattern over the pixels or a systematic "
+                "error in the residual that the per-pixel model does not")
     current = final.state
     selected = final.names
     skipped = _with_weak(skipped, weak, selected)
@@ -502,7 +505,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         return {"rms_dn": rms, "noise_floor_dn": floor,
                 "systematic_rms_dn": float(np.sqrt(max(rms ** 2 - floor ** 2, 0.0)))}
 
-    floor_after = float(np.sqrt(np.mean(check.var_sample[valid_ho])))
+    floor_after = check.floor(valid_ho)
     after = figs(final.mse, floor_after)
     # honest verdict: systematic error left above half the noise floor is unexplained, whatever
     # the binned structure tests say (the figure printed and the sentence agree)
@@ -550,11 +553,22 @@ class ResidualCheck:
 
     ctx: object
     groups: dict
+    valid_ho: np.ndarray
     var_sample: np.ndarray
     sd_sample: np.ndarray
     null: dict
     findings: list
     structured: bool
+
+    def floor(self, valid_ho) -> float:
+        """RMS noise (DN) of the held-out samples of the model checked."""
+        return float(np.sqrt(np.mean(self.var_sample[valid_ho])))
+
+    def too_big(self, fitted) -> bool:
+        """The systematic error ``fitted`` leaves is above ``UNEXPLAINED_OF_FLOOR`` of this
+        floor."""
+        floor = self.floor(self.valid_ho)
+        return fitted.mse - floor ** 2 > (UNEXPLAINED_OF_FLOOR * floor) ** 2
 
 
 def residual_check(problem: Problem, fitted: Fitted, rows, cols, band, noise_floor: float,
@@ -607,4 +621,5 @@ def residual_check(problem: Problem, fitted: Fitted, rows, cols, band, noise_flo
             null[f["grouping"]] = max(null.get(f["grouping"], 0.0), f["null_statistic"])
     findings, structured = structure(fitted.res, valid_ho, groups, noise_floor, null=null,
                                      sd=sd_sample)
-    return ResidualCheck(ctx, groups, var_sample, sd_sample, null, findings, structured)
+    return ResidualCheck(ctx, groups, valid_ho, var_sample, sd_sample, null, findings,
+                         structured)

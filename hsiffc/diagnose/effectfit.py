@@ -142,7 +142,11 @@ def fit_effect(effect, ctx, res, w, project=None):
     if effect.scope == "pixel":
         a = gram(Xp, w, Xp)
         b = gram(Xp, w, rp[..., None])
-        a = a + 1e-9 * (np.einsum("pii->p", a)[:, None, None] + 1e-30) * np.eye(a.shape[1])
+        # a ridge relative to the pixel's own and to the typical pixel's column energy: a
+        # pixel whose column is all but absorbed by its base gets no huge parameter
+        tr = np.einsum("pii->p", a)
+        lam = 1e-9 * (tr + 1e-30) + 1e-6 * float(np.median(tr))
+        a = a + lam[:, None, None] * np.eye(a.shape[1])
         theta = np.linalg.solve(a, b)[..., 0]
         return theta, np.matmul(X, theta[..., None])[..., 0]
     # step: one factor per light step, shared by the pixels

@@ -370,6 +370,7 @@ CLASS_OUTSIDE = ("black_clamp", "blooming")
 #: what the class seeds hold, in turn (each half gets each in turn)
 CLASS_KINDS = ("clean",) + CLASS_EFFECTS + CLASS_OUTSIDE
 CLASS_MULTIPLES = (5, 10, 30)
+MAX_DARK_OF_FULL_SCALE = 0.3  # dark signal outside the photodiode at the longest exposure
 
 
 def class_case_spec(seed: int) -> dict:
@@ -424,6 +425,11 @@ def class_case_spec(seed: int) -> dict:
         "multiple": int(rng.choice(CLASS_MULTIPLES)),
         "warm_up": float(rng.uniform(0.15, 1.0)),  # lamp drift: time constant / acquisition
     }
+    if what == "dark_outside_well":
+        # a dark signal outside the photodiode differs from one that leaks only where the
+        # light's charge leaks: sensors driven into their leakage, exposures up to 200 ms
+        spec.update(fill=float(rng.uniform(1.05, 1.25)), leak_of_rate=float(rng.uniform(0.7, 1.0)),
+                    t_max_ms=float(rng.uniform(100.0, 200.0)))
     return spec
 
 
@@ -464,7 +470,8 @@ def _bloom(signal_frames, shape, threshold):
 def class_unit(sweep, spec, terms) -> np.ndarray:
     """What a failure class adds at size 1 to the noise-free step means (P, S), DN: what its
     detection limit is measured on (for a change between the frames of a step, the change of
-    the held-out frame).
+    the held-out frame; for a dark signal outside the photodiode, what it differs by from one
+    collected in the well, which leaks: only that tells the two apart).
 
     Parameters
     ----------
@@ -489,7 +496,13 @@ def class_unit(sweep, spec, terms) -> np.ndarray:
     if what == "frame_lag":
         return terms["signal"] - terms["prev"]
     if what == "dark_outside_well":
-        return np.broadcast_to(terms["t"][None, :], terms["signal"].shape)
+        # what tells it from a dark current that leaks (which the base takes from the darks,
+        # or dark_current without them): the dark signal's leakage at the light's level
+        t = np.broadcast_to(terms["t"][None, :], terms["signal"].shape)
+        k = terms["k_light"]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dydk = np.where(k > 0, terms["dydlnk"] / np.where(k > 0, k, 1.0), t)
+        return np.where(light, t - dydk, 0.0)
     fs = float(sweep.full_scale_dn) - terms["d"].mean()
     if what == "black_clamp":
         mean = terms["signal"].mean(axis=0)
@@ -569,9 +582,14 @@ def _build_class_case(spec):
     dl = detection_limit(sweep, unit, terms, pair=pair)
     fs = float(sweep.full_scale_dn)
     put = None
+    # the largest change the class makes to a frame at size 1 (DN): a dark signal outside the
+    # photodiode adds its whole self, up to MAX_DARK_OF_FULL_SCALE of full scale
+    peak, cap = float(np.abs(unit).max()), MAX_OF_FULL_SCALE
+    if spec["class"] == "dark_outside_well":
+        peak, cap = float(terms["t"].max()), MAX_DARK_OF_FULL_SCALE
     for m in sorted({m for m in CLASS_MULTIPLES if m <= spec["multiple"]}, reverse=True):
         size = m * dl
-        if np.isfinite(size) and float(np.abs(unit).max()) * size <= MAX_OF_FULL_SCALE * fs:
+        if np.isfinite(size) and peak * size <= cap * fs:
             put = {"name": spec["class"], "multiple": m, "size": float(size),
                    "detection_limit": float(dl)}
             break
