@@ -864,16 +864,17 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
         met = "-" if s["fraction"] is None else (
             "yes" if (s["fraction"] >= g if higher else s["fraction"] <= g) else "**no**")
         lines.append(f"| {label} | {_pct(s)} | {goal} | {met} |")
+    lab = sc.get("stand_ins_labelled", {"fraction": None, "right": 0, "n": 0})
+    lines.append("| cases reported unexplained with effects selected: all of them labelled "
+                 f"stand-ins | {_pct(lab)} | 100 % | "
+                 + ("-" if lab["fraction"] is None else
+                    "yes" if lab["fraction"] == 1.0 else "**no**") + " |")
     lines += [f"| library effect at 2x named right | {_pct(sc['named_right_2x'])} | | |",
               f"| pairs (10x each): both named, nothing else | {_pct(sc['pairs_both_named'])} "
               "| | |",
               f"| out-of-library effect at 2x reported unexplained | "
               f"{_pct(sc['outside_unexplained_2x'])} | | |",
               f"| cases with an `ambiguous` entry | {_pct(sc['ambiguous_reported'])} | | |", ""]
-    lines += [f"| cases reported unexplained whose selected effects are all labelled stand-ins | "
-              f"{_pct(sc['stand_ins_labelled'])} | 100 % | "
-              + ("-" if sc["stand_ins_labelled"]["fraction"] is None else
-                 "yes" if sc["stand_ins_labelled"]["fraction"] == 1.0 else "**no**") + " |", ""]
     if summary.get("by_class"):
         lines += ["The failure classes of issue 53 (seeds from "
                   f"{CLASS_SEED0}; 2, 3 or 4 frames per step, 10-14 bit, sorted or shuffled, "
@@ -916,6 +917,49 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
             lines.append(f"| {r['set']} | {r['base']} | {', '.join(r['selected']) or '-'} | "
                          f"{r['leakage']} | {'yes' if r['unexplained'] else 'no'} | {amb} | "
                          f"{r['noise_floor_dn']:.3g} | {r['systematic_after_dn']:.3g} | {ok} |")
+    return "\n".join(lines) + "\n"
+
+
+def before_after(before: list[dict], after: list[dict]) -> str:
+    """The before/after table: the same seeds scored with the code before (``before``, cases of
+    :func:`run_case` saved by ``--json``) and now, per class and overall.
+
+    Parameters
+    ----------
+    before, after : list of dict
+        :func:`run_case` results (the ``cases`` of two ``--json`` files).
+
+    Returns
+    -------
+    str
+        Markdown.
+    """
+    old = {r["case"]["seed"]: r for r in before}
+    rows = [r for r in after if r["case"]["seed"] in old]
+
+    def label(r):
+        t = r["truth"]
+        if t["kind"] == "clean":
+            return "clean"
+        name = t["effects"][0]["name"]
+        return name + (" (outside)" if t["kind"] == "outside" else "")
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault(label(r), []).append(r)
+    lines = ["| put in (evaluation half) | n | right before | right now | false alarms before | "
+             "false alarms now |", "|---|---|---|---|---|---|"]
+
+    def line(name, rs):
+        n = len(rs)
+        rb = sum(old[r["case"]["seed"]]["right"] for r in rs)
+        ra = sum(r["right"] for r in rs)
+        fb = sum(old[r["case"]["seed"]]["false_alarm"] for r in rs)
+        fa = sum(r["false_alarm"] for r in rs)
+        return f"| {name} | {n} | {rb}/{n} | {ra}/{n} | {fb} | {fa} |"
+    order = ["clean"] + [c for c in CLASS_EFFECTS] + [c + " (outside)" for c in CLASS_OUTSIDE]
+    for name in sorted(groups, key=lambda k: (order.index(k) if k in order else len(order), k)):
+        lines.append(line(name, groups[name]))
+    lines.append(line("all", rows))
     return "\n".join(lines) + "\n"
 
 
@@ -969,6 +1013,12 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--json", type=Path, help="write every case and the summary here")
     ap.add_argument("--page", type=Path, help="write the tables into this Markdown page")
+    ap.add_argument("--before", type=Path,
+                    help="a --json file of the same seeds run with the code before: adds the "
+                         "before/after table")
+    ap.add_argument("--from-json", type=Path,
+                    help="render the tables from the cases of this --json file instead of "
+                         "running them again")
     ap.add_argument("--data", type=Path,
                     default=Path(__file__).resolve().parents[3] / "shared" / "data",
                     help="shared data sets (default ../shared/data next to the repository)")
@@ -985,7 +1035,12 @@ def main(argv=None) -> int:
               f"{_row_label(r):40s} -> {','.join(f['selected']) or 'nothing':40s} "
               f"unexplained={f['unexplained']} {'ok' if r['right'] else 'WRONG'} "
               f"({f['runtime_s']:.1f} s)", flush=True)
-    results = run(seeds(args.half, args.cases, args.classes), jobs=args.jobs, progress=progress)
+    if args.from_json:
+        saved = json.loads(args.from_json.read_text())
+        results = saved["cases"]
+    else:
+        results = run(seeds(args.half, args.cases, args.classes), jobs=args.jobs,
+                      progress=progress)
     summary = summarise(results)
     shared = shared_rows(args.data) if args.page else []
     wall = time.time() - t0
@@ -995,7 +1050,14 @@ def main(argv=None) -> int:
            f"docs/diagnose.md` on {platform.machine()}, {platform.python_version()}: "
            f"{summary['n_cases']} sweeps of the {args.half} half ({SHAPE[0]} x {SHAPE[1]} px, "
            f"{MAX_PIXELS} analysed), {wall:.0f} s.")
+    if args.from_json:
+        how = (how.replace(f"{wall:.0f} s.", f"{summary['runtime_s']:.0f} s of diagnosis")
+               + f" Tables rendered from `{args.from_json.name}` (`--from-json`).")
     text = markdown(summary, shared, how)
+    if args.before:
+        text += ("\nBefore and after, on the same seeds (before: `--json` of the code before "
+                 f"this round, `{args.before.name}`):\n\n"
+                 + before_after(json.loads(args.before.read_text())["cases"], results))
     print(text)
     if args.json:
         from ..files.atomic import atomic_write_text
