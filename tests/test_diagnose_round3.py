@@ -114,9 +114,11 @@ def test_the_failure_classes_are_seeded_split_and_cover_the_designs():
     assert {s["bit_depth"] for s in specs} >= {14}
     assert {s["shuffled"] for s in specs} == {True, False}
     assert {s["darks"] for s in specs} == {True, False}
-    # the old generator's seeds are unchanged
+    # the first generator's seeds are unchanged: they draw from the library they drew from
     assert ev.case_spec(5)["kind"] in ("clean", "single", "pair", "outside")
     assert "round" not in ev.case_spec(5)
+    assert sorted(ev.case_spec(5)["candidates"]) == sorted(ev.FIRST_LIBRARY)
+    assert set(ev.FIRST_LIBRARY) < set(EFFECTS)
 
 
 @pytest.mark.parametrize("what", ev.CLASS_EFFECTS + ev.CLASS_OUTSIDE)
