@@ -19,6 +19,13 @@ structure left in the held-out residual that no candidate explains as ``unexplai
 and as a pattern over the pixels times one over the steps, against what the model leaves on
 data simulated from itself). Frames that clip below the ADC's full scale
 (:func:`~hsiffc.diagnose.design.clip_level`) or sit at its lowest code are left out.
+
+Its named parts: the noise model (:class:`NoiseModel`: the frame differences tested against
+the temporal-noise model and cleared before they are the floor), the search from one starting
+model (:func:`search`), the residual check (:func:`residual_check`) and the typed result
+(:class:`~hsiffc.diagnose.result.Diagnosis`, read as a dict too). An effect kept while the
+verdict is unexplained, or with physically implausible parameters, is reported as a stand-in
+for what the library lacks (``stand_in_for_unexplained``), not as a finding.
 """
 
 from __future__ import annotations
