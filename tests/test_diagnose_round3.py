@@ -123,10 +123,14 @@ def test_the_failure_classes_are_seeded_split_and_cover_the_designs():
 
 @pytest.mark.parametrize("what", ev.CLASS_EFFECTS + ev.CLASS_OUTSIDE)
 def test_each_failure_class_changes_the_frames(what):
-    seed = ev.CLASS_SEED0 + 2 * ev.CLASS_KINDS.index(what)
-    spec = ev.case_spec(seed)
-    assert spec["class"] == what
-    clean = ev.clean_sweep(spec)
-    sweep, truth = ev.build_case(spec)
+    # the first development seed of the class whose effect fits the sweep (a dark signal
+    # outside the photodiode often stays below its detection limit: a clean control then)
+    for k in range(6):
+        spec = ev.case_spec(ev.CLASS_SEED0 + 2 * ev.CLASS_KINDS.index(what)
+                            + 2 * len(ev.CLASS_KINDS) * k)
+        assert spec["class"] == what
+        sweep, truth = ev.build_case(spec)
+        if truth["kind"] != "clean":
+            break
     assert truth["class"] == what and truth["effects"][0]["multiple"] >= 5
-    assert (sweep.data != clean.data).any()
+    assert (sweep.data != ev.clean_sweep(spec).data).any()

@@ -1058,13 +1058,14 @@ def main(argv=None) -> int:
            f"{summary['n_cases']} sweeps of the {args.half} half ({SHAPE[0]} x {SHAPE[1]} px, "
            f"{MAX_PIXELS} analysed), {wall:.0f} s.")
     if args.from_json:
-        how = (how.replace(f"{wall:.0f} s.", f"{summary['runtime_s']:.0f} s of diagnosis")
-               + f" Tables rendered from `{args.from_json.name}` (`--from-json`).")
+        how = (how.replace(f"{wall:.0f} s.", f"{summary['runtime_s']:.0f} s of diagnosis.")
+               + f" Tables rendered from `{args.from_json.as_posix()}` (`--from-json`).")
     text = markdown(summary, shared, how)
     if args.before:
-        text += ("\nBefore and after, on the same seeds (before: `--json` of the code before "
-                 f"this round, `{args.before.name}`):\n\n"
-                 + before_after(json.loads(args.before.read_text())["cases"], results))
+        before = json.loads(args.before.read_text())
+        text += ("\nBefore and after, on the same seeds (before: the code before this round, "
+                 f"`{args.before.as_posix()}`{'; ' + before['note'] if before.get('note') else ''}):"
+                 "\n\n" + before_after(before["cases"], results))
     print(text)
     if args.json:
         from ..files.atomic import atomic_write_text
