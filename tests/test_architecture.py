@@ -149,7 +149,6 @@ def test_the_cycle_check_sees_a_long_cycle():
 
 #: module cycles inside a folder still to break, each with what is left to do
 MODULE_CYCLES = {
-    ("hsiffc.diagnose.effectfit", "hsiffc.diagnose.fitting"): "issue 56: the diagnose split",
     ("hsiffc.cubes.product", "hsiffc.cubes.xr"): "Cube.to_xarray and to_xarray's Cube.from_frame",
     ("hsiffc.io._readers", "hsiffc.io.emva", "hsiffc.io.source", "hsiffc.io.tiff"):
         "a format's reader opens the frame source for its own files (open_layout dispatches "

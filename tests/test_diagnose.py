@@ -186,7 +186,7 @@ def test_a_sweep_whose_light_steps_are_all_clipped_is_refused():
 def test_effect_library():
     assert len(EFFECTS) >= 8
     assert {"readout_nonlinearity", "frame_light_change"} <= set(EFFECTS)
-    assert all(e.summary and e.scope in ("global", "pixel", "step", "pair")
+    assert all(e.summary and e.scope in ("global", "pixel", "step", "pair", "frame")
                for e in EFFECTS.values())
 
 

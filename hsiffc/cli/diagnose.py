@@ -62,6 +62,9 @@ def _cmd_diagnose(args) -> int:
         result = diagnose(sweep, max_pixels=args.pixels, seed=args.seed, effects=effects)
     except ValueError as exc:
         raise HsiffcError(str(exc)) from exc
+    from ..diagnose.report import headline
+    for line in headline(result):
+        print(line)
     b, a = result["before"], result["after"]
     print(f"held-out: {result['held_out']}; noise floor {result['noise_floor_dn']:.4g} DN "
           f"({result['noise_source']})")

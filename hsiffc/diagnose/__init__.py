@@ -19,11 +19,19 @@ structure left in the held-out residual that no candidate explains as ``unexplai
 and as a pattern over the pixels times one over the steps, against what the model leaves on
 data simulated from itself). Frames that clip below the ADC's full scale
 (:func:`~hsiffc.diagnose.design.clip_level`) or sit at its lowest code are left out.
+
+Its named parts: the noise model (:class:`NoiseModel`: the frame differences tested against
+the temporal-noise model and cleared before they are the floor), the search from one starting
+model (:func:`search`), the residual check (:func:`residual_check`) and the typed result
+(:class:`~hsiffc.diagnose.result.Diagnosis`, read as a dict too). An effect kept while the
+verdict is unexplained, or with physically implausible parameters, is reported as a stand-in
+for what the library lacks (``stand_in_for_unexplained``), not as a finding.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -32,12 +40,16 @@ from ..data.sweep import Sweep
 from . import design as ds
 from .bases import LeakageBase, LinearBase, SharedLeakageBase
 from .effects import ALIASES, EFFECTS, OUTSIDE, inject
-from .fitting import (Data, State, context, describe_params, fitpredict, gram, projector,
-                      refit_base, separable_fraction)
-from .select import RULE, UNEXPLAINED_OF_FLOOR, equally_good, evaluate, greedy, leakage_check
+from .fitdata import Data
+from .fitting import (State, context, describe_params, fitpredict, gram, projector, refit_base,
+                      separable_fraction)
+from .result import Diagnosis, ResidualArrays
+from .select import (RULE, UNEXPLAINED_OF_FLOOR, Fitted, equally_good, evaluate, greedy,
+                     leakage_check)
 from .structure import groupings, structure
 
-__all__ = ["diagnose", "EFFECTS", "OUTSIDE", "inject", "list_effects"]
+__all__ = ["diagnose", "Diagnosis", "EFFECTS", "NoiseModel", "OUTSIDE", "inject",
+           "list_effects", "search"]
 
 MIN_LIGHT_STEPS = 4
 
@@ -116,16 +128,194 @@ def _refuse(msg, sweep):
     raise DataFormatError(msg, path=sweep.source or None)
 
 
+class NoiseModel:
+    """The temporal noise of the held-out samples, and what it is for a model.
+
+    With frame pairs it is measured on the differences between the halves of every step,
+    tested against the noise model and cleared of what follows the signal across the pixels
+    (:func:`hsiffc.diagnose.design.noise_pairs`; ``test`` holds the figures); a model with an
+    effect between the halves gets it measured on the differences less what the effect
+    predicts (:meth:`var_step_of`). Without frame pairs it is the spread of the held-out
+    residual across the pixels of a step (:func:`hsiffc.diagnose.design.noise_from_spread`).
+    Integer raw data add the rounding bias of quiet samples (:func:`quantisation_bias`).
+
+    Parameters
+    ----------
+    smp : dict
+        From :func:`hsiffc.diagnose.design.samples`.
+    both : ndarray of bool, (P, S)
+        Samples valid in both halves.
+    quantum : float, DN
+        Step of the recorded values (0: float data).
+    shape : (int, int)
+        (P, S).
+    """
+
+    def __init__(self, smp, both, quantum, shape):
+        self.smp, self.both, self.quantum, self.shape = smp, both, quantum, shape
+        self.pairs = bool(smp["pairs"])
+        self.test = {}
+        self.var_step = None  # (S,) DN^2, one frame per step
+        self.noise2 = None  # (P, S) DN^2, one held-out sample
+        self.source = ("frame pairs (the held-out minus the fit frames of every step, cleared "
+                       "of what follows the signal across the pixels)" if self.pairs else
+                       "spread of the held-out residual across pixels within a step")
+
+    def from_pairs(self):
+        """Measure the noise on the frame pairs (with the test)."""
+        self.var_step, self.test = ds.noise_pairs(self.smp, self.both, with_test=True)
+        self.noise2 = self._noise2(self.var_step)
+
+    def from_spread(self, var1):
+        """Set the noise from the spread model ``var1`` (P, S) of one frame, DN^2."""
+        self.noise2 = var1 / self.smp["n_ho"][None, :]
+        self.var_step = np.median(var1, axis=0)
+        self.test = {"note": "no frame pairs: the noise is the spread across pixels"}
+
+    def _noise2(self, vs):
+        # integer raw data: the rounding bias of a quiet pixel is in the held-out error but
+        # not in the frame pairs
+        return np.broadcast_to((vs / self.smp["n_ho"] + ds.quantisation_bias(
+            vs, self.quantum))[None, :], self.shape)
+
+    def var_step_of(self, state):
+        """The noise of one frame per step (S,) for a model: with an effect between the halves
+        in it, measured on the frame differences less what it predicts."""
+        extra = state.ho_extra
+        if not self.pairs or np.ndim(extra) == 0:
+            return self.var_step
+        return ds.noise_pairs({**self.smp, "y_ho": self.smp["y_ho"] - extra}, self.both)
+
+    def noise2_of(self, state, vs=None):
+        """The noise variance (P, S) of each held-out sample for a model; ``vs``: its
+        :meth:`var_step_of`, where already measured."""
+        vs = self.var_step_of(state) if vs is None else vs
+        return self.noise2 if vs is self.var_step else self._noise2(vs)
+
+    def refloor(self, fitted, floor, valid_ho):
+        """The noise floor ``floor`` of the start model, for ``fitted``."""
+        if np.ndim(fitted.state.ho_extra) == 0:
+            return floor
+        less = float(np.mean((self.noise2 - self.noise2_of(fitted.state))[valid_ho]))
+        return float(np.sqrt(max(floor ** 2 - less, 1e-12 * floor ** 2)))
+
+    def floor(self, pred_var, valid_ho):
+        """RMS noise (DN) of the held-out samples, the fit's own prediction variance
+        ``pred_var`` (P, S) included."""
+        return float(np.sqrt(np.mean((self.noise2 + pred_var)[valid_ho])))
+
+    def simulate_frames(self, level, n_frames, rng, sigma_step):
+        """The mean of ``n_frames`` simulated frames per step around ``level`` (P, S): integer
+        data with frame pairs are simulated as the ADC records them, so the rounding bias of
+        quiet pixels (common to the pixels of a step) is in the null."""
+        q = self.sim_quantum
+        if q <= 0:
+            return level + sigma_step / np.sqrt(n_frames) * rng.standard_normal(level.shape)
+        total = np.zeros(level.shape)
+        for k in range(int(n_frames.max())):
+            frame = np.round((level + sigma_step * rng.standard_normal(level.shape)) / q)
+            total += np.where(k < n_frames, frame * q, 0.0)
+        return total / np.maximum(n_frames, 1)
+
+    @property
+    def sim_quantum(self):
+        """The rounding the null simulates (DN): the ADC's, with frame pairs."""
+        return self.quantum if self.pairs else 0.0
+
+
+@dataclass
+class Search:
+    """The result of :func:`search` from one starting model: the model selected, and the
+    candidates the design skips, those its base absorbs (``weak``) and the ties."""
+
+    final: Fitted
+    start: Fitted
+    skipped: list
+    weak: dict
+    ambiguous: list
+    floor: float
+
+
+@dataclass
+class Problem:
+    """What every search works on: the samples, design, dark model, candidate names, counts and
+    the noise model (see :func:`diagnose`)."""
+
+    data: Data
+    des: ds.Design
+    dark_desc: dict
+    names: list
+    n_pix: int
+    n_light: int
+    noise: NoiseModel
+    candidates: list = field(default_factory=list)
+
+    def refloor(self, fitted, floor):
+        """:meth:`NoiseModel.refloor` on this problem's held-out samples."""
+        return self.noise.refloor(fitted, floor, self.data.valid_ho)
+
+
+def search(problem: Problem, start: Fitted, floor: float) -> Search:
+    """The greedy search (:func:`hsiffc.diagnose.select.greedy`) from one starting model, with
+    the candidates this design can identify next to its base.
+
+    Parameters
+    ----------
+    problem : Problem
+        The samples and candidates.
+    start : Fitted
+        The base model alone.
+    floor : float, DN
+        The noise floor with that base.
+
+    Returns
+    -------
+    Search
+    """
+    st = start.state
+    skipped, testable, weak = _identifiable(problem.names, st.base, st.theta, problem.data,
+                                            problem.des, problem.dark_desc)
+    ambiguous: list = []
+    final = greedy(start, testable, problem.data, floor, problem.n_pix, problem.n_light,
+                   problem.candidates, label=st.base.name, ambiguous=ambiguous,
+                   refloor=problem.refloor)
+    return Search(final, start, skipped, weak, ambiguous, floor)
+
+
+def _check_names(effects):
+    names = list(EFFECTS) if effects is None else [ALIASES.get(n, n) for n in effects]
+    unknown = [n for n in names if n not in EFFECTS]
+    if unknown:
+        raise ValueError(f"unknown effects {unknown}; the library has {list(EFFECTS)}")
+    return names
+
+
+def _stand_ins(current, selected, unexplained, scale):
+    """The report's entry of each selected effect, each marked a stand-in where the verdict is
+    unexplained or its parameters are implausible (:attr:`Effect.implausible`)."""
+    chosen = []
+    for name in selected:
+        p = describe_params(name, current.effects[name][0])
+        why = EFFECTS[name].implausible(p, scale)
+        reason = (f"physically implausible parameters ({why})" if why else
+                  "the verdict is unexplained: the effect stands in for structure the library "
+                  "does not describe" if unexplained else None)
+        chosen.append({"name": name, "params": p, "interpretation": EFFECTS[name].interpret(p),
+                       "stand_in_for_unexplained": reason is not None,
+                       "stand_in_reason": reason})
+    return chosen
+
+
 def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=None,
-             full_well_dn: float | None = None) -> dict:
+             full_well_dn: float | None = None) -> Diagnosis:
     """Diagnose where the base model misses a sweep; see the module docstring.
 
     Parameters
     ----------
     sweep : Sweep
         Any sweep design: exposure sweeps, light sweeps at a fixed exposure, mixed; with or
-        without dark frames; two frames per step (frame pairs held out) or one (alternate steps
-        held out).
+        without dark frames; two or more frames per step (frame pairs held out) or one
+        (alternate steps held out).
     max_pixels : int
         Pixels analysed (a random subset when the sensor has more).
     seed : int
@@ -137,11 +327,11 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
 
     Returns
     -------
-    dict
+    Diagnosis
         The fields of ``hsiffc diagnose --json`` (design, base model, noise floor in DN,
-        RMS before and after in DN, selected effects with their sizes, what stays unexplained)
-        plus the arrays the report plots (under ``"_arrays"``). Run time: seconds (measured
-        by ``benchmarks/bench_diagnose.py``).
+        RMS before and after in DN, selected effects with their sizes, which are stand-ins,
+        what stays unexplained), read as a dict too, plus the arrays the report plots
+        (``"_arrays"``). Run time: seconds (measured by ``benchmarks/bench_diagnose.py``).
 
     Raises
     ------
@@ -151,10 +341,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         A design nothing can be learned from (fewer than 4 usable light steps, no valid sample).
     """
     t0 = time.perf_counter()
-    names = list(EFFECTS) if effects is None else [ALIASES.get(n, n) for n in effects]
-    unknown = [n for n in names if n not in EFFECTS]
-    if unknown:
-        raise ValueError(f"unknown effects {unknown}; the library has {list(EFFECTS)}")
+    names = _check_names(effects)
     if "sweep_steps" in sweep.meta:  # EMVA 1288: the sweep, not the spatial set
         sweep = sweep.select(np.isin(sweep.step, sweep.meta["sweep_steps"]))
     sub, rows, cols, band = ds.subset(sweep, max_pixels, seed)
@@ -213,14 +400,20 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     prev_index = np.full(len(order), -1)
     prev_index[by_order[1:]] = by_order[:-1]
     data = Data(y=y, y_ho=y_ho, t=t, r=r, valid=valid, valid_ho=valid_ho, w=w, order=order,
-                prev_index=prev_index, light=light, full_scale=fs, frame_gap=smp["frame_gap"])
+                prev_index=prev_index, light=light, full_scale=fs, frame_gap=smp["frame_gap"],
+                n_fit=np.asarray(n_fit, float))
     quantum = 1.0 if np.issubdtype(sub.data.dtype, np.integer) else 0.0  # DN
-    if smp["pairs"]:
-        var_step = ds.noise_pairs(smp, valid & valid_ho)  # one frame, per step
-        # integer raw data: the rounding bias of a quiet pixel is in the held-out error but
-        # not in the frame pairs
-        noise2 = np.broadcast_to((var_step / smp["n_ho"] + ds.quantisation_bias(
-            var_step, quantum))[None, :], y.shape)
+    noise = NoiseModel(smp, valid & valid_ho, quantum, y.shape)
+    if noise.pairs:
+        noise.from_pairs()
+        if noise.test["within_step"]:
+            des.notes.append(
+                f"the frame differences hold more than the noise model allows (p = "
+                f"{noise.test['p_value']:.2g}: RMS {noise.test['raw_dn']:.3g} DN a frame "
+                f"against {noise.test['clean_dn']:.3g} DN once what follows the signal across "
+                "the pixels is taken out): the frames of a step are not exchangeable, the noise "
+                "is measured on the cleared differences and effects that change from frame to "
+                "frame are candidates")
     else:  # no frame pairs: the noise from the spread of the held-out residual across pixels
         m = base.predict(theta, t, r)
         pv = _prediction_variance(base, theta, data)
@@ -229,82 +422,45 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         var1 = var_fn(m - base.dark(theta))
         data.w = w = np.where(valid, n_fit[None, :] / var1, 0.0)
         theta = base.fit(y, t, r, valid, w, theta, max_iter=40)
-        noise2 = var1 / smp["n_ho"][None, :]
-        var_step = np.median(var1, axis=0)
-
-    def var_step_of(state):
-        """The noise of one frame per step (S,) for a model: the frame differences it is
-        measured on hold a within-step effect too (a light that changes between the frames of
-        a step), so with one in the model it is measured on them less what it predicts."""
-        extra = state.ho_extra
-        if not smp["pairs"] or np.ndim(extra) == 0:
-            return var_step
-        return ds.noise_pairs({**smp, "y_ho": smp["y_ho"] - extra}, valid & valid_ho)
-
-    def noise2_of(state, vs=None):
-        """The noise variance (P, S) of each held-out sample for a model (see above);
-        ``vs``: its :func:`var_step_of`, where already measured."""
-        vs = var_step_of(state) if vs is None else vs
-        if vs is var_step:
-            return noise2
-        return np.broadcast_to((vs / smp["n_ho"] + ds.quantisation_bias(vs, quantum))[None, :],
-                               y.shape)
-
-    def refloor(fitted, floor):
-        """The noise floor ``floor`` of the start model, for ``fitted`` (see above)."""
-        if np.ndim(fitted.state.ho_extra) == 0:
-            return floor
-        less = float(np.mean((noise2 - noise2_of(fitted.state))[valid_ho]))
-        return float(np.sqrt(max(floor ** 2 - less, 1e-12 * floor ** 2)))
+        noise.from_spread(var1)
     # the base alone gets the linearised (Gauss-Newton) step every candidate's trial fit makes,
     # so a base fit short of its optimum does not credit that step to whichever effect is tried
     start = refit_base(y, data, State(base, theta))
-    pred_var = _prediction_variance(base, theta, data)
-    noise_floor = float(np.sqrt(np.mean((noise2 + pred_var)[valid_ho])))
+    noise_floor = noise.floor(_prediction_variance(base, theta, data), valid_ho)
     if not np.isfinite(noise_floor) or noise_floor <= 0:
         _refuse("the temporal noise cannot be measured on this sweep (no valid held-out "
                 "sample with a finite noise); record two frames per step", sweep)
     n_pix, n_light = y.shape[0], int(light.sum())
+    problem = Problem(data, des, dark_desc, names, n_pix, n_light, noise)
     base_fit = evaluate(start, [], data, n_pix, n_light)
-    per_pixel_start = None
+    starts = [(base_fit, noise_floor)]
+    sh_state = sh_fit = None
     if base.name == "leakage":
         # the same model with one leakage shape for the sensor (a and b shared: two parameters
         # a pixel fewer); the search starts from it where the per-pixel model predicts the
         # held-out data measurably worse (it follows the noise of the fit half: a base worse
         # than a simpler one would let any effect that makes up part of the difference look
-        # like a find)
+        # like a find), and from the per-pixel model too
         shared = SharedLeakageBase(use_dc)
         shared.full_scale = fs
         sh_state = State(shared, shared.start(y, t, r, valid, w, per_pixel=theta))
         sh_fit = evaluate(refit_base(y, data, sh_state), [], data, n_pix, n_light)
         if not equally_good(sh_fit, base_fit, valid_ho, noise_floor):
-            per_pixel_start = (base, theta, base_fit, noise_floor)
-            base, theta, base_fit = shared, sh_state.theta, sh_fit
-            pred_var = _prediction_variance(base, theta, data)
-            noise_floor = float(np.sqrt(np.mean((noise2 + pred_var)[valid_ho])))
-
-    # which candidates can this design identify at all (next to this base)?
-    skipped, testable, weak = _identifiable(names, base, theta, data, des, dark_desc)
-    candidates: list = []
-    ambiguous: list = []
-    final = greedy(base_fit, testable, data, noise_floor, n_pix, n_light, candidates,
-                   label=base.name, ambiguous=ambiguous, refloor=refloor)
-    leakage = {"verdict": "not tested", "reason": "the base model is linear"}
+            floor = noise.floor(_prediction_variance(shared, sh_state.theta, data), valid_ho)
+            starts.insert(0, (sh_fit, floor))
+    result = search(problem, *starts[0])
     per_pixel = None  # the per-pixel leakage model, where one shape for the sensor replaced it
-    if per_pixel_start is not None:
+    if len(starts) > 1:
         # the search from the per-pixel model too, whole model against whole model: its
         # result is kept where it predicts the held-out data measurably better
-        pp_base, pp_theta, pp_fit, pp_floor = per_pixel_start
-        pp_skipped, pp_testable, pp_weak = _identifiable(names, pp_base, pp_theta, data, des,
-                                                         dark_desc)
-        pp_ambiguous: list = []
-        pp_final = greedy(pp_fit, pp_testable, data, pp_floor, n_pix, n_light, candidates,
-                          label=pp_base.name, ambiguous=pp_ambiguous, refloor=refloor)
-        if not equally_good(pp_final, final, valid_ho, pp_floor):
-            final, base_fit, noise_floor = pp_final, pp_fit, pp_floor
-            skipped, weak, ambiguous = pp_skipped, pp_weak, pp_ambiguous
+        other = search(problem, *starts[1])
+        if not equally_good(other.final, result.final, valid_ho, other.floor):
+            result = other
         else:
-            per_pixel = (pp_final, pp_fit)
+            per_pixel = (other.final, other.start)
+    final, base_fit = result.final, result.start
+    skipped, weak, ambiguous = result.skipped, result.weak, result.ambiguous
+    noise_floor = result.floor
     if final.state.base.name == "leakage" and "pixel_nonlinearity" not in final.names:
         # the selected model with one leakage shape, kept when it explains the sweep as well
         # with fewer parameters. Not tried next to a per-pixel nonlinearity, which says that
@@ -314,6 +470,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         if sh_final.bic < final.bic and equally_good(final, sh_final, valid_ho, noise_floor):
             per_pixel = (final, base_fit)
             final, base_fit = sh_final, sh_fit
+    leakage = {"verdict": "not tested", "reason": "the base model is linear"}
     if base.name in ("leakage", "shared leakage"):
         lin = LinearBase(use_dc)
         lin_state = State(lin, lin.start(y, t, r, valid, w))
@@ -323,115 +480,153 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                                                             des, dark_desc)
         ambiguous_lin: list = []
         final, leakage = leakage_check(final, lin_fit, testable_lin, data, noise_floor, n_pix,
-                                       n_light, des, candidates, ambiguous_lin,
-                                       refloor=refloor)
+                                       n_light, des, problem.candidates, ambiguous_lin,
+                                       refloor=problem.refloor)
         if final.state.base.name == "linear":
             skipped, weak, ambiguous = skipped_lin, weak_lin, ambiguous_lin
         if leakage["verdict"] == "cannot tell":
             ambiguous.append({"effects": leakage["models"], "reason": leakage["reason"]})
-    # the frames' noise before rounding: integer data with frame pairs are simulated as the
-    # ADC records them, so the rounding bias of quiet pixels (common to the pixels of a step)
-    # is in the null
-    sim_quantum = quantum if smp["pairs"] else 0.0
-
-    def simulate_frames(level, n_frames, rng, sigma_step):
-        """The mean of ``n_frames`` simulated frames per step around ``level`` (P, S)."""
-        if sim_quantum <= 0:
-            return level + sigma_step / np.sqrt(n_frames) * rng.standard_normal(level.shape)
-        total = np.zeros(level.shape)
-        for k in range(int(n_frames.max())):
-            frame = np.round((level + sigma_step * rng.standard_normal(level.shape))
-                             / sim_quantum)
-            total += np.where(k < n_frames, frame * sim_quantum, 0.0)
-        return total / np.maximum(n_frames, 1)
-
-    def residual_check(fitted):
-        """Structure left in the held-out residual of a fitted model, against what the model
-        itself leaves: simulate it with the measured noise, refit, and measure the same
-        residual structure (parametric bootstrap, 2 draws)."""
-        cur = fitted.state
-        ctx = context(cur.base, cur.theta, data)[2]
-        groups = groupings(valid_ho, ctx.signal, light, rows, cols, band)
-        # the model's own fit noise (its base may be less well determined next to an effect)
-        pv = _prediction_variance(cur.base, cur.theta, data, cur)
-        vs = var_step_of(cur)
-        var_sample = noise2_of(cur, vs) + pv
-        sd_sample = np.sqrt(var_sample)  # noise of each held-out sample, DN
-        sigma_step = np.sqrt(ds.noise_before_rounding(vs, sim_quantum))
-        rng = np.random.default_rng(seed + 1)
-        null = {}
-        for _ in range(2):
-            y_sim = simulate_frames(cur.prediction, n_fit, rng, sigma_step)
-            y_sim_ho = simulate_frames(cur.prediction + cur.ho_extra, smp["n_ho"], rng,
-                                       sigma_step)
-            if not smp["pairs"]:
-                y_sim_ho = y_sim
-            sim_data = Data(**{**data.__dict__, "y": y_sim, "y_ho": y_sim_ho})
-            sim = (fitpredict(fitted.names, sim_data, cur, quick=True) if fitted.names
-                   else refit_base(y_sim, sim_data, cur))
-            sim_res = np.where(valid_ho, y_sim_ho - sim.prediction - sim.ho_extra, 0.0)
-            for f in structure(sim_res, valid_ho, groups, noise_floor, sd=sd_sample)[0]:
-                null[f["grouping"]] = max(null.get(f["grouping"], 0.0), f["null_statistic"])
-        findings, structured = structure(fitted.res, valid_ho, groups, noise_floor, null=null,
-                                         sd=sd_sample)
-        return ctx, groups, var_sample, sd_sample, null, findings, structured
-
-    ctx, groups, var_sample, sd_sample, null, findings, structured = residual_check(final)
-    if structured and per_pixel is not None and final.state.base.name == "shared leakage":
+    check = residual_check(problem, final, rows, cols, band, noise_floor, seed)
+    if (check.structured or check.too_big(final)) and per_pixel is not None \
+            and final.state.base.name == "shared leakage":
         # one leakage shape is as good on the held-out error, but leaves a pattern over the
-        # pixels: the per-pixel model is kept where it leaves none
-        alt = residual_check(per_pixel[0])
-        if not alt[-1]:
+        # pixels, or a systematic error its smaller fit noise no longer hides (a leakage
+        # amplitude that spreads over the pixels): the per-pixel model is kept where it
+        # leaves neither
+        alt = residual_check(problem, per_pixel[0], rows, cols, band, noise_floor, seed)
+        if not (alt.structured or alt.too_big(per_pixel[0])):
             final, base_fit = per_pixel
-            ctx, groups, var_sample, sd_sample, null, findings, structured = alt
+            check = alt
             leakage["shape"] = (
                 "per pixel: one leakage shape for the sensor fits the held-out error as well "
-                "with fewer parameters, but leaves a pattern over the pixels in the residual "
-                "that the per-pixel model does not")
+                "with fewer parameters, but leaves a pattern over the pixels or a systematic "
+                "error in the residual that the per-pixel model does not")
     current = final.state
     selected = final.names
     skipped = _with_weak(skipped, weak, selected)
-    findings_before, _ = structure(base_fit.res, valid_ho, groups, noise_floor, null=null,
-                                   sd=sd_sample)
+    findings_before, _ = structure(base_fit.res, valid_ho, check.groups, noise_floor,
+                                   null=check.null, sd=check.sd_sample)
 
     def figs(mse, floor):
         rms = float(np.sqrt(mse))
         return {"rms_dn": rms, "noise_floor_dn": floor,
                 "systematic_rms_dn": float(np.sqrt(max(rms ** 2 - floor ** 2, 0.0)))}
 
-    floor_after = float(np.sqrt(np.mean(var_sample[valid_ho])))
-
+    floor_after = check.floor(valid_ho)
     after = figs(final.mse, floor_after)
     # honest verdict: systematic error left above half the noise floor is unexplained, whatever
     # the binned structure tests say (the figure printed and the sentence agree)
     too_big = after["systematic_rms_dn"] > UNEXPLAINED_OF_FLOOR * floor_after
-    unexplained = bool(structured or too_big)
-    chosen = []
-    for name in selected:
-        p = describe_params(name, current.effects[name][0])
-        chosen.append({"name": name, "params": p, "interpretation": EFFECTS[name].interpret(p)})
+    scale = {"full_scale_dn": fs, "max_exposure_ms": float(t[smp["usable"]].max()),
+             "min_exposure_ms": float(t[smp["usable"]].min())}
+    chosen = _stand_ins(current, selected, bool(check.structured or too_big), scale)
+    implausible = [e["name"] for e in chosen if e["stand_in_for_unexplained"]]
+    unexplained = bool(check.structured or too_big or implausible)
+    if unexplained:  # every selected effect is a stand-in then
+        chosen = _stand_ins(current, selected, True, scale)
+    reason = _unexplained_reason(check.structured, too_big, after, floor_after)
+    if implausible and not (check.structured or too_big):
+        reason = (f"{', '.join(implausible)} fit{'s' if len(implausible) == 1 else ''} with "
+                  "physically implausible parameters: the library does not describe what the "
+                  "data show; " + reason)
     n_total = int(smp["usable"].sum() * n_pix)
-    return {
-        "dataset": str(sweep.source or "in-memory sweep"),
-        "base_model": current.base.describe + ("; dark current from the dark frames" if use_dc
-                                               else ", constant dark level"),
-        "design": des.as_dict(), "leakage": leakage,
-        "dark_model": ds.describe_dark_current(current.base.dc(current.theta), dark_desc),
-        "n_pixels": int(n_pix), "n_pixels_sensor": int(np.prod(sweep.frame_shape)),
-        "n_samples": int(valid_ho.sum()),
-        "n_invalid_samples": int(n_total - (valid | valid_ho).sum()),
-        "noise_floor_dn": noise_floor,
-        "noise_source": ("frame pairs (second minus first frame of every step)" if smp["pairs"]
-                         else "spread of the held-out residual across pixels within a step"),
-        "before": figs(base_fit.mse, noise_floor), "after": after,
-        "selected_effects": selected, "effects": chosen, "skipped": skipped,
-        "candidates": candidates, "unexplained": unexplained,
-        "unexplained_reason": _unexplained_reason(structured, too_big, after, floor_after),
-        "ambiguous": ambiguous,
-        "residual_structure_after": findings, "residual_structure_before": findings_before,
-        "held_out": smp["held_out"], "selection_rule": RULE,
-        "runtime_s": time.perf_counter() - t0,
-        "_arrays": {"res_before": base_fit.res, "res_after": final.res, "valid": valid_ho,
-                    "t": t, "signal": ctx.signal, "light": light, "order": order, "rows": rows,
-                    "cols": cols, "band": band, "step": smp["step"]},
-    }
+    return Diagnosis(
+        dataset=str(sweep.source or "in-memory sweep"),
+        base_model=current.base.describe + ("; dark current from the dark frames" if use_dc
+                                            else ", constant dark level"),
+        design=des.as_dict(), leakage=leakage,
+        dark_model=ds.describe_dark_current(current.base.dc(current.theta), dark_desc),
+        n_pixels=int(n_pix), n_pixels_sensor=int(np.prod(sweep.frame_shape)),
+        n_samples=int(valid_ho.sum()), n_invalid_samples=int(n_total - (valid | valid_ho).sum()),
+        noise_floor_dn=noise_floor, noise_source=noise.source, noise_test=noise.test,
+        before=figs(base_fit.mse, noise_floor), after=after,
+        selected_effects=list(selected),
+        findings=[e["name"] for e in chosen if not e["stand_in_for_unexplained"]],
+        stand_ins=[e["name"] for e in chosen if e["stand_in_for_unexplained"]],
+        effects=chosen, skipped=skipped, candidates=problem.candidates,
+        unexplained=unexplained, unexplained_reason=reason, ambiguous=ambiguous,
+        residual_structure_after=check.findings, residual_structure_before=findings_before,
+        held_out=smp["held_out"], selection_rule=RULE, runtime_s=time.perf_counter() - t0,
+        arrays=ResidualArrays(res_before=base_fit.res, res_after=final.res, valid=valid_ho, t=t,
+                              signal=check.ctx.signal, light=light, order=order, rows=rows,
+                              cols=cols, band=band, step=smp["step"]))
+
+
+@dataclass
+class ResidualCheck:
+    """What :func:`residual_check` found: the context of the model, the groupings, the noise
+    of each held-out sample (variance and SD, DN), the null of each grouping, the findings and
+    whether any is significant."""
+
+    ctx: object
+    groups: dict
+    valid_ho: np.ndarray
+    var_sample: np.ndarray
+    sd_sample: np.ndarray
+    null: dict
+    findings: list
+    structured: bool
+
+    def floor(self, valid_ho) -> float:
+        """RMS noise (DN) of the held-out samples of the model checked."""
+        return float(np.sqrt(np.mean(self.var_sample[valid_ho])))
+
+    def too_big(self, fitted) -> bool:
+        """The systematic error ``fitted`` leaves is above ``UNEXPLAINED_OF_FLOOR`` of this
+        floor."""
+        floor = self.floor(self.valid_ho)
+        return fitted.mse - floor ** 2 > (UNEXPLAINED_OF_FLOOR * floor) ** 2
+
+
+def residual_check(problem: Problem, fitted: Fitted, rows, cols, band, noise_floor: float,
+                   seed: int) -> ResidualCheck:
+    """Structure left in the held-out residual of a fitted model, against what the model
+    itself leaves: simulate it with the measured noise, refit, and measure the same residual
+    structure (parametric bootstrap, 2 draws).
+
+    Parameters
+    ----------
+    problem : Problem
+        The samples and the noise model.
+    fitted : Fitted
+        The model.
+    rows, cols, band : ndarray of int, (P,)
+        Where the pixels are.
+    noise_floor : float, DN
+        The noise floor.
+    seed : int
+        Seed of the simulation.
+
+    Returns
+    -------
+    ResidualCheck
+    """
+    data, noise = problem.data, problem.noise
+    valid_ho, smp = data.valid_ho, noise.smp
+    cur = fitted.state
+    ctx = context(cur.base, cur.theta, data)[2]
+    groups = groupings(valid_ho, ctx.signal, data.light, rows, cols, band)
+    # the model's own fit noise (its base may be less well determined next to an effect)
+    pv = _prediction_variance(cur.base, cur.theta, data, cur)
+    vs = noise.var_step_of(cur)
+    var_sample = noise.noise2_of(cur, vs) + pv
+    sd_sample = np.sqrt(var_sample)  # noise of each held-out sample, DN
+    sigma_step = np.sqrt(ds.noise_before_rounding(vs, noise.sim_quantum))
+    rng = np.random.default_rng(seed + 1)
+    null = {}
+    for _ in range(2):
+        y_sim = noise.simulate_frames(cur.prediction, smp["n_fit"], rng, sigma_step)
+        y_sim_ho = noise.simulate_frames(cur.prediction + cur.ho_extra, smp["n_ho"], rng,
+                                         sigma_step)
+        if not noise.pairs:
+            y_sim_ho = y_sim
+        sim_data = Data(**{**data.__dict__, "y": y_sim, "y_ho": y_sim_ho})
+        sim = (fitpredict(fitted.names, sim_data, cur, quick=True) if fitted.names
+               else refit_base(y_sim, sim_data, cur))
+        sim_res = np.where(valid_ho, y_sim_ho - sim.prediction - sim.ho_extra, 0.0)
+        for f in structure(sim_res, valid_ho, groups, noise_floor, sd=sd_sample)[0]:
+            null[f["grouping"]] = max(null.get(f["grouping"], 0.0), f["null_statistic"])
+    findings, structured = structure(fitted.res, valid_ho, groups, noise_floor, null=null,
+                                     sd=sd_sample)
+    return ResidualCheck(ctx, groups, valid_ho, var_sample, sd_sample, null, findings,
+                         structured)

@@ -301,7 +301,8 @@ def describe_dark_current(dc, desc: dict) -> dict:
 
 def structural_skip(name, design: Design, dark) -> str | None:
     """Why the design cannot identify effect ``name`` (None when it can, as far as the design
-    alone tells; see also :func:`hsiffc.diagnose.fitting.separable_fraction`).
+    alone tells; see also :func:`hsiffc.diagnose.fitting.separable_fraction`): the rules of its
+    scope, then the effect's own (:attr:`hsiffc.diagnose.effects.Effect.skip`).
 
     Parameters
     ----------
@@ -319,27 +320,35 @@ def structural_skip(name, design: Design, dark) -> str | None:
     """
     from .effects import EFFECTS
 
-    scope = EFFECTS[name].scope
-    if name == "dark_current" and "dark current" in dark["model"]:
-        return "already in the base model (measured from the dark frames)"
-    if name == "dark_current" and design.exposures < 2:
-        return ("every sample has the same exposure: a dark current is indistinguishable from "
-                "the dark level")
-    if name == "exposure_offset" and design.light_exposures < 2:
-        return ("all light steps share one exposure: a timing offset is indistinguishable from "
-                "the light rate (responsivity)")
-    if scope == "step" and not design.pairs:
+    effect = EFFECTS[name]
+    scope = effect.scope
+    if scope in ("step", "frame") and not design.pairs:
         return ("one frame per step: a per-step error cannot be predicted for a held-out step "
                 "(it needs two frames per step)")
     if scope == "pair" and not design.pairs:
         return "one frame per step: a change between the frames of a step cannot be seen"
-    if scope == "step" and design.n_light_steps < 3:
+    if scope in ("step", "frame") and design.n_light_steps < 3:
         return "fewer than 3 light steps"
-    return None
+    return effect.skip(design, dark)
 
 
-def noise_pairs(smp, valid):
-    """Temporal variance of one frame per step (S,), from the frame pairs, mean over pixels.
+WITHIN_STEP_P = 1e-6  # frame differences that follow the signal across pixels beyond this
+
+
+def noise_pairs(smp, valid, with_test=False):
+    """Temporal variance of one frame per step (S,), from the frame pairs, mean over pixels,
+    after the differences are tested against the noise model and cleared of what is not noise.
+
+    The differences between the halves of a step are noise only where the frames of a step are
+    exchangeable. A light that changes from frame to frame (flicker, a drift within the step)
+    moves every pixel of a step by an amount that follows its signal, and a lag from frame to
+    frame by one that follows the signal of the step and of the step before: so per step the
+    differences are regressed, across the pixels, on a constant, the pixel's mean over all the
+    frames of the step and that of the step before (means over all frames are independent of
+    the differences, so the regression takes no noise), and the variance is measured on the
+    residual (corrected for the regressors' degrees of freedom). The regression's explained
+    sums of squares, in units of that variance, are a chi-square under the noise model: their
+    p-value over the steps is the test (``with_test``).
 
     Parameters
     ----------
@@ -347,14 +356,59 @@ def noise_pairs(smp, valid):
         From :func:`samples` (with frame pairs).
     valid : ndarray of bool, (P, S)
         Samples valid in both halves.
+    with_test : bool
+        Also return the test.
 
     Returns
     -------
     ndarray, (S,), DN^2
+    dict, with ``with_test``
+        ``raw_dn`` and ``clean_dn`` (RMS noise of one frame before and after the clearing,
+        over the steps), ``chi2``, ``dof``, ``p_value`` and ``within_step`` (the differences
+        hold more than noise).
     """
     y, y_ho = smp["y"], smp["y_ho"]
-    pair = (y - y_ho) ** 2 / (1.0 / smp["n_fit"][None, :] + 1.0 / smp["n_ho"][None, :])
-    return np.where(valid, pair, 0).sum(0) / np.maximum(valid.sum(0), 1)
+    nf, nh = smp["n_fit"][None, :], smp["n_ho"][None, :]
+    scale = 1.0 / nf + 1.0 / nh
+    d = y_ho - y
+    m = (nf * y + nh * y_ho) / (nf + nh)
+    by_order = np.argsort(smp["step"])
+    prev = np.full(y.shape[1], -1)
+    prev[by_order[1:]] = by_order[:-1]
+    var = np.zeros(y.shape[1])
+    raw = np.zeros(y.shape[1])
+    chi2, dof = 0.0, 0
+    for s in range(y.shape[1]):
+        ok = valid[:, s]
+        n = int(ok.sum())
+        if n == 0:
+            continue
+        ds = d[ok, s]
+        raw[s] = float(np.mean(ds ** 2)) / scale[0, s]
+        cols = [np.ones(n), m[ok, s]]
+        if prev[s] >= 0:
+            cols.append(m[ok, prev[s]])
+        a = np.column_stack([c for c in cols if np.ptp(c) > 0] or [np.ones(n)])
+        if n < 4 * a.shape[1] + 10:  # too few pixels to clear: the raw differences
+            var[s] = raw[s]
+            continue
+        a = (a - np.r_[0.0, a[:, 1:].mean(axis=0)]) if a.shape[1] > 1 else a
+        coef, _, rank, _ = np.linalg.lstsq(a, ds, rcond=None)
+        res = ds - a @ coef
+        v = float(res @ res) / max(n - rank, 1)
+        var[s] = v / scale[0, s]
+        fitted = a @ coef
+        chi2 += float(fitted @ fitted) / max(v, 1e-300)
+        dof += int(rank)
+    if not with_test:
+        return var
+    from scipy import stats
+
+    used = valid.any(axis=0)
+    p = float(stats.chi2.sf(chi2, dof)) if dof else 1.0
+    return var, {"raw_dn": float(np.sqrt(np.mean(raw[used]))) if used.any() else 0.0,
+                 "clean_dn": float(np.sqrt(np.mean(var[used]))) if used.any() else 0.0,
+                 "chi2": chi2, "dof": dof, "p_value": p, "within_step": p < WITHIN_STEP_P}
 
 
 def quantisation_bias(var_pair, quantum=1.0):

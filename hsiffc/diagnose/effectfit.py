@@ -11,16 +11,13 @@ the base or not (:func:`fit_effect`), and of a within-step effect on the frame d
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 from scipy import linalg
 
-if TYPE_CHECKING:
-    from .fitting import Data
+from .fitdata import Data
 
-__all__ = ["fit_effect", "fit_pair_effect", "gram", "pair_regression", "projector",
-           "separable_fraction"]
+__all__ = ["fit_effect", "fit_frame_pairs", "fit_pair_effect", "frame_regression", "gram",
+           "pair_regression", "projector", "separable_fraction"]
 
 
 def gram(a, w, b):
@@ -89,7 +86,7 @@ def separable_fraction(effect, ctx, project, w) -> float:
     float
         In [0, 1].
     """
-    if effect.scope in ("step", "pair"):
+    if effect.scope in ("step", "pair", "frame"):
         return 1.0
     X = effect.columns(ctx)
     Xp = project(X)
@@ -145,7 +142,11 @@ def fit_effect(effect, ctx, res, w, project=None):
     if effect.scope == "pixel":
         a = gram(Xp, w, Xp)
         b = gram(Xp, w, rp[..., None])
-        a = a + 1e-9 * (np.einsum("pii->p", a)[:, None, None] + 1e-30) * np.eye(a.shape[1])
+        # a ridge relative to the pixel's own and to the typical pixel's column energy: a
+        # pixel whose column is all but absorbed by its base gets no huge parameter
+        tr = np.einsum("pii->p", a)
+        lam = 1e-9 * (tr + 1e-30) + 1e-6 * float(np.median(tr))
+        a = a + lam[:, None, None] * np.eye(a.shape[1])
         theta = np.linalg.solve(a, b)[..., 0]
         return theta, np.matmul(X, theta[..., None])[..., 0]
     # step: one factor per light step, shared by the pixels
@@ -215,3 +216,61 @@ def fit_pair_effect(effect, ctx, data: Data, prediction):
     coef[half] = estimate(~half)
     coef[~half] = estimate(half)
     return np.array([estimate(np.ones_like(half))]), coef[:, None] * x
+
+
+def frame_regression(effect, ctx, data: Data):
+    """What the part of a ``frame`` effect between the halves is fitted on: its column ``x``
+    (P, S), the light samples valid in both halves ``ok`` and the frame differences ``d``
+    (held-out minus fit half, DN; 0 outside ``ok``), as :func:`pair_regression`, with one
+    factor per step (no frame gap).
+
+    Parameters
+    ----------
+    effect : Effect
+        A ``frame`` effect.
+    ctx : Context
+        Base model on the data.
+    data : Data
+        The samples.
+
+    Returns
+    -------
+    x, ok, d : ndarray, (P, S)
+    """
+    x = effect.columns(ctx)[..., 0]
+    ok = data.valid & data.valid_ho & data.light[None, :] & np.isfinite(x)
+    return np.where(ok, x, 0.0), ok, np.where(ok, data.y_ho - data.y, 0.0)
+
+
+def fit_frame_pairs(effect, ctx, data: Data):
+    """The part of a ``frame`` effect between the halves: a factor per light step fitted on the
+    frame differences, cross-fitted over two halves of the pixels (the factor applied to one
+    half is estimated on the other), so the held-out error stays honest.
+
+    Parameters
+    ----------
+    effect : Effect
+        A ``frame`` effect.
+    ctx : Context
+        Base model on the data.
+    data : Data
+        The samples.
+
+    Returns
+    -------
+    factors : ndarray, (S,)
+        Whole-sensor estimate per step (0 for darks).
+    extra : ndarray, (P, S), DN
+        What it adds to the held-out half.
+    """
+    x, ok, d = frame_regression(effect, ctx, data)
+    wx = np.where(ok, data.w, 0.0)
+    half = (np.arange(x.shape[0]) % 2).astype(bool)
+
+    def estimate(sel):
+        den = (wx[sel] * x[sel] ** 2).sum(axis=0)
+        num = (wx[sel] * x[sel] * d[sel]).sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    coef = np.where(half[:, None], estimate(~half)[None, :], estimate(half)[None, :])
+    return estimate(np.ones_like(half)), coef * x

@@ -9,7 +9,12 @@ simulated frames, so that diagnosis can be tested on data with an undeclared eff
 
 Scopes: ``global`` (a few parameters shared by the sensor), ``pixel`` (parameters per pixel),
 ``step`` (one parameter per light step, shared by the pixels), ``pair`` (a change between the
-frames of one step: fitted on the frame differences, it acts on the held-out frames only).
+frames of one step: fitted on the frame differences, it acts on the held-out frames only),
+``frame`` (a factor per light step on the fit half and one between the halves).
+
+Each effect is one record (:class:`Effect`) that carries everything about it: its columns,
+its injection into simulated data, the design rule that skips it, its derived figures and the
+parameters no working sensor has. Adding an effect is one :func:`_register` call.
 """
 
 from __future__ import annotations
@@ -22,7 +27,8 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Context:
-    """What effect columns are built from; arrays (P, S) unless stated.
+    """What effect columns are built from (and injections, on a simulated sweep's truth);
+    arrays (P, S) unless stated.
 
     Parameters
     ----------
@@ -44,6 +50,10 @@ class Context:
         Base-model ``dY/dt = k - a e^{bY}``.
     dydlnk : ndarray, DN
         Base-model ``dY / d ln k``.
+    n_fit : ndarray, (S,), optional
+        Frames averaged in each fit-half sample (default 1).
+    dc_in_base : bool
+        The base model holds a (leaking) dark current measured from the dark frames.
     """
 
     t: np.ndarray  # exposure, ms
@@ -55,11 +65,49 @@ class Context:
     full_scale: float
     dydt: np.ndarray  # base-model dY/dt = k - a e^{bY}, DN/ms
     dydlnk: np.ndarray  # base-model dY / d ln k, DN
+    n_fit: np.ndarray | None = None  # (S,) frames in each fit-half sample
+    dc_in_base: bool = False
+
+
+@dataclass
+class FrameContext:
+    """The raw frames of a simulated sweep an effect acting frame by frame is put into.
+
+    Parameters
+    ----------
+    frames : ndarray, (N, P), DN, float
+        Frames in acquisition order (changed in place by the injection).
+    step_index : ndarray of int, (N,)
+        Step of each frame (index into the steps, ``sweep.steps()`` order).
+    frame_in_step : ndarray of int, (N,)
+        Index of the frame within its step.
+    terms : dict
+        :func:`truth_terms` of the sweep (the truth per step, (P, S)).
+    """
+
+    frames: np.ndarray
+    step_index: np.ndarray
+    frame_in_step: np.ndarray
+    terms: dict
+
+
+def _no_skip(design, dark) -> None:
+    return None
+
+
+def _no_figures(theta) -> dict:
+    return {}
+
+
+def _plausible(params, scale) -> None:
+    return None
 
 
 @dataclass(frozen=True)
 class Effect:
-    """One candidate effect (see the module docstring).
+    """One candidate effect: how it is fitted, put into simulated data, skipped and judged.
+
+    Adding an effect is one :func:`_register` call here (and its docs row).
 
     Parameters
     ----------
@@ -67,22 +115,50 @@ class Effect:
         Its name (``hsiffc diagnose --list-effects``).
     summary : str
         One line describing it.
-    scope : {"global", "pair", "pixel", "step"}
-        What its parameters belong to.
+    scope : {"global", "pair", "pixel", "step", "frame"}
+        What its parameters belong to (``frame``: a factor per light step on the fit half and
+        one per light step between the halves, fitted on the frame differences).
     param_names : tuple of str
         Names of its parameters.
     columns : callable
-        :class:`Context` -> (P, S, m) design columns of the effect.
+        :class:`Context` -> (P, S, m) design columns of the effect (of the fit half).
     interpret : callable
         Fitted parameters (dict) -> one sentence.
+    inject : callable, optional
+        ``inject(ctx, size, rng)`` -> (P, S) DN the effect of ``size`` (``unit``) adds to every
+        frame of a step of a simulated sweep (``ctx`` the truth's :class:`Context`).
+    inject_frames : callable, optional
+        ``inject_frames(frame_context, size, rng)``: the effect put into the raw frames one by
+        one (effects that change from frame to frame), in place.
+    unit : str
+        Unit of the injected ``size``.
+    skip : callable
+        ``skip(design, dark_model) -> reason or None``: why the design cannot identify it
+        (beyond the rules of its scope, :func:`hsiffc.diagnose.design.structural_skip`).
+    figures : callable
+        Fitted parameters (ndarray) -> derived figures for the report (dict).
+    implausible : callable
+        ``implausible(params, scale) -> reason or None``: parameters no working sensor has
+        (``scale``: ``full_scale_dn``, ``max_exposure_ms``, ``min_exposure_ms``); the effect
+        is then reported as a stand-in, not a finding.
+    ho_columns : callable, optional
+        :class:`Context` -> (P, S, m): the effect's columns on the held-out half where they
+        differ from those of the fit half (an effect that depends on the frame within a step).
     """
 
     name: str
     summary: str  # one line for the README and --list-effects
-    scope: str  # "global", "pixel" or "step"
+    scope: str  # "global", "pixel", "step", "pair" or "frame"
     param_names: tuple
     columns: Callable  # Context -> (P, S, m)
     interpret: Callable  # params dict -> one sentence
+    inject: Callable | None = None
+    inject_frames: Callable | None = None
+    unit: str = ""
+    skip: Callable = _no_skip
+    figures: Callable = _no_figures
+    implausible: Callable = _plausible
+    ho_columns: Callable | None = None
 
     def n_params(self, n_pixels: int, n_light_steps: int) -> int:
         """Free parameters the effect adds (for the information criterion).
@@ -99,12 +175,19 @@ class Effect:
         int
         """
         m = len(self.param_names)
-        return {"global": m, "pair": m, "pixel": m * n_pixels, "step": n_light_steps}[self.scope]
+        return {"global": m, "pair": m, "pixel": m * n_pixels, "step": n_light_steps,
+                "frame": 2 * n_light_steps}[self.scope]
 
 
 def _legendre(x, n):
     cols = [x, 1.5 * x ** 2 - 0.5, 2.5 * x ** 3 - 1.5 * x]
     return cols[:n]
+
+
+def _curve_peak(theta):
+    """Largest magnitude over [-1, 1] of a Legendre series (degrees 1..n) with ``theta``."""
+    order = np.linspace(-1, 1, 201)
+    return float(np.abs(sum(v * c for v, c in zip(theta, _legendre(order, len(theta))))).max())
 
 
 def _stack(*cols):
@@ -119,12 +202,53 @@ def _dy_dk(c):
     return np.where(c.light[None, :], light, c.t)
 
 
+def _one_exposure(design, dark):
+    if design.exposures < 2:
+        return ("every sample has the same exposure: a dark signal is indistinguishable from "
+                "the dark level")
+    return None
+
+
+def _too_big(fraction_of_full_scale, what):
+    def check(params, scale):
+        v = abs(float(params[what]))
+        if v > fraction_of_full_scale * scale["full_scale_dn"]:
+            return (f"{what} {params[what]:.4g} DN is more than "
+                    f"{100 * fraction_of_full_scale:g} % of full scale")
+        return None
+    return check
+
+
+def _out_of(what, low, high, unit=""):
+    def check(params, scale):
+        v = float(params[what])
+        if not low <= v <= high:
+            return f"{what} {v:.4g}{unit} is outside {low:g} .. {high:g}{unit}"
+        return None
+    return check
+
+
 EFFECTS: dict[str, Effect] = {}
 
 
 def _register(effect: Effect) -> Effect:
     EFFECTS[effect.name] = effect
     return effect
+
+
+def _dark_current_skip(design, dark):
+    if "dark current" in dark["model"]:
+        return "already in the base model (measured from the dark frames)"
+    return _one_exposure(design, dark)
+
+
+def _negative_dark(key):
+    def check(params, scale):
+        if params[key] < 0 and abs(params[key]) > 3 * params.get(
+                key.replace("median", "spread"), 0.0) / np.sqrt(max(params["n_pixels"], 1)):
+            return f"a negative dark signal ({params[key]:.3g} DN/ms, median pixel)"
+        return None
+    return check
 
 
 _register(Effect(
@@ -135,7 +259,51 @@ _register(Effect(
     lambda p: (f"the dark level rises by {p['median_dark_current_dn_per_ms']:.3g} DN/ms "
                "(median pixel): thermally generated charge, which grows with exposure and "
                "temperature"),
+    # log-normal over the pixels with median ``size``; collected in the well (leaks with the
+    # signal: see effect_term)
+    inject=lambda c, size, rng: size * rng.lognormal(0.0, 0.3, size=(c.t.shape[0], 1)) * c.t,
+    unit="DN/ms (median pixel)", skip=_dark_current_skip,
+    implausible=_negative_dark("median_dark_current_dn_per_ms"),
 ))
+
+
+def _outside_columns(c):
+    """A dark signal collected outside the photodiode: ``t`` on every sample; with the
+    (leaking) dark current in the base, what turns it into one that does not leak."""
+    if c.dc_in_base:
+        return _stack(np.where(c.light[None, :], c.t - _dy_dk(c), 0.0))
+    return _stack(c.t)
+
+
+_register(Effect(
+    "dark_outside_well",
+    "dark signal growing with exposure that does not leak: collected outside the photodiode "
+    "(a global-shutter storage node, amplifier glow), per pixel",
+    "pixel", ("dark_signal_dn_per_ms",),
+    _outside_columns,
+    lambda p: (f"a dark signal of {p['median_dark_signal_dn_per_ms']:.3g} DN/ms (median pixel) "
+               "that does not leak with the signal: charge collected outside the photodiode "
+               "(a storage node, or glow of the readout), added after the leakage"),
+    inject=lambda c, size, rng: size * rng.lognormal(0.0, 0.3, size=(c.t.shape[0], 1)) * c.t,
+    unit="DN/ms (median pixel)", skip=lambda d, dark: _one_exposure(d, dark),
+    implausible=_negative_dark("median_dark_signal_dn_per_ms"),
+))
+
+
+def _offset_skip(design, dark):
+    if design.light_exposures < 2:
+        return ("all light steps share one exposure: a timing offset is indistinguishable from "
+                "the light rate (responsivity)")
+    return None
+
+
+def _offset_implausible(params, scale):
+    if abs(params["t0_ms"]) > scale["max_exposure_ms"]:
+        return (f"a timing offset of {params['t0_ms']:.4g} ms, longer than the longest "
+                f"exposure ({scale['max_exposure_ms']:.4g} ms)")
+    return None
+
+
 _register(Effect(
     "exposure_offset",
     "effective exposure differs from the nominal one by a constant t0 (shutter/trigger delay)",
@@ -144,6 +312,8 @@ _register(Effect(
     lambda p: (f"the light dose behaves as if every exposure were {p['t0_ms']:.4g} ms longer: "
                "an exposure-timing offset (trigger or shutter delay), which matters most at "
                "short exposures and low signal"),
+    inject=lambda c, size, rng: size * c.dydt,  # Y(t + t0) - Y(t), to first order
+    unit="ms", skip=_offset_skip, implausible=_offset_implausible,
 ))
 _register(Effect(
     "readout_nonlinearity",
@@ -155,6 +325,10 @@ _register(Effect(
                f"{p['c3']:.3g} DN per full scale; {p['deviation_at_full_scale_dn']:.3g} DN at full "
                "scale, negative = compressive): a readout (ADC or source-follower) nonlinearity "
                "shared by the sensor, which unlike leakage does not depend on the light rate"),
+    inject=lambda c, size, rng: size * (c.signal / c.full_scale) ** 2,
+    unit="DN at full scale (quadratic; negative = compressive)",
+    figures=lambda th: {"deviation_at_full_scale_dn": float(th[0] + th[1])},
+    implausible=_too_big(0.1, "deviation_at_full_scale_dn"),
 ))
 _register(Effect(
     "pixel_nonlinearity",
@@ -163,6 +337,10 @@ _register(Effect(
     lambda c: _stack((c.signal / c.full_scale) ** 2),
     lambda p: (f"pixels bend differently with signal (spread of the quadratic term "
                f"{p['spread_c2']:.3g} DN per full scale): per-pixel linearity differences"),
+    inject=lambda c, size, rng: (size * rng.standard_normal((c.t.shape[0], 1))
+                                 * (c.signal / c.full_scale) ** 2),
+    unit="DN at full scale (spread over the pixels)",
+    implausible=_too_big(0.1, "spread_c2"),
 ))
 _register(Effect(
     "offset_drift",
@@ -171,6 +349,10 @@ _register(Effect(
     lambda c: _stack(*[np.broadcast_to(v, c.t.shape) for v in _legendre(c.order, 3)]),
     lambda p: (f"the offset drifts over the acquisition by up to {p['peak_dn']:.3g} DN: a "
                "temperature or supply drift during the sweep"),
+    inject=lambda c, size, rng: np.broadcast_to(size * c.order, c.t.shape).copy(),
+    unit="DN (linear peak)",
+    figures=lambda th: {"peak_dn": _curve_peak(th)},
+    implausible=_too_big(0.2, "peak_dn"),
 ))
 _register(Effect(
     "illumination_error",
@@ -181,6 +363,25 @@ _register(Effect(
                f"{100 * p['median_abs']:.3g} % (median over steps; RMS {100 * p['rms']:.3g} %, "
                "largest at the weakest steps, where it is least determined), equally in every "
                "pixel: light-source instability or an error of the step's photon count"),
+    # Y(k (1 + eps)) - Y(k), to first order
+    inject=lambda c, size, rng: (np.where(c.light, size * rng.standard_normal(c.t.shape[1]),
+                                          0.0) * c.dydlnk),
+    unit="relative (RMS over the steps)",
+    implausible=_out_of("rms", 0.0, 0.2),
+))
+_register(Effect(
+    "lamp_drift",
+    "the light drifts smoothly with acquisition order (a lamp warming up, a source that "
+    "drifts): a relative light change that is a cubic in acquisition order, shared by the pixels",
+    "global", ("q1", "q2", "q3"),
+    lambda c: _stack(*[c.dydlnk * v[None, :] for v in _legendre(c.order, 3)]),
+    lambda p: (f"the light drifts over the acquisition by up to {100 * p['peak']:.3g} % "
+               "(smoothly in acquisition order, equally in every pixel): a lamp warming up or "
+               "a drifting source; order the steps randomly and monitor the light"),
+    inject=lambda c, size, rng: (np.where(c.light, size * c.order, 0.0) * c.dydlnk),
+    unit="relative (linear peak)",
+    figures=lambda th: {"peak": _curve_peak(th)},
+    implausible=_out_of("peak", 0.0, 0.5),
 ))
 _register(Effect(
     "image_lag",
@@ -189,6 +390,45 @@ _register(Effect(
     lambda c: _stack(c.prev_signal),
     lambda p: (f"{100 * p['lag']:.3g} % of the previous step's signal reappears: image lag "
                "(incomplete charge transfer or persistence)"),
+    inject=lambda c, size, rng: size * c.prev_signal,
+    unit="fraction of the previous step's signal",
+    implausible=_out_of("lag", -0.01, 0.3),
+))
+
+
+def _frame_lag_fit(c):
+    """Carried into the fit half: its first frame carries the previous step's last frame,
+    its other frames (3 or more a step) a frame of the same step."""
+    n = np.ones(c.t.shape[1]) if c.n_fit is None else np.asarray(c.n_fit, float)
+    return _stack((c.prev_signal + (n[None, :] - 1) * c.signal) / n[None, :])
+
+
+def _frame_lag_frames(fc, size, rng):
+    """A fraction ``size`` of each frame's signal above the dark level is read again in the
+    next frame (the frames in acquisition order; darks carry it too)."""
+    d = fc.terms["d"][:, 0]
+    signal = fc.frames - d[None, :]
+    fc.frames[1:] += size * signal[:-1]
+
+
+def _pair_skip(design, dark):
+    if not design.pairs:
+        return "one frame per step: a change between the frames of a step cannot be seen"
+    return None
+
+
+_register(Effect(
+    "frame_lag",
+    "a fraction of each frame's signal carried into the next frame (lag within and between "
+    "steps): the first frame of a step carries the step before, the others their own step",
+    "global", ("lag",),
+    _frame_lag_fit,
+    lambda p: (f"{100 * p['lag']:.3g} % of each frame's signal reappears in the next frame: "
+               "image lag from frame to frame (incomplete charge transfer); the first frame of "
+               "a step carries the step before"),
+    inject_frames=_frame_lag_frames, unit="fraction of the previous frame's signal",
+    skip=_pair_skip, implausible=_out_of("lag", -0.01, 0.3),
+    ho_columns=lambda c: _stack(c.signal),
 ))
 
 _register(Effect(
@@ -200,6 +440,33 @@ _register(Effect(
     lambda p: (f"the light of a step's next frame differs by {100 * p['eps']:.3g} % from the frame "
                "before (equally in every pixel): the light source drifts within a step (warm-up, "
                "flicker); frames of one step are not exchangeable"),
+    # per frame index within the step: see add_term(per_frame=True)
+    inject=lambda c, size, rng: size * np.where(c.light, c.dydlnk, 0.0),
+    unit="relative light change per frame", skip=_pair_skip,
+    implausible=_out_of("eps", -0.2, 0.2),
+))
+
+
+def _flicker_frames(fc, size, rng):
+    """Every light frame sees its own light level, ``1 + size * N(0, 1)`` times the step's."""
+    light = fc.terms["light"][fc.step_index]
+    eps = np.where(light, size * rng.standard_normal(fc.frames.shape[0]), 0.0)
+    fc.frames += eps[:, None] * fc.terms["dydlnk"][:, fc.step_index].T
+
+
+_register(Effect(
+    "frame_flicker",
+    "the light level of every frame differs at random (flicker of the source from frame to "
+    "frame): a factor per light step on the frames that fit and one between the halves, "
+    "shared by the pixels",
+    "frame", ("gain_error",),
+    lambda c: _stack(c.dydlnk),
+    lambda p: (f"the light of single frames differs by {100 * p['rms_between_frames']:.3g} % "
+               "RMS between the frames of a step (equally in every pixel): the source flickers "
+               "from frame to frame; frames of one step are not exchangeable and their "
+               "differences are not noise"),
+    inject_frames=_flicker_frames, unit="relative (RMS over the frames)", skip=_pair_skip,
+    implausible=_out_of("rms_between_frames", 0.0, 0.2),
 ))
 
 ALIASES = {"gain_nonlinearity": "readout_nonlinearity"}  # earlier name, still accepted
@@ -215,11 +482,7 @@ def inject(name: str, size: float, *, t, k, signal, order, prev_signal, light, f
     """Additive DN of effect ``name`` of a given ``size`` for frames of a simulated sweep.
 
     Arguments are (P, S) arrays of the true exposure, light rate and signal (S steps, P pixels).
-    ``size`` is in each effect's natural unit: DN/ms (dark_current, median of a log-normal
-    per-pixel spread), ms (exposure_offset), DN at full scale (readout_nonlinearity: the quadratic
-    term, negative = compressive; pixel_nonlinearity: the per-pixel spread), DN (offset_drift:
-    linear peak; adc_ripple: amplitude), relative (illumination_error: RMS; image_lag: fraction;
-    frame_light_change: light change per frame within a step, applied by :func:`add_effect`).
+    ``size`` is in each effect's ``unit`` (:class:`Effect`; ``adc_ripple``: amplitude in DN).
 
     Parameters
     ----------
@@ -241,7 +504,7 @@ def inject(name: str, size: float, *, t, k, signal, order, prev_signal, light, f
         Source of the random spreads.
     dydt, dydlnk : ndarray, (P, S), optional
         ``dY/dt`` (DN/ms) and ``dY/d ln k`` (DN) of the true model (needed by
-        exposure_offset, frame_light_change and illumination_error).
+        exposure_offset, frame_light_change, illumination_error and lamp_drift).
 
     Returns
     -------
@@ -251,32 +514,20 @@ def inject(name: str, size: float, *, t, k, signal, order, prev_signal, light, f
     Raises
     ------
     KeyError
-        Unknown effect (the message lists the known ones).
+        Unknown effect, or one that acts frame by frame (the message lists the known ones).
     """
-    fs = full_scale
     name = ALIASES.get(name, name)
-    if name == "dark_current":
-        dc = size * rng.lognormal(0.0, 0.3, size=(t.shape[0], 1))
-        return dc * t
-    if name == "exposure_offset":  # Y(t + t0) - Y(t), to first order
-        return size * dydt
-    if name == "readout_nonlinearity":
-        return size * (signal / fs) ** 2
-    if name == "frame_light_change":  # per frame index within the step: see add_effect
-        return size * np.where(light, dydlnk, 0.0)
-    if name == "pixel_nonlinearity":
-        c = size * rng.standard_normal((t.shape[0], 1))
-        return c * (signal / fs) ** 2
-    if name == "offset_drift":
-        return np.broadcast_to(size * order, t.shape).copy()
-    if name == "illumination_error":
-        eps = size * rng.standard_normal(t.shape[1])
-        return np.where(light, eps, 0.0) * dydlnk  # Y(k (1 + eps)) - Y(k), to first order
-    if name == "image_lag":
-        return size * prev_signal
     if name == "adc_ripple":
         return size * np.sin(2 * np.pi * (signal + 32.0) / 37.0) * (signal > 0)
-    raise KeyError(f"unknown effect {name!r}; known: {sorted(EFFECTS) + sorted(OUTSIDE)}")
+    effect = EFFECTS.get(name)
+    if effect is None or effect.inject is None:
+        raise KeyError(f"unknown effect {name!r} (or one put in frame by frame: add_effect); "
+                       f"known: {sorted(EFFECTS) + sorted(OUTSIDE)}")
+    zeros = np.zeros_like(signal)
+    ctx = Context(t=t, k=k, signal=signal, order=order, prev_signal=prev_signal, light=light,
+                  full_scale=full_scale, dydt=zeros if dydt is None else dydt,
+                  dydlnk=zeros if dydlnk is None else dydlnk)
+    return effect.inject(ctx, size, rng)
 
 
 def truth_terms(sweep) -> dict:
@@ -399,6 +650,42 @@ def add_term(sweep, extra, *, per_frame: bool = False, meta: dict | None = None)
     return replace_fields(sweep, data=data, meta={**sweep.meta, **(meta or {})})
 
 
+def add_frames(sweep, change, *, meta: dict | None = None):
+    """A copy of a simulated sweep whose raw frames ``change(frame_context)`` alters in place
+    (a :class:`FrameContext` of float frames (N, P) in acquisition order), rounded and clipped
+    to the ADC range as the sensor would.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        A simulated sweep with ``meta["truth"]``.
+    change : callable
+        ``change(frame_context)``.
+    meta : dict, optional
+        Entries to add to the copy's ``meta``.
+
+    Returns
+    -------
+    Sweep
+    """
+    from dataclasses import replace as replace_fields
+
+    terms = truth_terms(sweep)
+    steps = list(terms["steps"])
+    n = sweep.n_frames
+    step_index = np.array([steps.index(s) for s in sweep.step])
+    frame_in_step = np.zeros(n, int)
+    for s in steps:
+        sel = np.flatnonzero(sweep.step == s)
+        frame_in_step[sel] = np.arange(sel.size)
+    frames = sweep.data.reshape(n, -1).astype(np.float64)
+    change(FrameContext(frames=frames, step_index=step_index, frame_in_step=frame_in_step,
+                        terms=terms))
+    data = np.clip(np.rint(frames), 0, sweep.full_scale_dn).reshape(sweep.data.shape)
+    return replace_fields(sweep, data=data.astype(sweep.data.dtype),
+                          meta={**sweep.meta, **(meta or {})})
+
+
 def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = True):
     """A copy of a simulated sweep (with ``meta["truth"]``) with effect ``name`` added to its
     raw frames (then rounded and clipped to the ADC range as the sensor would).
@@ -440,6 +727,11 @@ def add_effect(sweep, name: str, size: float, *, seed: int = 0, in_well: bool = 
     >>> lagged.data.shape == sweep.data.shape, bool((lagged.data != sweep.data).any())
     (True, True)
     """
+    name = ALIASES.get(name, name)
+    meta = {"injected_effect": {"name": name, "size": size, "seed": seed}}
+    effect = EFFECTS.get(name)
+    if effect is not None and effect.inject_frames is not None:
+        return add_frames(sweep, lambda fc: effect.inject_frames(
+            fc, size, np.random.default_rng(seed)), meta=meta)
     extra = effect_term(sweep, name, size, seed=seed, in_well=in_well)
-    return add_term(sweep, extra, per_frame=ALIASES.get(name, name) == "frame_light_change",
-                    meta={"injected_effect": {"name": name, "size": size, "seed": seed}})
+    return add_term(sweep, extra, per_frame=name == "frame_light_change", meta=meta)

@@ -55,6 +55,11 @@ SHARED_SETS = ("emva1288-cmos8-roi", "emva1288-refsim-linear12-exposure",
 #: shared sets that are linear: diagnose must keep a linear base and select nothing
 LINEAR_SETS = SHARED_SETS[1:]
 GOALS = {"named_right_5x": 0.90, "false_alarm_clean": 0.05, "outside_unexplained": 0.90}
+#: the library the first generator draws its effects from (the effects added later are drawn
+#: by the failure classes; a longer list would change every seed's draws)
+FIRST_LIBRARY = ("dark_current", "exposure_offset", "readout_nonlinearity",
+                 "pixel_nonlinearity", "offset_drift", "illumination_error", "image_lag",
+                 "frame_light_change")
 
 
 def half_of(seed: int) -> str:
@@ -76,14 +81,17 @@ def half_of(seed: int) -> str:
     return "dev" if seed % 2 == 0 else "eval"
 
 
-def seeds(half: str, n_cases: int) -> list[int]:
-    """The seeds of one half among the first ``n_cases`` seeds.
+def seeds(half: str, n_cases: int, n_class_cases: int = 0) -> list[int]:
+    """The seeds of one half among the first ``n_cases`` seeds, and among the first
+    ``n_class_cases`` seeds of the failure classes (``CLASS_SEED0`` on).
 
     Parameters
     ----------
     half : {"dev", "eval", "all"}
     n_cases : int
         Seeds 0 .. n_cases - 1.
+    n_class_cases : int
+        Seeds CLASS_SEED0 .. CLASS_SEED0 + n_class_cases - 1.
 
     Returns
     -------
@@ -91,7 +99,18 @@ def seeds(half: str, n_cases: int) -> list[int]:
     """
     if half not in ("dev", "eval", "all"):
         raise ValueError(f"half must be 'dev', 'eval' or 'all', got {half!r}")
-    return [s for s in range(n_cases) if half == "all" or half_of(s) == half]
+    every = list(range(n_cases)) + list(range(CLASS_SEED0, CLASS_SEED0 + n_class_cases))
+    return [s for s in every if half == "all" or half_of(s) == half]
+
+
+def _sensor(rng, bit_depths):
+    """Bit depth, full scale (DN), full well (e-), dark level (DN) and conversion gain (DN/e-)
+    of a random sensor; the ADC clips before the full well."""
+    bits = int(rng.choice(bit_depths))
+    fs = 2 ** bits - 1
+    full_well = float(np.exp(rng.uniform(np.log(4e3), np.log(4e4))))
+    dark = float(fs * rng.uniform(0.01, 0.06) + 2.0)
+    return bits, fs, full_well, dark, 1.05 * (fs - dark) / full_well
 
 
 def case_spec(seed: int) -> dict:
@@ -105,12 +124,10 @@ def case_spec(seed: int) -> dict:
     -------
     dict
     """
+    if seed >= CLASS_SEED0:
+        return class_case_spec(seed)
     rng = np.random.default_rng(np.random.SeedSequence([38, seed]))
-    bits = int(rng.choice([8, 10, 12, 14, 16]))
-    fs = 2 ** bits - 1
-    full_well = float(np.exp(rng.uniform(np.log(4e3), np.log(4e4))))
-    dark = float(fs * rng.uniform(0.01, 0.06) + 2.0)
-    gain = 1.05 * (fs - dark) / full_well  # the ADC clips before the full well
+    bits, fs, full_well, dark, gain = _sensor(rng, [8, 10, 12, 14, 16])
     design = str(rng.choice(["exposure", "light", "mixed"]))
     darks = bool(rng.random() < 0.6)
     leaky = bool(rng.random() < 0.5)
@@ -141,7 +158,7 @@ def case_spec(seed: int) -> dict:
     spec["kind"] = kind
     spec["effect_seed"] = int(rng.integers(2 ** 31))
     spec["multiple"] = int(rng.choice(MULTIPLES))
-    spec["candidates"] = [str(x) for x in rng.permutation(_library())]
+    spec["candidates"] = [str(x) for x in rng.permutation(list(FIRST_LIBRARY))]
     spec["outside"] = str(rng.choice(OUTSIDE_EFFECTS))
     return spec
 
@@ -194,8 +211,9 @@ def clean_sweep(spec: dict):
     unit = sensor.light_rate("lamp A", irradiance_w_m2=1.0)
     irr = k_max / float(np.median(unit[sensor.band_map == np.argmax(
         [np.median(unit[sensor.band_map == b]) for b in range(sensor.mosaic.n_bands)])]))
-    return sensor.sweep_varying_light(t, levels, "lamp A", irradiance_w_m2=irr, n_frames=2,
-                                      darks=spec["darks"], seed=spec["seed"] + 1000)
+    return sensor.sweep_varying_light(t, levels, "lamp A", irradiance_w_m2=irr,
+                                      n_frames=spec.get("n_frames", 2), darks=spec["darks"],
+                                      seed=spec["seed"] + 1000)
 
 
 def outside_term(sweep, name: str, size: float, terms: dict) -> np.ndarray:
@@ -315,6 +333,8 @@ def build_case(spec: dict):
     """
     from .effects import add_term, effect_term, truth_terms
 
+    if spec.get("round") == 3:
+        return _build_class_case(spec)
     sweep = clean_sweep(spec)
     terms = truth_terms(sweep)
     fs = float(sweep.full_scale_dn)
@@ -351,6 +371,242 @@ def build_case(spec: dict):
     return sweep, {"kind": kind, "effects": put, "outside": kind == "outside"}
 
 
+# --- the failure classes of issue 53 -----------------------------------------------------------
+#: seeds from here on are cases of the failure classes (:func:`class_case_spec`)
+CLASS_SEED0 = 100_000
+#: library effects of the classes (each must be named) and effects outside the library (each
+#: must be reported unexplained, the effects selected beside it as stand-ins)
+CLASS_EFFECTS = ("lamp_drift", "frame_flicker", "frame_lag", "dark_outside_well")
+CLASS_OUTSIDE = ("black_clamp", "blooming")
+#: what the class seeds hold, in turn (each half gets each in turn)
+CLASS_KINDS = ("clean",) + CLASS_EFFECTS + CLASS_OUTSIDE
+CLASS_MULTIPLES = (5, 10, 30)
+MAX_DARK_OF_FULL_SCALE = 0.3  # dark signal outside the photodiode at the longest exposure
+
+
+def class_case_spec(seed: int) -> dict:
+    """The random choices of failure-class case ``seed`` (>= ``CLASS_SEED0``): a sensor drawn as
+    by :func:`case_spec`, designs the first generator lacks (3 and 4 frames per step besides
+    2; 10, 12 and 14 bit; sorted or shuffled order; with or without darks) and one of
+    ``CLASS_KINDS``, in turn (seeds ``CLASS_SEED0 + 2 i`` and ``+ 2 i + 1`` share a kind, so
+    both halves hold each kind).
+
+    Parameters
+    ----------
+    seed : int
+
+    Returns
+    -------
+    dict
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([53, seed]))
+    what = CLASS_KINDS[((seed - CLASS_SEED0) // 2) % len(CLASS_KINDS)]
+    bits, fs, full_well, dark, gain = _sensor(rng, [10, 12, 14, 14])
+    design = str(rng.choice(["exposure", "light", "mixed"]))
+    if what == "dark_outside_well" and design == "light":
+        design = "exposure"  # a dark signal needs two exposures
+    leaky = bool(rng.random() < 0.5) or what == "dark_outside_well"  # else it is dark_current
+    darks = bool(rng.random() < 0.5)
+    shuffled = bool(rng.random() < 0.5)
+    if what == "lamp_drift" and design != "mixed":
+        shuffled = True  # in a sorted sweep a drift in acquisition order follows the signal
+    spec = {
+        "seed": seed, "half": half_of(seed), "round": 3, "bit_depth": bits, "design": design,
+        "darks": darks, "leaky": leaky, "n_steps": int(rng.integers(16, 37)),
+        "n_rates": int(rng.integers(1, 5)) if design == "exposure" else 0,
+        "shuffled": shuffled, "n_frames": int(rng.choice([2, 3, 4])),
+        "t_max_ms": float(rng.uniform(20.0, 200.0)),
+        "fill": float(rng.uniform(0.8, 1.25) if leaky else rng.uniform(0.75, 1.1)),
+        "params": {
+            "bit_depth": bits, "full_well_e": full_well, "conversion_gain_dn_per_e": gain,
+            "read_noise_dn": float(np.exp(rng.uniform(np.log(2), np.log(25))) * gain),
+            "dark_level_dn": dark, "dsnu_dn": float(dark * rng.uniform(0.02, 0.1)),
+            "prnu": float(rng.uniform(0.002, 0.02)), "dark_current_dn_per_ms": 0.0,
+            "dark_current_spread": 0.5, "leak_b_per_dn": float(rng.uniform(6.0, 14.0) / fs),
+            "leak_ref_dn": float(0.8 * fs), "leak_a_spread": 0.2,
+        },
+        "leak_of_rate": float(rng.uniform(0.3, 1.0)),
+        "kind": "clean" if what == "clean" else (
+            "outside" if what in CLASS_OUTSIDE else "single"),
+        "class": what, "effect_seed": int(rng.integers(2 ** 31)),
+        "multiple": int(rng.choice(CLASS_MULTIPLES)),
+        "warm_up": float(rng.uniform(0.15, 1.0)),  # lamp drift: time constant / acquisition
+    }
+    if what == "dark_outside_well":
+        # a dark signal outside the photodiode differs from one that leaks only where the
+        # light's charge leaks: sensors driven into their leakage, exposures up to 200 ms
+        spec.update(fill=float(rng.uniform(1.05, 1.25)), leak_of_rate=float(rng.uniform(0.7, 1.0)),
+                    t_max_ms=float(rng.uniform(100.0, 200.0)))
+    return spec
+
+
+def _frame_index(sweep):
+    """Step index (into ``sweep.steps()``) of every frame, and the frame's acquisition time
+    in [0, 1] (a camera at a fixed frame rate: the frame index)."""
+    steps = list(sweep.steps())
+    index = np.array([steps.index(s) for s in sweep.step])
+    return index, np.arange(sweep.n_frames) / max(sweep.n_frames - 1, 1)
+
+
+def _warm_up(time, tau):
+    """A lamp warming up: its relative light rises as 1 - exp(-time / tau), scaled to 1 over
+    the acquisition and centred (the mean light is the stated one)."""
+    g = (1 - np.exp(-time / tau)) / (1 - np.exp(-1 / tau))
+    return g - g.mean()
+
+
+def _clamp_offset(mean_signal, fs):
+    """Black-level clamp: the optical-black reference follows the frame's mean signal above
+    30 % of full scale (DN of offset per DN of mean signal above it; negative: the clamp
+    pulls the frame down)."""
+    return -np.maximum(mean_signal - 0.3 * fs, 0.0)
+
+
+def _bloom(signal_frames, shape, threshold):
+    """Charge a pixel collects above ``threshold`` (DN) spills into its 4 neighbours:
+    ``signal_frames`` (N, P) above dark -> what each pixel receives at unit spill (N, P)."""
+    excess = np.maximum(signal_frames - threshold, 0.0).reshape((-1,) + tuple(shape))
+    out = np.zeros_like(excess)
+    out[:, 1:, :] += excess[:, :-1, :]
+    out[:, :-1, :] += excess[:, 1:, :]
+    out[:, :, 1:] += excess[:, :, :-1]
+    out[:, :, :-1] += excess[:, :, 1:]
+    return out.reshape(signal_frames.shape)
+
+
+def class_unit(sweep, spec, terms) -> np.ndarray:
+    """What a failure class adds at size 1 to the noise-free step means (P, S), DN: what its
+    detection limit is measured on (for a change between the frames of a step, the change of
+    the held-out frame; for a dark signal outside the photodiode, what it differs by from one
+    collected in the well, which leaks: only that tells the two apart).
+
+    Parameters
+    ----------
+    sweep : Sweep
+    spec : dict
+        From :func:`class_case_spec`.
+    terms : dict
+        :func:`hsiffc.diagnose.effects.truth_terms`.
+
+    Returns
+    -------
+    ndarray, (P, S), DN
+    """
+    what = spec["class"]
+    light = terms["light"][None, :]
+    index, time = _frame_index(sweep)
+    step_time = np.array([time[index == i].mean() for i in range(len(terms["steps"]))])
+    if what == "lamp_drift":
+        return light * terms["dydlnk"] * _warm_up(step_time, spec["warm_up"])[None, :]
+    if what == "frame_flicker":
+        return light * terms["dydlnk"]
+    if what == "frame_lag":
+        return terms["signal"] - terms["prev"]
+    if what == "dark_outside_well":
+        # what tells it from a dark current that leaks (which the base takes from the darks,
+        # or dark_current without them): the dark signal's leakage at the light's level
+        t = np.broadcast_to(terms["t"][None, :], terms["signal"].shape)
+        k = terms["k_light"]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dydk = np.where(k > 0, terms["dydlnk"] / np.where(k > 0, k, 1.0), t)
+        return np.where(light, t - dydk, 0.0)
+    fs = float(sweep.full_scale_dn) - terms["d"].mean()
+    if what == "black_clamp":
+        mean = terms["signal"].mean(axis=0)
+        return np.broadcast_to(_clamp_offset(mean, fs)[None, :], terms["signal"].shape)
+    if what == "blooming":
+        return _bloom(terms["signal"].T, sweep.frame_shape, 0.6 * fs).T
+    raise ValueError(f"unknown failure class {what!r}; known: {CLASS_KINDS}")
+
+
+def class_frames(sweep, spec, size, terms):
+    """The sweep with failure class ``spec["class"]`` of ``size`` put into its raw frames one
+    by one, written here from the physics of each effect (not through the effect library):
+    a lamp warming up in acquisition time; the light of every frame off at random; a fraction
+    of each frame's signal read again in the next; a dark signal collected outside the
+    photodiode (with its shot noise); a black-level clamp that follows the frame's mean signal;
+    charge above 60 % of the range spilling into the 4 neighbours.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        The clean simulated sweep.
+    spec : dict
+        From :func:`class_case_spec`.
+    size : float
+        Relative (lamp_drift: full warm-up; frame_flicker: RMS per frame; frame_lag and
+        blooming: fraction; black_clamp: DN per DN of mean signal), or DN/ms
+        (dark_outside_well: median pixel).
+    terms : dict
+        :func:`hsiffc.diagnose.effects.truth_terms`.
+
+    Returns
+    -------
+    Sweep
+    """
+    from dataclasses import replace as replace_fields
+
+    what = spec["class"]
+    rng = np.random.default_rng(spec["effect_seed"])
+    index, time = _frame_index(sweep)
+    n = sweep.n_frames
+    frames = sweep.data.reshape(n, -1).astype(np.float64)
+    light = terms["light"][index]
+    d = terms["d"][:, 0]
+    fs = float(sweep.full_scale_dn) - float(d.mean())
+    if what == "lamp_drift":
+        frames += (light * size * _warm_up(time, spec["warm_up"]))[:, None] \
+            * terms["dydlnk"][:, index].T
+    elif what == "frame_flicker":
+        eps = np.where(light, size * rng.standard_normal(n), 0.0)
+        frames += eps[:, None] * terms["dydlnk"][:, index].T
+    elif what == "frame_lag":
+        frames[1:] += size * (frames[:-1] - d[None, :])
+    elif what == "dark_outside_well":
+        gain = sweep.meta["simulator"]["params"]["conversion_gain_dn_per_e"]
+        rate = size * rng.lognormal(0.0, 0.3, frames.shape[1])  # DN/ms per pixel
+        t = sweep.exposure_ms[:, None]
+        frames += gain * rng.poisson(rate[None, :] * t / gain)
+    elif what == "black_clamp":
+        frames += size * _clamp_offset((frames - d[None, :]).mean(axis=1), fs)[:, None]
+    elif what == "blooming":
+        frames += size * _bloom(frames - d[None, :], sweep.frame_shape, 0.6 * fs)
+    else:
+        raise ValueError(f"unknown failure class {what!r}; known: {CLASS_KINDS}")
+    data = np.clip(np.rint(frames), 0, sweep.full_scale_dn).reshape(sweep.data.shape)
+    return replace_fields(sweep, data=data.astype(sweep.data.dtype))
+
+
+def _build_class_case(spec):
+    from .effects import truth_terms
+
+    sweep = clean_sweep(spec)
+    if spec["kind"] == "clean":
+        return sweep, {"kind": "clean", "effects": [], "outside": False, "class": "clean"}
+    terms = truth_terms(sweep)
+    unit = class_unit(sweep, spec, terms)
+    pair = spec["class"] in ("frame_flicker", "frame_lag")
+    dl = detection_limit(sweep, unit, terms, pair=pair)
+    fs = float(sweep.full_scale_dn)
+    put = None
+    # the largest change the class makes to a frame at size 1 (DN): a dark signal outside the
+    # photodiode adds its whole self, up to MAX_DARK_OF_FULL_SCALE of full scale
+    peak, cap = float(np.abs(unit).max()), MAX_OF_FULL_SCALE
+    if spec["class"] == "dark_outside_well":
+        peak, cap = float(terms["t"].max()), MAX_DARK_OF_FULL_SCALE
+    for m in sorted({m for m in CLASS_MULTIPLES if m <= spec["multiple"]}, reverse=True):
+        size = m * dl
+        if np.isfinite(size) and peak * size <= cap * fs:
+            put = {"name": spec["class"], "multiple": m, "size": float(size),
+                   "detection_limit": float(dl)}
+            break
+    if put is None:
+        return sweep, {"kind": "clean", "effects": [], "outside": False, "class": "clean"}
+    sweep = class_frames(sweep, spec, put["size"], terms)
+    return sweep, {"kind": spec["kind"], "effects": [put], "outside": spec["kind"] == "outside",
+                   "class": spec["class"]}
+
+
 def run_case(seed: int) -> dict:
     """Build case ``seed``, diagnose it and score it.
 
@@ -381,13 +637,16 @@ def run_case(seed: int) -> dict:
                  "structure": [[f["grouping"], f["structured_rms_dn"],
                                 f["null_structured_rms_dn"], f["p_value"], f["significant"]]
                                for f in out["residual_structure_after"]],
+                 "stand_ins": list(out.get("stand_ins", [])),
                  "refused": None}
     except DataFormatError as exc:
         found = {"selected": [], "unexplained": False, "ambiguous": [], "base": "",
-                 "dark_current_in_base": False, "refused": str(exc)}
+                 "dark_current_in_base": False, "stand_ins": [], "refused": str(exc)}
     found["runtime_s"] = time.perf_counter() - t0
     case = {k: spec[k] for k in ("seed", "half", "bit_depth", "design", "darks", "leaky",
-                                 "n_steps", "n_rates")}
+                                 "n_steps", "n_rates", "shuffled")}
+    case["n_frames"] = spec.get("n_frames", 2)
+    case["class"] = truth.get("class")
     case["sensor_dark_current"] = spec["params"]["dark_current_dn_per_ms"] > 0
     return {"case": case, "truth": truth, "found": found, **verdict(truth, found)}
 
@@ -504,8 +763,20 @@ def summarise(results: list[dict]) -> dict:
         "ambiguous_reported": frac([dict(r, right=bool(r["found"]["ambiguous"]))
                                     for r in results]),
     }
+    unexplained = [r for r in results if r["found"]["unexplained"] and r["found"]["selected"]]
+    scores["stand_ins_labelled"] = frac([dict(r, right=set(r["found"].get("stand_ins", []))
+                                              == set(r["found"]["selected"]))
+                                         for r in unexplained])
     by_multiple = {str(m): frac([r for r in single if r["truth"]["effects"][0]["multiple"] == m])
                    for m in MULTIPLES}
+    by_class = {}
+    for what in CLASS_KINDS:
+        rows = [r for r in results if r["case"].get("class") == what
+                or (what == "clean" and r["case"].get("class") == "clean")]
+        if not rows:
+            continue
+        by_class[what] = {"right": frac(rows), "false_alarm": frac(rows, "false_alarm"),
+                          "designs": sorted({f"{r['case']['n_frames']} frames" for r in rows})}
     columns = ["nothing"] + _library() + ["unexplained"]
     confusion: dict = {}
     for r in results:
@@ -527,7 +798,8 @@ def summarise(results: list[dict]) -> dict:
             row["unexplained"] += 1
     order = ["clean"] + _library()
     keys = sorted(confusion, key=lambda k: (order.index(k) if k in order else len(order), k))
-    return {"scores": scores, "by_multiple": by_multiple, "columns": columns,
+    return {"scores": scores, "by_multiple": by_multiple, "by_class": by_class,
+            "columns": columns,
             "confusion": {k: confusion[k] for k in keys}, "n_cases": len(results),
             "runtime_s": float(sum(r["found"]["runtime_s"] for r in results))}
 
@@ -599,12 +871,30 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
         met = "-" if s["fraction"] is None else (
             "yes" if (s["fraction"] >= g if higher else s["fraction"] <= g) else "**no**")
         lines.append(f"| {label} | {_pct(s)} | {goal} | {met} |")
+    lab = sc.get("stand_ins_labelled", {"fraction": None, "right": 0, "n": 0})
+    lines.append("| cases reported unexplained with effects selected: all of them labelled "
+                 f"stand-ins | {_pct(lab)} | 100 % | "
+                 + ("-" if lab["fraction"] is None else
+                    "yes" if lab["fraction"] == 1.0 else "**no**") + " |")
     lines += [f"| library effect at 2x named right | {_pct(sc['named_right_2x'])} | | |",
               f"| pairs (10x each): both named, nothing else | {_pct(sc['pairs_both_named'])} "
               "| | |",
               f"| out-of-library effect at 2x reported unexplained | "
               f"{_pct(sc['outside_unexplained_2x'])} | | |",
               f"| cases with an `ambiguous` entry | {_pct(sc['ambiguous_reported'])} | | |", ""]
+    if summary.get("by_class"):
+        lines += ["The failure classes of issue 53 (seeds from "
+                  f"{CLASS_SEED0}; 2, 3 or 4 frames per step, 10-14 bit, sorted or shuffled, "
+                  "with or without darks; effects at 5x, 10x or 30x their detection limit; "
+                  "right: the class named alone, or for a class outside the library reported "
+                  "unexplained, or for a clean control nothing selected or unexplained):", "",
+                  "| class | right | false alarms | frames per step |", "|---|---|---|---|"]
+        for what, row in summary["by_class"].items():
+            label = what + (" (outside)" if what in CLASS_OUTSIDE else "")
+            alarm = _pct(row["false_alarm"]) if what == "clean" else ""
+            lines.append(f"| {label} | {_pct(row['right'])} | {alarm} | "
+                         f"{', '.join(row['designs'])} |")
+        lines.append("")
     lines += ["Named right, by size (single library effects):", "",
               "| multiple of the detection limit | " + " | ".join(
                   f"{m}x" for m in MULTIPLES) + " |",
@@ -634,6 +924,49 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
             lines.append(f"| {r['set']} | {r['base']} | {', '.join(r['selected']) or '-'} | "
                          f"{r['leakage']} | {'yes' if r['unexplained'] else 'no'} | {amb} | "
                          f"{r['noise_floor_dn']:.3g} | {r['systematic_after_dn']:.3g} | {ok} |")
+    return "\n".join(lines) + "\n"
+
+
+def before_after(before: list[dict], after: list[dict]) -> str:
+    """The before/after table: the same seeds scored with the code before (``before``, cases of
+    :func:`run_case` saved by ``--json``) and now, per class and overall.
+
+    Parameters
+    ----------
+    before, after : list of dict
+        :func:`run_case` results (the ``cases`` of two ``--json`` files).
+
+    Returns
+    -------
+    str
+        Markdown.
+    """
+    old = {r["case"]["seed"]: r for r in before}
+    rows = [r for r in after if r["case"]["seed"] in old]
+
+    def label(r):
+        t = r["truth"]
+        if t["kind"] == "clean":
+            return "clean"
+        name = t["effects"][0]["name"]
+        return name + (" (outside)" if t["kind"] == "outside" else "")
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault(label(r), []).append(r)
+    lines = ["| put in (evaluation half) | n | right before | right now | false alarms before | "
+             "false alarms now |", "|---|---|---|---|---|---|"]
+
+    def line(name, rs):
+        n = len(rs)
+        rb = sum(old[r["case"]["seed"]]["right"] for r in rs)
+        ra = sum(r["right"] for r in rs)
+        fb = sum(old[r["case"]["seed"]]["false_alarm"] for r in rs)
+        fa = sum(r["false_alarm"] for r in rs)
+        return f"| {name} | {n} | {rb}/{n} | {ra}/{n} | {fb} | {fa} |"
+    order = ["clean"] + [c for c in CLASS_EFFECTS] + [c + " (outside)" for c in CLASS_OUTSIDE]
+    for name in sorted(groups, key=lambda k: (order.index(k) if k in order else len(order), k)):
+        lines.append(line(name, groups[name]))
+    lines.append(line("all", rows))
     return "\n".join(lines) + "\n"
 
 
@@ -681,9 +1014,18 @@ def main(argv=None) -> int:
                     help="which half of the seeds (default dev: tune on dev, score eval)")
     ap.add_argument("--cases", type=int, default=480,
                     help="seeds 0 .. CASES-1 (default 480: 240 per half)")
+    ap.add_argument("--classes", type=int, default=0,
+                    help="also the first CLASSES seeds of the failure classes of issue 53 (from "
+                         f"{CLASS_SEED0}; half of them in each half)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--json", type=Path, help="write every case and the summary here")
     ap.add_argument("--page", type=Path, help="write the tables into this Markdown page")
+    ap.add_argument("--before", type=Path,
+                    help="a --json file of the same seeds run with the code before: adds the "
+                         "before/after table")
+    ap.add_argument("--from-json", type=Path,
+                    help="render the tables from the cases of this --json file instead of "
+                         "running them again")
     ap.add_argument("--data", type=Path,
                     default=Path(__file__).resolve().parents[3] / "shared" / "data",
                     help="shared data sets (default ../shared/data next to the repository)")
@@ -700,16 +1042,30 @@ def main(argv=None) -> int:
               f"{_row_label(r):40s} -> {','.join(f['selected']) or 'nothing':40s} "
               f"unexplained={f['unexplained']} {'ok' if r['right'] else 'WRONG'} "
               f"({f['runtime_s']:.1f} s)", flush=True)
-    results = run(seeds(args.half, args.cases), jobs=args.jobs, progress=progress)
+    if args.from_json:
+        saved = json.loads(args.from_json.read_text())
+        results = saved["cases"]
+    else:
+        results = run(seeds(args.half, args.cases, args.classes), jobs=args.jobs,
+                      progress=progress)
     summary = summarise(results)
     shared = shared_rows(args.data) if args.page else []
     wall = time.time() - t0
     how = (f"Measured by `python3 -m hsiffc.diagnose.evaluation --half {args.half} --cases "
-           f"{args.cases}{' --jobs ' + str(args.jobs) if args.jobs > 1 else ''} --page "
+           f"{args.cases}{' --classes ' + str(args.classes) if args.classes else ''}"
+           f"{' --jobs ' + str(args.jobs) if args.jobs > 1 else ''} --page "
            f"docs/diagnose.md` on {platform.machine()}, {platform.python_version()}: "
            f"{summary['n_cases']} sweeps of the {args.half} half ({SHAPE[0]} x {SHAPE[1]} px, "
            f"{MAX_PIXELS} analysed), {wall:.0f} s.")
+    if args.from_json:
+        how = (how.replace(f"{wall:.0f} s.", f"{summary['runtime_s']:.0f} s of diagnosis.")
+               + f" Tables rendered from `{args.from_json.as_posix()}` (`--from-json`).")
     text = markdown(summary, shared, how)
+    if args.before:
+        before = json.loads(args.before.read_text())
+        text += ("\nBefore and after, on the same seeds (before: the code before this round, "
+                 f"`{args.before.as_posix()}`{'; ' + before['note'] if before.get('note') else ''}):"
+                 "\n\n" + before_after(before["cases"], results))
     print(text)
     if args.json:
         from ..files.atomic import atomic_write_text

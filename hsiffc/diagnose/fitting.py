@@ -10,50 +10,28 @@ base fit) is found from the same start as a small one.
 
 This module holds the data and state of a fit and the alternation itself (:func:`fitpredict`);
 the least-squares pieces it is built from (Gram products, the projector off the base Jacobian,
-one effect's fit) are in :mod:`hsiffc.diagnose.effectfit` and importable from here as well.
+one effect's fit) are in :mod:`hsiffc.diagnose.effectfit` and importable from here as well, and
+the samples (:class:`~hsiffc.diagnose.fitdata.Data`) in :mod:`hsiffc.diagnose.fitdata`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from .effectfit import (fit_effect, fit_pair_effect, gram, pair_regression, projector,
-                        separable_fraction)
+from .effectfit import (fit_effect, fit_frame_pairs, fit_pair_effect, gram, pair_regression,
+                        projector, separable_fraction)
 from .effects import EFFECTS, Context
+from .fitdata import Data
 
 __all__ = ["BIG_EFFECT", "MAX_ROUNDS", "ROUND_TOL", "Data", "State", "context", "cost",
-           "describe_params", "fit_effect", "fit_pair_effect", "fitpredict", "gram",
+           "describe_params", "fit_effect", "fit_frame_pairs", "fit_pair_effect", "fitpredict",
+           "gram",
            "pair_regression", "projector", "refit_base", "separable_fraction"]
 
 
 MAX_ROUNDS = 16
 ROUND_TOL = 1e-4  # relative fall of the weighted cost that ends the alternation
 BIG_EFFECT = 2.0  # RMS of a newly added effect, in noise sigmas, that calls for fresh base starts
-
-
-@dataclass
-class Data:
-    """Everything a fit needs; arrays (P, S) unless stated.
-
-    The fields (commented in the class body) are the fit-half and held-out step means (DN),
-    exposures (ms), relative light rates, validity masks, weights (1/DN^2), acquisition order,
-    previous step, light mask, full scale (DN) and the frame gap between the two halves.
-    """
-
-    y: np.ndarray  # fit-half step means, DN
-    y_ho: np.ndarray  # held-out step means, DN
-    t: np.ndarray  # (S,) exposure, ms
-    r: np.ndarray  # (S,) relative light rate (0 for darks)
-    valid: np.ndarray  # fit samples
-    valid_ho: np.ndarray  # held-out samples
-    w: np.ndarray  # fit weights, 1/DN^2
-    order: np.ndarray  # (S,) acquisition order in [-1, 1]
-    prev_index: np.ndarray  # (S,) previous step in acquisition order (-1: none)
-    light: np.ndarray  # (S,) bool
-    full_scale: float
-    frame_gap: float  # mean frame index of the held-out half minus that of the fit half
 
 
 class State:
@@ -122,7 +100,8 @@ def context(base, theta, data: Data):
     prev = np.where(pi[None, :] >= 0, signal[:, np.maximum(pi, 0)], 0.0)
     ctx = Context(t=np.broadcast_to(data.t, m.shape), k=k, signal=signal, order=data.order,
                   prev_signal=prev, light=data.light, full_scale=data.full_scale, dydt=dydt,
-                  dydlnk=np.where(data.light[None, :], dydlnk, 0.0))
+                  dydlnk=np.where(data.light[None, :], dydlnk, 0.0), n_fit=data.n_fit,
+                  dc_in_base=bool(getattr(base, "dark_current", False)))
     return m, jac, ctx
 
 
@@ -212,12 +191,24 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=40
 
 
 def _pair_effects(names, state, ctx, data):
-    for name in names:
-        if EFFECTS[name].scope == "pair":
-            state.effects[name] = fit_pair_effect(EFFECTS[name], ctx, data, state.prediction)
-            state.ho_extra = state.ho_extra + state.effects[name][1]
+    """What the effects add to the held-out half beyond the fit half's prediction: a
+    within-step effect (fitted on the frame differences), the part between the halves of a
+    ``frame`` effect, and the held-out columns of an effect whose columns differ there."""
     if state.prediction is None:
         state.prediction = state.base.predict(state.theta, data.t, data.r)
+    for name in names:
+        e = EFFECTS[name]
+        if e.scope == "pair":
+            state.effects[name] = fit_pair_effect(e, ctx, data, state.prediction)
+            state.ho_extra = state.ho_extra + state.effects[name][1]
+        elif e.scope == "frame":
+            step, pred = state.effects[name]
+            between, extra = fit_frame_pairs(e, ctx, data)
+            state.effects[name] = (np.stack([np.ravel(step), between]), pred)
+            state.ho_extra = state.ho_extra + extra
+        elif e.ho_columns is not None:
+            theta, pred = state.effects[name]
+            state.ho_extra = state.ho_extra + e.ho_columns(ctx) @ theta - pred
     return state
 
 
@@ -253,31 +244,33 @@ def describe_params(name, theta):
     name : str
         Effect name.
     theta : ndarray
-        Its parameters (from :func:`fit_effect`).
+        Its parameters (from :func:`fit_effect`; a ``frame`` effect: (2, S), the factors of the
+        fit half and those between the halves).
 
     Returns
     -------
     dict
-        Global: the parameters by name (plus derived figures in DN); per pixel: median and
-        robust spread; per step: count, RMS, median and largest magnitude.
+        Global: the parameters by name (plus the effect's derived figures); per pixel: median,
+        robust spread and count; per step: count, RMS, median and largest magnitude (a
+        ``frame`` effect: and the RMS between the frames).
     """
     e = EFFECTS[name]
     if e.scope in ("global", "pair"):
         p = {k: float(v) for k, v in zip(e.param_names, theta)}
-        if name == "offset_drift":
-            order = np.linspace(-1, 1, 201)
-            curve = sum(v * c for v, c in zip(theta, (order, 1.5 * order ** 2 - 0.5,
-                                                       2.5 * order ** 3 - 1.5 * order)))
-            p["peak_dn"] = float(np.abs(curve).max())
-        if name == "readout_nonlinearity":
-            p["deviation_at_full_scale_dn"] = float(theta[0] + theta[1])
-        return p
+        return {**p, **e.figures(np.asarray(theta, float))}
     if e.scope == "pixel":
         v = theta[:, 0]
         return {f"median_{e.param_names[0]}": float(np.median(v)),
                 f"spread_{e.param_names[0]}": float(1.4826 * np.median(np.abs(v - np.median(v)))),
                 "n_pixels": int(v.size)}
+    between = None
+    if e.scope == "frame":
+        theta, between = theta[0], theta[1]
     v = theta[theta != 0]
-    return {"n_steps": int(v.size), "rms": float(np.sqrt(np.mean(v ** 2))) if v.size else 0.0,
-            "median_abs": float(np.median(np.abs(v))) if v.size else 0.0,
-            "max_abs": float(np.abs(v).max()) if v.size else 0.0}
+    out = {"n_steps": int(v.size), "rms": float(np.sqrt(np.mean(v ** 2))) if v.size else 0.0,
+           "median_abs": float(np.median(np.abs(v))) if v.size else 0.0,
+           "max_abs": float(np.abs(v).max()) if v.size else 0.0}
+    if between is not None:
+        b = between[between != 0]
+        out["rms_between_frames"] = float(np.sqrt(np.mean(b ** 2))) if b.size else 0.0
+    return out

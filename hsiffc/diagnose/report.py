@@ -28,6 +28,32 @@ def public(result: dict) -> dict:
     return {k: v for k, v in result.items() if not k.startswith("_")}
 
 
+def headline(result) -> list[str]:
+    """The first lines of a report (and of the command's output): the verdict, and which
+    selected effects are findings and which are stand-ins for what the library lacks.
+
+    Parameters
+    ----------
+    result : Diagnosis or dict
+        From :func:`hsiffc.diagnose.diagnose`.
+
+    Returns
+    -------
+    list of str
+    """
+    lines = []
+    stand = [e["name"] for e in result["effects"] if e.get("stand_in_for_unexplained")]
+    found = [e["name"] for e in result["effects"] if not e.get("stand_in_for_unexplained")]
+    if result["unexplained"]:
+        lines.append(f"Unexplained: {result['unexplained_reason']}.")
+    if stand:
+        lines.append(f"Stand-ins, not findings: {', '.join(stand)} (each stands in for "
+                     "structure the effect library does not describe; their parameters are "
+                     "not a measurement of that effect).")
+    lines.append(f"Findings: {', '.join(found) or 'none'}.")
+    return lines
+
+
 def write_json(result: dict, path) -> None:
     """Write the JSON-safe part of a result to ``path`` atomically.
 
@@ -128,8 +154,9 @@ def write_report(result: dict, outdir) -> Path:
     _plot(result, outdir / "residuals.png")
     write_json(result, outdir / "diagnosis.json")
     b, af = result["before"], result["after"]
-    lines = [f"# hsiffc diagnosis of {result['dataset']}", "",
-             f"Base model: {result['base_model']}.", "",
+    lines = [f"# hsiffc diagnosis of {result['dataset']}", ""]
+    lines += [f"{line}" for line in headline(result)] + [""]
+    lines += [f"Base model: {result['base_model']}.", "",
              f"{result['n_pixels']} pixels analysed (of {result['n_pixels_sensor']}), "
              f"{result['n_samples']} valid held-out samples, {result['n_invalid_samples']} "
              f"left out (clipped, near full scale or unusable). Held out: {result['held_out']}.",
@@ -149,7 +176,9 @@ def write_report(result: dict, outdir) -> Path:
         for e in result["effects"]:
             params = ", ".join(f"{k} = {v:.4g}" if isinstance(v, float) else f"{k} = {v}"
                                for k, v in e["params"].items())
-            lines += [f"- **{e['name']}** ({params}): {e['interpretation']}."]
+            stand = (f" Stand-in, not a finding: {e['stand_in_reason']}."
+                     if e.get("stand_in_for_unexplained") else "")
+            lines += [f"- `{e['name']}` ({params}): {e['interpretation']}.{stand}"]
     else:
         lines += ["No candidate effect beats the base model by more than the noise allows.", ""]
     if result["skipped"]:

@@ -10,6 +10,7 @@ import numpy as np
 from scipy import stats
 
 from .effects import EFFECTS
+from .effectfit import frame_regression
 from .fitting import Data, State, context, describe_params, fitpredict, pair_regression
 
 SELECT_SIGMAS = 5.0  # held-out improvement needed, in standard errors of the paired difference
@@ -171,6 +172,8 @@ def step_trend(trial: Fitted, name: str, data: Data):
         What the factors trend with (and the p-value), or None.
     """
     theta = np.asarray(trial.state.effects[name][0], float)
+    if theta.ndim == 2:  # a frame effect: the factors of the fit half
+        theta = theta[0]
     _, _, ctx = context(trial.state.base, trial.state.theta, data)
     x = EFFECTS[name].columns(ctx)[..., 0]
     den = (np.where(data.valid, data.w, 0.0) * x * x).sum(axis=0)
@@ -270,18 +273,48 @@ def step_trend(trial: Fitted, name: str, data: Data):
             "model, not a random light error per step")
 
 
+def between_halves(name: str) -> bool:
+    """Does effect ``name`` predict a difference between the fit and held-out halves of a
+    step (a within-step effect, a ``frame`` effect, or one with its own held-out columns)? Its
+    evidence is then in the frame differences, which the fit-half BIC cannot see.
+
+    Parameters
+    ----------
+    name : str
+
+    Returns
+    -------
+    bool
+    """
+    e = EFFECTS[name]
+    return e.scope in ("pair", "frame") or e.ho_columns is not None
+
+
+def _pair_z(x, d, w):
+    """Coefficient of ``d`` on ``x`` (weights ``w``, flat arrays) in standard errors (from
+    the scatter of ``d`` about the fit); None where ``x`` is zero."""
+    den = float((w * x * x).sum())
+    if den <= 0:
+        return None
+    c = float((w * x * d).sum()) / den
+    scale = float((w * (d - c * x) ** 2).sum()) / max(d.size - 1, 1)
+    return abs(c) / np.sqrt(max(scale, 1e-300) / den)
+
+
 def pair_evidence(trial: Fitted, name: str, data: Data):
-    """Do the frame differences themselves show the within-step effect ``name``? Its one
-    coefficient is fitted on them (the second frame of a step minus the first), so they are
-    its only evidence: the held-out gain can also come from a coefficient that is noise times
-    a misfit of the base model that follows the effect's column, which the paired standard
-    error does not count. Accepted where the coefficient is ``SELECT_SIGMAS`` standard errors
-    from zero (the standard error from the scatter of the frame differences about the fit).
+    """Do the frame differences themselves show the effect ``name`` that acts between the
+    halves of a step (:func:`between_halves`)? Its part between the halves is fitted on them
+    (the held-out frames of a step minus the fit frames), so they are its only evidence: the
+    held-out gain can also come from a coefficient that is noise times a misfit of the base
+    model that follows the effect's column, which the paired standard error does not count.
+    Accepted where the coefficient is ``SELECT_SIGMAS`` standard errors from zero (the
+    standard error from the scatter of the frame differences about the fit); for a factor per
+    step (``frame``), where the factors together are as unlikely under noise (chi-square).
 
     Parameters
     ----------
     trial : Fitted
-        A model with the within-step effect.
+        A model with the effect.
     name : str
         The effect.
     data : Data
@@ -292,18 +325,35 @@ def pair_evidence(trial: Fitted, name: str, data: Data):
     str or None
         Why the effect is not shown (with the figure), or None.
     """
+    effect = EFFECTS[name]
     _, _, ctx = context(trial.state.base, trial.state.theta, data)
-    x, ok, d = pair_regression(EFFECTS[name], ctx, data)
+    if effect.scope == "frame":
+        x, ok, d = frame_regression(effect, ctx, data)
+        chi2, dof = 0.0, 0
+        for s in np.flatnonzero(ok.any(axis=0)):
+            z = _pair_z(x[ok[:, s], s], d[ok[:, s], s], data.w[ok[:, s], s])
+            if z is not None:
+                chi2, dof = chi2 + z * z, dof + 1
+        if dof == 0:
+            return "no light step has both halves valid"
+        p = float(stats.chi2.sf(chi2, dof))
+        if p < 2 * stats.norm.sf(SELECT_SIGMAS):
+            return None
+        return (f"the frame differences show its factors at p = {p:.2g} only (chi-square "
+                f"{chi2:.3g} on {dof} steps; needs the equivalent of {SELECT_SIGMAS:g} standard "
+                "errors): the frames of a step agree")
+    if effect.scope == "pair":
+        x, ok, d = pair_regression(effect, ctx, data)
+    else:  # its own held-out columns: the difference they predict between the halves
+        x = (effect.ho_columns(ctx) - effect.columns(ctx))[..., 0]
+        ok = data.valid & data.valid_ho
+        d = np.where(ok, data.y_ho - data.y, 0.0)
     ok &= np.isfinite(x)
     if not ok.any():
         return "no step has both frames valid"
-    d, xv, wv = d[ok], x[ok], data.w[ok]
-    den = float((wv * xv * xv).sum())
-    if den <= 0:
+    z = _pair_z(x[ok], d[ok], data.w[ok])
+    if z is None:
         return "its column is zero on every valid step"
-    c = float((wv * xv * d).sum()) / den
-    scale = float((wv * (d - c * xv) ** 2).sum()) / max(d.size - 1, 1)
-    z = abs(c) / np.sqrt(scale / den)
     if z >= SELECT_SIGMAS:
         return None
     return (f"the frame differences show it at {z:.2g} standard errors only (needs "
@@ -364,12 +414,13 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         # a within-step effect changes only the held-out half, which the fit-half BIC cannot
         # see: it is chosen instead when its held-out error is measurably lower
         for trial, entry in passed:
-            if EFFECTS[entry["name"]].scope == "pair" and trial is not best[0]:
+            if (between_halves(entry["name"]) and not between_halves(best[1]["name"])
+                    and trial is not best[0]):
                 gain, se = paired(best[0], trial, data.valid_ho)
                 if gain > TIE_SIGMAS * se:
                     best = (trial, entry)
         full = None  # the round's choice fitted to convergence, where already fitted
-        if EFFECTS[best[1]["name"]].scope == "step":
+        if EFFECTS[best[1]["name"]].scope in ("step", "frame"):
             best, full = _sensor_wide_rival(current, best, names, data, noise_floor, n_pix,
                                             n_light, candidates, label, round_, ambiguous)
         best[1]["selected_in_round"] = True
@@ -489,12 +540,12 @@ def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, da
                  and current.mse - noise_floor ** 2 > floor2
                  and gain > SELECT_SIGMAS * se and gain > floor2
                  and gain > MIN_EXPLAINED * systematic2)
-    if beats and EFFECTS[name].scope == "pair":
+    if beats and between_halves(name):
         weak_pair = pair_evidence(trial, name, data)
         if weak_pair:
             entry["rejected"] = weak_pair
             beats = False
-    if beats and EFFECTS[name].scope == "step":
+    if beats and EFFECTS[name].scope in ("step", "frame"):
         trend = step_trend(trial, name, data)
         if trend:
             entry["rejected"] = trend
@@ -560,8 +611,9 @@ def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_p
         drop = None
         for _, name, entry in sorted(failing, key=lambda f: f[0]):
             stand_in = None
-            if EFFECTS[name].scope != "step":
-                stand_in = next((o for o in reduced[name].names if EFFECTS[o].scope == "step"
+            if EFFECTS[name].scope not in ("step", "frame"):
+                stand_in = next((o for o in reduced[name].names
+                                 if EFFECTS[o].scope in ("step", "frame")
                                  and step_trend(reduced[name], o, data)), None)
             if stand_in is None:
                 drop = (reduced[name], {**entry, "rejected": entry.get("rejected", (
