@@ -137,7 +137,7 @@ def render_page(runs: dict) -> str:
              "CPU kernels' own scalar functions (`invert_point`, `correct_point`, "
              "`alpha_paper_point`, `leakage_bits`, `alpha_model_point`, the pack rules): one "
              "source of the physics, compiled for both targets, and numba's CUDA simulator "
-             "runs the same kernels in CI (`tests/test_gpu.py`). CuPy was the other "
+             "runs the same kernels in CI (`tests/gpu/test_gpu.py`). CuPy was the other "
              "candidate; it would have needed the leakage inversion and correction rewritten "
              "in CUDA C, a second copy to keep equal. On the GPU machine's own Python "
              "(numpy 2.5.2) `from numba import cuda` failed because numba-cuda registers "

@@ -26,7 +26,7 @@ in their JSON, netCDF in coordinates and attributes, ENVI in ``hsiffc version``,
 ENVI headers are written and parsed by :mod:`hsiffc.io.envi`, not SPy: SPy is an optional
 dependency, and the reader must apply hsiffc's size limits and refuse a damaged header before
 any data is read (SPy's ``envi.read_envi_header`` reads a header of any size whole). SPy opens
-every file written here (``tests/test_io_end_to_end.py`` compares its arrays with
+every file written here (``tests/io/test_io_end_to_end.py`` compares its arrays with
 :func:`~hsiffc.cubes.read_cube`'s). The DQ and alpha companions are ENVI pairs of their own,
 ``NAME.dq.hdr`` + ``NAME.dq.img``: each header is its data file's name with ``.hdr`` in place
 of ``.img``, the pairing ENVI, SPy (``spectral.open_image``) and GDAL's ENVI driver look for, so

@@ -31,7 +31,7 @@ threads while the kernel works on the current one: both cores are busy (decoding
 costs several times what the kernel does). The kernel runs compiled (numba, one pass, no
 temporaries) from :data:`COMPILED_FROM` pixel-frames on, and as whole-array numpy below,
 where loading numba's code generator would cost more than the compiled pass saves; the two
-give the same statistics (tests/test_emva_release4.py).
+give the same statistics (tests/emva1288/test_emva_release4.py).
 """
 
 from __future__ import annotations

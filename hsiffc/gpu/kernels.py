@@ -14,7 +14,7 @@ PPID as options of the same kernel) and stores the cube in the stream's output t
 :data:`ppi_window` and :data:`window_max` PPID's levels, pseudo-panchromatic image and alpha;
 the ``median_*`` kernels the exact band medians and :data:`fill_missing` the fill.
 
-Tolerance against the CPU path (tests/test_gpu.py in the simulator, benchmarks/gpu.py on the
+Tolerance against the CPU path (tests/gpu/test_gpu.py in the simulator, benchmarks/gpu.py on the
 device): DQ equal bit for bit; the corrected frame within 2 float32 ulps (the CPU takes most
 pixels through the vectorised Halley rounds of
 :func:`~hsiffc.kernels.inversion.invert_rounds`, the GPU every pixel through the bracketed

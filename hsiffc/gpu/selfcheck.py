@@ -1,4 +1,4 @@
-"""The GPU path against the CPU path on the same frames (used by tests/test_gpu.py in numba's
+"""The GPU path against the CPU path on the same frames (used by tests/gpu/test_gpu.py in numba's
 CUDA simulator and by benchmarks/gpu.py on a device).
 
 :func:`scene` makes a simulated sensor, its calibration and a test frame; :func:`compare`

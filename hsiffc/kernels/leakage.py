@@ -21,7 +21,7 @@ The response's vector loops call the short, range-restricted exponentials and lo
 :mod:`~hsiffc.kernels.vmath` (``exp_clamped``, ``expm1_clamped``, ``log_positive``: no
 special-value selects, degree-11 and fdlibm's 7-term polynomials; their results are screened
 by the ``ok`` test and repaired; their ulp errors against 50-digit arithmetic are tested in
-``tests/test_vmath_short.py``).
+``tests/kernels/test_vmath_short.py``).
 """
 
 from __future__ import annotations

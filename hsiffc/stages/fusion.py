@@ -12,7 +12,7 @@ in the pipeline's ``repr``). On a raw frame it does the stages' per-pixel work i
 ``"paper"`` normalisation also takes the test frame's per-band level of eq. 5, the sums
 :func:`hsiffc.spectral.bandstats.band_reduce` would take, in its order) and then lets every stage
 finish its frame as its own ``transform`` would. The result is the same frame, bit for bit,
-with the same history (``tests/test_fusion.py`` compares them on simulated and real data).
+with the same history (``tests/kernels/test_fusion.py`` compares them on simulated and real data).
 
 Only what the stages' own methods compute is computed here: a fused run calls the same
 array functions and kernels as the stages (one implementation of each correction).

@@ -1,0 +1,136 @@
+"""Diagnose, round three (issue 53): the frame differences tested against the noise model
+before they are the floor, the effect records that carry their injection and skip rule, the
+typed result, stand-ins, and the failure classes of the seeded generator."""
+
+from __future__ import annotations
+
+import ast
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hsiffc.diagnose import EFFECTS, Diagnosis, list_effects
+from hsiffc.diagnose import design as ds
+from hsiffc.diagnose import effects as fx
+from hsiffc.diagnose import evaluation as ev
+from hsiffc.diagnose.simulated import simulated_sweep
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _pairs(rng, p=1024, s=30, sd=3.0, flicker=0.0, lag=0.0):
+    """Step means of two frames (fit, held-out) of P pixels with signals spread over bands."""
+    signal = rng.uniform(50, 3000, (p, 1)) * np.linspace(0.05, 1, s)[None, :]
+    f0 = signal + sd * rng.standard_normal((p, s))
+    f1 = signal + sd * rng.standard_normal((p, s))
+    f1 += flicker * rng.standard_normal(s)[None, :] * signal
+    f1 += lag * signal
+    order = rng.permutation(s)
+    return {"y": f0, "y_ho": f1, "n_fit": np.ones(s), "n_ho": np.ones(s), "step": order}
+
+
+def test_frame_differences_are_tested_against_the_noise_model():
+    rng = np.random.default_rng(1)
+    valid = np.ones((1024, 30), bool)
+    var, test = ds.noise_pairs(_pairs(rng), valid, with_test=True)
+    assert np.sqrt(var.mean()) == pytest.approx(3.0, rel=0.05)
+    assert not test["within_step"] and test["p_value"] > 1e-3
+    # a flicker of 1 % a frame inflates the raw differences; the floor stays the noise's
+    var, test = ds.noise_pairs(_pairs(rng, flicker=0.01), valid, with_test=True)
+    assert test["within_step"] and test["raw_dn"] > 2 * test["clean_dn"]
+    assert np.sqrt(var.mean()) == pytest.approx(3.0, rel=0.05)
+    var, test = ds.noise_pairs(_pairs(rng, lag=0.01), valid, with_test=True)
+    assert test["within_step"] and np.sqrt(var.mean()) == pytest.approx(3.0, rel=0.05)
+
+
+def test_an_effect_record_carries_its_injection_and_skip_rule(monkeypatch):
+    """Adding an effect is one record: the library lists it, the design rules skip it by its
+    own rule, and add_effect puts it into a simulated sweep."""
+    def columns(c):
+        return fx._stack(c.signal * c.order[None, :] / c.full_scale)
+    effect = fx.Effect("test_gain_drift", "gain drifting in acquisition order", "global",
+                       ("g1",), columns, lambda p: f"{p['g1']:.3g}",
+                       inject=lambda c, size, rng: size * c.signal * c.order[None, :],
+                       skip=lambda design, dark: "never" if design.n_light_steps < 100 else None)
+    monkeypatch.setitem(EFFECTS, effect.name, effect)
+    assert "test_gain_drift" in [e["name"] for e in list_effects()]
+    sweep = simulated_sweep("mixed", shape=(4, 4), n_steps=6, seed=3)
+    des = ds.describe(ds.samples(ds.subset(sweep, 16, 0)[0]))
+    assert ds.structural_skip("test_gain_drift", des, {"model": "constant"}) == "never"
+    changed = fx.add_effect(sweep, "test_gain_drift", 0.05)
+    assert (changed.data != sweep.data).any()
+    assert changed.meta["injected_effect"]["name"] == "test_gain_drift"
+
+
+def test_every_effect_is_injected_and_has_a_unit():
+    sweep = simulated_sweep("mixed", shape=(6, 6), n_steps=8, seed=2)
+    for name, e in EFFECTS.items():
+        assert e.unit and (e.inject or e.inject_frames), name
+        out = fx.add_effect(sweep, name, 0.02 if name != "dark_current" else 0.05)
+        assert out.data.shape == sweep.data.shape, name
+
+
+def test_fitting_and_effectfit_do_not_import_each_other():
+    def imports(module):
+        tree = ast.parse((ROOT / "hsiffc" / "diagnose" / f"{module}.py").read_text())
+        return {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    assert "fitting" not in imports("effectfit")
+    assert "fitdata" in imports("effectfit") and "fitdata" in imports("fitting")
+
+
+def test_diagnosis_reads_as_the_old_dict():
+    fields = {f: None for f in Diagnosis.__dataclass_fields__ if f != "arrays"}
+    fields.update(selected_effects=["image_lag"], effects=[], unexplained=False)
+    d = Diagnosis(**fields)
+    assert d["selected_effects"] == ["image_lag"] and d.get("missing") is None
+    assert "_arrays" in d and d["_arrays"] is None
+    d["ambiguous"] = [{"effects": ["a", "b"], "reason": "tie"}]
+    assert d.ambiguous[0]["reason"] == "tie"
+    with pytest.raises(KeyError):
+        d["no_such_key"] = 1
+    doc = json.loads(json.dumps(d.public()))
+    assert "_arrays" not in doc and doc["ambiguous"][0]["effects"] == ["a", "b"]
+
+
+def test_implausible_parameters_make_a_stand_in():
+    scale = {"full_scale_dn": 4095.0, "max_exposure_ms": 200.0, "min_exposure_ms": 2.0}
+    rn = EFFECTS["readout_nonlinearity"]
+    assert rn.implausible({"deviation_at_full_scale_dn": -584.0}, scale)
+    assert rn.implausible({"deviation_at_full_scale_dn": -80.0}, scale) is None
+    assert EFFECTS["exposure_offset"].implausible({"t0_ms": 500.0}, scale)
+    assert EFFECTS["image_lag"].implausible({"lag": 0.05}, scale) is None
+
+
+def test_the_failure_classes_are_seeded_split_and_cover_the_designs():
+    specs = [ev.case_spec(s) for s in ev.seeds("all", 0, 70)]
+    assert all(s["seed"] >= ev.CLASS_SEED0 and s["round"] == 3 for s in specs)
+    assert ev.case_spec(ev.CLASS_SEED0 + 5) == ev.case_spec(ev.CLASS_SEED0 + 5)
+    for half in ("dev", "eval"):
+        got = {s["class"] for s in specs if s["half"] == half}
+        assert got == set(ev.CLASS_KINDS), half
+    assert {s["n_frames"] for s in specs} == {2, 3, 4}
+    assert {s["bit_depth"] for s in specs} >= {14}
+    assert {s["shuffled"] for s in specs} == {True, False}
+    assert {s["darks"] for s in specs} == {True, False}
+    # the first generator's seeds are unchanged: they draw from the library they drew from
+    assert ev.case_spec(5)["kind"] in ("clean", "single", "pair", "outside")
+    assert "round" not in ev.case_spec(5)
+    assert sorted(ev.case_spec(5)["candidates"]) == sorted(ev.FIRST_LIBRARY)
+    assert set(ev.FIRST_LIBRARY) < set(EFFECTS)
+
+
+@pytest.mark.parametrize("what", ev.CLASS_EFFECTS + ev.CLASS_OUTSIDE)
+def test_each_failure_class_changes_the_frames(what):
+    # the first development seed of the class whose effect fits the sweep (a dark signal
+    # outside the photodiode often stays below its detection limit: a clean control then)
+    for k in range(6):
+        spec = ev.case_spec(ev.CLASS_SEED0 + 2 * ev.CLASS_KINDS.index(what)
+                            + 2 * len(ev.CLASS_KINDS) * k)
+        assert spec["class"] == what
+        sweep, truth = ev.build_case(spec)
+        if truth["kind"] != "clean":
+            break
+    assert truth["class"] == what and truth["effects"][0]["multiple"] >= 5
+    assert (sweep.data != ev.clean_sweep(spec).data).any()
