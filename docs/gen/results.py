@@ -5,7 +5,8 @@
 For every NAME this runs the measuring command (the same command a user runs, in a subprocess),
 keeps its outputs in ``docs/results/NAME/`` with a ``run.json`` (command, date, git commit,
 machine, wall time), and renders ``docs/results/NAME.md`` from those outputs only. The test
-suite re-renders every page from the committed outputs and compares (``tests/package/test_docs.py``),
+suite re-renders every page from the committed outputs and compares
+(``tests/package/test_docs.py``),
 so a page edited by hand, or outputs that no longer match their page, fail; to change a number,
 rerun its command here. ``--render-only`` re-renders the pages without measuring.
 """

@@ -19,7 +19,8 @@ reach: the fixed-pattern floor, per pixel, where the correction rests on the swe
 alpha above ``flat_alpha_percent``; below it a flat stack can lower it further).
 
 On a simulated sensor model_ffc's fixed pattern reaches this floor and does not beat it
-(``tests/flatfield/test_model_ffc.py`` checks both), where a two-point FFC stays well above it; the floor
+(``tests/flatfield/test_model_ffc.py`` checks both), where a two-point FFC stays well above it;
+the floor
 rises with alpha because the sweep pins a and b only through its few bent samples.
 
 The arrays are (H, W, 5, 5) float64: use a crop or a pixel subset of large sensors.

@@ -5,7 +5,8 @@ being vectorised (a scalar libm call is several times slower than numpy's SIMD u
 versions are straight-line arithmetic (range reduction, a polynomial, an exponent bit
 trick), with selects instead of branches, so a loop that calls them runs 8 pixels per
 instruction (4 on AVX2). Accuracy (measured against numpy over the whole double range in
-``tests/kernels/test_kernels.py``): ``exp``, ``log`` and ``log1p`` within 1 ulp, ``expm1`` within 2 ulp.
+``tests/kernels/test_kernels.py``): ``exp``, ``log`` and ``log1p`` within 1 ulp, ``expm1``
+within 2 ulp.
 Special values follow IEEE 754 (``exp(-inf) = 0``, ``log(0) = -inf``, ``log(-1) = nan``, NaN
 in gives NaN out).
 
@@ -207,7 +208,8 @@ def logaddexp(u, v):
 # pixel and screens every result it keeps (a sum within [1e-290, 1e290], else its log-domain
 # repair), so it needs neither the special values nor the subnormal range handled above. These
 # forms drop them and use shorter polynomials, for the same accuracy class (errors of the
-# approximations below 0.1 ulp, checked by tests/kernels/test_vmath_short.py against 50-digit decimal
+# approximations below 0.1 ulp, checked by tests/kernels/test_vmath_short.py against 50-digit
+# decimal
 # arithmetic on a grid of 4000 points; the functions within 1 ulp, expm1 2, against numpy):
 # the response's chain of dependent operations is shorter with them.
 

@@ -1,6 +1,7 @@
 """Golden tests: whole pipelines on the sample cubes, compared with stored arrays.
 
-Regenerate on purpose with ``pytest tests/package/test_golden.py --regen-golden`` and review the diff.
+Regenerate on purpose with ``pytest tests/package/test_golden.py --regen-golden`` and review the
+diff.
 Tolerances: the data are float32 DN computed by deterministic numpy/OpenCV operations; across
 CPUs and library builds, transcendental functions may differ in the last bits, so data are
 compared to rtol 1e-4 with atol 1e-3 DN (far below the 1 DN read noise). Flags of the pipeline

@@ -1,7 +1,8 @@
 """The FFC rule on a zoo of sensors: model_ffc at or below raw at every level and within 10 % of
 the stack two-point from 12 % of saturation up, on the shared EMVA 1288 sets and on seeded
 simulated sensors (default run: the two shared reference-simulator sets and two development
-seeds; the evaluation half behind ``-m slow``). The real CMOS is in tests/reports/test_ffc_study.py."""
+seeds; the evaluation half behind ``-m slow``). The real CMOS is in
+tests/reports/test_ffc_study.py."""
 
 from __future__ import annotations
 

@@ -228,7 +228,8 @@ def _sweep(sensor, method):
                             irradiance_w_m2=TRAIN / 4)
     if method == "paper":  # sweeps into dynamic saturation under several light levels
         parts = []
-        for i, level in enumerate([0.1, 0.25, 0.6]):  # as tests/calibrate/test_calibrate.py, smaller
+        # as tests/calibrate/test_calibrate.py, smaller
+        for i, level in enumerate([0.1, 0.25, 0.6]):
             k = 30 * level
             t_lin = (800 + np.log(k / 2) / 0.0125 - 32) / k  # linear time to saturation
             ts = np.concatenate([np.geomspace(1, t_lin, 6), t_lin * np.array([1.6, 2.2, 2.8])])
