@@ -104,13 +104,19 @@ class FitSettings:
 
 def fit_dark(fit, ks, settings: FitSettings) -> np.ndarray:
     """Each pixel's dark level (P,), DN: the dark frames'
-    (:func:`~hsiffc.calibrate.samples.dark_level`) where the fit held it at them (the kernel
-    holds it at the same line, so the light response is fitted through exactly this level);
-    the fit's own elsewhere."""
+    (:func:`~hsiffc.calibrate.samples.dark_level`) where the fit held it at them. The kernel
+    holds it at that line (to 1e-13 DN) and returns it, so the line is computed here only for
+    the pixels the kernel fitted nothing to (no light sample, no signal); the fit's own
+    elsewhere."""
     if not settings.fix_dark:
         return fit.dark
-    frames = dark_level(ks, fit.dark_current)
-    return np.where(np.isfinite(frames), frames, fit.dark)
+    dark = fit.dark.copy()
+    miss = np.flatnonzero(~np.isfinite(dark))
+    if miss.size:
+        frames = dark_level({**ks, "y": ks["y"][:, miss], "valid": ks["valid"][:, miss]},
+                            np.asarray(fit.dark_current)[miss])
+        dark[miss] = np.where(np.isfinite(frames), frames, dark[miss])
+    return dark
 
 
 def candidate_parameters(fit, ks, settings: FitSettings, code, *, earn: bool = True) -> dict:

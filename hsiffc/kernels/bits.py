@@ -48,12 +48,10 @@ def or_into_flag_uncertain(dst: np.ndarray, a: np.ndarray, b: np.ndarray, value:
     ``e`` float32): one pass for :class:`hsiffc.stages.model_ffc.ModelFFC`'s UNCERTAIN flag,
     a relative error ``sqrt(s^2 + c / value^2)`` above a limit ``L`` with ``e = L^2 - s^2``
     (NaN values are not flagged here)."""
-    shape = dst.shape
-    if not (shape == np.shape(a) == np.shape(b) == np.shape(value) == np.shape(c)
+    if not (dst.shape == np.shape(a) == np.shape(b) == np.shape(value) == np.shape(c)
             == np.shape(e)) or not dst.flags.c_contiguous:
+        or_into(dst, a, b)
         v = np.asarray(value, np.float32)
-        dst |= a
-        dst |= b
         dst[np.asarray(c) > np.asarray(e) * v * v] |= dst.dtype.type(bit)
         return dst
     flat = [np.ascontiguousarray(x, t).reshape(-1) for x, t in (

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibrate.flats import combined_dark
-from ..data.dq import DQ_DTYPE
-from ..data.dq import DQ
+from ..data.dq import DQ, DQ_DTYPE
 from ..kernels.bits import or_into, or_into_flag_uncertain
 from ..flatfield.methods import FFC_METHODS
 from ..flatfield.model_based import FlatStack, log_gain_ratio, model_ffc_apply, model_flat_of
