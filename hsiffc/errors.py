@@ -58,15 +58,20 @@ class HsiffcWarning(UserWarning):
         self.figures = dict(figures or {})
 
 
-def band_figures(idx, values, fmt: str, limit: int = 6) -> str:
+def band_figures(idx, values, fmt: str, limit: int = 6, labels=None) -> str:
     """The bands a warning is about, each with its figure: ``"band 3 12.5, band 7 9.1 (and 4
-    more)"`` (bands counted from 1; ``idx`` 0-based, ``values`` indexed by band, ``fmt`` a
-    format spec, at most ``limit`` named).
+    more)"`` (``idx`` band indices, 0-based; ``values`` indexed by band index; ``fmt`` a format
+    spec; at most ``limit`` named). ``labels``: each band's label by band index
+    (:func:`hsiffc.data.mosaic.band_labels`: numbered by wavelength, with the mosaic position);
+    without them bands are counted from 1 in band-index order.
 
     >>> band_figures([2, 6], [0.0, 0.0, 12.5, 0, 0, 0, 9.12], ".1f")
     'band 3 12.5, band 7 9.1'
+    >>> band_figures([1], [0.0, 4.0], ".1f", labels=["band 2 (r0c0 700 nm)", "band 1 (600 nm)"])
+    'band 1 (600 nm) 4.0'
     """
-    shown = ", ".join(f"band {i + 1} {format(values[i], fmt)}" for i in idx[:limit])
+    name = (lambda i: labels[i]) if labels is not None else (lambda i: f"band {i + 1}")
+    shown = ", ".join(f"{name(i)} {format(values[i], fmt)}" for i in idx[:limit])
     return shown + (f" (and {len(idx) - limit} more)" if len(idx) > limit else "")
 
 

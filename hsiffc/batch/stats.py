@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..data.mosaic import mosaic_band_labels, wavelength_order
 from ..flatfield.two_point import uniformity_per_band
 
 __all__ = ["STATS_PIXELS", "FrameStats", "band_uniformity", "cube_uniformity", "mean_bands",
@@ -76,6 +77,10 @@ class FrameStats:
             if np.array_equal(rows_map, self.band):
                 self.band = rows_map
         self.n_bands = int(self.band.max()) + 1
+        # how users see the bands: numbered by wavelength, with the mosaic position
+        self.labels = mosaic_band_labels(mosaic, self.n_bands)
+        self.order = wavelength_order(self.n_bands, None if mosaic is None
+                                      else mosaic.wavelengths_nm)
         self.all_rows = len(self.rows) == shape[0]
         self.nonfinite, self.flagged, self.before, self.after = [], [], [], []
         self.nonfinite_out: list = []
@@ -117,9 +122,12 @@ class FrameStats:
                 "uniformity_rows": "all" if self.all_rows else len(self.rows)}
 
     def file_result(self) -> dict:
-        """``light_frames`` and the per band means over the light frames (None when none)."""
+        """``light_frames`` and the per band means over the light frames (None when none),
+        by band index; ``band_labels`` and ``band_order`` (band indices by wavelength) say how
+        tables name and list them."""
         light = [b for b in self.before if b is not None]
         if not light:
             return {}
         return {"light_frames": len(light), "uniformity_before": mean_bands(light),
-                "uniformity_after": mean_bands([a for a in self.after if a is not None])}
+                "uniformity_after": mean_bands([a for a in self.after if a is not None]),
+                "band_labels": self.labels, "band_order": self.order}

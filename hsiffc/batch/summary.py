@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..data.mosaic import band_labels
 from ..files.jsonsafe import json_safe
 from ..io.corrected import SUFFIX
 from .plan import REFLECTANCE_SUFFIX
@@ -149,7 +150,11 @@ class BatchSummary:
         if u is not None:
             lines.append("non-uniformity per band (eq. 6, %, mean over light frames, pixels "
                          "good in input and output): input less the pipeline's dark -> corrected")
-            lines += [f"  band {i + 1}: {_pct(b)} -> {_pct(a)}" for i, (b, a) in enumerate(zip(*u))]
+            first = self._measured()[0]  # bands by wavelength, named as everywhere
+            names, order = first.get("band_labels"), first.get("band_order")
+            if not names or len(names) != len(u[0]):  # e.g. a cube of virtual bands
+                names, order = band_labels(len(u[0])), range(len(u[0]))
+            lines += [f"  {names[i]}: {_pct(u[0][i])} -> {_pct(u[1][i])}" for i in order]
         redone = [r for r in self.results if r.get("redone")]
         if redone:
             lines.append("redone:")

@@ -21,7 +21,8 @@ from .. import __version__
 from ..data.dark import dark_at
 from ..errors import (CalibrationDomainWarning, CalibrationMismatchError, DataFormatError,
                       MissingMosaicWarning, ParameterError)
-from ..data.mosaic import Mosaic
+from ..data.mosaic import (Mosaic, band_labels, mosaic_band_labels,
+                           wavelength_order)
 from ..data.products import read_product, write_product
 
 FORMAT = "hsiffc-calibration"
@@ -301,7 +302,7 @@ class Calibration:
         if t0:
             lines.append(f"  exposure offset: light collected for t {'+' if t0 > 0 else '-'} "
                          f"{abs(t0):.4g} ms")
-        lines += _choice_lines(self.fitted_on.get("model_choice"))
+        lines += _choice_lines(self.fitted_on.get("model_choice"), self.mosaic)
         return "\n".join(lines)
 
     # -- validation ----------------------------------------------------------------------------
@@ -474,9 +475,9 @@ class Calibration:
         return cal
 
 
-def _choice_lines(choice) -> list:
+def _choice_lines(choice, mosaic=None) -> list:
     """The summary's lines on the model the sensor kept and each band's held-out figures
-    (:mod:`hsiffc.calibrate.choice`)."""
+    (:mod:`hsiffc.calibrate.choice`), bands by wavelength with their labels (``mosaic``'s)."""
     if not choice:
         return []
     if not choice.get("bands"):
@@ -499,6 +500,11 @@ def _choice_lines(choice) -> list:
                      f"{figures(choice)})")
     lines.append(f"  model kept per band, by held-out fixed-pattern non-uniformity (% on {n} "
                  "light steps the fit did not see):")
-    lines += [f"    band {row['band'] + 1}: {row['kept']} ({figures(row)})"
-              for row in choice["bands"]]
+    rows = {row["band"]: row for row in choice["bands"]}
+    nb = 1 + max(rows)
+    if mosaic is not None and mosaic.n_bands == nb:  # by wavelength, named as everywhere
+        names, order = mosaic_band_labels(mosaic), wavelength_order(nb, mosaic.wavelengths_nm)
+    else:
+        names, order = band_labels(nb), range(nb)
+    lines += [f"    {names[b]}: {rows[b]['kept']} ({figures(rows[b])})" for b in order if b in rows]
     return lines

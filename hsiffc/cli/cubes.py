@@ -24,8 +24,9 @@ def register(sub) -> None:
                    help="wavelengths (nm) shown red, green, blue (nearest bands; default: "
                         "640 550 460 nm, or the long, middle and short end of a NIR cube)")
     p.add_argument("--bands", type=int, nargs="+", default=None, metavar="K",
-                   help="bands of the grid, counted from 0 by wavelength (default: up to 12, "
-                        "evenly spread)")
+                   help="band numbers of the grid, counted from 1 by wavelength as in every "
+                        "table and warning (hsiffc info lists them; default: up to 12, evenly "
+                        "spread)")
     p.add_argument("--pixel", type=int, nargs=2, default=None, metavar=("ROW", "COL"),
                    help="pixel whose spectrum is drawn (default: the centre)")
     p.add_argument("--region", type=int, nargs=4, default=None,

@@ -120,7 +120,8 @@ def _info_cube(path: Path, fmt: str) -> dict:
     h, w, b = cube.data.shape
     wl = cube.wavelengths_nm
     positions = cube.positions or [None] * b
-    bands = [{"band": k, "wavelength_nm": None if wl is None else wl[k],
+    names = cube.band_names()
+    bands = [{"band": k, "label": names[k], "wavelength_nm": None if wl is None else wl[k],
               "fwhm_nm": None if cube.fwhm_nm is None else cube.fwhm_nm[k],
               "band_index": cube.band_index[k],
               "position": None if positions[k] is None else list(positions[k])}
@@ -131,10 +132,7 @@ def _info_cube(path: Path, fmt: str) -> dict:
     label = {"envi": "ENVI", "ome": "OME-TIFF", "netcdf": "netCDF", "tiff": "hsiffc TIFF"}[fmt]
     print(f"{path}: {label} cube, {h} x {w} px, {b} bands, float32 {cube.unit}; planes data, "
           f"dq{', alpha' if cube.alpha is not None else ''}")
-    names = [f"{k} " + (f"{wl[k]:.1f} nm" if wl is not None else "?") +
-             (f" r{positions[k][0]}c{positions[k][1]}" if positions[k] is not None else "")
-             for k in range(b)]
-    print(textwrap.fill("bands (by wavelength): " + ", ".join(names), width=100,
+    print(textwrap.fill("bands: " + ", ".join(names), width=100,
                         initial_indent="  ", subsequent_indent="    "))
     hits = ", ".join(f"{name} {n}" for name, n in counts.items() if n)
     print(f"  DQ: {flagged} of {cube.dq.size} values flagged ({100 * flagged / cube.dq.size:.2f}"
@@ -325,6 +323,7 @@ def _add_select(sub):
 
 def _cmd_select(args) -> int:
     from ..calibrate import Calibration
+    from ..data.mosaic import mosaic_band_labels, wavelength_order
     from ..io import read_sweep
     from ..leakage.validity import alpha_table
 
@@ -333,9 +332,11 @@ def _cmd_select(args) -> int:
     table = alpha_table(sweep, cal, method=args.alpha, statistic=args.statistic)
     table = table.select(args.threshold)
     print(table.to_text())
-    for i, e in enumerate(table.selected_ms):
-        label = "none" if np.isnan(e) else f"{e:g} ms"
-        print(f"band {i + 1}: train at {label}")
+    labels = mosaic_band_labels(sweep.mosaic, len(table.selected_ms))
+    wl = None if sweep.mosaic is None else sweep.mosaic.wavelengths_nm
+    for i in wavelength_order(len(labels), wl):
+        e = table.selected_ms[i]
+        print(f"{labels[i]}: train at {'none' if np.isnan(e) else f'{e:g} ms'}")
     if args.json:
         write_json(args.json, {"sweep": str(args.sweep), "calibration": str(args.calibration),
                                 "calibration_identity": cal.identity, **table.to_dict()})

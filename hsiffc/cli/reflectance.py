@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.mosaic import band_labels
 from ..data.params import LiveChoices
 from ..errors import HsiffcError
 from ..reconstruct import DEMOSAIC_METHODS
@@ -149,16 +150,20 @@ def reference_table(check: dict) -> str:
     def fmt(v, spec):
         return "-" if v is None else format(v, spec)
 
+    n_bands = len(check["level_dn"])
+    labels = check.get("band_labels") or band_labels(n_bands)
+    width = max(len(s) for s in labels)
     lines = [f"white reference at {check['exposure_ms']:g} ms, {check['n_frames']} frame(s):",
-             f"{'band':>5} {'level DN':>9} {'% range':>8} {'SNR/frame':>10} {'error %':>8} "
+             f"{'band':<{width}} {'level DN':>9} {'% range':>8} {'SNR/frame':>10} {'error %':>8} "
              f"{'saturated %':>12} {'alpha %':>8}"]
     n = check["n_frames"]
-    alpha = check.get("alpha_percent") or [None] * len(check["level_dn"])
-    for i, level in enumerate(check["level_dn"]):
+    alpha = check.get("alpha_percent") or [None] * n_bands
+    for i in check.get("band_order") or range(n_bands):  # by wavelength
+        level = check["level_dn"][i]
         rng = check["range_dn"][i]
         snr = check["snr_frame"][i]
         err = None if snr in (None, 0) else 100 / (snr * n ** 0.5)
-        lines.append(f"{i + 1:>5} {fmt(level, '9.1f')} "
+        lines.append(f"{labels[i]:<{width}} {fmt(level, '9.1f')} "
                      f"{fmt(None if rng is None or level is None else 100 * level / rng, '8.1f')} "
                      f"{fmt(snr, '10.1f')} {fmt(err, '8.2f')} "
                      f"{fmt(check['saturated_percent'][i], '12.2f')} {fmt(alpha[i], '8.1f')}")
@@ -221,9 +226,10 @@ def _cmd_check(args) -> int:
     expected = (np.asarray(stage.panel_) if args.expected is None
                 else np.full(n_bands, args.expected))
     rep = target_report(data, dq, bands, n_bands, expected)
-    print(rep.to_text(wl))
+    labels = outs[0].band_labels()
+    print(rep.to_text(wl, labels))
     worst = int(np.nanargmax(np.abs(rep.bias_percent)))
-    print(f"worst band {worst + 1}: mean {rep.mean[worst]:.4f} against {expected[worst]:.4f} "
+    print(f"worst: {labels[worst]}, mean {rep.mean[worst]:.4f} against {expected[worst]:.4f} "
           f"({rep.bias_percent[worst]:+.2f} %)")
     if args.json:
         write_json(args.json, {"target": [str(t) for t in args.target],

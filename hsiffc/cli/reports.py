@@ -79,6 +79,7 @@ def _add_paper(sub):
 
 
 def _cmd_paper(args) -> int:
+    from ..data.mosaic import wavelength_order
     from ..reports.paper import parse_weights, run_paper_report
 
     try:
@@ -100,7 +101,9 @@ def _cmd_paper(args) -> int:
     print(f"\nTable II. uniformity improvement (percentage points) by two-point FFC, test at "
           f"16.125 ms under lamp B ({t2['n_test_frames']} frames); [selected], *best*")
     print(f"{'band':>6} " + " ".join(f"{e:>9g}ms" for e in t2["exposures_ms"]))
-    for band, row in enumerate(t2["improvement_pp"]):
+    rows = t2["improvement_pp"]  # by wavelength, numbered from 1 as in every table
+    for k, band in enumerate(wavelength_order(len(rows), sim["table1"].wavelengths_nm or None)):
+        row = rows[band]
         cells = []
         for j, e in enumerate(t2["exposures_ms"]):
             txt = f"{row[j]:+.3f}"
@@ -109,7 +112,7 @@ def _cmd_paper(args) -> int:
             if t2["selected_ms"][band] == e:
                 txt = f"[{txt}]"
             cells.append(f"{txt:>11}")
-        print(f"{band + 1:>6} " + " ".join(cells))
+        print(f"{k + 1:>6} " + " ".join(cells))
     sp = sim["fig6"]
     print(f"\nFig. 6: {int(sp['valid'].sum())} of {len(sp['valid'])} lamp-B spectra valid; mean "
           f"spectral angle {sp['mean_angle_valid_pairs_deg']:.3f} deg between valid ones, "

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..files.atomic import atomic_path
 from ..data.dq import DQ
+from ..data.mosaic import band_numbers
 
 __all__ = ["quicklook"]
 
@@ -61,8 +62,8 @@ def quicklook(cube, path=None, *, rgb_nm=None, bands=None, pixel=None, region=No
         Wavelengths (nm) shown red, green and blue (the nearest bands); default
         :func:`~hsiffc.cubes.default_bands`.
     bands : sequence of int, optional
-        Bands (indices after sorting by wavelength) of the grid; default up to 12, evenly
-        spread.
+        Band numbers of the grid, as hsiffc numbers bands everywhere (from 1 by wavelength,
+        :func:`hsiffc.data.mosaic.band_labels`); default up to 12, evenly spread.
     pixel : (row, col), optional
         Pixel whose spectrum is drawn (default: the centre).
     region : (row0, row1, col0, col1), optional
@@ -90,7 +91,8 @@ def quicklook(cube, path=None, *, rgb_nm=None, bands=None, pixel=None, region=No
     cube = cube.sorted()
     n = cube.n_bands
     wl = cube.wavelengths_nm
-    label = (lambda k: f"{wl[k]:.1f} nm") if wl is not None else (lambda k: f"band {k}")
+    names = cube.band_names()  # "band 3 (r0c2 614.9 nm)"
+    index = {k: i for i, k in enumerate(band_numbers(n, wl))}  # band number -> cube band
     if rgb_nm is not None:
         if len(rgb_nm) != 3:
             raise ValueError(f"rgb_nm takes three wavelengths (red green blue), got {rgb_nm}")
@@ -98,10 +100,12 @@ def quicklook(cube, path=None, *, rgb_nm=None, bands=None, pixel=None, region=No
     else:
         rgb = cube.default_bands()
     if bands is None:
-        bands = np.unique(np.linspace(0, n - 1, min(n, 12)).round().astype(int)).tolist()
-    bad = [b for b in bands if not 0 <= int(b) < n]
+        bands = np.unique(np.linspace(1, n, min(n, 12)).round().astype(int)).tolist()
+    bad = [b for b in bands if int(b) not in index]
     if bad:
-        raise ValueError(f"bands {bad} are not in the cube (0..{n - 1})")
+        raise ValueError(f"bands {bad} are not in the cube: bands are numbered 1..{n} by "
+                         "wavelength (hsiffc info lists them)")
+    bands = [index[int(b)] for b in bands]
     r0, r1, c0, c1 = _region(cube, pixel, region)
 
     fig = Figure(figsize=(14, 10), dpi=dpi, layout="constrained")
@@ -113,7 +117,7 @@ def quicklook(cube, path=None, *, rgb_nm=None, bands=None, pixel=None, region=No
     image = np.stack([_stretch(cube.data[:, :, b], good[:, :, b]) for b in rgb], axis=-1)
     ax.imshow(image, interpolation="nearest")
     ax.add_patch(_box(r0, r1, c0, c1))
-    ax.set_title("pseudo-colour R G B = " + ", ".join(label(b) for b in rgb))
+    ax.set_title("pseudo-colour R G B = " + ", ".join(names[b] for b in rgb))
     ax.set_axis_off()
 
     cols = int(np.ceil(np.sqrt(len(bands))))
@@ -123,7 +127,7 @@ def quicklook(cube, path=None, *, rgb_nm=None, bands=None, pixel=None, region=No
         a = fig.add_subplot(inner[i // cols, i % cols])
         a.imshow(_stretch(cube.data[:, :, b], good[:, :, b]), cmap="gray",
                  interpolation="nearest")
-        a.set_title(label(b), fontsize=8)
+        a.set_title(names[b], fontsize=8)
         a.set_axis_off()
 
     ax = fig.add_subplot(outer[1, 0])

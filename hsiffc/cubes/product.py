@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..data.dq import DQ_DTYPE, as_dq
+from ..data.mosaic import band_labels
 
 __all__ = ["Cube", "default_bands"]
 
@@ -182,19 +182,12 @@ class Cube:
         return self if self.is_sorted else self.select(self.order())
 
     def band_names(self) -> list[str]:
-        """A name per band: wavelength, band index and mosaic position, e.g.
-        ``"614.9 nm band 0 r0c0"`` (no commas: ENVI lists are comma-separated)."""
+        """A name per band, in this cube's band order, as hsiffc names bands everywhere
+        (:func:`hsiffc.data.mosaic.band_labels`): numbered from 1 by wavelength, with the
+        mosaic position and the wavelength, e.g. ``"band 3 (r0c2 614.9 nm)"`` (``virtual``
+        for a correction matrix's bands; no commas: ENVI lists are comma-separated)."""
         virtual = bool((self.attrs.get("reconstruction") or {}).get("correction"))
-        out = []
-        for k in range(self.n_bands):
-            wl = self.wavelengths_nm[k] if self.wavelengths_nm is not None else math.nan
-            head = f"{wl:.1f} nm" if math.isfinite(wl) else "band"
-            pos = self.positions[k] if self.positions is not None else None
-            if pos is not None:
-                out.append(f"{head} band {self.band_index[k]} r{pos[0]}c{pos[1]}")
-            else:
-                out.append(f"{head} {'virtual' if virtual else 'band'} {self.band_index[k]}")
-        return out
+        return band_labels(self.n_bands, self.wavelengths_nm, self.positions, virtual=virtual)
 
     def default_bands(self) -> list[int]:
         """Red, green, blue band indices for a pseudo-colour view (:func:`default_bands`)."""

@@ -21,6 +21,7 @@ import json
 import numpy as np
 
 from ..data.dq import TABLE_VERSION, table
+from ..data.mosaic import band_numbers
 from ..errors import HsiffcError
 from ..files.jsonsafe import json_safe
 
@@ -84,8 +85,9 @@ def to_xarray(cube, *, sort: bool = True):
                              {"units": "nm", "long_name": "band centre wavelength"}),
               "fwhm": ("band", np.asarray(cube.fwhm_nm or nan, np.float64),
                        {"units": "nm", "long_name": "band full width at half maximum"}),
-              "band": ("band", np.arange(n, dtype=np.int32),
-                       {"long_name": "band number, counted from 0 in the file's band order"}),
+              "band": ("band", np.asarray(band_numbers(n, cube.wavelengths_nm), np.int32),
+                       {"long_name": "band number, counted from 1 by wavelength as hsiffc "
+                                     "numbers bands in every table, warning and band name"}),
               "band_index": ("band", np.asarray(cube.band_index, np.int32),
                              {"long_name": "the band's index in the pipeline's cube (the "
                                            "mosaic's band order)"}),

@@ -11,7 +11,7 @@ import numpy as np
 
 from .dark import subtract_dark
 from .dq import DQ, DQ_DTYPE, as_dq
-from .mosaic import Mosaic, single_band_map
+from .mosaic import Mosaic, band_labels, mosaic_band_labels, single_band_map
 from .sweep import Sweep
 
 
@@ -283,6 +283,17 @@ class Frame:
         if self.mosaic is None:
             return single_band_map(self.data.shape[:2])
         return self.mosaic.band_map(self.data.shape[:2])
+
+    def band_labels(self) -> list[str]:
+        """Each band's label, by band index (:func:`hsiffc.data.mosaic.band_labels`:
+        ``"band 3 (r0c2 550 nm)"``, numbered from 1 by wavelength): a mosaic's bands, a cube's
+        channels (their wavelengths and positions as the reconstruct stage recorded them)."""
+        if self.is_cube:
+            meta = self.meta
+            return band_labels(self.data.shape[2], meta.get("wavelengths_nm"),
+                               meta.get("band_positions"),
+                               virtual=bool((meta.get("reconstruction") or {}).get("correction")))
+        return mosaic_band_labels(self.mosaic)
 
     @property
     def good(self) -> np.ndarray:

@@ -1,4 +1,13 @@
-"""Snapshot-mosaic layouts: which band each pixel of the raw frame sees."""
+"""Snapshot-mosaic layouts: which band each pixel of the raw frame sees, and how bands are
+named to users.
+
+Band numbering, everywhere users see it (tables, warnings, cube band names, ``--bands``): bands
+are numbered from 1 in ascending wavelength order, with the mosaic position (row and column in
+the tile, counted from 0) and the centre wavelength beside the number, ``"band 3 (r0c2 550
+nm)"`` (:func:`band_labels`). Bands without a wavelength come after the others, in band-index
+order; without any wavelength the number is the band index plus 1. Inside the code a band is its
+0-based band index (the mosaic pattern's value), which :func:`band_numbers` maps to the number.
+"""
 
 from __future__ import annotations
 
@@ -171,6 +180,88 @@ def band_positions(mosaic) -> list:
         r, c = np.argwhere(pattern == b)[0]
         out.append([int(r), int(c)])
     return out
+
+
+def wavelength_order(n_bands: int, wavelengths_nm=None) -> list[int]:
+    """Band indices in the order users count bands: ascending wavelength (stable; bands
+    without a finite wavelength last, in index order); tables list bands in this order.
+
+    >>> wavelength_order(4, [700, 500, 600, None])
+    [1, 2, 0, 3]
+    """
+    n = int(n_bands)
+    if wavelengths_nm is None:
+        return list(range(n))
+    if len(wavelengths_nm) != n:
+        raise ValueError(f"wavelengths_nm has {len(wavelengths_nm)} entries for {n} bands")
+    wl = np.array([np.nan if w is None else float(w) for w in wavelengths_nm], np.float64)
+    return [int(b) for b in np.argsort(np.where(np.isfinite(wl), wl, np.inf), kind="stable")]
+
+
+def band_numbers(n_bands: int, wavelengths_nm=None) -> list[int]:
+    """The number users see for each band (given in band-index order): its 1-based rank in
+    :func:`wavelength_order`.
+
+    >>> band_numbers(4, [700, 500, 600, None])
+    [3, 1, 2, 4]
+    >>> band_numbers(3)
+    [1, 2, 3]
+    """
+    out = [0] * int(n_bands)
+    for rank, b in enumerate(wavelength_order(n_bands, wavelengths_nm)):
+        out[b] = rank + 1
+    return out
+
+
+def band_labels(n_bands: int, wavelengths_nm=None, positions=None, *,
+                virtual: bool = False) -> list[str]:
+    """One label per band (given in band-index order), the way hsiffc names bands to users:
+    ``"band 3 (r0c2 550 nm)"``, numbered by :func:`band_numbers`, with the mosaic position
+    (``positions[b]`` = (row, col) in the tile, None for a virtual band) and the centre
+    wavelength where known. No commas, so that a label is also an ENVI band name.
+
+    Parameters
+    ----------
+    n_bands : int
+    wavelengths_nm : sequence of n_bands float (or None entries), optional
+    positions : sequence of n_bands (row, col) or None, optional
+    virtual : bool
+        The bands are virtual (a correction matrix's output, no mosaic position): said in
+        the label.
+
+    Examples
+    --------
+    >>> band_labels(3, [700.0, 500.0, 614.94], [(0, 0), (0, 1), (1, 0)])
+    ['band 3 (r0c0 700 nm)', 'band 1 (r0c1 500 nm)', 'band 2 (r1c0 614.9 nm)']
+    >>> band_labels(2)
+    ['band 1', 'band 2']
+    """
+    numbers = band_numbers(n_bands, wavelengths_nm)
+    out = []
+    for b, k in enumerate(numbers):
+        parts = []
+        pos = None if positions is None else positions[b]
+        if pos is not None:
+            parts.append(f"r{int(pos[0])}c{int(pos[1])}")
+        elif virtual:
+            parts.append("virtual")
+        wl = None if wavelengths_nm is None else wavelengths_nm[b]
+        if wl is not None and np.isfinite(float(wl)):
+            parts.append(f"{float(wl):.1f}".rstrip("0").rstrip(".") + " nm")
+        out.append(f"band {k}" + (f" ({' '.join(parts)})" if parts else ""))
+    return out
+
+
+def mosaic_band_labels(mosaic, n_bands: int | None = None) -> list[str]:
+    """:func:`band_labels` of a mosaic's bands (band-index order); without a mosaic (None),
+    ``n_bands`` (default 1) plain labels ``"band 1"``, ...
+
+    >>> mosaic_band_labels(Mosaic.rectangular(1, 2, [800.0, 700.0]))
+    ['band 2 (r0c0 800 nm)', 'band 1 (r0c1 700 nm)']
+    """
+    if mosaic is None:
+        return band_labels(1 if n_bands is None else n_bands)
+    return band_labels(mosaic.n_bands, mosaic.wavelengths_nm, band_positions(mosaic))
 
 
 def single_band_map(shape) -> np.ndarray:

@@ -53,6 +53,7 @@ import math
 
 import numpy as np
 
+from ..data.mosaic import wavelength_order
 from ..errors import DataFormatError, ParameterError
 
 __all__ = ["FIGURES", "SPLIT_FIGURES", "QUANTISATION_VARIANCE", "characterise",
@@ -513,8 +514,10 @@ def characterise(sweep, *, pixel_area_um2: float | None = None,
                                                        main["figures"].items()})
         result["defect_pixels"] = defect_histograms(images)
     if len(out) > 1:
-        wl = sweep.mosaic.wavelengths_nm
-        result["bands"] = [{"band": r["band"], "wavelength_nm": None if wl is None else
-                            wl[r["band"]], "figures": r["figures"],
-                            "fit_ranges": r["fit_ranges"], "notes": r["notes"]} for r in out[1:]]
+        wl = sweep.mosaic.wavelengths_nm  # bands by wavelength, labelled as everywhere
+        rank = {b: k for k, b in enumerate(wavelength_order(len(out) - 1, wl))}
+        rows = sorted(out[1:], key=lambda r: rank[r["band"]])
+        result["bands"] = [{"band": r["band"], "label": r["label"], "wavelength_nm": None
+                            if wl is None else wl[r["band"]], "figures": r["figures"],
+                            "fit_ranges": r["fit_ranges"], "notes": r["notes"]} for r in rows]
     return result

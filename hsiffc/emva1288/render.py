@@ -246,7 +246,7 @@ def render_markdown(res: dict, leak: dict | None = None, images: dict | None = N
             f"`{n}` ({FIGURES[n]})" for n in names) + " |", "|---" * (len(names) + 2) + "|"]
         for b in res["bands"]:
             wl = "" if b["wavelength_nm"] is None else f"{b['wavelength_nm']:g}"
-            lines.append(f"| {b['band']} | {wl} | " + " | ".join(
+            lines.append(f"| {b.get('label', b['band'])} | {wl} | " + " | ".join(
                 fmt(b["figures"][n]["value"], 4) for n in names) + " |")
     if leak is not None:
         lines += [""] + leakage_markdown(leak)

@@ -39,6 +39,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..data.mosaic import mosaic_band_labels
 from ..errors import DataFormatError
 
 __all__ = ["reduce_frames", "SPATIAL_FACTOR"]
@@ -283,7 +284,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
             "n_frames": np.array([r["n_frames"] for r in rows]),
             "spatial": np.array([r["spatial"] for r in rows]),
             "clipped_share": np.array([r["clipped_share"] for r in rows])}
-    labels = ["all pixels"] + [f"band {b}" for b in range(n_bands)]
+    labels = ["all pixels"] + (mosaic_band_labels(getattr(source, "mosaic", None), n_bands)
+                               if n_bands else [])
     groups = [{"label": labels[g], "band": None if g == 0 else g - 1,
                "n_pixels": int(n_pix[g]),
                "mean_dn": np.array([r["mean"][g] for r in rows]),

@@ -16,6 +16,7 @@ from . import model
 from ..spectral.bandstats import STATISTICS as BAND_STATISTICS
 from ..spectral.bandstats import band_layout, band_mean, band_reduce
 from ..data.dq import DQ, DQ_DTYPE
+from ..data.mosaic import band_numbers, wavelength_order
 from ..kernels import leakage
 from ..kernels.bands import block_arrays
 from ..kernels.operands import flat_operands
@@ -398,7 +399,9 @@ class AlphaTable:
                                               f"{self.threshold_percent:g} %"
                                               if self.threshold_percent is not None else ""),
                  head]
-        for i in range(self.alpha.shape[0]):
+        n = self.alpha.shape[0]
+        number = band_numbers(n, self.wavelengths_nm or None)  # by wavelength, from 1
+        for i in wavelength_order(n, self.wavelengths_nm or None):
             wl = self.wavelengths_nm[i] if self.wavelengths_nm else float("nan")
             cells = []
             for j, e in enumerate(self.exposures_ms):
@@ -407,9 +410,10 @@ class AlphaTable:
                 if self.selected_ms is not None and e == self.selected_ms[i]:
                     txt = f"[{txt}]"
                 cells.append(f"{txt:>11}")
-            lines.append(f"{i + 1:>6} {wl:>6.0f} " + " ".join(cells))
+            lines.append(f"{number[i]:>6} {wl:>6.0f} " + " ".join(cells))
         if self.selected_ms is not None and np.isnan(self.selected_ms).any():
-            miss = [str(i + 1) for i in np.flatnonzero(np.isnan(self.selected_ms))]
+            miss = [str(k) for k in sorted(number[i]
+                                           for i in np.flatnonzero(np.isnan(self.selected_ms)))]
             lines.append(f"no candidate under the threshold for band(s) {', '.join(miss)}: "
                          "record shorter exposures or raise the threshold")
         return "\n".join(lines)

@@ -8,6 +8,7 @@ import warnings
 
 import numpy as np
 
+from ..data.mosaic import band_labels
 from ..errors import HsiffcWarning, band_figures
 from ._methods import REFLECTANCE_METHODS
 
@@ -68,7 +69,8 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
         rate), ``saturated_percent``, ``alpha_percent`` (median model alpha; None without a
         calibration), ``loss_percent`` (charge the response lost to leakage), ``panel``; and
         ``n_frames``, ``exposure_ms``; optionally ``temporal_var_dn2`` and ``dark_var_dn2``
-        (median temporal variance of the panel's and the dark's frames, DN^2).
+        (median temporal variance of the panel's and the dark's frames, DN^2) and
+        ``band_labels`` (each band's label, :meth:`hsiffc.data.frame.Frame.band_labels`).
     min_level_fraction, min_snr, precision_percent, max_saturated_percent,
     reference_alpha_percent : float
         Thresholds (the stage's parameters).
@@ -92,6 +94,11 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
     snr = np.asarray([np.nan if v is None else v for v in report["snr_frame"]], float)
     panel = np.asarray(report["panel"], float)
     nb = len(level)
+    labels = report.get("band_labels") or band_labels(nb)
+
+    def bands(idx, values, fmt):
+        return band_figures(idx, values, fmt, labels=labels)
+
     frac = level / rng  # NaN where the values are not the sensor's DN (no level check)
     # a low SNR at a high level comes from leakage or saturation (their own checks), not darkness
     dark = [i for i in range(nb) if (frac[i] < min_level_fraction)
@@ -107,11 +114,11 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
         half = (f" ({amp[dark[0]]:.1f} x what a reference at half the range gives)"
                 if np.isfinite(amp[dark[0]]) else "")
         cost = (f"Each DN of scene noise becomes {gain[dark[0]]:.3g} in reflectance{half} in "
-                f"band {dark[0] + 1}" if level[dark[0]] > 0 else
-                f"Band {dark[0] + 1} has no signal above dark: its reflectance is meaningless")
+                f"{labels[dark[0]]}" if level[dark[0]] > 0 else
+                f"{labels[dark[0]]} has no signal above dark: its reflectance is meaningless")
         warn(WhiteReferenceTooDarkWarning,
              f"white reference ({t:g} ms) too dark in {len(dark)} of {nb} bands: "
-             f"{band_figures(dark, level, '.1f')} DN above dark "
+             f"{bands(dark, level, '.1f')} DN above dark "
              f"({of_range}; asked for >= {100 * min_level_fraction:g} % and SNR >= "
              f"{min_snr:g}); {snr_txt}. "
              f"{cost}: lengthen the reference's exposure, light the panel better or "
@@ -121,7 +128,7 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
     if hit:
         hit = _worst(sat, hit, lowest=False)
         warn(ReferenceSaturatedWarning,
-             f"white reference ({t:g} ms) saturated: {band_figures(hit, sat, '.2g')} % of the "
+             f"white reference ({t:g} ms) saturated: {bands(hit, sat, '.2g')} % of the "
              f"pixels at full scale (allowed {max_saturated_percent:g} %); their reflectances "
              "are wrong and flagged SATURATED: shorten the reference's exposure or dim the "
              "light (and record the scenes at settings the panel does not saturate)")
@@ -134,7 +141,7 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
         if hit:
             warn(ReferenceSaturatedWarning,
                  f"white reference ({t:g} ms) stopped responding below full scale: "
-                 f"{band_figures(hit, level, '.0f')} DN above dark with a temporal noise of "
+                 f"{bands(hit, level, '.0f')} DN above dark with a temporal noise of "
                  f"{', '.join(f'{var_w[i]:.2g}' for i in hit[:6])} DN^2, no more than the "
                  f"dark's ({', '.join(f'{var_d[i]:.2g}' for i in hit[:6])} DN^2): no shot "
                  "noise, the pixels sit at a full well below the ADC's full scale (not flagged "
@@ -150,19 +157,19 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
             hit = _worst(alpha, hit, lowest=False)
             i0 = hit[0]
             if not REFLECTANCE_METHODS[method].leakage_aware:  # a plain ratio
-                cost = (f"its response lost {loss[i0]:.1f} % of its charge to leakage in band "
-                        f"{i0 + 1}, so a plain ratio overestimates dark targets by up to "
+                cost = (f"its response lost {loss[i0]:.1f} % of its charge to leakage in "
+                        f"{labels[i0]}, so a plain ratio overestimates dark targets by up to "
                         f"{100 * loss[i0] / max(100 - loss[i0], 1e-9):.1f} %: use the "
                         "leakage-aware method (method='model' with the calibration) or a "
                         "shorter reference exposure")
             else:
                 cost = (f"the leakage model recovers its light rate (the response lost "
-                        f"{loss[i0]:.1f} % of its charge in band {i0 + 1}), with noise "
+                        f"{loss[i0]:.1f} % of its charge in {labels[i0]}), with noise "
                         f"amplified about {1 / max(1 - alpha[i0] / 100, 1e-3):.2g} x: a shorter "
                         "reference exposure gives a more precise reference")
             warn(ReferenceLeakageWarning,
                  f"white reference ({t:g} ms) in strong leakage: median alpha "
-                 f"{band_figures(hit, alpha, '.1f')} % (threshold {reference_alpha_percent:g} "
+                 f"{bands(hit, alpha, '.1f')} % (threshold {reference_alpha_percent:g} "
                  f"%); {cost}")
     if n < 2:
         warn(TooFewReferenceFramesWarning,
@@ -177,7 +184,7 @@ def reference_warnings(report: dict, *, min_level_fraction: float, min_snr: floa
             need = int(math.ceil(n * (err[hit[0]] / precision_percent) ** 2))
             warn(TooFewReferenceFramesWarning,
                  f"{n} white-reference frames ({t:g} ms) give a reference error of "
-                 f"{band_figures(hit, err, '.2f')} % per pixel, above the requested "
+                 f"{bands(hit, err, '.2f')} % per pixel, above the requested "
                  f"{precision_percent:g} %; it is printed into every reflectance as a fixed "
                  f"pattern: record about {need} frames (or a brighter reference)")
     return out

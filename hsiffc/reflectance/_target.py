@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..data.mosaic import band_labels, wavelength_order
 from ..flatfield.uniformity import fixed_pattern_nonuniformity
 
 __all__ = ["TargetReport", "target_report"]
@@ -64,15 +65,18 @@ class TargetReport:
                 "single_frame_percent": lst(self.single_frame_percent),
                 "n_values": [int(v) for v in self.n_values], "n_frames": int(self.n_frames)}
 
-    def to_text(self, wavelengths_nm=None) -> str:
-        """A table, one row per band."""
+    def to_text(self, wavelengths_nm=None, labels=None) -> str:
+        """A table, one row per band, by wavelength; ``labels``: each band's label by band
+        index (:meth:`hsiffc.data.frame.Frame.band_labels`; default from the wavelengths)."""
+        n = len(self.mean)
+        labels = labels or band_labels(n, wavelengths_nm)
+        width = max(len(s) for s in labels)
         lines = [f"target: {self.n_frames} frame(s); reflectance per band (mean against the "
                  "target's value; non-uniformity with the temporal noise removed)",
-                 f"{'band':>5} {'nm':>7} {'expected':>9} {'mean':>8} {'bias %':>8} "
+                 f"{'band':<{width}} {'expected':>9} {'mean':>8} {'bias %':>8} "
                  f"{'pattern %':>10} {'noise %':>8} {'1 frame %':>10}"]
-        for i in range(len(self.mean)):
-            wl = "" if wavelengths_nm is None else f"{wavelengths_nm[i]:.1f}"
-            lines.append(f"{i + 1:>5} {wl:>7} {self.expected[i]:>9.4f} {self.mean[i]:>8.4f} "
+        for i in wavelength_order(n, wavelengths_nm):
+            lines.append(f"{labels[i]:<{width}} {self.expected[i]:>9.4f} {self.mean[i]:>8.4f} "
                          f"{self.bias_percent[i]:>+8.2f} {self.fixed_pattern_percent[i]:>10.2f} "
                          f"{self.temporal_percent[i]:>8.2f} {self.single_frame_percent[i]:>10.2f}")
         return "\n".join(lines)

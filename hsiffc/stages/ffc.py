@@ -18,6 +18,7 @@ import numpy as np
 
 from ..spectral.bandstats import band_reduce
 from ..data.dq import DQ_DTYPE
+from ..data.mosaic import mosaic_band_labels, wavelength_order
 from ..errors import HsiffcWarning, ParameterError
 from ..flatfield.two_point import (
     NORMALISATIONS,
@@ -151,9 +152,12 @@ class TwoPointFFC(Stage):
         sel = table.select(float(self.threshold_percent)).selected_ms
         fallback = min(flats)
         if np.isnan(sel).any():
+            names = mosaic_band_labels(mosaic, len(sel))
+            order = wavelength_order(len(sel), table.wavelengths_nm or None)
+            missing = ", ".join(names[i] for i in order if np.isnan(sel[i]))
             warnings.warn(f"no flat exposure has alpha under {self.threshold_percent:g} % "
-                          f"in band(s) {list(np.flatnonzero(np.isnan(sel)) + 1)}; using the "
-                          f"shortest, {fallback:g} ms", HsiffcWarning, stacklevel=3)
+                          f"in {missing}; using the shortest, {fallback:g} ms", HsiffcWarning,
+                          stacklevel=3)
         return [fallback if np.isnan(s) else float(s) for s in sel], table
 
     def transform(self, frame):

@@ -71,25 +71,30 @@ def check_flats(stage: str, stack, signal, *, stacklevel: int = 3) -> None:
     rng = band_reduce(full - np.asarray(f0.dark_removed, np.float64), band_map,
                       statistic="median", n_bands=n_bands)
     frac = level / np.maximum(rng, 1e-9)
+    labels = f0.band_labels()  # numbered by wavelength, with the mosaic position
+
+    def bands(idx, values, fmt):
+        return band_figures(idx, values, fmt, labels=labels)
+
     swapped = [i for i in range(n_bands) if level[i] <= 0]
     if swapped:
         _warn(DarkAboveFlatWarning,
               f"{stage}: the dark is above the flat ({t:g} ms) in {len(swapped)} of {n_bands} "
-              f"bands: {band_figures(swapped, level, '.1f')} DN flat less dark: were the dark and "
+              f"bands: {bands(swapped, level, '.1f')} DN flat less dark: were the dark and "
               "flat swapped? (--dark takes the dark frames, --flat the flat ones; or check "
               "the kind in their metadata); those bands cannot be flat-fielded",
-              {"exposure_ms": t, "bands": [i + 1 for i in swapped],
+              {"exposure_ms": t, "bands": [labels[i] for i in swapped],
                "level_dn": [float(level[i]) for i in swapped]}, stacklevel)
     dim = [i for i in range(n_bands) if 0 < frac[i] < MIN_LEVEL_FRACTION]
     if dim:
         dim = sorted(dim, key=lambda i: frac[i])
         _warn(FlatTooDarkWarning,
               f"{stage}: flat ({t:g} ms) too dark in {len(dim)} of {n_bands} bands: "
-              f"{band_figures(dim, level, '.1f')} DN above dark "
+              f"{bands(dim, level, '.1f')} DN above dark "
               f"({', '.join(f'{100 * frac[i]:.1f} %' for i in dim[:6])} of the range; asked "
               f"for >= {100 * MIN_LEVEL_FRACTION:g} %): its noise is printed into every "
               "corrected frame; lengthen the flat's exposure or light it better",
-              {"exposure_ms": t, "bands": [i + 1 for i in dim],
+              {"exposure_ms": t, "bands": [labels[i] for i in dim],
                "level_dn": [float(level[i]) for i in dim],
                "level_fraction": [float(frac[i]) for i in dim]}, stacklevel)
     sat = np.mean([band_reduce(((f.dq & DQ.SATURATED) != 0).astype(np.float64), band_map,
@@ -97,10 +102,10 @@ def check_flats(stage: str, stack, signal, *, stacklevel: int = 3) -> None:
     hit = [i for i in range(n_bands) if sat[i] > MAX_SATURATED_PERCENT]
     if hit:
         _warn(FlatSaturatedWarning,
-              f"{stage}: flat ({t:g} ms) saturated: {band_figures(hit, sat, '.2g')} % of the "
+              f"{stage}: flat ({t:g} ms) saturated: {bands(hit, sat, '.2g')} % of the "
               f"pixels at full scale (allowed {MAX_SATURATED_PERCENT:g} %); their gains are wrong and "
               "flagged: shorten the flat's exposure or dim the light",
-              {"exposure_ms": t, "bands": [i + 1 for i in hit],
+              {"exposure_ms": t, "bands": [labels[i] for i in hit],
                "saturated_percent": [float(sat[i]) for i in hit]}, stacklevel)
     if n < 2:
         _warn(SingleReferenceFrameWarning,

@@ -18,6 +18,7 @@ import warnings
 import numpy as np
 
 from ..data.dq import DQ, DQ_DTYPE
+from ..data.mosaic import wavelength_order
 from ..errors import CalibrationMismatchError, ParameterError, once_in_scope
 from ..files.jsonsafe import json_safe
 from ..data.params import Param
@@ -261,7 +262,9 @@ class Reflectance(Stage):
                   "saturated_percent": (100 * band_fraction(saturated != 0, bands,
                                                             n_bands)).tolist(),
                   "alpha_percent": None, "loss_percent": None,
-                  "temporal_var_dn2": None, "dark_var_dn2": None}
+                  "temporal_var_dn2": None, "dark_var_dn2": None,
+                  "band_labels": f0.band_labels(),
+                  "band_order": wavelength_order(n_bands, frame_bands(f0)[2])}
         if len(stack) >= 2 and len(darks) >= 2:  # no shot noise left: the response stopped
             report["temporal_var_dn2"] = band_median(
                 np.var([f.data for f in stack], axis=0, ddof=1), bands, n_bands).tolist()

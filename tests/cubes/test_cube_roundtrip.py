@@ -80,11 +80,13 @@ def test_write_cube_reads_back_as_written(tmp_path, fmt, capsys):
     assert main(["info", str(tmp_path / name), "--json", str(tmp_path / "info.json")]) == 0
     text = capsys.readouterr().out
     assert f"{label} cube, 5 x 6 px, 4 bands" in text
-    assert "500.0 nm r0c1" in text and "SATURATED 1, LEAKAGE 1, DEAD 1" in text
+    assert "band 1 (r0c1 500 nm)" in text and "SATURATED 1, LEAKAGE 1, DEAD 1" in text
     assert "pipeline dark -> cube" in text and "exposure_ms 12.5" in text
     doc = json.loads((tmp_path / "info.json").read_text())
     assert doc["format"] == fmt and doc["shape"] == [5, 6, 4]
     assert [b["wavelength_nm"] for b in doc["bands"]] == [500.0, 600.0, 650.0, 700.0]
+    assert [b["label"] for b in doc["bands"]] == [
+        "band 1 (r0c1 500 nm)", "band 2 (r1c1 600 nm)", "band 3 (650 nm)", "band 4 (r0c0 700 nm)"]
     assert doc["dq_counts"]["DEAD"] == 1 and doc["flagged_values"] == 2
     assert doc["attrs"]["frame"] == 3
 
@@ -181,15 +183,16 @@ def test_netcdf_coordinates_are_numeric_and_indexed(tmp_path):
     xr = pytest.importorskip("xarray")
     write_cube(_cube(), tmp_path / "c.nc")
     with xr.open_dataset(tmp_path / "c.nc") as ds:
-        assert "band" in ds.indexes and ds["band"].values.tolist() == [0, 1, 2, 3]
+        # numbered from 1 by wavelength, as every table, warning and band name numbers bands
+        assert "band" in ds.indexes and ds["band"].values.tolist() == [1, 2, 3, 4]
         assert ds["band"].dtype.kind == "i" and ds["wavelength"].dtype.kind == "f"
         assert ds["band_index"].values.tolist() == [1, 3, 2, 0]
         assert isinstance(ds.attrs["exposure_ms"], (float, np.floating))
         assert isinstance(ds.attrs["frame"], (int, np.integer))
-        assert ds.sel(band=2)["wavelength"].item() == 650.0
+        assert ds.sel(band=3)["wavelength"].item() == 650.0
         # the file keeps no index on a coordinate that is not a dimension: one line adds it
         near = ds.set_xindex("wavelength").sel(wavelength=640.0, method="nearest")
-        assert near["band"].item() == 2
+        assert near["band"].item() == 3
         np.testing.assert_array_equal(near["data"].values, _cube().data[:, :, 2])
     # in memory, to_xarray gives the wavelength index at once
     mem = to_xarray(_cube())

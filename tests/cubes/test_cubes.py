@@ -113,7 +113,7 @@ def test_fitted_pipeline_with_reconstruct_writes_cubes_and_envi(world, tmp_path,
     meta = img.metadata
     names = meta["band names"]
     r, c = np.argwhere(world["mosaic"].pattern == order[0])[0]
-    assert names[0].endswith(f"band {order[0]} r{r}c{c}")
+    assert names[0].startswith(f"band 1 (r{r}c{c} ")  # numbered by wavelength, with position
     red, green, blue = (int(v) - 1 for v in meta["default bands"])
     assert centres[red] > centres[green] > centres[blue]
 
@@ -145,7 +145,8 @@ def test_cube_shortcut_ppid_to_ome_and_netcdf(world, tmp_path):
                                                        tf.ome_metadata)]
         data = tf.series[0].asarray()
         dq = tf.series[1].asarray()
-    wl = [float(n.split()[0]) for n in channels[:8]]
+    wl = [float(re.search(r"([\d.]+) nm", n)[1]) for n in channels[:8]]
+    assert [n.split(" (")[0] for n in channels[:8]] == [f"band {k}" for k in range(1, 9)]
     assert wl == sorted(wl) and len(channels) == 16  # data's 8 channels, then DQ's 8
     np.testing.assert_allclose(wl, np.sort(world["mosaic"].wavelengths_nm), atol=0.05)
     np.testing.assert_array_equal(data, np.moveaxis(ref.data[:, :, order], 2, 0))
@@ -274,6 +275,8 @@ def test_imec_virtual_bands_written_with_their_wavelengths(imec_xml, tmp_path):
     np.testing.assert_allclose(img.bands.centers, np.sort(virtual), rtol=1e-5)
     if imec.virtual_fwhm_nm is not None:
         np.testing.assert_allclose(img.bands.bandwidths, imec.virtual_fwhm_nm, rtol=1e-5)
-    assert all(" virtual " in name for name in img.metadata["band names"])
+    assert [name.split(" (")[0] for name in img.metadata["band names"]] == [
+        f"band {k}" for k in range(1, len(virtual) + 1)]
+    assert all("(virtual " in name for name in img.metadata["band names"])
     order = np.argsort(virtual, kind="stable")
     np.testing.assert_array_equal(np.asarray(img.load()), cube.data[:, :, order])

@@ -84,7 +84,7 @@ def test_plain_camera_tiffs_to_reflectance(tmp_path, capsys):
     assert main(["reflectance", "check", str(scenes), "--pipeline", str(refl), "--expected",
                  "0.3", "--json", str(tmp_path / "target.json")]) == 0
     text = capsys.readouterr().out
-    assert "bias %" in text and "worst band" in text
+    assert "bias %" in text and "worst: band " in text
     import json
     doc = json.loads((tmp_path / "target.json").read_text())
     assert max(abs(b) for b in doc["bias_percent"]) < 1.5 and doc["n_frames"] == 2

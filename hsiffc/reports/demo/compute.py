@@ -15,6 +15,7 @@ from ...calibrate import calibrate
 from ...errors import DataFormatError
 from ...flatfield.two_point import uniformity_per_band
 from ...data.frame import Frame
+from ...data.mosaic import mosaic_band_labels, wavelength_order
 from ...io import read_sweep
 from ...stages import Pipeline, create
 from ...flatfield.uniformity import fixed_pattern_nonuniformity
@@ -70,10 +71,24 @@ class DemoResult:
     pipeline: object = None
 
     @property
+    def band_labels(self) -> list:
+        """Each band's label by band index (numbered by wavelength, with its mosaic position:
+        :func:`hsiffc.data.mosaic.band_labels`)."""
+        return mosaic_band_labels(self.sweep.mosaic, self.band_mean_dn.shape[1])
+
+    @property
+    def band_order(self) -> list:
+        """Band indices by wavelength: the order of every table."""
+        return wavelength_order(self.band_mean_dn.shape[1], self.sweep.mosaic.wavelengths_nm
+                                if self.sweep.mosaic is not None else None)
+
+    @property
     def bands_below_full_scale(self) -> list:
-        """1-based bands whose brightest mean stays > 5 DN below full scale."""
+        """Band numbers (from 1 by wavelength) whose brightest mean stays > 5 DN below full
+        scale."""
         top = self.band_mean_dn.max(axis=0)
-        return [i + 1 for i in range(top.size) if top[i] < self.full_scale_dn - 5]
+        return [k + 1 for k, i in enumerate(self.band_order)
+                if top[i] < self.full_scale_dn - 5]
 
     def summary(self) -> dict:
         """JSON-ready digest (``demo_summary.json``)."""
@@ -83,9 +98,10 @@ class DemoResult:
                 "band_mean_dn": self.band_mean_dn.tolist(),
                 "alpha_percent": [[None if np.isnan(v) else float(v) for v in row]
                                   for row in alpha],
-                "bands": [{"band": i + 1, "wavelength_nm": self.wavelengths_nm[i], **f,
+                "bands": [{"band": k + 1, "label": self.band_labels[i],
+                           "wavelength_nm": self.wavelengths_nm[i], **self.fits[i],
                            "plateau_dn": float(self.band_mean_dn[:, i].max())}
-                          for i, f in enumerate(self.fits)],
+                          for k, i in enumerate(self.band_order)],
                 "correction": self.correction}
 
 

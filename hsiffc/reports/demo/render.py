@@ -22,16 +22,19 @@ def render_text(res) -> str:
     per band, and the correction pipeline on the test frames."""
     t, y, alpha, fits = res.exposure_ms, res.band_mean_dn, res.alpha_percent, res.fits
     n_bands, fs, wl = y.shape[1], res.full_scale_dn, res.wavelengths_nm
-    L = [f"Mean response per band (DN; full scale {fs} DN) and leakage percentage alpha (%)",
-         "exposure_ms " + " ".join(f"{'b' + str(i + 1):>14}" for i in range(n_bands))]
+    order = res.band_order  # bands by wavelength, numbered from 1 (band_labels)
+    L = [f"Mean response per band (DN; full scale {fs} DN) and leakage percentage alpha (%); "
+         "bands: " + ", ".join(res.band_labels[i] for i in order),
+         "exposure_ms " + " ".join(f"{'b' + str(k + 1):>14}" for k in range(n_bands))]
     for j in range(len(t)):
-        cells = " ".join(f"{y[j, i]:7.1f}{_alpha_str(alpha[j, i]):>7}" for i in range(n_bands))
+        cells = " ".join(f"{y[j, i]:7.1f}{_alpha_str(alpha[j, i]):>7}" for i in order)
         L.append(f"{t[j]:11.3f} {cells}")
     L += ["", "Dynamic saturation per band (leakage model fitted to the band mean)",
           f"{'band':>4} {'nm':>6} {'k DN/ms':>8} {'plateau':>8} {'model sat':>9} "
           f"{'below FS':>8} {'rms leak':>8} {'rms lin':>8}"]
-    for i, f in enumerate(fits):
-        L.append(f"{i + 1:>4} {wl[i]:>6.0f} {f['k']:>8.2f} {y[:, i].max():>8.1f} "
+    for k, i in enumerate(order):
+        f = fits[i]
+        L.append(f"{k + 1:>4} {wl[i]:>6.0f} {f['k']:>8.2f} {y[:, i].max():>8.1f} "
                  f"{f['saturation_dn']:>9.1f} {fs - y[:, i].max():>8.1f} {f['rms_dn']:>8.2f} "
                  f"{f['rms_linear_dn']:>8.2f}")
     below = res.bands_below_full_scale
@@ -44,26 +47,27 @@ def render_text(res) -> str:
               "mask + two-point FFC + reconstruction; (2) model_ffc from the calibration alone "
               "(what 'hsiffc correct' applies by default) ==",
               "two-point training exposure per band (longest with median alpha under 12 %): "
-              + ", ".join(f"{v:g} ms" for v in c["training_ms"]),
+              + ", ".join(f"{c['training_ms'][i]:g} ms" for i in order),
               f"test frame {c['test_exposure_ms']:g} ms under {c['test_illumination']}: "
               "non-uniformity (eq. 6 on one frame, temporal noise included, %) per band, "
               f"raw less the two-point pipeline's dark and corrected, on the same "
               f"{c['uniformity_pixels']} pixels",
               f"{'band':>6} {'raw-dark':>8} {'two-point':>10} {'model_ffc':>10}"]
-        for i, (u0, u1, u2) in enumerate(zip(c["uniformity_raw_less_dark"],
-                                             c["uniformity_corrected"],
-                                             c["uniformity_model_ffc"])):
-            L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f} {u2:>10.3f}")
+        u = list(zip(c["uniformity_raw_less_dark"], c["uniformity_corrected"],
+                     c["uniformity_model_ffc"]))
+        for k, i in enumerate(order):
+            L.append(f"{k + 1:>6} {u[i][0]:>8.3f} {u[i][1]:>10.3f} {u[i][2]:>10.3f}")
         for s in c.get("fixed_pattern", ()):
-            L += _fixed_pattern_table(s)
+            L += _fixed_pattern_table(s, order)
         L.append(f"cube {tuple(c['cube_shape'])} (H, W, bands) with wavelengths "
                  f"{[round(w) for w in c['cube_wavelengths_nm']]} nm; "
                  f"{100 * c['flagged_fraction']:.2f} % of pixels flagged (kept, not deleted)")
     return "\n".join(L)
 
 
-def _fixed_pattern_table(s) -> list:
-    """Lines of one test step's fixed-pattern table: raw, two-point, model_ffc per band."""
+def _fixed_pattern_table(s, order) -> list:
+    """Lines of one test step's fixed-pattern table: raw, two-point, model_ffc per band (in
+    ``order``, band indices by wavelength, numbered from 1)."""
     b, a = s["before"], s["after"]
     m = s.get("model_ffc")
     L = ["", f"fixed-pattern non-uniformity (EMVA 1288, temporal noise taken out; %) of the "
@@ -71,8 +75,9 @@ def _fixed_pattern_table(s) -> list:
          "pixels unflagged in every frame and correction)",
          f"{'band':>6} {'raw':>8} {'two-point':>10} {'model_ffc':>10} {'signal DN':>10}"]
     mp = m["fpn_percent"] if m else [float("nan")] * len(b["fpn_percent"])
-    for i, (u0, u1, u2) in enumerate(zip(b["fpn_percent"], a["fpn_percent"], mp)):
-        L.append(f"{i + 1:>6} {u0:>8.3f} {u1:>10.3f} {u2:>10.3f} {b['mean_dn'][i]:>10.1f}")
+    for k, i in enumerate(order):
+        L.append(f"{k + 1:>6} {b['fpn_percent'][i]:>8.3f} {a['fpn_percent'][i]:>10.3f} "
+                 f"{mp[i]:>10.3f} {b['mean_dn'][i]:>10.1f}")
     pm = m["pooled_fpn_percent"] if m else float("nan")
     L.append(f"{'all':>6} {b['pooled_fpn_percent']:>8.3f} {a['pooled_fpn_percent']:>10.3f} "
              f"{pm:>10.3f}   (RMS over bands; eq. 6 on single frames: "
@@ -84,16 +89,17 @@ def _fixed_pattern_table(s) -> list:
 def demo_figure(res):
     """Band means against exposure with the fitted leakage model (solid) and the linear model
     (dotted): every band levels off below full scale. Returns a new Figure."""
-    t, y, fits, fs, wl = (res.exposure_ms, res.band_mean_dn, res.fits, res.full_scale_dn,
-                          res.wavelengths_nm)
+    t, y, fits, fs = res.exposure_ms, res.band_mean_dn, res.fits, res.full_scale_dn
     fig, ax = new_figure((8, 5), dpi=110)
     tt = np.linspace(0, t.max() * 1.05, 300)
     colours = colormaps["viridis"](np.linspace(0, 0.95, y.shape[1]))
-    for i, f in enumerate(fits):
-        ax.plot(t, y[:, i], "o", ms=3.5, color=colours[i], label=f"band {i + 1} ({wl[i]:.0f} nm)")
+    labels = res.band_labels
+    for k, i in enumerate(res.band_order):
+        f = fits[i]
+        ax.plot(t, y[:, i], "o", ms=3.5, color=colours[k], label=labels[i])
         ax.plot(tt, model.response(tt, f["k"], f["a"], f["b"], f["dark"]), "-", lw=1,
-                color=colours[i])
-        ax.plot(tt, f["dark"] + f["k"] * tt, ":", lw=0.8, color=colours[i])
+                color=colours[k])
+        ax.plot(tt, f["dark"] + f["k"] * tt, ":", lw=0.8, color=colours[k])
     ax.axhline(fs, color="k", lw=0.8, ls="--")
     ax.text(tt[2], fs + 8, f"full scale {fs} DN", fontsize=8)
     ax.set_ylim(0, fs * 1.12)
