@@ -19,6 +19,11 @@ from ..data.mosaic import band_numbers
 
 __all__ = ["quicklook"]
 
+#: the most image pixels drawn along a side: the pseudo-colour and DQ panels, and each panel
+#: of the band grid (a PNG of 1400 x 1000 px shows no more; a full sensor's cube is shown
+#: every few pixels, its statistics still from every pixel)
+DISPLAY_PX, GRID_PX = 1024, 384
+
 
 def _stretch(image, good, lo=2.0, hi=98.0):
     """``image`` scaled to 0..1 between the ``lo`` and ``hi`` percentiles of its good values."""
@@ -113,9 +118,14 @@ def quicklook(cube, path=None, *, rgb_nm=None, bands=None, pixel=None, region=No
     outer = fig.add_gridspec(2, 2)
     good = cube.dq == 0
 
+    h, w = cube.data.shape[:2]
+    extent = (-0.5, w - 0.5, h - 0.5, -0.5)  # the image's own pixel coordinates, if strided
+    big = (slice(None, None, -(-max(h, w) // DISPLAY_PX)),) * 2
+    small = (slice(None, None, -(-max(h, w) // GRID_PX)),) * 2
+
     ax = fig.add_subplot(outer[0, 0])
-    image = np.stack([_stretch(cube.data[:, :, b], good[:, :, b]) for b in rgb], axis=-1)
-    ax.imshow(image, interpolation="nearest")
+    image = np.stack([_stretch(cube.data[big + (b,)], good[big + (b,)]) for b in rgb], axis=-1)
+    ax.imshow(image, interpolation="nearest", extent=extent)
     ax.add_patch(_box(r0, r1, c0, c1))
     ax.set_title("pseudo-colour R G B = " + ", ".join(names[b] for b in rgb))
     ax.set_axis_off()
@@ -125,14 +135,15 @@ def quicklook(cube, path=None, *, rgb_nm=None, bands=None, pixel=None, region=No
     inner = outer[0, 1].subgridspec(rows, cols)
     for i, b in enumerate(bands):
         a = fig.add_subplot(inner[i // cols, i % cols])
-        a.imshow(_stretch(cube.data[:, :, b], good[:, :, b]), cmap="gray",
-                 interpolation="nearest")
+        a.imshow(_stretch(cube.data[small + (b,)], good[small + (b,)]), cmap="gray",
+                 interpolation="nearest", extent=extent)
         a.set_title(names[b], fontsize=8)
         a.set_axis_off()
 
     ax = fig.add_subplot(outer[1, 0])
     flagged = (~good).mean(axis=2)
-    im = ax.imshow(flagged, cmap="magma", vmin=0, vmax=1, interpolation="nearest")
+    im = ax.imshow(flagged[big], cmap="magma", vmin=0, vmax=1, interpolation="nearest",
+                   extent=extent)
     fig.colorbar(im, ax=ax, shrink=0.8, label="share of bands with a DQ bit")
     counts = [(int(np.count_nonzero(cube.dq & np.uint32(f))), f.name) for f in DQ if f]
     top = ", ".join(f"{name} {count / cube.dq.size:.2%}" for count, name in
