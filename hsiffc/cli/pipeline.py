@@ -80,6 +80,7 @@ def _add_fit(sub):
 
 
 def _cmd_fit(args) -> int:
+    from ..data.mosaic import band_numbers, wavelength_order
     from ..stages import Pipeline
 
     if args.output.suffix != ".npz":  # before any input is read
@@ -94,8 +95,13 @@ def _cmd_fit(args) -> int:
     pipe.save(args.output, overwrite=args.overwrite)
     for name, stage in pipe.steps:
         extra = ""
-        if hasattr(stage, "selected_ms_"):
-            extra = f"  training exposure per band (ms): {stage.selected_ms_}"
+        if getattr(stage, "selected_ms_", None) is not None:  # by wavelength, as every table
+            ms = list(stage.selected_ms_)
+            wl = (getattr(stage, "alpha_table_", None) or {}).get("wavelengths_nm")
+            wl = wl if wl and len(wl) == len(ms) else None
+            number = band_numbers(len(ms), wl)
+            extra = "  training exposure per band: " + ", ".join(
+                f"band {number[i]} {ms[i]:g} ms" for i in wavelength_order(len(ms), wl))
         print(f"  fitted {name} ({stage.name}){extra}")
     print(f"wrote {args.output}")
     return 0
