@@ -285,15 +285,19 @@ class GpuPipeline:
         ffc = self.ffc[1] if self.ffc is not None else None
         const = 0 if cal.in_domain(exposure_ms) else int(DQ.OUT_OF_DOMAIN)
         do_model = ffc is not None and planes["two_point"] is None
-        self.k.correct[grid, self.block, stream](
-            d_raw, d_dq, has_dq, float(2 ** int(bit_depth) - 1), float(exposure_ms), d_dark,
-            planes["a32"], planes["b32"], planes["pix"], const, float(mask.threshold_percent),
-            float(cal.domain["full_scale_dn"]), do_model, planes["a"], planes["b"],
-            planes["base"], planes["log_ratio"], planes["has_sweep"], 0.0,
-            float(2 ** int(bit_depth) - 1),
-            float(ffc.flat_alpha_percent) if do_model else 0.0,
-            float(ffc.alpha_limit_percent) if do_model else 0.0, 1.0, _TOL_DN, _MAX_ITER,
-            bufs["frame"], bufs["alpha"], bufs["fdq"])
+        k = self.k
+        k.correct[grid, self.block, stream](
+            k.RawFrame(d_raw, d_dq, has_dq, float(2 ** int(bit_depth) - 1), float(exposure_ms),
+                       d_dark),
+            k.MaskTerms(planes["a32"], planes["b32"], planes["pix"], const,
+                        float(mask.threshold_percent), float(cal.domain["full_scale_dn"])),
+            k.ModelTerms(do_model, planes["a"], planes["b"], planes["base"],
+                         planes["log_ratio"], planes["has_sweep"], 0.0,
+                         float(2 ** int(bit_depth) - 1),
+                         float(ffc.flat_alpha_percent) if do_model else 0.0,
+                         float(ffc.alpha_limit_percent) if do_model else 0.0, 1.0, _TOL_DN,
+                         _MAX_ITER),
+            k.FrameOut(bufs["frame"], bufs["alpha"], bufs["fdq"]))
         if planes["two_point"] is not None:
             self._two_point(planes["two_point"], d_raw, bufs, grid, stream)
         if self.rec is None:
@@ -420,15 +424,17 @@ class GpuPipeline:
         grid, block = self._per_value(bufs["frame"].shape, planes["n_bands"])
         ppid = planes["method"] == "ppid"
         oy, ox = planes["offset"]
-        self.k.bilinear[grid, block, stream](
-            bufs["frame"], bufs["fdq"], True, bufs["alpha"], with_alpha, planes["lat_r"],
-            planes["lat_c"], planes["lat_start"], ph, pw, mode, fold,
-            planes["no_medians"] if medians is None else medians, medians is not None,
-            bufs["out"], bufs["out_dq"], bufs["out_alpha"], bufs["missing"], bufs["miss_list"],
-            planes["method"] == "nearest", planes["pat_r"], planes["pat_c"],
-            planes["pat_start"], oy, ox, ppid, bufs["ppi"], bufs["ppi_ok"], bufs["levels"],
-            bufs["alpha_win"], planes["ymod"], planes["xmod"], planes["wy_of"],
-            planes["wx_of"])
+        k = self.k
+        k.bilinear[grid, block, stream](
+            k.CubeIn(bufs["frame"], bufs["fdq"], True, bufs["alpha"], with_alpha),
+            k.Lattices(planes["lat_r"], planes["lat_c"], planes["lat_start"], ph, pw,
+                       planes["ymod"], planes["xmod"], planes["wy_of"], planes["wx_of"]),
+            k.CubeOut(bufs["out"], bufs["out_dq"], bufs["out_alpha"], mode, fold),
+            k.MedianFill(planes["no_medians"] if medians is None else medians,
+                         medians is not None, bufs["missing"], bufs["miss_list"]),
+            k.NearestTerms(planes["method"] == "nearest", planes["pat_r"], planes["pat_c"],
+                           planes["pat_start"], oy, ox),
+            k.PpidTerms(ppid, bufs["ppi"], bufs["ppi_ok"], bufs["levels"], bufs["alpha_win"]))
 
     def _host_fill(self, slot) -> bool:
         """Whether the cube has values to fill that the device did not: more than
