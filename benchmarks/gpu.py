@@ -432,6 +432,8 @@ def main() -> int:
             pipeline the GPU runs; "... holed": the frame with DEAD pixels, whose cube
             needs the band-median fill (the device's exact select and the fill queued with
             the frame; the stream queues them only after a frame listed values to fill)."""
+            from hsiffc.gpu.pipeline import DeviceFrame, OutputTypes
+
             cuda = gpu.cuda_module()
             res = {}
             work = ["correct", "correct+bilinear", "correct+bilinear holed", "mask+bilinear",
@@ -450,8 +452,9 @@ def main() -> int:
                 def run(n, g=g, dev=dev, d_raw=d_raw, d_dq=d_dq, st=st,
                         eager=variant == "holed"):  # the fill queued with the frame
                     for _ in range(n):
-                        g._launch(d_raw, d_dq, True, shape, 16.125, 10, sensor.mosaic, dev,
-                                  0, False, False, st, eager_fill=eager)
+                        g._launch(DeviceFrame(d_raw, d_dq, True, shape, 16.125, 10,
+                                              sensor.mosaic), dev, OutputTypes(0, False, False),
+                                  st, eager_fill=eager)
                     st.synchronize()
                 run(1 if args.smoke else 3)  # compile and warm up
                 times = []

@@ -31,6 +31,7 @@ def main() -> int:
     from hsiffc import gpu
     from hsiffc.data.frame import Frame
     from hsiffc.gpu import kernels, selfcheck
+    from hsiffc.gpu.pipeline import DeviceFrame, OutputTypes
 
     gpu.require()
     cuda = gpu.cuda_module()
@@ -43,7 +44,8 @@ def main() -> int:
     d_raw = cuda.to_device(np.ascontiguousarray(frame.data))
     d_dq = cuda.to_device(np.ascontiguousarray(frame.dq))
     st = cuda.stream()
-    g._launch(d_raw, d_dq, True, shape, 16.125, 10, sensor.mosaic, dev, 0, False, False, st)
+    g._launch(DeviceFrame(d_raw, d_dq, True, shape, 16.125, 10, sensor.mosaic), dev,
+              OutputTypes(0, False, False), st)
     st.synchronize()
     ref = dev["out"].copy_to_host(), dev["out_dq"].copy_to_host()
     shipped = kernels.bilinear

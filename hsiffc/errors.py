@@ -80,7 +80,7 @@ _SCOPE: contextvars.ContextVar = contextvars.ContextVar("hsiffc_warning_scope", 
 
 @contextmanager
 def warning_scope():
-    """A new scope for warnings a stage gives once (:func:`once_in_scope`): a batch opens one
+    """A new scope for warnings a stage gives once (:class:`WarnedOnce`): a batch opens one
     per file, so each file gets its own warnings (never only the first file of a campaign)."""
     token = _SCOPE.set(object())
     try:
@@ -89,18 +89,26 @@ def warning_scope():
         _SCOPE.reset(token)
 
 
-def once_in_scope(owner, key) -> bool:
-    """True the first time ``key`` is seen by ``owner`` (an object with a ``__dict__``) in
-    the current :func:`warning_scope` (outside any: once per ``owner``)."""
-    scope = _SCOPE.get()
-    held = owner.__dict__.get("_warned")
-    if held is None or held[0] is not scope:
-        held = (scope, set())
-        owner.__dict__["_warned"] = held
-    if key in held[1]:
-        return False
-    held[1].add(key)
-    return True
+class WarnedOnce:
+    """The warnings one holder has given in the current :func:`warning_scope`, made with the
+    holder (a prepared stage, e.g. the reflectance stage's
+    :class:`~hsiffc.stages.reflectance.PreparedReflectance`): a warning is given the first
+    time its key is seen in the scope (outside any scope: once)."""
+
+    __slots__ = ("_keys", "_scope")
+
+    def __init__(self):
+        self._scope, self._keys = _SCOPE.get(), set()
+
+    def first(self, key) -> bool:
+        """True the first time ``key`` is seen in the current scope."""
+        scope = _SCOPE.get()
+        if scope is not self._scope:
+            self._scope, self._keys = scope, set()
+        if key in self._keys:
+            return False
+        self._keys.add(key)
+        return True
 
 
 class CalibrationDomainWarning(HsiffcWarning):

@@ -17,6 +17,7 @@ import threading
 import time
 import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -312,15 +313,45 @@ def _correct(job: Job, settings: Settings, ctx: Context, res: dict, on_frame,
                         "layout (--mosaic, or a sidecar hsiffc.toml) to get them by band",
                         figures={"mosaic": ctx.calibration.mosaic.describe(),
                                  "bands": ctx.calibration.mosaic.n_bands}))
-            stream_file(src, job, settings, ctx, res, on_frame=on_frame, st=st,
-                        hasher=hasher, commits=commits, caught=caught)
+            stream_file(src, job, settings, ctx, res,
+                        FileRun(on_frame=on_frame, st=st, hasher=hasher, commits=commits,
+                                caught=caught))
     finally:
         if hasher is not None:
             hasher.wait(raise_error=False)
 
 
-def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, on_frame=None,
-                st=None, hasher=None, commits=None, caught=None) -> None:
+class FileRun(NamedTuple):
+    """What a task lends :func:`stream_file` for one input (each may be None)."""
+
+    #: ``on_frame(bytes)`` after each frame (the progress display)
+    on_frame: object = None
+    #: the input's ``os.stat`` taken when the task opened it (else taken now)
+    st: object = None
+    #: a :class:`Background` computing the input's sha256, or None (not recorded)
+    hasher: object = None
+    #: the :class:`~hsiffc.batch.commits.DeferredCommits` that fsync and rename finished outputs
+    #: (None: committed here)
+    commits: object = None
+    #: the file's :class:`~hsiffc.batch.warnrec.FileWarnings`
+    caught: object = None
+
+
+class _Output(NamedTuple):
+    """One input's products while they are written: the output path, its provenance, the
+    files written (renamed into place together), the frame statistics, the input's frame
+    shape and whether the cube formats get the alpha planes."""
+
+    path: Path
+    prov: dict
+    files: FileSet
+    stats: FrameStats
+    shape: tuple
+    cube_alpha: bool
+
+
+def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict,
+                run: FileRun = FileRun()) -> None:
     """Correct every frame of the open input ``src`` into ``job.output`` (atomically).
 
     The loop is decode (``src`` yields raw frames, read ahead on a thread by
@@ -329,10 +360,11 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
     planes on its own thread while the next frame is corrected): the three overlap, as
     tifffile and imagecodecs release the GIL. Memory: a few frames.
 
-    ``caught``: the file's :class:`~hsiffc.batch.warnrec.FileWarnings`; its records go into
-    the provenance, and a class in ``settings.fail_on_warning`` fails the file before its
+    ``run.caught``: the file's :class:`~hsiffc.batch.warnrec.FileWarnings`; its records go
+    into the provenance, and a class in ``settings.fail_on_warning`` fails the file before its
     output is put in place.
     """
+    on_frame, st, hasher, commits, caught = run
     out = Path(job.output)
     st = st if st is not None else os.stat(job.input)
     shape = tuple(src.frame_shape)
@@ -359,8 +391,8 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
                 frame, bad = _to_frame(raw, meta, src, settings)
                 result = ctx.pipeline.transform(frame)
                 if writer is None:  # the first frame tells the output's shape (a cube or not)
-                    writer = _product_writer(out, settings, ctx, prov, src, result, shape,
-                                             stats, files, cube_alpha)
+                    writer = _product_writer(_Output(out, prov, files, stats, shape,
+                                                     cube_alpha), settings, ctx, src, result)
                     sink = BackgroundWriter(writer)
                 elif result.data.shape != writer.shape:
                     raise ValueError(f"the pipeline turned frame {meta.index} into "
@@ -409,10 +441,11 @@ def stream_file(src, job: Job, settings: Settings, ctx: Context, res: dict, *, o
         files.commit()
 
 
-def _product_writer(out: Path, settings: Settings, ctx: Context, prov: dict, src, result,
-                    shape, stats, files, cube_alpha: bool) -> ProductWriter:
+def _product_writer(output: _Output, settings: Settings, ctx: Context, src,
+                    result) -> ProductWriter:
     """The writer of every product format of this input, made when the first frame tells
     the output's shape."""
+    out, prov, files, stats, shape, cube_alpha = output
     frame_shape = _output_shape(result, shape)
     cube = cube_description(result)
     tiff = None

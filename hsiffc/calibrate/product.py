@@ -9,7 +9,6 @@ fitted on. It loads with ``allow_pickle=False``: no code is ever executed from a
 from __future__ import annotations
 
 import datetime as _dt
-import functools
 import hashlib
 import warnings
 from dataclasses import dataclass, field
@@ -54,6 +53,13 @@ class Calibration:
         Provenance, not content: the file it was loaded from or last saved to (:meth:`load`,
         :meth:`save`; the one field :meth:`save` changes), None for a calibration that exists
         only in memory. Not part of :attr:`identity`.
+    mosaic : Mosaic or None
+        The band layout of ``domain["mosaic"]``, built when the calibration is made.
+    identity : str
+        Short content hash of the arrays (sha256, 16 hex digits), computed when the
+        calibration is made: which calibration produced a result (provenance). The arrays
+        are not to be changed afterwards (a changed calibration is a new one: make it with
+        ``dataclasses.replace``).
 
     The calibration is plain data: what correcting a frame reads from it (float32 planes, the
     flag plane, the dark line) is made once by :meth:`prepare` and held by whoever corrects
@@ -67,6 +73,8 @@ class Calibration:
     created: str = ""
     hsiffc_version: str = __version__
     path: str | None = field(default=None, compare=False)
+    mosaic: Mosaic | None = field(init=False, repr=False, compare=False)
+    identity: str = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         missing = [k for k in REQUIRED if k not in self.arrays]
@@ -78,6 +86,9 @@ class Calibration:
                 raise ValueError(f"array {name!r} has shape {np.shape(arr)}, the domain says "
                                  f"frame_shape {shape}")
         self._flag_outside_model()
+        m = self.domain.get("mosaic")
+        object.__setattr__(self, "mosaic", Mosaic.from_dict(m) if m else None)
+        object.__setattr__(self, "identity", _identity(self.arrays))
         if not self.created:
             object.__setattr__(self, "created",
                                _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
@@ -184,24 +195,6 @@ class Calibration:
     def bit_depth(self) -> int:
         """ADC bit depth of the frames it was fitted on."""
         return int(self.domain["bit_depth"])
-
-    @functools.cached_property
-    def mosaic(self) -> Mosaic | None:
-        """The band layout, or None (built once: every frame's check reads it)."""
-        m = self.domain.get("mosaic")
-        return Mosaic.from_dict(m) if m else None
-
-    @functools.cached_property
-    def identity(self) -> str:
-        """Short content hash: which calibration produced a result (for provenance).
-
-        Computed once, on first use, and kept (a calibration's arrays are not changed after it
-        is made)."""
-        h = hashlib.sha256()
-        for name in sorted(self.arrays):
-            h.update(name.encode())
-            h.update(np.ascontiguousarray(self.arrays[name]).tobytes())
-        return h.hexdigest()[:16]
 
     def reference(self) -> dict:
         """How pipelines and histories name this calibration.
@@ -473,6 +466,15 @@ class Calibration:
             raise DataFormatError(f"calibration is incomplete or inconsistent: {exc}",
                                   path=path) from exc
         return cal
+
+
+def _identity(arrays: dict) -> str:
+    """:attr:`Calibration.identity` of ``arrays``: sha256 over the sorted names and bytes."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(arrays[name]).tobytes())
+    return h.hexdigest()[:16]
 
 
 def _choice_lines(choice, mosaic=None) -> list:

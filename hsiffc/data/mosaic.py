@@ -12,7 +12,6 @@ order; without any wavelength the number is the band index plus 1. Inside the co
 from __future__ import annotations
 
 import re
-import weakref
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -130,8 +129,9 @@ class Mosaic:
         return text
 
     def band_map(self, shape) -> np.ndarray:
-        """Band index of every pixel of a frame of ``shape`` (H, W) (read-only; the last few
-        maps are cached, a full frame's costs tens of milliseconds to build)."""
+        """Band index of every pixel of a frame of ``shape`` (H, W): a read-only
+        :class:`BandMap` that knows its :func:`row_period` (the last few maps are kept, by
+        pattern, offset and shape: a full frame's costs tens of milliseconds to build)."""
         return _band_map(self.pattern.tobytes(), self.pattern.shape, self.offset,
                          int(shape[0]), int(shape[1]))
 
@@ -156,15 +156,38 @@ class Mosaic:
             raise ValueError(f"mosaic description {d!r} is missing 'pattern': {exc}") from exc
 
 
+class BandMap(np.ndarray):
+    """A band map built by :meth:`Mosaic.band_map` (read-only): an integer array of band
+    indices that also says its :attr:`row_period`, the rows of its tile (rows ``y`` and
+    ``y + row_period`` hold the same bands). A view or a copy of it is a plain band map
+    again (:attr:`row_period` 0: unknown), and arithmetic on it gives plain arrays.
+    """
+
+    #: rows of the tile (0: unknown, as for any array not made by :meth:`Mosaic.band_map`)
+    row_period: int = 0
+
+    def __array_finalize__(self, obj):
+        self.row_period = 0  # views and copies: the maker sets it on the map it made
+
+    def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):
+        plain = tuple(np.asarray(x) if isinstance(x, BandMap) else x for x in inputs)
+        if "out" in kwargs:
+            kwargs["out"] = tuple(np.asarray(x) if isinstance(x, BandMap) else x
+                                  for x in kwargs["out"])
+        return getattr(ufunc, method)(*plain, **kwargs)
+
+    def __reduce__(self):  # pickled (to a worker process): a plain array of the same values
+        return np.asarray(self).__reduce__()
+
+
 @lru_cache(maxsize=8)
-def _band_map(pattern: bytes, tile: tuple, offset: tuple, h: int, w: int) -> np.ndarray:
+def _band_map(pattern: bytes, tile: tuple, offset: tuple, h: int, w: int) -> BandMap:
     p = np.frombuffer(pattern, np.int64).reshape(tile)
     rows = (np.arange(h) - offset[0]) % tile[0]
     cols = (np.arange(w) - offset[1]) % tile[1]
-    out = p[rows[:, None], cols[None, :]]
+    out = p[rows[:, None], cols[None, :]].view(BandMap)
+    out.row_period = int(tile[0])
     out.flags.writeable = False
-    key = id(out)
-    _ROW_PERIODS[key] = (weakref.ref(out, lambda _ref: _ROW_PERIODS.pop(key, None)), tile[0])
     return out
 
 
@@ -271,16 +294,16 @@ def single_band_map(shape) -> np.ndarray:
     return _band_map(np.zeros(1, np.int64).tobytes(), (1, 1), (0, 0), h, w)
 
 
-# band maps built by _band_map (read-only, owning their data) -> their row period
-_ROW_PERIODS: dict[int, tuple[weakref.ref, int]] = {}
-
-
 def row_period(band_map) -> int:
     """Rows ``y`` and ``y + p`` of ``band_map`` hold the same bands: ``p`` for a band map
-    built by :meth:`Mosaic.band_map` (its tile's rows), 0 for any other array (unknown).
+    built by :meth:`Mosaic.band_map` (a :class:`BandMap`: its tile's rows), 0 for any other
+    array (unknown).
 
     Band statistics use it to sum a frame by row phase (vectorised, no per-pixel scatter) and
     fold the few phase rows into bands at the end.
+
+    >>> bm = Mosaic.rectangular(2, 4).band_map((6, 8))  # tiles of 2 rows, 4 columns
+    >>> row_period(bm), row_period(np.array(bm)), row_period(bm[1:])
+    (2, 0, 0)
     """
-    entry = _ROW_PERIODS.get(id(band_map))
-    return entry[1] if entry is not None and entry[0]() is band_map else 0
+    return int(band_map.row_period) if isinstance(band_map, BandMap) else 0

@@ -157,7 +157,7 @@ def two_point_apply(signal, gain, scale=1.0, *, band_map=None, dq=None) -> np.nd
         out = np.empty(sig.shape, np.float32)
         outside = (f"band_map has bands outside the {ratio.size} of scale; give the per-band "
                    "factors of every band of the map")
-        period = row_period(bm) if sig.ndim == 2 and sig.size >= PARALLEL_MIN else 0
+        period = row_period(band_map) if sig.ndim == 2 and sig.size >= PARALLEL_MIN else 0
         if period:  # a mosaic's map: each column's factor per row phase, no per-pixel lookup
             phase_bands = bm[:period]
             if phase_bands.min() < 0 or phase_bands.max() >= ratio.size:

@@ -26,6 +26,8 @@ exact for integer DN; for non-integer frames its factor may differ by one float3
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ..data.dq import DQ
@@ -45,7 +47,8 @@ if cuda is None:  # importable without numba-cuda (documentation, doctest collec
 
     cuda = _NoCuda()
 
-__all__ = ["bilinear", "correct", "pack2d"]
+__all__ = ["CubeIn", "CubeOut", "FrameOut", "Lattices", "MaskTerms", "MedianFill", "ModelTerms",
+           "NearestTerms", "PpidTerms", "RawFrame", "bilinear", "correct", "pack2d"]
 
 _SAT = np.uint32(DQ.SATURATED)
 _BAD_INPUT = np.uint32(DQ.NONFINITE | DQ.DO_NOT_USE)
@@ -54,15 +57,133 @@ _F32_MAX = float(np.finfo(np.float32).max)
 _NEG = np.float32(-np.inf)
 
 
+# -- the kernels' operands, grouped (numba passes a named tuple's fields as the kernel's
+# arguments: the same launch, fewer names to keep in order) ------------------------------------
+class RawFrame(NamedTuple):
+    """The frame as read, for :data:`correct`."""
+
+    raw: object  # (H, W) any real dtype
+    dq_in: object  # (H, W) uint32, read where has_dq_in
+    has_dq_in: bool
+    raw_full: float  # SATURATED at and above, DN
+    t: float  # exposure, ms
+    dark: object  # (H, W) float32, DN
+
+
+class MaskTerms(NamedTuple):
+    """The alpha mask's planes and rule, for :data:`correct`."""
+
+    a32: object  # (H, W) float32, DN/ms
+    b32: object  # (H, W) float32, 1/DN
+    pix: object  # (H, W) uint32 pixel flags
+    const_bits: int  # OUT_OF_DOMAIN or 0
+    threshold: float  # percent
+    full_scale_mask: float  # DN
+
+
+class ModelTerms(NamedTuple):
+    """The model FFC's planes and constants, for :data:`correct` (read where ``do_ffc``)."""
+
+    do_ffc: bool
+    a: object
+    b: object
+    base: object
+    log_ratio: object
+    has_sweep: bool
+    dark_current: float
+    full_scale: float
+    flat_alpha: float
+    alpha_limit: float
+    below_tol: float
+    tol_dn: float
+    max_iter: int
+
+
+class FrameOut(NamedTuple):
+    """What :data:`correct` writes: the corrected frame, alpha and DQ, (H, W) each."""
+
+    out: object
+    alpha_out: object
+    dq_out: object
+
+
+class CubeIn(NamedTuple):
+    """The corrected frame :data:`bilinear` interpolates."""
+
+    data: object  # (H, W) float32
+    dq: object  # (H, W) uint32, read where has_dq
+    has_dq: bool
+    alpha: object  # (H, W) float32, read where has_alpha
+    has_alpha: bool
+
+
+class Lattices(NamedTuple):
+    """The bands' sample lattices and the phase tables of :data:`bilinear`."""
+
+    lat_r: object
+    lat_c: object
+    lat_start: object
+    ph: int
+    pw: int
+    ymod: object
+    xmod: object
+    wy_of: object
+    wx_of: object
+
+
+class CubeOut(NamedTuple):
+    """Where :data:`bilinear` stores the cube, in the stream's output types."""
+
+    cube: object
+    cube_dq: object
+    cube_alpha: object
+    mode: int
+    fold: bool
+
+
+class MedianFill(NamedTuple):
+    """Values with no usable sample: ``medians`` where ``has_medians``, else counted in
+    ``missing`` and listed in ``miss_list``."""
+
+    medians: object
+    has_medians: bool
+    missing: object
+    miss_list: object
+
+
+class NearestTerms(NamedTuple):
+    """The "nearest" option: the pattern positions of each band and the tile offset."""
+
+    near: bool
+    pat_r: object
+    pat_c: object
+    pat_start: object
+    oy: int
+    ox: int
+
+
+class PpidTerms(NamedTuple):
+    """PPID: the pseudo-panchromatic image, the band levels and the alpha window."""
+
+    use_ppi: bool
+    ppi: object
+    ppi_ok: object
+    levels: object
+    alpha_win: object
+
+
 @cuda.jit
-def correct(raw, dq_in, has_dq_in, raw_full, t, dark, a32, b32, pix, const_bits, threshold,
-            full_scale_mask, do_ffc, a, b, base, log_ratio, has_sweep, dark_current,
-            full_scale, flat_alpha, alpha_limit, below_tol, tol_dn, max_iter,
-            out, alpha_out, dq_out):
+def correct(src, mask, model, dst):
     """One pixel per thread: dark, paper alpha and DQ (the mask), then with ``do_ffc`` the
     model FFC. ``raw`` is the frame as read (any real dtype); without ``dq_in`` its DQ is what
     :meth:`hsiffc.data.frame.Frame.from_raw` gives (SATURATED at ``raw_full``, non-finite values
-    read as 0 with NONFINITE | DO_NOT_USE)."""
+    read as 0 with NONFINITE | DO_NOT_USE). Operands: :class:`RawFrame`, :class:`MaskTerms`,
+    :class:`ModelTerms`, :class:`FrameOut`."""
+    raw, dq_in, has_dq_in, raw_full, t, dark = src
+    a32, b32, pix, const_bits, threshold, full_scale_mask = mask
+    (do_ffc, a, b, base, log_ratio, has_sweep, dark_current, full_scale, flat_alpha,
+     alpha_limit, below_tol, tol_dn, max_iter) = model
+    out, alpha_out, dq_out = dst
     c, r = cuda.grid(2)  # x (fastest) along the row: coalesced
     if r >= out.shape[0] or c >= out.shape[1]:
         return
@@ -137,10 +258,7 @@ def _register_capped(fn):
 
 
 @_register_capped
-def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw,
-             mode, fold, medians, has_medians, cube, cube_dq, cube_alpha, missing, miss_list,
-             near, pat_r, pat_c, pat_start, oy, ox, use_ppi, ppi, ppi_ok, levels, alpha_win,
-             ymod, xmod, wy_of, wx_of):
+def bilinear(src, lattices, dst, fill, nearest, ppid):
     """One thread per cube value, launched as blocks of (B, pixels, rows) threads: band
     ``threadIdx.x`` of a pixel, so consecutive threads write consecutive values, and no integer
     division on the common path (64-bit integer division is slow on the GPU): the phases come
@@ -161,7 +279,16 @@ def bilinear(data, dq, has_dq, alpha, has_alpha, lat_r, lat_c, lat_start, ph, pw
     ``use_ppi``: PPID (:mod:`hsiffc.kernels.demosaic` with a PPI): the tent interpolates
     ``v - level ppi`` and adds ``level ppi`` back (``levels`` (B,) float64), the plain bilinear
     value (float64 sums) where the PPI is undefined, and the alpha is ``alpha_win`` (the PPI
-    window's max, :data:`window_max`) in every band."""
+    window's max, :data:`window_max`) in every band.
+
+    Operands: :class:`CubeIn`, :class:`Lattices`, :class:`CubeOut`, :class:`MedianFill`,
+    :class:`NearestTerms`, :class:`PpidTerms`."""
+    data, dq, has_dq, alpha, has_alpha = src
+    lat_r, lat_c, lat_start, ph, pw, ymod, xmod, wy_of, wx_of = lattices
+    cube, cube_dq, cube_alpha, mode, fold = dst
+    medians, has_medians, missing, miss_list = fill
+    near, pat_r, pat_c, pat_start, oy, ox = nearest
+    use_ppi, ppi, ppi_ok, levels, alpha_win = ppid
     band = cuda.threadIdx.x
     x = cuda.blockIdx.x * cuda.blockDim.y + cuda.threadIdx.y
     y = cuda.blockIdx.y * cuda.blockDim.z + cuda.threadIdx.z

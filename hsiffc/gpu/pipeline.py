@@ -18,6 +18,7 @@ every frame), or on the host for more than :data:`~hsiffc.gpu.kernels.MAX_BANDS`
 from __future__ import annotations
 
 from collections import OrderedDict
+from typing import NamedTuple
 
 import numpy as np
 
@@ -52,6 +53,42 @@ class StreamItem:
         """As a :class:`~hsiffc.data.frame.Frame` (float32 data, uint32 DQ)."""
         return Frame(self.data.astype(np.float32), self.dq.astype(DQ_DTYPE), self.meta,
                      alpha=self.alpha)
+
+
+class DeviceFrame(NamedTuple):
+    """One frame on the device, as :meth:`GpuPipeline._launch` takes it."""
+
+    d_raw: object  # the frame as read, on the device
+    d_dq: object  # its DQ on the device (read where has_dq)
+    has_dq: bool
+    shape: tuple  # (H, W)
+    exposure_ms: float
+    bit_depth: int
+    mosaic: object  # Mosaic or None
+
+
+class OutputTypes(NamedTuple):
+    """What :meth:`GpuPipeline._launch` writes: the data type's index in
+    :data:`~hsiffc.gpu.pack.DATA_DTYPES` (``mode``), a uint8 DQ (``fold``), the alpha."""
+
+    mode: int
+    fold: bool
+    with_alpha: bool
+
+
+class _Pending(NamedTuple):
+    """A frame of :meth:`GpuPipeline.stream` whose result is not handed out yet: run on the
+    device (``where`` "gpu", ``slot`` its buffers) or by the CPU pipeline ("cpu", ``slot``
+    the output types)."""
+
+    where: str
+    item: object
+    raw: object
+    exposure_ms: float
+    bit_depth: int
+    mosaic: object
+    meta: dict
+    slot: object
 
 
 def _entry(name, stage):
@@ -269,13 +306,14 @@ class GpuPipeline:
         return p
 
     # -- one frame ----------------------------------------------------------------------------
-    def _launch(self, d_raw, d_dq, has_dq, shape, exposure_ms, bit_depth, mosaic, bufs,
-                mode, fold, with_alpha, stream, eager_fill=False):
+    def _launch(self, frame: DeviceFrame, bufs, types: OutputTypes, stream, eager_fill=False):
         """Queue the kernels of one frame on ``stream``. A cube's values with no usable
         sample within twice the tile are left NaN and listed, and filled by
         :meth:`_fill_device` once the frame's count is back on the host (no launch on the
         frames that have none); ``eager_fill`` queues the fill's passes at once instead,
         each doing nothing unless a value was listed (the device-only benchmark)."""
+        d_raw, d_dq, has_dq, shape, exposure_ms, bit_depth, mosaic = frame
+        mode, fold, with_alpha = types
         planes, (d_dark, _, _) = self._const(shape, exposure_ms, bit_depth, mosaic)
         cal = planes["cal"]
         mask = self.mask[1]
@@ -285,15 +323,19 @@ class GpuPipeline:
         ffc = self.ffc[1] if self.ffc is not None else None
         const = 0 if cal.in_domain(exposure_ms) else int(DQ.OUT_OF_DOMAIN)
         do_model = ffc is not None and planes["two_point"] is None
-        self.k.correct[grid, self.block, stream](
-            d_raw, d_dq, has_dq, float(2 ** int(bit_depth) - 1), float(exposure_ms), d_dark,
-            planes["a32"], planes["b32"], planes["pix"], const, float(mask.threshold_percent),
-            float(cal.domain["full_scale_dn"]), do_model, planes["a"], planes["b"],
-            planes["base"], planes["log_ratio"], planes["has_sweep"], 0.0,
-            float(2 ** int(bit_depth) - 1),
-            float(ffc.flat_alpha_percent) if do_model else 0.0,
-            float(ffc.alpha_limit_percent) if do_model else 0.0, 1.0, _TOL_DN, _MAX_ITER,
-            bufs["frame"], bufs["alpha"], bufs["fdq"])
+        k = self.k
+        k.correct[grid, self.block, stream](
+            k.RawFrame(d_raw, d_dq, has_dq, float(2 ** int(bit_depth) - 1), float(exposure_ms),
+                       d_dark),
+            k.MaskTerms(planes["a32"], planes["b32"], planes["pix"], const,
+                        float(mask.threshold_percent), float(cal.domain["full_scale_dn"])),
+            k.ModelTerms(do_model, planes["a"], planes["b"], planes["base"],
+                         planes["log_ratio"], planes["has_sweep"], 0.0,
+                         float(2 ** int(bit_depth) - 1),
+                         float(ffc.flat_alpha_percent) if do_model else 0.0,
+                         float(ffc.alpha_limit_percent) if do_model else 0.0, 1.0, _TOL_DN,
+                         _MAX_ITER),
+            k.FrameOut(bufs["frame"], bufs["alpha"], bufs["fdq"]))
         if planes["two_point"] is not None:
             self._two_point(planes["two_point"], d_raw, bufs, grid, stream)
         if self.rec is None:
@@ -420,15 +462,17 @@ class GpuPipeline:
         grid, block = self._per_value(bufs["frame"].shape, planes["n_bands"])
         ppid = planes["method"] == "ppid"
         oy, ox = planes["offset"]
-        self.k.bilinear[grid, block, stream](
-            bufs["frame"], bufs["fdq"], True, bufs["alpha"], with_alpha, planes["lat_r"],
-            planes["lat_c"], planes["lat_start"], ph, pw, mode, fold,
-            planes["no_medians"] if medians is None else medians, medians is not None,
-            bufs["out"], bufs["out_dq"], bufs["out_alpha"], bufs["missing"], bufs["miss_list"],
-            planes["method"] == "nearest", planes["pat_r"], planes["pat_c"],
-            planes["pat_start"], oy, ox, ppid, bufs["ppi"], bufs["ppi_ok"], bufs["levels"],
-            bufs["alpha_win"], planes["ymod"], planes["xmod"], planes["wy_of"],
-            planes["wx_of"])
+        k = self.k
+        k.bilinear[grid, block, stream](
+            k.CubeIn(bufs["frame"], bufs["fdq"], True, bufs["alpha"], with_alpha),
+            k.Lattices(planes["lat_r"], planes["lat_c"], planes["lat_start"], ph, pw,
+                       planes["ymod"], planes["xmod"], planes["wy_of"], planes["wx_of"]),
+            k.CubeOut(bufs["out"], bufs["out_dq"], bufs["out_alpha"], mode, fold),
+            k.MedianFill(planes["no_medians"] if medians is None else medians,
+                         medians is not None, bufs["missing"], bufs["miss_list"]),
+            k.NearestTerms(planes["method"] == "nearest", planes["pat_r"], planes["pat_c"],
+                           planes["pat_start"], oy, ox),
+            k.PpidTerms(ppid, bufs["ppi"], bufs["ppi_ok"], bufs["levels"], bufs["alpha_win"]))
 
     def _host_fill(self, slot) -> bool:
         """Whether the cube has values to fill that the device did not: more than
@@ -606,7 +650,7 @@ class GpuPipeline:
         for item in frames:
             s = i % 2
             if pending[s] is not None:
-                yield self._finish(*pending[s], copy)
+                yield self._finish(pending[s], copy)
                 pending[s] = None
             if isinstance(item, Frame):
                 raw, dq_in, exp, bd, mos, meta = (item.data, item.dq, item.exposure_ms,
@@ -619,8 +663,8 @@ class GpuPipeline:
                 exp, bd, mos = float(exposure_ms), int(bit_depth), mosaic
                 meta = {"exposure_ms": exp, "bit_depth": bd, "mosaic": mos, "kind": "light"}
             if exp == 0 or raw.ndim != 2:  # the CPU pipeline's own case
-                pending[s] = ("cpu", item, raw, dq_in, exp, bd, mos, meta,
-                              (data_dtype, dq_dtype, alpha))
+                pending[s] = _Pending("cpu", item, raw, exp, bd, mos, meta,
+                                      (data_dtype, dq_dtype, alpha))
                 i += 1
                 continue
             key = (raw.shape, raw.dtype.str, dq_in is not None, data_dtype, dq_dtype, alpha,
@@ -645,22 +689,23 @@ class GpuPipeline:
                 np.copyto(slot["pin_dq"], dq_in)
                 slot["d_dq"].copy_to_device(slot["pin_dq"], stream=st)
             dev, host = slot["dev"], slot["host"]
-            self._launch(slot["d_raw"], slot["d_dq"], dq_in is not None, raw.shape, exp, bd,
-                         mos, dev, mode, fold, alpha, st)
+            self._launch(DeviceFrame(slot["d_raw"], slot["d_dq"], dq_in is not None, raw.shape,
+                                     exp, bd, mos), dev, OutputTypes(mode, fold, alpha), st)
             self._download(slot)
             if self.rec is not None:
                 dev["missing"].copy_to_host(host["missing"], stream=st)
             _, (_, how, plane) = self._const(raw.shape, exp, bd, mos)
             self._last_dark = plane
-            pending[s] = ("gpu", item, raw, dq_in, exp, bd, mos, self._meta(meta, exp, how),
-                          slot)
+            pending[s] = _Pending("gpu", item, raw, exp, bd, mos, self._meta(meta, exp, how),
+                                  slot)
             i += 1
         for k in range(2):
             s = (i + k) % 2
             if pending[s] is not None:
-                yield self._finish(*pending[s], copy)
+                yield self._finish(pending[s], copy)
 
-    def _finish(self, where, item, raw, dq_in, exp, bd, mos, meta, slot, copy):
+    def _finish(self, pending: _Pending, copy):
+        where, item, raw, exp, bd, mos, meta, slot = pending
         if where == "gpu":
             slot["stream"].synchronize()
             host = slot["host"]

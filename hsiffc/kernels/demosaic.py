@@ -57,8 +57,10 @@ _JIT = {**JIT_OPTIONS, "cache": False}
 
 
 # The kernel takes its operands in named groups (numba types a named tuple per combination of
-# its members' types) and hands every block to its block function as separate arguments, as
-# the leakage kernels do. Absent planes are size-1 placeholders with a flag saying so.
+# its members' types) and hands them to its block function as they are. Absent planes are
+# size-1 placeholders with a flag saying so (never None: the leakage kernels pass their blocks
+# separate arguments so that numba removes a None operand's branches, which this kernel has
+# none of).
 
 class MosaicPlanes(NamedTuple):
     """The frame's planes the interpolation reads: (H, W) arrays."""
@@ -116,12 +118,16 @@ def _transpose_row(src, dst):
 
 
 @njit(**_JIT)
-def _interpolate_block(blk, raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok,
-                       use_ppi, levels, lat_r, lat_c, lat_start, col_left, ph, pw, n_lat,
-                       cube, cube_dq, cube_alpha, missing_rows, lr, lf, lp):
+def _interpolate_block(blk, planes, layout, lattice_planes, outputs, n_lat):
     """Rows ``blk * _ROWS`` on of :func:`_interpolate_rows`, a compiled function of its own
     as the other kernels' blocks are (no slower than the same loops in the ``prange``
-    body); returns how many values it left NaN."""
+    body); returns how many values it left NaN. It takes the kernel's named groups as they
+    are (no operand is None here: absent planes are placeholders with a flag) and unpacks
+    them, as the kernel does."""
+    raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok, use_ppi, levels = planes
+    lat_r, lat_c, lat_start, col_left, ph, pw = layout
+    lr, lf, lp = lattice_planes
+    cube, cube_dq, cube_alpha, missing_rows = outputs
     H, W = raw.shape
     B = lat_start.shape[0] - 1
     nk_max = W // pw + 3  # lattice columns (at most ceil(W / pw)) plus padding
@@ -391,10 +397,8 @@ def _interpolate_rows(planes, layout, lattice_planes, outputs):
     planes of raw, DQ and PPI (:data:`~hsiffc.kernels.lattice.split_lattices`), read only
     with flags (size-1 placeholders otherwise).
     """
-    raw, dq, has_dq, alpha, has_alpha, ppi, ppi_ok, use_ppi, levels = planes
-    lat_r, lat_c, lat_start, col_left, ph, pw = layout
-    lr, lf, lp = lattice_planes
-    cube, cube_dq, cube_alpha, missing_rows = outputs
+    raw = planes.raw
+    lat_start = layout.lat_start
     H = raw.shape[0]
     B = lat_start.shape[0] - 1
     n_lat = np.int64(1)  # not a literal 1: see below
@@ -403,10 +407,8 @@ def _interpolate_rows(planes, layout, lattice_planes, outputs):
     missing = 0
     for blk in prange((H + _ROWS - 1) // _ROWS):
         # int64 arguments: numba compiled the block once per type it saw (uint64 blk, literal 1)
-        missing += _interpolate_block(np.int64(blk), raw, dq, has_dq, alpha, has_alpha, ppi,
-                                      ppi_ok, use_ppi, levels, lat_r, lat_c,
-                                      lat_start, col_left, ph, pw, n_lat, cube, cube_dq,
-                                      cube_alpha, missing_rows, lr, lf, lp)
+        missing += _interpolate_block(np.int64(blk), planes, layout, lattice_planes,
+                                      outputs, n_lat)
     return missing
 
 

@@ -57,7 +57,7 @@ def band_layout(values, band_map, mask=None, mask_name: str = "good", *,
     if v.size == 0:
         raise ValueError(f"{what} is empty (shape {v.shape}); band statistics need at least "
                          "one pixel")
-    period = row_period(bm) if v.ndim == 2 else 0  # a mosaic's map: its first rows say all
+    period = row_period(band_map) if v.ndim == 2 else 0  # a mosaic's map: first rows say all
     rows = bm[:period] if period else bm
     if not np.issubdtype(rows.dtype, np.integer):
         raise ValueError(f"band_map must hold integer band indices, not {rows.dtype}")

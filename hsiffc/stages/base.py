@@ -135,7 +135,7 @@ class Stage:
         out = {}
         for key, value in self.get_params().items():
             if key == "calibration" and value is not None:
-                value = self.calibration_product()  # read once; a path is recorded by identity
+                value = self.calibration_product()  # a path is recorded by identity
             if isinstance(value, Calibration):
                 value = value.reference()
             elif isinstance(value, Path):
@@ -159,16 +159,13 @@ class Stage:
 
     def calibration_product(self):
         """The :class:`~hsiffc.calibrate.Calibration` of the ``calibration`` parameter (None if
-        unset): a path is read once and kept until the parameter changes (no file access per
-        frame)."""
+        unset). A path is read on each call: a :class:`~hsiffc.stages.Pipeline` reads every
+        calibration file once, when it is built, and gives its stages the calibration it read
+        (:meth:`hsiffc.stages.Pipeline.read_calibrations`); a stage used alone reads its file
+        at ``fit`` and at every ``prepare`` (give it a Calibration to read it once)."""
         from ..calibrate.product import Calibration
 
-        value = getattr(self, "calibration", None)
-        cached = self.__dict__.get("_calibration_cache")
-        if cached is None or cached[0] is not value:
-            cached = (value, Calibration.resolve(value))
-            self.__dict__["_calibration_cache"] = cached
-        return cached[1]
+        return Calibration.resolve(getattr(self, "calibration", None))
 
     def require_calibration(self):
         """:meth:`calibration_product`, or a ParameterError saying the stage needs one."""

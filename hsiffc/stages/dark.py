@@ -60,7 +60,7 @@ class DarkSubtract(Stage):
             raise ParameterError("dark: no dark frames among the training frames; add dark "
                                  "frames (--dark PATH, or kind 'dark' in their metadata) or "
                                  f"{GIVE_CALIBRATION} (its dark level is used)")
-        self.calibration_product()  # read the file now, not at the first frame
+        self.calibration_product()  # a bad calibration fails here, not at the first frame
         self.exposures_ms_ = [float(e) for e in groups]
         if groups:
             stacks = [stack_mean(s, robust=self.average == "median") for s in groups.values()]

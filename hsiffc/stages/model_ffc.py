@@ -176,7 +176,8 @@ class PreparedModelFFC(PreparedWithCalibration):
     def transform(self, frame):
         """:meth:`ModelFFC.transform`."""
         st = self.stage
-        cal = st._cal_for(frame)
+        cal = self.calibration.calibration  # as fitted (float64 a, b), not the float32 planes
+        cal.check_frame(frame)
         dark = (frame.dark_removed if frame.dark_removed is not None else
                 self.calibration.dark_at(frame.exposure_ms))
         out, dq, _ = model_ffc_apply(

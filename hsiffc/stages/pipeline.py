@@ -4,7 +4,8 @@
 already fitted before it; ``transform(frame)`` runs them in order and records one history entry
 per stage in ``frame.meta["history"]`` (stage, parameters, status) - in this one place, not in
 every stage. Building a pipeline checks every stage's parameters, the order of the stages
-(what each needs against what the ones before it give) and reads each calibration file once;
+(what each needs against what the ones before it give) and reads each calibration file once
+(giving its steps the calibration read in place of the path);
 a fitted pipeline (built from fitted stages, fitted or loaded) then makes its plan
 (:meth:`Pipeline.prepare`): each stage's prepared per-frame state and the fused front end,
 held in :attr:`Pipeline.plan`.
@@ -175,9 +176,8 @@ class Pipeline:
                                      "'__'")
             stage.validate_params()
         check_order(steps)
-        for _, stage in steps:  # calibration files are read once, here
-            stage.calibration_product()
         self.steps = steps
+        self.read_calibrations()
         #: what the pipeline was fitted on (:func:`hsiffc.stages.contract.training_record`;
         #: saved in the manifest): frames are checked against it; None before :meth:`fit`
         self.fitted_on = None
@@ -214,8 +214,30 @@ class Pipeline:
             steps[name].set_params(**{param: value})
             steps[name].validate_params()
         check_order(self.steps)
+        self.read_calibrations()
         self._prepare_if_fitted()
         return self
+
+    def read_calibrations(self) -> None:
+        """Read every calibration file the steps name, once, and give each step the
+        :class:`~hsiffc.calibrate.Calibration` read in place of its path (the same object for
+        the steps that name the same file). Called when the pipeline is built and by
+        :meth:`set_params`; what a step records (:meth:`~hsiffc.stages.base.Stage.json_params`:
+        identity and path) is the same for the path and for the calibration read from it.
+
+        Raises
+        ------
+        DataFormatError
+            A file is not a calibration (one line naming it).
+        """
+        read: dict = {}
+        for _, stage in self.steps:
+            for key, value in stage.get_params().items():
+                if key == "calibration" and isinstance(value, (str, Path)):
+                    where = str(Path(value).resolve())
+                    if where not in read:
+                        read[where] = Calibration.load(value)
+                    stage.set_params(**{key: read[where]})
 
     def _prepare_if_fitted(self) -> None:
         """:meth:`prepare` where every stage is fitted. A stage that cannot prepare yet (a

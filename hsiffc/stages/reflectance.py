@@ -19,7 +19,7 @@ import numpy as np
 
 from ..data.dq import DQ, DQ_DTYPE
 from ..data.mosaic import wavelength_order
-from ..errors import CalibrationMismatchError, ParameterError, once_in_scope
+from ..errors import CalibrationMismatchError, ParameterError, WarnedOnce
 from ..files.jsonsafe import json_safe
 from ..data.params import Param
 from ..reflectance import (REFLECTANCE_METHODS, ExposureMismatchWarning, GainMismatchWarning,
@@ -286,8 +286,9 @@ class Reflectance(Stage):
         return ref, report
 
     # -- transform -----------------------------------------------------------------------------
-    def _warn_once(self, key, text, category, figures=None):
-        if once_in_scope(self, key):  # once per file in a batch (hsiffc.errors.warning_scope)
+    @staticmethod
+    def _warn_once(warned, key, text, category, figures=None):
+        if warned.first(key):  # once per file in a batch (hsiffc.errors.warning_scope)
             warnings.warn(category(text, figures=figures),
                           stacklevel=5)  # past _transform and Prepared.transform
 
@@ -309,8 +310,9 @@ class Reflectance(Stage):
         """The frame's reflectance factor per value (float32) with the reference's flags."""
         return self.prepare().transform(frame)
 
-    def _transform(self, frame, prepared):
-        """:meth:`transform` with the calibration ``prepared`` (:meth:`prepare`)."""
+    def _transform(self, frame, prepared, warned):
+        """:meth:`transform` with the calibration ``prepared`` (:meth:`prepare`) and the
+        warnings given so far (``warned``, a :class:`~hsiffc.errors.WarnedOnce`)."""
         t = frame.exposure_ms
         j = self.reference_index(t)
         white = self.white_rate_[j]
@@ -335,7 +337,7 @@ class Reflectance(Stage):
             how = ("light rates of the leakage model, valid within the calibration's exposure "
                    "range" if REFLECTANCE_METHODS[self.method_].leakage_aware else
                    "a linear response and a dark matched to each exposure")
-            self._warn_once(("exposure", t),
+            self._warn_once(warned, ("exposure", t),
                             f"reflectance: scene at {t:g} ms, white reference at {t_ref:g} ms: "
                             f"scaled by the exposure (x {scale:.4g}), which assumes {how}; "
                             "record a reference at the scenes' exposure for the most direct "
@@ -345,7 +347,7 @@ class Reflectance(Stage):
         g_ref, g = self.white_gain_[j], json_safe(frame.meta.get("gain"))
         if g is not None and g_ref is not None and g != g_ref:
             info["gain_mismatch"] = [g_ref, g]
-            self._warn_once(("gain", str(g)),
+            self._warn_once(warned, ("gain", str(g)),
                             f"reflectance: scene recorded at gain {g}, white reference at "
                             f"{g_ref}: not corrected, every reflectance is off by the gain "
                             "ratio; record the reference at the scenes' gain",
@@ -356,7 +358,7 @@ class Reflectance(Stage):
             info["fraction_above_max"] = None if math.isnan(frac) else round(frac, 4)
             if frac > float(self.max_bright_fraction):
                 self._warn_once(
-                    ("bright", t),
+                    warned, ("bright", t),
                     f"reflectance: scene brighter than the white reference: {100 * frac:.0f} % "
                     f"of its good values above {float(self.max_reflectance):g} (median "
                     f"{med:.3g}); scene at {t:g} ms, reference at {t_ref:g} ms: the scene was "
@@ -371,11 +373,24 @@ class Reflectance(Stage):
 
 
 class PreparedReflectance(PreparedWithCalibration):
-    """A fitted :class:`Reflectance` made ready for frames (``calibration``: its calibration,
-    prepared)."""
+    """A fitted :class:`Reflectance` made ready for frames.
 
-    __slots__ = ()
+    Attributes
+    ----------
+    stage : Reflectance
+    calibration : PreparedCalibration or None
+        Its calibration, prepared (None for a method that needs none).
+    warned : WarnedOnce
+        The warnings it has given (:class:`hsiffc.errors.WarnedOnce`): each once per file
+        of a batch, once per pipeline plan outside a batch.
+    """
+
+    __slots__ = ("warned",)
+
+    def __init__(self, stage, calibration):
+        super().__init__(stage, calibration)
+        self.warned = WarnedOnce()
 
     def transform(self, frame):
         """:meth:`Reflectance.transform`."""
-        return self.stage._transform(frame, self.calibration)
+        return self.stage._transform(frame, self.calibration, self.warned)

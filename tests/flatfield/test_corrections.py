@@ -155,9 +155,10 @@ def test_calibration_file_is_read_once_and_identity_hashed_once(frames, cal, tmp
     for _ in range(3):
         out = pipe.transform(test)
     assert reads == [] and out.history[1]["params"]["calibration"]["path"] == str(path.resolve())
-    fresh = Calibration(dict(cal.arrays), dict(cal.domain), cal.method)
+    assert pipe.named_steps["mask"].calibration.path == str(path.resolve())
     real = hashlib.sha256
     monkeypatch.setattr(hashlib, "sha256", lambda *a: hashes.append(1) or real(*a))
+    fresh = Calibration(dict(cal.arrays), dict(cal.domain), cal.method)  # hashed when made
     assert fresh.identity == fresh.identity == cal.identity and len(hashes) == 1
 
 

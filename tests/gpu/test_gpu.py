@@ -406,6 +406,8 @@ GpuPipeline.block = (8, 4)
 seen = {}
 
 def desc(a):
+    if isinstance(a, tuple):  # a kernel's operands as a named tuple (hsiffc.gpu.kernels)
+        return ["tuple", type(a).__name__, [desc(x) for x in a]]
     if hasattr(a, "_ary"):
         a = a._ary
     if isinstance(a, np.ndarray):
@@ -459,6 +461,8 @@ from numba.np.numpy_support import from_dtype
 from hsiffc.gpu import kernels
 sigs = json.load(open(sys.argv[1]))
 def ty(d):
+    if d[0] == "tuple":
+        return types.NamedTuple([ty(x) for x in d[2]], getattr(kernels, d[1]))
     if d[0] == "array":
         return types.Array(from_dtype(np.dtype(d[1])), d[2], d[3])
     if d[0] == "bool":
