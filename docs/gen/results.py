@@ -129,6 +129,62 @@ def measure(name: str) -> None:
     tmp.rename(out)
 
 
+def measure_benchmarks(names: list[str]) -> None:
+    """Re-measure only the benchmarks ``names`` (``benchmarks/run.py NAMES``) and put their
+    figures and printed lines in place of theirs in docs/results/benchmarks/; run.json records
+    each such section's own command, date, commit and wall time (the page says so)."""
+    d = RESULTS / "benchmarks"
+    tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"hsiffc-bench-{os.getpid()}.json"
+    argv = [PY, "benchmarks/run.py", *names, "--json", str(tmp)]
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
+                            capture_output=True, text=True).stdout.strip()
+    t0 = time.perf_counter()
+    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    if proc.returncode != 0:
+        sys.exit(f"benchmarks {names}: {' '.join(argv)} failed (exit {proc.returncode}):\n"
+                 f"{proc.stderr}")
+    new = json.loads(tmp.read_text(encoding="utf-8"))
+    tmp.unlink()
+    store_benchmarks(names, new, proc.stdout, commit, time.perf_counter() - t0)
+
+
+def store_benchmarks(names: list[str], new: dict, stdout: str, commit: str,
+                     wall_s: float) -> None:
+    """Put the figures (``new``: the JSON of ``benchmarks/run.py NAMES --json``) and the
+    printed lines (``stdout``) of benchmarks ``names`` in place of theirs in
+    docs/results/benchmarks/, with their command, date, commit and wall time in run.json."""
+    d = RESULTS / "benchmarks"
+    doc = json.loads((d / "benchmarks.json").read_text(encoding="utf-8"))
+    old_out = (d / "stdout.txt").read_text(encoding="utf-8")
+    new_out = _relative_paths(stdout, d, "benchmarks")
+    run = json.loads((d / "run.json").read_text(encoding="utf-8"))
+    for name in names:
+        doc["runs"][f"bench_{name}"] = new["runs"][f"bench_{name}"]
+        old_out = _replace_block(old_out, f"{name}:", _block(new_out, f"{name}:"))
+        run.setdefault("sections", {})[name] = {
+            "command": f"python3 benchmarks/run.py {name}", "date_utc": datetime.datetime.now(
+                datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
+            "git_commit": commit, "wall_s": round(wall_s, 1),
+            "machine": new["machine"].get("load", "")}
+    (d / "benchmarks.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    (d / "stdout.txt").write_text(old_out, encoding="utf-8")
+    (d / "run.json").write_text(json.dumps(run, indent=1) + "\n", encoding="utf-8")
+
+
+def _block(text: str, head: str) -> str:
+    """The lines of ``text`` from the one starting with ``head`` to the next blank line."""
+    lines = text.splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.startswith(head))
+    j = next((k for k in range(i, len(lines)) if not lines[k].strip()), len(lines))
+    return "\n".join(lines[i:j])
+
+
+def _replace_block(text: str, head: str, block: str) -> str:
+    old = _block(text, head)
+    return text.replace(old, block) if old in text else text.rstrip() + "\n\n" + block + "\n"
+
+
 def _relative_paths(text: str, tmp: Path, name: str) -> str:
     """``text`` with the measuring folder and the checkout's parent written as a user sees
     them from the repository root (``docs/results/NAME``, ``../shared/data/...``)."""
@@ -199,12 +255,19 @@ def _body_benchmarks(d: Path, stdout: str) -> str:
              f"tests. Machine: Python {m.get('python', '?')}, {m.get('machine', '?')}, "
              f"{m.get('cores', '?')} cores, {m.get('load', '')}"
              f"{' (QUICK mode: reduced sizes)' if m.get('quick') else ''}.", ""]
+    sections = json.loads((d / "run.json").read_text(encoding="utf-8")).get("sections", {})
     for bench, res in (doc.get("runs") or {}).items():
         figs = res.get("figures") if isinstance(res, dict) else None
         if not figs:
             continue
-        lines += [f"## {bench.removeprefix('bench_')}", "",
-                  "| figure | value | baseline (same run) | ratio | target | met | note |",
+        lines += [f"## {bench.removeprefix('bench_')}", ""]
+        sec = sections.get(bench.removeprefix("bench_"))
+        if sec:
+            lines += [f"This section was measured on its own by `{sec['command']}` "
+                      f"(`python3 docs/gen/results.py benchmarks --only "
+                      f"{bench.removeprefix('bench_')}`) on {sec['date_utc']} UTC, commit "
+                      f"`{sec['git_commit']}`, in {sec['wall_s']} s, {sec['machine']}.", ""]
+        lines += ["| figure | value | baseline (same run) | ratio | target | met | note |",
                   "|---|---|---|---|---|---|---|"]
         for f in figs:
             base = (f"{f['baseline']:.3g} {f['unit']} ({f['baseline_name']})"
@@ -533,13 +596,19 @@ def main(argv=None) -> int:
     ap.add_argument("names", nargs="+", help=f"pages: {', '.join(PAGES)} or all")
     ap.add_argument("--render-only", action="store_true",
                     help="re-render the pages from the stored outputs without measuring")
+    ap.add_argument("--only", nargs="+", metavar="BENCH",
+                    help="with the benchmarks page: re-measure only these benchmarks (e.g. "
+                         "emva1288), keeping the other sections as they were measured")
     args = ap.parse_args(argv)
     names = list(PAGES) if args.names == ["all"] else args.names
     unknown = [n for n in names if n not in PAGES]
     if unknown:
         ap.error(f"unknown page(s) {unknown}; choose from {list(PAGES)} or all")
     for name in names:
-        if not args.render_only:
+        if not args.render_only and name == "benchmarks" and args.only:
+            print(f"measuring benchmarks {args.only} ...", flush=True)
+            measure_benchmarks(args.only)
+        elif not args.render_only:
             print(f"measuring {name} ...", flush=True)
             measure(name)
         (RESULTS / f"{name}.md").write_text(render(name), encoding="utf-8")

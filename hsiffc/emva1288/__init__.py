@@ -21,12 +21,21 @@ implementation computes it, plus what the leakage model says about the figures.
 from __future__ import annotations
 
 from .compute import FIGURES, characterise, saturation_index, step_statistics
-from .leakage import leakage_effects
 from .render import render_markdown, to_json, write_report  # matplotlib loads when plotting
 
 __all__ = ["FIGURES", "characterise", "leakage_effects", "render_markdown",
            "run_characterisation", "saturation_index", "step_mean_sweep", "step_statistics",
            "to_json", "write_report"]
+
+
+def __getattr__(name):
+    """:func:`leakage_effects` loads the leakage model (and numba) when first named: the
+    figures alone (``hsiffc emva1288 --no-leakage``) of a small set never load numba."""
+    if name == "leakage_effects":
+        from .leakage import leakage_effects
+
+        return leakage_effects
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def step_mean_sweep(stats: dict, source) -> tuple:
@@ -108,6 +117,8 @@ def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leak
             calibration = calibrate(means, method="joint", ptc=ptc, **LEAKAGE_ACCOUNT)
         except DataFormatError as exc:
             return res, None, f"not computed: the sweep cannot calibrate the leakage model ({exc})"
+
+    from .leakage import leakage_effects
 
     leak = leakage_effects(means if means is not None else sweep, res, calibration)
     res["general"] = general_figures(res, leak)  # the model's General figures beside

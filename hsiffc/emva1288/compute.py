@@ -128,8 +128,9 @@ def step_statistics(source, *, mosaic_bands: bool = True, keep_step_means: bool 
             continue
         mask = None if g["band"] is None else bmap == g["band"]
         il = int(np.flatnonzero(info["step"] == images["light"]["step"])[0])
-        g["spatial"] = {"light": spatial_group(images["light"], mask),
-                        "dark": spatial_group(images["dark"], mask),
+        gi = 0 if g["band"] is None else g["band"] + 1
+        g["spatial"] = {"light": spatial_group(images["light"], mask, gi),
+                        "dark": spatial_group(images["dark"], mask, gi),
                         "step_light": int(images["light"]["step"]),
                         "step_dark": int(images["dark"]["step"]),
                         "exposure_ms": float(info["exposure_ms"][il]),

@@ -1,7 +1,7 @@
 """EMVA 1288 Release 4.0 spatial nonuniformity of the two stacks (one dark, one light, L frames
 each): the figures, their split into row, column and pixel parts, the spectrograms and the
-defect-pixel histograms. Inputs are the stacks' sum images and per-pixel temporal variance
-images (:func:`hsiffc.emva1288.stream.reduce_frames`); numbers only.
+defect-pixel histograms. Inputs are the stacks' sum images and their mean temporal variance
+per pixel group (:func:`hsiffc.emva1288.stream.reduce_frames`); numbers only.
 
 *Spatial variance.* ``s2 = var(mean image, ddof=1) - mean(temporal variance) / L`` (the
 temporal noise left in a mean of L frames taken out).
@@ -59,17 +59,17 @@ HIGHPASS = 5  # box size of the high-pass filter
 WHITE_GAIN = 1.0 - 1.0 / HIGHPASS ** 2  # variance gain of y - box(y) for white noise
 
 
-def spatial_group(img: dict, mask=None) -> dict:
-    """Statistics of one stack over ``mask`` (flat bool over the pixels, or None): ``L``,
-    ``avg_mean``, ``avg_var`` (spatial variance of the mean image, ddof=1), ``var_mean``
-    (mean temporal variance) and ``s2`` (fixed-pattern variance)."""
+def spatial_group(img: dict, mask=None, group: int = 0) -> dict:
+    """Statistics of one stack over pixel group ``group`` (0: all pixels, ``mask`` None; else
+    band ``group - 1``, its pixels ``mask``, flat bool): ``L``, ``avg_mean``, ``avg_var``
+    (spatial variance of the mean image, ddof=1), ``var_mean`` (mean temporal variance) and
+    ``s2`` (fixed-pattern variance)."""
     L = int(img["L"])
     avg = img["sum"].ravel() / L
-    var = img["var"].ravel()
     if mask is not None:
-        avg, var = avg[mask], var[mask]
+        avg = avg[mask]
     avg_var = float(avg.var(ddof=1))
-    var_mean = float(var.mean())
+    var_mean = float(img["var_mean"][group])
     return {"L": L, "avg_mean": float(avg.mean()), "avg_var": avg_var, "var_mean": var_mean,
             "s2": avg_var - var_mean / L}
 
@@ -109,7 +109,8 @@ def nonuniformity_parts(images: dict, K: float) -> tuple[dict, dict]:
     Parameters
     ----------
     images : dict
-        ``light`` and ``dark``: ``sum``, ``var`` (H, W) and ``L`` of each stack.
+        ``light`` and ``dark``: ``sum`` (H, W), ``var_mean`` (DN^2, per pixel group, all
+        pixels first) and ``L`` of each stack.
     K : float, DN/e-
         System gain.
 
@@ -178,9 +179,9 @@ def spectrograms(images: dict, figures: dict) -> dict:
     out = {}
     for name, img, scale, unit, fig, tvar in (
             ("DSNU", dark, 1.0, "DN", figures.get("DSNU1288_DN"),
-             float(da["var"].mean()) / da["L"]),
+             float(da["var_mean"][0]) / da["L"]),
             ("PRNU", diff, 100.0 / mean if mean else float("nan"), "%",
-             figures.get("PRNU1288"), float(li["var"].mean()) / li["L"])):
+             figures.get("PRNU1288"), float(li["var_mean"][0]) / li["L"])):
         d = {"unit": unit, "figure_level": fig,
              "temporal_level": math.sqrt(tvar) * (scale if name == "PRNU" else 1.0)}
         for lab, vert in (("horizontal", False), ("vertical", True)):

@@ -18,9 +18,9 @@ What a step gives, per pixel group:
   standard's ``1/(2N) sum ((A - B) - mean(A - B))^2``;
 - the share of pixels at full scale in some frame of the step.
 
-A spatial stack (one light and one dark step of many frames) keeps its sum image and its
-per-pixel temporal variance image (DN^2) for the nonuniformity figures, the defect-pixel
-histograms and the spectrograms (:mod:`.spatial`). With ``keep_step_means`` every step's
+A spatial stack (one light and one dark step of many frames) keeps its sum image and its mean
+temporal variance per group (DN^2) for the nonuniformity figures, the defect-pixel histograms
+and the spectrograms (:mod:`.spatial`). With ``keep_step_means`` every step's
 per-pixel mean image (float32) is kept for the leakage calibration, with a pixel set to full
 scale where some frame of its step was (so the calibration sees it clipped), and the first
 two frames of each step give the calibration's photon transfer (pixels below full scale in
@@ -28,16 +28,17 @@ both: their number, mean level and half the mean squared difference).
 
 The frames are read by :class:`hsiffc.io.FrameSource`, which decodes the next frames on worker
 threads while the kernel works on the current one: both cores are busy (decoding a frame
-costs several times what the kernel does). The kernel runs compiled (numba, one pass, no
-temporaries) from :data:`COMPILED_FROM` pixel-frames on, and as whole-array numpy below,
-where loading numba's code generator would cost more than the compiled pass saves; the two
-give the same statistics (tests/emva1288/test_emva_release4.py).
+costs several times what the kernel does). The kernel runs compiled (:mod:`._compiled`: numba,
+one pass over the frame in its own dtype, no temporaries) for large frames in large sets
+(:data:`COMPILED_FRAME_PIXELS`, :data:`COMPILED_FROM`), and as whole-array numpy otherwise,
+where loading numba's code generator would cost more than the compiled pass saves (a small
+set never loads numba); the two give the same statistics (tests/emva1288/test_emva_release4.py).
+A step's first frame is held as float32 where that is exact (integer frames of up to 16 bits).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from ..data.mosaic import mosaic_band_labels
 from ..errors import DataFormatError
@@ -47,102 +48,112 @@ __all__ = ["reduce_frames", "SPATIAL_FACTOR"]
 SPATIAL_FACTOR = 2.0  # a step with more than this x the median frames per step is a spatial stack
 
 
-def _add_frame(v, j, first, s1, s2, clip, band, n_bands, fs, pairs):
-    """Add frame number ``j`` of a step (``v``: the frame flattened, float64 DN) to its
-    accumulators (flat, in place); return the frame's sum per group (whole frame, then each
-    of ``n_bands`` bands by ``band``). ``pairs`` (3,) gathers the first two frames' pixels
-    below full scale in both: count, sum of their means, sum of squared differences.
-    Whole-array numpy; :func:`_add_frame_compiled` is the same in one compiled pass."""
+def _add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
+    """Add frame number ``j`` of a step (``frame`` flat, any dtype, DN) to its accumulators
+    (flat, in place); return the frame's sum per group (whole frame, then each of ``n_bands``
+    bands by ``band``). ``pairs`` (3,) gathers the first two frames' pixels below full scale
+    in both: count, sum of their means, sum of squared differences. Whole-array numpy with one
+    float64 temporary (the difference from the first frame); the full-scale test only when
+    the frame reaches full scale. :func:`hsiffc.emva1288._compiled.add_frame` is the same in
+    one compiled pass."""
     sums = np.zeros(1 + n_bands)
-    sums[0] = v.sum()
+    sums[0] = frame.sum(dtype=np.float64)
     if n_bands > 0:
-        sums[1:] = np.bincount(band, v, n_bands)
-    at = v >= fs
+        sums[1:] = np.bincount(band, frame, n_bands)
+    top = frame.max() >= fs
     if j == 0:
-        first[:] = v
+        first[:] = frame
         s1[:] = 0.0
         s2[:] = 0.0
-        clip[:] = at
-    else:
-        d = v - first
-        s1 += d
-        d2 = d * d
-        s2 += d2
-        clip |= at
-        if j == 1:
-            ok = (first < fs) & ~at
-            pairs[0] += ok.sum()
-            pairs[1] += 0.5 * (first[ok].sum() + v[ok].sum())
-            pairs[2] += d2[ok].sum()
-    return sums
-
-
-@njit(cache=True, nogil=True)
-def _add_frame_compiled(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
-    """:func:`_add_frame` as one pass over the pixels (``frame`` flat, any integer or float
-    dtype): no temporaries, 0.54 ms against 2.7 ms of CPU per 512 x 512 frame here."""
-    sums = np.zeros(1 + n_bands)
-    for i in range(frame.size):
-        v = np.float64(frame[i])
-        sums[0] += v
-        if n_bands > 0:
-            sums[band[i] + 1] += v
-        at = v >= fs
-        if j == 0:
-            first[i] = v
-            s1[i] = 0.0
-            s2[i] = 0.0
-            clip[i] = at
+        if top:
+            np.greater_equal(frame, fs, out=clip)
         else:
-            a = first[i]
-            d = v - a
-            s1[i] += d
-            s2[i] += d * d
-            clip[i] |= at
-            if j == 1 and a < fs and not at:
-                pairs[0] += 1.0
-                pairs[1] += 0.5 * (a + v)
-                pairs[2] += d * d
+            clip[:] = False
+        return sums
+    d = np.subtract(frame, first, dtype=np.float64)
+    s1 += d
+    if j == 1:
+        ok = first < fs
+        if top:
+            ok &= frame < fs
+        pairs[0] += ok.sum()
+        pairs[1] += 0.5 * (first[ok].sum(dtype=np.float64) + frame[ok].sum(dtype=np.float64))
+        d *= d
+        pairs[2] += d[ok].sum()
+    else:
+        d *= d
+    s2 += d
+    if top:
+        clip |= frame >= fs
     return sums
 
 
-def _finish_step(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_images):
+def _finish_step(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_sum):
     """Reduce a step of ``n`` frames: the sum of the per-pixel temporal variances per group,
     the number of pixels at full scale in some frame, and (else empty) the mean image
-    (float32, full scale where clipped), the sum image and the variance image (float64)."""
+    (float32, full scale where clipped) and the sum image (float64)."""
     inv = 1.0 / n
+    var = np.multiply(s1, s1)  # the one temporary: (s2 - s1^2 / n) / (n - 1) in place
     if n > 1:
-        var = (s2 - s1 * s1 * inv) / (n - 1)
+        var *= inv
+        np.subtract(s2, var, out=var)
+        var /= n - 1
     else:
-        var = np.zeros_like(s1)
+        var[:] = 0.0
     vs = np.zeros(1 + n_bands)
     vs[0] = var.sum()
     if n_bands > 0:
         vs[1:] = np.bincount(band, var, n_bands)
+    del var
     mean = np.empty(0, np.float32)
     if want_mean:
-        mean = np.where(clip, fs, first + s1 * inv).astype(np.float32)
+        mean = (s1 * inv + first).astype(np.float32)
+        mean[clip] = fs
     total = np.empty(0)
-    if want_images:
-        total = first * n + s1
-    else:
-        var = np.empty(0)
-    return vs, float(clip.sum()), mean, total, var
+    if want_sum:
+        total = first * np.float64(n) + s1
+    return vs, float(clip.sum()), mean, total
 
 
-#: pixels x frames from which the compiled kernel runs: its first call loads numba's code
-#: generator, 0.94 s of CPU and 60 MB resident here (a 1024 x 1024 set: 295 MB against 235 MB
-#: with numpy, the reference 173 MB), which it earns back at about 8 ns per pixel-frame
-#: (0.54 ms against numpy's 2.7 ms per 512 x 512 frame): 1e8 pixel-frames for the time, and
-#: from 5e8 on the 60 MB are small beside the frames; below, numpy
-COMPILED_FROM = 5e8
+def _finish_compiled(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_sum):
+    """:func:`_finish_step` in one compiled pass (:func:`hsiffc.emva1288._compiled.finish_step`):
+    no temporaries beside the images it returns."""
+    from ._compiled import finish_step
+
+    mean = np.empty(s1.size if want_mean else 0, np.float32)
+    total = np.empty(s1.size if want_sum else 0)
+    out = finish_step(first, s1, s2, clip, n, band, n_bands, fs, mean, total)
+    return out[:-1], float(out[-1]), mean, total
+
+
+#: the compiled kernel runs for frames of at least :data:`COMPILED_FRAME_PIXELS` pixels in a
+#: set of at least :data:`COMPILED_FROM` pixel-frames. Its first call loads numba's code
+#: generator: 1.1 s of CPU and about 90 MB resident here, against 4.3 ms instead of numpy's
+#: 10.3 ms of CPU per 1024 x 1024 frame (and 5.5 against 11.2 ms per step's reduction): the time
+#: comes back from about 1e8 pixel-frames, the memory only where the frames' own arrays
+#: (about 21 bytes per pixel for the step, 16 for the stacks' sums, numpy's 8-byte temporary)
+#: make the 90 MB small (the benchmark's 1024 x 1024 set, 50 steps, whole processes: compiled
+#: 11.6-11.8 s of CPU and 267-270 MB beside the reference's 10.6 s and 186 MB, two runs; numpy
+#: 12.3 s and 154 MB in the benchmark).
+#: The choice depends on the frame size, not on the number of steps, so that memory stays flat
+#: in the number of steps.
+COMPILED_FROM = 1e8
+COMPILED_FRAME_PIXELS = 1 << 21
+
+
+def _first_dtype(dtype) -> type:
+    """float32 for the first frame of a step where it holds the frame's values exactly (integers
+    of up to 16 bits, float32), else float64."""
+    dtype = np.dtype(dtype)
+    exact = (dtype.kind in "ui" and dtype.itemsize <= 2) or dtype == np.float32
+    return np.float32 if exact else np.float64
 
 
 class _StepState:
     """Accumulators of the step being read (buffers reused from step to step)."""
 
     def __init__(self, n_pixels):
-        self.first = np.empty(n_pixels)
+        self.first = None  # allocated for the first frame's dtype
         self.s1 = np.empty(n_pixels)
         self.s2 = np.empty(n_pixels)
         self.clip = np.empty(n_pixels, np.bool_)
@@ -201,7 +212,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         ``steps`` (per-step arrays ``step``, ``kind``, ``exposure_ms``, ``photons``,
         ``n_frames``, ``spatial``, ``clipped_share``), ``groups`` (per group: ``label``,
         ``band``, ``n_pixels``, ``mean_dn`` and ``var_dn2`` per step), ``images`` (the spatial
-        stacks' ``sum`` and ``var`` images and frame counts, by kind, or None),
+        stacks' ``sum`` images, mean temporal variances per group ``var_mean`` and frame
+        counts, by kind, or None),
         ``frame_shape``, ``n_pixels``, ``bit_depth``, ``full_scale_dn``; with
         ``keep_step_means`` also ``step_means`` (S, H, W) float32 and ``pairs`` (S, 3).
 
@@ -227,8 +239,14 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         ids, cnt = np.unique(steps_all, return_counts=True)
         spatial_steps = ids[cnt > SPATIAL_FACTOR * np.median(cnt)].tolist()
     spatial = {int(s) for s in spatial_steps}
-    compiled = float(source.n_frames) * n_total >= COMPILED_FROM
-    reduce_step = _finish_step
+    compiled = (n_total >= COMPILED_FRAME_PIXELS
+                and float(source.n_frames) * n_total >= COMPILED_FROM)
+    if compiled:
+        from . import _compiled
+
+        add_frame, reduce_step = _compiled.add_frame, _finish_compiled
+    else:
+        add_frame, reduce_step = _add_frame, _finish_step
     st = _StepState(n_total)
     rows: list[dict] = []
     images: dict = {}
@@ -239,7 +257,7 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         if st.step is None:
             return
         is_sp = st.step in spatial
-        vs, n_clip, mean_img, sum_img, var_img = reduce_step(
+        vs, n_clip, mean_img, sum_img = reduce_step(
             st.first, st.s1, st.s2, st.clip, st.n, band, n_bands, fs,
             keep_step_means and not is_sp, is_sp)
         fm = np.array(st.frame_sums) / n_pix  # (L, G) frame means per group
@@ -252,7 +270,7 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
                      "pairs": st.pairs.copy()})
         if is_sp:
             images.setdefault(kind, []).append({"sum": sum_img.reshape(frame_shape),
-                                                "var": var_img.reshape(frame_shape),
+                                                "var_mean": vs / n_pix,
                                                 "L": st.n, "step": st.step})
         elif keep_step_means:
             means.append((st.step, mean_img.reshape(frame_shape)))
@@ -266,12 +284,10 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
                                       "EMVA 1288 lists each step's images together: fix the "
                                       "descriptor's order", path=where)
             st.reset(step, (kind, exposure, photons))
-        if compiled:
-            sums = _add_frame_compiled(np.ascontiguousarray(frame).reshape(-1), st.n, st.first,
-                                       st.s1, st.s2, st.clip, band, n_bands, fs, st.pairs)
-        else:
-            sums = _add_frame(np.asarray(frame, np.float64).reshape(-1), st.n, st.first, st.s1,
-                              st.s2, st.clip, band, n_bands, fs, st.pairs)
+        if st.first is None:
+            st.first = np.empty(n_total, _first_dtype(frame.dtype))
+        sums = add_frame(np.ascontiguousarray(frame).reshape(-1), st.n, st.first, st.s1,
+                         st.s2, st.clip, band, n_bands, fs, st.pairs)
         st.frame_sums.append(sums)
         st.n += 1
     finish()

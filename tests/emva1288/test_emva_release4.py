@@ -49,12 +49,33 @@ def test_compiled_and_numpy_kernels_give_the_same_statistics(linear, monkeypatch
                     .Mosaic.square(2))
     a = step_statistics(sweep, keep_step_means=True)
     monkeypatch.setattr(stream, "COMPILED_FROM", 0.0)
+    monkeypatch.setattr(stream, "COMPILED_FRAME_PIXELS", 0)
     b = step_statistics(sweep, keep_step_means=True)
     for ga, gb in zip(a["groups"], b["groups"]):
         np.testing.assert_allclose(gb["mean_dn"], ga["mean_dn"], rtol=1e-13)
         np.testing.assert_allclose(gb["var_dn2"], ga["var_dn2"], rtol=1e-11)
     np.testing.assert_allclose(b["step_means"], a["step_means"], rtol=1e-6)
     np.testing.assert_allclose(b["pairs"], a["pairs"], rtol=1e-13)
+
+
+def test_the_figures_of_a_small_set_never_load_numba(linear, tmp_path):
+    """Loading numba's code generator costs more than a small set's whole reduction: the
+    command's figures alone run on numpy (the kernel choice, the package face, the status
+    line's compile listener all leave numba unloaded)."""
+    import json
+    import subprocess
+    import sys
+
+    sweep, _ = linear
+    desc = write_descriptor(sweep, tmp_path / "set")
+    out = tmp_path / "fig.json"
+    code = ("import sys\nfrom hsiffc.cli import main\n"
+            f"rc = main(['emva1288', {str(desc)!r}, '--no-leakage', '--json', {str(out)!r}])\n"
+            "print('numba' in sys.modules, rc)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=120)
+    assert run.stdout.split()[-2:] == ["False", "0"], run.stdout + run.stderr
+    assert json.loads(out.read_text())["figures"]["K"]["value"] > 0
 
 
 def test_temporal_variance_of_a_step_is_the_standards_frame_pair_formula(linear):
