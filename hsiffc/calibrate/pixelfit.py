@@ -138,12 +138,19 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
     (nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max) = dark_line(
         yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr, gain, read_var)
     md_w = sw if merge else 0.0
-    for i in range(n):  # the fit's samples: the light ones (and unmerged darks), merged dark
-        yq[i] = yp[i]
-        wq[i] = wp[i] if infit[i] else 0.0
-        tq[i] = t[i]
-        rq[i] = r[i]
-    yq[n], wq[n], tq[n], rq[n] = md_y, md_w, md_t, 0.0
+    # the fit's samples, packed: the valid light ones (and unmerged darks), the merged dark
+    # (samples left out are not evaluated)
+    nq = 0
+    for i in range(n):
+        if infit[i] and wp[i] > 0:
+            yq[nq] = yp[i]
+            wq[nq] = wp[i]
+            tq[nq] = t[i]
+            rq[nq] = r[i]
+            nq += 1
+    if md_w > 0:
+        yq[nq], wq[nq], tq[nq], rq[nq] = md_y, md_w, md_t, 0.0
+        nq += 1
     out_f[p, F_DC] = dc
     out_i[p, I_N] = nl + nd
     out_i[p, I_ITER] = 0
@@ -243,7 +250,7 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
                 cst = np.inf
                 if b_starts.size * margins.size > 1:
                     cst, _, _ = evaluate(trial, yq, wq, tq, rq, dc, additive, ln_rref, prior, h,
-                                         gv, buf)
+                                         gv, buf, nq)
                 if cst <= best:
                     best = cst
                     for a in range(4):
@@ -280,7 +287,7 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
             ph[a] = min(max(ph[a], lo[a]), hi[a])
         conv, it, _cost, chi2, ss = levenberg_marquardt(
             ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, lo, hi, 0.2 * span, max_iter,
-            tol, h, gv, hn, step, trial, scratch, buf)
+            tol, h, gv, hn, step, trial, scratch, buf, nq)
         out_i[p, I_ITER] = it
         status = LEAKAGE
         if not conv:
