@@ -10,7 +10,10 @@ neither a dark's noise nor a modelled dark's error counts as the raw pattern.
 Signal ranges are fractions of the sensor's saturation (:data:`RANGES_FRACTION`), so one table
 reads the same at 8 or 16 bits: saturation is the mean signal above dark of the brightest light
 step with at most 1 % of its pixels clipped, clipped meaning at the sweep's highest raw value
-(the ADC's full scale, or a full well below it). Corrections, all run as shipped pipelines:
+(the ADC's full scale, or a full well below it), and below the dose where a response that
+levels off (leakage's dynamic saturation) grows at less than half its linear slope: steps
+beyond either are saturated and left out of the ranges. Corrections, all run as shipped
+pipelines:
 
 * ``two_point_2frame``: ``dark`` + ``two_point_ffc`` with the flat = the even 2-frame step
   nearest half saturation;
