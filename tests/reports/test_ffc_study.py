@@ -67,7 +67,7 @@ def test_study_states_the_uncertainty_and_the_worst_step(study):
     assert u["flat0_sigma_median_percent"] > 0
     assert study.worst["signal_dn"] >= 29 and study.worst["fpn_percent"] > 0
     page = render_markdown(study)
-    assert "| 12-40 % (29-97 DN) |" in page and "Worst model_ffc step" in page
+    assert "| 12-40 % (29-96 DN) |" in page and "Worst model_ffc step" in page
     assert "combined (inverse variance)" in page
 
 
@@ -99,11 +99,12 @@ def test_uniformity_command_on_sample_cubes(sample_cubes, tmp_path, capsys):
     assert (tmp_path / "u.png").stat().st_size > 10_000
     printed = capsys.readouterr().out
     assert "fixed-pattern non-uniformity" in printed
-    # ranges in fractions of saturation (the brightest step with at most 1 % clipped: about
-    # 870 DN above dark on this leaky 10-bit sweep, which levels off below 1023 DN)
+    # ranges in fractions of saturation: this leaky 10-bit sweep levels off near 870 DN above
+    # dark, below 1023 DN; saturation is the brightest step before its response grows at less
+    # than half its linear slope (about 740 DN), not the plateau
     top = doc["summary"][-1]
     assert top["range_fraction"] == [0.8, 1.0] and top["n_steps"] > 0
-    assert 800 < top["signal_range_dn"][1] < 1000 and "percent of saturation" in printed
+    assert 650 < top["signal_range_dn"][1] < 850 and "percent of saturation" in printed
     assert "(80-100 %)" in printed
 
 
