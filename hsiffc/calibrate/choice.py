@@ -275,8 +275,9 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
                 else single_band_map(sweep.frame_shape))
     band_map = np.asarray(full_map[rows])
     n_bands = int(band_map.max()) + 1
-    sub = sweep.select(np.isin(sweep.step, fit_steps + darks))
-    sub = replace(sub, data=np.ascontiguousarray(sub.data[:, rows]), mosaic=None, meta={})
+    # the block's rows first (a view), then the fit steps' frames: copies the block only
+    sub = replace(sweep, data=sweep.data[:, rows], mosaic=None, meta={}).select(
+        np.isin(sweep.step, fit_steps + darks))
     fit, ks = settings.fit(collect_samples(sub, full_well_dn=settings.full_well_dn,
                                            dtype=np.float64))
     fs = sweep.full_scale_dn
@@ -297,7 +298,8 @@ def choose_models(sweep, settings: FitSettings, *, flats=None, max_pixels: int =
     scores = {name: [] for name in names}
     predicted = {name: [] for name in names}
     levels = []  # per held-out step, each band's mean signal above dark (DN)
-    sigma_dark = dark_sigma(ks, dark_current=settings.use_dc).reshape(shape)
+    sigma_dark = (fit.sigma[:, 3] if settings.fix_dark  # the kernel's: the dark frames'
+                  else dark_sigma(ks, dark_current=settings.use_dc)).reshape(shape)
     dark0 = dark0.reshape(shape)
     dc = fit.dark_current.reshape(shape)
     for s in held:

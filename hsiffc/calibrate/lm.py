@@ -30,6 +30,11 @@ from ..kernels.gradient import response_gradient_fast, response_gradient_point
 LOCALS_ONLY = {"cache": True, "error_model": "numpy", "_nrt": False}
 B_MIN, B_MAX = 1e-6, 1.0  # bounds of b, 1/DN
 CONVERGED_CHI2 = 1e-3  # chi-square gain below which a pixel is converged (~0.03 sigma)
+#: a step predicted to gain less chi-square than this (0.3 sigma of a parameter) while the
+#: damping is below TAKEN_LAMBDA (the last steps were accepted) is taken without evaluating
+#: the model at its end
+TAKEN_CHI2 = 0.1
+TAKEN_LAMBDA = 1e-2
 
 
 @njit(**LOCALS_ONLY, inline="always")
@@ -53,12 +58,13 @@ def sample(t, r, g, ln_a, dc, additive, s, b, d):
 
 
 @njit(**LOCALS_ONLY)
-def evaluate(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, h, gv, buf):
+def evaluate(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, h, gv, buf, n):
     """Weighted cost (data chi-square + priors) at ``ph``, the normal matrix ``h`` (4 x 4) and
     the half gradient ``gv``. Returns (cost, chi2, unweighted SS).
 
-    ``yq``, ``wq``, ``tq``, ``rq`` are the pixel's samples (weight 0: left out); ``prior`` =
-    (s0, ln b0, weight of s, weight of ln b); ``buf`` a (6, n) scratch array. The model is
+    ``yq``, ``wq``, ``tq``, ``rq`` are the pixel's samples, the first ``n`` of them used (the
+    caller packs the fitted ones there; weight 0: left out); ``prior`` =
+    (s0, ln b0, weight of s, weight of ln b); ``buf`` a (5, >= n) scratch array. The model is
     evaluated for all samples in one branch-free loop (vectorised), repaired by the
     log-domain form where it cannot hold, then accumulated.
     """
@@ -67,7 +73,6 @@ def evaluate(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, h, gv, buf):
     b = np.exp(ln_b)
     ln_a = ph[0] + ln_rref - b * s
     c = np.exp(ln_a + b * d)
-    n = tq.size
     bad = 0
     for i in range(n):
         kg = g * rq[i]
@@ -166,14 +171,15 @@ def solve4(a, rhs, out, m):
 
 @njit(**LOCALS_ONLY)
 def levenberg_marquardt(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, lo, hi, s_step_min,
-                        max_iter, tol, h, gv, hn, step, trial, scratch, buf):
-    """Iterate from ``ph`` (updated in place) to the minimum of :func:`evaluate`.
+                        max_iter, tol, h, gv, hn, step, trial, scratch, buf, n):
+    """Iterate from ``ph`` (updated in place) to the minimum of :func:`evaluate` over the first
+    ``n`` samples.
 
     ``lo``, ``hi`` (4,) bound the parameters. A step moves ln g by at most 2, ln b by at most
     1 and s by at most 3/b or ``s_step_min`` (DN), whichever is larger. On return ``h`` holds the normal matrix at
     ``ph``. Returns (converged, iterations, cost, chi2, unweighted SS).
     """
-    cost, chi2, ss = evaluate(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, h, gv, buf)
+    cost, chi2, ss = evaluate(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, h, gv, buf, n)
     lam = 1e-3
     conv = False
     it = 0
@@ -216,8 +222,17 @@ def levenberg_marquardt(ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, lo, hi
         for a in range(4):
             trial[a] = min(max(ph[a] + step[a], lo[a]), hi[a])
             size = max(size, abs(trial[a] - ph[a]) * (b_now if a == 1 else 1.0))
+        if pred < TAKEN_CHI2 and lam < TAKEN_LAMBDA:
+            # a Gauss-Newton step in the quadratic regime: its gain is the predicted one (to
+            # about pred^2), so it is taken without evaluating the model at its end (the
+            # evaluation would only confirm it); chi2, SS and the normal matrix stay those of
+            # the last evaluated point (chi2 higher by at most pred)
+            for a in range(4):
+                ph[a] = trial[a]
+            conv = True
+            break
         ct, chi2t, sst = evaluate(trial, yq, wq, tq, rq, dc, additive, ln_rref, prior, hn, step,
-                                  buf)
+                                  buf, n)
         gain = cost - ct
         if np.isfinite(ct) and ct < cost:
             rel = gain / max(cost, 1e-300)

@@ -91,7 +91,8 @@ class FitControl(NamedTuple):
     max_iter: int  #: iterations (0: start values only)
     tol: float  #: relative cost change at convergence
     fallback: bool  #: the linear model (a = 0) where the leakage fit fails
-    fix_dark: bool  #: the dark level held at the dark frames' line (where the pixel has them)
+    fix_dark: bool  #: the dark level held at the dark frames' line (where the pixel has them;
+    #: its sigma is then that line's error at zero exposure)
 
 
 class FitOutputs(NamedTuple):
@@ -135,15 +136,24 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
     out_f, out_i = outputs
     yq, wq, tq, rq, buf, h, gv, hn, step, ph, trial, prior, cov, scratch, lo, hi = work
     n = t.size
-    (nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max) = dark_line(
+    (nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max, var_d) = dark_line(
         yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr, gain, read_var)
+    held = fix_dark and nd > 0  # the dark level held at the dark frames' line
+    sigma_held = np.sqrt(var_d)  # its error: the dark frames' line's
     md_w = sw if merge else 0.0
-    for i in range(n):  # the fit's samples: the light ones (and unmerged darks), merged dark
-        yq[i] = yp[i]
-        wq[i] = wp[i] if infit[i] else 0.0
-        tq[i] = t[i]
-        rq[i] = r[i]
-    yq[n], wq[n], tq[n], rq[n] = md_y, md_w, md_t, 0.0
+    # the fit's samples, packed: the valid light ones (and unmerged darks), the merged dark
+    # (samples left out are not evaluated)
+    nq = 0
+    for i in range(n):
+        if infit[i] and wp[i] > 0:
+            yq[nq] = yp[i]
+            wq[nq] = wp[i]
+            tq[nq] = t[i]
+            rq[nq] = r[i]
+            nq += 1
+    if md_w > 0:
+        yq[nq], wq[nq], tq[nq], rq[nq] = md_y, md_w, md_t, 0.0
+        nq += 1
     out_f[p, F_DC] = dc
     out_i[p, I_N] = nl + nd
     out_i[p, I_ITER] = 0
@@ -179,9 +189,9 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
         out_i[p, I_STATUS] = NO_LIGHT if nl == 0 else UNDETERMINED
         out_f[p, :F_DC] = np.nan
         out_f[p, F_SIGMA:F_SIGMA + 4] = np.inf
+        out_f[p, F_SIGMA + 3] = sigma_held if held else np.inf
         out_f[p, F_CHI2:F_RREF] = np.nan
         return
-    held = fix_dark and nd > 0  # the dark level held at the dark frames' line
     if held:  # the line through it: d = the dark frames' intercept, g by least squares
         d_lin = md_y - dc * md_t
         g_lin = (z1 - d_lin * s1) / s2
@@ -206,6 +216,7 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
         out_i[p, I_STATUS] = NO_SIGNAL
         out_f[p, :F_DC] = np.nan
         out_f[p, F_SIGMA:F_SIGMA + 4] = np.inf
+        out_f[p, F_SIGMA + 3] = sigma_held if held else np.inf
         out_f[p, F_CHI2] = out_f[p, F_RMS] = np.nan
         return
     ln_rref = np.log(rref)
@@ -243,7 +254,7 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
                 cst = np.inf
                 if b_starts.size * margins.size > 1:
                     cst, _, _ = evaluate(trial, yq, wq, tq, rq, dc, additive, ln_rref, prior, h,
-                                         gv, buf)
+                                         gv, buf, nq)
                 if cst <= best:
                     best = cst
                     for a in range(4):
@@ -280,7 +291,7 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
             ph[a] = min(max(ph[a], lo[a]), hi[a])
         conv, it, _cost, chi2, ss = levenberg_marquardt(
             ph, yq, wq, tq, rq, dc, additive, ln_rref, prior, lo, hi, 0.2 * span, max_iter,
-            tol, h, gv, hn, step, trial, scratch, buf)
+            tol, h, gv, hn, step, trial, scratch, buf, nq)
         out_i[p, I_ITER] = it
         status = LEAKAGE
         if not conv:
@@ -303,7 +314,7 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
         out_f[p, F_SIGMA] = np.sqrt((1.0 / s2 if held else s0 / den) * over) / g_lin
         out_f[p, F_SIGMA + 1] = np.inf
         out_f[p, F_SIGMA + 2] = np.inf
-        out_f[p, F_SIGMA + 3] = 0.0 if held else np.sqrt(s2 / den * over)
+        out_f[p, F_SIGMA + 3] = sigma_held if held else np.sqrt(s2 / den * over)
         return
     b = np.exp(ph[2])
     d = ph[3]
@@ -337,7 +348,7 @@ def _fit_pixel(p, yp, wp, steps, infit, weights_given, noise, darks, starts, con
     for a in range(4):
         out_f[p, F_SIGMA + a] = step[a]
     if held:
-        out_f[p, F_SIGMA + 3] = 0.0
+        out_f[p, F_SIGMA + 3] = sigma_held
 
 
 @njit(**LOCALS_ONLY)

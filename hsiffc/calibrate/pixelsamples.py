@@ -97,7 +97,9 @@ def dark_line(yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr,
     """Dark line of one pixel and its light weights (set in ``wp`` unless given).
 
     Returns (dark samples, light samples, summed dark weight, weighted mean dark exposure and
-    level, dark current, unweighted dark sums t, y, tt, ty, yy, longest dark exposure)."""
+    level, dark current, unweighted dark sums t, y, tt, ty, yy, longest dark exposure, variance
+    of the line's level at zero exposure in DN^2: of the weighted line's intercept with an
+    estimated dark current, else of the weighted mean; inf without a dark sample)."""
     n = t.size
     sw = swt = swy = swtt = swty = 0.0
     ut = uy = utt = uty = uyy = 0.0
@@ -126,14 +128,16 @@ def dark_line(yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr,
     dc = dc_given
     md_t = swt / sw if sw > 0 else 0.0
     md_y = swy / sw if sw > 0 else 0.0
+    var_d = 1.0 / sw if sw > 0 else np.inf
     if estimate_dc:
         dc = 0.0
         den = sw * swtt - swt * swt
         if nd >= 2 and den > 1e-12 * sw * swtt:
             dc = max((sw * swty - swt * swy) / den, 0.0)
+            var_d = swtt / den
     if not weights_given:
         light_weights(yp, wp, t, light, nfr, gain, read_var, md_y - dc * md_t, dc, nd > 0)
-    return nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max
+    return nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max, var_d
 
 
 @njit(parallel=True, cache=True, error_model="numpy")

@@ -521,13 +521,19 @@ def _pair_stats(f0, f1, fs):
     sm = np.zeros(h)
     sv = np.zeros(h)
     for r in prange(h):
+        # sums in locals, stored once per row (threads writing neighbouring elements of n,
+        # sm, sv pixel by pixel share their cache lines)
+        nr = smr = svr = 0.0
         for c in range(w):
             a = np.float64(f0[r, c])
             b = np.float64(f1[r, c])
             if a < fs and b < fs:
-                n[r] += 1.0
-                sm[r] += 0.5 * (a + b)
-                sv[r] += (a - b) * (a - b)
+                nr += 1.0
+                smr += 0.5 * (a + b)
+                svr += (a - b) * (a - b)
+        n[r] = nr
+        sm[r] = smr
+        sv[r] = svr
     total = n.sum()
     if total == 0:
         return 0.0, np.nan, np.nan

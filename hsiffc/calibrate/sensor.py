@@ -21,7 +21,7 @@ from ..data.sweep import Sweep
 from . import choice, pixelfit
 from .joint import B_GRID, run_kernel
 from .product import Calibration
-from .samples import (PhotonTransfer, Samples, collect_samples, dark_lines, dark_sigma,
+from .samples import (PhotonTransfer, Samples, collect_samples, dark_lines,
                       exposure_offset, kernel_samples, linear_fit, photon_transfer)
 
 log = logging.getLogger(__name__)
@@ -263,8 +263,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                         ("sigma_ln_g", kept["sigma_ln_g"]),
                         ("sigma_ln_a", fit.sigma[:, 1]),
                         ("sigma_ln_b", fit.sigma[:, 2]),
-                        ("sigma_dark_dn", dark_sigma(ks, dark_current=use_dc) if fix else
-                         fit.sigma[:, 3]),
+                        ("sigma_dark_dn", fit.sigma[:, 3]),  # held: the dark frames' error
                         ("rms_dn", fit.rms_dn), ("chi2_red", fit.chi2_red),
                         ("saturation_ref_dn", sat)):
             out[name][rows] = v.reshape(shape)

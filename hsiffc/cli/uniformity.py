@@ -130,7 +130,8 @@ def _cmd_uniformity(args) -> int:
         print(f"{label:<24} {row['n_steps']:>5}  " + "  ".join(cells))
     if fractions is not None:
         print(f"ranges in percent of saturation ({ranges[-1][1]:.0f} DN above dark: the "
-              "brightest light step with at most 1 % of its pixels clipped)")
+              "brightest light step with at most 1 % of its pixels clipped, below the dose "
+              "where the response grows at less than half its linear slope)")
     print("fixed-pattern non-uniformity (EMVA 1288, temporal noise removed), median per range; "
           + (f"{len(steps)} steps written to {args.json}" if args.json is not None else
              f"{len(steps)} steps (--json FILE writes each step's figures)"))

@@ -48,7 +48,8 @@ if cuda is None:  # importable without numba-cuda (documentation, doctest collec
     cuda = _NoCuda()
 
 __all__ = ["CubeIn", "CubeOut", "FrameOut", "Lattices", "MaskTerms", "MedianFill", "ModelTerms",
-           "NearestTerms", "PpidTerms", "RawFrame", "bilinear", "correct", "pack2d"]
+           "NearestTerms", "PpidTerms", "RawFrame", "bilinear", "correct", "flag_uncertain",
+           "pack2d"]
 
 _SAT = np.uint32(DQ.SATURATED)
 _BAD_INPUT = np.uint32(DQ.NONFINITE | DQ.DO_NOT_USE)
@@ -475,6 +476,17 @@ def fill_missing(missing, miss_list, medians, mode, cube, cube_dq):
         cube[y, x, band] = v
         if extra != 0:
             cube_dq[y, x, band] |= extra
+
+
+@cuda.jit
+def flag_uncertain(frame, dq, c, e, bit):
+    """``bit`` into ``dq`` where ``c > e frame^2`` (float32): the model FFC's UNCERTAIN flag,
+    as :func:`hsiffc.kernels.bits.or_into_flag_uncertain` sets it on the CPU."""
+    x, r = cuda.grid(2)
+    if r < frame.shape[0] and x < frame.shape[1]:
+        v = frame[r, x]
+        if c[r, x] > e[r, x] * v * v:
+            dq[r, x] |= bit
 
 
 @cuda.jit

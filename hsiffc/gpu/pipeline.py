@@ -249,11 +249,16 @@ class GpuPipeline:
             cal_f = ffc._cal_for(probe)
             pix |= np.asarray(ffc.dq_, DQ_DTYPE)
             has_sweep = ffc.gain_sweep_ is not None
+            prep_f = ffc.prepare()
             p.update(a=dev(float_array(cal_f.a)), b=dev(float_array(cal_f.b)),
                      base=dev(float_array(ffc.gain_sweep_ if has_sweep else ffc.gain_)),
-                     log_ratio=(dev(float_array(ffc.prepare().log_ratio)) if has_sweep
+                     log_ratio=(dev(float_array(prep_f.log_ratio)) if has_sweep
                                 else one),
-                     has_sweep=has_sweep)
+                     has_sweep=has_sweep,
+                     # the UNCERTAIN test c > e signal^2 (float32 planes), as on the CPU
+                     uncertain=(None if prep_f.uncertain is None else
+                                tuple(dev(np.asarray(x, np.float32))
+                                      for x in prep_f.uncertain)))
         else:
             p.update(a=one, b=one, base=one, log_ratio=one, has_sweep=False)
         p["pix"] = dev(pix)
@@ -336,6 +341,9 @@ class GpuPipeline:
                          float(ffc.alpha_limit_percent) if do_model else 0.0, 1.0, _TOL_DN,
                          _MAX_ITER),
             k.FrameOut(bufs["frame"], bufs["alpha"], bufs["fdq"]))
+        if do_model and planes.get("uncertain") is not None:
+            self.k.flag_uncertain[grid, self.block, stream](
+                bufs["frame"], bufs["fdq"], *planes["uncertain"], np.uint32(DQ.UNCERTAIN))
         if planes["two_point"] is not None:
             self._two_point(planes["two_point"], d_raw, bufs, grid, stream)
         if self.rec is None:

@@ -10,7 +10,10 @@ neither a dark's noise nor a modelled dark's error counts as the raw pattern.
 Signal ranges are fractions of the sensor's saturation (:data:`RANGES_FRACTION`), so one table
 reads the same at 8 or 16 bits: saturation is the mean signal above dark of the brightest light
 step with at most 1 % of its pixels clipped, clipped meaning at the sweep's highest raw value
-(the ADC's full scale, or a full well below it). Corrections, all run as shipped pipelines:
+(the ADC's full scale, or a full well below it), and below the dose where a response that
+levels off (leakage's dynamic saturation) grows at less than half its linear slope: steps
+beyond either are saturated and left out of the ranges. Corrections, all run as shipped
+pipelines:
 
 * ``two_point_2frame``: ``dark`` + ``two_point_ffc`` with the flat = the even 2-frame step
   nearest half saturation;
@@ -61,6 +64,10 @@ FLAT_FRACTION = 0.5
 RULE_STACK_FACTOR = 1.10
 RULE_FROM_FRACTION = 0.12
 MAX_CLIPPED_FRACTION = 0.01
+#: the model alpha (percent) beyond which a step is saturated (the response grows at less than
+#: 1 - alpha of its linear slope): model_ffc's default ``alpha_limit_percent``, where it flags
+#: a pixel LEAKAGE as not correctable
+SATURATION_ALPHA_PERCENT = 50.0
 
 
 @dataclass
@@ -126,15 +133,43 @@ def _levels_off(levels, compression: float = 0.1) -> bool:
     return bool(signal[top] < (1 - compression) * slope * light[top])
 
 
+def _dynamic_saturation(levels) -> float | None:
+    """The signal (DN above dark) where the sensor's mean response stops measuring the light,
+    or None where it does not level off: the brightest step below the first step (by light,
+    in the upper half of the signal) to which the response grew at less than
+    ``1 - SATURATION_ALPHA_PERCENT / 100`` of its slope through the lower half. Beyond it the
+    leakage takes more than that share of the light (the model alpha at which model_ffc flags
+    a pixel LEAKAGE: not correctable), so a step there is saturated like a clipped one."""
+    light, signal = (np.asarray(v, float) for v in zip(*levels))
+    if np.unique(light).size < 3:  # a light sweep without photons: the light is unknown
+        return None
+    order = np.argsort(light, kind="stable")
+    light, signal = light[order], signal[order]
+    low = (signal <= 0.5 * signal.max()) & (signal > 0) & (light > 0)
+    if low.sum() < 2:
+        return None
+    slope = float((light[low] * signal[low]).sum() / (light[low] ** 2).sum())
+    floor = (1.0 - SATURATION_ALPHA_PERCENT / 100.0) * slope
+    for i in range(1, light.size):
+        dl = light[i] - light[i - 1]
+        if dl > 0 and signal[i] > 0.5 * signal.max() and (signal[i] - signal[i - 1]) < floor * dl:
+            return float(signal[:i].max())
+    return None
+
+
 def saturation_level(sweep, steps, dark_for) -> dict:
     """The sensor's saturation for the summary's ranges.
 
     ``clip_code_dn``: the highest raw value of the sweep (the ADC's full scale, or a full well
     below it where the response stops there); ``signal_dn``: the mean signal above dark of the
-    brightest of ``steps`` with at most 1 % of its pixels at that code; ``reached``: whether
-    some step has more, or the response levels off (a leaky pixel's dynamic saturation: the
-    brightest step 10 % or more below the line through the lower half of the signal). False:
-    the sweep stops below saturation, and ``signal_dn`` is only its brightest step."""
+    brightest of ``steps`` with at most 1 % of its pixels at that code and below the sensor's
+    dynamic saturation (:func:`_dynamic_saturation`: a leaky response that levels off below the
+    clip code; steps beyond it carry no measure of the light, and their raw figure is the
+    spread of the pixels' saturation levels, which no flat field changes); ``reached``:
+    whether some step has more clipped pixels, or the response levels off (the brightest step
+    10 % or more below the line through the lower half of the signal, or beyond its dynamic
+    saturation). False: the sweep stops below saturation, and ``signal_dn`` is only its
+    brightest step."""
     code = float(np.max(sweep.data[np.isin(sweep.step, steps)]))
     best = None
     reached = False
@@ -148,8 +183,11 @@ def saturation_level(sweep, steps, dark_for) -> dict:
         level = float(d.mean() - dark_for(float(sweep.exposure_ms[idx[0]])).mean())
         best = level if best is None else max(best, level)
         levels.append((_light(sweep, idx[0]), level))
-    if not reached and best is not None and len(levels) >= 3:
-        reached = _levels_off(levels)
+    if best is not None and len(levels) >= 3:
+        dynamic = _dynamic_saturation(levels)
+        if dynamic is not None:
+            best, reached = min(best, dynamic), True
+        reached = reached or _levels_off(levels)
     if best is None or best <= 0:
         raise DataFormatError("every light step has more than 1 % of its pixels clipped at "
                               f"{code:g} DN: no saturation level below clipping; record light "

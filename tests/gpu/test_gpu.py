@@ -510,3 +510,39 @@ def test_kernels_compile_for_sm90_with_the_types_the_pipeline_passes(tmp_path):
     run = subprocess.run([sys.executable, "-c", _COMPILE, str(sigs)], capture_output=True,
                          text=True, env=env, cwd=REPO, timeout=1800)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+
+
+_UNCERTAIN_CHILD = r"""
+import json, numpy as np
+from hsiffc.data.dq import DQ
+from hsiffc.gpu import cuda_module, kernels
+from hsiffc.kernels.bits import or_into_flag_uncertain
+cuda = cuda_module()
+rng = np.random.default_rng(3)
+shape = (6, 10)
+value = rng.uniform(-50, 400, shape).astype(np.float32)
+value[0, :3] = (np.nan, 0.0, -0.0)
+c = rng.uniform(0, 40, shape).astype(np.float32)
+e = rng.uniform(-1e-3, 2e-3, shape).astype(np.float32)
+dq = rng.choice(np.array([0, 2, 32], np.uint32), shape)
+want = or_into_flag_uncertain(dq.copy(), np.zeros(shape, np.uint32), np.zeros(shape, np.uint32),
+                              value, c, e, int(DQ.UNCERTAIN))
+d_dq = cuda.to_device(dq)
+kernels.flag_uncertain[(3, 2), (4, 4)](cuda.to_device(value), d_dq, cuda.to_device(c),
+                                       cuda.to_device(e), np.uint32(DQ.UNCERTAIN))
+got = d_dq.copy_to_host()
+print("RESULT " + json.dumps({"equal": bool(np.array_equal(got, want)),
+                              "flagged": int(((want & int(DQ.UNCERTAIN)) != 0).sum())}))
+"""
+
+
+def test_simulated_gpu_flags_uncertain_as_the_cpu():
+    """The model FFC's UNCERTAIN flag (c > e signal^2) set on the device as
+    hsiffc.kernels.bits sets it on the CPU, bit for bit, keeping the bits already there."""
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
+    run = subprocess.run([sys.executable, "-c", _UNCERTAIN_CHILD], capture_output=True,
+                         text=True, env=env, cwd=REPO, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    res = json.loads([x for x in run.stdout.splitlines() if x.startswith("RESULT ")][-1][7:])
+    assert res["equal"]
+    assert 0 < res["flagged"] < 60

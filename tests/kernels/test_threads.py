@@ -75,3 +75,22 @@ def test_a_batch_on_workers_gives_each_cores_over_workers_threads(monkeypatch, d
     files = [sample_cubes / "test_2200K.tif", sample_cubes / "training_2900K.tif"]
     batch.correct_batch(files, tmp_path / "out", cal, workers=4)
     assert got == {"workers": 2, "threads": 4}  # two files: two workers of 8 // 2 threads
+
+
+@pytest.mark.parametrize("given", [None, "ACTIVE"])
+def test_openmp_threads_wait_passively_unless_the_environment_says(given):
+    # a spinning OpenMP thread takes a shared core from the serial code between kernels:
+    # hsiffc asks for passive waiting before numba starts its threads, and keeps a policy the
+    # environment sets
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if given:
+        env["OMP_WAIT_POLICY"] = given
+    run = subprocess.run([sys.executable, "-c", "import os, hsiffc.kernels; "
+                          "print(os.environ['OMP_WAIT_POLICY'])"],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split()[-1] == (given or "PASSIVE")
