@@ -50,9 +50,11 @@ def test_finite_next_to_flagged_pixels_with_the_common_dq(method):
     assert np.array_equal(out.dq, demosaic(raw, mosaic, method="bilinear", dq=dq).dq)
 
 
-@pytest.mark.parametrize("method", [m for m, r in DEMOSAIC_METHODS.items() if r.uses_ppi])
+@pytest.mark.parametrize("method", [m for m, r in DEMOSAIC_METHODS.items()
+                                    if r.uses_ppi or r.cube is not None])
 def test_alpha_of_the_ppi_methods_covers_their_reach(method):
-    """The alpha of a PPI method's value is the max over the window its values reach
+    """The alpha of a PPI method's (or a method's with its own cube pass) value is the max
+    over the window its values reach
     (``2 alpha_tiles ph - 1 + len(ppi_kernel(ph)) - 1``): one leaky pixel marks that window
     in every band."""
     mosaic = Mosaic.square(4)
