@@ -30,7 +30,6 @@ from ..data.dq import DQ
 from .demosaic import EPS
 from .lattice import lattice_arrays, tent_sums
 from .launch import JIT_OPTIONS, Kernel
-from .ppi import neighbour_offsets, pixel_neighbour_sums
 
 __all__ = ["flag_values", "interpolate_differences", "refine_ppi",
            "scaled_padded"]

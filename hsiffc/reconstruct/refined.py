@@ -1,4 +1,5 @@
-"""Demosaicking on a full-resolution pseudo-panchromatic image: "ppid_paper" and "ppid_edge".
+"""Demosaicking on a full-resolution pseudo-panchromatic image ("ppid_paper", "ppid_edge"), and
+by iterative spectral differences ("itsd").
 
 PPID as :data:`~hsiffc.reconstruct.DEMOSAIC_METHODS` ``"ppid"`` has it adds the bands'
 differences to the mean-filter PPI ``M``, a blurred image: detail finer than a tile is lost
@@ -20,6 +21,13 @@ across edges (direction-weighted). :func:`refined_cube` computes both, with
     weights in the PPI, and plain bilinear (tent) interpolation of the differences, which on
     the benchmark scenes did as well as the direction weights, at a fraction of the time.
 
+``"itsd"``
+    iterative spectral differences (Brauers and Aach 2006; Mizutani et al. 2014), which need
+    no PPI: from the bilinear cube, two steps of
+    ``b(x) = raw(x) + bilinear_b(raw - previous estimate of x's band)`` (:func:`itsd_cube`).
+
+On layouts with one sample of each band per tile, "ppid_edge" and "itsd" run on the fused
+kernels of :mod:`hsiffc.kernels.ppicube`; a band repeated in the tile takes the general path.
 Flagged samples first take the tent-weighted mean of their usable same-band neighbours (as in
 the PPI), so that no flagged value is a source; then the DQ rule of the package is applied
 around each flagged sample (the values whose one-tile support holds no usable sample take the

@@ -101,12 +101,13 @@ def test_harness_scores_the_truth_as_perfect():
     assert np.isfinite(worse["psnr_db"]) and worse["sam_median_deg"] < 1e-3  # scale: no angle
 
 
-RANKED = ("ppid_edge", "ppid_paper", "ppid", "bilinear", "nearest")
+RANKED = ("ppid_edge", "ppid_paper", "itsd", "ppid", "bilinear", "nearest")
 
 
 def test_methods_keep_their_benchmark_rank_on_the_4x4_sensor():
     """On two fixed generated scenes of the 4x4 VIS sensor the methods rank as on the
-    benchmark page (PSNR over the cube): ppid_edge, ppid_paper, ppid, bilinear, nearest."""
+    benchmark page (PSNR over the cube): ppid_edge, ppid_paper, itsd, ppid, bilinear,
+    nearest."""
     pytest.importorskip("skimage")
     from hsiffc.reports.recon_bench import sensors
 
