@@ -110,3 +110,26 @@ def test_spectral_difference_step_equals_its_formula(mosaic):
                         num += w * (raw[ys, xs] - prev[ys, xs, c])
                         den += w
             assert out[y, x, b] == pytest.approx(raw[y, x] + num / den, rel=1e-5, abs=1e-3)
+
+
+@pytest.mark.parametrize("mosaic", LAYOUTS, ids=lambda m: m.name)
+def test_fused_ppid_edge_equals_the_general_path_with_flags(mosaic, monkeypatch):
+    """"ppid_edge" on the fused kernels gives the general kernels' cube and DQ (the path of a
+    layout with a repeated band), given the same band levels, on a frame with lone flagged
+    samples, a flagged block and flags at the borders."""
+    from hsiffc.reconstruct import demosaic
+    from hsiffc.reconstruct import refined
+
+    rng = np.random.default_rng(12)
+    y, x = np.mgrid[0:47, 0:61]
+    raw = (400 + 300 * np.sin(x / 3.0) * np.cos(y / 4.0)
+           * (1 + 0.2 * mosaic.band_map(x.shape))).astype(np.float32)
+    dq = np.where(rng.random(raw.shape) < 0.02, np.uint32(DQ.DEAD), np.uint32(0))
+    dq[20:23, 30:33] = DQ.HOT
+    dq[0, 0] = dq[-1, -1] = DQ.DEAD
+    monkeypatch.setattr(refined, "_sampled_levels", refined._levels)
+    fused = demosaic(raw, mosaic, method="ppid_edge", dq=dq)
+    monkeypatch.setattr(refined, "single_lattice", lambda p: False)
+    general = demosaic(raw, mosaic, method="ppid_edge", dq=dq)
+    np.testing.assert_allclose(fused.cube, general.cube, rtol=0, atol=1e-4 * raw.max())
+    assert np.array_equal(fused.dq, general.dq)
