@@ -239,39 +239,57 @@ def cube_of_planes(res, ppi, levels, band_rc, period, cube, cube_dq):
 
 
 def _sd_loop(raw, prev, band_r, band_c, band_of, ph, pw, out):
-    """One spectral-difference step (:func:`spectral_difference`) into ``out`` (H, W, B)."""
+    """One spectral-difference step (:func:`spectral_difference`) into ``out`` (H, W, B).
+    The tent's rows are chosen per output row and band, its columns per column phase and band
+    (tables), with the weights normalised where a row or column is outside the frame or has
+    weight 0, so that each value is four terms without a division."""
     H, W = raw.shape
     B = band_r.shape[0]
+    dtab = np.empty((pw, B), np.int64)  # distance of x from b's sample column at or left
+    wtab = np.empty((pw, B), np.float32)
+    for q in range(pw):
+        for b in range(B):
+            dtab[q, b] = (q - band_c[b]) % pw
+            wtab[q, b] = np.float32(dtab[q, b] / pw)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
     for y in prange(H):
         yph = y % ph
         o = out[y]
+        r0s = np.empty(B, np.int64)
+        r1s = np.empty(B, np.int64)
+        wy0s = np.empty(B, np.float32)
+        wy1s = np.empty(B, np.float32)
+        for b in range(B):
+            r0 = y - ((y - band_r[b]) % ph)
+            a1 = np.float32((y - r0) / ph)
+            r1 = r0 + ph
+            if r0 < 0:
+                r0s[b], r1s[b], wy0s[b], wy1s[b] = r1, r1, zero, one
+            elif r1 >= H or r0 == y:
+                r0s[b], r1s[b], wy0s[b], wy1s[b] = r0, r0, one, zero
+            else:
+                r0s[b], r1s[b], wy0s[b], wy1s[b] = r0, r1, one - a1, a1
         for x in range(W):
-            c = band_of[yph, x % pw]
+            q = x % pw
+            c = band_of[yph, q]
             v = raw[y, x]
             for b in range(B):
                 if b == c:
                     o[x, b] = v
                     continue
-                ry0 = y - ((y - band_r[b]) % ph)
-                cx0 = x - ((x - band_c[b]) % pw)
-                wy1 = np.float32((y - ry0) / ph)
-                wx1 = np.float32((x - cx0) / pw)
-                num = np.float32(0.0)
-                den = np.float32(0.0)
-                for t in range(2):
-                    ys = ry0 + t * ph
-                    wy = wy1 if t else np.float32(1.0) - wy1
-                    if ys < 0 or ys >= H or wy <= 0:
-                        continue
-                    for s in range(2):
-                        xs = cx0 + s * pw
-                        wx = wx1 if s else np.float32(1.0) - wx1
-                        if xs < 0 or xs >= W or wx <= 0:
-                            continue
-                        w = wy * wx
-                        num += w * (raw[ys, xs] - prev[ys, xs, c])
-                        den += w
-                o[x, b] = v + num / den
+                c0 = x - dtab[q, b]
+                c1 = c0 + pw
+                wx1 = wtab[q, b]
+                wx0 = one - wx1
+                if c0 < 0:
+                    c0, wx0, wx1 = c1, zero, one
+                elif c1 >= W or c0 == x:
+                    c1, wx0, wx1 = c0, one, zero
+                R0, R1 = r0s[b], r1s[b]
+                t0 = wx0 * (raw[R0, c0] - prev[R0, c0, c]) + wx1 * (raw[R0, c1] - prev[R0, c1, c])
+                t1 = wx0 * (raw[R1, c0] - prev[R1, c0, c]) + wx1 * (raw[R1, c1] - prev[R1, c1, c])
+                o[x, b] = v + (wy0s[b] * t0 + wy1s[b] * t1)
 
 
 _sd = Kernel(_sd_loop, 7)
