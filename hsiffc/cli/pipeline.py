@@ -221,9 +221,11 @@ def _add_correct(sub):
                         "mosaic tile "
                         "(tile). A --pipeline whose last step reconstructs writes cubes without "
                         "it. Which to use: ppid_edge for full-resolution cubes (the most "
-                        "accurate against ground truth on both benchmark sensors); ppid to "
-                        "match earlier results; ppid_paper to compare with "
-                        "the literature (Mihoubi et al. 2017); bilinear for no mixing between "
+                        "accurate against ground truth on both benchmark sensors, and faster "
+                        "than ppid); ppid to match earlier results; ppid_paper and itsd to "
+                        "compare with the literature (Mihoubi et al. 2017; iterative spectral "
+                        "differences, Mizutani et al. 2014; both above ppid, below ppid_edge, "
+                        "several times slower); bilinear for no mixing between "
                         "bands; tile when the spectra matter more than the resolution; nearest "
                         "for a quick look. Figures: docs/results/recon.md")
     p.add_argument("--cube-correction", choices=("imec", "derived"), default=None,

@@ -1,12 +1,10 @@
 """Compiled kernels of the refined-PPI demosaicking methods ("ppid_paper", "ppid_edge").
 
 The implementation behind those methods of :func:`hsiffc.reconstruct.demosaic`; every kernel
-takes a frame whose flagged samples were already replaced (:func:`fill_flagged`), so that no
-flagged value is ever a source, and works in float32 with float64 sums where they are long.
+takes a frame whose flagged samples were already replaced
+(:func:`hsiffc.kernels.ppicube.fill_sparse`), so that no flagged value is ever a source, and
+works in float32 with float64 sums where they are long.
 
-* :func:`fill_flagged`: each flagged sample replaced by the tent-weighted mean of its usable
-  same-band neighbours one tile away (the PPI's fill, :mod:`hsiffc.kernels.ppi`), NaN where
-  it has none (the caller fills those with the band median).
 * :func:`refine_ppi`: the full-resolution PPI. At pixel ``p`` of band ``b`` the sample
   minus a prediction of it from its 8 same-band neighbours ``q`` one tile away:
   ``PPI(p) = (raw(p) - sum_q w_q (raw(q) - l_b M(q)) / sum_q w_q) / l_b`` with ``M`` the
@@ -32,9 +30,8 @@ from ..data.dq import DQ
 from .demosaic import EPS
 from .lattice import lattice_arrays, tent_sums
 from .launch import JIT_OPTIONS, Kernel
-from .ppi import neighbour_offsets, pixel_neighbour_sums
 
-__all__ = ["fill_flagged", "flag_values", "interpolate_differences", "refine_ppi",
+__all__ = ["flag_values", "interpolate_differences", "refine_ppi",
            "scaled_padded"]
 
 _JIT = {**JIT_OPTIONS, "cache": False}
@@ -42,42 +39,31 @@ _DO_NOT_USE = np.uint32(DQ.DO_NOT_USE)
 _INL = {**_JIT, "inline": "always"}
 
 
-def _fill_loop(raw, dq, ph, pw, out):
-    """``out`` = ``raw`` with every flagged sample replaced by its neighbour mean (NaN if it
-    has no usable neighbour)."""
-    H, W = raw.shape
-    offs = neighbour_offsets(ph, pw)
-    for y in prange(H):
-        row = np.int64(y)
-        for x in range(W):
-            if dq[y, x] == 0:
-                out[y, x] = raw[y, x]
-            else:
-                s, w = pixel_neighbour_sums(raw, dq, row, x, offs)
-                out[y, x] = np.float32(s / w) if w > 0.0 else np.float32(np.nan)
-
-
-fill_flagged = Kernel(_fill_loop, 4)
-
-
-def _pad_loop(raw, scale, rows, cols, pad):
+def _pad_loop(raw, scale, rows, cols, mx, pad):
     """``pad[i, j] = raw[rows[i], cols[j]] * scale[rows[i] % ph, cols[j] % pw]``: the frame
     with each band divided by its level (``scale`` (ph, pw) of 1 / level), extended through
-    the index maps ``rows``, ``cols``."""
+    the index maps ``rows``, ``cols``; ``cols[j] = j - mx`` between the ``mx`` border columns
+    of each side (read contiguously there)."""
     ph, pw = scale.shape
-    row_scale = np.empty((ph, cols.shape[0]), np.float32)
+    n_c = cols.shape[0]
+    W = n_c - 2 * mx
+    row_scale = np.empty((ph, n_c), np.float32)
     for r in range(ph):
-        for j in range(cols.shape[0]):
+        for j in range(n_c):
             row_scale[r, j] = scale[r, cols[j] % pw]
     for i in prange(rows.shape[0]):
         src = raw[rows[i]]
         sc = row_scale[rows[i] % ph]
         out = pad[i]
-        for j in range(cols.shape[0]):
+        for j in range(mx):
             out[j] = src[cols[j]] * sc[j]
+            out[n_c - 1 - j] = src[cols[n_c - 1 - j]] * sc[n_c - 1 - j]
+        o, s = out[mx:], sc[mx:]
+        for x in range(W):
+            o[x] = src[x] * s[x]
 
 
-scaled_padded = Kernel(_pad_loop, 4)
+scaled_padded = Kernel(_pad_loop, 5)
 
 
 @njit(**_JIT)
@@ -227,20 +213,45 @@ def interpolate_differences(raw, ppi, levels, lattices, period, gam, cube):
           cube)
 
 
-@njit(**JIT_OPTIONS)
-def _flag_values(raw, dq, flagged, band_of, lat_r, lat_c, lat_start, ph, pw, cube, cube_dq,
-                 missing):
+@njit(**_JIT)
+def _lone(dq, ys, xs, ph, pw):
+    """Whether the 8 same-band neighbours one tile away of sample (ys, xs) are all in the
+    frame and unflagged."""
+    H, W = dq.shape
+    if ys < ph or ys >= H - ph or xs < pw or xs >= W - pw:
+        return False
+    for sy in range(-1, 2):
+        for sx in range(-1, 2):
+            if (sy != 0 or sx != 0) and dq[ys + sy * ph, xs + sx * pw] != 0:
+                return False
+    return True
+
+
+def _flag_loop(raw, dq, flagged, band_of, lat_r, lat_c, lat_start, ph, pw, cube, cube_dq,
+               missing):
     """The DQ rule of :mod:`hsiffc.reconstruct` around the flagged samples ``flagged`` (flat
-    indices): every value of the flagged sample's band within one tile of it whose S1 holds no
-    usable sample takes the OR of S1's flags and the twice-wide tent's estimate (NaN with
-    DO_NOT_USE, and ``missing[y, b]`` set, where that has none either). ``cube_dq`` must be
-    zero elsewhere."""
+    indices): every value of the flagged sample's band within one tile of
+    it whose S1 holds no usable sample takes the OR of S1's flags and the twice-wide tent's
+    estimate (NaN with DO_NOT_USE, and ``missing[y, b]`` set, where that has none either);
+    then each flagged sample's own flags at its site. ``cube_dq`` must be zero elsewhere.
+    A value that two flagged samples a tile apart both reach is done once; the loop's
+    ``prange`` would be safe (a value's estimate and flags depend only on its position, and
+    the own flags are OR-ed in after), but the loop runs serially."""
     H, W = raw.shape
     dummy = np.zeros((1, 1), np.float32)
-    for i in range(flagged.shape[0]):
+    for i in prange(flagged.shape[0]):
         ys, xs = flagged[i] // W, flagged[i] % W
         b = band_of[ys % ph, xs % pw]
         j0, j1 = lat_start[b], lat_start[b + 1]
+        if j1 - j0 == 1 and _lone(dq, ys, xs, ph, pw):
+            # its 8 same-band neighbours are in the frame and usable: every value within a
+            # tile but the sample's own has one of them in S1, and S1 of its own site is the
+            # sample alone
+            _, r2, d2, f1 = tent_sums(raw, dq, True, dummy, 0.0, False, ys, xs, lat_r, lat_c,
+                                      j0, j1, ph, pw, 2)
+            cube[ys, xs, b] = np.float32(r2 / d2)
+            cube_dq[ys, xs, b] = dq[ys, xs]
+            continue
         for y in range(max(0, ys - ph + 1), min(H, ys + ph)):
             for x in range(max(0, xs - pw + 1), min(W, xs + pw)):
                 if cube_dq[y, x, b] != 0:
@@ -251,23 +262,30 @@ def _flag_values(raw, dq, flagged, band_of, lat_r, lat_c, lat_start, ph, pw, cub
                     continue
                 _, r2, d2, _ = tent_sums(raw, dq, True, dummy, 0.0, False, y, x, lat_r, lat_c,
                                          j0, j1, ph, pw, 2)
-                cube_dq[y, x, b] = f1
                 if d2 > EPS:
                     cube[y, x, b] = np.float32(r2 / d2)
+                    cube_dq[y, x, b] = f1
                 else:  # for the band-median fill
                     cube[y, x, b] = np.nan
                     cube_dq[y, x, b] = f1 | _DO_NOT_USE
                     missing[y, b] = True
-        cube_dq[ys, xs, b] |= dq[ys, xs]  # a sample's own flags at its site, always
+    for i in range(flagged.shape[0]):  # a sample's own flags at its site, always
+        ys, xs = flagged[i] // W, flagged[i] % W
+        cube_dq[ys, xs, band_of[ys % ph, xs % pw]] |= dq[ys, xs]
 
 
-def flag_values(raw, dq, band_of, lattices, period, cube, cube_dq):
-    """Apply the DQ rule around every flagged sample (:func:`_flag_values`); ``cube_dq`` zero
-    on entry. Returns ``missing`` (H, B) bool: rows and bands with values left NaN."""
+#: serial: a frame holds few flagged samples (0.1 % of 2 Mpx take 2 ms), fewer than pay for
+#: starting threads
+_flag_values = njit(**JIT_OPTIONS)(_flag_loop)
+
+
+def flag_values(raw, dq, flagged, band_of, lattices, period, cube, cube_dq):
+    """Apply the DQ rule around every flagged sample (:func:`_flag_loop`; ``flagged``: their
+    flat indices, int64); ``cube_dq`` zero on entry. Returns ``missing`` (H, B) bool: rows
+    and bands with values left NaN."""
     ph, pw = int(period[0]), int(period[1])
     lat_r, lat_c, lat_start = lattice_arrays(lattices)
     missing = np.zeros((raw.shape[0], len(lattices)), np.bool_)
-    _flag_values(raw, dq, np.flatnonzero(dq).astype(np.int64),
-                 np.ascontiguousarray(band_of, np.int64), lat_r, lat_c, lat_start, ph, pw, cube,
-                 cube_dq, missing)
+    _flag_values(raw, dq, flagged, np.ascontiguousarray(band_of, np.int64), lat_r, lat_c,
+                 lat_start, ph, pw, cube, cube_dq, missing)
     return missing

@@ -6,7 +6,7 @@ A snapshot-mosaic sensor samples one band per pixel; the bands repeat in tiles o
 
 * :func:`demosaic` - every band at every pixel, ``(H, W, B)``, by one of
   :data:`DEMOSAIC_METHODS` (``"nearest"``, ``"bilinear"``, ``"ppid"``, ``"ppid_paper"``,
-  ``"ppid_edge"``);
+  ``"ppid_edge"``, ``"itsd"``);
 * :func:`tile_cube` - one spectrum per complete tile, ``(H', W', B)`` (reduced resolution);
 * :func:`apply_correction` - a spectral correction matrix applied per pixel
   (``virtual = C @ b``), e.g. the IMEC vendor matrix;

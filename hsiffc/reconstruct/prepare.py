@@ -11,6 +11,7 @@ import numpy as np
 from ..data.dq import DQ, DQ_DTYPE, as_dq
 from ..kernels.demosaic import EPS
 from ..kernels.lattice import band_samples, lattice_arrays
+from ..kernels.ppicube import flagged_indices
 from ..kernels.ppi import ppi_image
 from ..kernels.select import medians_of
 from ..data.mosaic import Mosaic
@@ -102,6 +103,13 @@ class Prepared:
     def good(self) -> np.ndarray:
         """(H, W) bool: usable as a source."""
         return np.ones(self.shape, bool) if self.dq is None else self.dq == 0
+
+    @cached_property
+    def flagged(self) -> np.ndarray:
+        """(n,) int64: flat indices of the flagged samples (empty without flags)."""
+        if self.dq is None:
+            return np.zeros(0, np.int64)
+        return flagged_indices(self.dq)
 
     @cached_property
     def band_map(self) -> np.ndarray:

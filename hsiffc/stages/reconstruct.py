@@ -24,7 +24,7 @@ class Reconstruct(Stage):
     method : str
         Demosaicing method for ``resolution="full"``, one of
         :data:`hsiffc.reconstruct.DEMOSAIC_METHODS` ("nearest", "bilinear", "ppid",
-        "ppid_paper", "ppid_edge"; see :func:`hsiffc.reconstruct.demosaic`); ignored for
+        "ppid_paper", "ppid_edge", "itsd"; see :func:`hsiffc.reconstruct.demosaic`); ignored for
         ``resolution="tile"``.
     resolution : "full" or "tile"
         "full": every band at every pixel (:func:`hsiffc.reconstruct.demosaic`); "tile": one

@@ -50,9 +50,11 @@ def test_finite_next_to_flagged_pixels_with_the_common_dq(method):
     assert np.array_equal(out.dq, demosaic(raw, mosaic, method="bilinear", dq=dq).dq)
 
 
-@pytest.mark.parametrize("method", [m for m, r in DEMOSAIC_METHODS.items() if r.uses_ppi])
+@pytest.mark.parametrize("method", [m for m, r in DEMOSAIC_METHODS.items()
+                                    if r.uses_ppi or r.cube is not None])
 def test_alpha_of_the_ppi_methods_covers_their_reach(method):
-    """The alpha of a PPI method's value is the max over the window its values reach
+    """The alpha of a PPI method's (or a method's with its own cube pass) value is the max
+    over the window its values reach
     (``2 alpha_tiles ph - 1 + len(ppi_kernel(ph)) - 1``): one leaky pixel marks that window
     in every band."""
     mosaic = Mosaic.square(4)
@@ -99,12 +101,13 @@ def test_harness_scores_the_truth_as_perfect():
     assert np.isfinite(worse["psnr_db"]) and worse["sam_median_deg"] < 1e-3  # scale: no angle
 
 
-RANKED = ("ppid_edge", "ppid_paper", "ppid", "bilinear", "nearest")
+RANKED = ("ppid_edge", "ppid_paper", "itsd", "ppid", "bilinear", "nearest")
 
 
 def test_methods_keep_their_benchmark_rank_on_the_4x4_sensor():
     """On two fixed generated scenes of the 4x4 VIS sensor the methods rank as on the
-    benchmark page (PSNR over the cube): ppid_edge, ppid_paper, ppid, bilinear, nearest."""
+    benchmark page (PSNR over the cube): ppid_edge, ppid_paper, itsd, ppid, bilinear,
+    nearest."""
     pytest.importorskip("skimage")
     from hsiffc.reports.recon_bench import sensors
 
