@@ -630,6 +630,8 @@ def run_case(seed: int) -> dict:
         found = {"selected": out["selected_effects"], "unexplained": out["unexplained"],
                  "ambiguous": out.get("ambiguous", []), "base": out["base_model"],
                  "dark_current_in_base": "dark current" in out["dark_model"]["model"],
+                 # the dark signal in the base, collected outside the photodiode (not leaking)
+                 "dark_outside_in_base": out["dark_model"].get("leaks") is False,
                  "noise_floor_dn": out["noise_floor_dn"],
                  "systematic_after_dn": out["after"]["systematic_rms_dn"],
                  # what each test of the residual found: grouping, structured and null RMS
@@ -684,6 +686,8 @@ def verdict(truth: dict, found: dict) -> dict:
     want = {e["name"] for e in truth["effects"]}
     if "dark_current" in want and found.get("dark_current_in_base"):
         sel = sel | {"dark_current"}
+    if "dark_outside_well" in want and found.get("dark_outside_in_base"):
+        sel = sel | {"dark_outside_well"}
     return {"right": sel == want, "false_alarm": False}
 
 
@@ -790,6 +794,8 @@ def summarise(results: list[dict]) -> dict:
         sel = list(r["found"]["selected"])
         if r["found"].get("dark_current_in_base") and "dark_current" in label:
             sel.append("dark_current")
+        if r["found"].get("dark_outside_in_base") and "dark_outside_well" in label:
+            sel.append("dark_outside_well")
         for name in sel:
             row[name] += 1
         if not sel:
