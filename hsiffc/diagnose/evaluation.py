@@ -780,7 +780,11 @@ def summarise(results: list[dict]) -> dict:
         if not rows:
             continue
         by_class[what] = {"right": frac(rows), "false_alarm": frac(rows, "false_alarm"),
-                          "designs": sorted({f"{r['case']['n_frames']} frames" for r in rows})}
+                          "designs": sorted({f"{r['case']['n_frames']} frames" for r in rows}),
+                          # the detection ladder: right at each multiple of the detection limit
+                          "by_multiple": {str(m): frac([r for r in rows if r["truth"]["effects"]
+                                                        and r["truth"]["effects"][0]["multiple"]
+                                                        == m]) for m in CLASS_MULTIPLES}}
     columns = ["nothing"] + _library() + ["unexplained"]
     confusion: dict = {}
     for r in results:
@@ -900,6 +904,16 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
             alarm = _pct(row["false_alarm"]) if what == "clean" else ""
             lines.append(f"| {label} | {_pct(row['right'])} | {alarm} | "
                          f"{', '.join(row['designs'])} |")
+        lines += ["", "Detection ladder of the failure classes (right, by the multiple of the "
+                  "detection limit put in):", "",
+                  "| class | " + " | ".join(f"{m}x" for m in CLASS_MULTIPLES) + " |",
+                  "|---|" + "---|" * len(CLASS_MULTIPLES)]
+        for what, row in summary["by_class"].items():
+            if what == "clean" or "by_multiple" not in row:
+                continue
+            label = what + (" (outside)" if what in CLASS_OUTSIDE else "")
+            lines.append(f"| {label} | " + " | ".join(_pct(row["by_multiple"][str(m)])
+                                                     for m in CLASS_MULTIPLES) + " |")
         lines.append("")
     lines += ["Named right, by size (single library effects):", "",
               "| multiple of the detection limit | " + " | ".join(
@@ -1026,9 +1040,9 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--json", type=Path, help="write every case and the summary here")
     ap.add_argument("--page", type=Path, help="write the tables into this Markdown page")
-    ap.add_argument("--before", type=Path,
-                    help="a --json file of the same seeds run with the code before: adds the "
-                         "before/after table")
+    ap.add_argument("--before", type=Path, action="append", default=[],
+                    help="a --json file of the same seeds run with the code before: adds a "
+                         "before/after table (may be given more than once: one table each)")
     ap.add_argument("--from-json", type=Path,
                     help="render the tables from the cases of this --json file instead of "
                          "running them again")
@@ -1067,10 +1081,10 @@ def main(argv=None) -> int:
         how = (how.replace(f"{wall:.0f} s.", f"{summary['runtime_s']:.0f} s of diagnosis.")
                + f" Tables rendered from `{args.from_json.as_posix()}` (`--from-json`).")
     text = markdown(summary, shared, how)
-    if args.before:
-        before = json.loads(args.before.read_text())
-        text += ("\nBefore and after, on the same seeds (before: the code before this round, "
-                 f"`{args.before.as_posix()}`{'; ' + before['note'] if before.get('note') else ''}):"
+    for path in args.before:
+        before = json.loads(path.read_text())
+        text += ("\nBefore and after, on the same seeds (before: "
+                 f"`{path.as_posix()}`{'; ' + before['note'] if before.get('note') else ''}):"
                  "\n\n" + before_after(before["cases"], results))
     print(text)
     if args.json:

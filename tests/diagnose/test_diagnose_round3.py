@@ -134,3 +134,77 @@ def test_each_failure_class_changes_the_frames(what):
             break
     assert truth["class"] == what and truth["effects"][0]["multiple"] >= 5
     assert (sweep.data != ev.clean_sweep(spec).data).any()
+
+
+def _leaky_pixels(rng, n_pix=60, dark_rate=0.0, outside=True):
+    """Step means of leaky pixels at two light rates and dark steps, with a dark signal that is
+    collected outside the photodiode (added after the leakage) or in it (leaks)."""
+    from hsiffc.leakage import model
+
+    t = np.tile(np.geomspace(2.0, 200.0, 10), 3)
+    r = np.repeat([1.0, 0.4, 0.0], 10)
+    g = rng.uniform(8.0, 12.0, n_pix)[:, None]
+    d = rng.uniform(50.0, 60.0, n_pix)[:, None]
+    dc = dark_rate * rng.lognormal(0.0, 0.2, (n_pix, 1))
+    a, b = 1e-2, 3e-3
+    if outside:
+        y = np.maximum(model.response(t, g * r, a, b, d), d) + dc * t
+    else:
+        y = np.maximum(model.response(t, g * r + dc, a, b, d), d)
+    return y + rng.normal(0.0, 1.0, y.shape), t, r
+
+
+@pytest.mark.parametrize("outside", [True, False])
+def test_the_dark_signal_leaks_or_not_and_the_fit_tells_which(outside):
+    """Issue 53, class 3: a base whose dark signal is collected outside the photodiode (added
+    after the leakage) beside the one whose dark current leaks; each fits its own data to the
+    noise and the other's measurably worse (the data choose)."""
+    from hsiffc.diagnose.bases import LeakageBase
+
+    rng = np.random.default_rng(3)
+    y, t, r = _leaky_pixels(rng, dark_rate=2.0, outside=outside)
+    valid, w = np.ones(y.shape, bool), np.ones(y.shape)
+    cost = {}
+    for leaks in (True, False):
+        base = LeakageBase(True, dark_leaks=leaks)
+        base.full_scale = 16383.0
+        theta = base.start(y, t, r, valid, w)
+        cost[leaks] = float(((y - base.predict(theta, t, r)) ** 2).sum())
+        if leaks == (not outside):  # the true model: near the noise, and its dark rate
+            assert cost[leaks] < 1.5 * y.size
+            assert np.median(theta[:, 4]) == pytest.approx(2.0, rel=0.1)
+    assert cost[not outside] < cost[outside] - 100
+    # outside the photodiode the dark signal's column is exactly t and the model its sum
+    base = LeakageBase(True, dark_leaks=False)
+    theta = base.start(y, t, r, valid, w)
+    m, jac, *_ = base.evaluate(theta, t, r)
+    np.testing.assert_allclose(m, base.predict(theta, t, r))
+    np.testing.assert_allclose(jac[..., 4], np.broadcast_to(t, m.shape))
+
+
+def test_a_per_step_offset_common_to_the_pixels_is_not_a_light_error():
+    """A black-level clamp moves every pixel of a step by the same DN; a light error scales
+    each pixel's signal. step_offset refuses a per-step factor for the first only."""
+    from hsiffc.diagnose.bases import LinearBase
+    from hsiffc.diagnose.fitting import Data, State, refit_base
+    from hsiffc.diagnose.select import evaluate, step_offset
+
+    rng = np.random.default_rng(5)
+    n_pix, s = 400, 24
+    t = np.geomspace(2.0, 100.0, s)
+    r = np.ones(s)
+    g = rng.uniform(2.0, 20.0, (n_pix, 1))  # bands of different responsivity
+    clean = 40.0 + g * t
+    for kind in ("offset", "light"):
+        step = rng.normal(0.0, 1.0, s)
+        y = clean + (20.0 * step if kind == "offset" else 0.03 * step * g * t)
+        y = y + rng.normal(0.0, 1.0, y.shape)
+        valid, w = np.ones(y.shape, bool), np.ones(y.shape)
+        data = Data(y=y, y_ho=y, t=t, r=r, valid=valid, valid_ho=valid, w=w,
+                    order=np.linspace(-1, 1, s), prev_index=np.arange(s) - 1,
+                    light=np.ones(s, bool), full_scale=4095.0, frame_gap=1.0)
+        base = LinearBase(False)
+        current = evaluate(refit_base(y, data, State(base, base.start(y, t, r, valid, w))), [],
+                           data, n_pix, s)
+        why = step_offset(current, "illumination_error", data)
+        assert (why is not None) == (kind == "offset"), (kind, why)
