@@ -571,65 +571,7 @@ def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, da
         if trend:
             entry["rejected"] = trend
             beats = False
-    if beats and EFFECTS[name].scope == "step":
-        offset = step_offset(current, name, data)
-        if offset:
-            entry["rejected"] = offset
-            beats = False
     return beats
-
-
-def step_offset(current: Fitted, name: str, data: Data):
-    """Is what a per-step factor would take up an offset common to the pixels of a step (DN)
-    rather than a change proportional to each pixel's response (a light error)? Per light step,
-    the residual of ``current`` on the fit half is regressed across the pixels on the effect's
-    column, on a constant, and on both; the step's change is an offset where the constant
-    explains more than the column and adds to it significantly (F-test over the steps, p below
-    ``TREND_P``). Pixels of different bands or responsivity see one light error in proportion
-    to their signal, and a black-level clamp that follows the frame's signal by the same DN.
-    Where the pixels' columns are nearly proportional to a constant nothing is refused.
-
-    Parameters
-    ----------
-    current : Fitted
-        The model the per-step effect would be added to.
-    name : str
-        The per-step effect.
-    data : Data
-        The samples.
-
-    Returns
-    -------
-    str or None
-        Why it is refused, or None.
-    """
-    _, _, ctx = context(current.state.base, current.state.theta, data)
-    x = EFFECTS[name].columns(ctx)[..., 0]
-    w = np.where(data.valid, data.w, 0.0)
-    res = np.where(data.valid, data.y - current.state.prediction, 0.0)
-    sw, sx, sxx = w.sum(0), (w * x).sum(0), (w * x * x).sum(0)
-    sr, sxr, srr = (w * res).sum(0), (w * x * res).sum(0), (w * res * res).sum(0)
-    det = sw * sxx - sx ** 2
-    steps = data.light & (sw > 0) & (sxx > 0) & (det > 1e-6 * sw * sxx)
-    n_steps = int(steps.sum())
-    n = int((w[:, steps] > 0).sum())
-    if n_steps < MIN_TREND_STEPS or n - 2 * n_steps < 1:
-        return None
-    rss_x = srr - sxr ** 2 / np.where(sxx > 0, sxx, 1.0)  # the column alone
-    rss_1 = srr - sr ** 2 / np.where(sw > 0, sw, 1.0)  # a constant alone
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rss_both = srr - (sxx * sr ** 2 - 2 * sx * sr * sxr + sw * sxr ** 2) / det
-    rx, r1, rb = (float(v[steps].sum()) for v in (rss_x, rss_1, rss_both))
-    if not (r1 < rx and rb > 0):
-        return None
-    f = ((rx - rb) / n_steps) / (rb / (n - 2 * n_steps))
-    p = float(stats.f.sf(f, n_steps, n - 2 * n_steps))
-    if p >= TREND_P:
-        return None
-    return (f"what it takes up is an offset common to the pixels of a step (DN), not a change "
-            f"in proportion to each pixel's response: a constant per step explains the residual "
-            f"better than the effect's column and adds to it (F = {f:.3g}, p = {p:.2g}); a "
-            "light error scales every pixel's signal")
 
 
 def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_pix: int,

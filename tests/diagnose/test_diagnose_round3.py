@@ -181,30 +181,3 @@ def test_the_dark_signal_leaks_or_not_and_the_fit_tells_which(outside):
     np.testing.assert_allclose(m, base.predict(theta, t, r))
     np.testing.assert_allclose(jac[..., 4], np.broadcast_to(t, m.shape))
 
-
-def test_a_per_step_offset_common_to_the_pixels_is_not_a_light_error():
-    """A black-level clamp moves every pixel of a step by the same DN; a light error scales
-    each pixel's signal. step_offset refuses a per-step factor for the first only."""
-    from hsiffc.diagnose.bases import LinearBase
-    from hsiffc.diagnose.fitting import Data, State, refit_base
-    from hsiffc.diagnose.select import evaluate, step_offset
-
-    rng = np.random.default_rng(5)
-    n_pix, s = 400, 24
-    t = np.geomspace(2.0, 100.0, s)
-    r = np.ones(s)
-    g = rng.uniform(2.0, 20.0, (n_pix, 1))  # bands of different responsivity
-    clean = 40.0 + g * t
-    for kind in ("offset", "light"):
-        step = rng.normal(0.0, 1.0, s)
-        y = clean + (20.0 * step if kind == "offset" else 0.03 * step * g * t)
-        y = y + rng.normal(0.0, 1.0, y.shape)
-        valid, w = np.ones(y.shape, bool), np.ones(y.shape)
-        data = Data(y=y, y_ho=y, t=t, r=r, valid=valid, valid_ho=valid, w=w,
-                    order=np.linspace(-1, 1, s), prev_index=np.arange(s) - 1,
-                    light=np.ones(s, bool), full_scale=4095.0, frame_gap=1.0)
-        base = LinearBase(False)
-        current = evaluate(refit_base(y, data, State(base, base.start(y, t, r, valid, w))), [],
-                           data, n_pix, s)
-        why = step_offset(current, "illumination_error", data)
-        assert (why is not None) == (kind == "offset"), (kind, why)
