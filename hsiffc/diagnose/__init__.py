@@ -45,13 +45,16 @@ from .fitting import (State, context, describe_params, fitpredict, gram, project
                       separable_fraction)
 from .result import Diagnosis, ResidualArrays
 from .select import (RULE, UNEXPLAINED_OF_FLOOR, Fitted, equally_good, evaluate, greedy,
-                     leakage_check)
+                     improves, leakage_check, paired)
 from .structure import groupings, structure
 
 __all__ = ["diagnose", "Diagnosis", "EFFECTS", "NoiseModel", "OUTSIDE", "inject",
            "list_effects", "search"]
 
 MIN_LIGHT_STEPS = 4
+#: BIC lower by more than this (very strong evidence) makes the dark signal one collected
+#: outside the photodiode, where its held-out error is as good
+DARK_BIC_MARGIN = 10.0
 
 
 def _unexplained_reason(structured, too_big, after, floor):
@@ -306,6 +309,47 @@ def _stand_ins(current, selected, unexplained, scale):
     return chosen
 
 
+def _dark_in_well_or_not(base, theta, start, base_fit, data, noise_floor, n_pix, n_light,
+                         dark_desc):
+    """The leakage base with the dark signal collected outside the photodiode (added after the
+    leakage, :class:`~hsiffc.diagnose.bases.LeakageBase` ``dark_leaks=False``), fitted beside
+    the one whose dark current leaks with the light's charge; kept where it passes the
+    selection rule's held-out test against it (:func:`~hsiffc.diagnose.select.improves`).
+    Both have the same parameters, so only the held-out error tells them apart.
+
+    Returns the base, its start parameters, its state after the base step, its fit and the
+    dark model's description (``leaks`` and the comparison's figures added)."""
+    y, t, r, valid, w = data.y, data.t, data.r, data.valid, data.w
+    alt = LeakageBase(True, dark_leaks=False)
+    alt.full_scale = base.full_scale
+    theta_alt = alt.start(y, t, r, valid, w)
+    start_alt = refit_base(y, data, State(alt, theta_alt))
+    alt_fit = evaluate(start_alt, [], data, n_pix, n_light)
+    gain, se = paired(base_fit, alt_fit, data.valid_ho)
+    z = gain / max(se, 1e-300)
+    # the same parameters: the fit half's BIC decides where the held-out error does not (a
+    # dark signal's shot noise can make the held-out test weak), as long as the held-out
+    # error is as good
+    by_bic = (base_fit.bic - alt_fit.bic > DARK_BIC_MARGIN
+              and equally_good(base_fit, alt_fit, data.valid_ho, noise_floor))
+    if improves(base_fit, alt_fit, gain, se, noise_floor) or by_bic:
+        return alt, theta_alt, start_alt, alt_fit, {
+            **dark_desc, "leaks": False,
+            "model": ("dark level + dark signal per pixel collected outside the photodiode "
+                      "(additive: it does not leak; measured from the dark frames)"),
+            "reason": dark_desc["reason"].replace("added to the light rate and ", "") + (
+                f"; a dark signal that does not leak (collected outside the photodiode: a "
+                f"storage node, amplifier glow) fits better than one that leaks with the "
+                f"light's charge (held-out error lower by {z:.1f} standard errors, BIC by "
+                f"{base_fit.bic - alt_fit.bic:.0f})")}
+    return base, theta, start, base_fit, {
+        **dark_desc, "leaks": True,
+        "reason": dark_desc["reason"] + (
+            f"; a dark signal that does not leak (collected outside the photodiode) was "
+            f"tried and does not fit better (held-out error lower by {z:.1f} standard errors, "
+            f"BIC by {base_fit.bic - alt_fit.bic:.0f})")}
+
+
 def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=None,
              full_well_dn: float | None = None) -> Diagnosis:
     """Diagnose where the base model misses a sweep; see the module docstring.
@@ -431,8 +475,14 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         _refuse("the temporal noise cannot be measured on this sweep (no valid held-out "
                 "sample with a finite noise); record two frames per step", sweep)
     n_pix, n_light = y.shape[0], int(light.sum())
-    problem = Problem(data, des, dark_desc, names, n_pix, n_light, noise)
     base_fit = evaluate(start, [], data, n_pix, n_light)
+    if use_dc and base.name == "leakage":
+        # the dark signal collected in the photodiode (leaking with the light's charge) or
+        # outside it (a storage node, amplifier glow): the data choose
+        base, theta, start, base_fit, dark_desc = _dark_in_well_or_not(
+            base, theta, start, base_fit, data, noise_floor, n_pix, n_light, dark_desc)
+        noise_floor = noise.floor(_prediction_variance(base, theta, data), valid_ho)
+    problem = Problem(data, des, dark_desc, names, n_pix, n_light, noise)
     starts = [(base_fit, noise_floor)]
     sh_state = sh_fit = None
     if base.name == "leakage":
@@ -441,7 +491,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         # held-out data measurably worse (it follows the noise of the fit half: a base worse
         # than a simpler one would let any effect that makes up part of the difference look
         # like a find), and from the per-pixel model too
-        shared = SharedLeakageBase(use_dc)
+        shared = SharedLeakageBase(use_dc, dark_leaks=base.dark_leaks)
         shared.full_scale = fs
         sh_state = State(shared, shared.start(y, t, r, valid, w, per_pixel=theta))
         sh_fit = evaluate(refit_base(y, data, sh_state), [], data, n_pix, n_light)
@@ -532,8 +582,10 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     n_total = int(smp["usable"].sum() * n_pix)
     return Diagnosis(
         dataset=str(sweep.source or "in-memory sweep"),
-        base_model=current.base.describe + ("; dark current from the dark frames" if use_dc
-                                            else ", constant dark level"),
+        base_model=current.base.describe + (
+            ", constant dark level" if not use_dc else "; dark current from the dark frames"
+            if current.base.dark_leaks else "; dark signal outside the photodiode (additive, "
+            "not leaking) from the dark frames"),
         design=des.as_dict(), leakage=leakage,
         dark_model=ds.describe_dark_current(current.base.dc(current.theta), dark_desc),
         n_pixels=int(n_pix), n_pixels_sensor=int(np.prod(sweep.frame_shape)),

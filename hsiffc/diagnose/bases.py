@@ -2,7 +2,9 @@
 
 Three share one interface (``start``, ``fit``, ``evaluate``):
 
-- :class:`LeakageBase`, the paper's model ``dY/dt = k - a e^{bY}`` with ``k = g r + dc``:
+- :class:`LeakageBase`, the paper's model ``dY/dt = k - a e^{bY}`` with ``k = g r + dc``
+  (or, with ``dark_leaks=False``, ``k = g r`` and the dark signal ``dc t`` added after the
+  leakage: charge collected outside the photodiode, which does not leak):
   per pixel (ln g, ln a, ln b, dark), fitted with the calibration's public fit
   (:func:`hsiffc.calibrate.fit_pixels`) from two starts (the calibration's own and the linear
   model's), keeping the better one per pixel, so the leakage base never fits worse than a
@@ -118,13 +120,32 @@ class BaseModel:
     ----------
     dark_current : bool
         Whether the dark current ``dc`` (DN/ms) is fitted (from the dark samples) or held.
+    dark_leaks : bool
+        Whether the dark signal is collected in the photodiode and leaks with the light's
+        charge (``k = g r + dc``, the default) or outside it (a storage node, amplifier glow:
+        ``dc t`` added after the leakage). A linear base does not tell the two apart.
     """
 
     n_core = 0
     n_shared = 0  # parameters shared by all pixels
 
-    def __init__(self, dark_current: bool):
+    def __init__(self, dark_current: bool, dark_leaks: bool = True):
         self.dark_current = bool(dark_current)
+        self.dark_leaks = bool(dark_leaks)
+
+    def leaking_dc(self, dc):
+        """The dark current that enters the light rate ``k``: ``dc`` where the dark signal
+        leaks, 0 where it is collected outside the photodiode.
+
+        Parameters
+        ----------
+        dc : ndarray, DN/ms
+
+        Returns
+        -------
+        ndarray, DN/ms
+        """
+        return dc if self.dark_leaks else np.zeros_like(dc)
 
     @property
     def n_params(self):
@@ -379,12 +400,19 @@ class LeakageBase(BaseModel):
             (P, S) DN, (P, S, n), (P, S) DN/ms, (P, S) DN/ms, (P, S) DN.
         """
         dc = theta[:, 4:5]
-        m, jac = model_and_jacobian(theta[:, :4], t, r, dc)
-        m, jac, low = _at_least_dark(theta, m, self.with_dc(jac, t))
+        m, jac = model_and_jacobian(theta[:, :4], t, r, self.leaking_dc(dc))
+        if self.dark_leaks:
+            well, jac, low = _at_least_dark(theta, m, self.with_dc(jac, t))
+            m = well
+        else:  # the dark signal outside the photodiode is added after the leakage
+            well, jac, low = _at_least_dark(theta, m, jac)
+            jac = self.with_dc(jac, t)
+            m = well + dc * t
         kl = np.broadcast_to(np.exp(theta[:, 0:1]) * r, m.shape)
         with np.errstate(over="ignore"):
-            leak = np.exp(np.minimum(theta[:, 1:2] + np.exp(theta[:, 2:3]) * m, 700.0))
-        return m, jac, kl, np.where(low, 0.0, kl + dc - leak), jac[..., 0]
+            leak = np.exp(np.minimum(theta[:, 1:2] + np.exp(theta[:, 2:3]) * well, 700.0))
+        dydt = np.where(low, 0.0 if self.dark_leaks else dc, kl + dc - leak)
+        return m, jac, kl, dydt, jac[..., 0]
 
     def predict(self, theta, t, r):
         """Model response (P, S) in DN.
@@ -402,7 +430,9 @@ class LeakageBase(BaseModel):
         -------
         ndarray, (P, S), DN
         """
-        return np.maximum(predict(theta[:, :4], t, r, theta[:, 4:5]), theta[:, 3:4])
+        dc = theta[:, 4:5]
+        m = np.maximum(predict(theta[:, :4], t, r, self.leaking_dc(dc)), theta[:, 3:4])
+        return m if self.dark_leaks else m + dc * t
 
     def dark(self, theta):
         """Dark level (P, 1) in DN.
@@ -422,14 +452,15 @@ class LeakageBase(BaseModel):
         """Dark current per pixel (P,) in DN/ms: the straight-line slope of the dark samples,
         then refined (Gauss-Newton, the other parameters of ``theta0`` held) so that the dark
         samples follow the leakage model too: a dark current strong enough to fill the well
-        leaks like the light's charge, and its darks bend.
+        leaks like the light's charge, and its darks bend (not where the dark signal is
+        collected outside the photodiode: its darks are a straight line).
 
         Parameters and result as
         :meth:`BaseModel.measure_dc`; ``theta0`` (P, 5) also gives
         the leakage and dark level held during the refinement.
         """
         dc = super().measure_dc(y, t, r, valid, w, theta0)
-        if not self.dark_current or theta0[:, 1].max() <= LINEAR_LN_A + 1:
+        if not self.dark_current or not self.dark_leaks or theta0[:, 1].max() <= LINEAR_LN_A + 1:
             return dc
         from ..leakage import model as leakage_model
 
@@ -472,7 +503,7 @@ class LeakageBase(BaseModel):
         below the level the pixel was reset to)."""
         # only pixels with a fit sample below the dark level: elsewhere the kernel's model is
         # this one, and its fit already the optimum
-        raw = predict(theta[:, :4], t, r, theta[:, 4:5])
+        raw = predict(theta[:, :4], t, r, self.leaking_dc(theta[:, 4:5]))
         rows = np.flatnonzero((valid & (raw < theta[:, 3:4])).any(axis=1))
         if rows.size == 0:
             return theta
@@ -551,7 +582,10 @@ class LeakageBase(BaseModel):
         ndarray, (P, 5)
         """
         dc = self.measure_dc(y, t, r, valid, w, theta0)
-        fit = fit_pixels(y, t, r, valid, w, theta0[:, :4], dark_current=dc, max_iter=max_iter)
+        # a dark signal outside the photodiode: the leakage is fitted to the data less it
+        y_well = y if self.dark_leaks else y - dc[:, None] * t
+        fit = fit_pixels(y_well, t, r, valid, w, theta0[:, :4], dark_current=self.leaking_dc(dc),
+                         max_iter=max_iter)
         with np.errstate(divide="ignore", invalid="ignore"):
             theta = np.column_stack([np.log(fit.g), np.log(fit.a), np.log(fit.b), fit.dark, dc])
         theta = np.where(np.all(np.isfinite(theta), axis=1)[:, None], theta, theta0)
@@ -617,7 +651,9 @@ class LeakageBase(BaseModel):
         lin = LinearBase(self.dark_current).start(y, t, r, valid, w, dc0)
         from_lin = self.from_linear(lin)
         try:
-            guess = initial_guess(y, t, r, valid, w, lin[:, 2], b_grid=b_grid(y, valid, self.full_scale))
+            y_well = y if self.dark_leaks else y - lin[:, 2:3] * t
+            guess = initial_guess(y_well, t, r, valid, w, self.leaking_dc(lin[:, 2]),
+                                  b_grid=b_grid(y, valid, self.full_scale))
             guess = np.column_stack([guess, lin[:, 2]])
         except (FloatingPointError, ValueError):
             guess = from_lin

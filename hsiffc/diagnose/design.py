@@ -290,13 +290,15 @@ def describe_dark_current(dc, desc: dict) -> dict:
     Returns
     -------
     dict
-        ``desc`` plus median and robust spread of the dark current (DN/ms) when it is fitted.
+        ``desc`` plus median and robust spread of the dark current (DN/ms) when it is fitted
+        (``..._dark_signal_...`` where the dark signal is collected outside the photodiode).
     """
-    if "dark current" not in desc["model"]:
+    if "n_dark_exposures" not in desc:
         return desc
     med = float(np.median(dc))
-    return {**desc, "median_dark_current_dn_per_ms": med,
-            "spread_dark_current_dn_per_ms": float(1.4826 * np.median(np.abs(dc - med)))}
+    what = "current" if desc.get("leaks", True) else "signal"
+    return {**desc, f"median_dark_{what}_dn_per_ms": med,
+            f"spread_dark_{what}_dn_per_ms": float(1.4826 * np.median(np.abs(dc - med)))}
 
 
 def structural_skip(name, design: Design, dark) -> str | None:

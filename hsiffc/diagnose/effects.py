@@ -52,8 +52,6 @@ class Context:
         Base-model ``dY / d ln k``.
     n_fit : ndarray, (S,), optional
         Frames averaged in each fit-half sample (default 1).
-    dc_in_base : bool
-        The base model holds a (leaking) dark current measured from the dark frames.
     """
 
     t: np.ndarray  # exposure, ms
@@ -66,7 +64,6 @@ class Context:
     dydt: np.ndarray  # base-model dY/dt = k - a e^{bY}, DN/ms
     dydlnk: np.ndarray  # base-model dY / d ln k, DN
     n_fit: np.ndarray | None = None  # (S,) frames in each fit-half sample
-    dc_in_base: bool = False
 
 
 @dataclass
@@ -237,8 +234,15 @@ def _register(effect: Effect) -> Effect:
 
 
 def _dark_current_skip(design, dark):
-    if "dark current" in dark["model"]:
+    if "n_dark_exposures" in dark:
         return "already in the base model (measured from the dark frames)"
+    return _one_exposure(design, dark)
+
+
+def _outside_skip(design, dark):
+    if "n_dark_exposures" in dark:
+        return ("the dark signal is in the base model (measured from the dark frames), where "
+                "the data choose whether it leaks with the light's charge or not")
     return _one_exposure(design, dark)
 
 
@@ -267,25 +271,17 @@ _register(Effect(
 ))
 
 
-def _outside_columns(c):
-    """A dark signal collected outside the photodiode: ``t`` on every sample; with the
-    (leaking) dark current in the base, what turns it into one that does not leak."""
-    if c.dc_in_base:
-        return _stack(np.where(c.light[None, :], c.t - _dy_dk(c), 0.0))
-    return _stack(c.t)
-
-
 _register(Effect(
     "dark_outside_well",
     "dark signal growing with exposure that does not leak: collected outside the photodiode "
     "(a global-shutter storage node, amplifier glow), per pixel",
     "pixel", ("dark_signal_dn_per_ms",),
-    _outside_columns,
+    lambda c: _stack(c.t),  # added after the leakage: exactly t on every sample
     lambda p: (f"a dark signal of {p['median_dark_signal_dn_per_ms']:.3g} DN/ms (median pixel) "
                "that does not leak with the signal: charge collected outside the photodiode "
                "(a storage node, or glow of the readout), added after the leakage"),
     inject=lambda c, size, rng: size * rng.lognormal(0.0, 0.3, size=(c.t.shape[0], 1)) * c.t,
-    unit="DN/ms (median pixel)", skip=lambda d, dark: _one_exposure(d, dark),
+    unit="DN/ms (median pixel)", skip=_outside_skip,
     implausible=_negative_dark("median_dark_signal_dn_per_ms"),
 ))
 

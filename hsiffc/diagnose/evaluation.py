@@ -630,6 +630,8 @@ def run_case(seed: int) -> dict:
         found = {"selected": out["selected_effects"], "unexplained": out["unexplained"],
                  "ambiguous": out.get("ambiguous", []), "base": out["base_model"],
                  "dark_current_in_base": "dark current" in out["dark_model"]["model"],
+                 # the dark signal in the base, collected outside the photodiode (not leaking)
+                 "dark_outside_in_base": out["dark_model"].get("leaks") is False,
                  "noise_floor_dn": out["noise_floor_dn"],
                  "systematic_after_dn": out["after"]["systematic_rms_dn"],
                  # what each test of the residual found: grouping, structured and null RMS
@@ -684,6 +686,8 @@ def verdict(truth: dict, found: dict) -> dict:
     want = {e["name"] for e in truth["effects"]}
     if "dark_current" in want and found.get("dark_current_in_base"):
         sel = sel | {"dark_current"}
+    if "dark_outside_well" in want and found.get("dark_outside_in_base"):
+        sel = sel | {"dark_outside_well"}
     return {"right": sel == want, "false_alarm": False}
 
 
@@ -776,7 +780,11 @@ def summarise(results: list[dict]) -> dict:
         if not rows:
             continue
         by_class[what] = {"right": frac(rows), "false_alarm": frac(rows, "false_alarm"),
-                          "designs": sorted({f"{r['case']['n_frames']} frames" for r in rows})}
+                          "designs": sorted({f"{r['case']['n_frames']} frames" for r in rows}),
+                          # the detection ladder: right at each multiple of the detection limit
+                          "by_multiple": {str(m): frac([r for r in rows if r["truth"]["effects"]
+                                                        and r["truth"]["effects"][0]["multiple"]
+                                                        == m]) for m in CLASS_MULTIPLES}}
     columns = ["nothing"] + _library() + ["unexplained"]
     confusion: dict = {}
     for r in results:
@@ -790,6 +798,8 @@ def summarise(results: list[dict]) -> dict:
         sel = list(r["found"]["selected"])
         if r["found"].get("dark_current_in_base") and "dark_current" in label:
             sel.append("dark_current")
+        if r["found"].get("dark_outside_in_base") and "dark_outside_well" in label:
+            sel.append("dark_outside_well")
         for name in sel:
             row[name] += 1
         if not sel:
@@ -894,6 +904,16 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
             alarm = _pct(row["false_alarm"]) if what == "clean" else ""
             lines.append(f"| {label} | {_pct(row['right'])} | {alarm} | "
                          f"{', '.join(row['designs'])} |")
+        lines += ["", "Detection ladder of the failure classes (right, by the multiple of the "
+                  "detection limit put in):", "",
+                  "| class | " + " | ".join(f"{m}x" for m in CLASS_MULTIPLES) + " |",
+                  "|---|" + "---|" * len(CLASS_MULTIPLES)]
+        for what, row in summary["by_class"].items():
+            if what == "clean" or "by_multiple" not in row:
+                continue
+            label = what + (" (outside)" if what in CLASS_OUTSIDE else "")
+            lines.append(f"| {label} | " + " | ".join(_pct(row["by_multiple"][str(m)])
+                                                     for m in CLASS_MULTIPLES) + " |")
         lines.append("")
     lines += ["Named right, by size (single library effects):", "",
               "| multiple of the detection limit | " + " | ".join(
@@ -1020,9 +1040,9 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--json", type=Path, help="write every case and the summary here")
     ap.add_argument("--page", type=Path, help="write the tables into this Markdown page")
-    ap.add_argument("--before", type=Path,
-                    help="a --json file of the same seeds run with the code before: adds the "
-                         "before/after table")
+    ap.add_argument("--before", type=Path, action="append", default=[],
+                    help="a --json file of the same seeds run with the code before: adds a "
+                         "before/after table (may be given more than once: one table each)")
     ap.add_argument("--from-json", type=Path,
                     help="render the tables from the cases of this --json file instead of "
                          "running them again")
@@ -1061,10 +1081,10 @@ def main(argv=None) -> int:
         how = (how.replace(f"{wall:.0f} s.", f"{summary['runtime_s']:.0f} s of diagnosis.")
                + f" Tables rendered from `{args.from_json.as_posix()}` (`--from-json`).")
     text = markdown(summary, shared, how)
-    if args.before:
-        before = json.loads(args.before.read_text())
-        text += ("\nBefore and after, on the same seeds (before: the code before this round, "
-                 f"`{args.before.as_posix()}`{'; ' + before['note'] if before.get('note') else ''}):"
+    for path in args.before:
+        before = json.loads(path.read_text())
+        text += ("\nBefore and after, on the same seeds (before: "
+                 f"`{path.as_posix()}`{'; ' + before['note'] if before.get('note') else ''}):"
                  "\n\n" + before_after(before["cases"], results))
     print(text)
     if args.json:

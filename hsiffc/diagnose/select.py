@@ -527,6 +527,32 @@ def _sensor_wide_rival(current: Fitted, best: tuple, names, data: Data, noise_fl
     return rival, rival[0].state
 
 
+def improves(current: Fitted, trial: Fitted, gain: float, se: float, noise_floor: float) -> bool:
+    """The held-out part of the selection rule: ``trial`` lowers ``current``'s held-out error
+    by ``SELECT_SIGMAS`` paired standard errors, by more than ``(MIN_GAIN_OF_NOISE`` x floor)^2
+    and by ``MIN_EXPLAINED`` of the systematic error left (which must exceed that square).
+
+    Parameters
+    ----------
+    current, trial : Fitted
+        Two models of the same data.
+    gain, se : float, DN^2
+        :func:`paired` (``current``, ``trial``).
+    noise_floor : float, DN
+        Temporal noise of one held-out sample.
+
+    Returns
+    -------
+    bool
+    """
+    systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
+    floor2 = (MIN_GAIN_OF_NOISE * noise_floor) ** 2
+    return bool(np.isfinite(trial.mse) and np.isfinite(trial.bic)
+                and current.mse - noise_floor ** 2 > floor2
+                and gain > SELECT_SIGMAS * se and gain > floor2
+                and gain > MIN_EXPLAINED * systematic2)
+
+
 def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, data: Data,
            noise_floor: float, entry: dict) -> bool:
     """Does ``trial`` (``current`` + effect ``name``) beat ``current`` by more than the noise
@@ -534,12 +560,7 @@ def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, da
     a fraction of the systematic error left, and (per step) factors without a trend or
     (within a step) the frame differences' own evidence? ``entry["rejected"]`` says why not,
     where one of the last two refuses it."""
-    systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
-    floor2 = (MIN_GAIN_OF_NOISE * noise_floor) ** 2
-    beats = bool(np.isfinite(trial.mse) and np.isfinite(trial.bic)
-                 and current.mse - noise_floor ** 2 > floor2
-                 and gain > SELECT_SIGMAS * se and gain > floor2
-                 and gain > MIN_EXPLAINED * systematic2)
+    beats = improves(current, trial, gain, se, noise_floor)
     if beats and between_halves(name):
         weak_pair = pair_evidence(trial, name, data)
         if weak_pair:

@@ -134,3 +134,50 @@ def test_each_failure_class_changes_the_frames(what):
             break
     assert truth["class"] == what and truth["effects"][0]["multiple"] >= 5
     assert (sweep.data != ev.clean_sweep(spec).data).any()
+
+
+def _leaky_pixels(rng, n_pix=60, dark_rate=0.0, outside=True):
+    """Step means of leaky pixels at two light rates and dark steps, with a dark signal that is
+    collected outside the photodiode (added after the leakage) or in it (leaks)."""
+    from hsiffc.leakage import model
+
+    t = np.tile(np.geomspace(2.0, 200.0, 10), 3)
+    r = np.repeat([1.0, 0.4, 0.0], 10)
+    g = rng.uniform(8.0, 12.0, n_pix)[:, None]
+    d = rng.uniform(50.0, 60.0, n_pix)[:, None]
+    dc = dark_rate * rng.lognormal(0.0, 0.2, (n_pix, 1))
+    a, b = 1e-2, 3e-3
+    if outside:
+        y = np.maximum(model.response(t, g * r, a, b, d), d) + dc * t
+    else:
+        y = np.maximum(model.response(t, g * r + dc, a, b, d), d)
+    return y + rng.normal(0.0, 1.0, y.shape), t, r
+
+
+@pytest.mark.parametrize("outside", [True, False])
+def test_the_dark_signal_leaks_or_not_and_the_fit_tells_which(outside):
+    """Issue 53, class 3: a base whose dark signal is collected outside the photodiode (added
+    after the leakage) beside the one whose dark current leaks; each fits its own data to the
+    noise and the other's measurably worse (the data choose)."""
+    from hsiffc.diagnose.bases import LeakageBase
+
+    rng = np.random.default_rng(3)
+    y, t, r = _leaky_pixels(rng, dark_rate=2.0, outside=outside)
+    valid, w = np.ones(y.shape, bool), np.ones(y.shape)
+    cost = {}
+    for leaks in (True, False):
+        base = LeakageBase(True, dark_leaks=leaks)
+        base.full_scale = 16383.0
+        theta = base.start(y, t, r, valid, w)
+        cost[leaks] = float(((y - base.predict(theta, t, r)) ** 2).sum())
+        if leaks == (not outside):  # the true model: near the noise, and its dark rate
+            assert cost[leaks] < 1.5 * y.size
+            assert np.median(theta[:, 4]) == pytest.approx(2.0, rel=0.1)
+    assert cost[not outside] < cost[outside] - 100
+    # outside the photodiode the dark signal's column is exactly t and the model its sum
+    base = LeakageBase(True, dark_leaks=False)
+    theta = base.start(y, t, r, valid, w)
+    m, jac, *_ = base.evaluate(theta, t, r)
+    np.testing.assert_allclose(m, base.predict(theta, t, r))
+    np.testing.assert_allclose(jac[..., 4], np.broadcast_to(t, m.shape))
+
