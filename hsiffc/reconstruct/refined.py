@@ -75,6 +75,20 @@ def _filled(p: Prepared) -> np.ndarray:
 #: At most this many samples of a band enter its level (:func:`_sampled_levels`)
 LEVEL_SAMPLES = 1 << 14
 
+#: A frame with fewer samples of each band than this is not balanced (levels of one): the
+#: edge-sensitive PPI divides a pixel's own sample by its band's level, and a median of a
+#: handful of samples can be a small fraction of the band's true level (on a 10 x 11 frame of
+#: a 5 x 5 mosaic, four samples a band, a level of 0.13 made one PPI value 7168 DN where the
+#: frame holds at most 1000)
+MIN_LEVEL_SAMPLES = 16
+
+
+def _few_samples(p: Prepared) -> bool:
+    """Whether some band has fewer than :data:`MIN_LEVEL_SAMPLES` samples in the frame."""
+    H, W = p.shape
+    ph, pw = p.period
+    return (H // ph) * (W // pw) < MIN_LEVEL_SAMPLES
+
 
 def _sampled_levels(p: Prepared, raw) -> np.ndarray:
     """The band levels (:func:`~hsiffc.reconstruct.prepare.band_levels`: medians over the
@@ -82,6 +96,8 @@ def _sampled_levels(p: Prepared, raw) -> np.ndarray:
     band's samples, at most :data:`LEVEL_SAMPLES` of them (the level is a scale, not a
     statistic of every pixel), of the filled frame (no flagged sample). One sample per band
     and tile (a layout without repeated bands)."""
+    if _few_samples(p):
+        return np.ones(len(p.lattices()))
     H, W = p.shape
     ph, pw = p.period
     n_r, n_c = -(-H // ph), -(-W // pw)
@@ -101,6 +117,8 @@ def _levels(p: Prepared, raw) -> np.ndarray:
     """The band levels (:func:`~hsiffc.reconstruct.prepare.band_levels`) of one tile row in
     four: the medians of a quarter of the samples (the level is a scale, not a statistic of
     every pixel), from the filled frame (no flagged sample)."""
+    if _few_samples(p):
+        return np.ones(p.mosaic.n_bands)
     ph = p.period[0]
     H = p.shape[0]
     rows = np.arange(H)

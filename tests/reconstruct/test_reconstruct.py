@@ -249,6 +249,16 @@ def test_no_source_at_all_gives_band_median_and_do_not_use(method):
     assert not others.any()
 
 
+def test_balanced_edge_ppi_is_not_divided_by_the_level_of_a_handful_of_samples():
+    """A 10 x 11 frame of a 5 x 5 mosaic (four samples a band) of noise: the median of four
+    samples put one band's level at 0.13 and ppid_edge's edge PPI at 7168 where the frame holds
+    at most 1000 (found by the random-layout test below); such a frame is not balanced."""
+    m = Mosaic(np.arange(25).reshape(5, 5))
+    raw = np.random.default_rng(0).uniform(0, 1000, (10, 11)).astype(np.float32)
+    cube, _, _ = demosaic(raw, m, method="ppid_edge", dq=np.zeros(raw.shape, DQ_DTYPE))
+    assert np.abs(cube).max() <= 2000
+
+
 @settings(max_examples=25, deadline=None)
 @given(n=st.integers(2, 5), oy=st.integers(0, 6), ox=st.integers(0, 6),
        h=st.integers(6, 30), w=st.integers(6, 30), seed=st.integers(0, 2 ** 16),
