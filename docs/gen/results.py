@@ -173,16 +173,23 @@ def store_benchmarks(names: list[str], new: dict, stdout: str, commit: str,
 
 
 def _block(text: str, head: str) -> str:
-    """The lines of ``text`` from the one starting with ``head`` to the next blank line."""
+    """The lines of ``text`` from the one starting with ``head`` to the next blank line; ""
+    where no line starts with ``head`` (a benchmark that prints no ``NAME:`` heading)."""
     lines = text.splitlines()
-    i = next(k for k, ln in enumerate(lines) if ln.startswith(head))
+    i = next((k for k, ln in enumerate(lines) if ln.startswith(head)), None)
+    if i is None:
+        return ""
     j = next((k for k in range(i, len(lines)) if not lines[k].strip()), len(lines))
     return "\n".join(lines[i:j])
 
 
 def _replace_block(text: str, head: str, block: str) -> str:
+    """``text`` with its ``head`` block replaced by ``block`` (appended where it has none);
+    unchanged where ``block`` is empty."""
+    if not block:
+        return text
     old = _block(text, head)
-    return text.replace(old, block) if old in text else text.rstrip() + "\n\n" + block + "\n"
+    return text.replace(old, block) if old else text.rstrip() + "\n\n" + block + "\n"
 
 
 def _relative_paths(text: str, tmp: Path, name: str) -> str:
