@@ -28,7 +28,7 @@ both: their number, mean level and half the mean squared difference).
 
 The frames are read by :class:`hsiffc.io.FrameSource`, which decodes the next frames on worker
 threads while the kernel works on the current one: both cores are busy (decoding a frame
-costs several times what the kernel does). The kernel runs compiled (:mod:`._compiled`: numba,
+costs several times what the kernel does). The kernel runs compiled (:mod:`.compiled`: numba,
 one pass over the frame in its own dtype, no temporaries) for large frames in large sets
 (:data:`COMPILED_FRAME_PIXELS`, :data:`COMPILED_FROM`), and as whole-array numpy otherwise,
 where loading numba's code generator would cost more than the compiled pass saves (a small
@@ -54,7 +54,7 @@ def _add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
     bands by ``band``). ``pairs`` (3,) gathers the first two frames' pixels below full scale
     in both: count, sum of their means, sum of squared differences. Whole-array numpy with one
     float64 temporary (the difference from the first frame); the full-scale test only when
-    the frame reaches full scale. :func:`hsiffc.emva1288._compiled.add_frame` is the same in
+    the frame reaches full scale. :func:`hsiffc.emva1288.compiled.add_frame` is the same in
     one compiled pass."""
     sums = np.zeros(1 + n_bands)
     sums[0] = frame.sum(dtype=np.float64)
@@ -116,9 +116,9 @@ def _finish_step(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_sum)
 
 
 def _finish_compiled(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_sum):
-    """:func:`_finish_step` in one compiled pass (:func:`hsiffc.emva1288._compiled.finish_step`):
+    """:func:`_finish_step` in one compiled pass (:func:`hsiffc.emva1288.compiled.finish_step`):
     no temporaries beside the images it returns."""
-    from ._compiled import finish_step
+    from .compiled import finish_step
 
     mean = np.empty(s1.size if want_mean else 0, np.float32)
     total = np.empty(s1.size if want_sum else 0)
@@ -239,12 +239,12 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         ids, cnt = np.unique(steps_all, return_counts=True)
         spatial_steps = ids[cnt > SPATIAL_FACTOR * np.median(cnt)].tolist()
     spatial = {int(s) for s in spatial_steps}
-    compiled = (n_total >= COMPILED_FRAME_PIXELS
-                and float(source.n_frames) * n_total >= COMPILED_FROM)
-    if compiled:
-        from . import _compiled
+    use_compiled = (n_total >= COMPILED_FRAME_PIXELS
+                    and float(source.n_frames) * n_total >= COMPILED_FROM)
+    if use_compiled:
+        from . import compiled
 
-        add_frame, reduce_step = _compiled.add_frame, _finish_compiled
+        add_frame, reduce_step = compiled.add_frame, _finish_compiled
     else:
         add_frame, reduce_step = _add_frame, _finish_step
     st = _StepState(n_total)

@@ -33,7 +33,7 @@ from numba import njit, prange
 
 from .launch import JIT_OPTIONS, Kernel
 from .ppi import neighbour_offsets, pixel_neighbour_sums
-from .refined import _refine_pixel, _term
+from .refined import refine_pixel, edge_term
 
 __all__ = ["cube_of_planes", "edge_ppi", "fill_sparse", "flagged_indices", "spectral_difference"]
 
@@ -98,7 +98,7 @@ def _edge_ppi_loop(raw, mbar, lev_row, eps, ph, pw, ppi, diff):
         for x in range(W):
             if x >= x_lo and x < x_hi:
                 continue
-            v = _refine_pixel(raw, mbar, np.int64(y), np.int64(x), raw[y, x], mbar[y, x], lr[x],
+            v = refine_pixel(raw, mbar, np.int64(y), np.int64(x), raw[y, x], mbar[y, x], lr[x],
                               True, eps, ph, pw, dummy, False)
             ppi[y, x] = v
             diff[y, x] = raw[y, x] - lr[x] * v
@@ -118,14 +118,14 @@ def _edge_ppi_loop(raw, mbar, lev_row, eps, ph, pw, ppi, diff):
         for i in range(x_hi - x_lo):
             v, mp, lev = r1[i], m1[i], lv[i]
             il = np.float32(1.0) / lev
-            _, w0, n0 = _term(quarter, ru0[i], mu0[i], v, mp, lev, il, eps)
-            _, w1, n1 = _term(half, ru1[i], mu1[i], v, mp, lev, il, eps)
-            _, w2, n2 = _term(quarter, ru2[i], mu2[i], v, mp, lev, il, eps)
-            _, w3, n3 = _term(half, r0[i], m0[i], v, mp, lev, il, eps)
-            _, w5, n5 = _term(half, r2[i], m2[i], v, mp, lev, il, eps)
-            _, w6, n6 = _term(quarter, rd0[i], md0[i], v, mp, lev, il, eps)
-            _, w7, n7 = _term(half, rd1[i], md1[i], v, mp, lev, il, eps)
-            _, w8, n8 = _term(quarter, rd2[i], md2[i], v, mp, lev, il, eps)
+            _, w0, n0 = edge_term(quarter, ru0[i], mu0[i], v, mp, lev, il, eps)
+            _, w1, n1 = edge_term(half, ru1[i], mu1[i], v, mp, lev, il, eps)
+            _, w2, n2 = edge_term(quarter, ru2[i], mu2[i], v, mp, lev, il, eps)
+            _, w3, n3 = edge_term(half, r0[i], m0[i], v, mp, lev, il, eps)
+            _, w5, n5 = edge_term(half, r2[i], m2[i], v, mp, lev, il, eps)
+            _, w6, n6 = edge_term(quarter, rd0[i], md0[i], v, mp, lev, il, eps)
+            _, w7, n7 = edge_term(half, rd1[i], md1[i], v, mp, lev, il, eps)
+            _, w8, n8 = edge_term(quarter, rd2[i], md2[i], v, mp, lev, il, eps)
             num = ((n0 + n1) + (n2 + n3)) + ((n5 + n6) + (n7 + n8))
             den = ((w0 + w1) + (w2 + w3)) + ((w5 + w6) + (w7 + w8))
             p = (v - num / den) * il

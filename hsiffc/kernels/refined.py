@@ -31,7 +31,7 @@ from .demosaic import EPS
 from .lattice import lattice_arrays, tent_sums
 from .launch import JIT_OPTIONS, Kernel
 
-__all__ = ["flag_values", "interpolate_differences", "refine_ppi",
+__all__ = ["edge_term", "flag_values", "interpolate_differences", "refine_pixel", "refine_ppi",
            "scaled_padded"]
 
 _JIT = {**JIT_OPTIONS, "cache": False}
@@ -73,7 +73,7 @@ def _dir_index(sy, sx):
 
 
 @njit(**_JIT)
-def _refine_pixel(raw, mbar, y, x, v, mp, lev, edge, eps, ph, pw, gam, store):
+def refine_pixel(raw, mbar, y, x, v, mp, lev, edge, eps, ph, pw, gam, store):
     """The refined PPI at one pixel, every neighbour checked against the frame's borders."""
     H, W = raw.shape
     num = np.float32(0.0)
@@ -100,7 +100,7 @@ def _refine_pixel(raw, mbar, y, x, v, mp, lev, edge, eps, ph, pw, gam, store):
 
 
 @njit(**_INL)
-def _term(w, rq, mq, v, mp, lev, inv_lev, eps):
+def edge_term(w, rq, mq, v, mp, lev, inv_lev, eps):
     """One neighbour's edge weight ``g`` and weighted term (interior pixels)."""
     g = np.float32(1.0) / (eps + abs(rq - v) * inv_lev + abs(mq - mp))
     return g, w * g, w * g * (rq - lev * mq)
@@ -126,7 +126,7 @@ def _refine_loop(raw, mbar, band_of, levels, edge, eps, ph, pw, ppi, gam, store)
         for x in range(W):
             if x >= x_lo and x < x_hi:
                 continue
-            ppi[y, x] = _refine_pixel(raw, mbar, y, x, raw[y, x], mbar[y, x], lr[x], edge, eps,
+            ppi[y, x] = refine_pixel(raw, mbar, y, x, raw[y, x], mbar[y, x], lr[x], edge, eps,
                                       ph, pw, gam, store)
             if store:
                 gam[y, x, 4] = np.float32(1.0) / eps
@@ -137,14 +137,14 @@ def _refine_loop(raw, mbar, band_of, levels, edge, eps, ph, pw, ppi, gam, store)
         for x in range(x_lo, x_hi):
             v, mp, lev = r[x], m[x], lr[x]
             il = np.float32(1.0) / lev
-            g0, w0, n0 = _term(quarter, ru[x - pw], mu[x - pw], v, mp, lev, il, eps)
-            g1, w1, n1 = _term(half, ru[x], mu[x], v, mp, lev, il, eps)
-            g2, w2, n2 = _term(quarter, ru[x + pw], mu[x + pw], v, mp, lev, il, eps)
-            g3, w3, n3 = _term(half, r[x - pw], m[x - pw], v, mp, lev, il, eps)
-            g5, w5, n5 = _term(half, r[x + pw], m[x + pw], v, mp, lev, il, eps)
-            g6, w6, n6 = _term(quarter, rd[x - pw], md[x - pw], v, mp, lev, il, eps)
-            g7, w7, n7 = _term(half, rd[x], md[x], v, mp, lev, il, eps)
-            g8, w8, n8 = _term(quarter, rd[x + pw], md[x + pw], v, mp, lev, il, eps)
+            g0, w0, n0 = edge_term(quarter, ru[x - pw], mu[x - pw], v, mp, lev, il, eps)
+            g1, w1, n1 = edge_term(half, ru[x], mu[x], v, mp, lev, il, eps)
+            g2, w2, n2 = edge_term(quarter, ru[x + pw], mu[x + pw], v, mp, lev, il, eps)
+            g3, w3, n3 = edge_term(half, r[x - pw], m[x - pw], v, mp, lev, il, eps)
+            g5, w5, n5 = edge_term(half, r[x + pw], m[x + pw], v, mp, lev, il, eps)
+            g6, w6, n6 = edge_term(quarter, rd[x - pw], md[x - pw], v, mp, lev, il, eps)
+            g7, w7, n7 = edge_term(half, rd[x], md[x], v, mp, lev, il, eps)
+            g8, w8, n8 = edge_term(quarter, rd[x + pw], md[x + pw], v, mp, lev, il, eps)
             num = ((n0 + n1) + (n2 + n3)) + ((n5 + n6) + (n7 + n8))
             den = ((w0 + w1) + (w2 + w3)) + ((w5 + w6) + (w7 + w8))
             ppi[y, x] = (v - num / den) * il
