@@ -45,7 +45,7 @@ from .fitting import (State, context, describe_params, fitpredict, gram, project
                       separable_fraction)
 from .result import Diagnosis, ResidualArrays
 from .select import (RULE, UNEXPLAINED_OF_FLOOR, Fitted, equally_good, evaluate, greedy,
-                     improves, leakage_check, offset_stand_in, paired)
+                     improves, leakage_check, offset_left, offset_stand_in, paired)
 from .structure import groupings, structure
 
 __all__ = ["diagnose", "Diagnosis", "EFFECTS", "NoiseModel", "OUTSIDE", "inject",
@@ -579,7 +579,8 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     # an effect that stands in for an offset common to the pixels of a frame
     offsets = {e["name"]: p for e in chosen if not e["stand_in_for_unexplained"]
                and (p := offset_stand_in(final, e["name"], data))}
-    unexplained = bool(check.structured or too_big or implausible or offsets)
+    left = offset_left(final, data, floor_after)
+    unexplained = bool(check.structured or too_big or implausible or offsets or left)
     if unexplained:  # every selected effect is a stand-in then
         chosen = _stand_ins(current, selected, True, scale)
         for e in chosen:
@@ -590,6 +591,8 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         reason = (f"{', '.join(offsets)} stand{'s' if len(offsets) == 1 else ''} in for an "
                   "offset common to the pixels of a frame: the library does not describe what "
                   "the data show; " + reason)
+    if left and not (check.structured or too_big):
+        reason = left["reason"] + "; " + reason
     if implausible and not (check.structured or too_big):
         reason = (f"{', '.join(implausible)} fit{'s' if len(implausible) == 1 else ''} with "
                   "physically implausible parameters: the library does not describe what the "

@@ -647,6 +647,51 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
                        "frame's signal, which the library does not describe")}
 
 
+def offset_left(fitted: Fitted, data: Data, noise_floor: float):
+    """Is an offset common to the pixels of each light step left in what ``fitted`` does not
+    explain (an effect the library lacks, such as a black-level clamp that follows the frame's
+    signal)? One offset per light step (DN, the same for every pixel,
+    :data:`~hsiffc.diagnose.effects.OFFSET_PROBES` ``illumination_error``'s probe) is fitted
+    to the residual, jointly with the base (linearised), and must pass the selection rule's
+    held-out test against ``fitted`` (:func:`improves`): a light error, a drift of the offset
+    or a lamp drift the model holds leave nothing for it.
+
+    Parameters
+    ----------
+    fitted : Fitted
+        The selected model.
+    data : Data
+        The samples.
+    noise_floor : float, DN
+        Temporal noise of one held-out sample.
+
+    Returns
+    -------
+    dict or None
+        ``gain_dn2``, ``standard_error_dn2`` and ``reason``; None where nothing is left.
+    """
+    probe = OFFSET_PROBES["illumination_error"]
+    st = fitted.state
+    m, jac, ctx = context(st.base, st.theta, data)
+    project = projector(jac, data.w)
+    total = st.sum_effects(m.shape)
+    res0 = np.where(data.valid, data.y - m - total, 0.0)
+    total = total + fit_effect(probe, ctx, res0, data.w, project)[1]
+    r = np.where(data.valid, data.y - m - total, 0.0)
+    s = State(st.base, st.theta, st.effects)
+    s.prediction = m + (r - project(r)) + total
+    s.ho_extra = st.ho_extra
+    trial = evaluate(s, [], data, 1, 1)
+    gain, se = paired(fitted, trial, data.valid_ho)
+    if not improves(fitted, trial, gain, se, noise_floor):
+        return None
+    return {"gain_dn2": gain, "standard_error_dn2": se,
+            "reason": (f"an offset common to the pixels of each light step is left (one per step "
+                       f"lowers the held-out squared error by {gain:.3g} +- {se:.2g} DN^2, which "
+                       "passes the selection rule): the library does not describe it (a "
+                       "black-level clamp that follows the frame's signal is one such effect)")}
+
+
 def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_pix: int,
              n_light: int, candidates: list, label: str, refloor=None) -> Fitted:
     """The backward step of the search: each selected effect must still beat the model of the

@@ -241,3 +241,31 @@ def test_a_lamp_drift_goes_on_between_the_frames_of_a_step():
     # the linear term: the drift over the frame gap, 0.05 of the order
     np.testing.assert_allclose(diff[..., 0], 100.0 * 0.05)
     assert not between_halves("lamp_drift") and between_halves("frame_light_change")
+
+
+@pytest.mark.parametrize("kind", ["offset", "light"])
+def test_an_offset_common_to_the_pixels_left_over_is_unexplained(kind):
+    """Issue 53, class 4: where the selected model leaves an offset common to the pixels of
+    each step (a black-level clamp nothing stood in for), one offset per step passes the
+    selection rule's held-out test; where it holds the per-step light error, nothing is left."""
+    from hsiffc.diagnose.bases import LinearBase
+    from hsiffc.diagnose.fitting import State, fitpredict, refit_base
+    from hsiffc.diagnose.select import evaluate, offset_left
+
+    rng = np.random.default_rng(8)
+    n_pix, s = 400, 24
+    t = np.geomspace(2.0, 100.0, s)
+    g = rng.uniform(2.0, 20.0, (n_pix, 1))
+    step = rng.normal(0.0, 1.0, s)
+    change = 3.0 * step if kind == "offset" else 0.03 * step * g * t
+    clean = 40.0 + g * t + change
+    y, y_ho = (clean + rng.normal(0.0, 1.0, clean.shape) for _ in range(2))
+    data = _step_data(y, t)
+    data.y_ho = y_ho
+    base = LinearBase(False)
+    st = State(base, base.start(y, t, np.ones(s), data.valid, data.w))
+    names = [] if kind == "offset" else ["illumination_error"]
+    fitted = evaluate(fitpredict(names, data, st) if names else refit_base(y, data, st), names,
+                      data, n_pix, s)
+    found = offset_left(fitted, data, noise_floor=1.0)
+    assert (found is not None) == (kind == "offset"), found
