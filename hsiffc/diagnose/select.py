@@ -17,6 +17,7 @@ SELECT_SIGMAS = 5.0  # held-out improvement needed, in standard errors of the pa
 MIN_GAIN_OF_NOISE = 0.08  # ... and at least this fraction of the noise floor, as an RMS
 MIN_EXPLAINED = 0.5  # ... and at least this fraction of the current systematic error
 TIE_SIGMAS = 2.0  # two models whose held-out errors differ by less are equally good
+LEFT_OFFSET_OF_FLOOR = 0.135  # an offset per step left counts above this RMS (of the noise)
 PROBE_OF_DISTINCT = 0.75  # an offset probe must beat its effect by this fraction of the part
 # of the effect that differs between the pixels of a frame (about 1 where the offset is true,
 # about -1 where the effect is)
@@ -653,8 +654,10 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
     signal)? One offset per light step (DN, the same for every pixel,
     :data:`~hsiffc.diagnose.effects.OFFSET_PROBES` ``illumination_error``'s probe) is fitted
     to the residual, jointly with the base (linearised), and must pass the selection rule's
-    held-out test against ``fitted`` (:func:`improves`): a light error, a drift of the offset
-    or a lamp drift the model holds leave nothing for it.
+    held-out test against ``fitted`` (:func:`improves`) and explain more than
+    ``LEFT_OFFSET_OF_FLOOR`` of the noise floor as an RMS (a real sweep's offset that wanders
+    by a few hundredths of its noise from step to step is not a finding): a light error, a
+    drift of the offset or a lamp drift the model holds leave nothing for it.
 
     Parameters
     ----------
@@ -683,11 +686,13 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
     s.ho_extra = st.ho_extra
     trial = evaluate(s, [], data, 1, 1)
     gain, se = paired(fitted, trial, data.valid_ho)
-    if not improves(fitted, trial, gain, se, noise_floor):
+    if not (improves(fitted, trial, gain, se, noise_floor)
+            and gain > (LEFT_OFFSET_OF_FLOOR * noise_floor) ** 2):
         return None
     return {"gain_dn2": gain, "standard_error_dn2": se,
             "reason": (f"an offset common to the pixels of each light step is left (one per step "
-                       f"lowers the held-out squared error by {gain:.3g} +- {se:.2g} DN^2, which "
+                       f"lowers the held-out squared error by {gain:.3g} +- {se:.2g} DN^2, "
+                       f"{np.sqrt(gain) / noise_floor:.2g} of the noise floor as an RMS, and "
                        "passes the selection rule): the library does not describe it (a "
                        "black-level clamp that follows the frame's signal is one such effect)")}
 
