@@ -45,7 +45,7 @@ from .fitting import (State, context, describe_params, fitpredict, gram, project
                       separable_fraction)
 from .result import Diagnosis, ResidualArrays
 from .select import (RULE, UNEXPLAINED_OF_FLOOR, Fitted, equally_good, evaluate, greedy,
-                     improves, leakage_check, paired)
+                     improves, leakage_check, offset_left, offset_stand_in, paired)
 from .structure import groupings, structure
 
 __all__ = ["diagnose", "Diagnosis", "EFFECTS", "NoiseModel", "OUTSIDE", "inject",
@@ -443,9 +443,14 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     by_order = np.argsort(smp["step"])
     prev_index = np.full(len(order), -1)
     prev_index[by_order[1:]] = by_order[:-1]
+    # the held-out frames of a step, ``frame_gap`` frames later: on the scale of ``order``
+    # (one step 2 / (S - 1)), a frame is that over the step's frames
+    per_step = np.asarray(smp["n_fit"], float) + np.asarray(smp["n_ho"], float)
+    order_ho = order + (smp["frame_gap"] * 2.0 / max(len(order) - 1, 1)
+                        / np.maximum(per_step, 1.0))
     data = Data(y=y, y_ho=y_ho, t=t, r=r, valid=valid, valid_ho=valid_ho, w=w, order=order,
                 prev_index=prev_index, light=light, full_scale=fs, frame_gap=smp["frame_gap"],
-                n_fit=np.asarray(n_fit, float))
+                n_fit=np.asarray(n_fit, float), order_ho=order_ho)
     quantum = 1.0 if np.issubdtype(sub.data.dtype, np.integer) else 0.0  # DN
     noise = NoiseModel(smp, valid & valid_ho, quantum, y.shape)
     if noise.pairs:
@@ -571,10 +576,23 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
              "min_exposure_ms": float(t[smp["usable"]].min())}
     chosen = _stand_ins(current, selected, bool(check.structured or too_big), scale)
     implausible = [e["name"] for e in chosen if e["stand_in_for_unexplained"]]
-    unexplained = bool(check.structured or too_big or implausible)
+    # an effect that stands in for an offset common to the pixels of a frame
+    offsets = {e["name"]: p for e in chosen if not e["stand_in_for_unexplained"]
+               and (p := offset_stand_in(final, e["name"], data))}
+    left = offset_left(final, data, floor_after)
+    unexplained = bool(check.structured or too_big or implausible or offsets or left)
     if unexplained:  # every selected effect is a stand-in then
         chosen = _stand_ins(current, selected, True, scale)
+        for e in chosen:
+            if e["name"] in offsets:
+                e["stand_in_reason"] = offsets[e["name"]]["reason"]
     reason = _unexplained_reason(check.structured, too_big, after, floor_after)
+    if offsets and not (check.structured or too_big):
+        reason = (f"{', '.join(offsets)} stand{'s' if len(offsets) == 1 else ''} in for an "
+                  "offset common to the pixels of a frame: the library does not describe what "
+                  "the data show; " + reason)
+    if left and not (check.structured or too_big):
+        reason = left["reason"] + "; " + reason
     if implausible and not (check.structured or too_big):
         reason = (f"{', '.join(implausible)} fit{'s' if len(implausible) == 1 else ''} with "
                   "physically implausible parameters: the library does not describe what the "

@@ -52,6 +52,9 @@ class Context:
         Base-model ``dY / d ln k``.
     n_fit : ndarray, (S,), optional
         Frames averaged in each fit-half sample (default 1).
+    order_ho : ndarray, (S,), optional
+        Acquisition order of the held-out frames of each step, on the scale of ``order``
+        (default ``order``).
     """
 
     t: np.ndarray  # exposure, ms
@@ -64,6 +67,7 @@ class Context:
     dydt: np.ndarray  # base-model dY/dt = k - a e^{bY}, DN/ms
     dydlnk: np.ndarray  # base-model dY / d ln k, DN
     n_fit: np.ndarray | None = None  # (S,) frames in each fit-half sample
+    order_ho: np.ndarray | None = None  # (S,) acquisition order of the held-out frames
 
 
 @dataclass
@@ -141,6 +145,10 @@ class Effect:
     ho_columns : callable, optional
         :class:`Context` -> (P, S, m): the effect's columns on the held-out half where they
         differ from those of the fit half (an effect that depends on the frame within a step).
+    steps_are_evidence : bool
+        With ``ho_columns``: the effect is shown by the step means (a slow change in
+        acquisition time), its held-out columns only follow it to the held-out frames' later
+        time; the frame differences are not asked to show it on their own.
     """
 
     name: str
@@ -156,6 +164,7 @@ class Effect:
     figures: Callable = _no_figures
     implausible: Callable = _plausible
     ho_columns: Callable | None = None
+    steps_are_evidence: bool = False
 
     def n_params(self, n_pixels: int, n_light_steps: int) -> int:
         """Free parameters the effect adds (for the information criterion).
@@ -378,6 +387,10 @@ _register(Effect(
     unit="relative (linear peak)",
     figures=lambda th: {"peak": _curve_peak(th)},
     implausible=_out_of("peak", 0.0, 0.5),
+    # the held-out frames of a step come later: the drift goes on between the frames
+    ho_columns=lambda c: _stack(*[c.dydlnk * v[None, :] for v in _legendre(
+        c.order if c.order_ho is None else c.order_ho, 3)]),
+    steps_are_evidence=True,
 ))
 _register(Effect(
     "image_lag",
@@ -464,6 +477,35 @@ _register(Effect(
     inject_frames=_flicker_frames, unit="relative (RMS over the frames)", skip=_pair_skip,
     implausible=_out_of("rms_between_frames", 0.0, 0.2),
 ))
+
+def _frame_mean_signal(c):
+    """The mean signal of each step's pixels over full scale, on every pixel of the step
+    (P, S): what an offset common to the pixels of a frame that follows its signal sees."""
+    m = np.mean(c.signal, axis=0, keepdims=True) / c.full_scale
+    return np.broadcast_to(m, c.signal.shape)
+
+
+#: Offsets common to the pixels of a frame, outside the library (a black-level clamp that
+#: follows the frame's signal is one): fitted in place of the library effect they share a
+#: pattern with, to tell whether that effect stands in for them (never candidates, never
+#: injected). ``readout_nonlinearity`` bends each pixel's response with its own signal; its
+#: probe is the same polynomial in the mean signal of the frame, the same for every pixel.
+#: ``illumination_error`` scales each pixel's signal per step; its probe is one offset (DN) per
+#: light step, the same for every pixel.
+OFFSET_PROBES = {
+    "readout_nonlinearity": Effect(
+        "common_offset_of_frame_signal",
+        "an offset common to the pixels of a frame, quadratic and cubic in the frame's mean "
+        "signal (not each pixel's own)", "global", ("c2", "c3"),
+        lambda c: _stack(_frame_mean_signal(c) ** 2, _frame_mean_signal(c) ** 3),
+        lambda p: "an offset common to the pixels that follows the frame's mean signal"),
+    "illumination_error": Effect(
+        "common_offset_per_step",
+        "an offset (DN) per light step common to the pixels", "step", ("offset_dn",),
+        lambda c: _stack(np.broadcast_to(c.light[None, :].astype(float), c.signal.shape)),
+        lambda p: "an offset per light step common to the pixels"),
+}
+
 
 ALIASES = {"gain_nonlinearity": "readout_nonlinearity"}  # earlier name, still accepted
 

@@ -34,3 +34,4 @@ class Data:
     full_scale: float
     frame_gap: float  # mean frame index of the held-out half minus that of the fit half
     n_fit: np.ndarray | None = None  # (S,) frames averaged in each fit-half sample
+    order_ho: np.ndarray | None = None  # (S,) acquisition order of the held-out frames

@@ -100,7 +100,8 @@ def context(base, theta, data: Data):
     prev = np.where(pi[None, :] >= 0, signal[:, np.maximum(pi, 0)], 0.0)
     ctx = Context(t=np.broadcast_to(data.t, m.shape), k=k, signal=signal, order=data.order,
                   prev_signal=prev, light=data.light, full_scale=data.full_scale, dydt=dydt,
-                  dydlnk=np.where(data.light[None, :], dydlnk, 0.0), n_fit=data.n_fit)
+                  dydlnk=np.where(data.light[None, :], dydlnk, 0.0), n_fit=data.n_fit,
+                  order_ho=data.order_ho)
     return m, jac, ctx
 
 

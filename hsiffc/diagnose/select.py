@@ -9,14 +9,18 @@ import numpy as np
 
 from scipy import stats
 
-from .effects import EFFECTS
-from .effectfit import frame_regression
+from .effects import EFFECTS, OFFSET_PROBES
+from .effectfit import fit_effect, frame_regression, projector
 from .fitting import Data, State, context, describe_params, fitpredict, pair_regression
 
 SELECT_SIGMAS = 5.0  # held-out improvement needed, in standard errors of the paired difference
 MIN_GAIN_OF_NOISE = 0.08  # ... and at least this fraction of the noise floor, as an RMS
 MIN_EXPLAINED = 0.5  # ... and at least this fraction of the current systematic error
 TIE_SIGMAS = 2.0  # two models whose held-out errors differ by less are equally good
+LEFT_OFFSET_OF_FLOOR = 0.135  # an offset per step left counts above this RMS (of the noise)
+PROBE_OF_DISTINCT = 0.75  # an offset probe must beat its effect by this fraction of the part
+# of the effect that differs between the pixels of a frame (about 1 where the offset is true,
+# about -1 where the effect is)
 TREND_P = 5e-3  # per-step factors that trend with exposure, signal or order (F-test p below)
 MIN_TREND_STEPS = 8  # fewer light steps: the trend test is not made
 N_PERMUTATIONS = 8000  # random orders of the step factors in the trend test
@@ -287,7 +291,8 @@ def between_halves(name: str) -> bool:
     bool
     """
     e = EFFECTS[name]
-    return e.scope in ("pair", "frame") or e.ho_columns is not None
+    return e.scope in ("pair", "frame") or (e.ho_columns is not None
+                                             and not e.steps_are_evidence)
 
 
 def _pair_z(x, d, w):
@@ -572,6 +577,124 @@ def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, da
             entry["rejected"] = trend
             beats = False
     return beats
+
+
+def offset_stand_in(fitted: Fitted, name: str, data: Data):
+    """Does selected effect ``name`` stand in for an offset common to the pixels of a frame
+    (:data:`~hsiffc.diagnose.effects.OFFSET_PROBES`: a black-level clamp that follows the
+    frame's signal is one, outside the library)? The effect and its probe are each fitted on
+    what the other effects and the base leave (jointly with the base, linearised), and their
+    held-out errors compared: the probe predicts the held-out data better by more than
+    ``TIE_SIGMAS`` paired standard errors and by more than ``PROBE_OF_DISTINCT`` of the part of
+    the effect that differs between the pixels of a frame (its mean square about each step's
+    mean over the pixels): that part is what the two disagree on, so the probe gains about it
+    where the offset is true and loses about it where the effect is. A light error scales each pixel's signal and a readout
+    nonlinearity bends it by its own signal; pixels of different signal in one frame tell those
+    from an offset the same for all of them.
+
+    Parameters
+    ----------
+    fitted : Fitted
+        The selected model.
+    name : str
+        One of its effects.
+    data : Data
+        The samples.
+
+    Returns
+    -------
+    dict or None
+        ``gain_dn2`` and ``standard_error_dn2`` of the probe over the effect, ``explained_dn2``
+        by the effect, ``distinct_dn2`` (its part that differs between a frame's pixels), and
+        ``reason``; None where the effect has no probe or the probe is not
+        better.
+    """
+    probe = OFFSET_PROBES.get(name)
+    st = fitted.state
+    if probe is None or name not in st.effects:
+        return None
+    m, jac, ctx = context(st.base, st.theta, data)
+    project = projector(jac, data.w)
+    others = st.sum_effects(m.shape, skip=name)
+    res0 = np.where(data.valid, data.y - m - others, 0.0)
+    models = []
+    for effect in (None, EFFECTS[name], probe):
+        total = others.copy()
+        if effect is not None:
+            pred = fit_effect(effect, ctx, res0, data.w, project)[1]
+            total += pred
+            if effect is EFFECTS[name]:  # its part that differs between a frame's pixels
+                vh = data.valid_ho
+                n = np.maximum(vh.sum(axis=0), 1)
+                apart = np.where(vh, pred - np.where(vh, pred, 0.0).sum(axis=0) / n, 0.0)
+                distinct = float((apart ** 2).sum() / max(int(vh.sum()), 1))
+        r = np.where(data.valid, data.y - m - total, 0.0)
+        s = State(st.base, st.theta, st.effects)
+        s.prediction = m + (r - project(r)) + total
+        s.ho_extra = st.ho_extra
+        models.append(evaluate(s, [], data, 1, 1))
+    without, with_effect, with_probe = models
+    explained = paired(without, with_effect, data.valid_ho)[0]
+    gain, se = paired(with_effect, with_probe, data.valid_ho)
+    if not (gain > TIE_SIGMAS * se and gain > PROBE_OF_DISTINCT * distinct):
+        return None
+    return {"gain_dn2": gain, "standard_error_dn2": se, "explained_dn2": explained,
+            "distinct_dn2": distinct,
+            "reason": (f"what it explains is better explained by {probe.summary} (held-out "
+                       f"squared error lower by {gain:.3g} +- {se:.2g} DN^2, where the two differ "
+                       f"by {distinct:.3g} DN^2 between the pixels of a frame; the effect "
+                       f"explains {explained:.3g} DN^2): an offset the same for "
+                       "every pixel of a frame, such as a black-level clamp that follows the "
+                       "frame's signal, which the library does not describe")}
+
+
+def offset_left(fitted: Fitted, data: Data, noise_floor: float):
+    """Is an offset common to the pixels of each light step left in what ``fitted`` does not
+    explain (an effect the library lacks, such as a black-level clamp that follows the frame's
+    signal)? One offset per light step (DN, the same for every pixel,
+    :data:`~hsiffc.diagnose.effects.OFFSET_PROBES` ``illumination_error``'s probe) is fitted
+    to the residual, jointly with the base (linearised), and must pass the selection rule's
+    held-out test against ``fitted`` (:func:`improves`) and explain more than
+    ``LEFT_OFFSET_OF_FLOOR`` of the noise floor as an RMS (a real sweep's offset that wanders
+    by a few hundredths of its noise from step to step is not a finding): a light error, a
+    drift of the offset or a lamp drift the model holds leave nothing for it.
+
+    Parameters
+    ----------
+    fitted : Fitted
+        The selected model.
+    data : Data
+        The samples.
+    noise_floor : float, DN
+        Temporal noise of one held-out sample.
+
+    Returns
+    -------
+    dict or None
+        ``gain_dn2``, ``standard_error_dn2`` and ``reason``; None where nothing is left.
+    """
+    probe = OFFSET_PROBES["illumination_error"]
+    st = fitted.state
+    m, jac, ctx = context(st.base, st.theta, data)
+    project = projector(jac, data.w)
+    total = st.sum_effects(m.shape)
+    res0 = np.where(data.valid, data.y - m - total, 0.0)
+    total = total + fit_effect(probe, ctx, res0, data.w, project)[1]
+    r = np.where(data.valid, data.y - m - total, 0.0)
+    s = State(st.base, st.theta, st.effects)
+    s.prediction = m + (r - project(r)) + total
+    s.ho_extra = st.ho_extra
+    trial = evaluate(s, [], data, 1, 1)
+    gain, se = paired(fitted, trial, data.valid_ho)
+    if not (improves(fitted, trial, gain, se, noise_floor)
+            and gain > (LEFT_OFFSET_OF_FLOOR * noise_floor) ** 2):
+        return None
+    return {"gain_dn2": gain, "standard_error_dn2": se,
+            "reason": (f"an offset common to the pixels of each light step is left (one per step "
+                       f"lowers the held-out squared error by {gain:.3g} +- {se:.2g} DN^2, "
+                       f"{np.sqrt(gain) / noise_floor:.2g} of the noise floor as an RMS, and "
+                       "passes the selection rule): the library does not describe it (a "
+                       "black-level clamp that follows the frame's signal is one such effect)")}
 
 
 def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_pix: int,
