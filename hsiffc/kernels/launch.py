@@ -23,8 +23,8 @@ instead of loading stale machine code. Only entry points (called from Python) ar
 functions they call are compiled into them (``cache=False``).
 
 Nothing is compiled, hashed or read at import: the digest is computed on the first build of
-the process (:func:`source_digest`, a few milliseconds), and a kernel builds its numba dispatchers on
-its first call.
+the process (:func:`source_digest`, a few milliseconds), and a kernel builds its numba
+dispatchers on its first call.
 """
 
 from __future__ import annotations
