@@ -68,6 +68,10 @@ MOVED = {
     'hsiffc.io.sidecar': 'hsiffc.io._sidecar',
     'hsiffc.io.fits': 'hsiffc.io._fits',
     'hsiffc.io.images': 'hsiffc.io._images',
+    # compiled CPU code in one folder (hsiffc 0.2): the calibration's per-pixel fit
+    'hsiffc.calibrate.lm': 'hsiffc.kernels.lm',
+    'hsiffc.calibrate.pixelfit': 'hsiffc.kernels.pixelfit',
+    'hsiffc.calibrate.pixelsamples': 'hsiffc.kernels.pixelsamples',
 }
 
 

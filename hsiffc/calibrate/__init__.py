@@ -37,7 +37,7 @@ from .joint import (
     residuals,
 )
 from .paper import calibrate_paper
-from .pixelfit import STATUS_REASONS
+from ..kernels.pixelfit import STATUS_REASONS
 from .product import Calibration
 from .samples import PhotonTransfer, Samples, collect_samples, photon_transfer
 from .sensor import calibrate_joint, check_design

@@ -50,7 +50,7 @@ from ..flatfield.model_based import model_ffc_apply
 from ..flatfield.model_based import FlatStack, model_flat_fit
 from .flats import MIN_FLAT_FRAMES, flat_stack_steps
 from .joint import B_GRID, MARGIN_GRID, run_kernel
-from .pixelfit import LEAKAGE, LINEAR_NOT_CONVERGED, LINEAR_WORSE, NO_FIT, TOO_FEW
+from ..kernels.pixelfit import LEAKAGE, LINEAR_NOT_CONVERGED, LINEAR_WORSE, NO_FIT, TOO_FEW
 from .samples import collect_samples, dark_level, dark_sigma, kernel_samples, linear_fit
 
 __all__ = ["CANDIDATES", "CODES", "MAX_PIXELS", "FitSettings", "calibration_flags",

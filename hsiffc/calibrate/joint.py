@@ -10,7 +10,7 @@ with ``t`` the exposure (ms), ``r`` the sample's relative light rate (photons pe
 unit of r, so ``k = g r`` in DN/ms), leakage ``a`` (DN/ms), ``b`` (1/DN), dark level ``d`` (DN)
 and a dark current ``dc`` (DN/ms) measured from the dark samples.
 
-:func:`fit_pixels` runs the per-pixel kernel of :mod:`hsiffc.calibrate.pixelfit` (dark model, linear
+:func:`fit_pixels` runs the per-pixel kernel of :mod:`hsiffc.kernels.pixelfit` (dark model, linear
 model, start values, Levenberg-Marquardt with bounds and a fallback to the linear model);
 :func:`model_and_jacobian` and :func:`predict` evaluate the model for per-pixel parameters
 ``theta = (ln g, ln a, ln b, d)``. All build on :mod:`hsiffc.leakage.model`.
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..leakage import model
-from . import pixelfit, pixelsamples
+from ..kernels import pixelfit, pixelsamples
 
 PRIOR_SIGMA = 3.0  # e-folds, on ln a and ln b
 PARAMS = ("ln_g", "ln_a", "ln_b", "dark")
@@ -37,7 +37,7 @@ class JointFit:
     """Per-pixel result of :func:`fit_pixels` (arrays of shape (P,)).
 
     ``a`` is 0 where the linear model was used (see ``status`` and
-    :data:`hsiffc.calibrate.pixelfit.STATUS_REASONS`); parameters are NaN where no fit was possible.
+    :data:`hsiffc.kernels.pixelfit.STATUS_REASONS`); parameters are NaN where no fit was possible.
     """
 
     g: np.ndarray  # DN/ms per unit relative light rate
@@ -152,7 +152,7 @@ def run_kernel(y, valid, t, r, light, dark, *, w=None, n_frames=None, noise=None
                dark_current=None, dark_model="in_well", theta0=None, b_start=None,
                margins=MARGIN_GRID, max_iter=200, tol=1e-9, prior_sigma=PRIOR_SIGMA,
                fallback=True, merge_darks=True, fix_dark=False) -> JointFit:
-    """Run :func:`hsiffc.calibrate.pixelfit.fit_block` on (S, P) samples; returns the fit.
+    """Run :func:`hsiffc.kernels.pixelfit.fit_block` on (S, P) samples; returns the fit.
 
     Weights are ``w`` (S, P), or come from ``noise = (gain DN/e-, read variance DN^2)`` and
     ``n_frames`` (S,) per step. See :func:`fit_pixels` for the other arguments.

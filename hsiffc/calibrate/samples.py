@@ -10,10 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
-
-from ..errors import DataFormatError
 from ..data.sweep import Sweep
+from ..errors import DataFormatError
+from ..kernels.sweepstats import pair_stats, step_means
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,7 +154,7 @@ def collect_samples(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     sel = np.zeros((len(steps), max(f.size for f in frames_of)), np.int64)
     for i, f in enumerate(frames_of):
         sel[i, :f.size] = f
-    _step_means(sweep.data, sel, np.array([f.size for f in frames_of]), r0, r1,
+    step_means(sweep.data, sel, np.array([f.size for f in frames_of]), r0, r1,
                 float(fs if clip_dn is None else clip_dn),
                 float(-np.inf if floor_dn is None else floor_dn), means, clipped)
     averaged = sweep.meta.get("frames_averaged")  # frames that are means of several
@@ -225,7 +224,7 @@ def photon_transfer(sweep: Sweep, *, max_fraction_of_full_scale: float = 0.7) ->
         sel = np.flatnonzero(sweep.step == s)
         if sel.size >= 2:
             pairs.append((sweep.kind[sel[0]],
-                          *_pair_stats(sweep.data[sel[0]], sweep.data[sel[1]], float(fs))))
+                          *pair_stats(sweep.data[sel[0]], sweep.data[sel[1]], float(fs))))
     return photon_transfer_from_pairs(pairs, sweep.data[0].size, fs,
                                       max_fraction_of_full_scale=max_fraction_of_full_scale)
 
@@ -489,52 +488,3 @@ def linear_fit(ks: dict, dark, dark_current, *, exposure_offset_ms: float = 0.0)
         sigma = np.sqrt(over / wuu) / g
     ok = (wuu > 0) & (g > 0)
     return np.where(ok, g, np.nan), np.where(ok & np.isfinite(sigma), sigma, np.inf)
-
-
-@njit(parallel=True, cache=True, error_model="numpy")
-def _step_means(data, sel, nsel, r0, r1, fs, floor, means, clipped):
-    """Per step s, the mean (in the dtype of ``means``) over its frames ``sel[s, :nsel[s]]`` of
-    rows ``r0:r1`` of ``data`` (N, H, W), and whether any of them is at or above ``fs`` or at
-    or below ``floor``; outputs (S, P)."""
-    w = data.shape[2]
-    for rr in prange(r1 - r0):
-        r = r0 + rr
-        for s in range(sel.shape[0]):
-            inv = 1.0 / nsel[s]
-            for c in range(w):
-                acc = 0.0
-                clip = False
-                for j in range(nsel[s]):
-                    v = np.float64(data[sel[s, j], r, c])
-                    acc += v
-                    clip |= (v >= fs) | (v <= floor)
-                means[s, rr * w + c] = acc * inv
-                clipped[s, rr * w + c] = clip
-
-
-@njit(parallel=True, cache=True, error_model="numpy")
-def _pair_stats(f0, f1, fs):
-    """(pixels below ``fs`` in both frames, their mean level, half their mean squared
-    frame-to-frame difference) of two frames (H, W): the EMVA 1288 temporal variance."""
-    h, w = f0.shape
-    n = np.zeros(h)
-    sm = np.zeros(h)
-    sv = np.zeros(h)
-    for r in prange(h):
-        # sums in locals, stored once per row (threads writing neighbouring elements of n,
-        # sm, sv pixel by pixel share their cache lines)
-        nr = smr = svr = 0.0
-        for c in range(w):
-            a = np.float64(f0[r, c])
-            b = np.float64(f1[r, c])
-            if a < fs and b < fs:
-                nr += 1.0
-                smr += 0.5 * (a + b)
-                svr += (a - b) * (a - b)
-        n[r] = nr
-        sm[r] = smr
-        sv[r] = svr
-    total = n.sum()
-    if total == 0:
-        return 0.0, np.nan, np.nan
-    return total, sm.sum() / total, 0.5 * sv.sum() / total

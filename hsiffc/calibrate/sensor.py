@@ -3,7 +3,7 @@
 ``calibrate_joint`` refuses sweeps that cannot calibrate anything (with a one-line reason),
 makes the sensor-wide choices on a pilot sample of pixels (is there a dark current; does it
 fill the well or add after it; where does the fit start b), then fits every pixel with the
-numba kernel of :mod:`hsiffc.calibrate.pixelfit`, chunk by chunk, and reports per pixel which model
+numba kernel of :mod:`hsiffc.kernels.pixelfit`, chunk by chunk, and reports per pixel which model
 was used and why.
 """
 
@@ -18,7 +18,8 @@ from ..leakage import model
 from ..data.dq import DQ
 from ..errors import DataFormatError, ParameterError
 from ..data.sweep import Sweep
-from . import choice, pixelfit
+from ..kernels import pixelfit
+from . import choice
 from .joint import B_GRID, run_kernel
 from .product import Calibration
 from .samples import (PhotonTransfer, Samples, collect_samples, dark_lines,
@@ -208,7 +209,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     Returns
     -------
     Calibration
-        With per-pixel ``fit_status`` (see :data:`hsiffc.calibrate.pixelfit.STATUS_REASONS`),
+        With per-pixel ``fit_status`` (see :data:`hsiffc.kernels.pixelfit.STATUS_REASONS`),
         ``model_kept`` (code of :data:`hsiffc.calibrate.choice.CANDIDATES`) and, in
         ``fitted_on``, the counts per reason, the dark model, the exposure offset and the
         model choice.

@@ -1,7 +1,7 @@
 """The leakage model's response with its derivatives, per point, for fits (numba).
 
 :func:`hsiffc.leakage.model.response_and_gradient` and the calibration's per-pixel fit
-(:mod:`hsiffc.calibrate.lm`) evaluate the model through these functions. The closed form of
+(:mod:`hsiffc.kernels.lm`) evaluate the model through these functions. The closed form of
 :mod:`hsiffc.kernels.leakage` reads, with ``x = b k t`` and ``c = a e^{b d}`` (the leakage rate
 at the dark level, DN/ms)::
 

@@ -14,14 +14,22 @@ Where two threads start to beat one is measured by ``benchmarks/gpu.py`` (its
 ``cpu_crossover`` section); :data:`PARALLEL_MIN` is twice the cheapest kernel's crossover
 there, a margin for a busy machine, where a parallel region waits for its slowest thread.
 
-Cache freshness: numba invalidates a cached kernel when *its own* source file changes, not
-when a function it inlined from another file does. Both builds are therefore named with a
-digest of every source they can inline (this package and :mod:`hsiffc.data.dq`), so editing any of
-them compiles afresh instead of loading stale machine code.
+Cache freshness, the one mechanism for every cached CPU kernel: numba invalidates a cached
+kernel when *its own* source file changes, not when a function it compiled in from another file
+does. Every build cached on disk is therefore named with a digest of every source it can
+compile in (this package and :mod:`hsiffc.data.dq`): :class:`Kernel`'s two builds, and the
+entry points compiled once by :func:`cached_jit`. Editing any of those files compiles afresh
+instead of loading stale machine code. Only entry points (called from Python) are cached; the
+functions they call are compiled into them (``cache=False``).
+
+Nothing is compiled, hashed or read at import: the digest is computed on the first build of
+the process (:func:`source_digest`, a few milliseconds), and a kernel builds its numba
+dispatchers on its first call.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import operator
 import types
@@ -29,7 +37,8 @@ from pathlib import Path
 
 from numba import get_num_threads, njit, set_num_threads
 
-__all__ = ["JIT_OPTIONS", "Kernel", "PARALLEL_MIN", "PARALLEL_OPTIONS", "SOURCE_DIGEST"]
+__all__ = ["JIT_OPTIONS", "CachedJit", "Kernel", "PARALLEL_MIN", "PARALLEL_OPTIONS",
+           "SOURCE_DIGEST", "cached_jit", "digest_named", "source_digest"]
 
 #: Below this many elements a kernel runs serially on the calling thread.
 PARALLEL_MIN = 65536
@@ -43,7 +52,11 @@ JIT_OPTIONS = {"cache": True, "fastmath": False, "error_model": "numpy"}
 PARALLEL_OPTIONS = {"fusion": False}
 
 
-def _source_digest() -> str:
+@functools.cache
+def source_digest() -> str:
+    """12 hex digits of SHA-256 over the sources a cached kernel can compile in: every
+    ``hsiffc/kernels/*.py`` and ``hsiffc/data/dq.py`` (names and contents). Computed once per
+    process, on the first build (not at import)."""
     here = Path(__file__).resolve().parent
     h = hashlib.sha256()
     for path in sorted(here.glob("*.py")) + [here.parent / "data" / "dq.py"]:
@@ -52,7 +65,11 @@ def _source_digest() -> str:
     return h.hexdigest()[:12]
 
 
-SOURCE_DIGEST = _source_digest()
+def __getattr__(name: str):
+    """``SOURCE_DIGEST``: :func:`source_digest`, computed when first asked for (PEP 562)."""
+    if name == "SOURCE_DIGEST":
+        return source_digest()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _renamed(fn, suffix):
@@ -62,6 +79,49 @@ def _renamed(fn, suffix):
     clone.__module__ = fn.__module__
     clone.__doc__ = fn.__doc__
     return clone
+
+
+def digest_named(fn, **options):
+    """``njit(**options)`` of a copy of ``fn`` named ``<name>_<source digest>``: numba's disk
+    cache (``cache=True`` in ``options``) keys a build by its function's name, so a build of
+    other sources never loads this one's machine code. Computes the digest (once)."""
+    return njit(**options)(_renamed(fn, "_" + source_digest()))
+
+
+class CachedJit:
+    """An entry point compiled once (no serial/parallel pair), cached on disk under the digest
+    name (:func:`digest_named`) and built on its first call. Made by :func:`cached_jit`.
+
+    Attributes
+    ----------
+    dispatcher : numba dispatcher
+        The build (made when first asked for).
+    """
+
+    def __init__(self, fn, options: dict):
+        self.fn = fn
+        self.options = {**JIT_OPTIONS, **options}
+        self.__doc__ = fn.__doc__
+        self.__name__ = fn.__name__
+
+    def __getattr__(self, name):
+        if name != "dispatcher":
+            raise AttributeError(name)
+        self.dispatcher = digest_named(self.fn, **self.options)
+        return self.dispatcher
+
+    def __call__(self, *args):
+        return self.dispatcher(*args)
+
+
+def cached_jit(fn=None, **options):
+    """Decorator: ``fn`` as a :class:`CachedJit` (an entry point called from Python, compiled
+    on its first call, cached under the digest name). ``options`` add to or override
+    :data:`JIT_OPTIONS` (e.g. ``parallel=True``). Functions that other compiled functions call
+    stay plain ``njit`` with ``cache=False``: they are compiled into their callers."""
+    if fn is None:
+        return lambda f: CachedJit(f, options)
+    return CachedJit(fn, options)
 
 
 class Kernel:
@@ -82,15 +142,21 @@ class Kernel:
     """
 
     def __init__(self, fn, size_arg: int, parallel_min: int = PARALLEL_MIN):
-        self.parallel = njit(parallel=PARALLEL_OPTIONS, **JIT_OPTIONS)(
-            _renamed(fn, "_" + SOURCE_DIGEST))
-        self.serial = njit(**JIT_OPTIONS)(_renamed(fn, "_serial_" + SOURCE_DIGEST))
+        self.fn = fn
         self.size_arg = size_arg
         self._sized = (operator.itemgetter(size_arg) if isinstance(size_arg, int) else
                        lambda args, i=size_arg[0], j=size_arg[1]: args[i][j])
         self.parallel_min = int(parallel_min)
         self.__doc__ = fn.__doc__
         self.__name__ = fn.__name__
+
+    def __getattr__(self, name):
+        """``parallel`` and ``serial``, the two numba builds, made when first asked for."""
+        if name not in ("parallel", "serial"):
+            raise AttributeError(name)
+        self.parallel = digest_named(self.fn, parallel=PARALLEL_OPTIONS, **JIT_OPTIONS)
+        self.serial = njit(**JIT_OPTIONS)(_renamed(self.fn, "_serial_" + source_digest()))
+        return getattr(self, name)
 
     def threads(self, size: int) -> int:
         """Threads a call on ``size`` elements runs on: 1 (the serial build) below

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .launch import JIT_OPTIONS, Kernel
+from .launch import JIT_OPTIONS, Kernel, cached_jit
 from .ppi import neighbour_offsets, pixel_neighbour_sums
 from .refined import refine_pixel, edge_term
 
@@ -41,7 +41,7 @@ _JIT = {**JIT_OPTIONS, "cache": False}
 _ROWS = 8  # output rows per parallel task of the cube pass
 
 
-@njit(**JIT_OPTIONS)
+@cached_jit
 def _flat_flagged(dq, out):
     flat = dq.reshape(dq.size)
     n = 0

@@ -29,7 +29,7 @@ from numba import njit, prange
 from ..data.dq import DQ
 from .demosaic import EPS
 from .lattice import lattice_arrays, tent_sums
-from .launch import JIT_OPTIONS, Kernel
+from .launch import JIT_OPTIONS, Kernel, cached_jit
 
 __all__ = ["edge_term", "flag_values", "interpolate_differences", "refine_pixel", "refine_ppi",
            "scaled_padded"]
@@ -276,7 +276,7 @@ def _flag_loop(raw, dq, flagged, band_of, lat_r, lat_c, lat_start, ph, pw, cube,
 
 #: serial: a frame holds few flagged samples (0.1 % of 2 Mpx take 2 ms), fewer than pay for
 #: starting threads
-_flag_values = njit(**JIT_OPTIONS)(_flag_loop)
+_flag_values = cached_jit(_flag_loop)
 
 
 def flag_values(raw, dq, flagged, band_of, lattices, period, cube, cube_dq):

@@ -11,14 +11,14 @@ the float32 mean of the two middle ones (``(lo + hi) / 2`` rounded to float32).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
-from .launch import JIT_OPTIONS
+from .launch import cached_jit
 
 __all__ = ["medians_of"]
 
 
-@njit(parallel=True, **JIT_OPTIONS)
+@cached_jit(parallel=True)
 def _medians(samples, counts, out):
     for i in prange(counts.shape[0]):
         n = counts[i]

@@ -24,7 +24,6 @@ import numpy as np
 
 from ..data.dark import subtract_dark
 from ..data.dq import DQ_DTYPE
-from ..leakage.validity import subtract_dark_and_flag
 
 __all__ = ["FusedFrontEnd", "front_end_length", "fusable", "fused_pass"]
 
@@ -116,6 +115,8 @@ class FusedFrontEnd:
         ``frame``: returns ``(dark plane, its source, signal, alpha, dq, test_mean)``,
         ``test_mean`` being the two-point FFC's eq. (5) level of the frame (None without
         the FFC)."""
+        from ..leakage.validity import subtract_dark_and_flag  # compiled: imported when run
+
         (_, _, dark), (_, mask, _) = self.steps[:2]
         ffc = self.steps[2][1] if n == 3 else None
         plane, how = dark.dark_for(frame.exposure_ms, frame.data.shape)

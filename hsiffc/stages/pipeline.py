@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import importlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ..calibrate.product import Calibration
 from ..errors import DataFormatError, HsiffcError, ParameterError
 from ..data.frame import Frame
 from ..data.params import did_you_mean
@@ -30,6 +30,9 @@ from .base import Stage
 from .contract import check_frames, check_needs, training_record
 from .fusion import FusedFrontEnd
 from .order import check_order
+
+if TYPE_CHECKING:  # imported where used: hsiffc.calibrate compiles its fit
+    from ..calibrate.product import Calibration
 
 FORMAT = "hsiffc-pipeline"
 FORMAT_VERSION = 2  # 2: calibrations as {"identity", "path"[, "embedded"]}; 1 (paths) still read
@@ -230,6 +233,8 @@ class Pipeline:
         DataFormatError
             A file is not a calibration (one line naming it).
         """
+        from ..calibrate.product import Calibration
+
         read: dict = {}
         for _, stage in self.steps:
             for key, value in stage.get_params().items():
@@ -357,6 +362,8 @@ class Pipeline:
     def save(self, path, *, overwrite: bool = False) -> Path:
         """Write the (fitted) pipeline to one ``.npz`` atomically. A calibration that exists
         only in memory is stored inside the file."""
+        from ..calibrate.product import Calibration
+
         man = self.manifest()
         arrays = {}
         for (name, stage), spec in zip(self.steps, man["steps"]):
@@ -502,6 +509,8 @@ def _resolve_calibration(ref, prefix: str, arrays: dict, path: Path,
                          given: Calibration | None) -> Calibration:
     """The Calibration a manifest names: ``given`` if it has the recorded identity, the
     embedded copy, or the file (found as recorded or beside the pipeline file)."""
+    from ..calibrate.product import Calibration
+
     if isinstance(ref, str):  # format version 1: a path only
         ref = {"identity": None, "path": ref}
     identity, where = ref.get("identity"), ref.get("path")

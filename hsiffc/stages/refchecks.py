@@ -13,7 +13,6 @@ import warnings
 
 import numpy as np
 
-from ..spectral.bandstats import band_reduce
 from ..data.dq import DQ
 from ..errors import HsiffcWarning, band_figures
 
@@ -61,6 +60,8 @@ def _warn(category, text, figures, stacklevel):
 def check_flats(stage: str, stack, signal, *, stacklevel: int = 3) -> None:
     """The checks of one flat exposure's frames ``stack`` (dark-subtracted Frames) whose
     average above dark is ``signal`` (H, W)."""
+    from ..spectral.bandstats import band_reduce  # compiled: imported when a flat is checked
+
     f0 = stack[0]
     band_map = f0.band_map()
     n_bands = int(band_map.max()) + 1

@@ -193,7 +193,8 @@ def test_the_check_sees_an_upward_import(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("old, new", [("hsiffc.frame", "hsiffc.data.frame"),
                                       ("hsiffc.model_ffc", "hsiffc.flatfield.model_based"),
-                                      ("hsiffc.io.metadata", "hsiffc.io._metadata")])
+                                      ("hsiffc.io.metadata", "hsiffc.io._metadata"),
+                                      ("hsiffc.calibrate.pixelfit", "hsiffc.kernels.pixelfit")])
 def test_moved_modules_keep_their_old_import_path(old, new):
     import importlib
 
@@ -224,3 +225,24 @@ def test_merged_io_modules_keep_their_old_import_path_and_names(old):
     assert moved is importlib.import_module(new)
     assert not (PACKAGE / "io" / f"{old.rsplit('.', 1)[1]}.py").exists()
     assert [n for n in names if not hasattr(moved, n)] == []
+
+
+#: what a command or an import must not load: numba's compiler (with llvmlite), scipy and the
+#: compiled code (they load when a command that computes runs)
+HEAVY = ("numba", "llvmlite", "scipy", "hsiffc.kernels", "hsiffc.calibrate")
+
+
+@pytest.mark.parametrize("code", [
+    "import hsiffc.stages",
+    "import runpy, sys\nsys.argv = ['hsiffc', '--version']\ntry:\n"
+    "    runpy.run_module('hsiffc', run_name='__main__')\nexcept SystemExit:\n    pass",
+], ids=["import hsiffc.stages", "hsiffc --version"])
+def test_imports_and_the_version_load_no_compiler(code):
+    import json
+    import subprocess
+
+    code += f"\nimport json\nprint(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
+    run = subprocess.run([sys.executable, "-c", "import sys\n" + code], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert json.loads(run.stdout.splitlines()[-1]) == []

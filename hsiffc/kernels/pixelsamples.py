@@ -3,7 +3,7 @@
 :func:`gather` copies a block of pixels' step means and weights into per-pixel rows (streaming
 the (S, P) inputs row by row); :func:`dark_line` fits a pixel's dark line and sets the
 noise-model weights of its light samples (:func:`light_weights`). The per-pixel fit
-(:mod:`hsiffc.calibrate.pixelfit`) calls them pixel by pixel; :func:`pixel_samples` returns what
+(:mod:`hsiffc.kernels.pixelfit`) calls them pixel by pixel; :func:`pixel_samples` returns what
 they prepare, for comparisons with other fitters.
 
 The kernels take their operands in named groups (:class:`SweepSamples`, :class:`Steps`,
@@ -18,6 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from .launch import cached_jit
 from .lm import LOCALS_ONLY
 
 BLOCK = 128  # pixels per parallel task
@@ -140,9 +141,9 @@ def dark_line(yp, wp, t, light, dark, estimate_dc, dc_given, weights_given, nfr,
     return nd, nl, sw, md_t, md_y, dc, ut, uy, utt, uty, uyy, t_dark_max, var_d
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@cached_jit(parallel=True)
 def pixel_samples(samples, steps, noise, estimate_dc, dc_in, outputs):
-    """The samples each pixel's fit sees, as :func:`hsiffc.calibrate.pixelfit.fit_block`
+    """The samples each pixel's fit sees, as :func:`hsiffc.kernels.pixelfit.fit_block`
     prepares them (:class:`SweepSamples`, :class:`Steps`, :class:`Noise`; ``dc_in`` (P,) the
     dark current, DN/ms, unless ``estimate_dc``), into ``outputs`` (:class:`SampleOutputs`):
     step means and weights (P, S; weight 0 = left out) and, per pixel, the summed dark weight,

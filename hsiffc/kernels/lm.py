@@ -19,15 +19,18 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ..kernels.gradient import response_gradient_fast, response_gradient_point
+from .gradient import response_gradient_fast, response_gradient_point
 
 #: Options of the numba functions that run once or more per pixel on arrays their caller owns
 #: (they allocate nothing): compiled without numba's reference counting (``_nrt=False``), so
 #: that a call does not increment and decrement the count of every array argument with atomic
 #: instructions (a pixel's fit makes hundreds of such calls, and the atomic updates contend
 #: when the threads share the arrays). Allocating, or returning an array, fails to
-#: compile here: keep those in the calling kernel.
-LOCALS_ONLY = {"cache": True, "error_model": "numpy", "_nrt": False}
+#: compile here: keep those in the calling kernel. Not cached on their own: they are compiled
+#: into the cached entry points that call them (:func:`hsiffc.kernels.pixelfit.fit_block`,
+#: :func:`hsiffc.kernels.pixelsamples.pixel_samples`), whose names carry the source digest
+#: (:mod:`hsiffc.kernels.launch`).
+LOCALS_ONLY = {"cache": False, "error_model": "numpy", "_nrt": False}
 B_MIN, B_MAX = 1e-6, 1.0  # bounds of b, 1/DN
 CONVERGED_CHI2 = 1e-3  # chi-square gain below which a pixel is converged (~0.03 sigma)
 #: a step predicted to gain less chi-square than this (0.3 sigma of a parameter) while the
@@ -294,13 +297,3 @@ def external_sigma(h, ph, chi2, dof, out, col, cov, scratch):
             var += scratch[0, a] * scratch[0, a]
         out[q] = np.sqrt(var * over)
 
-
-def _refresh_cache():
-    from ..kernels import gradient, launch, vmath
-    from . import kcache
-
-    kcache.refresh([_internal, sample, evaluate, solve4, levenberg_marquardt, external_sigma],
-                   [gradient, vmath, launch])
-
-
-_refresh_cache()

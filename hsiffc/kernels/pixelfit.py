@@ -3,7 +3,7 @@ values, Levenberg-Marquardt, fallback.
 
 Per pixel, in locals only (no (samples x pixels) temporaries):
 
-1. **Samples and weights** (:mod:`hsiffc.calibrate.pixelsamples`): the pixel's step means
+1. **Samples and weights** (:mod:`hsiffc.kernels.pixelsamples`): the pixel's step means
    are gathered; weights are given, or come from the photon-transfer noise model
    ``var = gain * (signal above the dark line) + read_var`` divided by the frames per step.
 2. **Dark model** from the dark samples (rate 0): weighted line ``d + dc t`` through them
@@ -14,7 +14,7 @@ Per pixel, in locals only (no (samples x pixels) temporaries):
 4. **Start values** of the leakage model: the dark level from the dark frames (the linear
    model's without them), g from the samples below half the pixel's highest level, b and the
    saturation margin from the caller (sensor-wide values) or small grids (the best by cost).
-5. **Levenberg-Marquardt** (:mod:`hsiffc.calibrate.lm`) with bounds on every parameter.
+5. **Levenberg-Marquardt** (:mod:`hsiffc.kernels.lm`) with bounds on every parameter.
 6. **Fallback**: where the leakage fit does not converge or fits worse than the linear model,
    the linear model is used (a = 0); each pixel gets a status code saying which and why.
 
@@ -31,6 +31,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from .launch import cached_jit
 from .lm import (
     B_MAX,
     B_MIN,
@@ -360,7 +361,7 @@ def _fit_range(p0, p1, ty, tw, steps, infit, weights_given, noise, darks, starts
                    control, outputs, work)
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@cached_jit(parallel=True)
 def fit_block(samples, steps, noise, darks, starts, control, outputs):
     """Fit every pixel (column) of ``samples.y`` (S, P) in parallel; see the module docstring.
 
@@ -398,15 +399,3 @@ def fit_block(samples, steps, noise, darks, starts, control, outputs):
                          np.empty((4, 5)), np.empty(4), np.empty(4))
         _fit_range(p0, p1, ty, tw, steps, infit, weights_given, noise, darks, starts, control,
                    outputs, work)
-
-
-
-def _refresh_cache():
-    from ..kernels import gradient, launch, vmath
-    from . import kcache, lm, pixelsamples
-
-    kcache.refresh([_fit_pixel, _fit_range, fit_block],
-                   [gradient, vmath, launch, lm, pixelsamples])
-
-
-_refresh_cache()
