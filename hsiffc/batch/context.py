@@ -20,6 +20,7 @@ from ..stages import defaults
 from .plan import BatchError
 
 __all__ = ["CUBE_METHODS", "FFC_CHOICES", "Context", "Settings", "check_ffc", "context_for",
+           "forget_contexts",
            "default_pipeline", "load_pipeline", "sha256_file", "with_cube_step"]
 
 NAN_POLICIES = ("flag", "fail")
@@ -157,6 +158,12 @@ class Context:
 
 
 _CONTEXTS: dict = {}  # per process: a worker builds its context once
+
+
+def forget_contexts() -> None:
+    """Drop the contexts this process has built (:func:`context_for` builds the next one
+    afresh), e.g. after replacing a function it builds them with."""
+    _CONTEXTS.clear()
 
 
 def context_for(settings: Settings, calibration: Calibration | None = None) -> Context:

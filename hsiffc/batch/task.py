@@ -27,7 +27,7 @@ from ..cubes.product import frame_unit
 from ..data.dq import DQ
 from ..errors import DataFormatError, HsiffcError, MissingMosaicWarning
 from ..data.frame import Frame
-from ..io._sidecar import find_sidecar
+from ..io import find_sidecar
 from ..stages.contract import check_frames
 from ..io.corrected import (
     BackgroundWriter,

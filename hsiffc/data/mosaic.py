@@ -17,7 +17,8 @@ from functools import lru_cache
 
 import numpy as np
 
-_TILE_NAME = re.compile(r"\d+\s*x\s*\d+")
+#: A mosaic name that states a tile size ("5x5", "4 x 4"); such a name must match the tile.
+TILE_NAME = re.compile(r"\d+\s*x\s*\d+")
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,7 +125,7 @@ class Mosaic:
         """
         rows, cols = self.tile_shape
         text = f"{cols}x{rows} (W x H)"
-        if self.name and not _TILE_NAME.fullmatch(self.name):
+        if self.name and not TILE_NAME.fullmatch(self.name):
             text += f" {self.name}"
         return text
 

@@ -42,13 +42,14 @@ from ..files.limits import ReadLimits, default_limits
 from ._metadata import MetadataConflictWarning, Overrides
 from ._quirks import LayoutWarning
 from ._readers import ACCEPTED, IMAGE_SUFFIXES
+from ._sidecar import find_sidecar
 from .source import FrameMeta, FrameSource, expand_inputs, open_source
 from .tiff import TIFF_SUFFIXES, read_sweep_tiff, write_sweep
 
 __all__ = ["open_source", "FrameSource", "FrameMeta", "Overrides", "ReadLimits",
            "default_limits", "expand_inputs", "read_sweep", "read_sweep_tiff", "read_emva1288",
            "write_sweep", "read_corrected", "LayoutWarning", "MetadataConflictWarning",
-           "TIFF_SUFFIXES", "IMAGE_SUFFIXES", "ACCEPTED", "write_cube"]
+           "TIFF_SUFFIXES", "IMAGE_SUFFIXES", "ACCEPTED", "find_sidecar", "write_cube"]
 
 
 def write_cube(cube, path, **options):

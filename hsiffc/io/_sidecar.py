@@ -76,6 +76,16 @@ def find_sidecar(folder) -> Path | None:
     Returns
     -------
     Path or None
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     none = find_sidecar(folder)
+    ...     _ = (Path(folder) / "hsiffc.csv").write_text("file,exposure_ms\\n")
+    ...     print(none, find_sidecar(folder).name)
+    None hsiffc.csv
     """
     for name in SIDECAR_NAMES:
         candidate = Path(folder) / name

@@ -4,7 +4,7 @@ numpy's ``partition`` holds the GIL, so with it the band medians of a frame are 
 band after another, a serial part that bounds how far the bilinear pipeline scales with
 threads on a many-core machine. This kernel takes
 every set's median in its own thread (numba's ``np.partition`` of a copy), with the value of
-:func:`hsiffc.reconstruct.prepare._median_in_place`: the middle element, or for an even count
+:func:`hsiffc.reconstruct.prepare.median_in_place`: the middle element, or for an even count
 the float32 mean of the two middle ones (``(lo + hi) / 2`` rounded to float32).
 """
 

@@ -16,7 +16,8 @@ from ..kernels.ppi import ppi_image
 from ..kernels.select import medians_of
 from ..data.mosaic import Mosaic
 
-__all__ = ["EPS", "Prepared", "band_levels", "band_median", "band_medians", "periodic_index",
+__all__ = ["EPS", "Prepared", "band_levels", "band_median", "band_medians", "median_in_place",
+           "periodic_index",
            "ppi_kernel", "prepare", "pseudo_panchromatic", "sep_filter", "tile_starts"]
 
 
@@ -223,7 +224,7 @@ def prepare(raw, mosaic, dq) -> Prepared:
     return Prepared(data, flags, mosaic)
 
 
-def _median_in_place(vals: np.ndarray) -> float:
+def median_in_place(vals: np.ndarray) -> float:
     """``np.median(vals)`` (same value), partitioning ``vals`` itself instead of a copy.
 
     For an even count the lower middle value is the max of the lower part after one
@@ -262,7 +263,7 @@ def band_medians(p: Prepared, bands) -> np.ndarray:
     cached in ``p.medians`` (PPID's band levels and the no-source fill share them). The
     samples of the bands not cached yet are gathered in one compiled pass
     (:meth:`Prepared.sample_rows`), then their medians taken in parallel, one band per
-    thread (:func:`hsiffc.kernels.select.medians_of`, the value of :func:`_median_in_place`).
+    thread (:func:`hsiffc.kernels.select.medians_of`, the value of :func:`median_in_place`).
 
     Parameters
     ----------

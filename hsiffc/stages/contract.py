@@ -30,7 +30,7 @@ import json
 import numpy as np
 
 from ..data.frame import Frame
-from ..data.mosaic import _TILE_NAME, Mosaic
+from ..data.mosaic import TILE_NAME, Mosaic
 from ..errors import CalibrationMismatchError, ParameterError
 from .base import NotFittedError, Stage
 from .dark import DarkSubtract
@@ -41,7 +41,7 @@ __all__ = ["check_frames", "check_needs", "check_stage", "training_record"]
 def _option(mosaic: Mosaic) -> str:
     """What ``--mosaic`` takes for ``mosaic``: its tile size, or the XML it came from."""
     rows, cols = mosaic.tile_shape
-    if mosaic.name and not _TILE_NAME.fullmatch(mosaic.name):
+    if mosaic.name and not TILE_NAME.fullmatch(mosaic.name):
         return f"<the XML or sidecar used at fit: {mosaic.name}>"
     return f"{cols}x{rows}"
 

@@ -19,7 +19,7 @@ from hsiffc.cli import main
 from hsiffc.data.dq import DQ
 from hsiffc.gpu.pack import pack_cpu
 from hsiffc.kernels.select import medians_of
-from hsiffc.reconstruct.prepare import _median_in_place
+from hsiffc.reconstruct.prepare import median_in_place
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -74,7 +74,7 @@ def test_parallel_band_medians_equal_numpy_partition():
         buf = np.zeros((2, max(n, 1)), np.float32)
         for i, r in enumerate(rows):
             buf[i, :n] = r
-        want = [_median_in_place(np.asarray(r, np.float32).copy()) for r in rows]
+        want = [median_in_place(np.asarray(r, np.float32).copy()) for r in rows]
         assert medians_of(buf, np.array([n, n])).tolist() == want
 
 
@@ -368,7 +368,7 @@ def test_batch_device_cuda_runs_the_pipeline_moved_to_the_device(monkeypatch, de
     corrects on the CPU), and the provenance names the device."""
     import hsiffc.gpu as gpu_pkg
     from hsiffc.batch import correct_batch
-    from hsiffc.batch.context import _CONTEXTS
+    from hsiffc.batch.context import forget_contexts
     from hsiffc.io import read_corrected
 
     seen = []
@@ -384,11 +384,11 @@ def test_batch_device_cuda_runs_the_pipeline_moved_to_the_device(monkeypatch, de
     monkeypatch.setattr(gpu_pkg, "require", lambda what="--device cuda": None)
     monkeypatch.setattr(gpu_pkg, "to_device",
                         lambda pipe, device: Moved(pipe) if device == "cuda" else pipe)
-    _CONTEXTS.clear()
+    forget_contexts()
     cal = demo_result.calibration.save(tmp_path / "cal.npz")
     summary = correct_batch([sample_cubes / "test_2200K.tif"], tmp_path / "out", cal,
                             ffc="none", device="cuda", hash_inputs=False)
-    _CONTEXTS.clear()
+    forget_contexts()
     assert summary.exit_status == 0 and len(summary.done) == 1
     out = read_corrected(summary.done[0]["output"])
     assert len(seen) == out.data.shape[0] > 0

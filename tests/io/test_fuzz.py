@@ -26,6 +26,7 @@ from hsiffc.cli import main
 from hsiffc.io import read_sweep, write_sweep
 from hsiffc.io.corrected import read_corrected
 from hsiffc.simulate import PAPER_LIGHT_W_M2, MosaicSensor
+from testfiles import hand_png
 
 FUZZ = settings(max_examples=25, deadline=None, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture,
@@ -205,7 +206,6 @@ def test_png_header_fields_and_sizes(tmp_path, width, height, depth, colour, int
     size or one DataFormatError line, and never a line from libpng."""
     from hsiffc.errors import DataFormatError
     from hsiffc.io import open_source
-    from test_hostile_inputs import _png
 
     samples = {0: 1, 2: 3, 4: 2, 6: 4}.get(colour, 1)
     stride = 1 + -(-(width * samples * depth) // 8)
@@ -214,7 +214,7 @@ def test_png_header_fields_and_sizes(tmp_path, width, height, depth, colour, int
                                                                                height))]
     ihdr = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, interlace)[:ihdr_cut]
     with tempfile.TemporaryDirectory(dir=tmp_path) as d:
-        path = _png(Path(d) / "f.png", 1, 1, chunks=[
+        path = hand_png(Path(d) / "f.png", 1, 1, chunks=[
             (b"IHDR", ihdr), (b"IDAT", zlib.compress(b"".join(rows))), (b"IEND", b"")])
         with _fd2_captured() as err:
             try:

@@ -11,7 +11,6 @@ import os
 import struct
 import subprocess
 import sys
-import textwrap
 import zipfile
 import zlib
 
@@ -23,6 +22,7 @@ from hsiffc.cli import main
 from hsiffc.errors import DataFormatError
 from hsiffc.io import open_source
 from checks import one_line as _one_line  # the one checker of one-line errors
+from testfiles import bomb_tiff, capped_child, capped_cli, hand_png, synthetic_imec_xml
 
 
 def _digest(path) -> str:
@@ -38,55 +38,6 @@ def sweep(tmp_path_factory):
     return root
 
 
-def _in_child(code: str, *, extra_mb: int = 300) -> subprocess.CompletedProcess:
-    """Run ``code`` in a child Python whose address space is capped (``RLIMIT_AS``) at what
-    its imports took plus ``extra_mb`` MiB: an allocation past the cap fails there (a
-    MemoryError, an internal error) instead of passing unnoticed."""
-    prelude = textwrap.dedent(f"""
-        import resource, sys
-        import cv2, numpy, tifffile
-        from hsiffc.cli import main
-        import hsiffc.stages, hsiffc.io
-        size = int(open("/proc/self/status").read().split("VmSize:")[1].split()[0]) << 10
-        cap = size + ({extra_mb} << 20)
-        resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
-    """)
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-           "NUMBA_NUM_THREADS": "1"}
-    return subprocess.run([sys.executable, "-c", prelude + textwrap.dedent(code)],
-                          capture_output=True, text=True, timeout=120, env=env)
-
-
-def _child_cli(argv, *, extra_mb: int = 300) -> tuple[int, str]:
-    """Exit status and stderr of ``hsiffc ARGV`` run in a capped child (:func:`_in_child`)."""
-    done = _in_child(f"sys.exit(main({[str(a) for a in argv]!r}))", extra_mb=extra_mb)
-    return done.returncode, done.stderr
-
-
-def _png(path, width, height, *, depth=8, colour=0, rows=None, chunks=None):
-    """A PNG written by hand: ``rows`` (bytes of each row, filter byte first; zeros when not
-    given, compressed without holding the image in memory) or ``chunks`` verbatim."""
-    def chunk(kind, body):
-        return (struct.pack(">I", len(body)) + kind + body
-                + struct.pack(">I", zlib.crc32(kind + body)))
-    ihdr = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, 0)
-    if chunks is None:
-        if rows is None:  # zero rows: one compressed block of 1000 rows, repeated
-            bpp = {0: 1, 2: 3, 4: 2, 6: 4}[colour] * depth // 8
-            block = b"\0" * (1 + width * bpp) * min(height, 1000)
-            c = zlib.compressobj(1)
-            first = c.compress(block) + c.flush(zlib.Z_SYNC_FLUSH)
-            end = c.flush(zlib.Z_FINISH)[:-4]
-            adler = 1
-            for _ in range(height // min(height, 1000)):
-                adler = zlib.adler32(block, adler)
-            idat = first + first[2:] * (height // min(height, 1000) - 1) + end
-            idat += struct.pack(">I", adler)
-        else:
-            idat = zlib.compress(b"".join(rows))
-        chunks = [(b"IHDR", ihdr), (b"IDAT", idat), (b"IEND", b"")]
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + b"".join(chunk(k, b) for k, b in chunks))
-    return path
 
 
 def _descriptor(root, image_name, *, n_line="n 12 40 40"):
@@ -189,29 +140,27 @@ def test_emva_images_larger_than_their_descriptor_are_refused_before_decoding(tm
     """A 2 MB PNG of 20000 x 20000 (400 MB decoded) and a few-KB deflate TIFF claiming
     32000 x 32000 (1 GB), each behind an 'n 12 40 40' line, read in a child whose memory
     would not hold them."""
-    from test_io_safety import _bomb_tiff
 
     for name in ("png", "tif"):
         (tmp_path / name).mkdir()
-    _png(tmp_path / "png" / "big.png", 20000, 20000)
-    _bomb_tiff(tmp_path / "tif" / "big.tif")
+    hand_png(tmp_path / "png" / "big.png", 20000, 20000)
+    bomb_tiff(tmp_path / "tif" / "big.tif")
     assert max(p.stat().st_size for p in tmp_path.rglob("big.*")) < 2_000_000
     descs = [_descriptor(tmp_path / name, f"big.{name}") for name in ("png", "tif")]
-    code, err = _child_cli(["info", *descs])  # the first one stops the command
+    code, err = capped_cli(["info", *descs])  # the first one stops the command
     assert code == 2, err
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "20000 x 20000" in lines[0] and "'n' line" in lines[0], err
-    code, err = _child_cli(["info", descs[1]])
+    code, err = capped_cli(["info", descs[1]])
     assert code == 2 and "32000 x 32000" in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_imec_xml_declaring_a_huge_grid_is_refused_before_allocating(tmp_path):
-    from test_spectral import _xml
 
-    xml = _xml().replace("<measurement_range_end_nm>410</measurement_range_end_nm>",
+    xml = synthetic_imec_xml().replace("<measurement_range_end_nm>410</measurement_range_end_nm>",
                          "<measurement_range_end_nm>200000000</measurement_range_end_nm>")
     (tmp_path / "huge.xml").write_text(xml)
-    done = _in_child(f"""
+    done = capped_child(f"""
         from hsiffc.errors import DataFormatError
         from hsiffc.spectral.imec import read_imec_xml
         try:
@@ -237,7 +186,7 @@ def test_mosaic_tile_and_simulated_shape_are_bounded(sweep, tmp_path):
              "50000"]]
     code = "".join(f"sys.stderr.write('===\\n'); sys.stderr.flush(); codes.append(main({r!r})); "
                    for r in runs)
-    done = _in_child(f"codes = []; {code}sys.exit(10 * max(codes) + min(codes))")
+    done = capped_child(f"codes = []; {code}sys.exit(10 * max(codes) + min(codes))")
     assert done.returncode == 22, done.stderr
     parts = [[ln for ln in p.splitlines() if ln.strip()] for p in done.stderr.split("===")[1:]]
     assert [len(p) for p in parts] == [1, 1, 1], done.stderr
@@ -250,7 +199,7 @@ def test_mosaic_tile_and_simulated_shape_are_bounded(sweep, tmp_path):
 
 # -- 4. malformed input: one line, exit 2 -------------------------------------------------------
 def test_png_with_a_short_ihdr_is_one_line(tmp_path, capsys):
-    path = _png(tmp_path / "short.png", 1, 1,
+    path = hand_png(tmp_path / "short.png", 1, 1,
                 chunks=[(b"IHDR", b"\0\0\0\x08\0\0"), (b"IEND", b"")])
     assert main(["info", str(path), "--exposure-ms", "1"]) == 2
     _one_line(capsys, "short.png", "IHDR")
@@ -259,13 +208,13 @@ def test_png_with_a_short_ihdr_is_one_line(tmp_path, capsys):
 @pytest.mark.parametrize("area", [("-4", "2", "60", "28"), ("1", "2", "0", "28"),
                                   ("1", "2", "64", "28")], ids=["negative", "zero", "outside"])
 def test_imec_filter_area_outside_the_sensor_is_refused(tmp_path, area):
-    from test_spectral import _xml
 
-    text = _xml().replace("<offset_x>1</offset_x><offset_y>2</offset_y>\n      <width>60</width>"
-                          "<height>28</height>",
-                          f"<offset_x>{area[0]}</offset_x><offset_y>{area[1]}</offset_y>"
-                          f"<width>{area[2]}</width><height>{area[3]}</height>")
-    assert text != _xml()
+    text = synthetic_imec_xml().replace(
+        "<offset_x>1</offset_x><offset_y>2</offset_y>\n      <width>60</width>"
+        "<height>28</height>",
+        f"<offset_x>{area[0]}</offset_x><offset_y>{area[1]}</offset_y>"
+        f"<width>{area[2]}</width><height>{area[3]}</height>")
+    assert text != synthetic_imec_xml()
     (tmp_path / "a.xml").write_text(text)
     from hsiffc.spectral.imec import read_imec_xml
 
@@ -362,7 +311,7 @@ def test_pipeline_array_inflating_to_more_than_the_frame_is_refused_before_loadi
             for _ in range(32):
                 fh.write(block)
     assert pipe.stat().st_size < 4_000_000
-    code, err = _child_cli(["correct", sweep / "s.tif", "--pipeline", pipe, "-o",
+    code, err = capped_cli(["correct", sweep / "s.tif", "--pipeline", pipe, "-o",
                             tmp_path / "out"])
     assert code == 2, err
     assert len(err.strip().splitlines()) == 1 and "big_" in err, err
@@ -380,7 +329,7 @@ def test_valid_products_still_load(sweep, pipeline_file):
 # -- 6. damaged PNG data: hsiffc's line only, never libpng's ------------------------------------
 def test_damaged_png_gives_one_line_and_nothing_from_libpng(tmp_path):
     rows = [bytes([0]) + bytes(range(k, k + 16)) for k in range(12)]
-    good = _png(tmp_path / "good.png", 16, 12, rows=rows)
+    good = hand_png(tmp_path / "good.png", 16, 12, rows=rows)
     with open_source(good, exposure_ms=1, bit_depth=8) as src:
         assert src.to_sweep().data[0, 3, 0] == 3
     blob = good.read_bytes()
@@ -388,13 +337,13 @@ def test_damaged_png_gives_one_line_and_nothing_from_libpng(tmp_path):
     idat = zlib.compress(b"".join(rows))
     at = blob.index(b"IDAT") + 10
     (tmp_path / "crc.png").write_bytes(blob[:at] + bytes([blob[at] ^ 0xFF]) + blob[at + 1:])
-    _png(tmp_path / "zlib.png", 16, 12, chunks=[(b"IHDR", ihdr), (b"IDAT", idat[:2] + b"\xff" * 20),
-                                                 (b"IEND", b"")])
-    _png(tmp_path / "filter.png", 16, 12, rows=[bytes([9]) + r[1:] for r in rows])
+    hand_png(tmp_path / "zlib.png", 16, 12,
+             chunks=[(b"IHDR", ihdr), (b"IDAT", idat[:2] + b"\xff" * 20), (b"IEND", b"")])
+    hand_png(tmp_path / "filter.png", 16, 12, rows=[bytes([9]) + r[1:] for r in rows])
     big = struct.pack(">IIBBBBB", 16, 2000, 8, 0, 0, 0, 0)  # a decoder might read this one
-    _png(tmp_path / "ihdr2.png", 16, 12, chunks=[(b"IHDR", ihdr), (b"IHDR", big),
+    hand_png(tmp_path / "ihdr2.png", 16, 12, chunks=[(b"IHDR", ihdr), (b"IHDR", big),
                                                  (b"IDAT", idat), (b"IEND", b"")])
-    _png(tmp_path / "short.png", 16, 12, chunks=[
+    hand_png(tmp_path / "short.png", 16, 12, chunks=[
         (b"IHDR", ihdr), (b"IDAT", zlib.compress(b"".join(rows[:6]))), (b"IEND", b"")])
     names = ["crc", "zlib", "filter", "ihdr2", "short"]
     code = "".join(f"sys.stderr.write('=== {n}\\n'); sys.stderr.flush(); "

@@ -15,6 +15,7 @@ from hsiffc.cli import main
 from hsiffc.io.corrected import read_provenance
 from test_hostile_inputs import sweep  # noqa: F401  (the module's simulated sweep + calibration)
 from checks import one_line as _one_line  # the one checker of one-line errors
+from testfiles import capped_cli, synthetic_imec_xml
 
 
 # -- cause: the resume identity left out the metadata sources' content ---------------------------
@@ -244,13 +245,12 @@ def test_a_cube_over_the_byte_limit_is_refused_before_it_is_allocated(monkeypatc
 # -- cause: only --mosaic WxH was checked against the frame; an IMEC pattern or a file's own ------
 def test_a_tile_larger_than_the_frame_from_an_imec_pattern_or_the_file_is_one_line(tmp_path,
                                                                                      capsys):
-    from test_spectral import _xml
 
     from hsiffc import Sweep
     from hsiffc.data.mosaic import Mosaic
     from hsiffc.io import write_sweep
 
-    xml = _xml(order=tuple(range(900)))
+    xml = synthetic_imec_xml(order=tuple(range(900)))
     xml = xml.replace("<pattern_width>2</pattern_width><pattern_height>2</pattern_height>",
                       "<pattern_width>30</pattern_width><pattern_height>30</pattern_height>")
     xml = xml.replace('nr_elements="4"><data>' + ", ".join(["0.01"] * 4),
@@ -551,13 +551,12 @@ def test_exports_run_inside_the_folder_lock_and_clear_an_interrupted_exports_par
     ("<fwhm_nm>2.4</fwhm_nm>", "<fwhm_nm>-2.4</fwhm_nm>", ">= 0"),
     ("<QE>100</QE>", "<QE>-100</QE>", ">= 0")], ids=["peak", "fwhm", "qe"])
 def test_imec_peaks_with_impossible_values_are_refused(tmp_path, old, new, needle):
-    from test_spectral import _xml
 
     from hsiffc.errors import DataFormatError
     from hsiffc.spectral.imec import read_imec_xml
 
-    text = _xml().replace(old, new, 1)
-    assert text != _xml()
+    text = synthetic_imec_xml().replace(old, new, 1)
+    assert text != synthetic_imec_xml()
     (tmp_path / "a.xml").write_text(text)
     with pytest.raises(DataFormatError, match=needle) as err:
         read_imec_xml(tmp_path / "a.xml")
@@ -642,7 +641,6 @@ def test_a_small_ome_declaring_a_huge_cube_is_refused_within_a_memory_bound(tmp_
     declared 3.3 GB; the same attack at a tenth of the scale) is refused from its declared size
     in one line naming HSIFFC_MAX_BYTES, in a process whose address space is capped at 150 MB
     above its imports: nothing of the declared size is ever allocated."""
-    from test_hostile_inputs import _child_cli
 
     c, h, w = 3, 5120, 5120                       # 3 x 5120 x 5120 x 2 bytes per series
     tile = np.zeros((256, 256), np.uint16)
@@ -657,7 +655,7 @@ def test_a_small_ome_declaring_a_huge_cube_is_refused_within_a_memory_bound(tmp_
     assert 2 * c * h * w * 2 > 300_000_000        # ... declaring 315 MB of planes
     monkeypatch.setenv("HSIFFC_MAX_BYTES", "100000000")
     for argv in (["quicklook", path, "-o", tmp_path / "q.png"],):
-        rc, err = _child_cli(argv, extra_mb=150)
+        rc, err = capped_cli(argv, extra_mb=150)
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert rc == 2 and len(lines) == 1, err
         assert "HSIFFC_MAX_BYTES" in lines[0] and "bomb.ome.tif" in lines[0]
@@ -667,7 +665,6 @@ def test_a_small_ome_declaring_a_huge_cube_is_refused_within_a_memory_bound(tmp_
 def test_a_sparse_3_gb_envi_header_is_refused_from_its_size_within_a_memory_bound(tmp_path):
     """A sparse 3 GB .hdr (it took 3 GB of memory: the parser read it whole) is refused from
     its stat, before it is read, in a process capped at 100 MB above its imports."""
-    from test_hostile_inputs import _child_cli
 
     np.zeros((2, 4, 5), np.uint16).tofile(tmp_path / "c.img")
     header = tmp_path / "c.hdr"
@@ -677,7 +674,7 @@ def test_a_sparse_3_gb_envi_header_is_refused_from_its_size_within_a_memory_boun
     assert header.stat().st_size == 3 * 2 ** 30
     for argv in (["info", header, "--exposure-ms", "1"], ["quicklook", header, "-o",
                                                             tmp_path / "q.png"]):
-        rc, err = _child_cli(argv, extra_mb=100)
+        rc, err = capped_cli(argv, extra_mb=100)
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert rc == 2 and len(lines) == 1, err
         assert "HSIFFC_MAX_HEADER_BYTES" in lines[0] and "c.hdr" in lines[0]

@@ -3,9 +3,7 @@ structure, a missing codec named."""
 
 from __future__ import annotations
 
-import struct
 import time
-import zlib
 
 import numpy as np
 import pytest
@@ -13,34 +11,13 @@ import tifffile
 
 from hsiffc.errors import DataFormatError
 from hsiffc.io import ReadLimits, default_limits, open_source, read_sweep
+from testfiles import bomb_tiff
 
 
-def _bomb_tiff(path, height=32000, width=32000):
-    """A tiny deflate TIFF whose header claims a height x width uint8 image (a few KB)."""
-    strip = zlib.compress(b"\0" * width * 8, 9)
-    nstrips = height // 8
-    entries = []
-    data_at = 8
-    offsets_at = data_at + len(strip)
-    counts_at = offsets_at + 4 * nstrips
-    ifd_at = counts_at + 4 * nstrips
-    tags = [(256, 4, 1, width), (257, 4, 1, height), (258, 3, 1, 8), (259, 3, 1, 8),
-            (262, 3, 1, 1), (273, 4, nstrips, offsets_at), (277, 3, 1, 1), (278, 4, 1, 8),
-            (279, 4, nstrips, counts_at)]
-    for code, typ, count, value in tags:
-        packed = struct.pack("<HHI", code, typ, count)
-        packed += struct.pack("<HH", value, 0) if typ == 3 else struct.pack("<I", value)
-        entries.append(packed)
-    blob = b"II*\0" + struct.pack("<I", ifd_at) + strip
-    blob += struct.pack(f"<{nstrips}I", *([data_at] * nstrips))
-    blob += struct.pack(f"<{nstrips}I", *([len(strip)] * nstrips))
-    blob += struct.pack("<H", len(entries)) + b"".join(entries) + struct.pack("<I", 0)
-    path.write_bytes(blob)
-    return path
 
 
 def test_decompression_bomb_refused_fast(tmp_path):
-    path = _bomb_tiff(tmp_path / "bomb.tif")
+    path = bomb_tiff(tmp_path / "bomb.tif")
     assert path.stat().st_size < 64_000
     t0 = time.perf_counter()
     with pytest.raises(DataFormatError) as excinfo:

@@ -246,3 +246,60 @@ def test_imports_and_the_version_load_no_compiler(code):
                          text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     assert json.loads(run.stdout.splitlines()[-1]) == []
+
+
+def private_imports(paths, own: set[str]):
+    """(path, line, names) of every import of a ``_``-prefixed name (not a dunder) from a module
+    of this project (a top-level name of ``own``, such as ``hsiffc`` or ``test_spectral``, or a
+    relative import), and of a ``_``-prefixed module of another folder of the package (a
+    relative import going up, or ``hsiffc.FOLDER._module`` from outside FOLDER). A folder's
+    own private modules are its internals; tests may import a private module to test it."""
+    for path in paths:
+        in_package = PACKAGE in path.parents
+        folder = path.parent.relative_to(PACKAGE).parts[:1] if in_package else ()
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                parts = [p for p in (node.module or "").split(".") if p]
+                if node.level == 0 and (parts or [""])[0] not in own:
+                    continue
+                private = [a.name for a in node.names if _private(a.name)]
+                crosses = (node.level >= 2 if node.level else
+                           parts[0] == "hsiffc" and tuple(parts[1:2]) != folder)
+                if in_package and crosses:
+                    private += [p for p in parts if _private(p)]
+            elif isinstance(node, ast.Import) and in_package:
+                private = [p for a in node.names if a.name.startswith("hsiffc.")
+                           for p in a.name.split(".") if _private(p)]
+            else:
+                continue
+            if private:
+                yield path, node.lineno, ", ".join(private)
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def test_no_module_imports_a_private_name_of_another():
+    """One rule for the package and its tests: what another module may use is public; a
+    shared test helper lives in a public module (``tests/checks.py``, ``tests/testfiles.py``),
+    so a test module also runs alone (pytest puts only its own folder on the path)."""
+    tests = REPO / "tests"
+    own = {"hsiffc"} | {p.stem for p in tests.rglob("*.py")}
+    found = list(private_imports(sorted(PACKAGE.rglob("*.py")) + sorted(tests.rglob("*.py")),
+                                 own))
+    assert not found, "private names imported across modules:\n" + "\n".join(
+        f"  {path.relative_to(REPO)}:{line}: {names}" for path, line, names in found)
+
+
+def test_the_private_import_check_sees_one(tmp_path):
+    bad = tmp_path / "test_x.py"
+    bad.write_text("def f():\n    from test_spectral import _xml\n")
+    ok = tmp_path / "test_y.py"
+    ok.write_text("from testfiles import synthetic_imec_xml\nfrom os import _exit\n"
+                  "from hsiffc.io._metadata import parse_mosaic\n")
+    found = list(private_imports([bad, ok], {"test_spectral", "testfiles", "hsiffc"}))
+    assert [(line, names) for _, line, names in found] == [(2, "_xml")]
+    io, batch = PACKAGE / "io" / "source.py", PACKAGE / "batch" / "task.py"
+    assert [names for _, _, names in private_imports([io, batch], {"hsiffc"})] == []

@@ -18,6 +18,7 @@ from hsiffc.spectral import (DEFAULT_GRID, BandSet, Illumination, blackbody, cie
                              paper_8band, read_imec_xml, spectral_correction_matrix)
 
 FINE = np.arange(400.0, 1000.0001, 0.05)
+from testfiles import synthetic_imec_xml
 
 
 def measured_fwhm(wl, r):
@@ -398,49 +399,10 @@ def test_derived_correction_matrix_on_real_bands(cal):
 
 # -- IMEC XML: bad files ---------------------------------------------------------------------------
 
-def _xml(*, pattern=True, n_samples=11, root="sensor_calibration", order=(2, 0, 3, 1)):
-    wl = np.arange(400, 411)
-    bands = []
-    for pos in order:
-        centre = 402 + 2 * pos
-        comp = 100 * np.exp(-0.5 * ((wl - centre) / 1.0) ** 2)
-        comp = comp[:n_samples] if pos == 1 else comp
-        bands.append(f"""
-      <band version="2" pattern_position_index="{pos}" selected="true">
-        <peaks><peak version="0" order="1"><wavelength_nm>{centre}</wavelength_nm>
-          <fwhm_nm>2.4</fwhm_nm><QE>100</QE></peak></peaks>
-        <response_composition version="0" nr_elements="{comp.size}">
-          <data>{", ".join(f"{v:.6g}" for v in comp)}</data></response_composition>
-      </band>""")
-    pat = "<pattern_width>2</pattern_width><pattern_height>2</pattern_height>" if pattern else ""
-    corr = ", ".join(["0.01"] * 4)
-    return f"""<?xml version="1.0" encoding="utf-8"?>
-<{root} version="0">
-  <sensor_info version="0"><width>64</width><height>32</height><adc_gain>1</adc_gain>
-    <input_bpp>10</input_bpp><effective_bpp>10</effective_bpp><pixel_pitch>5.5</pixel_pitch>
-  </sensor_info>
-  <filter_info version="2" layout="MOSAIC">
-    <filter_area version="0"><offset_x>1</offset_x><offset_y>2</offset_y>
-      <width>60</width><height>28</height></filter_area>
-    {pat}
-    <calibration_info version="0"><measurement_range_start_nm>400</measurement_range_start_nm>
-      <measurement_range_end_nm>410</measurement_range_end_nm>
-      <measurement_resolution_nm>1</measurement_resolution_nm>
-      <nr_measurements>11</nr_measurements></calibration_info>
-    <spectral_correction_info version="1"><fwhm_virtual_filters_nm>3</fwhm_virtual_filters_nm>
-      <virtual_bands><band version="0"><wavelength_nm>405</wavelength_nm>
-        <custom_spectral_correction version="0" nr_elements="4"><data>{corr}</data>
-        </custom_spectral_correction></band></virtual_bands></spectral_correction_info>
-    <bands>{"".join(bands)}
-    </bands>
-  </filter_info>
-</{root}>
-"""
-
 
 def test_minimal_xml_parses_in_position_order(tmp_path):
     p = tmp_path / "good.xml"
-    p.write_text(_xml())
+    p.write_text(synthetic_imec_xml())
     cal = read_imec_xml(p)
     assert cal.bands.centres_nm.tolist() == [402, 404, 406, 408]   # sorted by position index
     assert cal.bands.responses.max() == pytest.approx(1.0)         # 100 % -> 1, no rejection
@@ -452,12 +414,13 @@ def test_minimal_xml_parses_in_position_order(tmp_path):
 
 @pytest.mark.parametrize("case, content, needle", [
     ("not_xml", "this is not <xml", "not a well-formed XML"),
-    ("no_pattern", _xml(pattern=False), "pattern_width"),
-    ("short", _xml(n_samples=10), "10 samples"),
-    ("wrong_root", _xml(root="camera"), "sensor_calibration"),
-    ("bad_number", _xml().replace("<width>64</width>", "<width>wide</width>"), "sensor_info/width"),
+    ("no_pattern", synthetic_imec_xml(pattern=False), "pattern_width"),
+    ("short", synthetic_imec_xml(n_samples=10), "10 samples"),
+    ("wrong_root", synthetic_imec_xml(root="camera"), "sensor_calibration"),
+    ("bad_number", synthetic_imec_xml().replace("<width>64</width>", "<width>wide</width>"),
+     "sensor_info/width"),
     # "²" passes str.isdigit but not int(): the reader must still say which element is bad
-    ("superscript_index", _xml().replace('pattern_position_index="2"',
+    ("superscript_index", synthetic_imec_xml().replace('pattern_position_index="2"',
                                          'pattern_position_index="\u00b2"'),
      "pattern_position_index"),
 ], ids=["not_xml", "no_pattern", "short", "wrong_root", "bad_number", "superscript_index"])
@@ -474,8 +437,8 @@ def test_non_numeric_element_count_is_ignored_not_a_crash(tmp_path):
     # nr_elements is only cross-checked when it is a number; "²" passes str.isdigit but not
     # int(), and used to escape as a bare ValueError
     odd, plain = tmp_path / "count.xml", tmp_path / "plain.xml"
-    odd.write_text(_xml().replace('nr_elements="4"', 'nr_elements="\u00b2"'))
-    plain.write_text(_xml())
+    odd.write_text(synthetic_imec_xml().replace('nr_elements="4"', 'nr_elements="\u00b2"'))
+    plain.write_text(synthetic_imec_xml())
     assert (read_imec_xml(odd).mosaic().pattern.tolist()
             == read_imec_xml(plain).mosaic().pattern.tolist())
 
@@ -489,6 +452,6 @@ def test_missing_xml_file(tmp_path):
 
 def test_duplicate_position_index(tmp_path):
     p = tmp_path / "dup.xml"
-    p.write_text(_xml(order=(0, 1, 1, 3)))
+    p.write_text(synthetic_imec_xml(order=(0, 1, 1, 3)))
     with pytest.raises(DataFormatError, match="repeated"):
         read_imec_xml(p)
