@@ -51,11 +51,13 @@ SPATIAL_FACTOR = 2.0  # a step with more than this x the median frames per step 
 def _add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
     """Add frame number ``j`` of a step (``frame`` flat, any dtype, DN) to its accumulators
     (flat, in place); return the frame's sum per group (whole frame, then each of ``n_bands``
-    bands by ``band``). ``pairs`` (3,) gathers the first two frames' pixels below full scale
-    in both: count, sum of their means, sum of squared differences. Whole-array numpy with one
-    float64 temporary (the difference from the first frame); the full-scale test only when
-    the frame reaches full scale. :func:`hsiffc.emva1288.compiled.add_frame` is the same in
-    one compiled pass."""
+    bands by ``band``). ``pairs`` (3,), unless None, gathers the first two frames' pixels below
+    full scale in both: count, sum of their means, sum of squared differences. Whole-array
+    numpy: the second frame sets ``s1`` and ``s2`` (the first leaves them as they are), the
+    difference from the first frame is taken in float32 where that is exact (integer frames of
+    up to 16 bits against a float32 first frame), the full-scale tests only run when the frame
+    reaches full scale. :func:`hsiffc.emva1288.compiled.add_frame` is the same in one compiled
+    pass."""
     sums = np.zeros(1 + n_bands)
     sums[0] = frame.sum(dtype=np.float64)
     if n_bands > 0:
@@ -63,26 +65,33 @@ def _add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
     top = frame.max() >= fs
     if j == 0:
         first[:] = frame
-        s1[:] = 0.0
-        s2[:] = 0.0
         if top:
             np.greater_equal(frame, fs, out=clip)
         else:
             clip[:] = False
         return sums
-    d = np.subtract(frame, first, dtype=np.float64)
-    s1 += d
+    exact32 = first.dtype == np.float32 and frame.dtype.kind in "ui" and frame.itemsize <= 2
+    d = np.subtract(frame, first, dtype=np.float32 if exact32 else np.float64)
     if j == 1:
-        ok = first < fs
-        if top:
-            ok &= frame < fs
-        pairs[0] += ok.sum()
-        pairs[1] += 0.5 * (first[ok].sum(dtype=np.float64) + frame[ok].sum(dtype=np.float64))
-        d *= d
-        pairs[2] += d[ok].sum()
+        s1[:] = d
+        del d
+        np.multiply(s1, s1, out=s2)
+        if pairs is not None:
+            if top or clip.any():
+                ok = first < fs
+                if top:
+                    ok &= frame < fs
+                pairs[0] += ok.sum()
+                pairs[1] += 0.5 * (first[ok].sum(dtype=np.float64)
+                                   + frame[ok].sum(dtype=np.float64))
+                pairs[2] += s2[ok].sum()
+            else:  # every pixel below full scale in both: the sums at hand
+                pairs[0] += frame.size
+                pairs[1] += sums[0] - 0.5 * s1.sum()  # (first + frame) / 2, first = frame - d
+                pairs[2] += s2.sum()
     else:
-        d *= d
-    s2 += d
+        s1 += d
+        s2 += np.multiply(d, d, dtype=np.float64)
     if top:
         clip |= frame >= fs
     return sums
@@ -91,27 +100,39 @@ def _add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
 def _finish_step(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_sum):
     """Reduce a step of ``n`` frames: the sum of the per-pixel temporal variances per group,
     the number of pixels at full scale in some frame, and (else empty) the mean image
-    (float32, full scale where clipped) and the sum image (float64)."""
+    (float32, full scale where clipped) and the sum image (float64). ``s1`` and ``s2`` (only
+    read for ``n`` > 1) are used up: the variance is computed in place, no temporaries beside
+    the images returned."""
+    mean = np.empty(0, np.float32)
+    total = np.empty(0)
+    if n < 2:
+        if want_mean:
+            mean = first.astype(np.float32)
+            mean[clip] = fs
+        if want_sum:
+            total = first.astype(np.float64)
+        vs = np.zeros(1 + n_bands)
+        return vs, float(clip.sum()), mean, total
     inv = 1.0 / n
-    var = np.multiply(s1, s1)  # the one temporary: (s2 - s1^2 / n) / (n - 1) in place
-    if n > 1:
-        var *= inv
-        np.subtract(s2, var, out=var)
+    if want_mean:
+        m = np.multiply(s1, inv)
+        m += first
+        mean = m.astype(np.float32)
+        del m
+        mean[clip] = fs
+    if want_sum:
+        total = np.multiply(first, np.float64(n), dtype=np.float64)
+        total += s1
+    var = s2  # (s2 - s1^2 / n) / (n - 1), in place
+    s1 *= s1
+    s1 *= inv
+    var -= s1
+    if n > 2:
         var /= n - 1
-    else:
-        var[:] = 0.0
     vs = np.zeros(1 + n_bands)
     vs[0] = var.sum()
     if n_bands > 0:
         vs[1:] = np.bincount(band, var, n_bands)
-    del var
-    mean = np.empty(0, np.float32)
-    if want_mean:
-        mean = (s1 * inv + first).astype(np.float32)
-        mean[clip] = fs
-    total = np.empty(0)
-    if want_sum:
-        total = first * np.float64(n) + s1
     return vs, float(clip.sum()), mean, total
 
 
@@ -287,7 +308,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         if st.first is None:
             st.first = np.empty(n_total, _first_dtype(frame.dtype))
         sums = add_frame(np.ascontiguousarray(frame).reshape(-1), st.n, st.first, st.s1,
-                         st.s2, st.clip, band, n_bands, fs, st.pairs)
+                         st.s2, st.clip, band, n_bands, fs,
+                         st.pairs if keep_step_means or use_compiled else None)
         st.frame_sums.append(sums)
         st.n += 1
     finish()

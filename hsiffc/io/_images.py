@@ -32,6 +32,13 @@ _CHANNELS = {0: 1, 2: 3, 4: 4, 6: 4}
 # valid IHDR bit depths per colour type, and samples per pixel (PNG specification, 11.2.2)
 _DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
 _SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+try:  # libdeflate's inflate and checksums, libpng's decoder (a dependency; zlib and OpenCV else)
+    import imagecodecs as _codecs
+
+    _crc32, _adler32 = _codecs.deflate_crc32, _codecs.deflate_adler32
+except (ImportError, AttributeError):  # pragma: no cover - imagecodecs is a dependency
+    _codecs = None
+    _crc32, _adler32 = zlib.crc32, zlib.adler32
 # Adam7 passes: (first column, first row, column step, row step)
 _ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2),
           (0, 1, 1, 2))
@@ -147,7 +154,7 @@ def _idat_run(blob: bytes, path) -> tuple[int, int, bytes]:
         crc = blob[offset + 8 + length:offset + 12 + length]
         if len(crc) < 4:
             break
-        if zlib.crc32(body, zlib.crc32(kind)) != struct.unpack(">I", crc)[0]:
+        if _crc32(body, _crc32(kind)) != struct.unpack(">I", crc)[0]:
             raise _damaged(path, f"chunk {kind.decode('latin-1')!r} at byte {offset} fails its "
                                  "CRC check")
         if kind == b"IDAT":
@@ -169,15 +176,23 @@ def _inflate(idat: bytes, facts: dict, path) -> bytes:
     filter type on every row."""
     rows = _inflated_rows(facts)
     expected = sum(n * stride for n, stride in rows)
-    inflater = zlib.decompressobj()
-    try:
-        raw = inflater.decompress(idat, expected + 1)
-    except zlib.error as exc:
-        raise _damaged(path, f"its image data do not inflate ({exc})") from None
-    if len(raw) != expected or not inflater.eof:
-        raise _damaged(path, f"its image data inflate to {len(raw)}{'+' * (len(raw) > expected)}"
-                             f" bytes{'' if inflater.eof else ' (the stream does not end)'}, "
-                             f"the header states {expected}")
+    raw = None
+    if _codecs is not None:  # libdeflate: 2-3 x faster than zlib's inflate
+        try:
+            raw = _codecs.deflate_decode(idat, out=expected)
+        except Exception:  # imagecodecs.DeflateError: zlib names the damage below
+            raw = None
+    if raw is None or len(raw) != expected:
+        inflater = zlib.decompressobj()
+        try:
+            raw = inflater.decompress(idat, expected + 1)
+        except zlib.error as exc:
+            raise _damaged(path, f"its image data do not inflate ({exc})") from None
+        if len(raw) != expected or not inflater.eof:
+            raise _damaged(path, f"its image data inflate to {len(raw)}"
+                                 f"{'+' * (len(raw) > expected)} bytes"
+                                 f"{'' if inflater.eof else ' (the stream does not end)'}, "
+                                 f"the header states {expected}")
     at = 0
     for n, stride in rows:
         filters = np.frombuffer(raw, np.uint8, n * stride, at)[::stride]
@@ -236,10 +251,10 @@ def _stored_png(blob: bytes, start: int, end: int, raw: bytes) -> bytearray:
         out[at:at + 5] = struct.pack("<BHH", i == n_blocks - 1, len(part), 0xFFFF ^ len(part))
         out[at + 5:at + 5 + len(part)] = part
         at += 5 + len(part)
-    out[at:at + 4] = struct.pack(">I", zlib.adler32(raw))
+    out[at:at + 4] = struct.pack(">I", _adler32(raw))
     at += 4
     body = memoryview(out)[start + 4:at]
-    out[at:at + 4] = struct.pack(">I", zlib.crc32(body))
+    out[at:at + 4] = struct.pack(">I", _crc32(body))
     body.release()
     out[at + 4:] = memoryview(blob)[end:]
     return out
@@ -275,6 +290,13 @@ def decode_png(path, facts: dict | None = None) -> np.ndarray:
     start, end, idat = _idat_run(blob, path)
     stored = _stored_png(blob, start, end, _inflate(idat, facts, path))
     del blob, idat
+    if _codecs is not None and facts["colour_type"] == 0:
+        # grayscale: imagecodecs' libpng gives OpenCV's array (colour PNGs go to OpenCV, whose
+        # channel order and gray+alpha expansion the readers expect)
+        try:
+            return _codecs.png_decode(stored)
+        except Exception:  # imagecodecs.PngError: OpenCV says what is wrong below
+            pass
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:

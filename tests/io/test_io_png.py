@@ -48,7 +48,7 @@ def test_png_decodes_as_libpng_does(tmp_path, depth, interlace, shape, n_idat):
     rng = np.random.default_rng(depth + 2 * interlace + n_idat)
     h, w = shape  # (300, 170) at 16 bits: 102 kB of image data, two stored blocks
     path = _random_png(tmp_path / "r.png", rng, w, h, depth, interlace, n_idat,
-                       extra=[(b"tEXt", b"Comment\0random rows")])
+                       extra=[(b"tEXt", b"Comment\0random rows"), (b"sBIT", bytes([depth]))])
     expected = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     assert expected is not None and expected.shape == shape
     with open_source(path, exposure_ms=1.0, bit_depth=depth) as src:
