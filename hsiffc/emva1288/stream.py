@@ -20,11 +20,11 @@ What a step gives, per pixel group:
 
 A spatial stack (one light and one dark step of many frames) keeps its sum image and its mean
 temporal variance per group (DN^2) for the nonuniformity figures, the defect-pixel histograms
-and the spectrograms (:mod:`.spatial`). With ``keep_step_means`` every step's
-per-pixel mean image (float32) is kept for the leakage calibration, with a pixel set to full
-scale where some frame of its step was (so the calibration sees it clipped), and the first
-two frames of each step give the calibration's photon transfer (pixels below full scale in
-both: their number, mean level and half the mean squared difference).
+and the spectrograms (:mod:`.spatial`). With ``keep_step_means`` every step's per-pixel mean
+image (float32; or its values at given pixels) is kept for the leakage calibration, with a
+pixel set to full scale where some frame of its step was (so the calibration sees it clipped),
+and the first two frames of each step give the calibration's photon transfer (pixels below full
+scale in both: their number, mean level and half the mean squared difference).
 
 The frames are read by :class:`hsiffc.io.FrameSource`, which decodes the next frames on worker
 threads while the kernel works on the current one: both cores are busy (decoding a frame
@@ -207,7 +207,7 @@ def _group_map(source, frame_shape, mosaic_bands):
     return np.empty(0, np.int64), 0
 
 
-def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = False,
+def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means=False,
                   spatial_steps=None) -> dict:
     """Reduce a measurement to its EMVA 1288 step statistics, one frame at a time.
 
@@ -220,9 +220,9 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         each step one after the other (EMVA 1288 descriptors do).
     mosaic_bands : bool
         Also per band when the measurement has a mosaic.
-    keep_step_means : bool
+    keep_step_means : bool or array of int
         Keep every step's per-pixel mean image and the pair statistics (for the leakage
-        calibration).
+        calibration); given pixels (flat indices), their means only.
     spatial_steps : sequence of int, optional
         The steps of the spatial stack (default: ``meta["spatial_steps"]``, else the steps with
         more than twice the median number of frames).
@@ -236,7 +236,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         stacks' ``sum`` images, mean temporal variances per group ``var_mean`` and frame
         counts, by kind, or None),
         ``frame_shape``, ``n_pixels``, ``bit_depth``, ``full_scale_dn``; with
-        ``keep_step_means`` also ``step_means`` (S, H, W) float32 and ``pairs`` (S, 3).
+        ``keep_step_means`` also ``step_means`` (S, H, W) float32, or (S, 1, N) at N given
+        pixels (``step_mean_pixels``, else None), and ``pairs`` (S, 3) (over all pixels).
 
     Raises
     ------
@@ -245,6 +246,11 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
     """
     meta = getattr(source, "meta", {}) or {}
     frame_shape = tuple(source.frame_shape)
+    pixels = None
+    if keep_step_means is not None and not isinstance(keep_step_means, bool):
+        pixels = np.asarray(keep_step_means, np.int64).ravel()
+    keep_step_means = pixels is not None or bool(keep_step_means)
+    mean_shape = frame_shape if pixels is None else (1, pixels.size)
     bit_depth = int(source.bit_depth)
     fs = float(2 ** bit_depth - 1)
     where = getattr(source, "source", None) or getattr(source, "label", None) or None
@@ -294,7 +300,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
                                                 "var_mean": vs / n_pix,
                                                 "L": st.n, "step": st.step})
         elif keep_step_means:
-            means.append((st.step, mean_img.reshape(frame_shape)))
+            means.append((st.step, (mean_img if pixels is None else mean_img[pixels])
+                           .reshape(mean_shape)))
         done.add(st.step)
 
     for frame, step, kind, exposure, photons in _frames_of(source):
@@ -340,7 +347,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         sweep_rows = [r for r in rows if not r["spatial"]]
         means.sort(key=lambda m: m[0])  # in step order, as the rows
         out["step_means"] = (np.stack([m for _, m in means]) if means else
-                             np.empty((0,) + frame_shape, np.float32))
+                             np.empty((0,) + mean_shape, np.float32))
+        out["step_mean_pixels"] = pixels
         out["sweep_step_info"] = {k: np.array([r[k] for r in sweep_rows]) for k in
                                   ("step", "kind", "exposure_ms", "photons", "n_frames")}
         out["pairs"] = np.array([r["pairs"] for r in sweep_rows])
