@@ -28,11 +28,11 @@ scale in both: their number, mean level and half the mean squared difference).
 
 The frames are read by :class:`hsiffc.io.FrameSource`, which decodes the next frames on worker
 threads while the kernel works on the current one: both cores are busy (decoding a frame
-costs several times what the kernel does). The kernel runs compiled (:mod:`.compiled`: numba,
-one pass over the frame in its own dtype, no temporaries) for large frames in large sets
-(:data:`COMPILED_FRAME_PIXELS`, :data:`COMPILED_FROM`), and as whole-array numpy otherwise,
-where loading numba's code generator would cost more than the compiled pass saves (a small
-set never loads numba); the two give the same statistics (tests/emva1288/test_emva_release4.py).
+costs several times what the kernel does). The kernel runs as whole-array numpy, or compiled
+(:mod:`.compiled`: numba, one pass over the frame in its own dtype, no temporaries) for very
+large frames in large sets (:data:`COMPILED_FRAME_PIXELS`, :data:`COMPILED_FROM`), where
+numpy's temporaries would outweigh the memory of numba's code generator (a smaller set never
+loads numba); the two give the same statistics (tests/emva1288/test_emva_release4.py).
 A step's first frame is held as float32 where that is exact (integer frames of up to 16 bits).
 """
 
@@ -149,17 +149,15 @@ def _finish_compiled(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_
 
 #: the compiled kernel runs for frames of at least :data:`COMPILED_FRAME_PIXELS` pixels in a
 #: set of at least :data:`COMPILED_FROM` pixel-frames. Its first call loads numba's code
-#: generator: 1.1 s of CPU and about 90 MB resident here, against 4.3 ms instead of numpy's
-#: 10.3 ms of CPU per 1024 x 1024 frame (and 5.5 against 11.2 ms per step's reduction): the time
-#: comes back from about 1e8 pixel-frames, the memory only where the frames' own arrays
-#: (about 21 bytes per pixel for the step, 16 for the stacks' sums, numpy's 8-byte temporary)
-#: make the 90 MB small (the benchmark's 1024 x 1024 set, 50 steps, whole processes: compiled
-#: 11.6-11.8 s of CPU and 267-270 MB beside the reference's 10.6 s and 186 MB, two runs; numpy
-#: 12.3 s and 154 MB in the benchmark).
+#: generator: about 1.2 s of CPU and 130 MB resident here. Per step of two 16-bit frames the
+#: numpy form now takes no longer (CPU, two adds and the reduction: 10.4 against 13.6 ms at
+#: 1024 x 1024, 47 against 54 ms at 2048 x 2048; benchmarks on random frames, load 5), so the
+#: compiled form only runs where numpy's temporaries (a float32 and a float64 difference, 12
+#: bytes per pixel: 200 MB at 4096 x 4096) outweigh numba's fixed memory.
 #: The choice depends on the frame size, not on the number of steps, so that memory stays flat
 #: in the number of steps.
 COMPILED_FROM = 1e8
-COMPILED_FRAME_PIXELS = 1 << 21
+COMPILED_FRAME_PIXELS = 1 << 24
 
 
 def _first_dtype(dtype) -> type:
