@@ -8,6 +8,11 @@ prints its own error lines), and an ``sBIT`` chunk, when present, gives the sign
 bits of the samples (e.g. 12 in a 16-bit PNG) as the bit depth. Palette PNGs are refused (they
 do not hold counts). Gray+alpha and RGB(A) PNGs give 4- or 3-channel frames that
 :mod:`hsiffc.io._quirks` reduces to one channel when the channels are equal.
+
+The image data are inflated once, by the check (libdeflate through imagecodecs, zlib where it
+fails, to name the damage): the decoder gets them back as stored deflate blocks, a copy, and
+only unfilters them (imagecodecs' libpng for grayscale, OpenCV for colour, whose channel order
+the readers expect).
 """
 
 from __future__ import annotations
@@ -290,13 +295,16 @@ def decode_png(path, facts: dict | None = None) -> np.ndarray:
     start, end, idat = _idat_run(blob, path)
     stored = _stored_png(blob, start, end, _inflate(idat, facts, path))
     del blob, idat
-    if _codecs is not None and facts["colour_type"] == 0:
-        # grayscale: imagecodecs' libpng gives OpenCV's array (colour PNGs go to OpenCV, whose
-        # channel order and gray+alpha expansion the readers expect)
+    if _codecs is not None and facts["colour_type"] == 0 and b"tRNS" not in stored[:start]:
+        # grayscale without transparency: imagecodecs' libpng gives OpenCV's array (colour PNGs
+        # go to OpenCV, whose channel order and gray+alpha expansion the readers expect;
+        # imagecodecs would add an alpha channel for a tRNS chunk)
         try:
-            return _codecs.png_decode(stored)
+            array = _codecs.png_decode(stored)
         except Exception:  # imagecodecs.PngError: OpenCV says what is wrong below
-            pass
+            array = None
+        if array is not None and array.shape == (facts["height"], facts["width"]):
+            return array
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:

@@ -65,3 +65,14 @@ def test_png_of_opencv_default_filters(tmp_path):
     assert cv2.imwrite(str(path), frame, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     with open_source(path, exposure_ms=1.0, bit_depth=12) as src:
         np.testing.assert_array_equal(src.read(0), frame)
+
+
+@pytest.mark.parametrize("depth", [8, 16])
+def test_png_with_a_transparent_gray_level_decodes_as_opencv_does(tmp_path, depth):
+    """A grayscale PNG with a tRNS chunk: the array OpenCV gives (one channel)."""
+    rng = np.random.default_rng(depth)
+    path = _random_png(tmp_path / "t.png", rng, 23, 40, depth, False, 1,
+                       extra=[(b"tRNS", struct.pack(">H", 3))])
+    expected = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    with open_source(path, exposure_ms=1.0, bit_depth=depth) as src:
+        np.testing.assert_array_equal(src.read(0), expected)
