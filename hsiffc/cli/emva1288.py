@@ -3,6 +3,7 @@ implementation computes them, and what the leakage model says about them."""
 
 from __future__ import annotations
 
+import gc
 from pathlib import Path
 
 from ..errors import HsiffcError
@@ -72,6 +73,9 @@ def _cmd_emva1288(args) -> int:
         res, leak, note = run_characterisation(
             sweep, pixel_area_um2=args.pixel_area_um2, wavelength_nm=args.wavelength_nm,
             leakage=not args.no_leakage, calibration=cal)
+    # the process ends after the outputs: the collections of the interpreter's shutdown need not
+    # walk the objects of the modules loaded (numba's and the calibration's: about 0.8 s of CPU)
+    gc.freeze()
     write_json(args.json, to_json(res, leak, note))
     for name, f in res["figures"].items():
         se = f" +- {fmt(f['se'], 2)}" if f.get("se") is not None else ""

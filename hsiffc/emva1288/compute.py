@@ -86,7 +86,7 @@ LIGHT_M_S = 299792458.0
 
 
 # -- step statistics ---------------------------------------------------------------------------
-def step_statistics(source, *, mosaic_bands: bool = True, keep_step_means: bool = False) -> dict:
+def step_statistics(source, *, mosaic_bands: bool = True, keep_step_means=False) -> dict:
     """Mean and temporal variance of every step, over the whole frame and per band, and the
     spatial statistics of the stacks, read one frame at a time (:mod:`.stream`).
 
@@ -100,8 +100,9 @@ def step_statistics(source, *, mosaic_bands: bool = True, keep_step_means: bool 
         median frames per step).
     mosaic_bands : bool
         Also per band when the measurement has a mosaic.
-    keep_step_means : bool
-        Keep the per-pixel step means (for the leakage calibration).
+    keep_step_means : bool or array of int
+        Keep the per-pixel step means (for the leakage calibration); given pixels (flat
+        indices), their means only.
 
     Returns
     -------

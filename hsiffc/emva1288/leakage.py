@@ -58,6 +58,7 @@ ALPHA_LEVELS = (5.0, 12.0, 50.0)  # percent: shares of pixels above these alphas
 PCTS = (10, 50, 90)
 VARIANCE_PIXELS = 4096  # pixels whose temporal variance is predicted (fixed seed)
 CHUNK_VALUES = 1 << 19  # model values per call: few kernel launches, arrays that stay in cache
+VARIANCE_CHUNK = 1 << 16  # values per piece in the variance integration (arrays in cache)
 VARIANCE_SUBSTEPS = 16  # pieces of each exposure in the variance integration (16 against 40:
 # 0.15 % on the CMOS set's predicted variance at saturation, same saturation point)
 
@@ -97,17 +98,17 @@ def predicted_temporal_variance(t_ms, k, a, b, dark, gain_dn_per_e, full_scale,
     var = np.zeros(k.shape)
     lit = t > 0  # no exposure: no variance (a zero piece gives none either)
     h = np.where(lit, t, 0.0) / n_pieces
-    mids = (np.arange(n_pieces) + 0.5)[:, None] * h
-    y = model.response(mids, k, a, b, dark)
-    with np.errstate(over="ignore"):
-        leak = a * np.exp(b * y)
-    x = 2.0 * b * leak * h
-    decay = np.exp(-x)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        phi = np.where(x > 1e-12, -np.expm1(-x) / x, 1.0)
-    inject = gain_dn_per_e * (k + leak) * h * phi
-    for j in range(n_pieces):
-        var = var * decay[j] + inject[j]
+    no_leak = a == 0  # a pixel without leakage leaks 0 (not 0 x an overflowed exponential)
+    for j in range(n_pieces):  # one piece at a time: flat arrays, no broadcast copies
+        y = model.response((j + 0.5) * h, k, a, b, dark)
+        with np.errstate(over="ignore", invalid="ignore"):
+            leak = a * np.exp(b * y)
+        leak[no_leak] = 0.0
+        x = 2.0 * b * leak * h
+        with np.errstate(invalid="ignore", divide="ignore"):
+            phi = np.where(x > 1e-12, -np.expm1(-x) / x, 1.0)
+        var *= np.exp(-x)
+        var += gain_dn_per_e * (k + leak) * h * phi
     end = model.response(np.where(lit, t, 0.0), k, a, b, dark)
     var = np.where(lit, var, 0.0)
     return np.where(end >= full_scale, 0.0, var).reshape(out_shape)
@@ -180,7 +181,7 @@ def leakage_effects(sweep, emva: dict, calibration) -> dict:
     # evaluation itself on the shared CMOS set), in chunks of about CHUNK_VALUES values
     kp = g[pick][None, :] * rate[:, None] + dc[pick][None, :]
     var_leak = np.empty(n)
-    vchunk = max(1, CHUNK_VALUES // (VARIANCE_SUBSTEPS * len(pick)))
+    vchunk = max(1, VARIANCE_CHUNK // len(pick))
     for i in range(0, n, vchunk):
         var_leak[i:i + vchunk] = predicted_temporal_variance(
             t[i:i + vchunk, None], kp[i:i + vchunk], a[pick], b[pick], dark[pick], K, fs,
@@ -201,8 +202,10 @@ def leakage_effects(sweep, emva: dict, calibration) -> dict:
         y_noleak[i] = (np.minimum(dark + k * t[i], fs).mean()
                        - np.minimum(dark + dc * t[i], fs).mean())
         if rate[i] > 0:
-            ysat = c_sat[i % step_chunk]
-            sat_lo[i], sat_med[i], sat_hi[i] = np.percentile(ysat, PCTS)
+            ysat = c_sat[i % step_chunk]  # +inf where a pixel does not leak (a = 0)
+            big = np.finfo(np.float64).max
+            q = np.percentile(np.minimum(ysat, big), PCTS)
+            sat_lo[i], sat_med[i], sat_hi[i] = np.where(q >= big, np.inf, q)
             below_fs[i] = float((ysat < fs).mean())
         else:  # no light in the step: no dynamic saturation to speak of
             sat_lo[i] = sat_med[i] = sat_hi[i] = below_fs[i] = np.nan

@@ -54,11 +54,16 @@ def leakage_markdown(leak: dict) -> list[str]:
     """The 'beyond the standard' section."""
     lin, al, bud = leak["linearity"], leak["alpha"], leak["saturation_budget"]
     pct = (lambda v: "n/a" if v is None else f"{100 * v:.1f} %")  # noqa: E731
+    cal = leak["calibration"]
+    drawn = ""
+    if cal.get("drawn_seed") is not None:
+        drawn = (f" on {cal['n_pixels']} of the sensor's {cal['sensor_pixels']} pixels, drawn "
+                 f"at random (seed {cal['drawn_seed']}): the figures below are over them")
     lines = [
         "## What leakage does to the figures (beyond the standard)", "",
-        f"Per-pixel leakage calibration: {leak['calibration']['method']} "
-        f"({', '.join(f'{k}: {v}' for k, v in (leak['calibration']['fit_status'] or {}).items())}"
-        "). Definitions: module docstring of `hsiffc.emva1288.leakage`.", "",
+        f"Per-pixel leakage calibration: {cal['method']} "
+        f"({', '.join(f'{k}: {v}' for k, v in (cal['fit_status'] or {}).items())})"
+        f"{drawn}. Definitions: module docstring of `hsiffc.emva1288.leakage`.", "",
         "### Linearity error", "",
         "| curve | LE_min (%) | LE_max (%) | share of the linearity error's sum of squares "
         "explained |", "|---|---:|---:|---:|",

@@ -20,19 +20,19 @@ What a step gives, per pixel group:
 
 A spatial stack (one light and one dark step of many frames) keeps its sum image and its mean
 temporal variance per group (DN^2) for the nonuniformity figures, the defect-pixel histograms
-and the spectrograms (:mod:`.spatial`). With ``keep_step_means`` every step's
-per-pixel mean image (float32) is kept for the leakage calibration, with a pixel set to full
-scale where some frame of its step was (so the calibration sees it clipped), and the first
-two frames of each step give the calibration's photon transfer (pixels below full scale in
-both: their number, mean level and half the mean squared difference).
+and the spectrograms (:mod:`.spatial`). With ``keep_step_means`` every step's per-pixel mean
+image (float32; or its values at given pixels) is kept for the leakage calibration, with a
+pixel set to full scale where some frame of its step was (so the calibration sees it clipped),
+and the first two frames of each step give the calibration's photon transfer (pixels below full
+scale in both: their number, mean level and half the mean squared difference).
 
 The frames are read by :class:`hsiffc.io.FrameSource`, which decodes the next frames on worker
 threads while the kernel works on the current one: both cores are busy (decoding a frame
-costs several times what the kernel does). The kernel runs compiled (:mod:`.compiled`: numba,
-one pass over the frame in its own dtype, no temporaries) for large frames in large sets
-(:data:`COMPILED_FRAME_PIXELS`, :data:`COMPILED_FROM`), and as whole-array numpy otherwise,
-where loading numba's code generator would cost more than the compiled pass saves (a small
-set never loads numba); the two give the same statistics (tests/emva1288/test_emva_release4.py).
+costs several times what the kernel does). The kernel runs as whole-array numpy, or compiled
+(:mod:`.compiled`: numba, one pass over the frame in its own dtype, no temporaries) for very
+large frames in large sets (:data:`COMPILED_FRAME_PIXELS`, :data:`COMPILED_FROM`), where
+numpy's temporaries would outweigh the memory of numba's code generator (a smaller set never
+loads numba); the two give the same statistics (tests/emva1288/test_emva_release4.py).
 A step's first frame is held as float32 where that is exact (integer frames of up to 16 bits).
 """
 
@@ -51,11 +51,13 @@ SPATIAL_FACTOR = 2.0  # a step with more than this x the median frames per step 
 def _add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
     """Add frame number ``j`` of a step (``frame`` flat, any dtype, DN) to its accumulators
     (flat, in place); return the frame's sum per group (whole frame, then each of ``n_bands``
-    bands by ``band``). ``pairs`` (3,) gathers the first two frames' pixels below full scale
-    in both: count, sum of their means, sum of squared differences. Whole-array numpy with one
-    float64 temporary (the difference from the first frame); the full-scale test only when
-    the frame reaches full scale. :func:`hsiffc.emva1288.compiled.add_frame` is the same in
-    one compiled pass."""
+    bands by ``band``). ``pairs`` (3,), unless None, gathers the first two frames' pixels below
+    full scale in both: count, sum of their means, sum of squared differences. Whole-array
+    numpy: the second frame sets ``s1`` and ``s2`` (the first leaves them as they are), the
+    difference from the first frame is taken in float32 where that is exact (integer frames of
+    up to 16 bits against a float32 first frame), the full-scale tests only run when the frame
+    reaches full scale. :func:`hsiffc.emva1288.compiled.add_frame` is the same in one compiled
+    pass."""
     sums = np.zeros(1 + n_bands)
     sums[0] = frame.sum(dtype=np.float64)
     if n_bands > 0:
@@ -63,26 +65,33 @@ def _add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
     top = frame.max() >= fs
     if j == 0:
         first[:] = frame
-        s1[:] = 0.0
-        s2[:] = 0.0
         if top:
             np.greater_equal(frame, fs, out=clip)
         else:
             clip[:] = False
         return sums
-    d = np.subtract(frame, first, dtype=np.float64)
-    s1 += d
+    exact32 = first.dtype == np.float32 and frame.dtype.kind in "ui" and frame.itemsize <= 2
+    d = np.subtract(frame, first, dtype=np.float32 if exact32 else np.float64)
     if j == 1:
-        ok = first < fs
-        if top:
-            ok &= frame < fs
-        pairs[0] += ok.sum()
-        pairs[1] += 0.5 * (first[ok].sum(dtype=np.float64) + frame[ok].sum(dtype=np.float64))
-        d *= d
-        pairs[2] += d[ok].sum()
+        s1[:] = d
+        del d
+        np.multiply(s1, s1, out=s2)
+        if pairs is not None:
+            if top or clip.any():
+                ok = first < fs
+                if top:
+                    ok &= frame < fs
+                pairs[0] += ok.sum()
+                pairs[1] += 0.5 * (first[ok].sum(dtype=np.float64)
+                                   + frame[ok].sum(dtype=np.float64))
+                pairs[2] += s2[ok].sum()
+            else:  # every pixel below full scale in both: the sums at hand
+                pairs[0] += frame.size
+                pairs[1] += sums[0] - 0.5 * s1.sum()  # (first + frame) / 2, first = frame - d
+                pairs[2] += s2.sum()
     else:
-        d *= d
-    s2 += d
+        s1 += d
+        s2 += np.multiply(d, d, dtype=np.float64)
     if top:
         clip |= frame >= fs
     return sums
@@ -91,27 +100,39 @@ def _add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
 def _finish_step(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_sum):
     """Reduce a step of ``n`` frames: the sum of the per-pixel temporal variances per group,
     the number of pixels at full scale in some frame, and (else empty) the mean image
-    (float32, full scale where clipped) and the sum image (float64)."""
+    (float32, full scale where clipped) and the sum image (float64). ``s1`` and ``s2`` (only
+    read for ``n`` > 1) are used up: the variance is computed in place, no temporaries beside
+    the images returned."""
+    mean = np.empty(0, np.float32)
+    total = np.empty(0)
+    if n < 2:
+        if want_mean:
+            mean = first.astype(np.float32)
+            mean[clip] = fs
+        if want_sum:
+            total = first.astype(np.float64)
+        vs = np.zeros(1 + n_bands)
+        return vs, float(clip.sum()), mean, total
     inv = 1.0 / n
-    var = np.multiply(s1, s1)  # the one temporary: (s2 - s1^2 / n) / (n - 1) in place
-    if n > 1:
-        var *= inv
-        np.subtract(s2, var, out=var)
+    if want_mean:
+        m = np.multiply(s1, inv)
+        m += first
+        mean = m.astype(np.float32)
+        del m
+        mean[clip] = fs
+    if want_sum:
+        total = np.multiply(first, np.float64(n), dtype=np.float64)
+        total += s1
+    var = s2  # (s2 - s1^2 / n) / (n - 1), in place
+    s1 *= s1
+    s1 *= inv
+    var -= s1
+    if n > 2:
         var /= n - 1
-    else:
-        var[:] = 0.0
     vs = np.zeros(1 + n_bands)
     vs[0] = var.sum()
     if n_bands > 0:
         vs[1:] = np.bincount(band, var, n_bands)
-    del var
-    mean = np.empty(0, np.float32)
-    if want_mean:
-        mean = (s1 * inv + first).astype(np.float32)
-        mean[clip] = fs
-    total = np.empty(0)
-    if want_sum:
-        total = first * np.float64(n) + s1
     return vs, float(clip.sum()), mean, total
 
 
@@ -128,17 +149,15 @@ def _finish_compiled(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_
 
 #: the compiled kernel runs for frames of at least :data:`COMPILED_FRAME_PIXELS` pixels in a
 #: set of at least :data:`COMPILED_FROM` pixel-frames. Its first call loads numba's code
-#: generator: 1.1 s of CPU and about 90 MB resident here, against 4.3 ms instead of numpy's
-#: 10.3 ms of CPU per 1024 x 1024 frame (and 5.5 against 11.2 ms per step's reduction): the time
-#: comes back from about 1e8 pixel-frames, the memory only where the frames' own arrays
-#: (about 21 bytes per pixel for the step, 16 for the stacks' sums, numpy's 8-byte temporary)
-#: make the 90 MB small (the benchmark's 1024 x 1024 set, 50 steps, whole processes: compiled
-#: 11.6-11.8 s of CPU and 267-270 MB beside the reference's 10.6 s and 186 MB, two runs; numpy
-#: 12.3 s and 154 MB in the benchmark).
+#: generator: about 1.2 s of CPU and 130 MB resident here. Per step of two 16-bit frames the
+#: numpy form now takes no longer (CPU, two adds and the reduction: 10.4 against 13.6 ms at
+#: 1024 x 1024, 47 against 54 ms at 2048 x 2048; benchmarks on random frames, load 5), so the
+#: compiled form only runs where numpy's temporaries (a float32 and a float64 difference, 12
+#: bytes per pixel: 200 MB at 4096 x 4096) outweigh numba's fixed memory.
 #: The choice depends on the frame size, not on the number of steps, so that memory stays flat
 #: in the number of steps.
 COMPILED_FROM = 1e8
-COMPILED_FRAME_PIXELS = 1 << 21
+COMPILED_FRAME_PIXELS = 1 << 24
 
 
 def _first_dtype(dtype) -> type:
@@ -186,7 +205,7 @@ def _group_map(source, frame_shape, mosaic_bands):
     return np.empty(0, np.int64), 0
 
 
-def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = False,
+def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means=False,
                   spatial_steps=None) -> dict:
     """Reduce a measurement to its EMVA 1288 step statistics, one frame at a time.
 
@@ -199,9 +218,9 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         each step one after the other (EMVA 1288 descriptors do).
     mosaic_bands : bool
         Also per band when the measurement has a mosaic.
-    keep_step_means : bool
+    keep_step_means : bool or array of int
         Keep every step's per-pixel mean image and the pair statistics (for the leakage
-        calibration).
+        calibration); given pixels (flat indices), their means only.
     spatial_steps : sequence of int, optional
         The steps of the spatial stack (default: ``meta["spatial_steps"]``, else the steps with
         more than twice the median number of frames).
@@ -215,7 +234,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         stacks' ``sum`` images, mean temporal variances per group ``var_mean`` and frame
         counts, by kind, or None),
         ``frame_shape``, ``n_pixels``, ``bit_depth``, ``full_scale_dn``; with
-        ``keep_step_means`` also ``step_means`` (S, H, W) float32 and ``pairs`` (S, 3).
+        ``keep_step_means`` also ``step_means`` (S, H, W) float32, or (S, 1, N) at N given
+        pixels (``step_mean_pixels``, else None), and ``pairs`` (S, 3) (over all pixels).
 
     Raises
     ------
@@ -224,6 +244,11 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
     """
     meta = getattr(source, "meta", {}) or {}
     frame_shape = tuple(source.frame_shape)
+    pixels = None
+    if keep_step_means is not None and not isinstance(keep_step_means, bool):
+        pixels = np.asarray(keep_step_means, np.int64).ravel()
+    keep_step_means = pixels is not None or bool(keep_step_means)
+    mean_shape = frame_shape if pixels is None else (1, pixels.size)
     bit_depth = int(source.bit_depth)
     fs = float(2 ** bit_depth - 1)
     where = getattr(source, "source", None) or getattr(source, "label", None) or None
@@ -273,7 +298,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
                                                 "var_mean": vs / n_pix,
                                                 "L": st.n, "step": st.step})
         elif keep_step_means:
-            means.append((st.step, mean_img.reshape(frame_shape)))
+            means.append((st.step, (mean_img if pixels is None else mean_img[pixels])
+                           .reshape(mean_shape)))
         done.add(st.step)
 
     for frame, step, kind, exposure, photons in _frames_of(source):
@@ -287,7 +313,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         if st.first is None:
             st.first = np.empty(n_total, _first_dtype(frame.dtype))
         sums = add_frame(np.ascontiguousarray(frame).reshape(-1), st.n, st.first, st.s1,
-                         st.s2, st.clip, band, n_bands, fs, st.pairs)
+                         st.s2, st.clip, band, n_bands, fs,
+                         st.pairs if keep_step_means or use_compiled else None)
         st.frame_sums.append(sums)
         st.n += 1
     finish()
@@ -318,7 +345,8 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means: bool = 
         sweep_rows = [r for r in rows if not r["spatial"]]
         means.sort(key=lambda m: m[0])  # in step order, as the rows
         out["step_means"] = (np.stack([m for _, m in means]) if means else
-                             np.empty((0,) + frame_shape, np.float32))
+                             np.empty((0,) + mean_shape, np.float32))
+        out["step_mean_pixels"] = pixels
         out["sweep_step_info"] = {k: np.array([r[k] for r in sweep_rows]) for k in
                                   ("step", "kind", "exposure_ms", "photons", "n_frames")}
         out["pairs"] = np.array([r["pairs"] for r in sweep_rows])

@@ -8,6 +8,11 @@ prints its own error lines), and an ``sBIT`` chunk, when present, gives the sign
 bits of the samples (e.g. 12 in a 16-bit PNG) as the bit depth. Palette PNGs are refused (they
 do not hold counts). Gray+alpha and RGB(A) PNGs give 4- or 3-channel frames that
 :mod:`hsiffc.io._quirks` reduces to one channel when the channels are equal.
+
+The image data are inflated once, by the check (libdeflate through imagecodecs, zlib where it
+fails, to name the damage): the decoder gets them back as stored deflate blocks, a copy, and
+only unfilters them (imagecodecs' libpng for grayscale, OpenCV for colour, whose channel order
+the readers expect).
 """
 
 from __future__ import annotations
@@ -32,6 +37,13 @@ _CHANNELS = {0: 1, 2: 3, 4: 4, 6: 4}
 # valid IHDR bit depths per colour type, and samples per pixel (PNG specification, 11.2.2)
 _DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
 _SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+try:  # libdeflate's inflate and checksums, libpng's decoder (a dependency; zlib and OpenCV else)
+    import imagecodecs as _codecs
+
+    _crc32, _adler32 = _codecs.deflate_crc32, _codecs.deflate_adler32
+except (ImportError, AttributeError):  # pragma: no cover - imagecodecs is a dependency
+    _codecs = None
+    _crc32, _adler32 = zlib.crc32, zlib.adler32
 # Adam7 passes: (first column, first row, column step, row step)
 _ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2),
           (0, 1, 1, 2))
@@ -136,7 +148,66 @@ def _inflated_rows(facts) -> list[tuple[int, int]]:
     return out
 
 
-def check_png_data(blob: bytes, facts: dict, path) -> None:
+def _idat_run(blob: bytes, path) -> tuple[int, int, bytes]:
+    """Check every chunk's CRC up to ``IEND``; return where the one run of ``IDAT`` chunks
+    starts and ends in ``blob``, and their bodies joined (the compressed image data)."""
+    view = memoryview(blob)
+    offset, idat, runs, last, start, end = 8, [], 0, None, 0, 0
+    while offset + 12 <= len(blob):
+        length, kind = struct.unpack_from(">I4s", blob, offset)
+        body = view[offset + 8:offset + 8 + length]
+        crc = blob[offset + 8 + length:offset + 12 + length]
+        if len(crc) < 4:
+            break
+        if _crc32(body, _crc32(kind)) != struct.unpack(">I", crc)[0]:
+            raise _damaged(path, f"chunk {kind.decode('latin-1')!r} at byte {offset} fails its "
+                                 "CRC check")
+        if kind == b"IDAT":
+            if last != b"IDAT":
+                runs, start = runs + 1, offset
+            idat.append(body)
+            end = offset + 12 + length
+        last = kind
+        offset += 12 + length
+        if kind == b"IEND":
+            break
+    if not idat or runs != 1:
+        raise _damaged(path, "its image data (IDAT chunks) are missing or not in one run")
+    return start, end, b"".join(idat)
+
+
+def _inflate(idat: bytes, facts: dict, path) -> bytes:
+    """The image data inflated, checked to be exactly the size the header states with a valid
+    filter type on every row."""
+    rows = _inflated_rows(facts)
+    expected = sum(n * stride for n, stride in rows)
+    raw = None
+    if _codecs is not None:  # libdeflate: 2-3 x faster than zlib's inflate
+        try:
+            raw = _codecs.deflate_decode(idat, out=expected)
+        except Exception:  # imagecodecs.DeflateError: zlib names the damage below
+            raw = None
+    if raw is None or len(raw) != expected:
+        inflater = zlib.decompressobj()
+        try:
+            raw = inflater.decompress(idat, expected + 1)
+        except zlib.error as exc:
+            raise _damaged(path, f"its image data do not inflate ({exc})") from None
+        if len(raw) != expected or not inflater.eof:
+            raise _damaged(path, f"its image data inflate to {len(raw)}"
+                                 f"{'+' * (len(raw) > expected)} bytes"
+                                 f"{'' if inflater.eof else ' (the stream does not end)'}, "
+                                 f"the header states {expected}")
+    at = 0
+    for n, stride in rows:
+        filters = np.frombuffer(raw, np.uint8, n * stride, at)[::stride]
+        at += n * stride
+        if filters.max(initial=0) > 4:
+            raise _damaged(path, f"a row has filter type {int(filters.max())} (PNG defines 0..4)")
+    return raw
+
+
+def check_png_data(blob: bytes, facts: dict, path) -> bytes:
     """Check a whole PNG in memory before a decoder sees it, so that libpng never meets damage
     it would report on stderr: every chunk's CRC, the image data (``IDAT``) in one run of
     chunks, inflating to exactly the size the header states, with a valid filter type (0..4)
@@ -151,51 +222,54 @@ def check_png_data(blob: bytes, facts: dict, path) -> None:
     path : str or Path
         The file (for the message).
 
+    Returns
+    -------
+    bytes
+        The inflated image data (each row its filter byte, then its filtered bytes).
+
     Raises
     ------
     DataFormatError
         One line naming the file and the damage.
     """
-    offset, idat, runs, last = 8, [], 0, None
-    while offset + 12 <= len(blob):
-        length, kind = struct.unpack(">I4s", blob[offset:offset + 8])
-        body = blob[offset + 8:offset + 8 + length]
-        crc = blob[offset + 8 + length:offset + 12 + length]
-        if len(crc) < 4:
-            break
-        if zlib.crc32(kind + body) != struct.unpack(">I", crc)[0]:
-            raise _damaged(path, f"chunk {kind.decode('latin-1')!r} at byte {offset} fails its "
-                                 "CRC check")
-        if kind == b"IDAT":
-            runs += last != b"IDAT"
-            idat.append(body)
-        last = kind
-        offset += 12 + length
-        if kind == b"IEND":
-            break
-    if not idat or runs != 1:
-        raise _damaged(path, "its image data (IDAT chunks) are missing or not in one run")
-    rows = _inflated_rows(facts)
-    expected = sum(n * stride for n, stride in rows)
-    inflater = zlib.decompressobj()
-    try:
-        raw = inflater.decompress(b"".join(idat), expected + 1)
-    except zlib.error as exc:
-        raise _damaged(path, f"its image data do not inflate ({exc})") from None
-    if len(raw) != expected or not inflater.eof:
-        raise _damaged(path, f"its image data inflate to {len(raw)}{'+' * (len(raw) > expected)}"
-                             f" bytes{'' if inflater.eof else ' (the stream does not end)'}, "
-                             f"the header states {expected}")
-    at = 0
-    for n, stride in rows:
-        filters = np.frombuffer(raw, np.uint8, n * stride, at)[::stride]
-        at += n * stride
-        if filters.max(initial=0) > 4:
-            raise _damaged(path, f"a row has filter type {int(filters.max())} (PNG defines 0..4)")
+    return _inflate(_idat_run(blob, path)[2], facts, path)
+
+
+_STORED_BLOCK = 65535  # the most bytes a stored (uncompressed) deflate block holds
+
+
+def _stored_png(blob: bytes, start: int, end: int, raw: bytes) -> bytearray:
+    """``blob`` with its run of ``IDAT`` chunks (``start:end``) replaced by one chunk holding
+    ``raw``, the already inflated image data, as stored deflate blocks: a decoder copies them
+    instead of inflating them again. Every other chunk is kept as it was."""
+    n_blocks = max(1, -(-len(raw) // _STORED_BLOCK))
+    z_len = 2 + 5 * n_blocks + len(raw) + 4
+    out = bytearray(start + 12 + z_len + len(blob) - end)
+    out[:start] = memoryview(blob)[:start]
+    out[start:start + 8] = struct.pack(">I4s", z_len, b"IDAT")
+    at = start + 8
+    out[at:at + 2] = b"\x78\x01"  # zlib header: deflate, 32 KiB window, no dictionary
+    at += 2
+    src = memoryview(raw)
+    for i in range(n_blocks):
+        part = src[i * _STORED_BLOCK:(i + 1) * _STORED_BLOCK]
+        out[at:at + 5] = struct.pack("<BHH", i == n_blocks - 1, len(part), 0xFFFF ^ len(part))
+        out[at + 5:at + 5 + len(part)] = part
+        at += 5 + len(part)
+    out[at:at + 4] = struct.pack(">I", _adler32(raw))
+    at += 4
+    body = memoryview(out)[start + 4:at]
+    out[at:at + 4] = struct.pack(">I", _crc32(body))
+    body.release()
+    out[at + 4:] = memoryview(blob)[end:]
+    return out
 
 
 def decode_png(path, facts: dict | None = None) -> np.ndarray:
     """Decode a PNG checked first by :func:`check_png_data` (OpenCV, ``IMREAD_UNCHANGED``).
+
+    The image data are inflated once, by the check; OpenCV gets them back as stored deflate
+    blocks (a copy, not a second inflate) and unfilters them.
 
     Parameters
     ----------
@@ -218,11 +292,23 @@ def decode_png(path, facts: dict | None = None) -> np.ndarray:
 
     facts = facts or png_header(path)
     blob = Path(path).read_bytes()
-    check_png_data(blob, facts, path)
+    start, end, idat = _idat_run(blob, path)
+    stored = _stored_png(blob, start, end, _inflate(idat, facts, path))
+    del blob, idat
+    if _codecs is not None and facts["colour_type"] == 0 and b"tRNS" not in stored[:start]:
+        # grayscale without transparency: imagecodecs' libpng gives OpenCV's array (colour PNGs
+        # go to OpenCV, whose channel order and gray+alpha expansion the readers expect;
+        # imagecodecs would add an alpha channel for a tRNS chunk)
+        try:
+            array = _codecs.png_decode(stored)
+        except Exception:  # imagecodecs.PngError: OpenCV says what is wrong below
+            array = None
+        if array is not None and array.shape == (facts["height"], facts["width"]):
+            return array
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
-        array = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+        array = cv2.imdecode(np.frombuffer(stored, np.uint8), cv2.IMREAD_UNCHANGED)
     finally:
         cv2.utils.logging.setLogLevel(level)
     if array is None:

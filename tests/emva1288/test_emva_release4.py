@@ -202,3 +202,34 @@ def test_general_follows_the_leakage_model_on_a_leaky_sensor():
     assert r[g["index_sat"]] < 0.9 * np.nanmedian(r[:5])
     m = g["model"]["figures"]["SNR_max_general"]["value"]
     assert m == pytest.approx(g["figures"]["SNR_max_general"]["value"], rel=0.15)
+
+
+def test_leakage_account_on_drawn_pixels():
+    """The leakage account calibrates the step means of pixels drawn at random: the stream keeps
+    those pixels' means only (the same values as the whole images there), and the account's
+    figures (means, percentiles and shares over pixels) stay close to the all-pixel ones."""
+    from hsiffc.emva1288 import leakage_pixels
+
+    sweep = leaky_sweep(shape=(16, 24))
+    pix = leakage_pixels(sweep.frame_shape, 192)
+    assert pix.size == 192 and np.all(np.diff(pix) > 0)
+    assert leakage_pixels(sweep.frame_shape, 384) is None  # a small sensor: every pixel
+    whole = step_statistics(sweep, keep_step_means=True)
+    part = step_statistics(sweep, keep_step_means=pix)
+    n_steps = whole["step_means"].shape[0]
+    assert part["step_means"].shape == (n_steps, 1, 192)
+    np.testing.assert_array_equal(part["step_means"][:, 0],
+                                  whole["step_means"].reshape(n_steps, -1)[:, pix])
+    np.testing.assert_array_equal(part["pairs"], whole["pairs"])  # over all pixels
+    _, all_px, _ = run_characterisation(sweep, n_leakage_pixels=None)
+    _, drawn, _ = run_characterisation(sweep, n_leakage_pixels=192)
+    assert all_px["calibration"]["drawn_seed"] is None
+    cal = drawn["calibration"]
+    assert (cal["n_pixels"], cal["sensor_pixels"], cal["drawn_seed"]) == (192, 384, 0)
+    for key in ("leaked_share", "generated_dn", "stored_dn"):
+        assert drawn["saturation_budget"][key] == pytest.approx(
+            all_px["saturation_budget"][key], rel=0.02), key
+    assert drawn["alpha"]["saturation"]["p50"] == pytest.approx(
+        all_px["alpha"]["saturation"]["p50"], rel=0.05)
+    tv_all, tv = all_px["temporal_variance"], drawn["temporal_variance"]
+    assert abs(tv["saturation_index_predicted"] - tv_all["saturation_index_predicted"]) <= 1
