@@ -108,6 +108,42 @@ def separable_fraction(effect, ctx, project, w) -> float:
     return float(np.median(num[ok] / den[ok])) if ok.any() else 0.0
 
 
+def pool_pixels(theta, precision):
+    """Per-pixel estimates pooled towards the sensor's value (random-effects shrinkage).
+
+    The spread between the pixels beyond their own errors (``tau^2``, moment estimate of
+    DerSimonian and Laird) sets how far each pixel keeps its own estimate: a pixel with an
+    error much larger than ``tau`` takes the sensor's (precision-weighted) mean.
+
+    Parameters
+    ----------
+    theta : ndarray, (P,)
+        Each pixel's least-squares estimate.
+    precision : ndarray, (P,)
+        Its inverse variance (the weighted column energy).
+
+    Returns
+    -------
+    ndarray, (P,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> pool_pixels(np.array([1.0, 2.0]), np.array([1.0, 1.0]))  # within their errors: pooled
+    array([1.5, 1.5])
+    """
+    a = np.clip(precision, 0.0, None)
+    total = a.sum()
+    if total <= 0 or theta.size < 2:
+        return theta
+    mean = float((a * theta).sum() / total)
+    q = float((a * (theta - mean) ** 2).sum())
+    tau2 = max((q - (theta.size - 1)) / max(total - (a * a).sum() / total, 1e-300), 0.0)
+    if tau2 == 0.0:
+        return np.full_like(theta, mean)
+    return (a * theta + mean / tau2) / (a + 1.0 / tau2)
+
+
 def fit_effect(effect, ctx, res, w, project=None):
     """Least-squares parameters of one effect on a residual; returns (params, prediction).
 
@@ -148,6 +184,8 @@ def fit_effect(effect, ctx, res, w, project=None):
         lam = 1e-9 * (tr + 1e-30) + 1e-6 * float(np.median(tr))
         a = a + lam[:, None, None] * np.eye(a.shape[1])
         theta = np.linalg.solve(a, b)[..., 0]
+        if effect.pooled and theta.shape[1] == 1:
+            theta = pool_pixels(theta[:, 0], a[:, 0, 0])[:, None]
         return theta, np.matmul(X, theta[..., None])[..., 0]
     # step: one factor per light step, shared by the pixels
     x = X[..., 0]

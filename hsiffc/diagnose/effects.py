@@ -149,6 +149,10 @@ class Effect:
         With ``ho_columns``: the effect is shown by the step means (a slow change in
         acquisition time), its held-out columns only follow it to the held-out frames' later
         time; the frame differences are not asked to show it on their own.
+    pooled : bool
+        A one-parameter per-pixel effect whose pixels' estimates are pooled towards the
+        sensor's (precision-weighted, random-effects shrinkage): where the base absorbs all but
+        a sliver of its column, a pixel's own estimate is mostly noise.
     """
 
     name: str
@@ -165,6 +169,7 @@ class Effect:
     implausible: Callable = _plausible
     ho_columns: Callable | None = None
     steps_are_evidence: bool = False
+    pooled: bool = False
 
     def n_params(self, n_pixels: int, n_light_steps: int) -> int:
         """Free parameters the effect adds (for the information criterion).
@@ -291,7 +296,7 @@ _register(Effect(
                "(a storage node, or glow of the readout), added after the leakage"),
     inject=lambda c, size, rng: size * rng.lognormal(0.0, 0.3, size=(c.t.shape[0], 1)) * c.t,
     unit="DN/ms (median pixel)", skip=_outside_skip,
-    implausible=_negative_dark("median_dark_signal_dn_per_ms"),
+    implausible=_negative_dark("median_dark_signal_dn_per_ms"), pooled=True,
 ))
 
 

@@ -269,3 +269,41 @@ def test_an_offset_common_to_the_pixels_left_over_is_unexplained(kind):
                       data, n_pix, s)
     found = offset_left(fitted, data, noise_floor=1.0)
     assert (found is not None) == (kind == "offset"), found
+
+
+def test_a_dark_signal_the_base_nearly_absorbs_is_pooled_over_the_pixels():
+    """Without dark frames the base's light rate absorbs all but a sliver of a dark signal
+    outside the photodiode: each pixel's own estimate is mostly noise, and is pooled towards
+    the sensor's (development seed 101254: a spread of 7 DN/ms over the pixels for a median
+    of 4.7)."""
+    from types import SimpleNamespace
+
+    from hsiffc.diagnose.effectfit import fit_effect, pool_pixels
+
+    rng = np.random.default_rng(3)
+    p, s = 400, 12
+    t = np.broadcast_to(np.linspace(10.0, 200.0, s), (p, s))
+    # the base's light-rate column: the exposure but for a slight bend (the leakage)
+    c = t * (1.0 - 0.002 * (t / 200.0) ** 2)
+
+    def project(x):  # what the base cannot absorb: x less its part along c, per pixel
+        c3 = c if x.ndim == 2 else c[..., None]
+        return x - c3 * (c3 * x).sum(axis=1, keepdims=True) / (c3 * c3).sum(axis=1,
+                                                                         keepdims=True)
+
+    truth = 5.0 * rng.lognormal(0.0, 0.05, p)
+    res = truth[:, None] * t + rng.standard_normal((p, s))
+    w = np.ones((p, s))
+    effect = EFFECTS["dark_outside_well"]
+    assert effect.pooled and not EFFECTS["dark_current"].pooled
+    theta, pred = fit_effect(effect, SimpleNamespace(t=t), res, w, project=project)
+    xp, rp = project(t), project(res)
+    own = (xp * rp).sum(axis=1) / (xp * xp).sum(axis=1)  # each pixel alone
+    err_pooled = np.sqrt(np.mean((theta[:, 0] - truth) ** 2))
+    err_own = np.sqrt(np.mean((own - truth) ** 2))
+    assert err_pooled < 0.2 * err_own
+    assert np.median(theta[:, 0]) == pytest.approx(5.0, rel=0.1)
+    assert pred.shape == (p, s)
+    # pixels that differ by far more than their errors keep their own values
+    kept = pool_pixels(np.array([1.0, 5.0, 9.0]), np.array([1e4, 1e4, 1e4]))
+    np.testing.assert_allclose(kept, [1.0, 5.0, 9.0], atol=1e-3)
