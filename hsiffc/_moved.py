@@ -71,6 +71,7 @@ MOVED = {
     # compiled CPU code in one folder (hsiffc 0.2): the calibration's per-pixel fit
     'hsiffc.calibrate.lm': 'hsiffc.kernels.lm',
     'hsiffc.calibrate.pixelfit': 'hsiffc.kernels.pixelfit',
+    'hsiffc.emva1288.compiled': 'hsiffc.kernels.emva',
     'hsiffc.calibrate.pixelsamples': 'hsiffc.kernels.pixelsamples',
 }
 

@@ -99,7 +99,8 @@ def _warm_leakage_code() -> None:
         import numpy as np
 
         from .. import calibrate  # noqa: F401  (numba and the calibration's modules)
-        from . import compiled, leakage  # noqa: F401
+        from ..kernels import emva as compiled
+        from . import leakage  # noqa: F401
 
         n = np.zeros(1)
         compiled.finish_step(np.zeros(1, np.float32), n, n, np.zeros(1, np.bool_), 1,

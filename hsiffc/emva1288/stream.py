@@ -29,7 +29,7 @@ scale in both: their number, mean level and half the mean squared difference).
 The frames are read by :class:`hsiffc.io.FrameSource`, which decodes the next frames on worker
 threads while the kernel works on the current one: both cores are busy (decoding a frame
 costs several times what the kernel does). The kernel runs as whole-array numpy, or compiled
-(:mod:`.compiled`: numba, one pass over the frame in its own dtype, no temporaries) for very
+(:mod:`hsiffc.kernels.emva`: numba, one pass over the frame in its own dtype, no temporaries) for very
 large frames in large sets (:data:`COMPILED_FRAME_PIXELS`, :data:`COMPILED_FROM`), where
 numpy's temporaries would outweigh the memory of numba's code generator (a smaller set never
 loads numba); the two give the same statistics (tests/emva1288/test_emva_release4.py).
@@ -56,7 +56,7 @@ def _add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
     numpy: the second frame sets ``s1`` and ``s2`` (the first leaves them as they are), the
     difference from the first frame is taken in float32 where that is exact (integer frames of
     up to 16 bits against a float32 first frame), the full-scale tests only run when the frame
-    reaches full scale. :func:`hsiffc.emva1288.compiled.add_frame` is the same in one compiled
+    reaches full scale. :func:`hsiffc.kernels.emva.add_frame` is the same in one compiled
     pass."""
     sums = np.zeros(1 + n_bands)
     sums[0] = frame.sum(dtype=np.float64)
@@ -137,9 +137,9 @@ def _finish_step(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_sum)
 
 
 def _finish_compiled(first, s1, s2, clip, n, band, n_bands, fs, want_mean, want_sum):
-    """:func:`_finish_step` in one compiled pass (:func:`hsiffc.emva1288.compiled.finish_step`):
+    """:func:`_finish_step` in one compiled pass (:func:`hsiffc.kernels.emva.finish_step`):
     no temporaries beside the images it returns."""
-    from .compiled import finish_step
+    from ..kernels.emva import finish_step
 
     mean = np.empty(s1.size if want_mean else 0, np.float32)
     total = np.empty(s1.size if want_sum else 0)
@@ -267,7 +267,7 @@ def reduce_frames(source, *, mosaic_bands: bool = True, keep_step_means=False,
     use_compiled = (n_total >= COMPILED_FRAME_PIXELS
                     and float(source.n_frames) * n_total >= COMPILED_FROM)
     if use_compiled:
-        from . import compiled
+        from ..kernels import emva as compiled
 
         add_frame, reduce_step = compiled.add_frame, _finish_compiled
     else:

@@ -1,4 +1,4 @@
-"""The compiled form of :mod:`.stream`'s step reduction (numba, without the GIL): one pass over
+"""The compiled form of :mod:`hsiffc.emva1288.stream`'s step reduction (numba, without the GIL): one pass over
 a frame in its own dtype, no temporaries, no float64 copy of the frame. One thread: the other
 core decodes the next frames meanwhile (:class:`hsiffc.io.FrameSource` reads ahead on worker
 threads), and numba's parallel loops spin-wait for their threads, which on two cores shared with
@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .launch import cached_jit
+
 __all__ = ["add_frame", "finish_step"]
 
 #: pixels per partial sum (the partial sums are added at the end: fewer digits lost than in one
@@ -21,12 +23,12 @@ __all__ = ["add_frame", "finish_step"]
 CHUNK = 1 << 16
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=False, nogil=True)  # compiled into its callers
 def _chunks(n):
     return max(1, (n + CHUNK - 1) // CHUNK)
 
 
-@njit(cache=True, nogil=True)
+@cached_jit(nogil=True)
 def add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
     """Add frame number ``j`` of a step (``frame`` flat, any integer or float dtype) to the
     step's accumulators (flat, in place: ``first`` the step's first frame, ``s1`` and ``s2``
@@ -86,7 +88,7 @@ def add_frame(frame, j, first, s1, s2, clip, band, n_bands, fs, pairs):
     return sums
 
 
-@njit(cache=True, nogil=True)
+@cached_jit(nogil=True)
 def finish_step(first, s1, s2, clip, n, band, n_bands, fs, mean, total):
     """Reduce a step of ``n`` frames from its accumulators: returns the sum of the per-pixel
     temporal variances ``(s2 - s1^2 / n) / (n - 1)`` per group and, last, the number of
