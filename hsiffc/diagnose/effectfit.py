@@ -129,8 +129,8 @@ def pool_pixels(theta, precision):
     Examples
     --------
     >>> import numpy as np
-    >>> pool_pixels(np.array([1.0, 2.0]), np.array([1.0, 1.0]))  # within their errors: pooled
-    array([1.5, 1.5])
+    >>> pool_pixels(np.array([1.0, 2.0]), np.array([1.0, 1.0])).tolist()  # within errors: pooled
+    [1.5, 1.5]
     """
     a = np.clip(precision, 0.0, None)
     total = a.sum()
