@@ -579,6 +579,17 @@ def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, da
     return beats
 
 
+def _with_effects(st: State, m, project, total, data: Data) -> Fitted:
+    """``st``'s base (model ``m`` at its parameters, ``project`` its linearised fit) with the
+    effect predictions ``total`` in place of its own, the base refitted (linearised) to what
+    they leave, evaluated on the held-out data."""
+    r = np.where(data.valid, data.y - m - total, 0.0)
+    s = State(st.base, st.theta, st.effects)
+    s.prediction = m + (r - project(r)) + total
+    s.ho_extra = st.ho_extra
+    return evaluate(s, [], data, 1, 1)
+
+
 def offset_stand_in(fitted: Fitted, name: str, data: Data):
     """Does selected effect ``name`` stand in for an offset common to the pixels of a frame
     (:data:`~hsiffc.diagnose.effects.OFFSET_PROBES`: a black-level clamp that follows the
@@ -628,11 +639,7 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
                 n = np.maximum(vh.sum(axis=0), 1)
                 apart = np.where(vh, pred - np.where(vh, pred, 0.0).sum(axis=0) / n, 0.0)
                 distinct = float((apart ** 2).sum() / max(int(vh.sum()), 1))
-        r = np.where(data.valid, data.y - m - total, 0.0)
-        s = State(st.base, st.theta, st.effects)
-        s.prediction = m + (r - project(r)) + total
-        s.ho_extra = st.ho_extra
-        models.append(evaluate(s, [], data, 1, 1))
+        models.append(_with_effects(st, m, project, total, data))
     without, with_effect, with_probe = models
     explained = paired(without, with_effect, data.valid_ho)[0]
     gain, se = paired(with_effect, with_probe, data.valid_ho)
@@ -680,11 +687,7 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
     total = st.sum_effects(m.shape)
     res0 = np.where(data.valid, data.y - m - total, 0.0)
     total = total + fit_effect(probe, ctx, res0, data.w, project)[1]
-    r = np.where(data.valid, data.y - m - total, 0.0)
-    s = State(st.base, st.theta, st.effects)
-    s.prediction = m + (r - project(r)) + total
-    s.ho_extra = st.ho_extra
-    trial = evaluate(s, [], data, 1, 1)
+    trial = _with_effects(st, m, project, total, data)
     gain, se = paired(fitted, trial, data.valid_ho)
     if not (improves(fitted, trial, gain, se, noise_floor)
             and gain > (LEFT_OFFSET_OF_FLOOR * noise_floor) ** 2):
