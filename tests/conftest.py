@@ -3,9 +3,21 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
+
+#: numba threads of each test process (and of the processes a test starts), unless the
+#: environment sets ``NUMBA_NUM_THREADS``: the test processes already take one core each
+#: (``-n auto``), so more threads would only contend for them, and with one thread every
+#: :class:`~hsiffc.kernels.launch.Kernel` runs its serial build. The parallel builds then
+#: compile only where a test asks for them: their equality with the serial builds is tested
+#: on their own (``tests/kernels``, ``-m slow``) and by the benchmarks on full frames. Set
+#: before numba is imported (numba reads it once); ``tests/kernels/test_threads.py`` checks it took.
+TEST_NUMBA_THREADS = "1"
+if "numba" not in sys.modules:
+    os.environ.setdefault("NUMBA_NUM_THREADS", TEST_NUMBA_THREADS)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("HSIFFC_SHARED_DATA", REPO.parent / "shared" / "data"))

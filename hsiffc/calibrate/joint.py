@@ -135,7 +135,9 @@ def _dark_current_args(dark_current, p_count):
                          f"{dark_current!r}")
     if dark_current is None or estimate:
         return estimate, np.zeros(p_count)
-    return estimate, np.ascontiguousarray(np.broadcast_to(
+    # a writable copy: a read-only array (broadcast_to gives one) is another numba type, and
+    # the fit kernel would compile a second build for it
+    return estimate, np.array(np.broadcast_to(
         np.asarray(dark_current, np.float64).ravel(), (p_count,)))
 
 

@@ -139,6 +139,27 @@ def test_leakage_fit_never_worse_than_the_linear_model_on_the_same_samples(clean
     assert np.all(fit.a[~leak] == 0) and np.all(fit.a[leak] > 0)
 
 
+def test_a_read_only_dark_current_fits_alike_with_the_same_build(clean):
+    """A per-pixel dark current given read-only (a broadcast) fits as a writable copy does,
+    through the same machine code: numba types read-only arrays apart, and a second build of
+    the fit kernel costs ~20 s of compile."""
+    from hsiffc.kernels import pixelfit
+
+    sweep, _ = clean
+    from hsiffc.calibrate import collect_samples
+
+    smp = collect_samples(sweep)
+    y, valid = smp.y.T[:40], smp.valid.T[:40]
+    r = np.nan_to_num(smp.rate)
+    w = np.ones(y.shape)
+    given = np.broadcast_to(np.float64(0.01), (y.shape[0],))
+    assert not given.flags.writeable
+    fits = [fit_pixels(y, smp.exposure_ms, r, valid, w, dark_current=dc)
+            for dc in (given, given.copy())]
+    np.testing.assert_array_equal(fits[0].a, fits[1].a)
+    assert len(pixelfit.fit_block.dispatcher.signatures) == 1
+
+
 def test_fallback_chain_per_pixel_with_reasons():
     """One sweep, four kinds of pixels: normal (leakage model), clipped early (too few samples:
     linear, DO_NOT_USE), dead (no signal), clipped everywhere (no light sample)."""

@@ -3,6 +3,8 @@ kernels run on cores // workers numba threads."""
 
 from __future__ import annotations
 
+import os
+
 import numba
 import pytest
 
@@ -42,6 +44,16 @@ def test_small_frames_run_serially_and_threads_grow_with_the_work(fake_threads):
     assert k(_Sized(2048 * 1088)) == ("parallel", 3)
     state["n"] = 1
     assert k(_Sized(2048 * 1088)) == ("serial", 1)  # one thread: the serial build
+
+
+def test_the_test_processes_run_the_serial_builds_on_one_thread():
+    """conftest sets NUMBA_NUM_THREADS before numba is imported (unless the environment set
+    it): it took, and a camera frame then runs a kernel's serial build."""
+    want = int(os.environ["NUMBA_NUM_THREADS"])
+    assert numba.config.NUMBA_NUM_THREADS == want == numba.get_num_threads()
+    if want == 1:
+        from hsiffc.kernels.leakage import response_kernel
+        assert response_kernel.threads(2048 * 1088) == 1
 
 
 def test_a_worker_runs_its_kernels_on_its_share_of_the_cores(monkeypatch):
