@@ -390,14 +390,24 @@ def test_killed_process_leaves_no_partial_output_and_resumes(world, tmp_path, cl
     _assert_same(_outputs(out), clean_run[1])
 
 
-_SLOW = (
-    "import sys, time\n"
+# the first run of the test below: every frame after the first waits until the file named by
+# HSIFFC_TEST_GO exists (at most 120 s), so the run holds its folder, with a file started,
+# until the test lets it go, however loaded the machine (a fixed delay per frame let a slow
+# second process start after the first had finished)
+_HELD = (
+    "import os, sys, time\n"
+    "from pathlib import Path\n"
     "from hsiffc.data.frame import Frame\n"
     "orig = Frame.from_raw\n"
-    "def slow(*a, **k):\n"
-    "    time.sleep(0.4)\n"
+    "go = Path(os.environ['HSIFFC_TEST_GO'])\n"
+    "calls = []\n"
+    "def held(*a, **k):\n"
+    "    end = time.monotonic() + 120\n"
+    "    while calls and not go.exists() and time.monotonic() < end:\n"
+    "        time.sleep(0.02)\n"
+    "    calls.append(1)\n"
     "    return orig(*a, **k)\n"
-    "Frame.from_raw = staticmethod(slow)\n"
+    "Frame.from_raw = staticmethod(held)\n"
     "from hsiffc.cli import main\n"
     "sys.exit(main(sys.argv[1:]))\n")
 
@@ -409,8 +419,10 @@ def test_second_run_on_one_folder_refuses_and_keeps_the_first_runs_files(world, 
     out = tmp_path / "out"
     args = ["correct", str(world["raw"]), "--calibration", str(world["cal"]), "-o", str(out),
             "-q"]
-    first = subprocess.Popen([sys.executable, "-c", _SLOW, *args], stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, text=True)
+    go = tmp_path / "go"
+    first = subprocess.Popen([sys.executable, "-c", _HELD, *args], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True,
+                             env={**os.environ, "HSIFFC_TEST_GO": str(go)})
     try:
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and not list(out.rglob("*.part")):
@@ -425,6 +437,7 @@ def test_second_run_on_one_folder_refuses_and_keeps_the_first_runs_files(world, 
         assert f"pid {first.pid}" in err and "started" in err and str(out) in err
         assert first.poll() is None  # still running: it held the lock all along
     finally:
+        go.touch()
         assert first.wait(timeout=120) == 0, first.stderr.read()
     _no_leftovers(out)
     _assert_same(_outputs(out), clean_run[1])
