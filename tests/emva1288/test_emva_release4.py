@@ -78,6 +78,37 @@ def test_the_figures_of_a_small_set_never_load_numba(linear, tmp_path):
     assert json.loads(out.read_text())["figures"]["K"]["value"] > 0
 
 
+def test_the_leakage_account_runs_in_a_child_and_the_command_never_loads_it(linear, tmp_path):
+    """The default command computes the leakage account in a forked child (numba and the
+    calibration load there while the frames are read): the command's own process never imports
+    the calibration, and the JSON holds the account."""
+    import json
+    import subprocess
+    import sys
+
+    sweep, _ = linear
+    desc = write_descriptor(sweep, tmp_path / "set")
+    out = tmp_path / "leak.json"
+    code = ("import sys\nfrom hsiffc.cli import main\n"
+            f"rc = main(['emva1288', {str(desc)!r}, '--json', {str(out)!r}])\n"
+            "print('hsiffc.calibrate' in sys.modules, 'numba' in sys.modules, rc)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=300)
+    assert run.stdout.split()[-3:] == ["False", "False", "0"], run.stdout + run.stderr
+    leak = json.loads(out.read_text())["leakage"]
+    assert leak["calibration"]["n_pixels"] == sweep.frame_shape[0] * sweep.frame_shape[1]
+
+
+def test_the_account_of_the_child_process_is_the_in_process_one():
+    from hsiffc.emva1288 import to_json
+
+    sweep = leaky_sweep(shape=(16, 24))
+    child = to_json(*run_characterisation(sweep, n_leakage_pixels=192))
+    here = to_json(*run_characterisation(sweep, n_leakage_pixels=192, background=False))
+    assert child["leakage"]["alpha"]["saturation"]["p50"] > 0
+    assert child == here
+
+
 def test_temporal_variance_of_a_step_is_the_standards_frame_pair_formula(linear):
     sweep, _ = linear
     stats = step_statistics(sweep)
