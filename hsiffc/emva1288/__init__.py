@@ -132,13 +132,15 @@ def _leakage_account(stats, source, res):
 
 
 def _account_worker(conn) -> None:
-    """A child process: loads the leakage code while the parent reads the frames, then
-    computes :func:`_leakage_account` of what the parent sends (None: nothing to do) and
-    sends it with the warnings it gave (the parent issues them under its own filters)."""
+    """A child process: loads the leakage code while the parent reads the frames and says so
+    ("ready"), then computes :func:`_leakage_account` of what the parent sends (None: nothing
+    to do) and sends it with the warnings it gave (the parent issues them under its own
+    filters)."""
     import warnings
 
     try:
         _warm_leakage_code()
+        conn.send("ready")
         job = conn.recv()
         if job is not None:
             with warnings.catch_warnings(record=True) as caught:
@@ -146,7 +148,10 @@ def _account_worker(conn) -> None:
                 out = _leakage_account(*job)
             conn.send((out, [(w.message, w.category, w.filename, w.lineno) for w in caught]))
     except BaseException:  # noqa: BLE001  the parent computes it again and raises what fails
-        conn.send(None)
+        try:
+            conn.send(None)
+        except (OSError, ValueError):
+            pass
     finally:
         conn.close()
 
@@ -155,11 +160,15 @@ class _AccountProcess:
     """The leakage account on the second core: a forked child (started before the frames are
     read) loads numba and the calibration (about 1.2 s of CPU on its first use in a process)
     while the parent reads, then fits the step means the parent sends. Where the platform
-    cannot fork, or the child fails, :meth:`result` computes the account in this process."""
+    cannot fork, or the child fails, dies or is not ready within :attr:`READY_S`,
+    :meth:`result` computes the account in this process."""
+
+    READY_S = 300.0  # s: the child's imports take about a second; past this it is stuck
 
     def __init__(self, fork: bool = True):
         import multiprocessing as mp
         import sys
+        import warnings
 
         self.proc = self.conn = None
         if not fork or "fork" not in mp.get_all_start_methods() or sys.platform != "linux":
@@ -172,10 +181,30 @@ class _AccountProcess:
             self.conn, child = ctx.Pipe()
             self.proc = ctx.Process(target=_account_worker, args=(child,), daemon=True,
                                     name="hsiffc-leakage-account")
-            self.proc.start()
+            with warnings.catch_warnings():
+                # Python 3.12+ warns on fork wherever a library has started threads (numpy's
+                # BLAS pool): the child uses none of them, only numpy and hsiffc's own code
+                warnings.filterwarnings("ignore", category=DeprecationWarning,
+                                        message=".*fork")
+                self.proc.start()
             child.close()
         except (OSError, ValueError):
             self.proc = self.conn = None
+
+    def _receive(self, timeout=None):
+        """The child's next message; None where it died, failed or took over ``timeout``."""
+        import time
+
+        end = None if timeout is None else time.monotonic() + timeout
+        while self.proc.is_alive() or self.conn.poll(0):
+            if self.conn.poll(0.05):
+                try:
+                    return self.conn.recv()
+                except (OSError, EOFError):
+                    return None
+            if end is not None and time.monotonic() > end:
+                return None
+        return None
 
     def result(self, stats, source, res):
         """:func:`_leakage_account` of ``stats`` (only what :func:`step_mean_sweep` reads is
@@ -189,11 +218,12 @@ class _AccountProcess:
         source = types.SimpleNamespace(source=str(label), mosaic=getattr(source, "mosaic", None))
         sent = None
         if self.proc is not None:
-            try:
-                self.conn.send((stats, source, res))
-                sent = self.conn.recv()
-            except (OSError, EOFError):
-                sent = None
+            if self._receive(self.READY_S) == "ready":
+                try:
+                    self.conn.send((stats, source, res))
+                    sent = self._receive()
+                except (OSError, ValueError):
+                    sent = None
             self.close()
         if sent is None:
             return _leakage_account(stats, source, res)
@@ -205,14 +235,18 @@ class _AccountProcess:
         return out
 
     def close(self):
+        """End the child: told there is nothing to do, or killed where it does not listen."""
         if self.proc is None:
             return
         try:
             self.conn.send(None)
         except (OSError, ValueError):
             pass
+        self.proc.join(5.0)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join()
         self.conn.close()
-        self.proc.join()
         self.proc = None
 
 

@@ -58,45 +58,42 @@ def test_compiled_and_numpy_kernels_give_the_same_statistics(linear, monkeypatch
     np.testing.assert_allclose(b["pairs"], a["pairs"], rtol=1e-13)
 
 
-def test_the_figures_of_a_small_set_never_load_numba(linear, tmp_path):
-    """Loading numba's code generator costs more than a small set's whole reduction: the
-    command's figures alone run on numpy (the kernel choice, the package face, the status
-    line's compile listener all leave numba unloaded)."""
+def _command_modules(sweep, folder, options, modules):
+    """Run ``hsiffc emva1288`` on ``sweep`` (written into ``folder``) with ``options`` in a
+    fresh process; which of ``modules`` that process imported, its return code, the JSON."""
     import json
     import subprocess
     import sys
 
-    sweep, _ = linear
-    desc = write_descriptor(sweep, tmp_path / "set")
-    out = tmp_path / "fig.json"
+    desc = write_descriptor(sweep, folder / "set")
+    out = folder / "out.json"
     code = ("import sys\nfrom hsiffc.cli import main\n"
-            f"rc = main(['emva1288', {str(desc)!r}, '--no-leakage', '--json', {str(out)!r}])\n"
-            "print('numba' in sys.modules, rc)\n")
+            f"rc = main(['emva1288', {str(desc)!r}, *{options!r}, '--json', {str(out)!r}])\n"
+            f"print(*[m in sys.modules for m in {modules!r}], rc)\n")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=120)
-    assert run.stdout.split()[-2:] == ["False", "0"], run.stdout + run.stderr
-    assert json.loads(out.read_text())["figures"]["K"]["value"] > 0
+                         cwd=folder, timeout=300)
+    assert run.returncode == 0, run.stdout + run.stderr
+    *loaded, rc = run.stdout.split()[-len(modules) - 1:]
+    return [v == "True" for v in loaded], int(rc), json.loads(out.read_text())
+
+
+def test_the_figures_of_a_small_set_never_load_numba(linear, tmp_path):
+    """Loading numba's code generator costs more than a small set's whole reduction: the
+    command's figures alone run on numpy (the kernel choice, the package face, the status
+    line's compile listener all leave numba unloaded)."""
+    loaded, rc, doc = _command_modules(linear[0], tmp_path, ["--no-leakage"], ["numba"])
+    assert (loaded, rc) == ([False], 0)
+    assert doc["figures"]["K"]["value"] > 0
 
 
 def test_the_leakage_account_runs_in_a_child_and_the_command_never_loads_it(linear, tmp_path):
     """The default command computes the leakage account in a forked child (numba and the
     calibration load there while the frames are read): the command's own process never imports
     the calibration, and the JSON holds the account."""
-    import json
-    import subprocess
-    import sys
-
-    sweep, _ = linear
-    desc = write_descriptor(sweep, tmp_path / "set")
-    out = tmp_path / "leak.json"
-    code = ("import sys\nfrom hsiffc.cli import main\n"
-            f"rc = main(['emva1288', {str(desc)!r}, '--json', {str(out)!r}])\n"
-            "print('hsiffc.calibrate' in sys.modules, 'numba' in sys.modules, rc)\n")
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=300)
-    assert run.stdout.split()[-3:] == ["False", "False", "0"], run.stdout + run.stderr
-    leak = json.loads(out.read_text())["leakage"]
-    assert leak["calibration"]["n_pixels"] == sweep.frame_shape[0] * sweep.frame_shape[1]
+    sweep = linear[0]
+    loaded, rc, doc = _command_modules(sweep, tmp_path, [], ["hsiffc.calibrate", "numba"])
+    assert (loaded, rc) == ([False, False], 0)
+    assert doc["leakage"]["calibration"]["n_pixels"] == sweep.frame_shape[0] * sweep.frame_shape[1]
 
 
 def test_the_account_of_the_child_process_is_the_in_process_one():
