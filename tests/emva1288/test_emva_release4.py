@@ -96,6 +96,22 @@ def test_the_leakage_account_runs_in_a_child_and_the_command_never_loads_it(line
     assert doc["leakage"]["calibration"]["n_pixels"] == sweep.frame_shape[0] * sweep.frame_shape[1]
 
 
+def test_the_calibration_pilot_takes_the_pixels_asked_for():
+    """The calibration makes its sensor-wide choices on ``pilot_pixels`` pixels (the leakage
+    account asks for a quarter of its drawn ones); without it, on all of a sensor smaller than
+    the default 4096."""
+    from hsiffc.calibrate import LEAKAGE_ACCOUNT, calibrate
+    from hsiffc.emva1288 import LEAKAGE_PILOT_PIXELS, step_mean_sweep
+
+    sweep = leaky_sweep(shape=(16, 24))
+    means, ptc = step_mean_sweep(step_statistics(sweep, keep_step_means=True), sweep)
+    for asked, used in ((100, 100), (None, 384)):
+        kw = {} if asked is None else {"pilot_pixels": asked}
+        cal = calibrate(means, method="joint", ptc=ptc, **kw, **LEAKAGE_ACCOUNT)
+        assert cal.fitted_on["dark_model"]["n_pilot_pixels"] == used
+    assert 0 < LEAKAGE_PILOT_PIXELS < 4096
+
+
 def test_the_account_of_the_child_process_is_the_in_process_one():
     from hsiffc.emva1288 import to_json
 
