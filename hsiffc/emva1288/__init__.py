@@ -160,8 +160,10 @@ class _AccountProcess:
     """The leakage account on the second core: a forked child (started before the frames are
     read) loads numba and the calibration (about 1.2 s of CPU on its first use in a process)
     while the parent reads, then fits the step means the parent sends. Where the platform
-    cannot fork, or the child fails, dies or is not ready within :attr:`READY_S`,
-    :meth:`result` computes the account in this process."""
+    cannot fork, where this process has loaded numba already (its start is paid, and numba's
+    OpenMP threads, once started, make a forked child that uses them abort), or where the child
+    fails, dies or is not ready within :attr:`READY_S`, :meth:`result` computes the account in
+    this process."""
 
     READY_S = 300.0  # s: the child's imports take about a second; past this it is stuck
 
@@ -171,7 +173,8 @@ class _AccountProcess:
         import warnings
 
         self.proc = self.conn = None
-        if not fork or "fork" not in mp.get_all_start_methods() or sys.platform != "linux":
+        if (not fork or "numba" in sys.modules or sys.platform != "linux"
+                or "fork" not in mp.get_all_start_methods()):
             return
         try:
             for stream in (sys.stdout, sys.stderr):  # a forked child must not write them again
@@ -275,10 +278,11 @@ def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leak
         Pixels the leakage calibration fits and the account evaluates (:data:`LEAKAGE_PIXELS`,
         drawn with :data:`LEAKAGE_SEED`); None: every pixel.
     background : bool
-        Calibrate and account in a child process forked before the frames are read (Linux), so
-        that loading numba and the calibration (about 1.2 s of CPU the first time in a
-        process) runs on another core while this one reads; the same figures as False (all in
-        this process, as on platforms that cannot fork, or if the child fails).
+        Calibrate and account in a child process forked before the frames are read (Linux,
+        where this process has not loaded numba yet), so that loading numba and the
+        calibration (1.1-1.4 s of CPU the first time in a process) runs on another core while
+        this one reads; the same figures as False (all in this process, as on platforms that
+        cannot fork, or if the child fails).
 
     Returns
     -------
