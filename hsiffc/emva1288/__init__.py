@@ -158,7 +158,7 @@ def _account_worker(conn) -> None:
 
 class _AccountProcess:
     """The leakage account on the second core: a forked child (started before the frames are
-    read) loads numba and the calibration (about 1.2 s of CPU on its first use in a process)
+    read) loads numba (1.1-1.4 s of CPU on its first use in a process) and the calibration
     while the parent reads, then fits the step means the parent sends. Where the platform
     cannot fork, where this process has loaded numba already (its start is paid, and numba's
     OpenMP threads, once started, make a forked child that uses them abort), or where the child
@@ -279,9 +279,9 @@ def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leak
         drawn with :data:`LEAKAGE_SEED`); None: every pixel.
     background : bool
         Calibrate and account in a child process forked before the frames are read (Linux,
-        where this process has not loaded numba yet), so that loading numba and the
-        calibration (1.1-1.4 s of CPU the first time in a process) runs on another core while
-        this one reads; the same figures as False (all in this process, as on platforms that
+        where this process has not loaded numba yet), so that loading numba (1.1-1.4 s of CPU
+        the first time in a process) and the calibration runs on another core while this one
+        reads; the same figures as False (all in this process, as on platforms that
         cannot fork, or if the child fails).
 
     Returns
@@ -293,8 +293,6 @@ def run_characterisation(sweep, *, pixel_area_um2=None, wavelength_nm=None, leak
     note : str or None
         Why ``leak`` is None when ``leakage`` was asked for (the sweep cannot be calibrated).
     """
-    from ..errors import DataFormatError
-
     keep = leakage and calibration is None
     pixels = leakage_pixels(sweep.frame_shape, n_leakage_pixels) if keep else None
     worker = _AccountProcess(background) if keep else None
