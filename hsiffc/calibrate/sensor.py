@@ -94,13 +94,13 @@ def _dark_slopes(ks) -> np.ndarray:
 
 
 def _pilot(sweep: Sweep, ptc, full_well_dn, light_rate, dark_current, dark_model, seed=0,
-           fix_dark=False, offset="auto"):
+           fix_dark=False, offset="auto", n_pilot=N_PILOT):
     """Sensor-wide choices on a random sample of pixels: dark current used or not, dark model,
     start value of b, exposure offset. Returns (use_dc, dark_model, b0, t0, report dict)."""
     h, w = sweep.frame_shape
     n = h * w
     rng = np.random.default_rng(seed)
-    idx = np.sort(rng.choice(n, size=min(n, N_PILOT), replace=False))
+    idx = np.sort(rng.choice(n, size=min(n, n_pilot), replace=False))
     rr, cc = np.unravel_index(idx, (h, w))
     sub = replace(sweep, data=np.ascontiguousarray(sweep.data[:, rr, cc])[:, None, :],
                   mosaic=None, meta={k: sweep.meta[k] for k in ("frames_averaged",)
@@ -155,7 +155,8 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
                     dark_current: bool | str = "auto", dark_model: str = "auto",
                     dark_from: str = "frames", exposure_offset_ms="auto", flats=None,
                     choose: bool = True, rows_per_chunk: int | None = None,
-                    progress=None, ptc: PhotonTransfer | None = None) -> Calibration:
+                    progress=None, ptc: PhotonTransfer | None = None,
+                    pilot_pixels: int = N_PILOT) -> Calibration:
     """Joint per-pixel fit of responsivity, a, b and the dark model from one sweep, with each
     band's model chosen by held-out prediction.
 
@@ -205,6 +206,9 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
         The photon transfer of the sweep's raw frames, when its frames are step means
         (``meta["frames_averaged"]``: how many raw frames each stands for) that cannot give
         it (:func:`~hsiffc.calibrate.samples.photon_transfer_from_pairs`).
+    pilot_pixels : int
+        Pixels drawn at random (seed 0) for the sensor-wide choices made before the per-pixel
+        fit (dark current, dark model, the start values of b and of the saturation margin).
 
     Returns
     -------
@@ -228,7 +232,7 @@ def calibrate_joint(sweep: Sweep, *, full_well_dn: float | None = None, light_ra
     fix = dark_from == "frames" and bool(sweep.is_dark.any())
     use_dc, dmodel, starts, t0, pilot = _pilot(sweep, ptc, full_well_dn, light_rate,
                                                dark_current, dark_model, fix_dark=fix,
-                                               offset=exposure_offset_ms)
+                                               offset=exposure_offset_ms, n_pilot=pilot_pixels)
     settings = choice.FitSettings(ptc, full_well_dn, use_dc, dmodel, starts, t0, fix)
     chosen = (choice.choose_models(sweep, settings, flats=flats, light_rate=light_rate)
               if choose else None)

@@ -105,9 +105,11 @@ def predicted_temporal_variance(t_ms, k, a, b, dark, gain_dn_per_e, full_scale,
             leak = a * np.exp(b * y)
         leak[no_leak] = 0.0
         x = 2.0 * b * leak * h
+        decay = np.expm1(-x)  # e^-x - 1: the damping over the piece and its mean, one pass
         with np.errstate(invalid="ignore", divide="ignore"):
-            phi = np.where(x > 1e-12, -np.expm1(-x) / x, 1.0)
-        var *= np.exp(-x)
+            phi = np.where(x > 1e-12, -decay / x, 1.0)
+        decay += 1.0
+        var *= decay
         var += gain_dn_per_e * (k + leak) * h * phi
     end = model.response(np.where(lit, t, 0.0), k, a, b, dark)
     var = np.where(lit, var, 0.0)

@@ -8,6 +8,7 @@ one. (The agreement with the reference implementation itself: test_emva_referenc
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -58,24 +59,87 @@ def test_compiled_and_numpy_kernels_give_the_same_statistics(linear, monkeypatch
     np.testing.assert_allclose(b["pairs"], a["pairs"], rtol=1e-13)
 
 
-def test_the_figures_of_a_small_set_never_load_numba(linear, tmp_path):
-    """Loading numba's code generator costs more than a small set's whole reduction: the
-    command's figures alone run on numpy (the kernel choice, the package face, the status
-    line's compile listener all leave numba unloaded)."""
+def _command_modules(sweep, folder, options, modules):
+    """Run ``hsiffc emva1288`` on ``sweep`` (written into ``folder``) with ``options`` in a
+    fresh process; which of ``modules`` that process imported, its return code, the JSON."""
     import json
     import subprocess
     import sys
 
-    sweep, _ = linear
-    desc = write_descriptor(sweep, tmp_path / "set")
-    out = tmp_path / "fig.json"
+    desc = write_descriptor(sweep, folder / "set")
+    out = folder / "out.json"
     code = ("import sys\nfrom hsiffc.cli import main\n"
-            f"rc = main(['emva1288', {str(desc)!r}, '--no-leakage', '--json', {str(out)!r}])\n"
-            "print('numba' in sys.modules, rc)\n")
+            f"rc = main(['emva1288', {str(desc)!r}, *{options!r}, '--json', {str(out)!r}])\n"
+            f"print(*[m in sys.modules for m in {modules!r}], rc)\n")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=120)
-    assert run.stdout.split()[-2:] == ["False", "0"], run.stdout + run.stderr
-    assert json.loads(out.read_text())["figures"]["K"]["value"] > 0
+                         cwd=folder, timeout=300)
+    assert run.returncode == 0, run.stdout + run.stderr
+    *loaded, rc = run.stdout.split()[-len(modules) - 1:]
+    return [v == "True" for v in loaded], int(rc), json.loads(out.read_text())
+
+
+def test_the_figures_of_a_small_set_never_load_numba(linear, tmp_path):
+    """Loading numba's code generator costs more than a small set's whole reduction: the
+    command's figures alone run on numpy (the kernel choice, the package face, the status
+    line's compile listener all leave numba unloaded)."""
+    loaded, rc, doc = _command_modules(linear[0], tmp_path, ["--no-leakage"], ["numba"])
+    assert (loaded, rc) == ([False], 0)
+    assert doc["figures"]["K"]["value"] > 0
+
+
+def test_the_leakage_account_runs_in_a_child_and_the_command_never_loads_it(linear, tmp_path):
+    """The default command computes the leakage account in a forked child (numba and the
+    calibration load there while the frames are read): the command's own process never imports
+    the calibration, and the JSON holds the same account as one computed in this process."""
+    sweep = linear[0]
+    loaded, rc, doc = _command_modules(sweep, tmp_path, [], ["hsiffc.calibrate", "numba"])
+    assert (loaded, rc) == ([False, False], 0)
+    with open_source(tmp_path / "set") as src:
+        _, here, _ = run_characterisation(src, background=False)
+    child = doc["leakage"]
+    assert child["calibration"]["n_pixels"] == sweep.frame_shape[0] * sweep.frame_shape[1]
+    assert child["linearity"]["share_explained_model"] == pytest.approx(
+        here["linearity"]["share_explained_model"], rel=1e-9)
+    assert child["alpha"]["saturation"]["p50"] == pytest.approx(
+        here["alpha"]["saturation"]["p50"], rel=1e-9)
+    assert child["temporal_variance"]["at_saturation_dn2"] == pytest.approx(
+        here["temporal_variance"]["at_saturation_dn2"], rel=1e-9)
+
+
+def test_a_process_with_numba_loaded_keeps_the_account(tmp_path):
+    """Once numba's OpenMP threads run in a process, a forked child that uses them is aborted
+    by numba: such a process (numba loaded) computes the account itself, without a child."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nsys.path[:0] = sys.argv[1:]\nimport numpy as np\n"
+            "from hsiffc.leakage import model\n"
+            "model.response(np.ones(100000), 1.0, 0.0, 0.01, 0.0)\n"
+            "from test_emva1288 import leaky_sweep\n"
+            "from hsiffc.emva1288 import run_characterisation\n"
+            "_, leak, _ = run_characterisation(leaky_sweep(shape=(8, 12)))\n"
+            "print(leak['alpha']['saturation']['p50'] > 0)\n")
+    here = Path(__file__).resolve().parent
+    run = subprocess.run([sys.executable, "-c", code, str(here), str(here.parent)],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert run.stdout.split()[-1:] == ["True"], run.stdout + run.stderr
+    assert "fork" not in run.stderr, run.stderr
+
+
+def test_the_calibration_pilot_takes_the_pixels_asked_for():
+    """The calibration makes its sensor-wide choices on ``pilot_pixels`` pixels (the leakage
+    account asks for a quarter of its drawn ones); without it, on all of a sensor smaller than
+    the default 4096."""
+    from hsiffc.calibrate import LEAKAGE_ACCOUNT, calibrate
+    from hsiffc.emva1288 import LEAKAGE_PILOT_PIXELS, step_mean_sweep
+
+    sweep = leaky_sweep(shape=(16, 24))
+    means, ptc = step_mean_sweep(step_statistics(sweep, keep_step_means=True), sweep)
+    for asked, used in ((100, 100), (None, 384)):
+        kw = {} if asked is None else {"pilot_pixels": asked}
+        cal = calibrate(means, method="joint", ptc=ptc, **kw, **LEAKAGE_ACCOUNT)
+        assert cal.fitted_on["dark_model"]["n_pilot_pixels"] == used
+    assert 0 < LEAKAGE_PILOT_PIXELS < 4096
 
 
 def test_temporal_variance_of_a_step_is_the_standards_frame_pair_formula(linear):
