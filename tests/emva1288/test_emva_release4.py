@@ -117,12 +117,20 @@ def test_a_process_with_numba_loaded_keeps_the_account(tmp_path):
             "model.response(np.ones(100000), 1.0, 0.0, 0.01, 0.0)\n"
             "from test_emva1288 import leaky_sweep\n"
             "from hsiffc.emva1288 import run_characterisation\n"
+            "import multiprocessing.process as mpp\n"
+            "started, start = [], mpp.BaseProcess.start\n"
+            "mpp.BaseProcess.start = lambda self: started.append(self) or start(self)\n"
             "_, leak, _ = run_characterisation(leaky_sweep(shape=(8, 12)))\n"
-            "print(leak['alpha']['saturation']['p50'] > 0)\n")
+            "print(len(started), leak['alpha']['saturation']['p50'] > 0)\n")
+    import os
+
     here = Path(__file__).resolve().parent
+    # two numba threads (the test processes run on one, tests/conftest.py): the response of
+    # 100000 values then runs the parallel build and starts numba's OpenMP threads
     run = subprocess.run([sys.executable, "-c", code, str(here), str(here.parent)],
-                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
-    assert run.stdout.split()[-1:] == ["True"], run.stdout + run.stderr
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300,
+                         env={**os.environ, "NUMBA_NUM_THREADS": "2"})
+    assert run.stdout.split()[-2:] == ["0", "True"], run.stdout + run.stderr  # no child
     assert "fork" not in run.stderr, run.stderr
 
 
