@@ -532,7 +532,8 @@ def _sensor_wide_rival(current: Fitted, best: tuple, names, data: Data, noise_fl
     return rival, rival[0].state
 
 
-def improves(current: Fitted, trial: Fitted, gain: float, se: float, noise_floor: float) -> bool:
+def improves(current: Fitted, trial: Fitted, gain: float, se: float, noise_floor: float,
+             floor_holds_it: bool = False) -> bool:
     """The held-out part of the selection rule: ``trial`` lowers ``current``'s held-out error
     by ``SELECT_SIGMAS`` paired standard errors, by more than ``(MIN_GAIN_OF_NOISE`` x floor)^2
     and by ``MIN_EXPLAINED`` of the systematic error left (which must exceed that square).
@@ -545,6 +546,12 @@ def improves(current: Fitted, trial: Fitted, gain: float, se: float, noise_floor
         :func:`paired` (``current``, ``trial``).
     noise_floor : float, DN
         Temporal noise of one held-out sample.
+    floor_holds_it : bool
+        The floor was measured on frame differences that hold the effect tried (an effect
+        between the halves of a step where the differences failed the noise model's test):
+        the systematic error measured against that floor understates what is left, so it
+        need not exceed the square above (the gain must, and its own evidence is asked of the
+        frame differences, :func:`pair_evidence`).
 
     Returns
     -------
@@ -553,7 +560,7 @@ def improves(current: Fitted, trial: Fitted, gain: float, se: float, noise_floor
     systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
     floor2 = (MIN_GAIN_OF_NOISE * noise_floor) ** 2
     return bool(np.isfinite(trial.mse) and np.isfinite(trial.bic)
-                and current.mse - noise_floor ** 2 > floor2
+                and (floor_holds_it or current.mse - noise_floor ** 2 > floor2)
                 and gain > SELECT_SIGMAS * se and gain > floor2
                 and gain > MIN_EXPLAINED * systematic2)
 
@@ -565,7 +572,8 @@ def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, da
     a fraction of the systematic error left, and (per step) factors without a trend or
     (within a step) the frame differences' own evidence? ``entry["rejected"]`` says why not,
     where one of the last two refuses it."""
-    beats = improves(current, trial, gain, se, noise_floor)
+    beats = improves(current, trial, gain, se, noise_floor,
+                     floor_holds_it=data.frames_differ and between_halves(name))
     if beats and between_halves(name):
         weak_pair = pair_evidence(trial, name, data)
         if weak_pair:
