@@ -464,12 +464,6 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                 "the pixels is taken out): the frames of a step are not exchangeable, the noise "
                 "is measured on the cleared differences and effects that change from frame to "
                 "frame are candidates")
-            # the photon transfer curve behind the weights came from the raw frame pairs: what
-            # changes from frame to frame is in it. The fit is weighted by the cleared noise
-            var1 = np.broadcast_to(np.maximum(noise.var_step, 1e-12 * np.max(noise.var_step)
-                                              + 1e-300)[None, :], y.shape)
-            data.w = w = np.where(valid, n_fit[None, :] / var1, 0.0)
-            theta = base.fit(y, t, r, valid, w, theta, max_iter=40)
     else:  # no frame pairs: the noise from the spread of the held-out residual across pixels
         m = base.predict(theta, t, r)
         pv = _prediction_variance(base, theta, data)

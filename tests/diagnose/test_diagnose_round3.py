@@ -352,22 +352,3 @@ def test_a_floor_measured_on_differences_that_hold_the_effect_does_not_block_it(
     # the gain itself must still pass the rule
     assert not improves(current, trial, 0.3, 0.11, 3.73, floor_holds_it=True)
 
-
-def test_a_lag_between_frames_at_30x_is_named_alone_with_the_cleared_noise():
-    """Development seed 100272 (a light sweep with a dark step after each light step, 14 bit,
-    3 frames per step, a lag of 9.8 % a frame): the first two frames of a step differ by the
-    lag, so the photon transfer curve of the raw frame pairs put 335 DN of noise on a frame
-    whose cleared differences hold 83 DN; weighted by it, the noise floor came out at 168 DN
-    against a held-out RMS of 90 DN once the lag was fitted, and a readout nonlinearity was
-    selected beside frame_lag. Weighted by the cleared noise and with the lag fitted on the
-    frame differences, frame_lag is named alone and the floor is that noise's."""
-    from hsiffc.diagnose import diagnose
-
-    sweep, truth = ev.build_case(ev.case_spec(100272))
-    put = truth["effects"][0]
-    assert put["name"] == "frame_lag" and put["multiple"] == 30
-    out = diagnose(sweep, max_pixels=ev.MAX_PIXELS, seed=100272)
-    assert out["selected_effects"] == ["frame_lag"], out["selected_effects"]
-    assert out["effects"][0]["params"]["lag"] == pytest.approx(put["size"], rel=0.1)
-    assert out["noise_test"]["within_step"]
-    assert out["noise_floor_dn"] < 1.2 * out["noise_test"]["clean_dn"]
