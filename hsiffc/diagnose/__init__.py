@@ -455,6 +455,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     noise = NoiseModel(smp, valid & valid_ho, quantum, y.shape)
     if noise.pairs:
         noise.from_pairs()
+        data.frames_differ = bool(noise.test["within_step"])
         if noise.test["within_step"]:
             des.notes.append(
                 f"the frame differences hold more than the noise model allows (p = "

@@ -16,7 +16,8 @@ from scipy import linalg
 
 from .fitdata import Data
 
-__all__ = ["fit_effect", "fit_frame_pairs", "fit_pair_effect", "frame_regression", "gram",
+__all__ = ["fit_effect", "fit_frame_pairs", "fit_on_differences", "fit_pair_effect",
+           "frame_regression", "gram",
            "pair_regression", "projector", "separable_fraction"]
 
 
@@ -244,16 +245,47 @@ def fit_pair_effect(effect, ctx, data: Data, prediction):
         What the effect adds to the held-out half.
     """
     x, ok, d = pair_regression(effect, ctx, data)
-    wx = np.where(ok, data.w, 0.0)
+    theta, coef = _cross_fitted(x, d, np.where(ok, data.w, 0.0))
+    return np.array([theta]), coef[:, None] * x
+
+
+def _cross_fitted(x, d, w):
+    """Coefficient of ``d`` on ``x`` (weights ``w``, 0 outside the samples used) for the whole
+    sensor, and per pixel the one estimated on the other half of the pixels (P,)."""
     half = (np.arange(x.shape[0]) % 2).astype(bool)
-    coef = np.zeros(x.shape[0])
 
     def estimate(sel):
-        den = (wx[sel] * x[sel] ** 2).sum()
-        return float((wx[sel] * x[sel] * d[sel]).sum() / den) if den > 0 else 0.0
-    coef[half] = estimate(~half)
-    coef[~half] = estimate(half)
-    return np.array([estimate(np.ones_like(half))]), coef[:, None] * x
+        den = (w[sel] * x[sel] ** 2).sum()
+        return float((w[sel] * x[sel] * d[sel]).sum() / den) if den > 0 else 0.0
+    coef = np.where(half, estimate(~half), estimate(half))
+    return estimate(np.ones_like(half)), coef
+
+
+def fit_on_differences(effect, ctx, data: Data):
+    """A one-parameter global effect with its own held-out columns whose evidence is the frame
+    differences (``frame_lag``: what the held-out frames of a step carry differs from what the
+    fit frames carry), fitted on them: the held-out frames less the fit frames against its
+    held-out columns less its fit columns, cross-fitted over two halves of the pixels as
+    :func:`fit_pair_effect` (same parameters; ``effect`` has ``ho_columns`` and one
+    parameter). The fit half alone sees such an effect mostly as a gain of the base (a lag of
+    9.8 % fitted there came out 8.8 % on development seed 100272); the differences see it net
+    of the base.
+
+    Returns
+    -------
+    params : ndarray, (1,)
+        Whole-sensor estimate.
+    prediction, prediction_ho : ndarray, (P, S), DN
+        What it adds to the fit half and to the held-out half (each pixel with the estimate of
+        the other half).
+    """
+    col = effect.columns(ctx)[..., 0]
+    col_ho = effect.ho_columns(ctx)[..., 0]
+    x = col_ho - col
+    ok = data.valid & data.valid_ho & np.isfinite(x)
+    w = np.where(ok, data.w, 0.0)
+    theta, coef = _cross_fitted(np.where(ok, x, 0.0), np.where(ok, data.y_ho - data.y, 0.0), w)
+    return np.array([theta]), coef[:, None] * col, coef[:, None] * col_ho
 
 
 def frame_regression(effect, ctx, data: Data):

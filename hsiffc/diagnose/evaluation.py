@@ -947,6 +947,15 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _class_label(r):
+    """The row of a case in the before/after tables: its class (outside ones marked)."""
+    t = r["truth"]
+    if t["kind"] == "clean":
+        return "clean"
+    name = t["effects"][0]["name"]
+    return name + (" (outside)" if t["kind"] == "outside" else "")
+
+
 def before_after(before: list[dict], after: list[dict]) -> str:
     """The before/after table: the same seeds scored with the code before (``before``, cases of
     :func:`run_case` saved by ``--json``) and now, per class and overall.
@@ -963,16 +972,9 @@ def before_after(before: list[dict], after: list[dict]) -> str:
     """
     old = {r["case"]["seed"]: r for r in before}
     rows = [r for r in after if r["case"]["seed"] in old]
-
-    def label(r):
-        t = r["truth"]
-        if t["kind"] == "clean":
-            return "clean"
-        name = t["effects"][0]["name"]
-        return name + (" (outside)" if t["kind"] == "outside" else "")
     groups: dict = {}
     for r in rows:
-        groups.setdefault(label(r), []).append(r)
+        groups.setdefault(_class_label(r), []).append(r)
     lines = ["| put in (evaluation half) | n | right before | right now | false alarms before | "
              "false alarms now |", "|---|---|---|---|---|---|"]
 
@@ -987,6 +989,42 @@ def before_after(before: list[dict], after: list[dict]) -> str:
     for name in sorted(groups, key=lambda k: (order.index(k) if k in order else len(order), k)):
         lines.append(line(name, groups[name]))
     lines.append(line("all", rows))
+    return "\n".join(lines) + "\n"
+
+
+def by_round(befores: list[tuple[str, list[dict]]], after: list[dict]) -> str:
+    """One table of every round: per class, the cases right with each code before (``befores``:
+    label and :func:`run_case` results of the same seeds, oldest first) and now, one column
+    each (a class's seeds that a code before lacks count as not right there, and the column
+    head says how many it holds).
+
+    Parameters
+    ----------
+    befores : list of (str, list of dict)
+    after : list of dict
+
+    Returns
+    -------
+    str
+        Markdown.
+    """
+    olds = [(name, {r["case"]["seed"]: r for r in cases}) for name, cases in befores]
+    groups: dict = {}
+    for r in after:
+        groups.setdefault(_class_label(r), []).append(r)
+    heads = [f"`{name}` ({sum(r['case']['seed'] in old for r in after)})" for name, old in olds]
+    lines = ["| put in (evaluation half) | n | " + " | ".join(heads) + " | now |",
+             "|---|---|" + "---|" * (len(heads) + 1)]
+
+    def line(name, rs):
+        cells = [f"{sum(old[r['case']['seed']]['right'] for r in rs if r['case']['seed'] in old)}"
+                 f"/{len(rs)}" for _, old in olds]
+        return (f"| {name} | {len(rs)} | " + " | ".join(cells)
+                + f" | {sum(r['right'] for r in rs)}/{len(rs)} |")
+    order = ["clean"] + [c for c in CLASS_EFFECTS] + [c + " (outside)" for c in CLASS_OUTSIDE]
+    for name in sorted(groups, key=lambda k: (order.index(k) if k in order else len(order), k)):
+        lines.append(line(name, groups[name]))
+    lines.append(line("all", after))
     return "\n".join(lines) + "\n"
 
 
@@ -1081,6 +1119,11 @@ def main(argv=None) -> int:
         how = (how.replace(f"{wall:.0f} s.", f"{summary['runtime_s']:.0f} s of diagnosis.")
                + f" Tables rendered from `{args.from_json.as_posix()}` (`--from-json`).")
     text = markdown(summary, shared, how)
+    if len(args.before) > 1:
+        befores = [(path.stem, json.loads(path.read_text())["cases"]) for path in args.before]
+        text += ("\nRight, round by round, on the same seeds (one column per `--before` file, "
+                 "oldest first, with the seeds it holds; each file's note is under its table "
+                 "below):\n\n" + by_round(befores, results))
     for path in args.before:
         before = json.loads(path.read_text())
         text += ("\nBefore and after, on the same seeds (before: "

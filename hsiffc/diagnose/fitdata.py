@@ -18,7 +18,8 @@ class Data:
     The fields (commented in the class body) are the fit-half and held-out step means (DN),
     exposures (ms), relative light rates, validity masks, weights (1/DN^2), acquisition order,
     previous step, light mask, full scale (DN), the frame gap between the two halves and the
-    frames averaged in each fit-half sample.
+    frames averaged in each fit-half sample, and whether the frame differences failed the
+    noise model's test.
     """
 
     y: np.ndarray  # fit-half step means, DN
@@ -35,3 +36,6 @@ class Data:
     frame_gap: float  # mean frame index of the held-out half minus that of the fit half
     n_fit: np.ndarray | None = None  # (S,) frames averaged in each fit-half sample
     order_ho: np.ndarray | None = None  # (S,) acquisition order of the held-out frames
+    # the frame differences failed the noise model's test: the frames of a step are not
+    # exchangeable, and a floor measured on them holds what changes from frame to frame
+    frames_differ: bool = False

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .effectfit import (fit_effect, fit_frame_pairs, fit_pair_effect, gram, pair_regression,
-                        projector, separable_fraction)
+from .effectfit import (fit_effect, fit_frame_pairs, fit_on_differences, fit_pair_effect, gram,
+                        pair_regression, projector, separable_fraction)
 from .effects import EFFECTS, Context
 from .fitdata import Data
 
@@ -163,7 +163,7 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=40
         project = projector(jac, data.w)
         for name in plain:
             res = np.where(data.valid, data.y - m - state.sum_effects(m.shape, skip=name), 0.0)
-            state.effects[name] = fit_effect(EFFECTS[name], ctx, res, data.w, project)
+            state.effects[name] = _fit_one(EFFECTS[name], ctx, res, data, project)
         total = state.sum_effects(m.shape)
         added = total - state0.sum_effects(m.shape) if first else 0.0
         # an effect that moves the data by more than its noise has distorted the base it was
@@ -185,9 +185,25 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=40
     m, _, ctx = context(base, state.theta, data)
     for name in plain:  # final effect parameters against the final base model
         res = np.where(data.valid, data.y - m - state.sum_effects(m.shape, skip=name), 0.0)
-        state.effects[name] = fit_effect(EFFECTS[name], ctx, res, data.w)
+        state.effects[name] = _fit_one(EFFECTS[name], ctx, res, data)
     state.prediction = m + state.sum_effects(m.shape)
     return _pair_effects(names, state, ctx, data)
+
+
+def on_differences(effect) -> bool:
+    """Is ``effect`` fitted on the frame differences (:func:`fit_on_differences`): one global
+    parameter, its own held-out columns, and no evidence in the step means?"""
+    return (effect.scope == "global" and effect.ho_columns is not None
+            and not effect.steps_are_evidence and len(effect.param_names) == 1)
+
+
+def _fit_one(effect, ctx, res, data: Data, project=None):
+    """One effect's (params, fit-half prediction): on the frame differences where
+    :func:`on_differences`, else on the residual ``res`` (jointly with the base where
+    ``project``)."""
+    if on_differences(effect):
+        return fit_on_differences(effect, ctx, data)[:2]
+    return fit_effect(effect, ctx, res, data.w, project)
 
 
 def _pair_effects(names, state, ctx, data):
@@ -206,6 +222,9 @@ def _pair_effects(names, state, ctx, data):
             between, extra = fit_frame_pairs(e, ctx, data)
             state.effects[name] = (np.stack([np.ravel(step), between]), pred)
             state.ho_extra = state.ho_extra + extra
+        elif on_differences(e):
+            pred = state.effects[name][1]
+            state.ho_extra = state.ho_extra + fit_on_differences(e, ctx, data)[2] - pred
         elif e.ho_columns is not None:
             theta, pred = state.effects[name]
             state.ho_extra = state.ho_extra + e.ho_columns(ctx) @ theta - pred

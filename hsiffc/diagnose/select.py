@@ -30,7 +30,9 @@ UNEXPLAINED_OF_FLOOR = 0.5  # systematic RMS left above this fraction of the noi
 RULE = (f"held-out mean squared error lower by more than {SELECT_SIGMAS:g} standard errors of the "
         f"paired difference, by more than ({MIN_GAIN_OF_NOISE:g} x noise floor)^2 and by more than "
         f"{MIN_EXPLAINED:g} of the current systematic error (which must itself exceed "
-        f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2); a per-step effect only when its step factors "
+        f"({MIN_GAIN_OF_NOISE:g} x noise floor)^2, except for an effect between the halves of a "
+        f"step where the frame differences, on which the floor is measured, fail the noise "
+        f"model's test); a per-step effect only when its step factors "
         f"show no trend with exposure, signal, light rate, acquisition order or the signal of "
         f"the steps before, and their product with the signal no drift (p >= "
         f"{TREND_P:g}); a within-step effect only when the frame differences show its "
@@ -532,7 +534,8 @@ def _sensor_wide_rival(current: Fitted, best: tuple, names, data: Data, noise_fl
     return rival, rival[0].state
 
 
-def improves(current: Fitted, trial: Fitted, gain: float, se: float, noise_floor: float) -> bool:
+def improves(current: Fitted, trial: Fitted, gain: float, se: float, noise_floor: float,
+             floor_holds_it: bool = False) -> bool:
     """The held-out part of the selection rule: ``trial`` lowers ``current``'s held-out error
     by ``SELECT_SIGMAS`` paired standard errors, by more than ``(MIN_GAIN_OF_NOISE`` x floor)^2
     and by ``MIN_EXPLAINED`` of the systematic error left (which must exceed that square).
@@ -545,6 +548,12 @@ def improves(current: Fitted, trial: Fitted, gain: float, se: float, noise_floor
         :func:`paired` (``current``, ``trial``).
     noise_floor : float, DN
         Temporal noise of one held-out sample.
+    floor_holds_it : bool
+        The floor was measured on frame differences that hold the effect tried (an effect
+        between the halves of a step where the differences failed the noise model's test):
+        the systematic error measured against that floor understates what is left, so it
+        need not exceed the square above (the gain must, and its own evidence is asked of the
+        frame differences, :func:`pair_evidence`).
 
     Returns
     -------
@@ -553,7 +562,7 @@ def improves(current: Fitted, trial: Fitted, gain: float, se: float, noise_floor
     systematic2 = max(current.mse - noise_floor ** 2, 1e-12)
     floor2 = (MIN_GAIN_OF_NOISE * noise_floor) ** 2
     return bool(np.isfinite(trial.mse) and np.isfinite(trial.bic)
-                and current.mse - noise_floor ** 2 > floor2
+                and (floor_holds_it or current.mse - noise_floor ** 2 > floor2)
                 and gain > SELECT_SIGMAS * se and gain > floor2
                 and gain > MIN_EXPLAINED * systematic2)
 
@@ -565,7 +574,8 @@ def _beats(current: Fitted, trial: Fitted, name: str, gain: float, se: float, da
     a fraction of the systematic error left, and (per step) factors without a trend or
     (within a step) the frame differences' own evidence? ``entry["rejected"]`` says why not,
     where one of the last two refuses it."""
-    beats = improves(current, trial, gain, se, noise_floor)
+    beats = improves(current, trial, gain, se, noise_floor,
+                     floor_holds_it=data.frames_differ and between_halves(name))
     if beats and between_halves(name):
         weak_pair = pair_evidence(trial, name, data)
         if weak_pair:

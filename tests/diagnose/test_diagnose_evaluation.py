@@ -214,6 +214,21 @@ def test_write_page_between_markers(tmp_path):
         ev.write_page(bad, "x")
 
 
+def test_the_rounds_table_has_a_column_per_code():
+    """One column per code before and one for now, a class's seeds a code lacks not right."""
+    def case(seed, kind, right, name="frame_lag"):
+        effects = [] if kind == "clean" else [{"name": name}]
+        return {"case": {"seed": seed}, "truth": {"kind": kind, "effects": effects},
+                "right": right, "false_alarm": False}
+    now = [case(1, "clean", True), case(3, "single", True), case(5, "single", True)]
+    first = [case(1, "clean", True), case(3, "single", False)]
+    second = [case(1, "clean", False), case(3, "single", True), case(5, "single", False)]
+    text = ev.by_round([("first", first), ("second", second)], now)
+    assert "| `first` (2) | `second` (3) | now |" in text
+    assert "| frame_lag | 2 | 0/2 | 1/2 | 2/2 |" in text
+    assert "| all | 3 | 1/3 | 1/3 | 3/3 |" in text
+
+
 @pytest.mark.slow
 def test_full_evaluation_half(tmp_path):
     """The published evaluation (the failure classes of issue 53): every seed of the evaluation

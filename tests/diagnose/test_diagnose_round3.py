@@ -307,3 +307,48 @@ def test_a_dark_signal_the_base_nearly_absorbs_is_pooled_over_the_pixels():
     # pixels that differ by far more than their errors keep their own values
     kept = pool_pixels(np.array([1.0, 5.0, 9.0]), np.array([1e4, 1e4, 1e4]))
     np.testing.assert_allclose(kept, [1.0, 5.0, 9.0], atol=1e-3)
+
+
+def test_a_lag_between_frames_is_fitted_on_the_frame_differences():
+    """Issue 53, class 2: a lag from frame to frame is mostly a gain of the base in the fit
+    half (the fit frame carries the step before, the held-out frame its own step); its size is
+    in the frame differences, where it is fitted (cross-fitted over two halves of the pixels)."""
+    from hsiffc.diagnose.bases import LinearBase
+    from hsiffc.diagnose.fitting import State, fitpredict, on_differences
+
+    rng = np.random.default_rng(11)
+    n_pix, s, lag = 400, 24, 0.1
+    t = np.linspace(5.0, 100.0, s)  # a sorted sweep: the step before has less signal
+    signal = rng.uniform(5.0, 30.0, (n_pix, 1)) * t
+    prev = np.concatenate([np.zeros((n_pix, 1)), signal[:, :-1]], axis=1)
+    noise = 2.0
+    y = 50.0 + signal + lag * prev + noise * rng.standard_normal(signal.shape)
+    y_ho = 50.0 + signal + lag * signal + noise * rng.standard_normal(signal.shape)
+    data = _step_data(y, t)
+    data.y_ho, data.n_fit = y_ho, np.ones(s)
+    base = LinearBase(False)
+    st = fitpredict(["frame_lag"], data, State(base, base.start(y, t, np.ones(s), data.valid,
+                                                                 data.w)))
+    assert on_differences(EFFECTS["frame_lag"]) and not on_differences(EFFECTS["lamp_drift"])
+    assert st.effects["frame_lag"][0][0] == pytest.approx(lag, rel=0.01)
+    # what it adds to the held-out half beyond the fit half: the lag times the step's signal
+    # increase over the step before, each pixel with the other half's estimate
+    np.testing.assert_allclose(st.ho_extra, lag * (signal - prev), rtol=0.03, atol=0.5)
+
+
+def test_a_floor_measured_on_differences_that_hold_the_effect_does_not_block_it():
+    """Issue 53, class 2: where the frame differences fail the noise model's test, the floor
+    measured on them holds the effect that changes from frame to frame, and the held-out error
+    can come out below it (development seed 105436: 3.53 DN against a floor of 3.73 DN): the
+    systematic error left is then no gate for an effect between the halves."""
+    from types import SimpleNamespace
+
+    from hsiffc.diagnose.select import improves
+
+    current = SimpleNamespace(mse=3.53 ** 2, bic=0.0)
+    trial = SimpleNamespace(mse=3.53 ** 2 - 3.48, bic=0.0)
+    assert not improves(current, trial, 3.48, 0.11, 3.73)
+    assert improves(current, trial, 3.48, 0.11, 3.73, floor_holds_it=True)
+    # the gain itself must still pass the rule
+    assert not improves(current, trial, 0.3, 0.11, 3.73, floor_holds_it=True)
+
