@@ -156,6 +156,7 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=40
     base = state0.base
     state = State(base, state0.theta.copy())
     plain = [n for n in names if EFFECTS[n].scope != "pair"]
+    held_out: dict = {}  # held-out predictions of the effects fitted on the frame differences
     previous = np.inf
     first = True
     for _ in range(rounds if plain else 0):
@@ -163,7 +164,8 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=40
         project = projector(jac, data.w)
         for name in plain:
             res = np.where(data.valid, data.y - m - state.sum_effects(m.shape, skip=name), 0.0)
-            state.effects[name] = _fit_one(EFFECTS[name], ctx, res, data, project)
+            state.effects[name] = _fit_one(EFFECTS[name], ctx, res, data, project,
+                                           held_out, name)
         total = state.sum_effects(m.shape)
         added = total - state0.sum_effects(m.shape) if first else 0.0
         # an effect that moves the data by more than its noise has distorted the base it was
@@ -172,7 +174,7 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=40
         if quick and first and not big:  # linearised base update, no refit
             res = np.where(data.valid, data.y - m - total, 0.0)
             state.prediction = m + (res - project(res)) + total
-            return _pair_effects(names, state, ctx, data)
+            return _pair_effects(names, state, ctx, data, held_out)
         refit = base.restart if big else base.fit
         state.theta = refit(data.y - total, data.t, data.r, data.valid, data.w, state.theta,
                             max_iter=base_iter)
@@ -185,9 +187,9 @@ def fitpredict(names, data: Data, state0: State, rounds=MAX_ROUNDS, base_iter=40
     m, _, ctx = context(base, state.theta, data)
     for name in plain:  # final effect parameters against the final base model
         res = np.where(data.valid, data.y - m - state.sum_effects(m.shape, skip=name), 0.0)
-        state.effects[name] = _fit_one(EFFECTS[name], ctx, res, data)
+        state.effects[name] = _fit_one(EFFECTS[name], ctx, res, data, None, held_out, name)
     state.prediction = m + state.sum_effects(m.shape)
-    return _pair_effects(names, state, ctx, data)
+    return _pair_effects(names, state, ctx, data, held_out)
 
 
 def on_differences(effect) -> bool:
@@ -197,19 +199,23 @@ def on_differences(effect) -> bool:
             and not effect.steps_are_evidence and len(effect.param_names) == 1)
 
 
-def _fit_one(effect, ctx, res, data: Data, project=None):
+def _fit_one(effect, ctx, res, data: Data, project, held_out: dict, name: str):
     """One effect's (params, fit-half prediction): on the frame differences where
-    :func:`on_differences`, else on the residual ``res`` (jointly with the base where
-    ``project``)."""
+    :func:`on_differences` (its held-out prediction then goes into ``held_out[name]``, for
+    :func:`_pair_effects` with the same ``ctx``), else on the residual ``res`` (jointly with
+    the base where ``project``)."""
     if on_differences(effect):
-        return fit_on_differences(effect, ctx, data)[:2]
+        params, pred, held_out[name] = fit_on_differences(effect, ctx, data)
+        return params, pred
     return fit_effect(effect, ctx, res, data.w, project)
 
 
-def _pair_effects(names, state, ctx, data):
+def _pair_effects(names, state, ctx, data, held_out):
     """What the effects add to the held-out half beyond the fit half's prediction: a
     within-step effect (fitted on the frame differences), the part between the halves of a
-    ``frame`` effect, and the held-out columns of an effect whose columns differ there."""
+    ``frame`` effect, the held-out prediction of an effect fitted on the frame differences
+    (``held_out``, from :func:`_fit_one` with this ``ctx``) and the held-out columns of an
+    effect whose columns differ there."""
     if state.prediction is None:
         state.prediction = state.base.predict(state.theta, data.t, data.r)
     for name in names:
@@ -224,7 +230,7 @@ def _pair_effects(names, state, ctx, data):
             state.ho_extra = state.ho_extra + extra
         elif on_differences(e):
             pred = state.effects[name][1]
-            state.ho_extra = state.ho_extra + fit_on_differences(e, ctx, data)[2] - pred
+            state.ho_extra = state.ho_extra + held_out[name] - pred
         elif e.ho_columns is not None:
             theta, pred = state.effects[name]
             state.ho_extra = state.ho_extra + e.ho_columns(ctx) @ theta - pred
