@@ -490,26 +490,49 @@ def _frame_mean_signal(c):
     return np.broadcast_to(m, c.signal.shape)
 
 
+def _frame_signal_shape(c):
+    """Columns of an offset common to the pixels of a frame that is any smooth function of
+    the frame's mean signal (P, S, 5): quadratic and cubic, and a change of slope at a
+    quarter, a half and three quarters of the brightest light step's mean signal (an offset
+    that sets in above a level, as a clamp does, is no polynomial)."""
+    m = _frame_mean_signal(c)
+    light = np.asarray(c.light, bool)
+    top = float(m[0, light].max()) if light.any() else float(m.max())
+    return _stack(m ** 2, m ** 3, *[np.maximum(m - q * top, 0.0) for q in (0.25, 0.5, 0.75)])
+
+
+#: An offset common to the pixels of a frame that follows the frame's mean signal, whatever
+#: its shape (:func:`_frame_signal_shape`): a black-level clamp is one, outside the library.
+FRAME_SIGNAL_OFFSET = Effect(
+    "common_offset_of_frame_signal",
+    "an offset common to the pixels of a frame, a smooth function of the frame's mean signal "
+    "(not each pixel's own): quadratic, cubic and three changes of slope", "global",
+    ("c2", "c3", "h25", "h50", "h75"), _frame_signal_shape,
+    lambda p: "an offset common to the pixels that follows the frame's mean signal")
+
 #: Offsets common to the pixels of a frame, outside the library (a black-level clamp that
 #: follows the frame's signal is one): fitted in place of the library effect they share a
 #: pattern with, to tell whether that effect stands in for them (never candidates, never
-#: injected). ``readout_nonlinearity`` bends each pixel's response with its own signal; its
-#: probe is the same polynomial in the mean signal of the frame, the same for every pixel.
-#: ``illumination_error`` scales each pixel's signal per step; its probe is one offset (DN) per
-#: light step, the same for every pixel.
+#: injected). ``readout_nonlinearity`` bends each pixel's response with its own signal, and
+#: ``lamp_drift`` scales it smoothly in acquisition order (which follows the signal in a sorted
+#: sweep); their probe is an offset that follows the mean signal of the frame, the same for
+#: every pixel. ``illumination_error`` scales each pixel's signal per step; its probe is one
+#: offset (DN) per light step, the same for every pixel.
 OFFSET_PROBES = {
-    "readout_nonlinearity": Effect(
-        "common_offset_of_frame_signal",
-        "an offset common to the pixels of a frame, quadratic and cubic in the frame's mean "
-        "signal (not each pixel's own)", "global", ("c2", "c3"),
-        lambda c: _stack(_frame_mean_signal(c) ** 2, _frame_mean_signal(c) ** 3),
-        lambda p: "an offset common to the pixels that follows the frame's mean signal"),
+    "readout_nonlinearity": FRAME_SIGNAL_OFFSET,
+    "lamp_drift": FRAME_SIGNAL_OFFSET,
     "illumination_error": Effect(
         "common_offset_per_step",
         "an offset (DN) per light step common to the pixels", "step", ("offset_dn",),
         lambda c: _stack(np.broadcast_to(c.light[None, :].astype(float), c.signal.shape)),
         lambda p: "an offset per light step common to the pixels"),
 }
+
+#: Per-step effects whose factors may follow the frame's signal instead of varying at random
+#: from step to step: where an offset that follows the frame's mean signal (a few parameters)
+#: predicts the held-out data as well as one factor per step, the factors are a misfit of the
+#: model, not a light error (:func:`hsiffc.diagnose.select.offset_stand_in`).
+SMOOTH_PROBES = {"illumination_error": FRAME_SIGNAL_OFFSET}
 
 
 ALIASES = {"gain_nonlinearity": "readout_nonlinearity"}  # earlier name, still accepted

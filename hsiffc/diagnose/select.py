@@ -9,7 +9,7 @@ import numpy as np
 
 from scipy import stats
 
-from .effects import EFFECTS, OFFSET_PROBES
+from .effects import EFFECTS, OFFSET_PROBES, SMOOTH_PROBES
 from .effectfit import fit_effect, frame_regression, projector
 from .fitting import Data, State, context, describe_params, fitpredict, pair_regression
 
@@ -608,10 +608,18 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
     held-out errors compared: the probe predicts the held-out data better by more than
     ``TIE_SIGMAS`` paired standard errors and by more than ``PROBE_OF_DISTINCT`` of the part of
     the effect that differs between the pixels of a frame (its mean square about each step's
-    mean over the pixels): that part is what the two disagree on, so the probe gains about it
-    where the offset is true and loses about it where the effect is. A light error scales each pixel's signal and a readout
-    nonlinearity bends it by its own signal; pixels of different signal in one frame tell those
-    from an offset the same for all of them.
+    mean over the pixels; of an effect fitted jointly with the base, the part of it the base
+    cannot absorb): that part is what the two disagree on, so the probe gains about it
+    where the offset is true and loses about it where the effect is. A light error scales each
+    pixel's signal and a readout nonlinearity bends it by its own signal; pixels of different
+    signal in one frame tell those from an offset the same for all of them.
+
+    Where the pixels of a frame see nearly one signal that part is too small to tell, but a
+    per-step effect (:data:`~hsiffc.diagnose.effects.SMOOTH_PROBES`) has one more test: an
+    offset that follows the frame's mean signal (a few parameters) that predicts the held-out
+    data as well as its factors (not worse by ``TIE_SIGMAS`` standard errors) says that the
+    factors follow the signal level, as a misfit of the model does, not a light error, which
+    is random from step to step.
 
     Parameters
     ----------
@@ -630,39 +638,51 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
         ``reason``; None where the effect has no probe or the probe is not
         better.
     """
-    probe = OFFSET_PROBES.get(name)
+    probe, smooth = OFFSET_PROBES.get(name), SMOOTH_PROBES.get(name)
     st = fitted.state
-    if probe is None or name not in st.effects:
+    if (probe is None and smooth is None) or name not in st.effects:
         return None
     m, jac, ctx = context(st.base, st.theta, data)
     project = projector(jac, data.w)
     others = st.sum_effects(m.shape, skip=name)
     res0 = np.where(data.valid, data.y - m - others, 0.0)
-    models = []
-    for effect in (None, EFFECTS[name], probe):
-        total = others.copy()
-        if effect is not None:
-            pred = fit_effect(effect, ctx, res0, data.w, project)[1]
-            total += pred
-            if effect is EFFECTS[name]:  # its part that differs between a frame's pixels
-                vh = data.valid_ho
-                n = np.maximum(vh.sum(axis=0), 1)
-                apart = np.where(vh, pred - np.where(vh, pred, 0.0).sum(axis=0) / n, 0.0)
-                distinct = float((apart ** 2).sum() / max(int(vh.sum()), 1))
-        models.append(_with_effects(st, m, project, total, data))
-    without, with_effect, with_probe = models
-    explained = paired(without, with_effect, data.valid_ho)[0]
-    gain, se = paired(with_effect, with_probe, data.valid_ho)
-    if not (gain > TIE_SIGMAS * se and gain > PROBE_OF_DISTINCT * distinct):
-        return None
-    return {"gain_dn2": gain, "standard_error_dn2": se, "explained_dn2": explained,
-            "distinct_dn2": distinct,
-            "reason": (f"what it explains is better explained by {probe.summary} (held-out "
-                       f"squared error lower by {gain:.3g} +- {se:.2g} DN^2, where the two differ "
-                       f"by {distinct:.3g} DN^2 between the pixels of a frame; the effect "
-                       f"explains {explained:.3g} DN^2): an offset the same for "
-                       "every pixel of a frame, such as a black-level clamp that follows the "
-                       "frame's signal, which the library does not describe")}
+
+    def with_(effect):
+        pred = fit_effect(effect, ctx, res0, data.w, project)[1]
+        return _with_effects(st, m, project, others + pred, data), pred
+    without = _with_effects(st, m, project, others, data)
+    with_effect, pred = with_(EFFECTS[name])
+    # its part that differs between a frame's pixels (as it is fitted: jointly with the base,
+    # less what the base absorbs, for a sensor-wide or per-pixel effect)
+    vf, vh = data.valid, data.valid_ho
+    apart = np.where(vf, pred - np.where(vf, pred, 0.0).sum(axis=0)
+                     / np.maximum(vf.sum(axis=0), 1), 0.0)
+    if EFFECTS[name].scope in ("global", "pixel"):
+        apart = apart - project(apart)
+    distinct = float((np.where(vh, apart, 0.0) ** 2).sum() / max(int(vh.sum()), 1))
+    explained = paired(without, with_effect, vh)[0]
+    out = {"explained_dn2": explained, "distinct_dn2": distinct}
+    if probe is not None:
+        gain, se = paired(with_effect, with_(probe)[0], vh)
+        if gain > TIE_SIGMAS * se and gain > PROBE_OF_DISTINCT * distinct:
+            return {**out, "gain_dn2": gain, "standard_error_dn2": se, "reason": (
+                f"what it explains is better explained by {probe.summary} (held-out squared "
+                f"error lower by {gain:.3g} +- {se:.2g} DN^2, where the two differ by "
+                f"{distinct:.3g} DN^2 between the pixels of a frame; the effect explains "
+                f"{explained:.3g} DN^2): an offset the same for every pixel of a frame, such as "
+                "a black-level clamp that follows the frame's signal, which the library does "
+                "not describe")}
+    if smooth is not None:
+        gain, se = paired(with_effect, with_(smooth)[0], vh)
+        if gain > -TIE_SIGMAS * se:
+            return {**out, "gain_dn2": gain, "standard_error_dn2": se, "reason": (
+                f"its step factors follow the frame's signal: {smooth.summary} "
+                f"({smooth.n_params(1, 1)} parameters) predicts the held-out data as well as "
+                f"one factor per step (held-out squared error lower by {gain:.3g} +- {se:.2g} "
+                f"DN^2; the effect explains {explained:.3g} DN^2): a misfit of the model that "
+                "follows the signal level, such as a black-level clamp, not a light error, "
+                "which is random from step to step")}
+    return None
 
 
 def offset_left(fitted: Fitted, data: Data, noise_floor: float):
