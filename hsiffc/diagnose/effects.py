@@ -492,13 +492,13 @@ def _frame_mean_signal(c):
 
 def _frame_signal_shape(c):
     """Columns of an offset common to the pixels of a frame that is any smooth function of
-    the frame's mean signal (P, S, 5): quadratic and cubic, and a change of slope at a
-    quarter, a half and three quarters of the brightest light step's mean signal (an offset
-    that sets in above a level, as a clamp does, is no polynomial)."""
+    the frame's mean signal (P, S, 7): a line with a change of slope at every eighth of the
+    brightest light step's mean signal (the line itself is the base's gain and dark level).
+    An offset that sets in above a level, as a clamp does, is no polynomial."""
     m = _frame_mean_signal(c)
     light = np.asarray(c.light, bool)
     top = float(m[0, light].max()) if light.any() else float(m.max())
-    return _stack(m ** 2, m ** 3, *[np.maximum(m - q * top, 0.0) for q in (0.25, 0.5, 0.75)])
+    return _stack(*[np.maximum(m - q * top / 8.0, 0.0) for q in range(1, 8)])
 
 
 #: An offset common to the pixels of a frame that follows the frame's mean signal, whatever
@@ -506,8 +506,9 @@ def _frame_signal_shape(c):
 FRAME_SIGNAL_OFFSET = Effect(
     "common_offset_of_frame_signal",
     "an offset common to the pixels of a frame, a smooth function of the frame's mean signal "
-    "(not each pixel's own): quadratic, cubic and three changes of slope", "global",
-    ("c2", "c3", "h25", "h50", "h75"), _frame_signal_shape,
+    "(not each pixel's own): piecewise linear, a change of slope at every eighth of the "
+    "brightest step's", "global", tuple(f"slope_change_{q}_8" for q in range(1, 8)),
+    _frame_signal_shape,
     lambda p: "an offset common to the pixels that follows the frame's mean signal")
 
 #: Offsets common to the pixels of a frame, outside the library (a black-level clamp that

@@ -91,8 +91,8 @@ def test_a_readout_bend_that_stands_in_for_a_clamp(kind):
 
 def test_the_frame_signal_probe_follows_the_frames_mean_signal():
     """The probe's columns are the same for every pixel of a step (a function of the step's
-    mean signal, not each pixel's), zero in the dark, and change slope at a quarter, a half and
-    three quarters of the brightest light step's mean signal."""
+    mean signal, not each pixel's), zero in the dark, and change slope at every eighth of the
+    brightest light step's mean signal."""
     s = 5
     signal = np.array([[0.0, 100.0, 200.0, 300.0, 400.0],
                        [0.0, 300.0, 600.0, 900.0, 1200.0]])
@@ -101,11 +101,12 @@ def test_the_frame_signal_probe_follows_the_frames_mean_signal():
                      order=np.linspace(-1, 1, s), prev_signal=signal, light=light,
                      full_scale=1000.0, dydt=np.ones((2, s)), dydlnk=signal)
     x = fx.FRAME_SIGNAL_OFFSET.columns(ctx)
-    assert x.shape == (2, s, 5)
+    assert x.shape == (2, s, 7)
     np.testing.assert_array_equal(x[0], x[1])
     np.testing.assert_array_equal(x[:, 0], 0.0)
-    mean = signal.mean(axis=0) / 1000.0  # 0, 0.2, 0.4, 0.6, 0.8
-    np.testing.assert_allclose(x[0, :, 0], mean ** 2)
-    np.testing.assert_allclose(x[0, :, 4], np.maximum(mean - 0.6, 0.0))
+    mean = signal.mean(axis=0) / 1000.0  # 0, 0.2, 0.4, 0.6, 0.8: the top is 0.8
+    np.testing.assert_allclose(x[0, :, 0], np.maximum(mean - 0.1, 0.0))
+    np.testing.assert_allclose(x[0, :, 6], np.maximum(mean - 0.7, 0.0))
     assert fx.OFFSET_PROBES["readout_nonlinearity"] is fx.FRAME_SIGNAL_OFFSET
+    assert fx.OFFSET_PROBES["lamp_drift"] is fx.FRAME_SIGNAL_OFFSET
     assert set(fx.SMOOTH_PROBES) == {"illumination_error"}
