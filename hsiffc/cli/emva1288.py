@@ -86,10 +86,10 @@ def _cmd_emva1288(args) -> int:
     for n in res["notes"]:
         print(f"note: {n}")
     if leak is not None:
-        lin, bud = leak["linearity"], leak["saturation_budget"]
+        bud = leak["saturation_budget"]
         al = leak["alpha"]["saturation"]
-        print(f"leakage: explains {100 * lin['share_explained_model']:.1f} % of the linearity "
-              f"error's sum of squares; alpha at the saturation point median "
+        print(f"leakage: {leak['evidence']['text']}")
+        print(f"leakage: alpha at the saturation point median "
               f"{al['p50']:.3g} % (max {al['max_percent']:.3g} %); at saturation "
               f"{100 * bud['leaked_share']:.2f} % of the generated signal leaked, "
               f"{100 * bud['share_pixels_leakage_limited']:.1f} % of pixels leakage-limited")

@@ -55,6 +55,7 @@ def leakage_markdown(leak: dict) -> list[str]:
     lin, al, bud = leak["linearity"], leak["alpha"], leak["saturation_budget"]
     pct = (lambda v: "n/a" if v is None else f"{100 * v:.1f} %")  # noqa: E731
     cal = leak["calibration"]
+    ev = leak.get("evidence")
     drawn = ""
     if cal.get("drawn_seed") is not None:
         drawn = (f" on {cal['n_pixels']} of the sensor's {cal['sensor_pixels']} pixels, drawn "
@@ -64,6 +65,7 @@ def leakage_markdown(leak: dict) -> list[str]:
         f"Per-pixel leakage calibration: {cal['method']} "
         f"({', '.join(f'{k}: {v}' for k, v in (cal['fit_status'] or {}).items())})"
         f"{drawn}. Definitions: module docstring of `hsiffc.emva1288.leakage`.", "",
+        *([f"**Evidence: {ev['text']}.**", ""] if ev else []),
         "### Linearity error", "",
         "| curve | LE_min (%) | LE_max (%) | share of the linearity error's sum of squares "
         "explained |", "|---|---:|---:|---:|",
@@ -77,7 +79,9 @@ def leakage_markdown(leak: dict) -> list[str]:
         f"{lin['LE_max_left']:.3f} | |", "",
         f"Share explained by leakage: **{pct(lin['share_explained_by_leakage'])}**; RMS "
         f"linearity error {lin['rms_measured_percent']:.3f} % measured, "
-        f"{lin['rms_left_percent']:.3f} % left after the model.", "",
+        f"{lin['rms_left_percent']:.3f} % left after the model; the temporal noise of the "
+        f"step means gives {lin['noise_rms_percent']:.3f} % (a lower bound of the random "
+        "error).", "",
         "### Leakage percentage alpha at the standard's points", "",
         "| point | u_p (p) | signal (DN) | alpha median (%) | p90 (%) | max (%) | pixels > 5 % | "
         "pixels > 12 % |", "|---|---:|---:|---:|---:|---:|---:|---:|"]

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import constants
 
 from .grid import DEFAULT_GRID, as_grid, trapezoid_weights
 from .bands import BandSet
 from .illumination import Illumination
+
+#: The SI defining constants (exact since the 2019 redefinition of the SI; the values
+#: ``scipy.constants`` holds): written here so that importing hsiffc.spectral does not load
+#: scipy (0.17 s, on the path of every command that touches the flat field or the calibration).
+PLANCK_J_S = 6.62607015e-34
+SPEED_OF_LIGHT_M_S = 299792458.0
 
 
 def electron_rate(illumination: Illumination, bands: BandSet, *, pixel_pitch_um: float,
@@ -17,7 +22,7 @@ def electron_rate(illumination: Illumination, bands: BandSet, *, pixel_pitch_um:
     ``rate_b = A_pix * integral E(lambda) R(lambda) QE_b(lambda) lambda / (h c) dlambda / 1000``
 
     with ``E`` the spectral irradiance in W m^-2 nm^-1 (``illumination.spectral_irradiance``),
-    ``lambda / (h c)`` photons per joule (lambda in m, ``scipy.constants``), ``QE_b`` the band's
+    ``lambda / (h c)`` photons per joule (lambda in m; the SI's exact h and c), ``QE_b`` the band's
     quantum-efficiency fraction (``bands.responses``), ``R`` the scene reflectance (1 = the
     irradiance reaches the pixel unchanged, as for a flat field), ``A_pix = pixel_pitch_um^2``
     converted to m^2 (100 % fill factor; fold a fill factor or micro-lens gain into the QE), the
@@ -44,7 +49,7 @@ def electron_rate(illumination: Illumination, bands: BandSet, *, pixel_pitch_um:
         raise ValueError(f"pixel_pitch_um must be positive (micrometres), got {pixel_pitch_um!r}")
     wl = illumination.wavelengths_nm
     qe = bands.resample(wl).responses                                   # (n_bands, L)
-    photons = illumination.spectral_irradiance * (wl * 1e-9) / (constants.h * constants.c)
+    photons = illumination.spectral_irradiance * (wl * 1e-9) / (PLANCK_J_S * SPEED_OF_LIGHT_M_S)
     kernel = qe * (photons * trapezoid_weights(wl))                     # e- s^-1 m^-2 per band
     scale = (pitch * 1e-6) ** 2 * 1e-3                                  # m^2 per pixel, s -> ms
     if reflectance is None:

@@ -98,6 +98,8 @@ def test_the_leakage_account_runs_in_a_child_and_the_command_never_loads_it(line
         _, here, _ = run_characterisation(src, background=False)
     child = doc["leakage"]
     assert child["calibration"]["n_pixels"] == sweep.frame_shape[0] * sweep.frame_shape[1]
+    assert child["evidence"] == here["evidence"]
+    assert child["evidence"]["verdict"] == "noise"  # a linear camera: nothing to explain
     assert child["linearity"]["share_explained_model"] == pytest.approx(
         here["linearity"]["share_explained_model"], rel=1e-9)
     assert child["alpha"]["saturation"]["p50"] == pytest.approx(

@@ -250,6 +250,22 @@ def test_electron_rate_hand_computed_box_band():
     assert got[0] == pytest.approx(5.0e3, rel=0.01)      # ~ 5000 e-/ms
 
 
+def test_the_si_constants_are_scipys_and_spectral_loads_no_scipy():
+    """hsiffc.spectral holds the exact SI h and c itself: importing it (every command that
+    touches the flat field or the calibration does) no longer loads scipy."""
+    import subprocess
+    import sys
+
+    from hsiffc.spectral import radiometry
+
+    assert (radiometry.PLANCK_J_S, radiometry.SPEED_OF_LIGHT_M_S) == (constants.h, constants.c)
+    run = subprocess.run([sys.executable, "-c", "import sys, hsiffc.spectral; "
+                          "print('scipy' in sys.modules)"], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split() == ["False"]
+
+
 def test_electron_rate_linear_in_irradiance_and_area():
     bands = paper_8band()
     r1 = electron_rate(lamp("lamp A", 0.3), bands, pixel_pitch_um=5.5)
