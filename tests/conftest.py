@@ -20,6 +20,17 @@ import pytest
 TEST_NUMBA_THREADS = "1"
 if "numba" not in sys.modules:
     os.environ.setdefault("NUMBA_NUM_THREADS", TEST_NUMBA_THREADS)
+#: BLAS and LAPACK threads (numpy.linalg, scipy) of each test process, for the same reason:
+#: OpenBLAS starts one thread per core in every process and its idle threads spin, so the
+#: test processes of ``-n auto`` took each other's cores (diagnose's SVDs and solves). Set
+#: before numpy is imported (OpenBLAS reads it when it loads); the processes a test starts
+#: inherit it. tests/diagnose/test_diagnose.py -k library_effect, ``-n 2 --dist load``, warm
+#: numba cache, twice each: CPU (user + system) 134 and 140 s with 2 BLAS threads (OpenBLAS's
+#: default on 2 cores), 98 and 99 s with 1; wall 136 and 142 s, 85 and 100 s (load 3-6).
+TEST_BLAS_THREADS = "1"
+if "numpy" not in sys.modules:
+    for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(name, TEST_BLAS_THREADS)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("HSIFFC_SHARED_DATA", REPO.parent / "shared" / "data"))
