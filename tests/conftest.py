@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -18,6 +20,17 @@ import pytest
 TEST_NUMBA_THREADS = "1"
 if "numba" not in sys.modules:
     os.environ.setdefault("NUMBA_NUM_THREADS", TEST_NUMBA_THREADS)
+#: BLAS and LAPACK threads (numpy.linalg, scipy) of each test process, for the same reason:
+#: OpenBLAS starts one thread per core in every process and its idle threads spin, so the
+#: test processes of ``-n auto`` took each other's cores (diagnose's SVDs and solves). Set
+#: before numpy is imported (OpenBLAS reads it when it loads); the processes a test starts
+#: inherit it. tests/diagnose/test_diagnose.py -k library_effect, ``-n 2 --dist load``, warm
+#: numba cache, twice each: CPU (user + system) 134 and 140 s with 2 BLAS threads (OpenBLAS's
+#: default on 2 cores), 98 and 99 s with 1; wall 136 and 142 s, 85 and 100 s (load 3-6).
+TEST_BLAS_THREADS = "1"
+if "numpy" not in sys.modules:
+    for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(name, TEST_BLAS_THREADS)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("HSIFFC_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -35,6 +48,36 @@ MAX_TEST_WORKERS = 4
 def pytest_xdist_auto_num_workers(config):
     """``-n auto``: one test process per core, at most :data:`MAX_TEST_WORKERS`."""
     return max(1, min(os.cpu_count() or 1, MAX_TEST_WORKERS))
+
+
+#: ``workerinput`` key of the folder of the compile locks the test processes share
+COMPILE_LOCKS = "hsiffc_compile_locks"
+_LOCK_FOLDER = pytest.StashKey[str]()
+
+
+def pytest_configure(config):
+    """A test process of ``-n`` compiles each cached numba build once for the whole run: see
+    :mod:`compilelock` (measured: the test processes of a cold run on 2 cores compiled 107 s of
+    their 353 s twice, counted by numba's ``numba:compile`` event per signature and process)."""
+    folder = getattr(config, "workerinput", {}).get(COMPILE_LOCKS)
+    if folder:
+        from compilelock import install
+
+        install(folder)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node):
+    """``-n``: the controller makes one folder of compile locks for its test processes."""
+    stash = node.config.stash
+    if _LOCK_FOLDER not in stash:
+        stash[_LOCK_FOLDER] = tempfile.mkdtemp(prefix="hsiffc-test-compile-locks-")
+    node.workerinput[COMPILE_LOCKS] = stash[_LOCK_FOLDER]
+
+
+def pytest_unconfigure(config):
+    if _LOCK_FOLDER in config.stash:
+        shutil.rmtree(config.stash[_LOCK_FOLDER], ignore_errors=True)
 
 
 def _names(folder: Path) -> set[str]:

@@ -25,6 +25,13 @@ REPO = Path(__file__).resolve().parents[2]
 
 needs_no_gpu = pytest.mark.skipif(gpu.available(), reason="a GPU is usable here")
 
+#: first line of every simulator child: numba's CUDA simulator runs each simulated thread as a
+#: Python thread while the launching thread polls them in a loop that holds the GIL for the
+#: interpreter's switch interval (5 ms). Switching every 0.2 ms hands it on sooner: the child
+#: of test_simulated_gpu_cube_equals_cpu took 52 s of CPU (user + system) with the default, 27
+#: to 30 s with 0.2 ms, 39 s with 0.02 ms (/usr/bin/time, warm numba cache, load average 3-4)
+SIMULATOR_SWITCH = "import sys; sys.setswitchinterval(2e-4)\n"
+
 
 @needs_no_gpu
 def test_device_cuda_without_a_gpu_is_one_line(tmp_path):
@@ -159,7 +166,7 @@ print("RESULT " + json.dumps(out))
 
 def _simulate(names: str, shape: str, *more: str) -> dict:
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
-    run = subprocess.run([sys.executable, "-c", _CHILD, names, shape, *more],
+    run = subprocess.run([sys.executable, "-c", SIMULATOR_SWITCH + _CHILD, names, shape, *more],
                          capture_output=True, text=True,
                          env=env, cwd=REPO, timeout=900)
     assert run.returncode == 0, run.stderr[-3000:]
@@ -273,7 +280,8 @@ def test_simulated_gpu_stream_edges():
     """A 0 ms exposure goes through the CPU pipeline inside the stream; non-finite raw values
     as Frame.from_raw reads them; frames of two exposures alternate between the two slots."""
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
-    run = subprocess.run([sys.executable, "-c", _EDGES], capture_output=True, text=True,
+    run = subprocess.run([sys.executable, "-c", SIMULATOR_SWITCH + _EDGES],
+                         capture_output=True, text=True,
                          env=env, cwd=REPO, timeout=900)
     assert run.returncode == 0, run.stderr[-3000:]
     res = json.loads([x for x in run.stdout.splitlines() if x.startswith("RESULT ")][-1][7:])
@@ -318,7 +326,8 @@ def test_simulated_batch_device_cuda_writes_the_cpu_outputs(tmp_path):
     frames) writes the outputs the CPU writes, bit for bit in the simulator, and records the
     device in the provenance (slow: 30 s; the default run checks the wiring below)."""
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
-    run = subprocess.run([sys.executable, "-c", _BATCH, str(tmp_path)], capture_output=True,
+    run = subprocess.run([sys.executable, "-c", SIMULATOR_SWITCH + _BATCH, str(tmp_path)],
+                         capture_output=True,
                          text=True, env=env, cwd=REPO, timeout=900)
     assert run.returncode == 0, run.stderr[-3000:]
     res = json.loads([x for x in run.stdout.splitlines() if x.startswith("RESULT ")][-1][7:])
@@ -494,7 +503,8 @@ def test_kernels_compile_for_sm90_with_the_types_the_pipeline_passes(tmp_path):
     functions, whose device compilation needs a driver (it ran on the H200)."""
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
     sigs = tmp_path / "sigs.json"
-    run = subprocess.run([sys.executable, "-c", _CAPTURE, str(sigs)], capture_output=True,
+    run = subprocess.run([sys.executable, "-c", SIMULATOR_SWITCH + _CAPTURE, str(sigs)],
+                         capture_output=True,
                          text=True, env=env, cwd=REPO, timeout=1800)
     assert run.returncode == 0, run.stderr[-3000:]
     launches = json.loads(sigs.read_text())
@@ -540,7 +550,8 @@ def test_simulated_gpu_flags_uncertain_as_the_cpu():
     """The model FFC's UNCERTAIN flag (c > e signal^2) set on the device as
     hsiffc.kernels.bits sets it on the CPU, bit for bit, keeping the bits already there."""
     env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}
-    run = subprocess.run([sys.executable, "-c", _UNCERTAIN_CHILD], capture_output=True,
+    run = subprocess.run([sys.executable, "-c", SIMULATOR_SWITCH + _UNCERTAIN_CHILD],
+                         capture_output=True,
                          text=True, env=env, cwd=REPO, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
     res = json.loads([x for x in run.stdout.splitlines() if x.startswith("RESULT ")][-1][7:])

@@ -4,6 +4,7 @@ own layer or below (every import statement counts, those inside functions too)."
 from __future__ import annotations
 
 import ast
+import functools
 import re
 import sys
 from pathlib import Path
@@ -34,6 +35,20 @@ def unit(module: str) -> str:
     return parts[1] if len(parts) > 1 else "hsiffc"
 
 
+@functools.lru_cache(maxsize=None)
+def _import_statements(path: Path, stamp: tuple) -> tuple:
+    """The import statements of a source file, parsed once per test process for a given
+    ``stamp`` (modification time and size): several checks walk the same files."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    return tuple(n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)))
+
+
+def import_statements(path: Path) -> tuple:
+    """``ast.Import`` and ``ast.ImportFrom`` nodes of ``path`` (see :func:`_import_statements`)."""
+    st = path.stat()
+    return _import_statements(path, (st.st_mtime_ns, st.st_size))
+
+
 def module_imports():
     """(importing module, the module an import statement names, the names it imports, path,
     line) for every import statement of the package."""
@@ -41,7 +56,7 @@ def module_imports():
         rel = path.relative_to(REPO).with_suffix("").parts
         is_pkg = rel[-1] == "__init__"
         module = ".".join(rel[:-1] if is_pkg else rel)
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        for node in import_statements(path):
             if isinstance(node, ast.ImportFrom):
                 if node.level:
                     base = module.split(".") if is_pkg else module.split(".")[:-1]
@@ -257,8 +272,7 @@ def private_imports(paths, own: set[str]):
     for path in paths:
         in_package = PACKAGE in path.parents
         folder = path.parent.relative_to(PACKAGE).parts[:1] if in_package else ()
-        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
-        for node in ast.walk(tree):
+        for node in import_statements(path):
             if isinstance(node, ast.ImportFrom):
                 parts = [p for p in (node.module or "").split(".") if p]
                 if node.level == 0 and (parts or [""])[0] not in own:
