@@ -52,8 +52,8 @@ from ..leakage import model
 from ..errors import CalibrationMismatchError
 from .compute import LINEARITY_RANGE, relative_fit, saturation_index
 
-__all__ = ["ALPHA_LEVELS", "NOISE_Z", "chi2_limit", "leakage_effects", "leakage_evidence",
-           "predicted_temporal_variance"]
+__all__ = ["ALPHA_LEVELS", "NOISE_Z", "chi2_limit", "deviation_chi2", "leakage_effects",
+           "leakage_evidence", "predicted_temporal_variance"]
 
 ALPHA_LEVELS = (5.0, 12.0, 50.0)  # percent: shares of pixels above these alphas
 PCTS = (10, 50, 90)
@@ -123,6 +123,25 @@ def chi2_limit(dof: int, z: float = NOISE_Z) -> float:
     """
     v = 2.0 / (9.0 * dof)
     return dof * (1.0 - v + z * v ** 0.5) ** 3
+
+
+def deviation_chi2(dev, se) -> tuple[float, int]:
+    """(chi-square, degrees of freedom) of linearity deviations ``dev`` against their standard
+    errors ``se`` (the same unit): the sum of ``(dev / se)^2`` over the steps, less the fitted
+    line's two parameters. A step without noise (``se`` 0: noise-free frames) that deviates
+    makes it infinite (a deviation without noise is systematic); one that does not deviate
+    adds nothing.
+
+    >>> deviation_chi2([0.1, -0.1, 0.2, 0.0], [0.1, 0.1, 0.1, 0.1])
+    (6.0, 2)
+    >>> deviation_chi2([0.1, 0.0, 0.0], [0.0, 0.0, 0.0])[0]
+    inf
+    """
+    dev = np.asarray(dev, np.float64)
+    se = np.asarray(se, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(se > 0, (dev / se) ** 2, np.where(dev != 0, np.inf, 0.0))
+    return float(np.sum(terms)), max(int(np.count_nonzero(se > 0)) - 2, 1)
 
 
 def leakage_evidence(linearity: dict) -> dict:
@@ -379,9 +398,7 @@ def leakage_effects(sweep, emva: dict, calibration) -> dict:
         "rms_left_percent": float(np.sqrt(np.mean((dev[r] - dev_model[r]) ** 2))),
     }
     se = _deviation_noise(emva, u_p, y_meas, lo, hi)[r]
-    dof = max(int(np.count_nonzero(se > 0)) - 2, 1)  # the line's two parameters are fitted
-    with np.errstate(divide="ignore", invalid="ignore"):
-        chi2 = float(np.sum(np.where(se > 0, (dev[r] / se) ** 2, 0.0)))
+    chi2, dof = deviation_chi2(dev[r], se)
     linearity.update(noise_rms_percent=float(np.sqrt(np.mean(se ** 2))), noise_chi2=chi2,
                      noise_dof=dof, noise_chi2_limit=chi2_limit(dof, NOISE_Z))
     evidence = leakage_evidence(linearity)
