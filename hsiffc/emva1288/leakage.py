@@ -91,8 +91,7 @@ def _deviation_noise(emva: dict, u_p, y, lo, hi) -> np.ndarray:
     n_pix = float(emva["n_pixels"])
     frames = dict(zip(np.asarray(steps["step"]).tolist(), np.asarray(steps["n_frames"]).tolist()))
     dark_frames = {}
-    for st, kind, t, f in zip(steps["step"], steps["kind"], steps["exposure_ms"],
-                              steps["n_frames"]):
+    for kind, t, f in zip(steps["kind"], steps["exposure_ms"], steps["n_frames"]):
         if str(kind) == "dark":
             dark_frames.setdefault(round(float(t), 9), int(f))
     t = np.asarray(c["texp_ms"], np.float64)

@@ -55,7 +55,6 @@ def leakage_markdown(leak: dict) -> list[str]:
     lin, al, bud = leak["linearity"], leak["alpha"], leak["saturation_budget"]
     pct = (lambda v: "n/a" if v is None else f"{100 * v:.1f} %")  # noqa: E731
     cal = leak["calibration"]
-    ev = leak.get("evidence")
     drawn = ""
     if cal.get("drawn_seed") is not None:
         drawn = (f" on {cal['n_pixels']} of the sensor's {cal['sensor_pixels']} pixels, drawn "
@@ -65,7 +64,7 @@ def leakage_markdown(leak: dict) -> list[str]:
         f"Per-pixel leakage calibration: {cal['method']} "
         f"({', '.join(f'{k}: {v}' for k, v in (cal['fit_status'] or {}).items())})"
         f"{drawn}. Definitions: module docstring of `hsiffc.emva1288.leakage`.", "",
-        *([f"**Evidence: {ev['text']}.**", ""] if ev else []),
+        f"**Evidence: {leak['evidence']['text']}.**", "",
         "### Linearity error", "",
         "| curve | LE_min (%) | LE_max (%) | share of the linearity error's sum of squares "
         "explained |", "|---|---:|---:|---:|",
