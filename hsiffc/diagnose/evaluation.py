@@ -1018,8 +1018,8 @@ def before_after(before: list[dict], after: list[dict]) -> str:
 def by_round(befores: list[tuple[str, list[dict]]], after: list[dict]) -> str:
     """One table of every round: per class, the cases right with each code before (``befores``:
     label and :func:`run_case` results of the same seeds, oldest first) and now, one column
-    each (a class's seeds that a code before lacks count as not right there, and the column
-    head says how many it holds).
+    each; a code before is scored on the seeds it holds (``right/held``: an evaluation half
+    grown since it ran holds seeds it never saw), and the column head says how many it holds.
 
     Parameters
     ----------
@@ -1040,8 +1040,10 @@ def by_round(befores: list[tuple[str, list[dict]]], after: list[dict]) -> str:
              "|---|---|" + "---|" * (len(heads) + 1)]
 
     def line(name, rs):
-        cells = [f"{sum(old[r['case']['seed']]['right'] for r in rs if r['case']['seed'] in old)}"
-                 f"/{len(rs)}" for _, old in olds]
+        cells = []
+        for _, old in olds:
+            held = [old[r["case"]["seed"]] for r in rs if r["case"]["seed"] in old]
+            cells.append(f"{sum(o['right'] for o in held)}/{len(held)}" if held else "-")
         return (f"| {name} | {len(rs)} | " + " | ".join(cells)
                 + f" | {sum(r['right'] for r in rs)}/{len(rs)} |")
     order = ["clean"] + [c for c in CLASS_EFFECTS] + [c + " (outside)" for c in CLASS_OUTSIDE]
@@ -1144,8 +1146,8 @@ def main(argv=None) -> int:
     text = markdown(summary, shared, how)
     if len(args.before) > 1:
         befores = [(path.stem, json.loads(path.read_text())["cases"]) for path in args.before]
-        text += ("\nRight, round by round, on the same seeds (one column per `--before` file, "
-                 "oldest first, with the seeds it holds; each file's note is under its table "
+        text += ("\nRight, round by round (one column per `--before` file, oldest first, "
+                 "scored on the seeds it holds: right/held; each file's note is under its table "
                  "below):\n\n" + by_round(befores, results))
     for path in args.before:
         before = json.loads(path.read_text())

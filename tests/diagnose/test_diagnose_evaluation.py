@@ -215,7 +215,8 @@ def test_write_page_between_markers(tmp_path):
 
 
 def test_the_rounds_table_has_a_column_per_code():
-    """One column per code before and one for now, a class's seeds a code lacks not right."""
+    """One column per code before and one for now; a code before is scored on the seeds it
+    holds (an evaluation half grown since it ran)."""
     def case(seed, kind, right, name="frame_lag"):
         effects = [] if kind == "clean" else [{"name": name}]
         return {"case": {"seed": seed}, "truth": {"kind": kind, "effects": effects},
@@ -225,8 +226,11 @@ def test_the_rounds_table_has_a_column_per_code():
     second = [case(1, "clean", False), case(3, "single", True), case(5, "single", False)]
     text = ev.by_round([("first", first), ("second", second)], now)
     assert "| `first` (2) | `second` (3) | now |" in text
-    assert "| frame_lag | 2 | 0/2 | 1/2 | 2/2 |" in text
-    assert "| all | 3 | 1/3 | 1/3 | 3/3 |" in text
+    assert "| frame_lag | 2 | 0/1 | 1/2 | 2/2 |" in text
+    assert "| all | 3 | 1/2 | 1/3 | 3/3 |" in text
+    # a class no code before holds a seed of
+    text = ev.by_round([("first", first)], now + [case(7, "single", True, "lamp_drift")])
+    assert "| lamp_drift | 1 | - | 1/1 |" in text
 
 
 @pytest.mark.slow
