@@ -400,19 +400,38 @@ class LeakageBase(BaseModel):
             (P, S) DN, (P, S, n), (P, S) DN/ms, (P, S) DN/ms, (P, S) DN.
         """
         dc = theta[:, 4:5]
-        m, jac = model_and_jacobian(theta[:, :4], t, r, self.leaking_dc(dc))
-        if self.dark_leaks:
-            well, jac, low = _at_least_dark(theta, m, self.with_dc(jac, t))
-            m = well
-        else:  # the dark signal outside the photodiode is added after the leakage
-            well, jac, low = _at_least_dark(theta, m, jac)
-            jac = self.with_dc(jac, t)
-            m = well + dc * t
+        m, jac, well, low = self.response_and_jacobian(theta, t, r)
         kl = np.broadcast_to(np.exp(theta[:, 0:1]) * r, m.shape)
         with np.errstate(over="ignore"):
             leak = np.exp(np.minimum(theta[:, 1:2] + np.exp(theta[:, 2:3]) * well, 700.0))
         dydt = np.where(low, 0.0 if self.dark_leaks else dc, kl + dc - leak)
         return m, jac, kl, dydt, jac[..., 0]
+
+    def response_and_jacobian(self, theta, t, r):
+        """Model (P, S) and Jacobian (P, S, n) alone (what a fit step needs of
+        :meth:`evaluate`), with the response in the photodiode and the samples held at the
+        dark level.
+
+        Parameters
+        ----------
+        theta : ndarray, (P, 5)
+        t : ndarray, (S,), ms
+        r : ndarray, (S,)
+
+        Returns
+        -------
+        model, jac, well, low : ndarrays
+            (P, S) DN, (P, S, n), (P, S) DN (the charge in the photodiode, the model less the
+            dark signal collected outside it) and (P, S) bool (held at the dark level).
+        """
+        dc = theta[:, 4:5]
+        m, jac = model_and_jacobian(theta[:, :4], t, r, self.leaking_dc(dc))
+        if self.dark_leaks:
+            well, jac, low = _at_least_dark(theta, m, self.with_dc(jac, t))
+            return well, jac, well, low
+        # the dark signal outside the photodiode is added after the leakage
+        well, jac, low = _at_least_dark(theta, m, jac)
+        return well + dc * t, self.with_dc(jac, t), well, low
 
     def predict(self, theta, t, r):
         """Model response (P, S) in DN.
@@ -517,7 +536,7 @@ class LeakageBase(BaseModel):
         lam = np.full(len(th), 1e-3)
         eye = np.eye(4)
         for _ in range(n_iter):
-            m, jac, _, _, _ = self.evaluate(th, t, r)
+            m, jac, _, _ = self.response_and_jacobian(th, t, r)
             jac = jac[..., :4]
             res = np.where(valid, y - m, 0.0)
             a = np.matmul((jac * ww[..., None]).transpose(0, 2, 1), jac)
@@ -702,7 +721,7 @@ class SharedLeakageBase(LeakageBase):
         """One damped Gauss-Newton step of all parameters (Schur complement on the shared).
         The shared step is taken in (ln L, ln b), L = a exp(b y_ref) the leakage rate at the
         level ``y_ref`` of the highest samples: ln a and ln b are nearly collinear there."""
-        m, jac, _, _, _ = LeakageBase.evaluate(self, th, t, r)
+        m, jac, _, _ = self.response_and_jacobian(th, t, r)
         res = np.where(ww > 0, y - m, 0.0)
         jp = jac[..., self._PIXEL]
         b_ref = np.exp(th[0, 2]) * y_ref
@@ -835,13 +854,14 @@ def _at_least_dark(theta, m, jac):
     """A pixel never falls below the level it was reset to: where the leakage at the dark level
     exceeds the light (and dark current) rate, as in the dark frames of a leaky pixel, the
     response stays at the dark level (the model alone would leak below it). Returns the model,
-    its Jacobian (only the dark level acts there) and the mask of those samples."""
+    its Jacobian (only the dark level acts there; ``jac``, a fresh array of the caller's, is
+    changed in place) and the mask of those samples."""
     d = theta[:, 3:4]
     low = m < d
     if not low.any():
         return m, jac, low
-    jac = np.where(low[..., None], 0.0, jac)
-    jac[..., 3] = np.where(low, 1.0, jac[..., 3])
+    jac[low] = 0.0
+    jac[..., 3][low] = 1.0
     return np.where(low, d, m), jac, low
 
 
