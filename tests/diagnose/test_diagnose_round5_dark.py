@@ -7,6 +7,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from hsiffc.diagnose import EFFECTS
 from hsiffc.diagnose.effectfit import POOL_SIGMAS, fit_effect, pool_pixels
@@ -73,3 +74,24 @@ def test_a_dark_signal_fitted_jointly_with_the_base_is_one_value_where_pixels_ag
     assert np.ptp(theta) == 0.0
     assert abs(theta[0, 0] - 3.0) < 0.2
     assert pred.shape == (p, s)
+
+
+@pytest.mark.slow  # one diagnosis of a 32 x 64 px class sweep (38 s at load average 18)
+def test_a_dark_signal_outside_the_well_without_darks_is_named():
+    """The failure class's development seed 103620 (14 bit, no dark frames, an exposure sweep
+    at one light rate, a dark signal outside the photodiode at 5x its detection limit): with
+    the pixels' moment estimate of the spread, the precise pixels kept noise, the held-out gain
+    was 0.02 standard errors and the verdict unexplained with nothing selected; with the
+    sensor's one value, 7.1 standard errors and the effect named alone."""
+    from hsiffc.diagnose import diagnose
+    from hsiffc.diagnose import evaluation as ev
+
+    spec = ev.class_case_spec(103620)
+    assert spec["class"] == "dark_outside_well" and not spec["darks"]
+    sweep, truth = ev.build_case(spec)
+    out = diagnose(sweep, max_pixels=ev.MAX_PIXELS, seed=103620)
+    assert out["selected_effects"] == ["dark_outside_well"], out["candidates"]
+    assert not out["unexplained"], out["unexplained_reason"]
+    put = truth["effects"][0]["size"]
+    found = out["effects"][0]["params"]["median_dark_signal_dn_per_ms"]
+    assert 0.5 * put < found < 1.5 * put
