@@ -95,3 +95,24 @@ def test_a_dark_signal_outside_the_well_without_darks_is_named():
     put = truth["effects"][0]["size"]
     found = out["effects"][0]["params"]["median_dark_signal_dn_per_ms"]
     assert 0.5 * put < found < 1.5 * put
+
+
+def test_a_dark_signal_with_one_value_for_the_sensor_counts_one_parameter():
+    """In the BIC a pooled effect whose pixels all took the sensor's value counts one parameter
+    (it lost every BIC comparison to a sensor-wide effect when counted as one a pixel); one
+    whose pixels keep their own values, and every other per-pixel effect, one a pixel."""
+    from hsiffc.diagnose.bases import LinearBase
+    from hsiffc.diagnose.fitting import State
+    from hsiffc.diagnose.select import fitted_n_params
+
+    p, s = 64, 10
+    one = np.full((p, 1), 2.5)
+    own = np.linspace(1.0, 4.0, p)[:, None]
+    pred = np.zeros((p, s))
+    base = LinearBase(False)
+    st = State(base, np.zeros((p, 2)), {"dark_outside_well": (one, pred)})
+    assert fitted_n_params("dark_outside_well", st, p, s) == 1
+    st = State(base, np.zeros((p, 2)), {"dark_outside_well": (own, pred)})
+    assert fitted_n_params("dark_outside_well", st, p, s) == p
+    st = State(base, np.zeros((p, 2)), {"dark_current": (one, pred)})
+    assert fitted_n_params("dark_current", st, p, s) == p
