@@ -109,12 +109,23 @@ def separable_fraction(effect, ctx, project, w) -> float:
     return float(np.median(num[ok] / den[ok])) if ok.any() else 0.0
 
 
+#: pixels keep part of their own estimates (:func:`pool_pixels`) only where their spread beyond
+#: their errors is shown: Cochran's Q above its expectation under one value for the sensor by
+#: this many standard deviations of its chi-square
+POOL_SIGMAS = 5.0
+
+
 def pool_pixels(theta, precision):
     """Per-pixel estimates pooled towards the sensor's value (random-effects shrinkage).
 
     The spread between the pixels beyond their own errors (``tau^2``, moment estimate of
     DerSimonian and Laird) sets how far each pixel keeps its own estimate: a pixel with an
-    error much larger than ``tau`` takes the sensor's (precision-weighted) mean.
+    error much larger than ``tau`` takes the sensor's (precision-weighted) mean. Where the
+    data do not show such a spread (Cochran's Q, which is chi-square with ``P - 1`` degrees of
+    freedom when the pixels share one value, within ``POOL_SIGMAS`` of its standard deviation
+    of ``P - 1``), every pixel takes the sensor's value: one parameter, not ``P`` that keep
+    some of their noise (the moment estimate is above zero for half of all sensors whose
+    pixels do share one value).
 
     Parameters
     ----------
@@ -132,6 +143,8 @@ def pool_pixels(theta, precision):
     >>> import numpy as np
     >>> pool_pixels(np.array([1.0, 2.0]), np.array([1.0, 1.0])).tolist()  # within errors: pooled
     [1.5, 1.5]
+    >>> pool_pixels(np.array([1.0, 5.0, 9.0]), np.array([1e4, 1e4, 1e4])).round(3).tolist()
+    [1.0, 5.0, 9.0]
     """
     a = np.clip(precision, 0.0, None)
     total = a.sum()
@@ -139,6 +152,8 @@ def pool_pixels(theta, precision):
         return theta
     mean = float((a * theta).sum() / total)
     q = float((a * (theta - mean) ** 2).sum())
+    if q - (theta.size - 1) <= POOL_SIGMAS * np.sqrt(2.0 * (theta.size - 1)):
+        return np.full_like(theta, mean)
     tau2 = max((q - (theta.size - 1)) / max(total - (a * a).sum() / total, 1e-300), 0.0)
     if tau2 == 0.0:
         return np.full_like(theta, mean)

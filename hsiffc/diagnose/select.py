@@ -72,6 +72,36 @@ class Fitted:
     n_params: int
 
 
+def fitted_n_params(name: str, state: State, n_pix: int, n_light: int) -> int:
+    """Free parameters effect ``name`` has in ``state`` (for the information criterion): those
+    of its record (:meth:`~hsiffc.diagnose.effects.Effect.n_params`), except that a pooled
+    per-pixel effect whose pixels all took the sensor's value
+    (:func:`~hsiffc.diagnose.effectfit.pool_pixels`) has one value for the sensor: counted
+    as ``P`` parameters it lost every comparison of the BIC to a sensor-wide effect (a readout
+    nonlinearity or an offset drift beside a dark signal outside the photodiode).
+
+    Parameters
+    ----------
+    name : str
+        The effect.
+    state : State
+        A fitted model that holds it.
+    n_pix, n_light : int
+        Pixels and light steps.
+
+    Returns
+    -------
+    int
+    """
+    effect = EFFECTS[name]
+    fitted = state.effects.get(name)
+    if effect.pooled and fitted is not None:
+        theta = np.asarray(fitted[0])
+        if theta.ndim == 2 and theta.shape[0] > 1 and np.ptp(theta, axis=0).max() == 0.0:
+            return theta.shape[1]
+    return effect.n_params(n_pix, n_light)
+
+
 def evaluate(state: State, names, data: Data, n_pix: int, n_light: int) -> Fitted:
     """The held-out residual, MSE and BIC of a fitted state.
 
@@ -97,7 +127,7 @@ def evaluate(state: State, names, data: Data, n_pix: int, n_light: int) -> Fitte
     res_fit = np.where(vf, data.y - state.prediction, 0.0)
     n_ho, n_fit = max(int(vh.sum()), 1), max(int(vf.sum()), 1)
     k = (state.base.n_params * n_pix + state.base.n_shared
-         + sum(EFFECTS[n].n_params(n_pix, n_light) for n in names))
+         + sum(fitted_n_params(n, state, n_pix, n_light) for n in names))
     rss_w = float((data.w * res_fit ** 2).sum())
     bic = n_fit * np.log(max(rss_w, 1e-300) / n_fit) + k * np.log(n_fit)
     mse = float((res ** 2).sum() / n_ho)
