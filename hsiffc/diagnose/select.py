@@ -912,6 +912,46 @@ def refit_from_start(fitted: Fitted, start: Fitted, data: Data, n_pix: int,
     return fresh if fresh.mse < fitted.mse else fitted
 
 
+def one_rate_shape(leak: Fitted, alt: Fitted, gain: float, se: float, out: dict) -> dict:
+    """The leakage check's verdict where the leakage model predicts the held-out data better
+    than a linear response with a readout nonlinearity but the design reaches every signal at
+    one light rate: ``cannot tell``.
+
+    At one light rate the leakage model is one more shape of a compression that depends on the
+    signal alone (its onset is exponential in the signal, a soft knee that a quadratic and
+    cubic bend follow less well); only equal signals at different light rates show that the
+    bending depends on the light rate. The leakage model is kept (it fits better), and the
+    bending is not claimed as leakage (the shared set ``indep-ccd12-offset``, a linear sensor
+    whose well compresses and fills, had leakage "needed").
+
+    Parameters
+    ----------
+    leak, alt : Fitted
+        The leakage model with its effects, and the linear alternative.
+    gain, se : float, DN^2
+        :func:`paired` (``alt``, ``leak``).
+    out : dict
+        The check's record so far (updated and returned).
+
+    Returns
+    -------
+    dict
+    """
+    out["models"] = [" + ".join(["leakage base"] + leak.names),
+                     " + ".join(["linear base"] + alt.names)]
+    out.update(verdict="cannot tell", heldout_rms_leakage_dn=float(np.sqrt(leak.mse)),
+               heldout_rms_without_dn=float(np.sqrt(alt.mse)), reason=(
+                   f"the leakage model fits the held-out data better than a linear response with "
+                   f"{', '.join(alt.names)} ({np.sqrt(leak.mse):.4g} against "
+                   f"{np.sqrt(alt.mse):.4g} DN, {gain / max(se, 1e-300):.0f} standard errors), "
+                   "but every signal level is reached at one light rate in this design, so that "
+                   "shows the response bends with the leakage model's shape, not that the "
+                   "bending depends on the light rate (leakage) rather than on the signal alone "
+                   "(a compression of the well or the readout); the leakage model is kept and "
+                   "the bending is not claimed as leakage"))
+    return out
+
+
 def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_floor, n_pix,
                   n_light, design, candidates, ambiguous=None,
                   refloor=None) -> tuple[Fitted, dict]:
@@ -967,6 +1007,8 @@ def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_f
         alt = linear_with_offset(alt, linear_start, names, data, n_pix, n_light)
     if not equally_good(leak, alt, data.valid_ho, noise_floor):
         gain, se = paired(alt, leak, data.valid_ho)
+        if not design.rate_at_equal_signal:
+            return leak, one_rate_shape(leak, alt, gain, se, out)
         out.update(verdict="needed", heldout_rms_leakage_dn=float(np.sqrt(leak.mse)),
                    heldout_rms_without_dn=float(np.sqrt(alt.mse)), reason=(
                        f"a linear response with a readout nonlinearity fits the held-out data "
