@@ -31,6 +31,11 @@ and :func:`markdown` renders the tables of the diagnose docs page::
 
 The second form also diagnoses the sweeps of ``../shared/data`` (one row each) and writes the
 tables between ``<!-- BEGIN evaluation -->`` and ``<!-- END evaluation -->`` of the page.
+
+Two more seed streams hold what the first lacks: the failure classes of issue 53 (from
+``CLASS_SEED0``, ``--classes N``) and a linear sensor with an exposure offset and a soft well
+compression (from ``CLASS2_SEED0``, ``--classes2 N``; :func:`ccd_sweep`), each written from its
+own physics, each scored on its own.
 """
 
 from __future__ import annotations
@@ -94,9 +99,10 @@ def half_of(seed: int) -> str:
     return "dev" if seed % 2 == 0 else "eval"
 
 
-def seeds(half: str, n_cases: int, n_class_cases: int = 0) -> list[int]:
-    """The seeds of one half among the first ``n_cases`` seeds, and among the first
-    ``n_class_cases`` seeds of the failure classes (``CLASS_SEED0`` on).
+def seeds(half: str, n_cases: int, n_class_cases: int = 0, n_ccd_cases: int = 0) -> list[int]:
+    """The seeds of one half among the first ``n_cases`` seeds, among the first
+    ``n_class_cases`` seeds of the failure classes (``CLASS_SEED0`` on) and among the first
+    ``n_ccd_cases`` of the linear-sensor stream (``CLASS2_SEED0`` on).
 
     Parameters
     ----------
@@ -105,6 +111,8 @@ def seeds(half: str, n_cases: int, n_class_cases: int = 0) -> list[int]:
         Seeds 0 .. n_cases - 1.
     n_class_cases : int
         Seeds CLASS_SEED0 .. CLASS_SEED0 + n_class_cases - 1.
+    n_ccd_cases : int
+        Seeds CLASS2_SEED0 .. CLASS2_SEED0 + n_ccd_cases - 1.
 
     Returns
     -------
@@ -112,7 +120,8 @@ def seeds(half: str, n_cases: int, n_class_cases: int = 0) -> list[int]:
     """
     if half not in ("dev", "eval", "all"):
         raise ValueError(f"half must be 'dev', 'eval' or 'all', got {half!r}")
-    every = list(range(n_cases)) + list(range(CLASS_SEED0, CLASS_SEED0 + n_class_cases))
+    every = (list(range(n_cases)) + list(range(CLASS_SEED0, CLASS_SEED0 + n_class_cases))
+             + list(range(CLASS2_SEED0, CLASS2_SEED0 + n_ccd_cases)))
     return [s for s in every if half == "all" or half_of(s) == half]
 
 
@@ -137,6 +146,8 @@ def case_spec(seed: int) -> dict:
     -------
     dict
     """
+    if seed >= CLASS2_SEED0:
+        return ccd_case_spec(seed)
     if seed >= CLASS_SEED0:
         return class_case_spec(seed)
     rng = np.random.default_rng(np.random.SeedSequence([38, seed]))
@@ -348,6 +359,8 @@ def build_case(spec: dict):
 
     if spec.get("round") == 3:
         return _build_class_case(spec)
+    if spec.get("round") == 5:
+        return ccd_sweep(spec)
     sweep = clean_sweep(spec)
     terms = truth_terms(sweep)
     fs = float(sweep.full_scale_dn)
@@ -620,6 +633,241 @@ def _build_class_case(spec):
                    "class": spec["class"]}
 
 
+
+# --- round five: a linear sensor with an exposure offset and a soft well compression ----------
+#: seeds from here on are cases of the linear-sensor stream (:func:`ccd_case_spec`)
+CLASS2_SEED0 = 200_000
+#: what the stream's seeds hold, in turn (each half gets each in turn)
+CCD_KINDS = ("clean_linear", "exposure_offset", "well_compression", "offset_and_compression")
+#: the library effects that name each kind: a well that compresses as it fills, with one
+#: capacity for the sensor, is a function of each pixel's own signal only, the same for every
+#: pixel: on the data that is a readout nonlinearity (the library cannot tell where in the
+#: chain a compression common to the pixels happens)
+CCD_NAMES = {"clean_linear": (), "exposure_offset": ("exposure_offset",),
+             "well_compression": ("readout_nonlinearity",),
+             "offset_and_compression": ("exposure_offset", "readout_nonlinearity")}
+CCD_COMPRESSION_AT = 0.85  # the compression is stated at this fraction of the range above dark
+
+
+def ccd_case_spec(seed: int) -> dict:
+    """The random choices of linear-sensor case ``seed`` (>= ``CLASS2_SEED0``): a CCD-like or
+    mosaic sensor without leakage (10-14 bit, dark level, read noise, PRNU), an exposure sweep
+    at one light level or several (sorted or shuffled, with or without darks at every
+    exposure, 2-4 frames per step) and one of ``CCD_KINDS`` in turn: nothing, an exposure
+    offset (light collected for the nominal exposure plus 0.2-2 % of the longest), a soft
+    compression of the well as it fills (0.5-4 % at 85 % of the range) or both.
+
+    Parameters
+    ----------
+    seed : int
+
+    Returns
+    -------
+    dict
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([53, 5, seed]))
+    what = CCD_KINDS[((seed - CLASS2_SEED0) // 2) % len(CCD_KINDS)]
+    bits, fs, full_well, dark, gain = _sensor(rng, [10, 12, 14])
+    n_rates = 1 if rng.random() < 0.5 else int(rng.integers(2, 4))
+    darks = bool(rng.random() < 0.5)
+    offset = "offset" in what
+    if offset and n_rates == 1:
+        # one light level without darks: the offset's light (k t0 a pixel) is one more dark
+        # level, which nothing can tell from the dark level; such a sweep is not drawn
+        darks = True
+    t_max = float(np.exp(rng.uniform(np.log(1.0), np.log(200.0))))
+    return {
+        "seed": seed, "half": half_of(seed), "round": 5, "class": what, "bit_depth": bits,
+        "design": "exposure", "darks": darks, "leaky": False,
+        "n_steps": int(rng.integers(16, 41)), "n_rates": n_rates,
+        "shuffled": bool(rng.random() < 0.3), "n_frames": int(rng.choice([2, 3, 4])),
+        "t_max_ms": t_max, "t_min_ms": t_max / float(rng.uniform(50.0, 350.0)),
+        "spacing": str(rng.choice(["linear", "geometric"])),
+        "mosaic": bool(rng.random() < 0.5), "fill": float(rng.uniform(0.75, 1.0)),
+        "params": {"bit_depth": bits, "full_well_e": full_well,
+                   "conversion_gain_dn_per_e": gain, "dark_level_dn": dark,
+                   "dsnu_dn": float(rng.uniform(0.1, 1.0)),
+                   "read_noise_dn": float(np.exp(rng.uniform(np.log(2), np.log(25))) * gain),
+                   "prnu": float(rng.uniform(0.002, 0.01)), "dark_current_dn_per_ms": 0.0},
+        "t0_of_max": float(rng.uniform(0.002, 0.02)) if offset else 0.0,
+        "compression": float(rng.uniform(0.005, 0.04)) if "compression" in what else 0.0,
+        "effect_seed": int(rng.integers(2 ** 31)),
+    }
+
+
+def _well_capacity(compression: float, x0: float) -> float:
+    """The scale ``S`` (DN) of a well that fills as ``S (1 - exp(-x / S))``, whose response is
+    ``compression`` low (relative) at the linear signal ``x0`` (DN); inf for none."""
+    if compression <= 0:
+        return np.inf
+    lo, hi = x0 / 50.0, x0 / compression  # the deficit x / (2 S) to first order
+    for _ in range(80):
+        mid = np.sqrt(lo * hi)
+        deficit = 1.0 - mid * -np.expm1(-x0 / mid) / x0
+        lo, hi = (mid, hi) if deficit > compression else (lo, mid)
+    return float(np.sqrt(lo * hi))
+
+
+def _ccd_multiple(extra, signal, t, levels, darks, var, ok) -> float:
+    """The multiple of its detection limit an effect that adds ``extra`` (P, S) DN to the
+    light samples of a linear sensor is: the RMS of what a line per pixel (dark level and
+    gain; the dark level fixed by the darks where there are some, zero-effect samples at the
+    dark level) cannot absorb, over the samples ``ok``, in units of ``DL_OF_NOISE`` times the
+    noise of one frame ``var`` (P, S) DN^2."""
+    x = np.broadcast_to(levels * t, signal.shape)
+    w = np.where(ok, 1.0 / var, 0.0)
+    if darks:  # a dark step at every exposure: as many samples of the dark level alone
+        w_dark = (1.0 / var.min(axis=1))[:, None] * np.ones_like(t)[None, :]
+        x = np.concatenate([x, 0.0 * x], axis=1)
+        w = np.concatenate([w, w_dark], axis=1)
+        extra = np.concatenate([extra, 0.0 * extra], axis=1)
+    a = np.stack([np.ones_like(x), x], axis=-1)  # (P, S, 2)
+    normal = np.einsum("psi,ps,psj->pij", a, w, a)
+    rhs = np.einsum("psi,ps,ps->pi", a, w, extra)[..., None]
+    beta = np.linalg.solve(normal + 1e-12 * np.eye(2), rhs)[..., 0]
+    sep = (extra - np.einsum("psi,pi->ps", a, beta))[:, :signal.shape[1]]
+    rms = float(np.sqrt(np.mean(sep[ok] ** 2)))
+    return rms / (DL_OF_NOISE * float(np.sqrt(np.mean(var[ok]))))
+
+
+def ccd_sweep(spec: dict):
+    """The sweep of a linear-sensor case, written here from its physics (not through the
+    simulator or the effect library): each pixel collects photo-electrons (Poisson) at its
+    light rate for the nominal exposure plus ``t0``; its well compresses the charge softly as
+    it fills (``S (1 - exp(-q / S))``, one capacity for the sensor); then the pixel's dark
+    level, read noise, rounding and the ADC's clip at full scale. Darks (where drawn) follow
+    every light step at its exposure and hold the dark level alone (no dark current). An
+    effect drawn below 5 times its detection limit on the sweep (:func:`_ccd_multiple`) is
+    raised to 5 times it.
+
+    Parameters
+    ----------
+    spec : dict
+        From :func:`ccd_case_spec`.
+
+    Returns
+    -------
+    sweep : Sweep
+    truth : dict
+        ``kind``, ``effects`` [{name, size, unit, multiple}], ``outside`` (False), ``class``,
+        ``stream`` (5), ``t0_ms`` and ``compression``.
+    """
+    from ..data.sweep import Sweep
+
+    p = spec["params"]
+    rng = np.random.default_rng(np.random.SeedSequence([53, 5, spec["seed"], 1]))
+    fs = 2 ** spec["bit_depth"] - 1
+    gain, d0, rn = p["conversion_gain_dn_per_e"], p["dark_level_dn"], p["read_noise_dn"]
+    n_pix = SHAPE[0] * SHAPE[1]
+    # pixel response: a 4 x 4 mosaic of band factors (or one band: a CCD) with PRNU
+    band = np.ones((4, 4))
+    if spec["mosaic"]:
+        band = rng.uniform(0.4, 1.0, (4, 4))
+        band /= band.max()
+    resp = (np.tile(band, (SHAPE[0] // 4, SHAPE[1] // 4)).ravel()
+            * (1.0 + p["prnu"] * rng.standard_normal(n_pix)))
+    dark = d0 + p["dsnu_dn"] * rng.standard_normal(n_pix)
+    # the light rates (DN/ms of linear signal at response 1): the brightest pixel of the
+    # brightest rate fills ``fill`` of the range at the longest exposure
+    rates = np.geomspace(1.0, rng.uniform(0.2, 0.5), spec["n_rates"]) if spec["n_rates"] > 1 \
+        else np.ones(1)
+    k_max = spec["fill"] * (fs - d0) / (spec["t_max_ms"] * resp.max())
+    per = int(np.ceil(spec["n_steps"] / rates.size))
+    space = np.linspace if spec["spacing"] == "linear" else np.geomspace
+    t_nom = np.concatenate([space(spec["t_min_ms"], spec["t_max_ms"], per) for _ in rates])
+    levels = np.repeat(rates, per)
+    order = rng.permutation(t_nom.size) if spec["shuffled"] else np.arange(t_nom.size)
+    t_nom, levels = t_nom[order], levels[order]
+    x0 = CCD_COMPRESSION_AT * (fs - d0)
+
+    def mean_signal(t0, compression):  # noise-free signal above dark (P, S), DN
+        x = k_max * resp[:, None] * (levels * (t_nom + t0))[None, :]
+        scale = _well_capacity(compression, x0)
+        return x if not np.isfinite(scale) else -scale * np.expm1(-x / scale)
+
+    clean = mean_signal(0.0, 0.0)
+    var = rn ** 2 + 1 / 12.0 + gain * clean
+    ok = clean + d0 < 0.9 * fs
+    sizes = {"t0": spec["t0_of_max"] * spec["t_max_ms"], "compression": spec["compression"]}
+    multiples = {}
+    for key in ("t0", "compression"):
+        if not sizes[key]:
+            continue
+        for _ in range(3):  # raised to 5x its detection limit where drawn below
+            args = (sizes[key], 0.0) if key == "t0" else (0.0, sizes[key])
+            m = _ccd_multiple(mean_signal(*args) - clean, clean, t_nom, levels,
+                              spec["darks"], var, ok)
+            if m >= 5.0:
+                break
+            sizes[key] *= 5.05 / m
+        multiples[key] = float(m)
+    t0, compression = sizes["t0"], sizes["compression"]
+    capacity = _well_capacity(compression, x0) / gain  # e-
+    frames, exposure, kind, photons, step = [], [], [], [], []
+    n_f = spec["n_frames"]
+    for t, lev in zip(t_nom, levels):
+        electrons = rng.poisson(np.broadcast_to(lev * k_max * resp * (t + t0) / gain,
+                                                (n_f, n_pix))).astype(np.float64)
+        if np.isfinite(capacity):
+            electrons = -capacity * np.expm1(-electrons / capacity)
+        steps = [(gain * electrons, "light")] + ([(0.0 * electrons, "dark")]
+                                                 if spec["darks"] else [])
+        for signal, what in steps:
+            frames.append(dark + signal + rn * rng.standard_normal((n_f, n_pix)))
+            exposure += [t] * n_f
+            kind += [what] * n_f
+            photons += [lev * t if what == "light" else np.nan] * n_f
+            step += [len(frames) - 1] * n_f
+    data = np.clip(np.rint(np.concatenate(frames)), 0, fs).astype(np.uint16)
+    sweep = Sweep(data.reshape((-1,) + SHAPE), exposure, kind, spec["bit_depth"], step=step,
+                  photons=photons, illumination=["lamp" if k == "light" else "" for k in kind],
+                  source="simulated (round five: a linear sensor, hsiffc.diagnose.evaluation)",
+                  meta={"generator": "hsiffc.diagnose.evaluation.ccd_sweep", "t0_ms": t0,
+                        "compression": compression})
+    effects = []
+    if t0:
+        effects.append({"name": "exposure_offset", "size": t0, "unit": "ms",
+                        "multiple": multiples["t0"]})
+    if compression:
+        effects.append({"name": "readout_nonlinearity", "size": compression,
+                        "unit": f"relative, at {CCD_COMPRESSION_AT:g} of the range above dark",
+                        "multiple": multiples["compression"]})
+    return sweep, {"kind": "clean" if not effects else "pair" if len(effects) == 2 else "single",
+                   "effects": effects, "outside": False, "class": spec["class"], "stream": 5,
+                   "t0_ms": t0, "compression": compression}
+
+
+def ccd_verdict(truth: dict, found: dict) -> dict:
+    """Score a linear-sensor case: ``right`` when exactly the effects that name its kind
+    (``CCD_NAMES``) are selected, nothing is unexplained and leakage is not claimed (none was
+    put in: ``leakage`` not ``"needed"``); ``false_alarm`` for a clean control with something
+    selected, unexplained or leakage claimed; ``leakage_claimed``.
+
+    Parameters
+    ----------
+    truth : dict
+        From :func:`ccd_sweep`.
+    found : dict
+        What diagnose found (``selected``, ``unexplained``, ``leakage``).
+
+    Returns
+    -------
+    dict
+
+    Examples
+    --------
+    >>> ccd_verdict({"class": "exposure_offset"},
+    ...             {"selected": ["exposure_offset"], "unexplained": False,
+    ...              "leakage": "cannot tell"})
+    {'right': True, 'false_alarm': False, 'leakage_claimed': False}
+    """
+    claimed = found.get("leakage") == "needed"
+    right = (set(found["selected"]) == set(CCD_NAMES[truth["class"]])
+             and not found["unexplained"] and not claimed)
+    return {"right": right, "false_alarm": truth["class"] == "clean_linear" and not right,
+            "leakage_claimed": claimed}
+
+
 def run_case(seed: int) -> dict:
     """Build case ``seed``, diagnose it and score it.
 
@@ -653,7 +901,7 @@ def run_case(seed: int) -> dict:
                                 f["null_structured_rms_dn"], f["p_value"], f["significant"]]
                                for f in out["residual_structure_after"]],
                  "stand_ins": list(out.get("stand_ins", [])),
-                 "refused": None}
+                 "leakage": out["leakage"]["verdict"], "refused": None}
     except DataFormatError as exc:
         found = {"selected": [], "unexplained": False, "ambiguous": [], "base": "",
                  "dark_current_in_base": False, "stand_ins": [], "refused": str(exc)}
@@ -663,7 +911,8 @@ def run_case(seed: int) -> dict:
     case["n_frames"] = spec.get("n_frames", 2)
     case["class"] = truth.get("class")
     case["sensor_dark_current"] = spec["params"]["dark_current_dn_per_ms"] > 0
-    return {"case": case, "truth": truth, "found": found, **verdict(truth, found)}
+    score = ccd_verdict(truth, found) if truth.get("stream") == 5 else verdict(truth, found)
+    return {"case": case, "truth": truth, "found": found, **score}
 
 
 def verdict(truth: dict, found: dict) -> dict:
@@ -763,6 +1012,9 @@ def summarise(results: list[dict]) -> dict:
         k = sum(bool(r[key]) for r in rows)
         return {"fraction": k / n if n else None, "right": k, "n": n}
 
+    every = results
+    ccd = [r for r in results if r["truth"].get("stream") == 5]  # scored on their own
+    results = [r for r in results if r["truth"].get("stream") != 5]
     single = [r for r in results if r["truth"]["kind"] == "single"]
     pairs = [r for r in results if r["truth"]["kind"] == "pair"]
     outside = [r for r in results if r["truth"]["kind"] == "outside"]
@@ -823,8 +1075,49 @@ def summarise(results: list[dict]) -> dict:
     keys = sorted(confusion, key=lambda k: (order.index(k) if k in order else len(order), k))
     return {"scores": scores, "by_multiple": by_multiple, "by_class": by_class,
             "columns": columns,
-            "confusion": {k: confusion[k] for k in keys}, "n_cases": len(results),
-            "runtime_s": float(sum(r["found"]["runtime_s"] for r in results))}
+            "confusion": {k: confusion[k] for k in keys}, "n_cases": len(every),
+            "runtime_s": float(sum(r["found"]["runtime_s"] for r in every)),
+            **({"ccd": summarise_ccd(ccd)} if ccd else {})}
+
+
+def summarise_ccd(results: list[dict]) -> dict:
+    """Scores of the linear-sensor stream (:func:`ccd_case_spec`), per kind and per design
+    (one light level or several, with or without darks): right, leakage claimed, the
+    exposure offset found, and what was selected.
+
+    Parameters
+    ----------
+    results : list of dict
+        :func:`run_case` results of the stream's seeds.
+
+    Returns
+    -------
+    dict
+        kind -> {n, right, leakage_claimed, offset_found, selected {name: count},
+        leakage {verdict: count}, designs {label: [right, n]}}.
+    """
+    out: dict = {}
+    for what in CCD_KINDS:
+        rows = [r for r in results if r["truth"]["class"] == what]
+        if not rows:
+            continue
+        row = {"n": len(rows), "right": sum(r["right"] for r in rows),
+               "leakage_claimed": sum(bool(r.get("leakage_claimed")) for r in rows),
+               "offset_found": sum("exposure_offset" in r["found"]["selected"] for r in rows),
+               "unexplained": sum(bool(r["found"]["unexplained"]) for r in rows),
+               "selected": {}, "leakage": {}, "designs": {}}
+        for r in rows:
+            for name in r["found"]["selected"] or ["nothing"]:
+                row["selected"][name] = row["selected"].get(name, 0) + 1
+            v = r["found"].get("leakage", "refused")
+            row["leakage"][v] = row["leakage"].get(v, 0) + 1
+            label = (("one light level" if r["case"]["n_rates"] == 1 else "several light levels")
+                     + (", darks" if r["case"]["darks"] else ", no darks"))
+            cell = row["designs"].setdefault(label, [0, 0])
+            cell[0] += bool(r["right"])
+            cell[1] += 1
+        out[what] = row
+    return out
 
 
 def shared_rows(data_dir: Path) -> list[dict]:
@@ -858,7 +1151,9 @@ def shared_rows(data_dir: Path) -> list[dict]:
                      "noise_floor_dn": out["noise_floor_dn"],
                      "systematic_after_dn": out["after"]["systematic_rms_dn"],
                      "linear_and_nothing_selected": ok,
-                     "leakage_as_put_in": (out["leakage"]["verdict"] == "not needed"
+                     # none put in: not claimed ("not needed", or "cannot tell" where the
+                     # design reaches every signal at one light rate)
+                     "leakage_as_put_in": (out["leakage"]["verdict"] != "needed"
                                            if name in NO_LEAKAGE_SETS else None),
                      "stand_ins": out.get("stand_ins", [])})
     return rows
@@ -932,6 +1227,8 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
             lines.append(f"| {label} | " + " | ".join(_pct(row["by_multiple"][str(m)])
                                                      for m in CLASS_MULTIPLES) + " |")
         lines.append("")
+    if summary.get("ccd"):
+        lines += markdown_ccd(summary["ccd"])
     lines += ["Named right, by size (single library effects):", "",
               "| multiple of the detection limit | " + " | ".join(
                   f"{m}x" for m in MULTIPLES) + " |",
@@ -952,7 +1249,7 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
     if shared:
         lines += ["", "Shared data sets (`../shared/data`, one row each, none tuned on; the two "
                   "linear reference simulations must keep a linear base with nothing selected; "
-                  "the sets made without leakage should find it not needed):", "",
+                  "the sets made without leakage should not find it needed):", "",
                   "| set | put in | base | selected | leakage | unexplained | ambiguous | noise "
                   "floor (DN) | systematic after (DN) | linear, nothing selected | leakage as "
                   "put in |", "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -970,9 +1267,46 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def markdown_ccd(ccd: dict) -> list[str]:
+    """The lines of the linear-sensor stream's table (:func:`summarise_ccd`).
+
+    Parameters
+    ----------
+    ccd : dict
+        From :func:`summarise_ccd`.
+
+    Returns
+    -------
+    list of str
+    """
+    def count(d):
+        return ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in sorted(d.items())) or "-"
+
+    lines = [f"A linear sensor with an exposure offset and a soft well compression (seeds from "
+             f"{CLASS2_SEED0}; no leakage; 10-14 bit, exposure sweeps at one light level or "
+             "several, sorted or shuffled, with or without darks, 2-4 frames per step; offsets "
+             "0.2-2 % of the longest exposure, compressions 0.5-4 % at 85 % of the range; "
+             "right: " + ", ".join(f"{k.replace('_', ' ')}: "
+                                   f"{' + '.join(v) if v else 'nothing'}"
+                                   for k, v in CCD_NAMES.items())
+             + ", nothing unexplained and leakage not `needed`):", "",
+             "| put in | right | leakage claimed | exposure offset found | unexplained | "
+             "selected | leakage verdicts | right by design |", "|---|---|---|---|---|---|---|---|"]
+    for what, row in ccd.items():
+        n = row["n"]
+        designs = "; ".join(f"{k} {v[0]}/{v[1]}" for k, v in sorted(row["designs"].items()))
+        right = _pct({"fraction": row["right"] / n, "right": row["right"], "n": n})
+        lines.append(f"| {what.replace('_', ' ')} | {right} | {row['leakage_claimed']}/{n} | "
+                     f"{row['offset_found']}/{n} | {row['unexplained']}/{n} | "
+                     f"{count(row['selected'])} | {count(row['leakage'])} | {designs} |")
+    return lines + [""]
+
+
 def _class_label(r):
     """The row of a case in the before/after tables: its class (outside ones marked)."""
     t = r["truth"]
+    if t.get("stream") == 5:
+        return "linear sensor: " + t["class"].replace("_", " ")
     if t["kind"] == "clean":
         return "clean"
     name = t["effects"][0]["name"]
@@ -1100,6 +1434,10 @@ def main(argv=None) -> int:
     ap.add_argument("--classes", type=int, default=0,
                     help="also the first CLASSES seeds of the failure classes of issue 53 (from "
                          f"{CLASS_SEED0}; half of them in each half)")
+    ap.add_argument("--classes2", type=int, default=0,
+                    help="also the first CLASSES2 seeds of the linear-sensor stream (an exposure "
+                         f"offset and a soft well compression, from {CLASS2_SEED0}; half of them "
+                         "in each half)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--json", type=Path, help="write every case and the summary here")
     ap.add_argument("--page", type=Path, help="write the tables into this Markdown page")
@@ -1129,13 +1467,14 @@ def main(argv=None) -> int:
         saved = json.loads(args.from_json.read_text())
         results = saved["cases"]
     else:
-        results = run(seeds(args.half, args.cases, args.classes), jobs=args.jobs,
-                      progress=progress)
+        results = run(seeds(args.half, args.cases, args.classes, args.classes2),
+                      jobs=args.jobs, progress=progress)
     summary = summarise(results)
     shared = shared_rows(args.data) if args.page else []
     wall = time.time() - t0
     how = (f"Measured by `python3 -m hsiffc.diagnose.evaluation --half {args.half} --cases "
            f"{args.cases}{' --classes ' + str(args.classes) if args.classes else ''}"
+           f"{' --classes2 ' + str(args.classes2) if args.classes2 else ''}"
            f"{' --jobs ' + str(args.jobs) if args.jobs > 1 else ''} --page "
            f"docs/diagnose.md` on {platform.machine()}, {platform.python_version()}: "
            f"{summary['n_cases']} sweeps of the {args.half} half ({SHAPE[0]} x {SHAPE[1]} px, "
