@@ -9,7 +9,7 @@ import numpy as np
 
 from scipy import stats
 
-from .effects import EFFECTS, OFFSET_PROBES, SMOOTH_PROBES
+from .effects import EFFECTS, FRAME_SIGNAL_OFFSET, OFFSET_PROBES, SMOOTH_PROBES
 from .effectfit import fit_effect, frame_regression, projector
 from .fitting import Data, State, context, describe_params, fitpredict, pair_regression
 
@@ -21,6 +21,8 @@ LEFT_OFFSET_OF_FLOOR = 0.135  # an offset per step left counts above this RMS (o
 PROBE_OF_DISTINCT = 0.75  # an offset probe must beat its effect by this fraction of the part
 # of the effect that differs between the pixels of a frame (about 1 where the offset is true,
 # about -1 where the effect is)
+SHOWN_OF_DISTINCT = 0.5  # an effect added to its offset probe must gain this fraction of its
+# part that differs between the pixels of a frame, where that part is measurable (below)
 TREND_P = 5e-3  # per-step factors that trend with exposure, signal or order (F-test p below)
 MIN_TREND_STEPS = 8  # fewer light steps: the trend test is not made
 N_PERMUTATIONS = 8000  # random orders of the step factors in the trend test
@@ -663,7 +665,8 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
     explained = paired(without, with_effect, vh)[0]
     out = {"explained_dn2": explained, "distinct_dn2": distinct}
     if probe is not None:
-        gain, se = paired(with_effect, with_(probe)[0], vh)
+        with_probe, probe_pred = with_(probe)
+        gain, se = paired(with_effect, with_probe, vh)
         if gain > TIE_SIGMAS * se and gain > PROBE_OF_DISTINCT * distinct:
             return {**out, "gain_dn2": gain, "standard_error_dn2": se, "reason": (
                 f"what it explains is better explained by {probe.summary} (held-out squared "
@@ -672,6 +675,11 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
                 f"{explained:.3g} DN^2): an offset the same for every pixel of a frame, such as "
                 "a black-level clamp that follows the frame's signal, which the library does "
                 "not describe")}
+        if gain > -TIE_SIGMAS * se:
+            shown = _within_frame_shown(st, m, project, ctx, res0, others, probe_pred,
+                                        EFFECTS[name], with_probe, apart, data)
+            if shown:
+                return {**out, "gain_dn2": gain, "standard_error_dn2": se, **shown}
     if smooth is not None:
         gain, se = paired(with_effect, with_(smooth)[0], vh)
         if gain > -TIE_SIGMAS * se:
@@ -683,6 +691,41 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
                 "follows the signal level, such as a black-level clamp, not a light error, "
                 "which is random from step to step")}
     return None
+
+
+def _within_frame_shown(st, m, project, ctx, res0, others, probe_pred, effect, with_probe,
+                        apart, data: Data):
+    """Do the data show the part of ``effect`` that differs between the pixels of a frame
+    (``distinct``, DN^2)? The effect is fitted on top of its offset probe (an offset common
+    to a frame's pixels that follows the frame's mean signal, which takes what the two share):
+    what it then adds is its own within-frame pattern (a readout nonlinearity bends each pixel
+    by its own signal, a lamp drift scales each pixel's signal). Where it adds less than
+    ``SHOWN_OF_DISTINCT`` of that part (by ``TIE_SIGMAS`` standard errors), and that part is
+    large enough to be seen (``SHOWN_OF_DISTINCT`` of it above ``SELECT_SIGMAS`` standard
+    errors), the data lack the pattern the effect must have: it stands in for the offset.
+    Returns the figures and the reason, or None."""
+    if effect.scope not in ("global", "pixel"):  # what the base absorbs of it is no pattern
+        apart = apart - project(apart)
+    vh = data.valid_ho
+    distinct = float((np.where(vh, apart, 0.0) ** 2).sum() / max(int(vh.sum()), 1))
+    res1 = res0 - probe_pred
+    pred = fit_effect(effect, ctx, res1, data.w, project)[1]
+    both = _with_effects(st, m, project, others + probe_pred + pred, data)
+    shown, se = paired(with_probe, both, data.valid_ho)
+    import os, sys  # DEBUG-CLAMP5
+    if os.environ.get("CLAMP5_DEBUG"):  # DEBUG-CLAMP5
+        print(f"CLAMP5 {os.environ.get('CLAMP5_SEED')} {effect.name} shown={shown:.4g} se={se:.3g} distinct={distinct:.4g}",  # DEBUG-CLAMP5
+              file=sys.stderr, flush=True)  # DEBUG-CLAMP5
+    if not (SHOWN_OF_DISTINCT * distinct > SELECT_SIGMAS * se
+            and shown < SHOWN_OF_DISTINCT * distinct - TIE_SIGMAS * se):
+        return None
+    return {"shown_dn2": shown, "shown_standard_error_dn2": se, "reason": (
+        f"the data lack the pattern it has between the pixels of a frame: added to an offset "
+        f"common to the pixels that follows the frame's mean signal, it lowers the held-out "
+        f"squared error by {shown:.3g} +- {se:.2g} DN^2, where its part that differs between "
+        f"a frame's pixels is {distinct:.3g} DN^2; what it explains is an offset the same for "
+        "every pixel of a frame, such as a black-level clamp that follows the frame's signal, "
+        "which the library does not describe")}
 
 
 def offset_left(fitted: Fitted, data: Data, noise_floor: float):
@@ -728,6 +771,60 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
                        f"{np.sqrt(gain) / noise_floor:.2g} of the noise floor as an RMS, and "
                        "passes the selection rule): the library does not describe it (a "
                        "black-level clamp that follows the frame's signal is one such effect)")}
+
+
+def leakage_stand_in(final: Fitted, linear: Fitted, data: Data, noise_floor: float):
+    """Does the leakage base of ``final`` stand in for an offset common to the pixels of a
+    frame? A black-level clamp that moves only the brightest steps of a linear sensor bends
+    the top of every pixel's response, and a per-pixel leakage model takes it up, leaving
+    nothing for an effect. A linear response (``linear``, with ``final``'s effects) with an
+    offset that follows the frame's mean signal (:data:`~hsiffc.diagnose.effects.
+    FRAME_SIGNAL_OFFSET`, fitted jointly with the base, linearised) is compared with
+    ``final``: where it predicts the held-out data better by the selection rule's margin
+    (``SELECT_SIGMAS`` paired standard errors and ``(MIN_GAIN_OF_NOISE`` x floor)^2; the
+    systematic error left by ``final`` may be nil, as the leakage took it up), the bending is
+    not shown to be leakage.
+
+    Parameters
+    ----------
+    final : Fitted
+        The selected model (a leakage base; None is returned for a linear one).
+    linear : Fitted
+        The linear base alone.
+    data : Data
+        The samples.
+    noise_floor : float, DN
+        Temporal noise of one held-out sample.
+
+    Returns
+    -------
+    dict or None
+        ``gain_dn2``, ``standard_error_dn2`` and ``reason``.
+    """
+    if final.state.base.name == "linear":
+        return None
+    st = linear.state
+    if final.names:
+        st = fitpredict(final.names, data, st, quick=True)
+    m, jac, ctx = context(st.base, st.theta, data)
+    project = projector(jac, data.w)
+    total = st.sum_effects(m.shape)
+    res0 = np.where(data.valid, data.y - m - total, 0.0)
+    total = total + fit_effect(FRAME_SIGNAL_OFFSET, ctx, res0, data.w, project)[1]
+    trial = _with_effects(st, m, project, total, data)
+    gain, se = paired(final, trial, data.valid_ho)
+    import os, sys  # DEBUG-CLAMP5
+    if os.environ.get("CLAMP5_DEBUG"):  # DEBUG-CLAMP5
+        print(f"CLAMP5 {os.environ.get('CLAMP5_SEED')} leakage_stand_in gain={gain:.4g} se={se:.3g} floor2={noise_floor**2:.4g}",  # DEBUG-CLAMP5
+              file=sys.stderr, flush=True)  # DEBUG-CLAMP5
+    if not (gain > SELECT_SIGMAS * se and gain > (MIN_GAIN_OF_NOISE * noise_floor) ** 2):
+        return None
+    return {"gain_dn2": gain, "standard_error_dn2": se, "reason": (
+        f"the leakage model stands in for an offset common to the pixels of a frame: a linear "
+        f"response with {FRAME_SIGNAL_OFFSET.summary} predicts the held-out data better "
+        f"(squared error lower by {gain:.3g} +- {se:.2g} DN^2), so the bending it takes up is "
+        "not shown to be leakage; such an offset (a black-level clamp that follows the "
+        "frame's signal) is outside the library")}
 
 
 def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_pix: int,
