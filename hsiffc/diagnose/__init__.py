@@ -584,7 +584,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                and (p := offset_stand_in(final, e["name"], data))}
     left = offset_left(final, data, floor_after)
     # the leakage base taking up an offset common to the pixels of a frame
-    leak_in = (leakage_stand_in(final, lin_fit, data, floor_after) if lin_fit is not None
+    leak_in = (leakage_stand_in(final, lin_fit, sh_fit, data, floor_after) if lin_fit is not None
                else None)
     if leak_in:
         leakage["stand_in_for_unexplained"] = True
