@@ -714,9 +714,12 @@ def _within_frame_shown(st, m, project, ctx, res0, others, probe_pred, effect, w
     shown, se = paired(with_probe, both, data.valid_ho)
     import os, sys  # DEBUG-CLAMP5
     if os.environ.get("CLAMP5_DEBUG"):  # DEBUG-CLAMP5
-        print(f"CLAMP5 {os.environ.get('CLAMP5_SEED')} {effect.name} shown={shown:.4g} se={se:.3g} distinct={distinct:.4g}",  # DEBUG-CLAMP5
+        print(f"CLAMP5 {os.environ.get('CLAMP5_SEED')} {effect.name} shown={shown:.4g} se={se:.3g} distinct={distinct:.4g} chi2={float((data.w * np.where(data.valid, apart, 0.0) ** 2).sum()):.4g}",  # DEBUG-CLAMP5
               file=sys.stderr, flush=True)  # DEBUG-CLAMP5
-    if not (SHOWN_OF_DISTINCT * distinct > SELECT_SIGMAS * se
+    # the pattern's chi-square in the fit half: where it is weak, the effect's coefficients
+    # fitted on top of the probe follow the noise, and it gains less than its part for that
+    chi2 = float((data.w * np.where(data.valid, apart, 0.0) ** 2).sum())
+    if not (chi2 > (2 * SELECT_SIGMAS) ** 2 and SHOWN_OF_DISTINCT * distinct > SELECT_SIGMAS * se
             and shown < SHOWN_OF_DISTINCT * distinct - TIE_SIGMAS * se):
         return None
     return {"shown_dn2": shown, "shown_standard_error_dn2": se, "reason": (
