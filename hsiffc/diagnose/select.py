@@ -731,6 +731,17 @@ def _within_frame_shown(st, m, project, ctx, res0, others, probe_pred, effect, w
         "which the library does not describe")}
 
 
+def _probe_added(st: State, probe, data: Data) -> Fitted:
+    """``st`` with the offset ``probe`` fitted to what it leaves, jointly with the base
+    (linearised), evaluated on the held-out data."""
+    m, jac, ctx = context(st.base, st.theta, data)
+    project = projector(jac, data.w)
+    total = st.sum_effects(m.shape)
+    res0 = np.where(data.valid, data.y - m - total, 0.0)
+    total = total + fit_effect(probe, ctx, res0, data.w, project)[1]
+    return _with_effects(st, m, project, total, data)
+
+
 def offset_left(fitted: Fitted, data: Data, noise_floor: float):
     """Is an offset common to the pixels of each light step left in what ``fitted`` does not
     explain (an effect the library lacks, such as a black-level clamp that follows the frame's
@@ -756,14 +767,7 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
     dict or None
         ``gain_dn2``, ``standard_error_dn2`` and ``reason``; None where nothing is left.
     """
-    probe = OFFSET_PROBES["illumination_error"]
-    st = fitted.state
-    m, jac, ctx = context(st.base, st.theta, data)
-    project = projector(jac, data.w)
-    total = st.sum_effects(m.shape)
-    res0 = np.where(data.valid, data.y - m - total, 0.0)
-    total = total + fit_effect(probe, ctx, res0, data.w, project)[1]
-    trial = _with_effects(st, m, project, total, data)
+    trial = _probe_added(fitted.state, OFFSET_PROBES["illumination_error"], data)
     gain, se = paired(fitted, trial, data.valid_ho)
     if not (improves(fitted, trial, gain, se, noise_floor)
             and gain > (LEFT_OFFSET_OF_FLOOR * noise_floor) ** 2):
@@ -819,13 +823,7 @@ def leakage_stand_in(final: Fitted, linear: Fitted, shared: Fitted | None, data:
             return start
         st = fitpredict(final.names, data, start.state, quick=True)
         return evaluate(st, final.names, data, 1, 1)
-    st = with_effects(linear).state
-    m, jac, ctx = context(st.base, st.theta, data)
-    project = projector(jac, data.w)
-    total = st.sum_effects(m.shape)
-    res0 = np.where(data.valid, data.y - m - total, 0.0)
-    total = total + fit_effect(FRAME_SIGNAL_OFFSET, ctx, res0, data.w, project)[1]
-    trial = _with_effects(st, m, project, total, data)
+    trial = _probe_added(with_effects(linear).state, FRAME_SIGNAL_OFFSET, data)
     leak = final if final.state.base.name != "leakage" else with_effects(shared)
     gain, se = min(paired(final, trial, data.valid_ho), paired(leak, trial, data.valid_ho),
                    key=lambda g: g[0] - SELECT_SIGMAS * g[1])
