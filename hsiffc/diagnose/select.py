@@ -712,10 +712,6 @@ def _within_frame_shown(st, m, project, ctx, res0, others, probe_pred, effect, w
     pred = fit_effect(effect, ctx, res1, data.w, project)[1]
     both = _with_effects(st, m, project, others + probe_pred + pred, data)
     shown, se = paired(with_probe, both, data.valid_ho)
-    import os, sys  # DEBUG-CLAMP5
-    if os.environ.get("CLAMP5_DEBUG"):  # DEBUG-CLAMP5
-        print(f"CLAMP5 {os.environ.get('CLAMP5_SEED')} {effect.name} shown={shown:.4g} se={se:.3g} distinct={distinct:.4g} chi2={float((data.w * np.where(data.valid, apart, 0.0) ** 2).sum()):.4g}",  # DEBUG-CLAMP5
-              file=sys.stderr, flush=True)  # DEBUG-CLAMP5
     # the pattern's chi-square in the fit half: where it is weak, the effect's coefficients
     # fitted on top of the probe follow the noise, and it gains less than its part for that
     chi2 = float((data.w * np.where(data.valid, apart, 0.0) ** 2).sum())
@@ -827,10 +823,6 @@ def leakage_stand_in(final: Fitted, linear: Fitted, shared: Fitted | None, data:
     leak = final if final.state.base.name != "leakage" else with_effects(shared)
     gain, se = min(paired(final, trial, data.valid_ho), paired(leak, trial, data.valid_ho),
                    key=lambda g: g[0] - SELECT_SIGMAS * g[1])
-    import os, sys  # DEBUG-CLAMP5
-    if os.environ.get("CLAMP5_DEBUG"):  # DEBUG-CLAMP5
-        print(f"CLAMP5 {os.environ.get('CLAMP5_SEED')} leakage_stand_in gain={gain:.4g} se={se:.3g} floor2={noise_floor**2:.4g} final={paired(final, trial, data.valid_ho)}",  # DEBUG-CLAMP5
-              file=sys.stderr, flush=True)  # DEBUG-CLAMP5
     if not (gain > SELECT_SIGMAS * se and gain > (MIN_GAIN_OF_NOISE * noise_floor) ** 2):
         return None
     return {"gain_dn2": gain, "standard_error_dn2": se, "reason": (
