@@ -676,7 +676,7 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
                 "a black-level clamp that follows the frame's signal, which the library does "
                 "not describe")}
         if gain > -TIE_SIGMAS * se:
-            shown = _within_frame_shown(st, m, project, ctx, res0, others, probe_pred,
+            shown = _within_frame_shown(st, m, project, ctx, res0, others, (probe, probe_pred),
                                         EFFECTS[name], with_probe, apart, data)
             if shown:
                 return {**out, "gain_dn2": gain, "standard_error_dn2": se, **shown}
@@ -693,21 +693,22 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
     return None
 
 
-def _within_frame_shown(st, m, project, ctx, res0, others, probe_pred, effect, with_probe,
+def _within_frame_shown(st, m, project, ctx, res0, others, fitted_probe, effect, with_probe,
                         apart, data: Data):
     """Do the data show the part of ``effect`` that differs between the pixels of a frame
-    (``distinct``, DN^2)? The effect is fitted on top of its offset probe (an offset common
-    to a frame's pixels that follows the frame's mean signal, which takes what the two share):
-    what it then adds is its own within-frame pattern (a readout nonlinearity bends each pixel
-    by its own signal, a lamp drift scales each pixel's signal). Where it adds less than
-    ``SHOWN_OF_DISTINCT`` of that part (by ``TIE_SIGMAS`` standard errors), and that part is
-    large enough to be seen (``SHOWN_OF_DISTINCT`` of it above ``SELECT_SIGMAS`` standard
-    errors), the data lack the pattern the effect must have: it stands in for the offset.
-    Returns the figures and the reason, or None."""
+    (``apart``, less what the base absorbs)? The effect is fitted on top of its offset probe
+    (``fitted_probe``: the probe and its prediction; an offset common to a frame's pixels,
+    which takes what the two share): what it then gains is that part, where the effect is
+    true (a readout nonlinearity bends each pixel by its own signal, a light error or a lamp
+    drift scales each pixel's signal). Where it gains less than ``SHOWN_OF_DISTINCT`` of that
+    part (by ``TIE_SIGMAS`` standard errors), and that part is seen at ``2 x SELECT_SIGMAS``
+    standard errors in the fit half (its chi-square), the data lack the pattern the effect
+    must have: it stands in for the offset. Returns the figures and the reason, or None."""
     if effect.scope not in ("global", "pixel"):  # what the base absorbs of it is no pattern
         apart = apart - project(apart)
     vh = data.valid_ho
     distinct = float((np.where(vh, apart, 0.0) ** 2).sum() / max(int(vh.sum()), 1))
+    probe, probe_pred = fitted_probe
     res1 = res0 - probe_pred
     pred = fit_effect(effect, ctx, res1, data.w, project)[1]
     both = _with_effects(st, m, project, others + probe_pred + pred, data)
@@ -719,12 +720,12 @@ def _within_frame_shown(st, m, project, ctx, res0, others, probe_pred, effect, w
             and shown < SHOWN_OF_DISTINCT * distinct - TIE_SIGMAS * se):
         return None
     return {"shown_dn2": shown, "shown_standard_error_dn2": se, "reason": (
-        f"the data lack the pattern it has between the pixels of a frame: added to an offset "
-        f"common to the pixels that follows the frame's mean signal, it lowers the held-out "
-        f"squared error by {shown:.3g} +- {se:.2g} DN^2, where its part that differs between "
-        f"a frame's pixels is {distinct:.3g} DN^2; what it explains is an offset the same for "
-        "every pixel of a frame, such as a black-level clamp that follows the frame's signal, "
-        "which the library does not describe")}
+        f"the data lack the pattern it has between the pixels of a frame: added to "
+        f"{probe.summary}, it lowers the held-out squared error by {shown:.3g} +- {se:.2g} "
+        f"DN^2, where its part that differs between a frame's pixels is {distinct:.3g} DN^2; "
+        "what it explains is an offset the same for every pixel of a frame, such as a "
+        "black-level clamp that follows the frame's signal, which the library does not "
+        "describe")}
 
 
 def _probe_added(st: State, probe, data: Data) -> Fitted:
