@@ -21,8 +21,6 @@ LEFT_OFFSET_OF_FLOOR = 0.135  # an offset per step left counts above this RMS (o
 PROBE_OF_DISTINCT = 0.75  # an offset probe must beat its effect by this fraction of the part
 # of the effect that differs between the pixels of a frame (about 1 where the offset is true,
 # about -1 where the effect is)
-SHOWN_OF_DISTINCT = 0.5  # an effect added to its offset probe must gain this fraction of its
-# part that differs between the pixels of a frame, where that part is measurable (below)
 TREND_P = 5e-3  # per-step factors that trend with exposure, signal or order (F-test p below)
 MIN_TREND_STEPS = 8  # fewer light steps: the trend test is not made
 N_PERMUTATIONS = 8000  # random orders of the step factors in the trend test
@@ -665,8 +663,7 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
     explained = paired(without, with_effect, vh)[0]
     out = {"explained_dn2": explained, "distinct_dn2": distinct}
     if probe is not None:
-        with_probe, probe_pred = with_(probe)
-        gain, se = paired(with_effect, with_probe, vh)
+        gain, se = paired(with_effect, with_(probe)[0], vh)
         if gain > TIE_SIGMAS * se and gain > PROBE_OF_DISTINCT * distinct:
             return {**out, "gain_dn2": gain, "standard_error_dn2": se, "reason": (
                 f"what it explains is better explained by {probe.summary} (held-out squared "
@@ -675,11 +672,6 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
                 f"{explained:.3g} DN^2): an offset the same for every pixel of a frame, such as "
                 "a black-level clamp that follows the frame's signal, which the library does "
                 "not describe")}
-        if gain > -TIE_SIGMAS * se:
-            shown = _within_frame_shown(st, m, project, ctx, res0, others, (probe, probe_pred),
-                                        EFFECTS[name], with_probe, apart, data)
-            if shown:
-                return {**out, "gain_dn2": gain, "standard_error_dn2": se, **shown}
     if smooth is not None:
         gain, se = paired(with_effect, with_(smooth)[0], vh)
         if gain > -TIE_SIGMAS * se:
@@ -691,41 +683,6 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
                 "follows the signal level, such as a black-level clamp, not a light error, "
                 "which is random from step to step")}
     return None
-
-
-def _within_frame_shown(st, m, project, ctx, res0, others, fitted_probe, effect, with_probe,
-                        apart, data: Data):
-    """Do the data show the part of ``effect`` that differs between the pixels of a frame
-    (``apart``, less what the base absorbs)? The effect is fitted on top of its offset probe
-    (``fitted_probe``: the probe and its prediction; an offset common to a frame's pixels,
-    which takes what the two share): what it then gains is that part, where the effect is
-    true (a readout nonlinearity bends each pixel by its own signal, a light error or a lamp
-    drift scales each pixel's signal). Where it gains less than ``SHOWN_OF_DISTINCT`` of that
-    part (by ``TIE_SIGMAS`` standard errors), and that part is seen at ``2 x SELECT_SIGMAS``
-    standard errors in the fit half (its chi-square), the data lack the pattern the effect
-    must have: it stands in for the offset. Returns the figures and the reason, or None."""
-    if effect.scope not in ("global", "pixel"):  # what the base absorbs of it is no pattern
-        apart = apart - project(apart)
-    vh = data.valid_ho
-    distinct = float((np.where(vh, apart, 0.0) ** 2).sum() / max(int(vh.sum()), 1))
-    probe, probe_pred = fitted_probe
-    res1 = res0 - probe_pred
-    pred = fit_effect(effect, ctx, res1, data.w, project)[1]
-    both = _with_effects(st, m, project, others + probe_pred + pred, data)
-    shown, se = paired(with_probe, both, data.valid_ho)
-    # the pattern's chi-square in the fit half: where it is weak, the effect's coefficients
-    # fitted on top of the probe follow the noise, and it gains less than its part for that
-    chi2 = float((data.w * np.where(data.valid, apart, 0.0) ** 2).sum())
-    if not (chi2 > (2 * SELECT_SIGMAS) ** 2 and SHOWN_OF_DISTINCT * distinct > SELECT_SIGMAS * se
-            and shown < SHOWN_OF_DISTINCT * distinct - TIE_SIGMAS * se):
-        return None
-    return {"shown_dn2": shown, "shown_standard_error_dn2": se, "reason": (
-        f"the data lack the pattern it has between the pixels of a frame: added to "
-        f"{probe.summary}, it lowers the held-out squared error by {shown:.3g} +- {se:.2g} "
-        f"DN^2, where its part that differs between a frame's pixels is {distinct:.3g} DN^2; "
-        "what it explains is an offset the same for every pixel of a frame, such as a "
-        "black-level clamp that follows the frame's signal, which the library does not "
-        "describe")}
 
 
 def _probe_added(st: State, probe, data: Data) -> Fitted:
