@@ -45,7 +45,8 @@ from .fitting import (State, context, describe_params, fitpredict, gram, project
                       separable_fraction)
 from .result import Diagnosis, ResidualArrays
 from .select import (RULE, UNEXPLAINED_OF_FLOOR, Fitted, equally_good, evaluate, greedy,
-                     improves, leakage_check, offset_left, offset_stand_in, paired)
+                     improves, leakage_check, leakage_stand_in, offset_left, offset_stand_in,
+                     paired)
 from .structure import groupings, structure
 
 __all__ = ["diagnose", "Diagnosis", "EFFECTS", "NoiseModel", "OUTSIDE", "inject",
@@ -527,6 +528,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
             per_pixel = (final, base_fit)
             final, base_fit = sh_final, sh_fit
     leakage = {"verdict": "not tested", "reason": "the base model is linear"}
+    lin_fit = None
     if base.name in ("leakage", "shared leakage"):
         lin = LinearBase(use_dc)
         lin_state = State(lin, lin.start(y, t, r, valid, w))
@@ -581,7 +583,13 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     offsets = {e["name"]: p for e in chosen if not e["stand_in_for_unexplained"]
                and (p := offset_stand_in(final, e["name"], data))}
     left = offset_left(final, data, floor_after)
-    unexplained = bool(check.structured or too_big or implausible or offsets or left)
+    # the leakage base taking up an offset common to the pixels of a frame
+    leak_in = (leakage_stand_in(final, lin_fit, sh_fit, data, floor_after) if lin_fit is not None
+               else None)
+    if leak_in:
+        leakage["stand_in_for_unexplained"] = True
+        leakage["stand_in_reason"] = leak_in["reason"]
+    unexplained = bool(check.structured or too_big or implausible or offsets or left or leak_in)
     if unexplained:  # every selected effect is a stand-in then
         chosen = _stand_ins(current, selected, True, scale)
         for e in chosen:
@@ -594,6 +602,8 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                   "the data show; " + reason)
     if left and not (check.structured or too_big):
         reason = left["reason"] + "; " + reason
+    if leak_in and not (check.structured or too_big):
+        reason = leak_in["reason"] + "; " + reason
     if implausible and not (check.structured or too_big):
         reason = (f"{', '.join(implausible)} fit{'s' if len(implausible) == 1 else ''} with "
                   "physically implausible parameters: the library does not describe what the "

@@ -9,7 +9,7 @@ import numpy as np
 
 from scipy import stats
 
-from .effects import EFFECTS, OFFSET_PROBES, SMOOTH_PROBES
+from .effects import EFFECTS, FRAME_SIGNAL_OFFSET, OFFSET_PROBES, SMOOTH_PROBES
 from .effectfit import fit_effect, frame_regression, projector
 from .fitting import Data, State, context, describe_params, fitpredict, pair_regression
 
@@ -715,6 +715,17 @@ def offset_stand_in(fitted: Fitted, name: str, data: Data):
     return None
 
 
+def _probe_added(st: State, probe, data: Data) -> Fitted:
+    """``st`` with the offset ``probe`` fitted to what it leaves, jointly with the base
+    (linearised), evaluated on the held-out data."""
+    m, jac, ctx = context(st.base, st.theta, data)
+    project = projector(jac, data.w)
+    total = st.sum_effects(m.shape)
+    res0 = np.where(data.valid, data.y - m - total, 0.0)
+    total = total + fit_effect(probe, ctx, res0, data.w, project)[1]
+    return _with_effects(st, m, project, total, data)
+
+
 def offset_left(fitted: Fitted, data: Data, noise_floor: float):
     """Is an offset common to the pixels of each light step left in what ``fitted`` does not
     explain (an effect the library lacks, such as a black-level clamp that follows the frame's
@@ -740,14 +751,7 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
     dict or None
         ``gain_dn2``, ``standard_error_dn2`` and ``reason``; None where nothing is left.
     """
-    probe = OFFSET_PROBES["illumination_error"]
-    st = fitted.state
-    m, jac, ctx = context(st.base, st.theta, data)
-    project = projector(jac, data.w)
-    total = st.sum_effects(m.shape)
-    res0 = np.where(data.valid, data.y - m - total, 0.0)
-    total = total + fit_effect(probe, ctx, res0, data.w, project)[1]
-    trial = _with_effects(st, m, project, total, data)
+    trial = _probe_added(fitted.state, OFFSET_PROBES["illumination_error"], data)
     gain, se = paired(fitted, trial, data.valid_ho)
     if not (improves(fitted, trial, gain, se, noise_floor)
             and gain > (LEFT_OFFSET_OF_FLOOR * noise_floor) ** 2):
@@ -758,6 +762,64 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
                        f"{np.sqrt(gain) / noise_floor:.2g} of the noise floor as an RMS, and "
                        "passes the selection rule): the library does not describe it (a "
                        "black-level clamp that follows the frame's signal is one such effect)")}
+
+
+def leakage_stand_in(final: Fitted, linear: Fitted, shared: Fitted | None, data: Data,
+                     noise_floor: float):
+    """Does the leakage base of ``final`` stand in for an offset common to the pixels of a
+    frame? A black-level clamp that moves only the brightest steps of a linear sensor bends
+    the top of every pixel's response, and a leakage model takes it up, leaving nothing for
+    an effect. A linear response (``linear``, with ``final``'s effects) with an offset that
+    follows the frame's mean signal (:data:`~hsiffc.diagnose.effects.FRAME_SIGNAL_OFFSET`,
+    fitted jointly with the base, linearised) is compared with ``final`` and with the leakage
+    model with one shape for the sensor (``shared``, with ``final``'s effects), which has as
+    few parameters a pixel as the linear one (per-pixel leakage follows the noise of the fit
+    half, so any simpler model predicts the held-out data a little better): where it predicts
+    the held-out data better than both by the selection rule's margin (``SELECT_SIGMAS``
+    paired standard errors and ``(MIN_GAIN_OF_NOISE`` x floor)^2; the systematic error left
+    may be nil, as the leakage took it up), the bending is not shown to be leakage.
+
+    Parameters
+    ----------
+    final : Fitted
+        The selected model (a leakage base; None is returned for a linear one).
+    linear : Fitted
+        The linear base alone.
+    shared : Fitted or None
+        The leakage base with one shape for the sensor, alone (None: not fitted; the test is
+        not made).
+    data : Data
+        The samples.
+    noise_floor : float, DN
+        Temporal noise of one held-out sample.
+
+    Returns
+    -------
+    dict or None
+        ``gain_dn2``, ``standard_error_dn2`` (over the better of the two leakage models) and
+        ``reason``.
+    """
+    if final.state.base.name == "linear" or shared is None:
+        return None
+
+    def with_effects(start: Fitted) -> Fitted:
+        if not final.names:
+            return start
+        st = fitpredict(final.names, data, start.state, quick=True)
+        return evaluate(st, final.names, data, 1, 1)
+    trial = _probe_added(with_effects(linear).state, FRAME_SIGNAL_OFFSET, data)
+    leak = final if final.state.base.name != "leakage" else with_effects(shared)
+    gain, se = min(paired(final, trial, data.valid_ho), paired(leak, trial, data.valid_ho),
+                   key=lambda g: g[0] - SELECT_SIGMAS * g[1])
+    if not (gain > SELECT_SIGMAS * se and gain > (MIN_GAIN_OF_NOISE * noise_floor) ** 2):
+        return None
+    return {"gain_dn2": gain, "standard_error_dn2": se, "reason": (
+        f"the leakage model stands in for an offset common to the pixels of a frame: a linear "
+        f"response with {FRAME_SIGNAL_OFFSET.summary} predicts the held-out data better than "
+        f"the leakage model, per pixel and with one shape for the sensor (squared error lower "
+        f"by {gain:.3g} +- {se:.2g} DN^2), so the bending it takes up is not shown to be "
+        "leakage; such an offset (a black-level clamp that follows the frame's signal) is "
+        "outside the library")}
 
 
 def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_pix: int,
