@@ -16,7 +16,7 @@ from ..data.params import validate_method
 from ..files.limits import default_limits
 from .prepare import (Prepared, band_levels, band_medians, ppi_kernel, prepare,
                       pseudo_panchromatic, tile_starts)
-from .refined import itsd_cube, refined_cube
+from .refined import MIN_LEVEL_SAMPLES, itsd_cube, refined_cube
 from .tiles import tile_alpha
 
 __all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "Demosaiced", "demosaic", "reconstruct_alpha"]
@@ -217,7 +217,10 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
             l_b PPI)``. Without it a band far below the mean level inherits the PPI's texture
             error at full size (on a ColorChecker scene under an incandescent lamp the weak
             blue bands came out worse than with bilinear). Balancing is skipped (all levels 1)
-            when a band's median is not positive, e.g. on dark-subtracted noise. Flagged
+            when a band's median is not positive, e.g. on dark-subtracted noise, and on a
+            frame of fewer than ``MIN_LEVEL_SAMPLES`` (16) tiles, whose few samples of each
+            band make no level (an 11 x 8 frame of a 4 x 4 mosaic with half its pixels
+            flagged reached 5108 DN balanced, where the frame holds at most 1000). Flagged
             samples enter the PPI as the mean of their unflagged same-band neighbours one
             tile away; where a PPI window holds no usable pixel at all, the band value is
             the bilinear one.
@@ -294,7 +297,8 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
     ppi = ppi_ok = None
     levels = np.ones(B)
     if how.uses_ppi and not own:
-        levels = band_levels(p)
+        few = (H // mosaic.tile_shape[0]) * (W // mosaic.tile_shape[1]) < MIN_LEVEL_SAMPLES
+        levels = np.ones(B) if few else band_levels(p)  # a level needs samples (refined.py)
         ppi, ppi_ok = pseudo_panchromatic(p, levels)
     a = cube_alpha = None
     if alpha is not None:
