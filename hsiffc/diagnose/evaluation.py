@@ -3,8 +3,9 @@
 A seeded generator of small simulated sweeps (:func:`case_spec`, :func:`build_case`), each with
 random sensor parameters (8-16 bit, read noise, PRNU, dark level, linear or leaky pixels, dark
 current when there are dark frames; the full well lies just above the ADC's full scale, so that
-bright samples clip at full scale, which diagnose leaves out), a random design (exposure sweeps at 1-4 light rates, light
-sweeps at one exposure, mixed designs; with or without dark frames) and one of:
+bright samples clip at full scale, which diagnose leaves out), a random design (exposure sweeps
+at 1-4 light rates, light sweeps at one exposure, mixed designs; with or without dark frames)
+and one of:
 
 - nothing (a clean control);
 - one library effect at 2x, 5x, 10x or 100x its detection limit;
