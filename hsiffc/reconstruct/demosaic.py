@@ -16,7 +16,7 @@ from ..data.params import validate_method
 from ..files.limits import default_limits
 from .prepare import (Prepared, band_levels, band_medians, ppi_kernel, prepare,
                       pseudo_panchromatic, tile_starts)
-from .refined import MIN_LEVEL_SAMPLES, itsd_cube, refined_cube
+from .refined import few_level_samples, itsd_cube, refined_cube
 from .tiles import tile_alpha
 
 __all__ = ["DEMOSAIC_METHODS", "DemosaicMethod", "Demosaiced", "demosaic", "reconstruct_alpha"]
@@ -297,8 +297,7 @@ def demosaic(raw, mosaic: Mosaic, *, method: str = "bilinear", dq=None,
     ppi = ppi_ok = None
     levels = np.ones(B)
     if how.uses_ppi and not own:
-        few = (H // mosaic.tile_shape[0]) * (W // mosaic.tile_shape[1]) < MIN_LEVEL_SAMPLES
-        levels = np.ones(B) if few else band_levels(p)  # a level needs samples (refined.py)
+        levels = np.ones(B) if few_level_samples(p) else band_levels(p)
         ppi, ppi_ok = pseudo_panchromatic(p, levels)
     a = cube_alpha = None
     if alpha is not None:

@@ -46,7 +46,8 @@ from ..kernels.refined import flag_values, interpolate_differences, refine_ppi, 
 from .prepare import (Prepared, band_levels, band_medians, periodic_index, ppi_kernel,
                       prepare)
 
-__all__ = ["EDGE_EPS", "ITSD_STEPS", "itsd_cube", "refined_cube"]
+__all__ = ["EDGE_EPS", "ITSD_STEPS", "MIN_LEVEL_SAMPLES", "few_level_samples", "itsd_cube",
+           "refined_cube"]
 
 #: ``eps`` of the edge weights, as a fraction of the frame's mean PPI level
 EDGE_EPS = 0.02
@@ -83,8 +84,19 @@ LEVEL_SAMPLES = 1 << 14
 MIN_LEVEL_SAMPLES = 16
 
 
-def _few_samples(p: Prepared) -> bool:
-    """Whether some band has fewer than :data:`MIN_LEVEL_SAMPLES` samples in the frame."""
+def few_level_samples(p: Prepared) -> bool:
+    """Whether some band has fewer than :data:`MIN_LEVEL_SAMPLES` samples in the frame (too
+    few for a band level: its bands are not balanced).
+
+    Parameters
+    ----------
+    p : Prepared
+        The frame.
+
+    Returns
+    -------
+    bool
+    """
     H, W = p.shape
     ph, pw = p.period
     return (H // ph) * (W // pw) < MIN_LEVEL_SAMPLES
@@ -96,7 +108,7 @@ def _sampled_levels(p: Prepared, raw) -> np.ndarray:
     band's samples, at most :data:`LEVEL_SAMPLES` of them (the level is a scale, not a
     statistic of every pixel), of the filled frame (no flagged sample). One sample per band
     and tile (a layout without repeated bands)."""
-    if _few_samples(p):
+    if few_level_samples(p):
         return np.ones(len(p.lattices()))
     H, W = p.shape
     ph, pw = p.period
@@ -117,7 +129,7 @@ def _levels(p: Prepared, raw) -> np.ndarray:
     """The band levels (:func:`~hsiffc.reconstruct.prepare.band_levels`) of one tile row in
     four: the medians of a quarter of the samples (the level is a scale, not a statistic of
     every pixel), from the filled frame (no flagged sample)."""
-    if _few_samples(p):
+    if few_level_samples(p):
         return np.ones(p.mosaic.n_bands)
     ph = p.period[0]
     H = p.shape[0]

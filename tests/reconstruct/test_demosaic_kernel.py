@@ -18,7 +18,7 @@ from hsiffc.kernels.demosaic import interpolate_bands
 from hsiffc.kernels.lattice import split_lattices
 from hsiffc.data.mosaic import Mosaic
 from hsiffc.reconstruct import demosaic, ppi_kernel, reconstruct_alpha
-from hsiffc.reconstruct.refined import MIN_LEVEL_SAMPLES
+from hsiffc.reconstruct.refined import few_level_samples
 from hsiffc.reconstruct.prepare import (Prepared, band_levels, periodic_index, prepare,
                                         pseudo_panchromatic)
 
@@ -57,8 +57,7 @@ def reference(raw, mosaic, dq, method, alpha=None, dtype=np.float32):
     ph, pw = mosaic.tile_shape
     if method == "ppid":
         p = Prepared(raw, dq.copy(), mosaic)  # the general (flag-aware) PPI path
-        few = (raw.shape[0] // ph) * (raw.shape[1] // pw) < MIN_LEVEL_SAMPLES
-        levels = np.ones(mosaic.n_bands) if few else band_levels(p)
+        levels = np.ones(mosaic.n_bands) if few_level_samples(p) else band_levels(p)
         ppi, ppi_ok = pseudo_panchromatic(p, levels)
         ppi = ppi.astype(dtype)
     cube = np.empty(raw.shape + (mosaic.n_bands,), dtype)
