@@ -154,9 +154,8 @@ def pool_pixels(theta, precision):
     q = float((a * (theta - mean) ** 2).sum())
     if q - (theta.size - 1) <= POOL_SIGMAS * np.sqrt(2.0 * (theta.size - 1)):
         return np.full_like(theta, mean)
-    tau2 = max((q - (theta.size - 1)) / max(total - (a * a).sum() / total, 1e-300), 0.0)
-    if tau2 == 0.0:
-        return np.full_like(theta, mean)
+    # Q exceeds its expectation here, so the moment estimate of the spread is positive
+    tau2 = (q - (theta.size - 1)) / max(total - (a * a).sum() / total, 1e-300)
     return (a * theta + mean / tau2) / (a + 1.0 / tau2)
 
 
