@@ -398,7 +398,15 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                 "held-out data. Record more light steps", sweep)
     y, y_ho, t, r = smp["y"], smp["y_ho"], smp["t"], smp["r"]
     fs = float(sweep.full_scale_dn)
-    if smp["clip_dn"] is not None:  # the data clip below the ADC's full scale
+    if smp["plateau"] is not None:  # a full well below full scale, read noise after it
+        fs = smp["clip_dn"]
+        pl = smp["plateau"]
+        des.notes.append(f"the response stops at {fs:.6g} DN, below the ADC's full scale "
+                         f"({sweep.full_scale_dn} DN), with the read noise alone after it "
+                         f"({pl['plateau_dn2']:.3g} DN^2 a frame against {pl['read_dn2']:.3g} "
+                         f"read and {pl['shot_dn2']:.3g} shot): a full well that fills first; "
+                         "steps with a frame there are left out and it acts as full scale")
+    elif smp["clip_dn"] is not None:  # the data clip below the ADC's full scale
         fs = smp["clip_dn"]
         des.notes.append(f"the frames clip at {fs:g} DN, below the ADC's full scale "
                          f"({sweep.full_scale_dn} DN): a full well that fills first; steps with "
