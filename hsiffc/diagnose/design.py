@@ -191,9 +191,10 @@ def well_plateau(sub: Sweep, dose):
     ``PLATEAU_MIN_PIXELS`` pixels, and where the pixels' two highest doses are both at the top,
     their level at the higher does not fall below that at the lower (by 4 standard errors of
     the mean over the pixels: a level that falls as the light rises is a clip moved by an
-    offset, not a well), the plateau's level is their lowest sample less 3 read-noise sigma. Read variance and system
-    gain come from the frame pairs (the darks, or the intercept of the photon-transfer line of
-    the light steps below half the top level). Needs two frames in every step.
+    offset, not a well), the plateau's level is their lowest sample less 3 read-noise sigma.
+    Read variance and system gain come from the frame pairs (the darks, or the intercept of the
+    photon-transfer line of the light steps below half the top level). Needs two frames in
+    every step.
 
     Parameters
     ----------
