@@ -223,6 +223,8 @@ def well_plateau(sub: Sweep, dose):
                            for v, o in zip(level, ok[light])])
     step_var = np.array([np.mean(v[o]) if o.any() else np.nan
                          for v, o in zip(var[light], ok[light])])
+    if not np.isfinite(step_level).any():  # every light step cut off (clipped)
+        return None
     low = np.isfinite(step_var) & (step_level < 0.5 * np.nanmax(step_level))
     if low.sum() < 3:
         return None
