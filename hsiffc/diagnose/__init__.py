@@ -18,7 +18,9 @@ whether the bending of the response is leakage at all or a readout nonlinearity,
 structure left in the held-out residual that no candidate explains as ``unexplained`` (binned,
 and as a pattern over the pixels times one over the steps, against what the model leaves on
 data simulated from itself). Frames that clip below the ADC's full scale
-(:func:`~hsiffc.diagnose.design.clip_level`) or sit at its lowest code are left out.
+(:func:`~hsiffc.diagnose.design.clip_level`), that sit on a full well's plateau below it with
+the read noise alone (:func:`~hsiffc.diagnose.design.well_plateau`) or at its lowest code are
+left out.
 
 Its named parts: the noise model (:class:`NoiseModel`: the frame differences tested against
 the temporal-noise model and cleared before they are the floor), the search from one starting
