@@ -358,10 +358,11 @@ class Samples:
     """The samples diagnose fits (:func:`prepare`): the sweep (its sweep steps alone for an
     EMVA 1288 set), the pixel subset and where its pixels are, the dict of
     :func:`~hsiffc.diagnose.design.samples` (step means ``y`` and ``y_ho`` of the fit and
-    held-out halves in DN, exposures ``t`` in ms, relative light rates ``r``, ...), the design, the level the data reach (``fs``, DN: the
-    ADC's full scale, or the clip where the frames clip first), each pixel's dark level
-    (``dark0``, DN), the frame variance as a function of the signal (DN^2; None without frame
-    pairs), the valid samples of each half and the fit weights (1/DN^2)."""
+    held-out halves in DN, exposures ``t`` in ms, relative light rates ``r``, ...), the
+    design, the level the data reach (``fs``, DN: the ADC's full scale, or the clip where the
+    frames clip first), each pixel's dark level (``dark0``, DN), the frame variance as a
+    function of the signal (DN^2; None without frame pairs), the valid samples of each half and
+    the fit weights (1/DN^2)."""
 
     sweep: Sweep
     sub: Sweep
