@@ -55,3 +55,22 @@ def test_no_size_is_found_where_the_leakage_leaves_no_room_above_it():
     assert 5 * ev.detection_limit(clean, unit, terms) < cap  # the old rule placed it at 5x
     size, limit = ev.dark_size(clean, spec, terms, unit, 5, cap)
     assert size is None and limit > cap / 5
+
+
+def test_a_spread_shown_by_a_few_standard_deviations_is_pooled():
+    """Estimates that spread a little beyond their errors (Cochran's Q 5-20 standard deviations
+    above its expectation, as a dark signal outside the photodiode whose pixels differ by 30 %
+    shows at one light rate without dark frames: development seeds 111068, 111180, 112188)
+    take the sensor's one value; a spread shown by far more (several light rates) is kept."""
+    from hsiffc.diagnose.effectfit import POOL_SIGMAS, pool_pixels
+
+    rng = np.random.default_rng(60)
+    p = 1024
+    a = rng.lognormal(0.0, 1.0, p)
+    err = rng.standard_normal(p) / np.sqrt(a)
+    for spread, pooled in ((0.25, True), (1.0, False)):
+        theta = 2.0 * (1.0 + spread * rng.standard_normal(p)) + err
+        mean = (a * theta).sum() / a.sum()
+        excess = ((a * (theta - mean) ** 2).sum() - (p - 1)) / np.sqrt(2.0 * (p - 1))
+        assert (5.0 < excess < POOL_SIGMAS) if pooled else (excess > POOL_SIGMAS), excess
+        assert (np.ptp(pool_pixels(theta, a)) == 0.0) == pooled
