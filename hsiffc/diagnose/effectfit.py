@@ -111,8 +111,13 @@ def separable_fraction(effect, ctx, project, w) -> float:
 
 #: pixels keep part of their own estimates (:func:`pool_pixels`) only where their spread beyond
 #: their errors is shown: Cochran's Q above its expectation under one value for the sensor by
-#: this many standard deviations of its chi-square
-POOL_SIGMAS = 5.0
+#: this many standard deviations of its chi-square. Not 5: a dark signal outside the photodiode
+#: whose pixels differ by 30 %, without dark frames, at one light rate, showed its spread by
+#: 5.3-13.9 (development seeds 111068, 111180, 112188; each of its 190-380 effective parameters
+#: removing 2.2-2.5 weighted squared units of the fit, where noise alone removes one), counted
+#: as one parameter a pixel and lost to an offset drift on the BIC; at several light rates it
+#: showed by 97-183
+POOL_SIGMAS = 20.0
 
 
 def pool_pixels(theta, precision):

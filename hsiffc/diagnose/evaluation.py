@@ -283,9 +283,11 @@ def outside_term(sweep, name: str, size: float, terms: dict) -> np.ndarray:
     raise ValueError(f"unknown outside effect {name!r}; known: {OUTSIDE_EFFECTS}")
 
 
-def _noise_and_projector(sweep, terms):
+def _noise_and_projector(sweep, terms, added=None):
     """Per-frame temporal noise (P, S) DN, the mask of usable light samples and the projector
-    off the true base model's Jacobian."""
+    off the true base model's Jacobian; with ``added`` (P, S) DN, what an effect adds to the
+    frames: the samples it pushes to 0.9 of full scale or above are left out (the sensor
+    cannot show it there) and its shot noise is in the noise."""
     from ..calibrate import model_and_jacobian
     from .effectfit import projector
 
@@ -299,16 +301,17 @@ def _noise_and_projector(sweep, terms):
                              terms["d"][:, 0]])
     _, jac = model_and_jacobian(theta, t, np.where(light, levels, 0.0),
                                 truth.dark_current_dn_per_ms.reshape(-1, 1))
+    extra = 0.0 if added is None else added
     var = (p["read_noise_dn"] ** 2 + 1 / 12.0
-           + p["conversion_gain_dn_per_e"] * np.maximum(terms["signal"], 0.0))
+           + p["conversion_gain_dn_per_e"] * np.maximum(terms["signal"] + extra, 0.0))
     fs = float(sweep.full_scale_dn)
-    ok = terms["expected"] < 0.9 * fs
+    ok = terms["expected"] + extra < 0.9 * fs
     mask = ok & light[None, :]
     w = np.where(ok, 1.0 / var, 0.0)
     return np.sqrt(var), mask, projector(jac, w)
 
 
-def detection_limit(sweep, extra_unit, terms, pair=False) -> float:
+def detection_limit(sweep, extra_unit, terms, pair=False, added=None) -> float:
     """The size (in the unit of ``extra_unit``'s size) whose separable RMS is ``DL_OF_NOISE``
     times the temporal noise of one frame; inf when nothing of it is separable.
 
@@ -322,12 +325,17 @@ def detection_limit(sweep, extra_unit, terms, pair=False) -> float:
         :func:`hsiffc.diagnose.effects.truth_terms`.
     pair : bool
         A within-step effect (its frame difference is separable as a whole).
+    added : ndarray, (P, S), DN, optional
+        What the effect adds to the frames at the size in question (not at size 1): the
+        samples it pushes to 0.9 of full scale or above are left out of the base model's
+        projection and of the RMS, and its shot noise counts in the noise. None: the clean
+        samples below 0.9 of full scale.
 
     Returns
     -------
     float
     """
-    sd, mask, project = _noise_and_projector(sweep, terms)
+    sd, mask, project = _noise_and_projector(sweep, terms, added)
     sep = 0.5 * extra_unit if pair else project(np.where(np.isfinite(extra_unit), extra_unit, 0))
     rms = float(np.sqrt(np.mean(sep[mask] ** 2))) if mask.any() else 0.0
     noise = float(np.sqrt(np.mean(sd[mask] ** 2))) if mask.any() else 1.0
@@ -417,6 +425,9 @@ CLASS_OUTSIDE = ("black_clamp", "blooming")
 CLASS_KINDS = ("clean",) + CLASS_EFFECTS + CLASS_OUTSIDE
 CLASS_MULTIPLES = (5, 10, 30)
 MAX_DARK_OF_FULL_SCALE = 0.3  # dark signal outside the photodiode at the longest exposure
+#: a dark signal outside the photodiode: the leakage reference level of its sensors, as a
+#: fraction of full scale (the others': 0.8)
+LEAK_REF_LO, LEAK_REF_HI = 0.45, 0.6
 
 
 def class_case_spec(seed: int) -> dict:
@@ -472,6 +483,11 @@ def class_case_spec(seed: int) -> dict:
         # light's charge leaks: sensors driven into their leakage, exposures up to 200 ms
         spec.update(fill=float(rng.uniform(1.05, 1.25)), leak_of_rate=float(rng.uniform(0.7, 1.0)),
                     t_max_ms=float(rng.uniform(100.0, 200.0)))
+        # the leakage sets in below the ADC's range: the dark signal adds its whole self on top
+        # of the light's signal, and only where the light's charge leaks does it differ from
+        # a dark current that leaks, so the sensor shows it only with room above the level
+        # the photodiode saturates at (leakage at 0.8 of full scale left none)
+        spec["params"]["leak_ref_dn"] = float(rng.uniform(LEAK_REF_LO, LEAK_REF_HI) * fs)
     return spec
 
 
@@ -599,7 +615,8 @@ def class_frames(sweep, spec, size, terms):
         frames[1:] += size * (frames[:-1] - d[None, :])
     elif what == "dark_outside_well":
         gain = sweep.meta["simulator"]["params"]["conversion_gain_dn_per_e"]
-        rate = size * rng.lognormal(0.0, 0.3, frames.shape[1])  # DN/ms per pixel
+        factors, rng = _dark_pixel_factors(spec, frames.shape[1])
+        rate = size * factors  # DN/ms per pixel
         t = sweep.exposure_ms[:, None]
         frames += gain * rng.poisson(rate[None, :] * t / gain)
     elif what == "black_clamp":
@@ -610,6 +627,68 @@ def class_frames(sweep, spec, size, terms):
         raise ValueError(f"unknown failure class {what!r}; known: {CLASS_KINDS}")
     data = np.clip(np.rint(frames), 0, sweep.full_scale_dn).reshape(sweep.data.shape)
     return replace_fields(sweep, data=data.astype(sweep.data.dtype))
+
+
+def _dark_pixel_factors(spec, n_pixels):
+    """Each pixel's dark signal outside the photodiode relative to the median pixel's (a
+    log-normal spread), and the case's generator after that draw (the shot noise is drawn
+    from it)."""
+    rng = np.random.default_rng(spec["effect_seed"])
+    return rng.lognormal(0.0, 0.3, n_pixels), rng
+
+
+def dark_size(sweep, spec, terms, unit, multiple, cap):
+    """The size (DN/ms, median pixel) at which a dark signal outside the photodiode is
+    ``multiple`` times its detection limit on the samples the sensor can show with it in: the
+    dark signal adds its whole self to every frame (each pixel's rate times the exposure), and
+    the samples it pushes to 0.9 of full scale or above, where the leakage that tells it from a
+    dark current in the well is largest, leave the base model's fit and the RMS (and its shot
+    noise counts in the noise): :func:`detection_limit` with ``added``. The separable part is
+    measured again at each size; growing a size on a geometric grid from ``multiple`` times the
+    detection limit on the clean samples, then bisecting, gives the smallest size found whose
+    multiple is ``multiple`` or more.
+
+    Parameters
+    ----------
+    sweep : Sweep
+        The clean simulated sweep.
+    spec : dict
+        From :func:`class_case_spec`.
+    terms : dict
+        :func:`hsiffc.diagnose.effects.truth_terms`.
+    unit : ndarray, (P, S), DN
+        :func:`class_unit` (what tells it from a dark current that leaks, at size 1).
+    multiple : float
+    cap : float
+        The largest size allowed (DN/ms).
+
+    Returns
+    -------
+    size : float or None
+        None where no size up to ``cap`` reaches ``multiple`` (the sensor cannot show it).
+    detection_limit : float
+        At that size (DN/ms); ``size / detection_limit >= multiple``.
+    """
+    factors, _ = _dark_pixel_factors(spec, unit.shape[0])
+    per_size = factors[:, None] * terms["t"][None, :]  # DN added at size 1 DN/ms
+
+    def limit(size):
+        return detection_limit(sweep, unit, terms, added=size * per_size)
+
+    lo, hi = 0.0, multiple * detection_limit(sweep, unit, terms)
+    while hi <= cap and hi < multiple * limit(hi):
+        lo, hi = hi, hi * 1.1
+    if not np.isfinite(hi) or hi > cap:
+        if lo == 0.0 or cap < multiple * limit(cap):
+            return None, float(limit(cap))
+        hi = cap
+    while lo > 0.0 and hi - lo > 1e-3 * hi:
+        mid = 0.5 * (lo + hi)
+        if mid >= multiple * limit(mid):
+            hi = mid
+        else:
+            lo = mid
+    return float(hi), float(limit(hi))
 
 
 def _build_class_case(spec):
@@ -630,10 +709,14 @@ def _build_class_case(spec):
     if spec["class"] == "dark_outside_well":
         peak, cap = float(terms["t"].max()), MAX_DARK_OF_FULL_SCALE
     for m in sorted({m for m in CLASS_MULTIPLES if m <= spec["multiple"]}, reverse=True):
-        size = m * dl
+        size, limit = m * dl, dl
+        if spec["class"] == "dark_outside_well":  # measured where the sensor can show it
+            size, limit = dark_size(sweep, spec, terms, unit, m, cap * fs / peak)
+            if size is None:
+                continue
         if np.isfinite(size) and peak * size <= cap * fs:
             put = {"name": spec["class"], "multiple": m, "size": float(size),
-                   "detection_limit": float(dl)}
+                   "detection_limit": float(limit)}
             break
     if put is None:
         return sweep, {"kind": "clean", "effects": [], "outside": False, "class": "clean"}

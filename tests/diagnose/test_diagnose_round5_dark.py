@@ -79,7 +79,8 @@ def test_a_dark_signal_fitted_jointly_with_the_base_is_one_value_where_pixels_ag
 @pytest.mark.slow  # one diagnosis of a 32 x 64 px class sweep (38 s at load average 18)
 def test_a_dark_signal_outside_the_well_without_darks_is_named():
     """The failure class's development seed 103620 (14 bit, no dark frames, an exposure sweep
-    at one light rate, a dark signal outside the photodiode at 5x its detection limit): with
+    at one light rate, a dark signal outside the photodiode at 5x its detection limit as round
+    five's generator measured it; 30x with round six's, on the samples it can be seen in): with
     the pixels' moment estimate of the spread, the precise pixels kept noise, the held-out gain
     was 0.02 standard errors and the verdict unexplained with nothing selected; with the
     sensor's one value, 7.1 standard errors and the effect named alone."""
