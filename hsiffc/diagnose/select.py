@@ -24,6 +24,7 @@ LEFT_OFFSET_OF_FLOOR = 0.135  # an offset per step left counts above this RMS (o
 WITHIN_FRAME_TESTED = ("readout_nonlinearity", "illumination_error", "lamp_drift",
                        "frame_flicker")
 WITHIN_FRAME_SIGMAS = 3.0  # the pixels of a frame refute that part by this many standard errors
+WITHIN_FRAME_MAX_BETA = 0.25  # ... and show at most this fraction of it
 PROBE_OF_DISTINCT = 0.75  # an offset probe must beat its effect by this fraction of the part
 # of the effect that differs between the pixels of a frame (about 1 where the offset is true,
 # about -1 where the effect is)
@@ -770,6 +771,18 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
                        "black-level clamp that follows the frame's signal is one such effect)")}
 
 
+def _step_columns(effect, ctx):
+    """The columns of a sensor-wide effect (P, S, m), or of a per-step or per-frame one with
+    one column for each light step (its factor there)."""
+    x = effect.columns(ctx)
+    if effect.scope == "global":
+        return x
+    light = np.flatnonzero(ctx.light)
+    out = np.zeros(x.shape[:2] + (light.size,))
+    out[:, light, np.arange(light.size)] = x[:, light, 0]
+    return out
+
+
 def frame_constant_stand_in(fitted: Fitted, names, data: Data):
     """Do the pixels of a frame show the part of effects ``names`` that differs between them?
 
@@ -808,14 +821,24 @@ def frame_constant_stand_in(fitted: Fitted, names, data: Data):
     if not names or light.size == 0:
         return None
     st = fitted.state
-    m, jac, _ = context(st.base, st.theta, data)
-    w = np.where(data.valid, data.w, 0.0)
+    m, jac, ctx = context(st.base, st.theta, data)
+    # the other effects are nuisances, fitted jointly: a per-pixel one with the base (a
+    # pixel nonlinearity takes part of a light error's slope in the pixel's signal), the
+    # others beside the offsets
+    others = [EFFECTS[n] for n in fitted.names if n not in names and EFFECTS[n].scope != "pair"]
+    jac = np.concatenate([jac] + [e.columns(ctx) for e in others if e.scope == "pixel"], axis=-1)
+    extra = [_step_columns(e, ctx) for e in others if e.scope != "pixel"]
+    # one weight a step (the median of its pixels'): a handful of pixels whose noise model
+    # gives them a variance near zero held 95 % of the weight of a frame (development seed
+    # 100088, a flicker, at 1.4 ms), and the comparison is between the pixels of a frame
+    w = np.where(data.valid, [np.median(data.w[v, s]) if v.any() else 0.0
+                              for s, v in enumerate(data.valid.T)], 0.0)
     project = projector(jac, w)
     u = sum(st.effects[n][1] for n in names)
     res = np.where(data.valid, data.y - m - st.sum_effects(m.shape) + u, 0.0)
-    cols = np.zeros(m.shape + (light.size + 1,))
+    cols = np.zeros(m.shape + (light.size,))
     cols[:, light, np.arange(light.size)] = 1.0  # one offset per light step
-    cols[..., -1] = u
+    cols = np.concatenate([cols] + extra + [u[..., None]], axis=-1)
     z = project(cols)
     a = gram(z, w, z).sum(axis=0)
     a += 1e-12 * np.trace(a) / a.shape[0] * np.eye(a.shape[0])
@@ -828,7 +851,8 @@ def frame_constant_stand_in(fitted: Fitted, names, data: Data):
     scale2 = float((w * left ** 2).sum()) / dof
     se = float(np.sqrt(max(np.linalg.pinv(a)[-1, -1] * scale2, 0.0)))
     beta = float(coef[-1])
-    if not (np.isfinite(beta) and se > 0 and beta < 0.5 and 1 - beta > WITHIN_FRAME_SIGMAS * se):
+    if not (np.isfinite(beta) and se > 0 and beta < WITHIN_FRAME_MAX_BETA
+            and 1 - beta > WITHIN_FRAME_SIGMAS * se):
         return None
     what = " and ".join(names)
     return {"beta": beta, "standard_error": se, "effects": names, "reason": (
