@@ -795,8 +795,9 @@ def frame_constant_stand_in(fitted: Fitted, names, data: Data):
     ``u`` common to a frame, so its coefficient ``beta`` is measured on the part that differs
     between a frame's pixels alone. Where the effects are true ``beta`` is 1; where they stand
     in for an offset common to the pixels of a frame, 0. They are stand-ins where ``beta`` is
-    below one half and ``WITHIN_FRAME_SIGMAS`` standard errors below 1 (the standard error from
-    the scatter about the fit). Where the pixels of a frame see nearly one signal the standard
+    below ``WITHIN_FRAME_MAX_BETA`` and ``WITHIN_FRAME_SIGMAS`` standard errors below 1 (the
+    standard error from the scatter about the fit; the other selected effects are fitted
+    jointly, free, as nuisances). Where the pixels of a frame see nearly one signal the standard
     error is large and nothing is decided. All of ``names`` are judged together: a light error
     beside a readout nonlinearity takes the part of the nonlinearity that a per-step slope in
     the pixel's signal can (development seeds 100976 and 102068, black clamps).
@@ -822,8 +823,7 @@ def frame_constant_stand_in(fitted: Fitted, names, data: Data):
         return None
     st = fitted.state
     m, jac, ctx = context(st.base, st.theta, data)
-    # the other effects are nuisances, fitted jointly: a per-pixel one with the base (a
-    # pixel nonlinearity takes part of a light error's slope in the pixel's signal), the
+    # the other effects are nuisances, fitted jointly: a per-pixel one with the base, the
     # others beside the offsets
     others = [EFFECTS[n] for n in fitted.names if n not in names and EFFECTS[n].scope != "pair"]
     jac = np.concatenate([jac] + [e.columns(ctx) for e in others if e.scope == "pixel"], axis=-1)
