@@ -18,11 +18,15 @@ whether the bending of the response is leakage at all or a readout nonlinearity,
 structure left in the held-out residual that no candidate explains as ``unexplained`` (binned,
 and as a pattern over the pixels times one over the steps, against what the model leaves on
 data simulated from itself). Frames that clip below the ADC's full scale
-(:func:`~hsiffc.diagnose.design.clip_level`) or sit at its lowest code are left out.
+(:func:`~hsiffc.diagnose.design.clip_level`), that sit on a full well's plateau below it with
+the read noise alone (:func:`~hsiffc.diagnose.design.well_plateau`) or at its lowest code are
+left out.
 
-Its named parts: the noise model (:class:`NoiseModel`: the frame differences tested against
-the temporal-noise model and cleared before they are the floor), the search from one starting
-model (:func:`search`), the residual check (:func:`residual_check`) and the typed result
+Its named parts, in the order :func:`diagnose` runs them: the samples (:func:`prepare`, a
+:class:`Samples`), the base model's fit, the noise model (:class:`NoiseModel`: the frame
+differences tested against the temporal-noise model and cleared before they are the floor),
+the search from one starting model (:func:`search`, run from each base), the leakage check, the
+residual check (:func:`residual_check`), the verdict and the typed result
 (:class:`~hsiffc.diagnose.result.Diagnosis`, read as a dict too). An effect kept while the
 verdict is unexplained, or with physically implausible parameters, is reported as a stand-in
 for what the library lacks (``stand_in_for_unexplained``), not as a finding.
@@ -31,7 +35,7 @@ for what the library lacks (``stand_in_for_unexplained``), not as a finding.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -49,8 +53,8 @@ from .select import (RULE, UNEXPLAINED_OF_FLOOR, Fitted, equally_good, evaluate,
                      offset_left, offset_stand_in, paired)
 from .structure import groupings, structure
 
-__all__ = ["diagnose", "Diagnosis", "EFFECTS", "NoiseModel", "OUTSIDE", "inject",
-           "list_effects", "search"]
+__all__ = ["diagnose", "Diagnosis", "EFFECTS", "NoiseModel", "OUTSIDE", "Samples", "inject",
+           "list_effects", "prepare", "search"]
 
 MIN_LIGHT_STEPS = 4
 #: BIC lower by more than this (very strong evidence) makes the dark signal one collected
@@ -351,6 +355,322 @@ def _dark_in_well_or_not(base, theta, start, base_fit, data, noise_floor, n_pix,
             f"BIC by {base_fit.bic - alt_fit.bic:.0f})")}
 
 
+@dataclass
+class Samples:
+    """The samples diagnose fits (:func:`prepare`): the sweep (its sweep steps alone for an
+    EMVA 1288 set), the pixel subset and where its pixels are, the dict of
+    :func:`~hsiffc.diagnose.design.samples` (step means ``y`` and ``y_ho`` of the fit and
+    held-out halves in DN, exposures ``t`` in ms, relative light rates ``r``, ...), the
+    design, the level the data reach (``fs``, DN: the ADC's full scale, or the clip where the
+    frames clip first), each pixel's dark level (``dark0``, DN), the frame variance as a
+    function of the signal (DN^2; None without frame pairs), the valid samples of each half and
+    the fit weights (1/DN^2)."""
+
+    sweep: Sweep
+    sub: Sweep
+    rows: np.ndarray
+    cols: np.ndarray
+    band: np.ndarray
+    smp: dict
+    des: ds.Design
+    fs: float
+    dark0: np.ndarray
+    var_fn: object
+    valid: np.ndarray
+    valid_ho: np.ndarray
+    w: np.ndarray
+
+    @property
+    def light(self) -> np.ndarray:
+        """Which samples are light steps, (S,) bool."""
+        return self.smp["kind"] == "light"
+
+
+def prepare(sweep: Sweep, max_pixels: int, seed: int, full_well_dn=None) -> Samples:
+    """The samples of ``sweep`` that :func:`diagnose` fits: a pixel subset, step means of the
+    fit and held-out halves, and every sample left out that is clipped, unusable or within 4
+    frame SDs of the level the data reach.
+
+    Parameters
+    ----------
+    sweep : Sweep
+    max_pixels, seed : int
+        As :func:`diagnose`.
+    full_well_dn : float, optional, DN
+        Step means at or above it are not used.
+
+    Returns
+    -------
+    Samples
+
+    Raises
+    ------
+    DataFormatError
+        Fewer than ``MIN_LIGHT_STEPS`` usable light steps, or no pixel with enough valid
+        samples.
+    """
+    if "sweep_steps" in sweep.meta:  # EMVA 1288: the sweep, not the spatial set
+        sweep = sweep.select(np.isin(sweep.step, sweep.meta["sweep_steps"]))
+    sub, rows, cols, band = ds.subset(sweep, max_pixels, seed)
+    smp = ds.samples(sub, full_well_dn)
+    des = ds.describe(smp)
+    if des.n_light_steps < MIN_LIGHT_STEPS:
+        _refuse(f"{des.n_light_steps} usable light steps (exposure > 0, known light rate); "
+                f"diagnose needs at least {MIN_LIGHT_STEPS} to fit a response and test it on "
+                "held-out data. Record more light steps", sweep)
+    y, y_ho, kind = smp["y"], smp["y_ho"], smp["kind"]
+    fs = float(sweep.full_scale_dn)
+    if smp["plateau"] is not None:  # a full well below full scale, read noise after it
+        fs = smp["clip_dn"]
+        pl = smp["plateau"]
+        des.notes.append(f"the response stops at {fs:.6g} DN, below the ADC's full scale "
+                         f"({sweep.full_scale_dn} DN), with the read noise alone after it "
+                         f"({pl['plateau_dn2']:.3g} DN^2 a frame against {pl['read_dn2']:.3g} "
+                         f"read and {pl['shot_dn2']:.3g} shot): a full well that fills first; "
+                         "steps with a frame there are left out and it acts as full scale")
+    elif smp["clip_dn"] is not None:  # the data clip below the ADC's full scale
+        fs = smp["clip_dn"]
+        des.notes.append(f"the frames clip at {fs:g} DN, below the ADC's full scale "
+                         f"({sweep.full_scale_dn} DN): a full well that fills first; steps with "
+                         "a frame there are left out and the clip acts as full scale")
+    dark0 = (np.median(y[:, kind == "dark"], axis=1) if (kind == "dark").any()
+             else y.min(axis=1))
+    var_fn = ds.frame_variance(sub, smp)
+    var_frame = var_fn(y - dark0[:, None]) if var_fn is not None else np.ones_like(y)
+    # samples within 4 sigma of full scale are left out: frames there are sometimes clipped
+    near_fs = 0.5 * (y + y_ho) > fs - 4.0 * np.sqrt(var_frame)
+    valid, valid_ho = smp["valid"] & ~near_fs, smp["valid_ho"] & ~near_fs
+    if valid.sum(axis=1).max(initial=0) < 3 or not valid_ho.any():
+        _refuse("no pixel has enough valid samples (clipped, at full scale or unusable); check "
+                "the exposure and light levels of the sweep", sweep)
+    n_light = int((valid & (kind == "light")[None, :]).sum(axis=1).max(initial=0))
+    if n_light < MIN_LIGHT_STEPS:  # darks alone would be fitted as a flat "response"
+        _refuse(f"no pixel has {MIN_LIGHT_STEPS} light samples below full scale (at most "
+                f"{n_light}): the light steps are clipped or within the noise of full scale "
+                f"({fs:g} DN); record the sweep with less light or shorter exposures", sweep)
+    w = np.where(valid, smp["n_fit"][None, :] / var_frame, 0.0)
+    return Samples(sweep, sub, rows, cols, band, smp, des, fs, dark0, var_fn, valid, valid_ho, w)
+
+
+def _fit_base(s: Samples):
+    """The base model (leakage per pixel where the pixels have enough fit samples, else a
+    linear response; the dark model the darks show) fitted on ``s``. The samples the model
+    itself puts within 5 SDs of full scale are left out of ``s`` first (selected by the
+    prediction, independent of the held-out noise). Returns the base, its parameters, whether
+    it has a dark current and the dark model's description."""
+    y, t, r = s.smp["y"], s.smp["t"], s.smp["r"]
+    use_dc, dark_desc = ds.dark_model(y, t, r, s.valid, s.w, s.des)
+    n_fit_samples = float(np.median(s.valid.sum(axis=1)))
+    base = (LeakageBase(use_dc) if n_fit_samples >= LeakageBase.n_core + use_dc + 3
+            else LinearBase(use_dc))
+    base.full_scale = s.fs
+    if base.name == "linear":
+        s.des.notes.append(f"{n_fit_samples:.0f} fit samples per pixel (median): too few for "
+                           "the leakage model (4 parameters), the base is a linear response")
+    theta = base.start(y, t, r, s.valid, s.w)
+    pred = base.predict(theta, t, r)
+    sd_pred = np.sqrt(s.var_fn(pred - s.dark0[:, None])) if s.var_fn is not None else 0.0
+    keep = pred < s.fs - 5.0 * sd_pred
+    s.valid, s.valid_ho = s.valid & keep, s.valid_ho & keep
+    s.w = np.where(s.valid, s.w, 0.0)
+    theta = base.fit(y, t, r, s.valid, s.w, theta, max_iter=40)
+    return base, theta, use_dc, dark_desc
+
+
+def _fit_data(s: Samples) -> Data:
+    """What every fit works on (:class:`~hsiffc.diagnose.fitdata.Data`): the samples of ``s``
+    with each step's place in acquisition order (from -1 to 1), the step before it and the
+    place of its held-out frames."""
+    smp = s.smp
+    order_rank = np.argsort(np.argsort(smp["step"]))
+    order = (order_rank / max(len(order_rank) - 1, 1)) * 2 - 1
+    by_order = np.argsort(smp["step"])
+    prev_index = np.full(len(order), -1)
+    prev_index[by_order[1:]] = by_order[:-1]
+    # the held-out frames of a step, ``frame_gap`` frames later: on the scale of ``order``
+    # (one step 2 / (S - 1)), a frame is that over the step's frames
+    per_step = np.asarray(smp["n_fit"], float) + np.asarray(smp["n_ho"], float)
+    order_ho = order + (smp["frame_gap"] * 2.0 / max(len(order) - 1, 1)
+                        / np.maximum(per_step, 1.0))
+    return Data(y=smp["y"], y_ho=smp["y_ho"], t=smp["t"], r=smp["r"], valid=s.valid,
+                valid_ho=s.valid_ho, w=s.w, order=order, prev_index=prev_index, light=s.light,
+                full_scale=s.fs, frame_gap=smp["frame_gap"],
+                n_fit=np.asarray(smp["n_fit"], float), order_ho=order_ho)
+
+
+def _measure_noise(s: Samples, data: Data, base, theta):
+    """The noise model (:class:`NoiseModel`): from the frame differences, tested against the
+    temporal-noise model first (a within-step change noted in the design), or, without frame
+    pairs, from the spread of the held-out residual across the pixels, with the base refitted
+    on the weights it gives (``s.w`` and ``data.w`` updated). Returns the model and the base's
+    parameters."""
+    quantum = 1.0 if np.issubdtype(s.sub.data.dtype, np.integer) else 0.0  # DN
+    smp, valid, valid_ho = s.smp, s.valid, s.valid_ho
+    noise = NoiseModel(smp, valid & valid_ho, quantum, smp["y"].shape)
+    if noise.pairs:
+        noise.from_pairs()
+        data.frames_differ = bool(noise.test["within_step"])
+        if noise.test["within_step"]:
+            s.des.notes.append(
+                f"the frame differences hold more than the noise model allows (p = "
+                f"{noise.test['p_value']:.2g}: RMS {noise.test['raw_dn']:.3g} DN a frame "
+                f"against {noise.test['clean_dn']:.3g} DN once what follows the signal across "
+                "the pixels is taken out): the frames of a step are not exchangeable, the noise "
+                "is measured on the cleared differences and effects that change from frame to "
+                "frame are candidates")
+        return noise, theta
+    t, r = smp["t"], smp["r"]
+    m = base.predict(theta, t, r)
+    pv = _prediction_variance(base, theta, data)
+    var_fn = ds.noise_from_spread(np.where(valid_ho, smp["y_ho"] - m, 0.0), valid_ho,
+                                  m - base.dark(theta), pv, smp["n_ho"])
+    var1 = var_fn(m - base.dark(theta))
+    data.w = s.w = np.where(valid, smp["n_fit"][None, :] / var1, 0.0)
+    theta = base.fit(smp["y"], t, r, valid, s.w, theta, max_iter=40)
+    noise.from_spread(var1)
+    return noise, theta
+
+
+def _search_bases(problem: Problem, s: Samples, base, theta, base_fit, noise_floor, use_dc):
+    """The search from the base (:func:`search`), and for a leakage base from the same model
+    with one leakage shape for the sensor too: that one first where the per-pixel model
+    predicts the held-out data measurably worse (it follows the noise of the fit half: a base
+    worse than a simpler one would let any effect that makes up part of the difference look
+    like a find), each kept where it predicts measurably better; else the selected model is
+    refitted with one shape and kept where it is as good with fewer parameters.
+
+    Returns the search kept (:class:`Search`), the per-pixel model with its start where one
+    shape for the sensor replaced it (else None) and the shared base's fit (None for a linear
+    base)."""
+    data, n_pix, n_light = problem.data, problem.n_pix, problem.n_light
+    valid_ho = data.valid_ho
+    starts = [(base_fit, noise_floor)]
+    sh_state = sh_fit = None
+    if base.name == "leakage":
+        shared = SharedLeakageBase(use_dc, dark_leaks=base.dark_leaks)
+        shared.full_scale = s.fs
+        sh_state = State(shared, shared.start(data.y, data.t, data.r, s.valid, s.w,
+                                               per_pixel=theta))
+        sh_fit = evaluate(refit_base(data.y, data, sh_state), [], data, n_pix, n_light)
+        if not equally_good(sh_fit, base_fit, valid_ho, noise_floor):
+            floor = problem.noise.floor(_prediction_variance(shared, sh_state.theta, data),
+                                        valid_ho)
+            starts.insert(0, (sh_fit, floor))
+    result = search(problem, *starts[0])
+    per_pixel = None
+    if len(starts) > 1:
+        # the search from the per-pixel model too, whole model against whole model
+        other = search(problem, *starts[1])
+        if not equally_good(other.final, result.final, valid_ho, other.floor):
+            result = other
+        else:
+            per_pixel = (other.final, other.start)
+    final = result.final
+    if final.state.base.name == "leakage" and "pixel_nonlinearity" not in final.names:
+        # not tried next to a per-pixel nonlinearity, which says that the bend differs from
+        # pixel to pixel
+        sh_final = (evaluate(fitpredict(final.names, data, sh_state), final.names, data, n_pix,
+                             n_light) if final.names else sh_fit)
+        if sh_final.bic < final.bic and equally_good(final, sh_final, valid_ho, result.floor):
+            per_pixel = (final, result.start)
+            result = replace(result, final=sh_final, start=sh_fit)
+    return result, per_pixel, sh_fit
+
+
+def _leakage_or_not(problem: Problem, s: Samples, result: Search, use_dc):
+    """Is the bending of the response leakage at all? The selected model against a linear base
+    with its own candidates (:func:`~hsiffc.diagnose.select.leakage_check`). Returns the search
+    with the model kept (its skipped, weak and ambiguous effects those of the linear base where
+    that wins), the leakage verdict and the linear base's fit."""
+    data, n_pix, n_light = problem.data, problem.n_pix, problem.n_light
+    lin = LinearBase(use_dc)
+    lin_state = State(lin, lin.start(data.y, data.t, data.r, s.valid, s.w))
+    # the same linearised base step as the leakage bases and every trial fit get
+    lin_fit = evaluate(refit_base(data.y, data, lin_state), [], data, n_pix, n_light)
+    skipped_lin, testable_lin, weak_lin = _identifiable(problem.names, lin, lin_state.theta,
+                                                        data, problem.des, problem.dark_desc)
+    ambiguous_lin: list = []
+    final, leakage = leakage_check(result.final, lin_fit, testable_lin, data, result.floor,
+                                   n_pix, n_light, problem.des, problem.candidates,
+                                   ambiguous_lin, refloor=problem.refloor)
+    result = replace(result, final=final)
+    if final.state.base.name == "linear":
+        result = replace(result, skipped=skipped_lin, weak=weak_lin, ambiguous=ambiguous_lin)
+    if leakage["verdict"] == "cannot tell":
+        result.ambiguous.append({"effects": leakage["models"], "reason": leakage["reason"]})
+    return result, leakage, lin_fit
+
+
+def _figures(mse, floor):
+    """RMS, noise floor and systematic RMS (DN) of a held-out mean squared error."""
+    rms = float(np.sqrt(mse))
+    return {"rms_dn": rms, "noise_floor_dn": floor,
+            "systematic_rms_dn": float(np.sqrt(max(rms ** 2 - floor ** 2, 0.0)))}
+
+
+@dataclass
+class Verdict:
+    """What :func:`_verdict` decides: the report entry of each selected effect (stand-ins
+    marked), whether the sweep is unexplained and why, and the figures after (DN)."""
+
+    chosen: list
+    unexplained: bool
+    reason: str
+    after: dict
+
+
+def _verdict(final: Fitted, check: ResidualCheck, data: Data, scale: dict, lin_fit, sh_fit,
+             leakage: dict) -> Verdict:
+    """Unexplained or not: systematic error left above ``UNEXPLAINED_OF_FLOOR`` of the noise
+    floor (whatever the binned structure tests say: the figure printed and the sentence
+    agree), structure in the residual, an effect with implausible parameters, one that stands
+    in for an offset common to the pixels of a frame, such an offset left, or the leakage base
+    taking one up (``leakage`` gets ``stand_in_for_unexplained`` then). Every selected effect
+    is a stand-in where the verdict is unexplained."""
+    current, selected = final.state, final.names
+    floor_after = check.floor(data.valid_ho)
+    after = _figures(final.mse, floor_after)
+    too_big = after["systematic_rms_dn"] > UNEXPLAINED_OF_FLOOR * floor_after
+    structured = check.structured
+    chosen = _stand_ins(current, selected, bool(structured or too_big), scale)
+    implausible = [e["name"] for e in chosen if e["stand_in_for_unexplained"]]
+    # an effect that stands in for an offset common to the pixels of a frame
+    offsets = {e["name"]: p for e in chosen if not e["stand_in_for_unexplained"]
+               and (p := offset_stand_in(final, e["name"], data))}
+    if not offsets:  # effects whose part that differs between a frame's pixels is not there
+        flat = frame_constant_stand_in(
+            final, [e["name"] for e in chosen if not e["stand_in_for_unexplained"]], data)
+        offsets = dict.fromkeys(flat["effects"], flat) if flat else {}
+    left = offset_left(final, data, floor_after)
+    # the leakage base taking up an offset common to the pixels of a frame
+    leak_in = (leakage_stand_in(final, lin_fit, sh_fit, data, floor_after) if lin_fit is not None
+               else None)
+    if leak_in:
+        leakage["stand_in_for_unexplained"] = True
+        leakage["stand_in_reason"] = leak_in["reason"]
+    unexplained = bool(structured or too_big or implausible or offsets or left or leak_in)
+    if unexplained:  # every selected effect is a stand-in then
+        chosen = _stand_ins(current, selected, True, scale)
+        for e in chosen:
+            if e["name"] in offsets:
+                e["stand_in_reason"] = offsets[e["name"]]["reason"]
+    reason = _unexplained_reason(structured, too_big, after, floor_after)
+    if not (structured or too_big):  # the reasons the figures do not show, first
+        if offsets:
+            reason = (f"{', '.join(offsets)} stand{'s' if len(offsets) == 1 else ''} in for an "
+                      "offset common to the pixels of a frame: the library does not describe "
+                      "what the data show; " + reason)
+        if left:
+            reason = left["reason"] + "; " + reason
+        if leak_in:
+            reason = leak_in["reason"] + "; " + reason
+        if implausible:
+            reason = (f"{', '.join(implausible)} fit{'s' if len(implausible) == 1 else ''} "
+                      "with physically implausible parameters: the library does not describe "
+                      "what the data show; " + reason)
+    return Verdict(chosen, unexplained, reason, after)
+
+
 def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=None,
              full_well_dn: float | None = None) -> Diagnosis:
     """Diagnose where the base model misses a sweep; see the module docstring.
@@ -387,93 +707,12 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     """
     t0 = time.perf_counter()
     names = _check_names(effects)
-    if "sweep_steps" in sweep.meta:  # EMVA 1288: the sweep, not the spatial set
-        sweep = sweep.select(np.isin(sweep.step, sweep.meta["sweep_steps"]))
-    sub, rows, cols, band = ds.subset(sweep, max_pixels, seed)
-    smp = ds.samples(sub, full_well_dn)
-    des = ds.describe(smp)
-    if des.n_light_steps < MIN_LIGHT_STEPS:
-        _refuse(f"{des.n_light_steps} usable light steps (exposure > 0, known light rate); "
-                f"diagnose needs at least {MIN_LIGHT_STEPS} to fit a response and test it on "
-                "held-out data. Record more light steps", sweep)
-    y, y_ho, t, r = smp["y"], smp["y_ho"], smp["t"], smp["r"]
-    fs = float(sweep.full_scale_dn)
-    if smp["clip_dn"] is not None:  # the data clip below the ADC's full scale
-        fs = smp["clip_dn"]
-        des.notes.append(f"the frames clip at {fs:g} DN, below the ADC's full scale "
-                         f"({sweep.full_scale_dn} DN): a full well that fills first; steps with "
-                         "a frame there are left out and the clip acts as full scale")
-    kind = smp["kind"]
-    light = kind == "light"
-    n_fit = smp["n_fit"]
-    dark0 = (np.median(y[:, kind == "dark"], axis=1) if (kind == "dark").any()
-             else y.min(axis=1))
-    var_fn = ds.frame_variance(sub, smp)
-    var_frame = var_fn(y - dark0[:, None]) if var_fn is not None else np.ones_like(y)
-    # samples within 4 sigma of full scale are left out: frames there are sometimes clipped
-    near_fs = 0.5 * (y + y_ho) > fs - 4.0 * np.sqrt(var_frame)
-    valid, valid_ho = smp["valid"] & ~near_fs, smp["valid_ho"] & ~near_fs
-    if valid.sum(axis=1).max(initial=0) < 3 or not valid_ho.any():
-        _refuse("no pixel has enough valid samples (clipped, at full scale or unusable); check "
-                "the exposure and light levels of the sweep", sweep)
-    n_light = int((valid & light[None, :]).sum(axis=1).max(initial=0))
-    if n_light < MIN_LIGHT_STEPS:  # darks alone would be fitted as a flat "response"
-        _refuse(f"no pixel has {MIN_LIGHT_STEPS} light samples below full scale (at most "
-                f"{n_light}): the light steps are clipped or within the noise of full scale "
-                f"({fs:g} DN); record the sweep with less light or shorter exposures", sweep)
-    w = np.where(valid, n_fit[None, :] / var_frame, 0.0)
-    use_dc, dark_desc = ds.dark_model(y, t, r, valid, w, des)
-    n_fit_samples = float(np.median(valid.sum(axis=1)))
-    base = (LeakageBase(use_dc) if n_fit_samples >= LeakageBase.n_core + use_dc + 3
-            else LinearBase(use_dc))
-    base.full_scale = fs
-    if base.name == "linear":
-        des.notes.append(f"{n_fit_samples:.0f} fit samples per pixel (median): too few for the "
-                         "leakage model (4 parameters), the base is a linear response")
-    theta = base.start(y, t, r, valid, w)
-    # Select samples near full scale by the model's prediction (independent of the held-out
-    # noise), leaving out everything the model puts within 5 sigma of full scale, and refit.
-    pred = base.predict(theta, t, r)
-    sd_pred = np.sqrt(var_fn(pred - dark0[:, None])) if var_fn is not None else 0.0
-    keep = pred < fs - 5.0 * sd_pred
-    valid, valid_ho = valid & keep, valid_ho & keep
-    w = np.where(valid, w, 0.0)
-    theta = base.fit(y, t, r, valid, w, theta, max_iter=40)
-    order_rank = np.argsort(np.argsort(smp["step"]))
-    order = (order_rank / max(len(order_rank) - 1, 1)) * 2 - 1
-    by_order = np.argsort(smp["step"])
-    prev_index = np.full(len(order), -1)
-    prev_index[by_order[1:]] = by_order[:-1]
-    # the held-out frames of a step, ``frame_gap`` frames later: on the scale of ``order``
-    # (one step 2 / (S - 1)), a frame is that over the step's frames
-    per_step = np.asarray(smp["n_fit"], float) + np.asarray(smp["n_ho"], float)
-    order_ho = order + (smp["frame_gap"] * 2.0 / max(len(order) - 1, 1)
-                        / np.maximum(per_step, 1.0))
-    data = Data(y=y, y_ho=y_ho, t=t, r=r, valid=valid, valid_ho=valid_ho, w=w, order=order,
-                prev_index=prev_index, light=light, full_scale=fs, frame_gap=smp["frame_gap"],
-                n_fit=np.asarray(n_fit, float), order_ho=order_ho)
-    quantum = 1.0 if np.issubdtype(sub.data.dtype, np.integer) else 0.0  # DN
-    noise = NoiseModel(smp, valid & valid_ho, quantum, y.shape)
-    if noise.pairs:
-        noise.from_pairs()
-        data.frames_differ = bool(noise.test["within_step"])
-        if noise.test["within_step"]:
-            des.notes.append(
-                f"the frame differences hold more than the noise model allows (p = "
-                f"{noise.test['p_value']:.2g}: RMS {noise.test['raw_dn']:.3g} DN a frame "
-                f"against {noise.test['clean_dn']:.3g} DN once what follows the signal across "
-                "the pixels is taken out): the frames of a step are not exchangeable, the noise "
-                "is measured on the cleared differences and effects that change from frame to "
-                "frame are candidates")
-    else:  # no frame pairs: the noise from the spread of the held-out residual across pixels
-        m = base.predict(theta, t, r)
-        pv = _prediction_variance(base, theta, data)
-        var_fn = ds.noise_from_spread(np.where(valid_ho, y_ho - m, 0.0), valid_ho,
-                                      m - base.dark(theta), pv, smp["n_ho"])
-        var1 = var_fn(m - base.dark(theta))
-        data.w = w = np.where(valid, n_fit[None, :] / var1, 0.0)
-        theta = base.fit(y, t, r, valid, w, theta, max_iter=40)
-        noise.from_spread(var1)
+    s = prepare(sweep, max_pixels, seed, full_well_dn)
+    sweep, smp, des, y = s.sweep, s.smp, s.des, s.smp["y"]
+    base, theta, use_dc, dark_desc = _fit_base(s)
+    data = _fit_data(s)
+    noise, theta = _measure_noise(s, data, base, theta)
+    valid, valid_ho = s.valid, s.valid_ho
     # the base alone gets the linearised (Gauss-Newton) step every candidate's trial fit makes,
     # so a base fit short of its optimum does not credit that step to whichever effect is tried
     start = refit_base(y, data, State(base, theta))
@@ -481,7 +720,7 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
     if not np.isfinite(noise_floor) or noise_floor <= 0:
         _refuse("the temporal noise cannot be measured on this sweep (no valid held-out "
                 "sample with a finite noise); record two frames per step", sweep)
-    n_pix, n_light = y.shape[0], int(light.sum())
+    n_pix, n_light = y.shape[0], int(s.light.sum())
     base_fit = evaluate(start, [], data, n_pix, n_light)
     if use_dc and base.name == "leakage":
         # the dark signal collected in the photodiode (leaking with the light's charge) or
@@ -490,68 +729,20 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
             base, theta, start, base_fit, data, noise_floor, n_pix, n_light, dark_desc)
         noise_floor = noise.floor(_prediction_variance(base, theta, data), valid_ho)
     problem = Problem(data, des, dark_desc, names, n_pix, n_light, noise)
-    starts = [(base_fit, noise_floor)]
-    sh_state = sh_fit = None
-    if base.name == "leakage":
-        # the same model with one leakage shape for the sensor (a and b shared: two parameters
-        # a pixel fewer); the search starts from it where the per-pixel model predicts the
-        # held-out data measurably worse (it follows the noise of the fit half: a base worse
-        # than a simpler one would let any effect that makes up part of the difference look
-        # like a find), and from the per-pixel model too
-        shared = SharedLeakageBase(use_dc, dark_leaks=base.dark_leaks)
-        shared.full_scale = fs
-        sh_state = State(shared, shared.start(y, t, r, valid, w, per_pixel=theta))
-        sh_fit = evaluate(refit_base(y, data, sh_state), [], data, n_pix, n_light)
-        if not equally_good(sh_fit, base_fit, valid_ho, noise_floor):
-            floor = noise.floor(_prediction_variance(shared, sh_state.theta, data), valid_ho)
-            starts.insert(0, (sh_fit, floor))
-    result = search(problem, *starts[0])
-    per_pixel = None  # the per-pixel leakage model, where one shape for the sensor replaced it
-    if len(starts) > 1:
-        # the search from the per-pixel model too, whole model against whole model: its
-        # result is kept where it predicts the held-out data measurably better
-        other = search(problem, *starts[1])
-        if not equally_good(other.final, result.final, valid_ho, other.floor):
-            result = other
-        else:
-            per_pixel = (other.final, other.start)
-    final, base_fit = result.final, result.start
-    skipped, weak, ambiguous = result.skipped, result.weak, result.ambiguous
-    noise_floor = result.floor
-    if final.state.base.name == "leakage" and "pixel_nonlinearity" not in final.names:
-        # the selected model with one leakage shape, kept when it explains the sweep as well
-        # with fewer parameters. Not tried next to a per-pixel nonlinearity, which says that
-        # the bend differs from pixel to pixel
-        sh_final = (evaluate(fitpredict(final.names, data, sh_state), final.names, data, n_pix,
-                             n_light) if final.names else sh_fit)
-        if sh_final.bic < final.bic and equally_good(final, sh_final, valid_ho, noise_floor):
-            per_pixel = (final, base_fit)
-            final, base_fit = sh_final, sh_fit
-    leakage = {"verdict": "not tested", "reason": "the base model is linear"}
-    lin_fit = None
+    result, per_pixel, sh_fit = _search_bases(problem, s, base, theta, base_fit, noise_floor,
+                                              use_dc)
+    leakage, lin_fit = {"verdict": "not tested", "reason": "the base model is linear"}, None
     if base.name in ("leakage", "shared leakage"):
-        lin = LinearBase(use_dc)
-        lin_state = State(lin, lin.start(y, t, r, valid, w))
-        # the same linearised base step as the leakage bases and every trial fit get
-        lin_fit = evaluate(refit_base(y, data, lin_state), [], data, n_pix, n_light)
-        skipped_lin, testable_lin, weak_lin = _identifiable(names, lin, lin_state.theta, data,
-                                                            des, dark_desc)
-        ambiguous_lin: list = []
-        final, leakage = leakage_check(final, lin_fit, testable_lin, data, noise_floor, n_pix,
-                                       n_light, des, problem.candidates, ambiguous_lin,
-                                       refloor=problem.refloor)
-        if final.state.base.name == "linear":
-            skipped, weak, ambiguous = skipped_lin, weak_lin, ambiguous_lin
-        if leakage["verdict"] == "cannot tell":
-            ambiguous.append({"effects": leakage["models"], "reason": leakage["reason"]})
-    check = residual_check(problem, final, rows, cols, band, noise_floor, seed)
+        result, leakage, lin_fit = _leakage_or_not(problem, s, result, use_dc)
+    final, base_fit, noise_floor = result.final, result.start, result.floor
+    check = residual_check(problem, final, s.rows, s.cols, s.band, noise_floor, seed)
     if (check.structured or check.too_big(final)) and per_pixel is not None \
             and final.state.base.name == "shared leakage":
         # one leakage shape is as good on the held-out error, but leaves a pattern over the
         # pixels, or a systematic error its smaller fit noise no longer hides (a leakage
         # amplitude that spreads over the pixels): the per-pixel model is kept where it
         # leaves neither
-        alt = residual_check(problem, per_pixel[0], rows, cols, band, noise_floor, seed)
+        alt = residual_check(problem, per_pixel[0], s.rows, s.cols, s.band, noise_floor, seed)
         if not (alt.structured or alt.too_big(per_pixel[0])):
             final, base_fit = per_pixel
             check = alt
@@ -559,59 +750,12 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
                 "per pixel: one leakage shape for the sensor fits the held-out error as well "
                 "with fewer parameters, but leaves a pattern over the pixels or a systematic "
                 "error in the residual that the per-pixel model does not")
-    current = final.state
-    selected = final.names
-    skipped = _with_weak(skipped, weak, selected)
+    current, selected, t = final.state, final.names, smp["t"]
     findings_before, _ = structure(base_fit.res, valid_ho, check.groups, noise_floor,
                                    null=check.null, sd=check.sd_sample)
-
-    def figs(mse, floor):
-        rms = float(np.sqrt(mse))
-        return {"rms_dn": rms, "noise_floor_dn": floor,
-                "systematic_rms_dn": float(np.sqrt(max(rms ** 2 - floor ** 2, 0.0)))}
-
-    floor_after = check.floor(valid_ho)
-    after = figs(final.mse, floor_after)
-    # honest verdict: systematic error left above half the noise floor is unexplained, whatever
-    # the binned structure tests say (the figure printed and the sentence agree)
-    too_big = after["systematic_rms_dn"] > UNEXPLAINED_OF_FLOOR * floor_after
-    scale = {"full_scale_dn": fs, "max_exposure_ms": float(t[smp["usable"]].max()),
+    scale = {"full_scale_dn": s.fs, "max_exposure_ms": float(t[smp["usable"]].max()),
              "min_exposure_ms": float(t[smp["usable"]].min())}
-    chosen = _stand_ins(current, selected, bool(check.structured or too_big), scale)
-    implausible = [e["name"] for e in chosen if e["stand_in_for_unexplained"]]
-    # an effect that stands in for an offset common to the pixels of a frame
-    offsets = {e["name"]: p for e in chosen if not e["stand_in_for_unexplained"]
-               and (p := offset_stand_in(final, e["name"], data))}
-    if not offsets:  # effects whose part that differs between a frame's pixels is not there
-        flat = frame_constant_stand_in(
-            final, [e["name"] for e in chosen if not e["stand_in_for_unexplained"]], data)
-        offsets = dict.fromkeys(flat["effects"], flat) if flat else {}
-    left = offset_left(final, data, floor_after)
-    # the leakage base taking up an offset common to the pixels of a frame
-    leak_in = (leakage_stand_in(final, lin_fit, sh_fit, data, floor_after) if lin_fit is not None
-               else None)
-    if leak_in:
-        leakage["stand_in_for_unexplained"] = True
-        leakage["stand_in_reason"] = leak_in["reason"]
-    unexplained = bool(check.structured or too_big or implausible or offsets or left or leak_in)
-    if unexplained:  # every selected effect is a stand-in then
-        chosen = _stand_ins(current, selected, True, scale)
-        for e in chosen:
-            if e["name"] in offsets:
-                e["stand_in_reason"] = offsets[e["name"]]["reason"]
-    reason = _unexplained_reason(check.structured, too_big, after, floor_after)
-    if offsets and not (check.structured or too_big):
-        reason = (f"{', '.join(offsets)} stand{'s' if len(offsets) == 1 else ''} in for an "
-                  "offset common to the pixels of a frame: the library does not describe what "
-                  "the data show; " + reason)
-    if left and not (check.structured or too_big):
-        reason = left["reason"] + "; " + reason
-    if leak_in and not (check.structured or too_big):
-        reason = leak_in["reason"] + "; " + reason
-    if implausible and not (check.structured or too_big):
-        reason = (f"{', '.join(implausible)} fit{'s' if len(implausible) == 1 else ''} with "
-                  "physically implausible parameters: the library does not describe what the "
-                  "data show; " + reason)
+    v = _verdict(final, check, data, scale, lin_fit, sh_fit, leakage)
     n_total = int(smp["usable"].sum() * n_pix)
     return Diagnosis(
         dataset=str(sweep.source or "in-memory sweep"),
@@ -624,18 +768,18 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
         n_pixels=int(n_pix), n_pixels_sensor=int(np.prod(sweep.frame_shape)),
         n_samples=int(valid_ho.sum()), n_invalid_samples=int(n_total - (valid | valid_ho).sum()),
         noise_floor_dn=noise_floor, noise_source=noise.source, noise_test=noise.test,
-        before=figs(base_fit.mse, noise_floor), after=after,
+        before=_figures(base_fit.mse, noise_floor), after=v.after,
         selected_effects=list(selected),
-        findings=[e["name"] for e in chosen if not e["stand_in_for_unexplained"]],
-        stand_ins=[e["name"] for e in chosen if e["stand_in_for_unexplained"]],
-        effects=chosen, skipped=skipped, candidates=problem.candidates,
-        unexplained=unexplained, unexplained_reason=reason, ambiguous=ambiguous,
+        findings=[e["name"] for e in v.chosen if not e["stand_in_for_unexplained"]],
+        stand_ins=[e["name"] for e in v.chosen if e["stand_in_for_unexplained"]],
+        effects=v.chosen, skipped=_with_weak(result.skipped, result.weak, selected),
+        candidates=problem.candidates, unexplained=v.unexplained,
+        unexplained_reason=v.reason, ambiguous=result.ambiguous,
         residual_structure_after=check.findings, residual_structure_before=findings_before,
         held_out=smp["held_out"], selection_rule=RULE, runtime_s=time.perf_counter() - t0,
         arrays=ResidualArrays(res_before=base_fit.res, res_after=final.res, valid=valid_ho, t=t,
-                              signal=check.ctx.signal, light=light, order=order, rows=rows,
-                              cols=cols, band=band, step=smp["step"]))
-
+                              signal=check.ctx.signal, light=s.light, order=data.order,
+                              rows=s.rows, cols=s.cols, band=s.band, step=smp["step"]))
 
 @dataclass
 class ResidualCheck:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..calibrate.samples import collect_samples, photon_transfer
+from ..calibrate.samples import collect_samples, photon_transfer, relative_light_rate
 from ..errors import DataFormatError
 from ..data.sweep import Sweep
 from .bases import dark_current_from_darks
@@ -134,6 +134,162 @@ def clip_level(sub: Sweep):
     return None
 
 
+PLATEAU_SHOT_PART = 0.25  # a full well's frames hold at most this part of the shot variance
+PLATEAU_MIN_SHOT = 2.0  # ... tested where the shot variance there is this many read variances
+PLATEAU_MIN_PIXELS = 20  # pixels at the top that a plateau needs
+PLATEAU_WIDTH = 0.02  # the top pixels: this fraction of the top level (+ 4 read noise) below it
+
+
+def _step_stats(sub: Sweep, top_dn: float):
+    """Per step: kind, pixel means and frame variances (S, P) in DN and DN^2, frames, and the
+    pixels with a frame at ``top_dn``, at 0 DN of unsigned data or at a frame's highest code
+    where more values sit there than in the 3 DN below (a clip, moved by an offset: their noise
+    is cut off). The variance is that of each frame's deviations from the step's mean
+    less a line in the pixels' means fitted across the pixels, frame by frame: a light or an
+    offset that changes between the frames (flicker, lag, a clamp) moves every pixel by what
+    follows its signal, and noise does not."""
+    floor = 0.0 if np.issubdtype(sub.data.dtype, np.unsignedinteger) else -np.inf
+    kind, mean, var, n, cut = [], [], [], [], []
+    for s in sub.steps():
+        x = sub.data[sub.step == s].reshape(np.count_nonzero(sub.step == s), -1)
+        xf = x.astype(np.float64)
+        m = xf.mean(axis=0)
+        bad = np.any((xf >= top_dn) | (xf <= floor), axis=0)
+        if np.issubdtype(x.dtype, np.integer):  # a clip of the frame, moved by an offset
+            high = xf.max(axis=1, keepdims=True)
+            at = xf == high
+            under = (xf < high) & (xf >= high - 3)
+            bad |= np.any(at & ((at.sum(axis=1) >= PLATEAU_MIN_PIXELS)
+                                & (at.sum(axis=1) > under.sum(axis=1)))[:, None], axis=0)
+        dev = xf - m
+        a = np.stack([np.ones_like(m), m - m.mean()], axis=1)[~bad]
+        if a.shape[0] > 2 and x.shape[0] > 1:
+            coef = np.linalg.lstsq(a, dev[:, ~bad].T, rcond=None)[0]  # (2, frames)
+            dev = dev - (coef[0][:, None] + coef[1][:, None] * (m - m.mean())[None, :])
+        kind.append(sub.kind[np.flatnonzero(sub.step == s)[0]])
+        mean.append(m)
+        var.append((dev ** 2).sum(axis=0) / max(x.shape[0] - 1, 1))
+        n.append(x.shape[0])
+        cut.append(bad)
+    return (np.array(kind), np.array(mean), np.array(var), np.array(n, float),
+            np.array(cut))
+
+
+def well_plateau(sub: Sweep, dose):
+    """A full well that stops the response below the ADC's full scale with the read noise after
+    it (so no pile-up at one code, :func:`clip_level`): the level that acts as full scale, or
+    None.
+
+    A full pixel drains the charge beyond its capacity, so its frames hold the read noise and
+    no shot noise, and its level stays where it is as the light rises; a pixel that collects
+    light (dynamic saturation of a leaky pixel included) keeps the shot noise of its signal.
+    The pixels whose highest light sample (no frame cut off at full scale or 0 DN, 4 shot-noise
+    sigma below full scale) lies within ``PLATEAU_WIDTH`` of the top level (its 99th percentile
+    above each pixel's dark level; + 4 read-noise sigma) are tested together: where the shot
+    noise there is ``PLATEAU_MIN_SHOT`` read variances or more and their pooled frame variance
+    exceeds the read variance by less than ``PLATEAU_SHOT_PART`` of it, at least
+    ``PLATEAU_MIN_PIXELS`` pixels, and where the pixels' two highest doses are both at the top,
+    their level at the higher does not fall below that at the lower (by 4 standard errors of
+    the mean over the pixels: a level that falls as the light rises is a clip moved by an
+    offset, not a well), the plateau's level is their lowest sample less 3 read-noise sigma.
+    Read variance and system gain come from the frame pairs (the darks, or the intercept of the
+    photon-transfer line of the light steps below half the top level). Needs two frames in
+    every step.
+
+    Parameters
+    ----------
+    sub : Sweep
+        Raw frames (N, H, W) in DN.
+    dose : array_like, (S,)
+        Light rate times exposure of each step (of ``sub.steps()``; any unit, NaN unknown).
+
+    Returns
+    -------
+    dict or None
+        ``level_dn`` (DN, with the dark level: samples at or above it count as clipped),
+        ``read_dn2`` and ``shot_dn2`` (DN^2, the read and the shot variance at the level),
+        ``plateau_dn2`` (the pooled frame variance of the top pixels) and ``pixels``.
+    """
+    fs = float(sub.full_scale_dn)
+    kind, mean, var, n, cut = _step_stats(sub, fs)
+    light = (kind == "light") & np.isfinite(np.asarray(dose, float))
+    dark = kind == "dark"
+    if light.sum() < 4 or n.min() < 2:
+        return None
+    ok = ~cut
+    dark_dn = (np.median(mean[dark], axis=0) if dark.any() else mean[light].min(axis=0))
+    level = np.where(ok, mean - dark_dn, np.nan)[light]  # (L, P) above dark
+    step_level = np.array([np.mean(v[o]) if o.any() else np.nan
+                           for v, o in zip(level, ok[light])])
+    step_var = np.array([np.mean(v[o]) if o.any() else np.nan
+                         for v, o in zip(var[light], ok[light])])
+    if not np.isfinite(step_level).any():  # every light step cut off (clipped)
+        return None
+    low = np.isfinite(step_var) & (step_level < 0.5 * np.nanmax(step_level))
+    if low.sum() < 3:
+        return None
+    gain, intercept = np.polyfit(step_level[low], step_var[low], 1)
+    read = (float(np.median([np.mean(v[o]) for v, o in zip(var[dark], ok[dark]) if o.any()]))
+            if dark.any() and ok[dark].any() else float(intercept))
+    read = max(read, 1.0 / 12.0)
+    if gain <= 0:
+        return None
+    shot_sd = np.sqrt(read + gain * np.maximum(np.nan_to_num(level), 0.0))
+    usable = np.isfinite(level) & (mean[light] < fs - 4.0 * shot_sd)
+    if not usable.any():
+        return None
+    cols = np.arange(level.shape[1])
+    top_idx = np.argmax(np.where(usable, level, -np.inf), axis=0)  # (P,)
+    has = usable.any(axis=0)
+    top = level[top_idx, cols]
+    band = float(np.percentile(top[has], 99)) * (1 - PLATEAU_WIDTH) - 4.0 * np.sqrt(read)
+    group = has & (top >= band)
+    if group.sum() < PLATEAU_MIN_PIXELS:
+        return None
+    n_l = n[light]
+    dof = (n_l[top_idx] - 1.0)[group]
+    pooled = float(np.sum(dof * var[light][top_idx, cols][group]) / np.sum(dof))
+    shot = float(gain * np.mean(top[group]))
+    if shot < PLATEAU_MIN_SHOT * read or pooled > read + PLATEAU_SHOT_PART * shot:
+        return None
+    # the two highest doses of each pixel (usable samples), where both are at the top
+    u = np.asarray(dose, float)[light]
+    by_dose = np.argsort(-np.where(usable, u[:, None], -np.inf), axis=0, kind="stable")
+    hi, nxt = by_dose[0], by_dose[1]
+    both = (group & usable[hi, cols] & usable[nxt, cols] & (u[hi] > u[nxt])
+            & (level[hi, cols] >= band) & (level[nxt, cols] >= band))
+    if both.sum() >= PLATEAU_MIN_PIXELS:
+        rise = level[hi, cols][both] - level[nxt, cols][both]
+        se = np.sqrt(read * np.mean(1.0 / n_l[hi][both] + 1.0 / n_l[nxt][both]) / both.sum())
+        if rise.mean() < -4.0 * se:
+            return None
+    # below the lowest of them by 3 read-noise sigma: a frame of every full pixel reaches it
+    level_dn = float(np.min(mean[light][top_idx, cols][group])) - 3.0 * np.sqrt(read)
+    return {"level_dn": level_dn, "read_dn2": read,
+            "shot_dn2": shot, "plateau_dn2": pooled, "pixels": int(group.sum())}
+
+
+def step_dose(sub: Sweep) -> np.ndarray:
+    """Relative light rate times exposure (ms) of every step of ``sub.steps()``; NaN for darks
+    and steps of unknown rate.
+
+    Parameters
+    ----------
+    sub : Sweep
+
+    Returns
+    -------
+    ndarray, (S,)
+    """
+    first = np.array([np.flatnonzero(sub.step == s)[0] for s in sub.steps()])
+    info = {"kind": np.asarray(sub.kind)[first], "photons": np.asarray(sub.photons)[first],
+            "exposure_ms": np.asarray(sub.exposure_ms)[first],
+            "illumination": np.asarray(sub.illumination).astype(str)[first]}
+    rate, _ = relative_light_rate(info)
+    dose = rate * info["exposure_ms"]
+    return np.where((info["kind"] == "light") & (dose > 0), dose, np.nan)
+
+
 def _pair_split(sweep: Sweep):
     fit_idx, ho_idx, gap = [], [], []
     for s in sweep.steps():
@@ -159,11 +315,16 @@ def samples(sub: Sweep, full_well_dn=None):
     dict
         y, y_ho (P, S) DN, valid, valid_ho (P, S), t (ms), r, kind, step (S,), n_fit, n_ho
         (S,) frames per sample, pairs (bool), frame_gap, held_out (description), usable (S,),
-        clip_dn (:func:`clip_level`, DN, or None).
+        clip_dn (:func:`clip_level`, or the level of a full well's plateau, DN, or None),
+        plateau (:func:`well_plateau`'s figures, or None).
     """
     counts = np.array([(sub.step == s).sum() for s in sub.steps()])
     pairs = bool(np.all(counts >= 2))
     clip = clip_level(sub)  # a step with a frame at the clip is not a valid sample
+    # a full well below full scale with the read noise after it: its level acts as the clip
+    plateau = well_plateau(sub, step_dose(sub)) if pairs and clip is None else None
+    if plateau is not None:
+        clip = plateau["level_dn"]
     # nor one with a frame at the ADC's lowest code: the noise below it is cut off
     floor = 0.0 if np.issubdtype(sub.data.dtype, np.unsignedinteger) else None
     if pairs:
@@ -189,7 +350,8 @@ def samples(sub: Sweep, full_well_dn=None):
     usable = sf.usable_step
     out.update(t=np.where(usable, sf.exposure_ms, 1.0),
                r=np.where(usable, np.nan_to_num(sf.rate), 0.0),
-               kind=sf.kind, step=sf.step, usable=usable, pairs=pairs, clip_dn=clip)
+               kind=sf.kind, step=sf.step, usable=usable, pairs=pairs, clip_dn=clip,
+               plateau=plateau)
     out["valid"] &= usable[None, :]
     out["valid_ho"] &= usable[None, :]
     return out
@@ -559,7 +721,10 @@ def frame_variance(sub, smp):
         ``variance(signal_dn)`` in DN^2 (:meth:`hsiffc.calibrate.PhotonTransfer.variance`,
         plus :func:`quantisation_bias` for integer raw data).
     """
-    ptc = photon_transfer(sub) if smp["pairs"] else None
+    below = 0.7  # of full scale; of a full well's plateau below it (the line stays under it)
+    if smp.get("plateau") is not None:
+        below *= smp["clip_dn"] / sub.full_scale_dn
+    ptc = photon_transfer(sub, max_fraction_of_full_scale=below) if smp["pairs"] else None
     if ptc is None:
         return None
     if not np.issubdtype(sub.data.dtype, np.integer):

@@ -33,10 +33,11 @@ and :func:`markdown` renders the tables of the diagnose docs page::
 The second form also diagnoses the sweeps of ``../shared/data`` (one row each) and writes the
 tables between ``<!-- BEGIN evaluation -->`` and ``<!-- END evaluation -->`` of the page.
 
-Two more seed streams hold what the first lacks: the failure classes of issue 53 (from
-``CLASS_SEED0``, ``--classes N``) and a linear sensor with an exposure offset and a soft well
-compression (from ``CLASS2_SEED0``, ``--classes2 N``; :func:`ccd_sweep`), each written from its
-own physics, each scored on its own.
+More seed streams hold what the first lacks: the failure classes of issue 53 (from
+``CLASS_SEED0``, ``--classes N``), a linear sensor with an exposure offset and a soft well
+compression (from ``CLASS2_SEED0``, ``--classes2 N``; :func:`ccd_sweep`) and the same sensor
+whose well fills below the ADC's range (from ``CLASS3_SEED0``, ``--classes3 N``), each written
+from its own physics, each scored on its own.
 """
 
 from __future__ import annotations
@@ -100,10 +101,12 @@ def half_of(seed: int) -> str:
     return "dev" if seed % 2 == 0 else "eval"
 
 
-def seeds(half: str, n_cases: int, n_class_cases: int = 0, n_ccd_cases: int = 0) -> list[int]:
+def seeds(half: str, n_cases: int, n_class_cases: int = 0, n_ccd_cases: int = 0,
+          n_well_cases: int = 0) -> list[int]:
     """The seeds of one half among the first ``n_cases`` seeds, among the first
-    ``n_class_cases`` seeds of the failure classes (``CLASS_SEED0`` on) and among the first
-    ``n_ccd_cases`` of the linear-sensor stream (``CLASS2_SEED0`` on).
+    ``n_class_cases`` seeds of the failure classes (``CLASS_SEED0`` on), among the first
+    ``n_ccd_cases`` of the linear-sensor stream (``CLASS2_SEED0`` on) and among the first
+    ``n_well_cases`` of the full-well stream (``CLASS3_SEED0`` on).
 
     Parameters
     ----------
@@ -114,6 +117,8 @@ def seeds(half: str, n_cases: int, n_class_cases: int = 0, n_ccd_cases: int = 0)
         Seeds CLASS_SEED0 .. CLASS_SEED0 + n_class_cases - 1.
     n_ccd_cases : int
         Seeds CLASS2_SEED0 .. CLASS2_SEED0 + n_ccd_cases - 1.
+    n_well_cases : int
+        Seeds CLASS3_SEED0 .. CLASS3_SEED0 + n_well_cases - 1.
 
     Returns
     -------
@@ -122,7 +127,8 @@ def seeds(half: str, n_cases: int, n_class_cases: int = 0, n_ccd_cases: int = 0)
     if half not in ("dev", "eval", "all"):
         raise ValueError(f"half must be 'dev', 'eval' or 'all', got {half!r}")
     every = (list(range(n_cases)) + list(range(CLASS_SEED0, CLASS_SEED0 + n_class_cases))
-             + list(range(CLASS2_SEED0, CLASS2_SEED0 + n_ccd_cases)))
+             + list(range(CLASS2_SEED0, CLASS2_SEED0 + n_ccd_cases))
+             + list(range(CLASS3_SEED0, CLASS3_SEED0 + n_well_cases)))
     return [s for s in every if half == "all" or half_of(s) == half]
 
 
@@ -147,6 +153,8 @@ def case_spec(seed: int) -> dict:
     -------
     dict
     """
+    if seed >= CLASS3_SEED0:
+        return well_case_spec(seed)
     if seed >= CLASS2_SEED0:
         return ccd_case_spec(seed)
     if seed >= CLASS_SEED0:
@@ -360,7 +368,7 @@ def build_case(spec: dict):
 
     if spec.get("round") == 3:
         return _build_class_case(spec)
-    if spec.get("round") == 5:
+    if spec.get("round") in (5, 6):
         return ccd_sweep(spec)
     sweep = clean_sweep(spec)
     terms = truth_terms(sweep)
@@ -735,8 +743,10 @@ def ccd_sweep(spec: dict):
     """The sweep of a linear-sensor case, written here from its physics (not through the
     simulator or the effect library): each pixel collects photo-electrons (Poisson) at its
     light rate for the nominal exposure plus ``t0``; its well compresses the charge softly as
-    it fills (``S (1 - exp(-q / S))``, one capacity for the sensor); then the pixel's dark
-    level, read noise, rounding and the ADC's clip at full scale. Darks (where drawn) follow
+    it fills (``S (1 - exp(-q / S))``, one capacity for the sensor); where the spec draws a
+    ``well`` (:func:`well_case_spec`), the charge stops at the pixel's full well below the
+    ADC's range (:func:`_full_well`); then the pixel's dark level, read noise, rounding and the
+    ADC's clip at full scale. Darks (where drawn) follow
     every light step at its exposure and hold the dark level alone (no dark current). An
     effect drawn below 5 times its detection limit on the sweep (:func:`_ccd_multiple`) is
     raised to 5 times it.
@@ -751,7 +761,8 @@ def ccd_sweep(spec: dict):
     sweep : Sweep
     truth : dict
         ``kind``, ``effects`` [{name, size, unit, multiple}], ``outside`` (False), ``class``,
-        ``stream`` (5), ``t0_ms`` and ``compression``.
+        ``stream`` (5; 6 with a ``well``, and ``well_dn`` above dark, ``well_soft``), ``t0_ms``
+        and ``compression``.
     """
     from ..data.sweep import Sweep
 
@@ -779,7 +790,9 @@ def ccd_sweep(spec: dict):
     levels = np.repeat(rates, per)
     order = rng.permutation(t_nom.size) if spec["shuffled"] else np.arange(t_nom.size)
     t_nom, levels = t_nom[order], levels[order]
-    x0 = CCD_COMPRESSION_AT * (fs - d0)
+    well = spec.get("well")  # round six: a full well below the ADC's range
+    top = fs if well is None else d0 + well["of_range"] * (fs - d0)  # DN
+    x0 = CCD_COMPRESSION_AT * (top - d0)
 
     def mean_signal(t0, compression):  # noise-free signal above dark (P, S), DN
         x = k_max * resp[:, None] * (levels * (t_nom + t0))[None, :]
@@ -788,7 +801,7 @@ def ccd_sweep(spec: dict):
 
     clean = mean_signal(0.0, 0.0)
     var = rn ** 2 + 1 / 12.0 + gain * clean
-    ok = clean + d0 < 0.9 * fs
+    ok = clean + d0 < 0.9 * top
     sizes = {"t0": spec["t0_of_max"] * spec["t_max_ms"], "compression": spec["compression"]}
     multiples = {}
     for key in ("t0", "compression"):
@@ -804,6 +817,7 @@ def ccd_sweep(spec: dict):
         multiples[key] = float(m)
     t0, compression = sizes["t0"], sizes["compression"]
     capacity = _well_capacity(compression, x0) / gain  # e-
+    full_well = None if well is None else _full_well(well, (top - d0) / gain, n_pix, spec["seed"])
     frames, exposure, kind, photons, step = [], [], [], [], []
     n_f = spec["n_frames"]
     for t, lev in zip(t_nom, levels):
@@ -811,6 +825,8 @@ def ccd_sweep(spec: dict):
                                                 (n_f, n_pix))).astype(np.float64)
         if np.isfinite(capacity):
             electrons = -capacity * np.expm1(-electrons / capacity)
+        if full_well is not None:
+            electrons = full_well(electrons)
         steps = [(gain * electrons, "light")] + ([(0.0 * electrons, "dark")]
                                                  if spec["darks"] else [])
         for signal, what in steps:
@@ -824,7 +840,8 @@ def ccd_sweep(spec: dict):
                   photons=photons, illumination=["lamp" if k == "light" else "" for k in kind],
                   source="simulated (round five: a linear sensor, hsiffc.diagnose.evaluation)",
                   meta={"generator": "hsiffc.diagnose.evaluation.ccd_sweep", "t0_ms": t0,
-                        "compression": compression})
+                        "compression": compression,
+                        **({} if well is None else {"well_dn": top - d0})})
     effects = []
     if t0:
         effects.append({"name": "exposure_offset", "size": t0, "unit": "ms",
@@ -833,9 +850,55 @@ def ccd_sweep(spec: dict):
         effects.append({"name": "readout_nonlinearity", "size": compression,
                         "unit": f"relative, at {CCD_COMPRESSION_AT:g} of the range above dark",
                         "multiple": multiples["compression"]})
-    return sweep, {"kind": "clean" if not effects else "pair" if len(effects) == 2 else "single",
-                   "effects": effects, "outside": False, "class": spec["class"], "stream": 5,
-                   "t0_ms": t0, "compression": compression}
+    truth = {"kind": "clean" if not effects else "pair" if len(effects) == 2 else "single",
+             "effects": effects, "outside": False, "class": spec["class"], "stream": 5,
+             "t0_ms": t0, "compression": compression}
+    if well is not None:
+        truth.update(stream=6, well_dn=float(top - d0), well_soft=well["soft"])
+    return sweep, truth
+
+
+# --- round six: the same linear sensor, whose well fills below the ADC's range -----------------
+#: seeds from here on are cases of the full-well stream (:func:`well_case_spec`)
+CLASS3_SEED0 = 300_000
+
+
+def well_case_spec(seed: int) -> dict:
+    """The random choices of full-well case ``seed`` (>= ``CLASS3_SEED0``): a linear-sensor
+    case as :func:`ccd_case_spec` draws it (the same kinds in turn), whose well fills below the
+    ADC's full scale (55-95 % of the range above dark), so that the brightest samples sit on a
+    plateau with the read noise after the well (no pile-up at one code): a hard well or a soft
+    one (the response rounds into it over 0.3-1.5 % of the capacity), the capacity spread
+    0-0.5 % over the pixels, and the brightest pixel's linear signal at the longest exposure
+    1.02-1.5 times the well. Drawn from a seed sequence of its own.
+
+    Parameters
+    ----------
+    seed : int
+
+    Returns
+    -------
+    dict
+    """
+    spec = ccd_case_spec(seed)
+    rng = np.random.default_rng(np.random.SeedSequence([53, 6, seed]))
+    well = {"of_range": float(rng.uniform(0.55, 0.95)), "over": float(rng.uniform(1.02, 1.5)),
+            "soft": float(rng.uniform(0.003, 0.015)) if rng.random() < 0.5 else 0.0,
+            "spread": float(rng.uniform(0.0, 0.005))}
+    return {**spec, "round": 6, "well": well, "fill": well["of_range"] * well["over"]}
+
+
+def _full_well(well: dict, capacity_e: float, n_pix: int, seed: int):
+    """The charge a pixel holds of ``q`` electrons collected (a function of ``q``, (..., P)):
+    at most its capacity (``capacity_e`` with the spread of ``well``), reached hard (``min``) or
+    softly (a smooth minimum over ``soft`` of the capacity); the charge beyond drains away, so a
+    full pixel has no shot noise."""
+    rng = np.random.default_rng(np.random.SeedSequence([53, 6, seed, 2]))
+    cap = capacity_e * (1.0 + well["spread"] * rng.standard_normal(n_pix))
+    width = well["soft"] * capacity_e
+    if width <= 0:
+        return lambda q: np.minimum(q, cap)
+    return lambda q: cap - width * np.logaddexp(0.0, (cap - q) / width)
 
 
 def ccd_verdict(truth: dict, found: dict) -> dict:
@@ -912,7 +975,8 @@ def run_case(seed: int) -> dict:
     case["n_frames"] = spec.get("n_frames", 2)
     case["class"] = truth.get("class")
     case["sensor_dark_current"] = spec["params"]["dark_current_dn_per_ms"] > 0
-    score = ccd_verdict(truth, found) if truth.get("stream") == 5 else verdict(truth, found)
+    score = (ccd_verdict(truth, found) if truth.get("stream") in (5, 6)
+             else verdict(truth, found))
     return {"case": case, "truth": truth, "found": found, **score}
 
 
@@ -1015,7 +1079,8 @@ def summarise(results: list[dict]) -> dict:
 
     every = results
     ccd = [r for r in results if r["truth"].get("stream") == 5]  # scored on their own
-    results = [r for r in results if r["truth"].get("stream") != 5]
+    well = [r for r in results if r["truth"].get("stream") == 6]
+    results = [r for r in results if r["truth"].get("stream") not in (5, 6)]
     single = [r for r in results if r["truth"]["kind"] == "single"]
     pairs = [r for r in results if r["truth"]["kind"] == "pair"]
     outside = [r for r in results if r["truth"]["kind"] == "outside"]
@@ -1078,7 +1143,8 @@ def summarise(results: list[dict]) -> dict:
             "columns": columns,
             "confusion": {k: confusion[k] for k in keys}, "n_cases": len(every),
             "runtime_s": float(sum(r["found"]["runtime_s"] for r in every)),
-            **({"ccd": summarise_ccd(ccd)} if ccd else {})}
+            **({"ccd": summarise_ccd(ccd)} if ccd else {}),
+            **({"well": summarise_ccd(well)} if well else {})}
 
 
 def summarise_ccd(results: list[dict]) -> dict:
@@ -1230,6 +1296,8 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
         lines.append("")
     if summary.get("ccd"):
         lines += markdown_ccd(summary["ccd"])
+    if summary.get("well"):
+        lines += markdown_ccd(summary["well"], well=True)
     lines += ["Named right, by size (single library effects):", "",
               "| multiple of the detection limit | " + " | ".join(
                   f"{m}x" for m in MULTIPLES) + " |",
@@ -1268,13 +1336,16 @@ def markdown(summary: dict, shared: list[dict], how: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def markdown_ccd(ccd: dict) -> list[str]:
-    """The lines of the linear-sensor stream's table (:func:`summarise_ccd`).
+def markdown_ccd(ccd: dict, well: bool = False) -> list[str]:
+    """The lines of the linear-sensor stream's table (:func:`summarise_ccd`), or with ``well``
+    of the full-well stream's (:func:`well_case_spec`).
 
     Parameters
     ----------
     ccd : dict
         From :func:`summarise_ccd`.
+    well : bool
+        The full-well stream.
 
     Returns
     -------
@@ -1283,8 +1354,12 @@ def markdown_ccd(ccd: dict) -> list[str]:
     def count(d):
         return ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in sorted(d.items())) or "-"
 
-    lines = [f"A linear sensor with an exposure offset and a soft well compression (seeds from "
-             f"{CLASS2_SEED0}; no leakage; 10-14 bit, exposure sweeps at one light level or "
+    head = (f"The same linear sensor whose well fills below the ADC's range (seeds from "
+            f"{CLASS3_SEED0}; a plateau at 55-95 % of the range, hard or soft, with the read "
+            "noise after it" if well else
+            f"A linear sensor with an exposure offset and a soft well compression (seeds from "
+            f"{CLASS2_SEED0}")
+    lines = [f"{head}; no leakage; 10-14 bit, exposure sweeps at one light level or "
              "several, sorted or shuffled, with or without darks, 2-4 frames per step; offsets "
              "0.2-2 % of the longest exposure, compressions 0.5-4 % at 85 % of the range; "
              "right: " + ", ".join(f"{k.replace('_', ' ')}: "
@@ -1306,8 +1381,9 @@ def markdown_ccd(ccd: dict) -> list[str]:
 def _class_label(r):
     """The row of a case in the before/after tables: its class (outside ones marked)."""
     t = r["truth"]
-    if t.get("stream") == 5:
-        return "linear sensor: " + t["class"].replace("_", " ")
+    if t.get("stream") in (5, 6):
+        return ("linear sensor" + (", full well" if t["stream"] == 6 else "") + ": "
+                + t["class"].replace("_", " "))
     if t["kind"] == "clean":
         return "clean"
     name = t["effects"][0]["name"]
@@ -1439,6 +1515,10 @@ def main(argv=None) -> int:
                     help="also the first CLASSES2 seeds of the linear-sensor stream (an exposure "
                          f"offset and a soft well compression, from {CLASS2_SEED0}; half of them "
                          "in each half)")
+    ap.add_argument("--classes3", type=int, default=0,
+                    help="also the first CLASSES3 seeds of the full-well stream (the linear "
+                         "sensor whose well fills below the ADC's range, from "
+                         f"{CLASS3_SEED0}; half of them in each half)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--json", type=Path, help="write every case and the summary here")
     ap.add_argument("--page", type=Path, help="write the tables into this Markdown page")
@@ -1468,7 +1548,7 @@ def main(argv=None) -> int:
         saved = json.loads(args.from_json.read_text())
         results = saved["cases"]
     else:
-        results = run(seeds(args.half, args.cases, args.classes, args.classes2),
+        results = run(seeds(args.half, args.cases, args.classes, args.classes2, args.classes3),
                       jobs=args.jobs, progress=progress)
     summary = summarise(results)
     shared = shared_rows(args.data) if args.page else []
@@ -1476,6 +1556,7 @@ def main(argv=None) -> int:
     how = (f"Measured by `python3 -m hsiffc.diagnose.evaluation --half {args.half} --cases "
            f"{args.cases}{' --classes ' + str(args.classes) if args.classes else ''}"
            f"{' --classes2 ' + str(args.classes2) if args.classes2 else ''}"
+           f"{' --classes3 ' + str(args.classes3) if args.classes3 else ''}"
            f"{' --jobs ' + str(args.jobs) if args.jobs > 1 else ''} --page "
            f"docs/diagnose.md` on {platform.machine()}, {platform.python_version()}: "
            f"{summary['n_cases']} sweeps of the {args.half} half ({SHAPE[0]} x {SHAPE[1]} px, "
