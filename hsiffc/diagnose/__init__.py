@@ -48,9 +48,9 @@ from .fitdata import Data
 from .fitting import (State, context, describe_params, fitpredict, gram, projector, refit_base,
                       separable_fraction)
 from .result import Diagnosis, ResidualArrays
-from .select import (RULE, UNEXPLAINED_OF_FLOOR, Fitted, equally_good, evaluate, greedy,
-                     improves, leakage_check, leakage_stand_in, offset_left, offset_stand_in,
-                     paired)
+from .select import (RULE, UNEXPLAINED_OF_FLOOR, Fitted, equally_good, evaluate,
+                     frame_constant_stand_in, greedy, improves, leakage_check, leakage_stand_in,
+                     offset_left, offset_stand_in, paired)
 from .structure import groupings, structure
 
 __all__ = ["diagnose", "Diagnosis", "EFFECTS", "NoiseModel", "OUTSIDE", "Samples", "inject",
@@ -637,6 +637,10 @@ def _verdict(final: Fitted, check: ResidualCheck, data: Data, scale: dict, lin_f
     # an effect that stands in for an offset common to the pixels of a frame
     offsets = {e["name"]: p for e in chosen if not e["stand_in_for_unexplained"]
                and (p := offset_stand_in(final, e["name"], data))}
+    if not offsets:  # effects whose part that differs between a frame's pixels is not there
+        flat = frame_constant_stand_in(
+            final, [e["name"] for e in chosen if not e["stand_in_for_unexplained"]], data)
+        offsets = dict.fromkeys(flat["effects"], flat) if flat else {}
     left = offset_left(final, data, floor_after)
     # the leakage base taking up an offset common to the pixels of a frame
     leak_in = (leakage_stand_in(final, lin_fit, sh_fit, data, floor_after) if lin_fit is not None

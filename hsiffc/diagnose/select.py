@@ -10,7 +10,7 @@ import numpy as np
 from scipy import stats
 
 from .effects import EFFECTS, FRAME_SIGNAL_OFFSET, OFFSET_PROBES, SMOOTH_PROBES
-from .effectfit import fit_effect, frame_regression, projector
+from .effectfit import fit_effect, frame_regression, gram, projector
 from .fitting import Data, State, context, describe_params, fitpredict, pair_regression
 
 SELECT_SIGMAS = 5.0  # held-out improvement needed, in standard errors of the paired difference
@@ -18,6 +18,13 @@ MIN_GAIN_OF_NOISE = 0.08  # ... and at least this fraction of the noise floor, a
 MIN_EXPLAINED = 0.5  # ... and at least this fraction of the current systematic error
 TIE_SIGMAS = 2.0  # two models whose held-out errors differ by less are equally good
 LEFT_OFFSET_OF_FLOOR = 0.135  # an offset per step left counts above this RMS (of the noise)
+#: effects a black-level clamp is taken for (an offset common to the pixels of a frame), whose
+#: part that differs between the pixels of a frame the pixels must show
+#: (:func:`frame_constant_stand_in`)
+WITHIN_FRAME_TESTED = ("readout_nonlinearity", "illumination_error", "lamp_drift",
+                       "frame_flicker")
+WITHIN_FRAME_SIGMAS = 3.0  # the pixels of a frame refute that part by this many standard errors
+WITHIN_FRAME_MAX_BETA = 0.25  # ... and show at most this fraction of it
 PROBE_OF_DISTINCT = 0.75  # an offset probe must beat its effect by this fraction of the part
 # of the effect that differs between the pixels of a frame (about 1 where the offset is true,
 # about -1 where the effect is)
@@ -762,6 +769,104 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
                        f"{np.sqrt(gain) / noise_floor:.2g} of the noise floor as an RMS, and "
                        "passes the selection rule): the library does not describe it (a "
                        "black-level clamp that follows the frame's signal is one such effect)")}
+
+
+def _step_columns(effect, ctx):
+    """The columns of a sensor-wide effect (P, S, m), or of a per-step or per-frame one with
+    one column for each light step (its factor there)."""
+    x = effect.columns(ctx)
+    if effect.scope == "global":
+        return x
+    light = np.flatnonzero(ctx.light)
+    out = np.zeros(x.shape[:2] + (light.size,))
+    out[:, light, np.arange(light.size)] = x[:, light, 0]
+    return out
+
+
+def frame_constant_stand_in(fitted: Fitted, names, data: Data):
+    """Do the pixels of a frame show the part of effects ``names`` that differs between them?
+
+    A black-level clamp moves every pixel of a frame by the same DN; a light error, a flicker
+    or a lamp drift scales each pixel's own light signal, and a readout nonlinearity bends it
+    by its own signal, so between the pixels of one frame (PRNU, the bands of a mosaic, a
+    non-uniform light) these effects differ and a clamp does not. Their summed prediction
+    ``u`` (fit half, DN) is fitted to what the other effects leave, beside one offset per
+    light step common to the pixels and the base (linearised): the offsets take the part of
+    ``u`` common to a frame, so its coefficient ``beta`` is measured on the part that differs
+    between a frame's pixels alone. Where the effects are true ``beta`` is 1; where they stand
+    in for an offset common to the pixels of a frame, 0. They are stand-ins where ``beta`` is
+    below ``WITHIN_FRAME_MAX_BETA`` and ``WITHIN_FRAME_SIGMAS`` standard errors below 1 (the
+    standard error from the scatter about the fit; the other selected effects are fitted
+    jointly, free, as nuisances). Where the pixels of a frame see nearly one signal the standard
+    error is large and nothing is decided, and so it is on the per-pixel leakage base: there
+    the part of ``u`` that differs between the pixels follows each pixel's fitted leakage
+    shape, whose noise pulls ``beta`` towards 0 (errors in the variables: development seed
+    464, a true light error at 5x on a 16-bit sensor driven into its leakage, 0.11 +- 0.14);
+    on the linear base and the one with one leakage shape for the sensor it follows each
+    pixel's gain, which the sweep measures well. All of ``names`` are judged together: a light error
+    beside a readout nonlinearity takes the part of the nonlinearity that a per-step slope in
+    the pixel's signal can (development seeds 100976 and 102068, black clamps).
+
+    Parameters
+    ----------
+    fitted : Fitted
+        The selected model.
+    names : sequence of str
+        Its effects to judge (those of ``WITHIN_FRAME_TESTED`` are).
+    data : Data
+        The samples.
+
+    Returns
+    -------
+    dict or None
+        ``beta``, ``standard_error``, ``effects`` (those judged) and ``reason``; None where
+        the pixels of a frame do not refute them.
+    """
+    names = [n for n in names if n in WITHIN_FRAME_TESTED and n in fitted.state.effects]
+    light = np.flatnonzero(data.light)
+    if not names or light.size == 0 or fitted.state.base.name == "leakage":
+        return None
+    st = fitted.state
+    m, jac, ctx = context(st.base, st.theta, data)
+    # the other effects are nuisances, fitted jointly: a per-pixel one with the base, the
+    # others beside the offsets
+    others = [EFFECTS[n] for n in fitted.names if n not in names and EFFECTS[n].scope != "pair"]
+    jac = np.concatenate([jac] + [e.columns(ctx) for e in others if e.scope == "pixel"], axis=-1)
+    extra = [_step_columns(e, ctx) for e in others if e.scope != "pixel"]
+    # one weight a step (the median of its pixels'): a handful of pixels whose noise model
+    # gives them a variance near zero held 95 % of the weight of a frame (development seed
+    # 100088, a flicker, at 1.4 ms), and the comparison is between the pixels of a frame
+    w = np.where(data.valid, [np.median(data.w[v, s]) if v.any() else 0.0
+                              for s, v in enumerate(data.valid.T)], 0.0)
+    project = projector(jac, w)
+    u = sum(st.effects[n][1] for n in names)
+    res = np.where(data.valid, data.y - m - st.sum_effects(m.shape) + u, 0.0)
+    cols = np.zeros(m.shape + (light.size,))
+    cols[:, light, np.arange(light.size)] = 1.0  # one offset per light step
+    cols = np.concatenate([cols] + extra + [u[..., None]], axis=-1)
+    z = project(cols)
+    a = gram(z, w, z).sum(axis=0)
+    a += 1e-12 * np.trace(a) / a.shape[0] * np.eye(a.shape[0])
+    coef = np.linalg.lstsq(a, gram(z, w, project(res)[..., None]).sum(axis=0)[:, 0],
+                           rcond=None)[0]
+    left = project(res) - z @ coef
+    dof = int(data.valid.sum()) - jac.shape[-1] * m.shape[0] - a.shape[0]
+    if dof < 1:
+        return None
+    scale2 = float((w * left ** 2).sum()) / dof
+    se = float(np.sqrt(max(np.linalg.pinv(a)[-1, -1] * scale2, 0.0)))
+    beta = float(coef[-1])
+    if not (np.isfinite(beta) and se > 0 and beta < WITHIN_FRAME_MAX_BETA
+            and 1 - beta > WITHIN_FRAME_SIGMAS * se):
+        return None
+    what = " and ".join(names)
+    return {"beta": beta, "standard_error": se, "effects": names, "reason": (
+        f"the pixels of a frame do not show what {what} predict{'s' if len(names) == 1 else ''} "
+        f"between them: fitted beside an offset per light step common to the pixels, the "
+        f"data take {beta:.2f} +- {se:.2f} of that part where the effect needs 1 "
+        f"({(1 - beta) / se:.1f} standard errors below): what it explains is an offset the same "
+        "for every pixel of a frame, such as a black-level clamp that follows the frame's "
+        "signal, which the library does not describe")}
 
 
 def leakage_stand_in(final: Fitted, linear: Fitted, shared: Fitted | None, data: Data,
