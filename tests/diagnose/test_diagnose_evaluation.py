@@ -240,8 +240,8 @@ def test_full_evaluation_half(tmp_path):
     from pathlib import Path
 
     out = tmp_path / "eval.json"
-    assert ev.main(["--half", "eval", "--cases", "1", "--classes", "224", "--classes2", "80",
-                    "--jobs", "2", "--json", str(out)]) == 0
+    assert ev.main(["--half", "eval", "--cases", "1", "--classes", "336", "--classes2", "80",
+                    "--classes3", "40", "--jobs", "2", "--json", str(out)]) == 0
     summary = json.loads(out.read_text())["summary"]
     sc = summary["scores"]
     # issue 53: every case reported unexplained labels its selected effects stand-ins
