@@ -50,7 +50,7 @@ from .fitting import (State, context, describe_params, fitpredict, gram, project
 from .result import Diagnosis, ResidualArrays
 from .select import (RULE, UNEXPLAINED_OF_FLOOR, Fitted, equally_good, evaluate,
                      frame_constant_stand_in, greedy, improves, leakage_check, leakage_stand_in,
-                     offset_left, offset_stand_in, paired)
+                     offset_left, offset_stand_in, paired, refit)
 from .structure import groupings, structure
 
 __all__ = ["diagnose", "Diagnosis", "EFFECTS", "NoiseModel", "OUTSIDE", "Samples", "inject",
@@ -569,8 +569,7 @@ def _search_bases(problem: Problem, s: Samples, base, theta, base_fit, noise_flo
     if final.state.base.name == "leakage" and "pixel_nonlinearity" not in final.names:
         # not tried next to a per-pixel nonlinearity, which says that the bend differs from
         # pixel to pixel
-        sh_final = (evaluate(fitpredict(final.names, data, sh_state), final.names, data, n_pix,
-                             n_light) if final.names else sh_fit)
+        sh_final = (refit(final.names, data, sh_state, n_pix, n_light) if final.names else sh_fit)
         if sh_final.bic < final.bic and equally_good(final, sh_final, valid_ho, result.floor):
             per_pixel = (final, result.start)
             result = replace(result, final=sh_final, start=sh_fit)

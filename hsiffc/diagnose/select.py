@@ -141,6 +141,31 @@ def evaluate(state: State, names, data: Data, n_pix: int, n_light: int) -> Fitte
     return Fitted(state, list(names), res, mse if np.isfinite(mse) else np.inf, float(bic), k)
 
 
+def refit(names, data: Data, state: State, n_pix: int, n_light: int, quick=False) -> Fitted:
+    """The model with effects ``names`` fitted from ``state``
+    (:func:`~hsiffc.diagnose.fitting.fitpredict`) and scored on the held-out half
+    (:func:`evaluate`): what every comparison of two models fits.
+
+    Parameters
+    ----------
+    names : sequence of str
+        The effects.
+    data : Data
+        The samples.
+    state : State
+        Where the fit starts.
+    n_pix, n_light : int
+        Pixels analysed and light steps (for the BIC).
+    quick : bool
+        A trial fit (fewer rounds).
+
+    Returns
+    -------
+    Fitted
+    """
+    return evaluate(fitpredict(names, data, state, quick=quick), names, data, n_pix, n_light)
+
+
 def paired(a: Fitted, b: Fitted, valid_ho):
     """Mean and standard error of the held-out squared-error gain of b over a.
 
@@ -444,8 +469,7 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         for name in names:
             if name in current.names:
                 continue
-            trial = evaluate(fitpredict(current.names + [name], data, current.state, quick=True),
-                             current.names + [name], data, n_pix, n_light)
+            trial = refit(current.names + [name], data, current.state, n_pix, n_light, quick=True)
             entry, beats = _tried(current, trial, name, data, noise_floor, label, round_)
             candidates.append(entry)
             if beats:
@@ -491,8 +515,7 @@ def greedy(start: Fitted, names, data: Data, noise_floor: float, n_pix: int, n_l
         # the next round's trials each get a linearised base step from this fit: so does the
         # model they are measured against (a base fit short of its optimum would credit that
         # step to whichever effect is tried next)
-        current = evaluate(fitpredict(chosen, data, full, quick=True), chosen, data, n_pix,
-                           n_light)
+        current = refit(chosen, data, full, n_pix, n_light, quick=True)
         if refloor is not None:
             noise_floor = refloor(current, floor0)
     return backward(current, start, data, floor0, n_pix, n_light, candidates, label, refloor)
@@ -544,13 +567,12 @@ def _sensor_wide_rival(current: Fitted, best: tuple, names, data: Data, noise_fl
     """
     step_name = best[1]["name"]
     chosen = current.names + [step_name]
-    step_full = evaluate(fitpredict(chosen, data, current.state), chosen, data, n_pix, n_light)
+    step_full = refit(chosen, data, current.state, n_pix, n_light)
     rivals = []
     for name in names:
         if name in current.names or EFFECTS[name].scope != "global":
             continue
-        trial = evaluate(fitpredict(current.names + [name], data, current.state),
-                         current.names + [name], data, n_pix, n_light)
+        trial = refit(current.names + [name], data, current.state, n_pix, n_light)
         entry, beats = _tried(current, trial, name, data, noise_floor, label, round_)
         entry["fit"] = f"to convergence, as a rival of {step_name}"
         candidates.append(entry)
@@ -910,8 +932,8 @@ def leakage_stand_in(final: Fitted, linear: Fitted, shared: Fitted | None, data:
     def with_effects(start: Fitted) -> Fitted:
         if not final.names:
             return start
-        st = fitpredict(final.names, data, start.state, quick=True)
-        return evaluate(st, final.names, data, 1, 1)
+        return refit(final.names, data, start.state, data.y.shape[0], int(data.light.sum()),
+                     quick=True)
     trial = _probe_added(with_effects(linear).state, FRAME_SIGNAL_OFFSET, data)
     leak = final if final.state.base.name != "leakage" else with_effects(shared)
     gain, se = min(paired(final, trial, data.valid_ho), paired(leak, trial, data.valid_ho),
@@ -965,12 +987,10 @@ def backward(current: Fitted, start: Fitted, data: Data, noise_floor: float, n_p
         for name in current.names:
             rest = [n for n in current.names if n != name]
             full = fitpredict(rest, data, start.state)
-            without = evaluate(fitpredict(rest, data, full, quick=True), rest, data, n_pix,
-                               n_light)
+            without = refit(rest, data, full, n_pix, n_light, quick=True)
             # the effect added back as the forward search adds one (a quick fit from the model
             # without it), so that it is judged by the rule that let it in
-            back = evaluate(fitpredict(current.names, data, without.state, quick=True),
-                            current.names, data, n_pix, n_light)
+            back = refit(current.names, data, without.state, n_pix, n_light, quick=True)
             reduced[name] = without
             gain, se = paired(without, back, data.valid_ho)
             floor = noise_floor if refloor is None else refloor(without, noise_floor)
@@ -1069,8 +1089,7 @@ def linear_with_offset(alt: Fitted, linear_start: Fitted, names, data: Data, n_p
     if "exposure_offset" not in names or "exposure_offset" in alt.names:
         return alt
     with_offset = alt.names + ["exposure_offset"]
-    trial = evaluate(fitpredict(with_offset, data, linear_start.state), with_offset, data,
-                     n_pix, n_light)
+    trial = refit(with_offset, data, linear_start.state, n_pix, n_light)
     return trial if trial.mse < alt.mse else alt
 
 
@@ -1104,8 +1123,7 @@ def refit_from_start(fitted: Fitted, start: Fitted, data: Data, n_pix: int,
     """
     if len(fitted.names) < 2:
         return fitted
-    fresh = evaluate(fitpredict(fitted.names, data, start.state), fitted.names, data, n_pix,
-                     n_light)
+    fresh = refit(fitted.names, data, start.state, n_pix, n_light)
     return fresh if fresh.mse < fitted.mse else fitted
 
 
@@ -1198,8 +1216,7 @@ def leakage_check(leak: Fitted, linear_start: Fitted, names, data: Data, noise_f
             f"{rn} is not a candidate, or not identifiable next to a linear response"))
         return leak, out
     alt_names = [n for n in leak.names if n in names and n != rn] + [rn]
-    alt = evaluate(fitpredict(alt_names, data, linear_start.state), alt_names, data, n_pix,
-                   n_light)
+    alt = refit(alt_names, data, linear_start.state, n_pix, n_light)
     if not equally_good(leak, alt, data.valid_ho, noise_floor):
         alt = linear_with_offset(alt, linear_start, names, data, n_pix, n_light)
     if not equally_good(leak, alt, data.valid_ho, noise_floor):
