@@ -531,7 +531,7 @@ def _measure_noise(s: Samples, data: Data, base, theta):
     return noise, theta
 
 
-def _search_bases(problem: Problem, s: Samples, base, theta, base_fit, noise_floor, use_dc):
+def _search_bases(problem: Problem, base, theta, base_fit, noise_floor, use_dc):
     """The search from the base (:func:`search`), and for a leakage base from the same model
     with one leakage shape for the sensor too: that one first where the per-pixel model
     predicts the held-out data measurably worse (it follows the noise of the fit half: a base
@@ -548,8 +548,8 @@ def _search_bases(problem: Problem, s: Samples, base, theta, base_fit, noise_flo
     sh_state = sh_fit = None
     if base.name == "leakage":
         shared = SharedLeakageBase(use_dc, dark_leaks=base.dark_leaks)
-        shared.full_scale = s.fs
-        sh_state = State(shared, shared.start(data.y, data.t, data.r, s.valid, s.w,
+        shared.full_scale = data.full_scale
+        sh_state = State(shared, shared.start(data.y, data.t, data.r, data.valid, data.w,
                                                per_pixel=theta))
         sh_fit = evaluate(refit_base(data.y, data, sh_state), [], data, n_pix, n_light)
         if not equally_good(sh_fit, base_fit, valid_ho, noise_floor):
@@ -576,14 +576,14 @@ def _search_bases(problem: Problem, s: Samples, base, theta, base_fit, noise_flo
     return result, per_pixel, sh_fit
 
 
-def _leakage_or_not(problem: Problem, s: Samples, result: Search, use_dc):
+def _leakage_or_not(problem: Problem, result: Search, use_dc):
     """Is the bending of the response leakage at all? The selected model against a linear base
     with its own candidates (:func:`~hsiffc.diagnose.select.leakage_check`). Returns the search
     with the model kept (its skipped, weak and ambiguous effects those of the linear base where
     that wins), the leakage verdict and the linear base's fit."""
     data, n_pix, n_light = problem.data, problem.n_pix, problem.n_light
     lin = LinearBase(use_dc)
-    lin_state = State(lin, lin.start(data.y, data.t, data.r, s.valid, s.w))
+    lin_state = State(lin, lin.start(data.y, data.t, data.r, data.valid, data.w))
     # the same linearised base step as the leakage bases and every trial fit get
     lin_fit = evaluate(refit_base(data.y, data, lin_state), [], data, n_pix, n_light)
     skipped_lin, testable_lin, weak_lin = _identifiable(problem.names, lin, lin_state.theta,
@@ -728,11 +728,10 @@ def diagnose(sweep: Sweep, *, max_pixels: int = 2048, seed: int = 0, effects=Non
             base, theta, start, base_fit, data, noise_floor, n_pix, n_light, dark_desc)
         noise_floor = noise.floor(_prediction_variance(base, theta, data), valid_ho)
     problem = Problem(data, des, dark_desc, names, n_pix, n_light, noise)
-    result, per_pixel, sh_fit = _search_bases(problem, s, base, theta, base_fit, noise_floor,
-                                              use_dc)
+    result, per_pixel, sh_fit = _search_bases(problem, base, theta, base_fit, noise_floor, use_dc)
     leakage, lin_fit = {"verdict": "not tested", "reason": "the base model is linear"}, None
     if base.name in ("leakage", "shared leakage"):
-        result, leakage, lin_fit = _leakage_or_not(problem, s, result, use_dc)
+        result, leakage, lin_fit = _leakage_or_not(problem, result, use_dc)
     final, base_fit, noise_floor = result.final, result.start, result.floor
     check = residual_check(problem, final, s.rows, s.cols, s.band, noise_floor, seed)
     if (check.structured or check.too_big(final)) and per_pixel is not None \

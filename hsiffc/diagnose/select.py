@@ -793,16 +793,21 @@ def offset_left(fitted: Fitted, data: Data, noise_floor: float):
                        "black-level clamp that follows the frame's signal is one such effect)")}
 
 
+def _per_light_step(x, light):
+    """(P, S, L): column ``i`` holds ``x`` (P, S) at the ``i``-th light step (indices
+    ``light``) and zero elsewhere."""
+    out = np.zeros(x.shape + (light.size,))
+    out[:, light, np.arange(light.size)] = x[:, light]
+    return out
+
+
 def _step_columns(effect, ctx):
     """The columns of a sensor-wide effect (P, S, m), or of a per-step or per-frame one with
     one column for each light step (its factor there)."""
     x = effect.columns(ctx)
     if effect.scope == "global":
         return x
-    light = np.flatnonzero(ctx.light)
-    out = np.zeros(x.shape[:2] + (light.size,))
-    out[:, light, np.arange(light.size)] = x[:, light, 0]
-    return out
+    return _per_light_step(x[..., 0], np.flatnonzero(ctx.light))
 
 
 def frame_constant_stand_in(fitted: Fitted, names, data: Data):
@@ -863,15 +868,13 @@ def frame_constant_stand_in(fitted: Fitted, names, data: Data):
     project = projector(jac, w)
     u = sum(st.effects[n][1] for n in names)
     res = np.where(data.valid, data.y - m - st.sum_effects(m.shape) + u, 0.0)
-    cols = np.zeros(m.shape + (light.size,))
-    cols[:, light, np.arange(light.size)] = 1.0  # one offset per light step
-    cols = np.concatenate([cols] + extra + [u[..., None]], axis=-1)
-    z = project(cols)
+    offsets = _per_light_step(np.ones(m.shape), light)  # one offset per light step
+    z = project(np.concatenate([offsets] + extra + [u[..., None]], axis=-1))
     a = gram(z, w, z).sum(axis=0)
     a += 1e-12 * np.trace(a) / a.shape[0] * np.eye(a.shape[0])
-    coef = np.linalg.lstsq(a, gram(z, w, project(res)[..., None]).sum(axis=0)[:, 0],
-                           rcond=None)[0]
-    left = project(res) - z @ coef
+    pres = project(res)
+    coef = np.linalg.lstsq(a, gram(z, w, pres[..., None]).sum(axis=0)[:, 0], rcond=None)[0]
+    left = pres - z @ coef
     dof = int(data.valid.sum()) - jac.shape[-1] * m.shape[0] - a.shape[0]
     if dof < 1:
         return None
